@@ -1,0 +1,1 @@
+"""Benchmarks: commands that measure speed and accuracy (never timed tests)."""

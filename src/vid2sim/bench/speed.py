@@ -1,0 +1,43 @@
+"""``vid2sim bench speed``: one JSON object of timings for the simulator and the renderer."""
+
+from __future__ import annotations
+
+import platform
+from typing import Any, Callable
+
+import torch
+
+from vid2sim.bench.timing import resolve_device
+
+
+def _sections() -> dict[str, Callable[..., dict[str, Any]]]:
+    from vid2sim.bench import physics_speed
+
+    sections: dict[str, Callable[..., dict[str, Any]]] = {"physics": physics_speed.run}
+    try:
+        from vid2sim.bench import render_speed
+    except ImportError:  # the renderer's benchmark lands with the splats layer
+        return sections
+    sections["render"] = render_speed.run
+    return sections
+
+
+def run_speed_benchmark(
+    device: str | None = None, sections: list[str] | None = None, quick: bool = False
+) -> dict[str, Any]:
+    """Run the named benchmark sections (all by default) and return their figures in one dict."""
+    dev = resolve_device(device)
+    available = _sections()
+    names = list(available) if not sections else sections
+    unknown = [n for n in names if n not in available]
+    if unknown:
+        raise ValueError(f"unknown benchmark section(s) {unknown}; expected some of {sorted(available)}")
+    result: dict[str, Any] = {
+        "device": str(dev),
+        "device_name": torch.cuda.get_device_name(dev) if dev.type == "cuda" else platform.processor() or platform.machine(),
+        "torch": torch.__version__,
+        "threads": torch.get_num_threads(),
+    }
+    for name in names:
+        result.update(available[name](dev, quick=quick))
+    return result

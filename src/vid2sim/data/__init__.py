@@ -1,0 +1,1 @@
+"""Scene folders, video I/O and the synthetic benchmark generator."""

@@ -1,0 +1,1 @@
+"""Mesh-free reduced-order simulation: skinning field, materials, external energies, implicit Euler, adjoint, Neural Jacobian."""
