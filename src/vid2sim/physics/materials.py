@@ -1,0 +1,150 @@
+"""Hyperelastic energy densities Ψ(F) with analytic first Piola–Kirchhoff stress and tangent.
+
+All functions are batched over points: ``F: (N, 3, 3)``; Lamé parameters are Python floats or 0-d
+tensors (differentiable). Tangents are returned as ``(N, 9, 9)`` with
+``C[n, 3*i + j, 3*k + l] = ∂P_ij / ∂F_kl`` (row-major flattening of F, as everywhere in vid2sim).
+
+Models (paper, supplementary "Generalized to Different Materials"):
+
+- Neo-Hookean:  Ψ = μ/2 (tr FᵀF − 3) − μ ln J + λ/2 (ln J)²
+- StVK:         Ψ = μ tr(G²) + λ/2 tr(G)²,  G = ½ (FᵀF − I)
+"""
+
+from __future__ import annotations
+
+from typing import Union
+
+import torch
+from torch import Tensor
+
+Scalar = Union[float, Tensor]
+
+
+def lame_parameters(youngs_modulus: Scalar, poisson_ratio: Scalar) -> tuple[Scalar, Scalar]:
+    """Lamé parameters (μ, λ) from Young's modulus E > 0 and Poisson's ratio −1 < ν < 0.5.
+
+    μ = E / (2(1+ν)),  λ = E ν / ((1+ν)(1−2ν)). Differentiable when given tensors.
+    """
+    e = float(youngs_modulus.detach()) if isinstance(youngs_modulus, Tensor) else float(youngs_modulus)
+    nu = float(poisson_ratio.detach()) if isinstance(poisson_ratio, Tensor) else float(poisson_ratio)
+    if not e > 0 or e != e or e == float("inf"):
+        raise ValueError(f"Young's modulus E must be a finite positive number, got {e}")
+    if not (-1.0 < nu < 0.5):
+        raise ValueError(f"Poisson's ratio nu must satisfy -1 < nu < 0.5, got {nu}")
+    mu = youngs_modulus / (2.0 * (1.0 + poisson_ratio))
+    lam = youngs_modulus * poisson_ratio / ((1.0 + poisson_ratio) * (1.0 - 2.0 * poisson_ratio))
+    return mu, lam
+
+
+def _check_F(F: Tensor) -> None:
+    if F.ndim != 3 or F.shape[1:] != (3, 3):
+        raise ValueError(f"deformation gradients F must have shape (N, 3, 3), got {tuple(F.shape)}")
+
+
+# ---- Neo-Hookean -------------------------------------------------------------------------------
+
+def neo_hookean_energy_density(F: Tensor, mu: Scalar, lam: Scalar) -> Tensor:
+    """Ψ(F) per point, (N,). Requires det F > 0 (returns NaN otherwise; the solver never goes there)."""
+    _check_F(F)
+    ic = (F * F).sum(dim=(1, 2))
+    logj = torch.log(torch.linalg.det(F))
+    return 0.5 * mu * (ic - 3.0) - mu * logj + 0.5 * lam * logj * logj
+
+
+def neo_hookean_pk1(F: Tensor, mu: Scalar, lam: Scalar) -> Tensor:
+    """First Piola–Kirchhoff stress P = ∂Ψ/∂F = μ(F − F⁻ᵀ) + λ ln J F⁻ᵀ, (N, 3, 3)."""
+    _check_F(F)
+    finv_t = torch.linalg.inv(F).transpose(1, 2)
+    logj = torch.log(torch.linalg.det(F))[:, None, None]
+    return mu * (F - finv_t) + lam * logj * finv_t
+
+
+def neo_hookean_tangent(F: Tensor, mu: Scalar, lam: Scalar) -> Tensor:
+    """∂P/∂F, (N, 9, 9): μ δ_ik δ_jl + (μ − λ ln J) F⁻¹_jk F⁻¹_li + λ F⁻¹_ji F⁻¹_lk."""
+    _check_F(F)
+    n = F.shape[0]
+    finv = torch.linalg.inv(F)
+    logj = torch.log(torch.linalg.det(F))
+    eye9 = torch.eye(9, dtype=F.dtype, device=F.device)
+    # term (μ − λ ln J) F⁻¹_jk F⁻¹_li  → index [i, j, k, l]
+    swap = torch.einsum("njk,nli->nijkl", finv, finv).reshape(n, 9, 9)
+    # term λ F⁻¹_ji F⁻¹_lk = λ vec(F⁻ᵀ) vec(F⁻ᵀ)ᵀ
+    finv_t = finv.transpose(1, 2).reshape(n, 9)
+    outer = finv_t[:, :, None] * finv_t[:, None, :]
+    coef = (mu - lam * logj)[:, None, None]
+    return mu * eye9 + coef * swap + lam * outer
+
+
+# ---- St. Venant–Kirchhoff ----------------------------------------------------------------------
+
+def _green_strain(F: Tensor) -> Tensor:
+    eye = torch.eye(3, dtype=F.dtype, device=F.device)
+    return 0.5 * (F.transpose(1, 2) @ F - eye)
+
+
+def stvk_energy_density(F: Tensor, mu: Scalar, lam: Scalar) -> Tensor:
+    """Ψ(F) = μ tr(G²) + λ/2 tr(G)², (N,)."""
+    _check_F(F)
+    G = _green_strain(F)
+    tr = G.diagonal(dim1=1, dim2=2).sum(-1)
+    return mu * (G * G).sum(dim=(1, 2)) + 0.5 * lam * tr * tr
+
+
+def stvk_pk1(F: Tensor, mu: Scalar, lam: Scalar) -> Tensor:
+    """P = F S with S = 2μ G + λ tr(G) I, (N, 3, 3)."""
+    _check_F(F)
+    G = _green_strain(F)
+    eye = torch.eye(3, dtype=F.dtype, device=F.device)
+    S = 2.0 * mu * G + lam * G.diagonal(dim1=1, dim2=2).sum(-1)[:, None, None] * eye
+    return F @ S
+
+
+def stvk_tangent(F: Tensor, mu: Scalar, lam: Scalar) -> Tensor:
+    """∂P/∂F, (N, 9, 9): δ_ik S_lj + μ (F_il F_kj + (F Fᵀ)_ik δ_lj) + λ F_ij F_kl."""
+    _check_F(F)
+    n = F.shape[0]
+    G = _green_strain(F)
+    eye = torch.eye(3, dtype=F.dtype, device=F.device)
+    S = 2.0 * mu * G + lam * G.diagonal(dim1=1, dim2=2).sum(-1)[:, None, None] * eye
+    t1 = torch.einsum("ik,nlj->nijkl", eye, S)
+    t2 = torch.einsum("nil,nkj->nijkl", F, F)
+    t3 = torch.einsum("nik,lj->nijkl", F @ F.transpose(1, 2), eye)
+    fv = F.reshape(n, 9)
+    outer = fv[:, :, None] * fv[:, None, :]
+    return (t1 + mu * (t2 + t3)).reshape(n, 9, 9) + lam * outer
+
+
+# ---- model table and PSD projection -------------------------------------------------------------
+
+ELASTIC_MODELS = {
+    "neo_hookean": (neo_hookean_energy_density, neo_hookean_pk1, neo_hookean_tangent),
+    "stvk": (stvk_energy_density, stvk_pk1, stvk_tangent),
+}
+
+
+def elastic_model(name: str):
+    """(energy_density, pk1, tangent) functions of the named model ('neo_hookean' or 'stvk')."""
+    try:
+        return ELASTIC_MODELS[name]
+    except KeyError:
+        raise ValueError(f"unknown elastic model {name!r}; expected one of {sorted(ELASTIC_MODELS)}") from None
+
+
+def project_psd(H: Tensor, floor: float = 0.0) -> Tensor:
+    """Project symmetric matrices (N, d, d) to positive semi-definite by clamping eigenvalues at ``floor``.
+
+    Fast path: matrices whose Cholesky factorisation succeeds are positive definite and returned
+    unchanged; only the others go through an eigendecomposition.
+    """
+    if H.ndim != 3 or H.shape[1] != H.shape[2]:
+        raise ValueError(f"project_psd expects (N, d, d) matrices, got {tuple(H.shape)}")
+    H = 0.5 * (H + H.transpose(1, 2))
+    _, info = torch.linalg.cholesky_ex(H)
+    bad = info != 0
+    if not bool(bad.any()):
+        return H
+    evals, evecs = torch.linalg.eigh(H[bad])
+    fixed = (evecs * evals.clamp_min(floor)[:, None, :]) @ evecs.transpose(1, 2)
+    out = H.clone()
+    out[bad] = fixed
+    return out
