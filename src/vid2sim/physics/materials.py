@@ -12,6 +12,7 @@ Models (paper, supplementary "Generalized to Different Materials"):
 
 from __future__ import annotations
 
+import math
 from typing import Union
 
 import torch
@@ -130,17 +131,18 @@ def elastic_model(name: str):
         raise ValueError(f"unknown elastic model {name!r}; expected one of {sorted(ELASTIC_MODELS)}") from None
 
 
-def project_psd(H: Tensor, floor: float = 0.0) -> Tensor:
+def project_psd(H: Tensor, floor: float = 0.0, tolerance: float = 1e-6) -> Tensor:
     """Project symmetric matrices (N, d, d) to positive semi-definite by clamping eigenvalues at ``floor``.
 
-    Fast path: matrices whose Cholesky factorisation succeeds are positive definite and returned
-    unchanged; only the others go through an eigendecomposition.
+    Fast path: a matrix whose Cholesky factorisation succeeds after adding ``tolerance · max|diag|`` to
+    its diagonal has no eigenvalue below ``−tolerance · max|diag|`` and is returned unchanged (elastic
+    tangents are exactly singular in rotation directions at rest, so an exact test would send nearly
+    every point to the slow path for a change below round-off). Only the others are eigendecomposed.
     """
     if H.ndim != 3 or H.shape[1] != H.shape[2]:
         raise ValueError(f"project_psd expects (N, d, d) matrices, got {tuple(H.shape)}")
     H = 0.5 * (H + H.transpose(1, 2))
-    _, info = torch.linalg.cholesky_ex(H)
-    bad = info != 0
+    bad = ~_nearly_pd(H, tolerance)
     if not bool(bad.any()):
         return H
     evals, evecs = torch.linalg.eigh(H[bad])
@@ -148,3 +150,50 @@ def project_psd(H: Tensor, floor: float = 0.0) -> Tensor:
     out = H.clone()
     out[bad] = fixed
     return out
+
+
+def _neo_hookean_twist_fix(F: Tensor, C: Tensor, mu: Scalar, lam: Scalar) -> Tensor:
+    """Clamp the Neo-Hookean tangent's twist eigenvalues at 0, exactly and in closed form.
+
+    With F = U Σ Vᵀ, the tangent's eigenvectors include the three twist modes
+    D_ij = U (E_ij − E_ji) Vᵀ / √2 with eigenvalues μ − (μ − λ ln J)/(σ_i σ_j); these are the ones that
+    turn negative under compression. Adding |λ_ij| vec(D_ij) vec(D_ij)ᵀ for each negative one removes
+    them without touching the other modes. (Verified against a full eigendecomposition in the tests.)
+    """
+    U, S, Vh = torch.linalg.svd(F)
+    logj = torch.log(torch.linalg.det(F))
+    c = mu - lam * logj
+    out = C.clone()
+    for i, j in ((0, 1), (0, 2), (1, 2)):
+        ev = mu - c / (S[:, i] * S[:, j])
+        neg = (ev < 0).to(C.dtype)
+        D = (U[:, :, i, None] * Vh[:, None, j, :] - U[:, :, j, None] * Vh[:, None, i, :]) / math.sqrt(2.0)
+        d = D.reshape(-1, 9)
+        out = out + (-ev * neg)[:, None, None] * d[:, :, None] * d[:, None, :]
+    return out
+
+
+def project_tangent_psd(model: str, F: Tensor, C: Tensor, mu: Scalar, lam: Scalar, tolerance: float = 1e-6) -> Tensor:
+    """PSD projection of the tangent C = ∂P/∂F (N, 9, 9) of ``model`` at F (N, 3, 3).
+
+    Like :func:`project_psd`, with a closed-form fix for the Neo-Hookean twist modes applied first to the
+    matrices that fail the fast positive-definiteness test; any matrix still indefinite after it (e.g.
+    under very large expansion) goes through the general eigendecomposition.
+    """
+    C = 0.5 * (C + C.transpose(1, 2))
+    bad = ~_nearly_pd(C, tolerance)
+    if not bool(bad.any()):
+        return C
+    out = C.clone()
+    sub = C[bad]
+    if model == "neo_hookean":
+        sub = _neo_hookean_twist_fix(F[bad], sub, mu, lam)
+    out[bad] = project_psd(sub, tolerance=tolerance)
+    return out
+
+
+def _nearly_pd(H: Tensor, tolerance: float) -> Tensor:
+    shift = tolerance * H.diagonal(dim1=1, dim2=2).abs().amax(dim=1)
+    eye = torch.eye(H.shape[1], dtype=H.dtype, device=H.device)
+    _, info = torch.linalg.cholesky_ex(H + shift[:, None, None] * eye)
+    return info == 0
