@@ -947,7 +947,7 @@ def write_scene(
     overwrite: bool = False,
     *,
     layout: str = "rgba",
-    video_quality: float = 8.0,
+    video_quality: float = 9.0,
     progress: bool = False,
     workers: int | None = None,
 ) -> Path:
@@ -1090,7 +1090,7 @@ def _write_contents(
         videos = []
         for v in tqdm(range(V), desc="writing videos", disable=not progress, unit="camera"):
             pairs = [_straight_colour(scene.images[v, t], scene.masks[v, t]) for t in range(T)]
-            write_video(folder / "videos" / f"c{v:0{cw}d}.mp4", np.stack([p[0] for p in pairs]), scene.config.fps, quality=video_quality)
+            write_video(folder / "videos" / f"c{v:0{cw}d}.mp4", np.stack([p[0] for p in pairs]), scene.config.fps, quality=video_quality, full_chroma=True)
             write_video(folder / "videos" / f"c{v:0{cw}d}_mask.mp4", np.stack([p[1] for p in pairs]), scene.config.fps, lossless=True)
             entry = {
                 "camera_index": v,
