@@ -185,8 +185,8 @@ class StepProblem:
         return self.mass_times(y - self.y_pred) + self.dt**2 * (f_el + f_ext)
 
     def hessian(self, y: Tensor, project: bool = True) -> Tensor:
-        """∇²Φ(y): (D, D); elastic blocks projected to PSD when ``project`` (external blocks come projected
-        from the energies; with ``project=False`` they are recomputed exactly by autograd, for the adjoint)."""
+        """∇²Φ(y): (D, D); per-point elastic and external blocks projected to PSD when ``project``
+        (Newton), exact when not (the adjoint)."""
         from vid2sim.physics.materials import project_tangent_psd
 
         tangent = elastic_model(self.model)[2]
@@ -195,12 +195,9 @@ class StepProblem:
         if project:
             C = project_tangent_psd(self.model, F, C, self.mu, self.lam)
         x = self.positions(y)
-        if project:
-            hx = x.new_zeros(x.shape[0], 3, 3)
-            for ext in self.externals:
-                hx = hx + ext.hessian(x, self.mass, self.t)
-        else:
-            hx = self.exact_external_hessian(x)
+        hx = x.new_zeros(x.shape[0], 3, 3)
+        for ext in self.externals:
+            hx = hx + ext.hessian(x, self.mass, self.t, project=project)
         H = self.mass_matrix() + self.dt**2 * (
             self.basis.hessian(self.vol[:, None, None] * C) + self._reduced_point_hessian(hx)
         )
@@ -215,22 +212,3 @@ class StepProblem:
         ba, ha = self.b[active], hx[active]
         Hr = torch.einsum("pab,pl,pm->albm", ha, ba, ba)
         return Hr.reshape(3 * L, 3 * L)
-
-    def exact_external_hessian(self, x: Tensor) -> Tensor:
-        """Unprojected per-point Hessians (K, 3, 3) of the external energies, by autograd (adjoint only)."""
-        with torch.enable_grad():
-            xr = x.detach().requires_grad_(True)
-            e = xr.new_zeros(())
-            for ext in self.externals:
-                e = e + ext.energy(xr, self.mass.detach(), self.t)
-            if not e.requires_grad:
-                return x.new_zeros(x.shape[0], 3, 3)
-            (g,) = torch.autograd.grad(e, xr, create_graph=True)
-            rows = []
-            for a in range(3):
-                if not g.requires_grad:
-                    rows.append(torch.zeros_like(x))
-                    continue
-                (ra,) = torch.autograd.grad(g[:, a].sum(), xr, retain_graph=True, allow_unused=True)
-                rows.append(torch.zeros_like(x) if ra is None else ra)
-        return torch.stack(rows, dim=1).detach()

@@ -149,9 +149,11 @@ def newton_solve(problem: StepProblem, config: SimConfig) -> tuple[Tensor, StepS
         d = -_cholesky_solve(problem.hessian(y), g)
         slope = float(g @ d)
         alpha = 1.0
+        inverted = False
         for halving in range(config.line_search_max_halvings + 1):
             y_new = y + alpha * d
             phi_new, ok = problem.potential(y_new)
+            inverted = not ok
             tol = 16 * eps * max(abs(float(phi)), abs(float(phi_new)) if ok else 0.0, 1.0)
             if ok and float(phi_new) <= float(phi) + config.armijo * alpha * slope + tol:
                 break
@@ -161,10 +163,14 @@ def newton_solve(problem: StepProblem, config: SimConfig) -> tuple[Tensor, StepS
                 # the remaining decrease is below round-off: this is as converged as the precision allows
                 stats.converged = True
                 break
-            raise SimulationError(
-                f"line search failed at t = {problem.t:.4g} s (Newton iteration {it + 1}): no step along the "
-                "Newton direction decreases the energy without inverting a cubature point"
+            cause = (
+                "even the shortest step inverts a cubature point (det F <= 0): the object is being crushed; "
+                "the material may be too soft for this impact (StVK offers no resistance to inversion) — "
+                "use a stiffer material, Neo-Hookean, or a smaller dt"
+                if inverted
+                else "no step along the Newton direction decreases the energy"
             )
+            raise SimulationError(f"line search failed at t = {problem.t:.4g} s (Newton iteration {it + 1}): {cause}")
         stats.line_search_halvings.append(halving)
         y, phi = y_new, phi_new
         stats.iterations = it + 1
