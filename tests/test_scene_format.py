@@ -586,3 +586,31 @@ def test_copy_of_a_written_scene_loads_from_its_new_place(tmp_path: Path) -> Non
     out = write_scene(scene, tmp_path / "a")
     shutil.move(str(out), str(tmp_path / "b"))
     assert_same_scene(scene, load_scene(tmp_path / "b"))
+
+
+def test_sixteen_bit_masks_palette_images_and_moving_to_a_device(tmp_path: Path) -> None:
+    w, h = 6, 4
+    (tmp_path / "i").mkdir()
+    pal = Image.new("P", (w, h))
+    pal.putpalette([0, 0, 0, 255, 0, 0] + [0] * 762)
+    pal.putpixel((1, 1), 1)  # one red pixel through the palette
+    pal.save(tmp_path / "i" / "p.png")
+    mask16 = np.zeros((h, w), np.uint16)
+    mask16[1, 1] = 65535
+    mask16[2, 2] = 32768
+    Image.fromarray(mask16).save(tmp_path / "i" / "m16.png")
+    c2w = [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 2], [0, 0, 0, 1]]
+    root = _hand_written(
+        tmp_path,
+        [{"file_path": "i/p.png", "mask_path": "i/m16.png", "transform_matrix": c2w, "camera_index": 0, "time_index": 0}],
+        top={"fl_x": 5.0},
+    )
+    scene = load_scene(root)
+    assert float(scene.masks[0, 0, 1, 1]) == 1.0
+    assert math.isclose(float(scene.masks[0, 0, 2, 2]), 32768 / 65535, rel_tol=1e-6)
+    assert torch.equal(scene.images[0, 0, 1, 1], torch.tensor([1.0, 0.0, 0.0]))  # red, fully opaque
+    assert torch.allclose(scene.images[0, 0, 2, 2], torch.full((3,), 1 - 32768 / 65535))  # black at a ≈ 0.5
+    moved = scene.to("cpu")
+    assert torch.equal(moved.images, scene.images) and moved.config == scene.config
+    with pytest.raises(ValueError, match="dtype must be torch.uint8, torch.float32 or torch.float64"):
+        load_scene(root, dtype=torch.int32)

@@ -35,7 +35,7 @@ import uuid
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Callable, Iterable, Mapping, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 import torch
@@ -47,7 +47,6 @@ from vid2sim.data.scene_validation import (
     SCENE_FORMAT_NAME,
     SCENE_FORMAT_VERSION,
     TIME_RTOL,
-    FrameEntry,
     Problems,
     SceneFormatError,
     TransformsPlan,

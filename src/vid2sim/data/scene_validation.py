@@ -168,15 +168,6 @@ def _number(obj: dict, key: str, where: str, problems: Problems) -> float | None
     return float(value)
 
 
-def _int_list(value: Any, key: str, where: str, problems: Problems) -> list[int] | None:
-    if value is None:
-        return None
-    if not isinstance(value, list) or not all(_is_int(v) for v in value):
-        problems.add(f"{where}: {key} must be a list of integers or null, got {_show(value)}")
-        return None
-    return [int(v) for v in value]
-
-
 # ---------------------------------------------------------------------------------------------
 # scene.json and SceneConfig
 # ---------------------------------------------------------------------------------------------
