@@ -295,3 +295,13 @@ def test_bad_inputs_raise_clear_errors():
         MOVING.energy(x, mass, float("nan"))
     with pytest.raises(ValueError, match=r"mass must have shape"):
         total_external([Gravity()], x, mass[None], 0.0)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
+def test_cuda_matches_cpu():
+    x, mass = points(40, seed=12)
+    parts = list(ENERGIES.values())
+    cpu = total_external(parts, x, mass, 0.37)
+    gpu = total_external(parts, x.cuda(), mass.cuda(), 0.37)
+    for a, b in zip(cpu, gpu):
+        assert b.device.type == "cuda" and torch.allclose(a, b.cpu(), rtol=1e-10, atol=1e-8)

@@ -273,3 +273,14 @@ def test_bad_inputs_raise_clear_errors():
         return_map("von_mises", F, MU, LAM)
     with pytest.raises(ValueError, match="Fp_inv must have the shape"):
         update_plastic_state(VM, F, torch.eye(3, dtype=DT).repeat(3, 1, 1), MU, LAM)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
+def test_cuda_matches_cpu():
+    gen = torch.Generator().manual_seed(20)
+    F = from_strain(0.3 * torch.randn(50, 3, generator=gen, dtype=DT), seed=21)
+    Fp_inv = torch.linalg.inv(from_strain(0.1 * torch.randn(50, 3, generator=gen, dtype=DT), seed=22))
+    for model in (VM, DP):
+        out = update_plastic_state(model, F.cuda(), Fp_inv.cuda(), torch.tensor(MU).cuda(), LAM)
+        assert out.device.type == "cuda"
+        assert torch.allclose(out.cpu(), update_plastic_state(model, F, Fp_inv, MU, LAM), atol=1e-10)

@@ -235,6 +235,26 @@ def yield_function(model: PlasticityModel, F: Tensor, mu: Scalar, lam: Scalar) -
         return _yield(model, norm, tr, mu_t, lam_t)
 
 
+def _map_strain(model: PlasticityModel, F: Tensor, mu: Scalar, lam: Scalar):
+    """Shared core: (U, V, ε, ε', yielded) for F: (N, 3, 3) — ε' the mapped Hencky strain (N, 3)."""
+    if not isinstance(model, (VonMises, DruckerPrager)):
+        raise ValueError(f"plasticity model must be VonMises or DruckerPrager, got {type(model).__name__}")
+    U, S, V = rotation_svd(F)
+    mu_t, lam_t = _lame(mu, lam, F.shape[0], F)
+    eps, dev, norm, tr = _hencky(S)
+    dgamma = _yield(model, norm, tr, mu_t, lam_t)
+    # ‖ε̂‖ = 0 with δγ > 0 cannot occur (VM: δγ = −τ_Y/2μ < 0; DP with tr ε ≤ 0: δγ ≤ 0), but guard
+    # the division so masked-out lanes never produce inf/NaN.
+    safe_norm = torch.where(norm > 0, norm, torch.ones_like(norm))
+    eps_new = eps - (dgamma / safe_norm)[:, None] * dev
+    yielded = dgamma > 0
+    if isinstance(model, DruckerPrager):
+        expand = tr > 0
+        eps_new = torch.where(expand[:, None], torch.zeros_like(eps_new), eps_new)
+        yielded = yielded | expand
+    return U, V, eps, eps_new, yielded
+
+
 def return_map(model: PlasticityModel, F_trial: Tensor, mu: Scalar, lam: Scalar) -> Tensor:
     """Project trial elastic deformation gradients back onto the elastic region (paper's Z(F)).
 
@@ -246,23 +266,9 @@ def return_map(model: PlasticityModel, F_trial: Tensor, mu: Scalar, lam: Scalar)
         F_elastic: (N, 3, 3), same dtype/device. Points inside the elastic region are returned bit-for-bit
         unchanged; the others are rebuilt as ``U exp(ε') Vᵀ``.
     """
-    if not isinstance(model, (VonMises, DruckerPrager)):
-        raise ValueError(f"plasticity model must be VonMises or DruckerPrager, got {type(model).__name__}")
     with torch.no_grad():
         F = F_trial.detach()
-        U, S, V = rotation_svd(F)
-        mu_t, lam_t = _lame(mu, lam, F.shape[0], F)
-        eps, dev, norm, tr = _hencky(S)
-        dgamma = _yield(model, norm, tr, mu_t, lam_t)
-        # ‖ε̂‖ = 0 with δγ > 0 cannot occur (VM: δγ = −τ_Y/2μ < 0; DP with tr ε ≤ 0: δγ ≤ 0), but
-        # guard the division so masked-out lanes never produce inf/NaN.
-        safe_norm = torch.where(norm > 0, norm, torch.ones_like(norm))
-        eps_new = eps - (dgamma / safe_norm)[:, None] * dev
-        yielded = dgamma > 0
-        if isinstance(model, DruckerPrager):
-            expand = tr > 0
-            eps_new = torch.where(expand[:, None], torch.zeros_like(eps_new), eps_new)
-            yielded = yielded | expand
+        U, V, _, eps_new, yielded = _map_strain(model, F, mu, lam)
         if not bool(yielded.any()):
             return F.clone()
         F_new = (U * torch.exp(eps_new)[:, None, :]) @ V.transpose(1, 2)
@@ -274,11 +280,12 @@ def update_plastic_state(
 ) -> Tensor:
     """New inverse plastic deformation gradient after a converged step.
 
-    With ``F = F_e F_p``: the trial elastic part is ``F_e,trial = F Fp⁻¹``; it is return-mapped to
-    ``F_e`` and the plastic part becomes ``F_p = F_e⁻¹ F``, i.e. the stored inverse is
-    ``Fp⁻¹ ← F⁻¹ F_e`` (computed by a linear solve), so that ``F · Fp⁻¹_new = F_e``; points that did not
-    yield keep their ``Fp⁻¹`` unchanged. The inverse is stored
-    because the energy is evaluated on ``F_e = F Fp⁻¹`` (folded into the reduced basis by the solver).
+    With ``F = F_e F_p``: the trial elastic part is ``F_e,trial = F Fp⁻¹ = U Σ Vᵀ``; it is return-mapped
+    to ``F_e = U exp(ε') Vᵀ`` and the plastic part becomes ``F_p = F_e⁻¹ F``, i.e. the stored inverse is
+    ``Fp⁻¹ ← F⁻¹ F_e = Fp⁻¹ V diag(exp(ε' − ε)) Vᵀ`` (no matrix inverse needed), so that
+    ``F · Fp⁻¹_new = F_e``. Points that did not yield keep their ``Fp⁻¹`` bit-for-bit (no round-off drift
+    over many steps). The inverse is stored because the energy is evaluated on ``F_e = F Fp⁻¹`` (folded
+    into the reduced basis by the solver).
 
     Args:
         model: :class:`VonMises` or :class:`DruckerPrager`.
@@ -293,11 +300,9 @@ def update_plastic_state(
     if Fp_inv.shape != F_total.shape:
         raise ValueError(f"Fp_inv must have the shape of F_total {tuple(F_total.shape)}, got {tuple(Fp_inv.shape)}")
     with torch.no_grad():
-        F = F_total.detach()
-        Fe_trial = F @ Fp_inv.detach()
-        Fe = return_map(model, Fe_trial, mu, lam)
-        # Points that did not yield keep their Fp⁻¹ bit-for-bit (no round-off drift over many steps).
-        unchanged = (Fe == Fe_trial).flatten(1).all(dim=1)
-        if bool(unchanged.all()):
-            return Fp_inv.detach().clone()
-        return torch.where(unchanged[:, None, None], Fp_inv.detach(), torch.linalg.solve(F, Fe))
+        A = Fp_inv.detach()
+        _, V, eps, eps_new, yielded = _map_strain(model, F_total.detach() @ A, mu, lam)
+        if not bool(yielded.any()):
+            return A.clone()
+        A_new = A @ ((V * torch.exp(eps_new - eps)[:, None, :]) @ V.transpose(1, 2))
+        return torch.where(yielded[:, None, None], A_new, A)
