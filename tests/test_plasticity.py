@@ -6,6 +6,7 @@ import math
 import numpy as np
 import pytest
 import torch
+from scipy.spatial.transform import Rotation
 
 from vid2sim.physics.plasticity import (
     DruckerPrager,
@@ -24,17 +25,8 @@ DP = DruckerPrager(friction_angle_deg=10.0)
 
 
 def rotations(n: int, seed: int) -> torch.Tensor:
-    gen = torch.Generator().manual_seed(seed)
-    q = torch.randn(n, 4, generator=gen, dtype=DT)
-    w, x, y, z = (q / q.norm(dim=1, keepdim=True)).unbind(1)
-    return torch.stack(
-        [
-            1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w),
-            2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w),
-            2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y),
-        ],
-        dim=1,
-    ).reshape(n, 3, 3)
+    """(n, 3, 3) uniformly random rotations (scipy)."""
+    return torch.tensor(Rotation.random(n, random_state=seed).as_matrix(), dtype=DT)
 
 
 def from_strain(eps: torch.Tensor, seed: int) -> torch.Tensor:
