@@ -1,0 +1,182 @@
+"""Data-free skinning training: the energy terms against analytic values, and training behaviour."""
+
+import math
+
+import pytest
+import torch
+
+from vid2sim.physics.materials import lame_parameters, neo_hookean_energy_density
+from vid2sim.physics.skinning import SkinningField, gradient_basis
+from vid2sim.physics.skinning_training import (
+    SkinningTrainingConfig,
+    elastic_loss,
+    orthogonality_loss,
+    robust_neo_hookean_energy,
+    sample_handle_transforms,
+    train_skinning,
+)
+
+MU, LAM = lame_parameters(1e5, 0.3)
+
+
+def _box(n: int, seed: int = 0, dtype=torch.float64) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    return ((torch.rand(n, 3, generator=g, dtype=torch.float64) - 0.5) * torch.tensor([1.0, 0.5, 0.5], dtype=torch.float64)).to(dtype)
+
+
+def _diag(s: torch.Tensor) -> torch.Tensor:
+    """F = diag(s, 1, 1) for s: (M,)."""
+    F = torch.eye(3, dtype=s.dtype).repeat(s.shape[0], 1, 1)
+    F[:, 0, 0] = s
+    return F
+
+
+def test_robust_energy_is_exact_above_threshold_and_smooth_finite_below():
+    g = torch.Generator().manual_seed(0)
+    F = torch.eye(3, dtype=torch.float64) + 0.2 * torch.randn(50, 3, 3, generator=g, dtype=torch.float64)
+    assert bool((torch.linalg.det(F) > 0.1).all())
+    assert torch.allclose(robust_neo_hookean_energy(F, MU, LAM, 0.1), neo_hookean_energy_density(F, MU, LAM), rtol=1e-14)
+    # along F = diag(s, 1, 1): value and slope continuous at J = s = 0.1; finite, convex, decreasing in s below
+    s = torch.tensor([0.1 - 1e-9, 0.1 + 1e-9], dtype=torch.float64, requires_grad=True)
+    psi = robust_neo_hookean_energy(_diag(s), MU, LAM, 0.1)
+    (d,) = torch.autograd.grad(psi.sum(), s)
+    assert float(psi[0].detach()) == pytest.approx(float(psi[1].detach()), rel=1e-7)
+    assert float(d[0]) == pytest.approx(float(d[1]), rel=1e-5)
+    s = torch.linspace(-1.0, 0.09, 60, dtype=torch.float64)
+    psi = robust_neo_hookean_energy(_diag(s), MU, LAM, 0.1)
+    assert bool(torch.isfinite(psi).all())
+    assert bool((psi[1:] < psi[:-1]).all())  # more inverted → more energy
+    assert bool((psi[2:] - 2 * psi[1:-1] + psi[:-2] > 0).all())  # convex in s
+    # second derivative matches the exact energy's at the threshold (C²)
+    def exact(x):
+        return float(neo_hookean_energy_density(_diag(torch.tensor([x], dtype=torch.float64)), MU, LAM)[0])
+
+    def robust(x):
+        return float(robust_neo_hookean_energy(_diag(torch.tensor([x], dtype=torch.float64)), MU, LAM, 0.1)[0])
+
+    h = 1e-4
+    d2_exact = (exact(0.1 + 2 * h) - 2 * exact(0.1 + h) + exact(0.1)) / h**2
+    d2_robust = (robust(0.1) - 2 * robust(0.1 - h) + robust(0.1 - 2 * h)) / h**2
+    assert d2_robust == pytest.approx(d2_exact, rel=1e-2)
+
+
+def test_orthogonality_loss_values():
+    g = torch.Generator().manual_seed(1)
+    Q, _ = torch.linalg.qr(torch.randn(40, 4, generator=g, dtype=torch.float64))
+    assert float(orthogonality_loss(Q)) == pytest.approx(0.0, abs=1e-28)
+    # W = 2 Q: WᵀW = 4 I → mean over 16 entries of (3² on 4 diagonal entries) = 36 / 16
+    assert float(orthogonality_loss(2 * Q)) == pytest.approx(36 / 16, rel=1e-12)
+    assert float(orthogonality_loss(torch.zeros(40, 4, dtype=torch.float64))) == pytest.approx(4 / 16)
+
+
+def test_elastic_loss_of_a_uniform_stretch_on_the_rigid_handle_is_volume_times_psi():
+    field = SkinningField(num_handles=3, width=16, hidden_layers=2, seed=0).double()
+    X = _box(200)
+    w, dw = field.weights_and_gradients(X)
+    G = gradient_basis(X, w, dw)
+    H = field.num_handles_total
+    z = torch.zeros(2, 12 * H, dtype=torch.float64)
+    Z = z.view(2, H, 3, 4)
+    Z[1, -1, 0, 0] = 0.2  # F = diag(1.2, 1, 1) everywhere
+    stretch = neo_hookean_energy_density(_diag(torch.tensor([1.2], dtype=torch.float64)), MU, LAM)[0]
+    # analytic Neo-Hookean: μ/2 (1.44 − 1) − μ ln 1.2 + λ/2 (ln 1.2)²
+    analytic = 0.5 * MU * 0.44 - MU * math.log(1.2) + 0.5 * LAM * math.log(1.2) ** 2
+    assert float(stretch) == pytest.approx(analytic, rel=1e-12)
+    le = elastic_loss(G, z, MU, LAM, volume=0.25)
+    assert float(le) == pytest.approx(0.25 * analytic / 2, rel=1e-12)  # batch mean of (0, volume·Ψ)
+
+
+def test_sampled_transforms_leave_the_rigid_handle_at_rest():
+    g = torch.Generator().manual_seed(0)
+    z = sample_handle_transforms(500, 4, 0.1, g).view(500, 4, 12)
+    assert float(z[:, -1].abs().max()) == 0.0
+    assert float(z[:, :-1].std()) == pytest.approx(0.1, rel=0.03)
+    z = sample_handle_transforms(500, 4, 0.1, g, rigid=True).view(500, 4, 12)
+    assert float(z[:, -1].std()) == pytest.approx(0.1, rel=0.05)
+
+
+def _components(field, X, seed=123):
+    w, dw = field.weights_and_gradients(X)
+    z = sample_handle_transforms(8, field.num_handles_total, 0.1, torch.Generator().manual_seed(seed)).to(X)
+    return float(elastic_loss(gradient_basis(X, w, dw), z, MU, LAM)), float(orthogonality_loss(w[:, :-1]))
+
+
+def test_training_lowers_the_loss_and_the_orthogonality_term():
+    torch.manual_seed(0)
+    pts = _box(500, dtype=torch.float32)
+    field = SkinningField(num_handles=3, width=32, hidden_layers=2, seed=0)
+    _, ortho0 = _components(field, pts)
+    cfg = SkinningTrainingConfig(iterations=200, points_per_step=250, batch_size=4, lr=3e-3, seed=0)
+    losses = train_skinning(field, pts, cfg, progress=False)
+    assert len(losses) == 200 and all(math.isfinite(v) for v in losses)
+    early = sum(losses[:10]) / 10
+    late = sum(losses[-10:]) / 10
+    assert late < 1e-2 * early
+    el1, ortho1 = _components(field, pts)
+    assert ortho1 < 1e-2 * ortho0
+    # with 250 points per step the learned weights have Σ_p w_j² ≈ 1 per step, i.e. |w| ≈ 1/√250
+    w = field(pts)[:, :-1]
+    gram = w.T @ w * (250 / 500)
+    assert torch.allclose(torch.diag(gram), torch.ones(3), atol=0.15)
+    assert float((gram - torch.diag(torch.diag(gram))).abs().max()) < 0.15
+    assert el1 > 0
+
+
+def test_training_is_reproducible_and_last_layer_only_freezes_the_rest():
+    pts = _box(300, dtype=torch.float32)
+    cfg = SkinningTrainingConfig(iterations=15, points_per_step=100, batch_size=2, seed=4)
+    a = SkinningField(num_handles=2, width=16, hidden_layers=2, seed=1)
+    b = SkinningField(num_handles=2, width=16, hidden_layers=2, seed=1)
+    la = train_skinning(a, pts, cfg, progress=False)
+    lb = train_skinning(b, pts, cfg, progress=False)
+    assert la == lb
+    for pa, pb in zip(a.parameters(), b.parameters()):
+        assert torch.equal(pa, pb)
+
+    c = SkinningField(num_handles=2, width=16, hidden_layers=2, seed=1)
+    before = {k: v.clone() for k, v in c.state_dict().items()}
+    cfg_last = SkinningTrainingConfig(iterations=40, points_per_step=100, batch_size=2, seed=4, last_layer_only=True)
+    losses = train_skinning(c, pts, cfg_last, progress=False)
+    after = c.state_dict()
+    for k in before:
+        if k.startswith(f"layers.{len(c.layers) - 1}."):
+            assert not torch.equal(before[k], after[k])
+        else:
+            assert torch.equal(before[k], after[k]), k
+    assert sum(losses[-5:]) < sum(losses[:5])
+    assert all(p.grad is None for p in c.parameters())
+
+
+def test_large_random_transforms_invert_points_and_training_stays_finite():
+    pts = _box(200, dtype=torch.float64)
+    field = SkinningField(num_handles=2, width=16, hidden_layers=1, seed=2).double()
+    # make the weights O(1) so that z_std = 1 certainly inverts some points
+    with torch.no_grad():
+        field.last_layer.bias.fill_(1.0)
+    w, dw = field.weights_and_gradients(pts)
+    z = sample_handle_transforms(4, 3, 1.0, torch.Generator().manual_seed(0)).double()
+    from vid2sim.physics.skinning import deformation_gradient
+
+    J = torch.linalg.det(deformation_gradient(gradient_basis(pts, w, dw), z))
+    assert bool((J <= 0).any())
+    cfg = SkinningTrainingConfig(iterations=10, points_per_step=200, batch_size=4, z_std=1.0, seed=0)
+    losses = train_skinning(field, pts, cfg, progress=False)
+    assert all(math.isfinite(v) for v in losses)
+    assert all(bool(torch.isfinite(p).all()) for p in field.parameters())
+
+
+def test_bad_configuration_and_inputs():
+    with pytest.raises(ValueError, match="iterations"):
+        SkinningTrainingConfig(iterations=-1)
+    with pytest.raises(ValueError, match="z_std"):
+        SkinningTrainingConfig(z_std=0.0)
+    with pytest.raises(ValueError, match="poisson_ratio"):
+        SkinningTrainingConfig(poisson_ratio=0.5)
+    field = SkinningField(num_handles=2, width=8, hidden_layers=1, seed=0)
+    with pytest.raises(ValueError, match=r"points must be a tensor of shape \(N, 3\)"):
+        train_skinning(field, torch.zeros(10, 2), SkinningTrainingConfig(iterations=1), progress=False)
+    with pytest.raises(ValueError, match="must match"):
+        train_skinning(field, _box(10), SkinningTrainingConfig(iterations=1), progress=False)
+    with pytest.raises(ValueError, match="volume"):
+        train_skinning(field, _box(10, dtype=torch.float32), SkinningTrainingConfig(iterations=1), progress=False, volume=-1.0)
+    assert train_skinning(field, _box(10, dtype=torch.float32), SkinningTrainingConfig(iterations=0), progress=False) == []
