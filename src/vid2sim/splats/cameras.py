@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Sequence
 
 import torch
 from torch import Tensor
@@ -92,6 +93,16 @@ class Camera:
     def to(self, device: torch.device | str) -> "Camera":
         return Camera(self.world_to_camera.to(device), self.K.to(device), self.width, self.height)
 
+    def resized(self, width: int, height: int) -> "Camera":
+        """The same camera rendering ``width`` × ``height`` pixels (intrinsics scaled per axis)."""
+        if int(width) <= 0 or int(height) <= 0:
+            raise ValueError(f"image size must be positive, got {width}x{height}")
+        sx, sy = width / self.width, height / self.height
+        K = self.K.clone()
+        K[0] *= sx
+        K[1] *= sy
+        return Camera(self.world_to_camera.clone(), K, int(width), int(height))
+
     # ---- projection --------------------------------------------------------------------------
     def project(self, points: Tensor) -> tuple[Tensor, Tensor]:
         """Project world points (N, 3) → pixel coordinates (N, 2) and camera depth z (N,)."""
@@ -102,6 +113,30 @@ class Camera:
         K = self.K.to(points)
         pix = torch.stack([K[0, 0] * uv[:, 0] + K[0, 2], K[1, 1] * uv[:, 1] + K[1, 2]], dim=-1)
         return pix, z
+
+
+def stack_cameras(cameras: "Camera | Sequence[Camera]") -> tuple[Tensor, Tensor, int, int]:
+    """Batch cameras that share one image size.
+
+    Returns ``(viewmats, Ks, width, height)`` with ``viewmats: (V, 4, 4)`` world-to-camera and
+    ``Ks: (V, 3, 3)``, both float32 on the first camera's device.
+    """
+    if isinstance(cameras, Camera):
+        cameras = [cameras]
+    cameras = list(cameras)
+    if not cameras:
+        raise ValueError("cameras must hold at least one Camera, got an empty sequence")
+    for i, c in enumerate(cameras):
+        if not isinstance(c, Camera):
+            raise ValueError(f"cameras[{i}] must be a Camera, got {type(c).__name__}")
+    sizes = {(c.width, c.height) for c in cameras}
+    if len(sizes) != 1:
+        raise ValueError(f"all cameras of one batch must share an image size, got (width, height) = {sorted(sizes)}")
+    (width, height), = sizes
+    dev = cameras[0].world_to_camera.device
+    viewmats = torch.stack([c.world_to_camera.to(dev) for c in cameras])
+    Ks = torch.stack([c.K.to(dev) for c in cameras])
+    return viewmats, Ks, width, height
 
 
 def look_at(eye: Tensor, target: Tensor, up: Tensor | None = None) -> Tensor:
@@ -154,5 +189,42 @@ def camera_ring(
     for i in range(n):
         az = math.radians(azimuth_offset_deg) + 2 * math.pi * i / n
         eye = tgt + radius * torch.tensor([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)], dtype=torch.float64)
+        cams.append(Camera(look_at(eye, tgt), K, width, height))
+    return cams
+
+
+def camera_sphere(
+    n: int,
+    radius: float,
+    width: int,
+    height: int,
+    fov_x_deg: float = 40.0,
+    target: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    min_elevation_deg: float = -60.0,
+    max_elevation_deg: float = 75.0,
+) -> list[Camera]:
+    """``n`` cameras spread evenly (Fibonacci spiral) over a band of the sphere around ``target``.
+
+    Elevations lie in [``min_elevation_deg``, ``max_elevation_deg``] (the poles are left out because
+    a camera straight above or below has no well-defined "up" with world z up). Each camera looks at
+    ``target`` with square pixels and a centred principal point.
+    """
+    if n <= 0:
+        raise ValueError(f"camera_sphere needs n >= 1, got {n}")
+    if not -89.0 <= min_elevation_deg <= max_elevation_deg <= 89.0:
+        raise ValueError(
+            f"need -89 <= min_elevation_deg <= max_elevation_deg <= 89, got {min_elevation_deg}, {max_elevation_deg}"
+        )
+    fx = 0.5 * width / math.tan(math.radians(fov_x_deg) / 2)
+    K = Camera.intrinsics(fx, fx, width / 2, height / 2)
+    tgt = torch.tensor(target, dtype=torch.float64)
+    z_lo, z_hi = math.sin(math.radians(min_elevation_deg)), math.sin(math.radians(max_elevation_deg))
+    golden = math.pi * (3.0 - math.sqrt(5.0))
+    cams = []
+    for i in range(n):
+        z = z_hi - (z_hi - z_lo) * (i + 0.5) / n  # uniform in z ⇒ uniform in area on the band
+        r = math.sqrt(max(0.0, 1.0 - z * z))
+        az = golden * i
+        eye = tgt + radius * torch.tensor([r * math.cos(az), r * math.sin(az), z], dtype=torch.float64)
         cams.append(Camera(look_at(eye, tgt), K, width, height))
     return cams
