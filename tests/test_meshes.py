@@ -270,3 +270,28 @@ def test_textured_mesh_validation():
         TexturedMesh(v, torch.tensor([[0, 1, 4]]), torch.rand(1, 3, 2), tex)
     with pytest.raises(ValueError, match=r"texture values must lie in \[0, 1\]"):
         TexturedMesh(v, f, uv, tex * 3)
+
+
+def test_multi_material_obj_is_packed_into_one_texture(tmp_path):
+    """Two materials with different texture images: trimesh packs them into one atlas; each face keeps
+    its own material's colour."""
+    Image.fromarray(np.full((4, 4, 3), [255, 0, 0], np.uint8)).save(tmp_path / "a.png")
+    Image.fromarray(np.full((8, 8, 3), [0, 0, 255], np.uint8)).save(tmp_path / "b.png")
+    (tmp_path / "two.mtl").write_text("newmtl A\nKd 1 1 1\nmap_Kd a.png\nnewmtl B\nKd 1 1 1\nmap_Kd b.png\n")
+    lines, vts, faces, n = ["mtllib two.mtl"], [], [], 0
+    for slot, corners in _cube_quads(1.0):
+        faces.append(f"usemtl {'A' if slot < 3 else 'B'}")
+        for c, (u, v) in zip(corners, [(0.1, 0.1), (0.9, 0.1), (0.9, 0.9), (0.1, 0.9)]):
+            lines.append("v {} {} {}".format(*c))
+            vts.append(f"vt {u} {v}")
+        faces += [f"f {n + 1}/{n + 1} {n + 2}/{n + 2} {n + 3}/{n + 3}", f"f {n + 1}/{n + 1} {n + 3}/{n + 3} {n + 4}/{n + 4}"]
+        n += 4
+    (tmp_path / "two.obj").write_text("\n".join(lines + vts + faces) + "\n")
+    mesh = load_user_mesh(tmp_path / "two.obj")
+    assert mesh.num_vertices == 8 and mesh.num_faces == 12
+    normals = mesh.face_normals().numpy()
+    centre_uv = mesh.uvs.mean(dim=1)
+    colours = sample_texture(mesh.texture, centre_uv).numpy()
+    for f in range(12):
+        positive = normals[f].max() > 0.5  # slots 0-2 (+x, +y, +z) use material A
+        np.testing.assert_allclose(colours[f], [1, 0, 0] if positive else [0, 0, 1], atol=1e-6)

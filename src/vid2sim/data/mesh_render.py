@@ -27,15 +27,18 @@ What it computes, per camera and frame:
 * Background: white; the result is RGB composited on white (``rgb = α·colour + (1 − α)``
   per sample, then box-filtered) plus the separate alpha.
 
-Work is vectorised over triangles: every triangle enumerates the samples of its screen bounding
-box (a ragged enumeration, no padding), in chunks of at most ``chunk_size`` candidate samples, and
-the z-test is a single ``scatter_reduce(amin)`` on keys packing the float32 depth bits above the
-face index.
+Work is vectorised over triangles and over images: views and frames are rasterized together in
+batches of about ``batch_samples`` samples; each image only keeps a z-buffer for the crop (whole
+pixels) around its visible triangles; every triangle enumerates the samples of its screen bounding
+box (a ragged enumeration, no padding), in chunks of at most ``chunk_size`` candidates; and the
+z-test is a single ``scatter_reduce(amin)`` on int64 keys packing the float32 depth bits above the
+global face index. Measured on the 2-core CPU: about 0.1–0.4 s per 448² image (s = 2, ~3000
+faces, the range is machine load) and 0.02–0.05 s per 128² image.
 """
 
 from __future__ import annotations
 
-import math
+from dataclasses import dataclass
 from typing import Sequence
 
 import torch
@@ -82,8 +85,8 @@ def sample_texture(texture: Tensor, uv: Tensor, wrap: str = "repeat") -> Tensor:
         x0, x1 = x0.clamp(0, wt - 1), x1.clamp(0, wt - 1)
         y0, y1 = y0.clamp(0, ht - 1), y1.clamp(0, ht - 1)
     flat = texture.reshape(ht * wt, -1)
-    c00, c01 = flat[y0 * wt + x0], flat[y0 * wt + x1]
-    c10, c11 = flat[y1 * wt + x0], flat[y1 * wt + x1]
+    c00, c01 = flat.index_select(0, y0 * wt + x0), flat.index_select(0, y0 * wt + x1)
+    c10, c11 = flat.index_select(0, y1 * wt + x0), flat.index_select(0, y1 * wt + x1)
     return (c00 * (1 - fx) + c01 * fx) * (1 - fy) + (c10 * (1 - fx) + c11 * fx) * fy
 
 
@@ -109,89 +112,116 @@ def _check_inputs(vertices: Tensor, faces: Tensor, uvs: Tensor, texture: Tensor,
         raise ValueError("mesh_vertices contain NaN or infinite values")
 
 
-@torch.no_grad()
-def _rasterize(
-    cam_xyz: Tensor, faces: Tensor, K: Tensor, width: int, height: int, near: float, cull_backfaces: bool,
-    chunk_size: int,
-) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """Z-buffer over the s× sample grid (``K``, ``width``, ``height`` already scaled by s).
+@dataclass
+class _Raster:
+    """Result of rasterizing a batch of B images over their crops (see :func:`_rasterize`)."""
 
-    Returns:
-        face_id: (height·width,) long, winning face or -1.
-        coef: (Nf, 3, 3) screen-space barycentric plane coefficients (a, b, c) per corner.
-        inv_z: (Nf, 3) 1/z of the corners.
-        front: (Nf,) bool, whether each face faces the camera.
+    face: Tensor  # (S,) long: winning global face b·Nf + f per crop sample, or -1
+    crop: Tensor  # (B, 4) long: x0, y0, width, height of each image's crop, in samples (multiples of s)
+    offset: Tensor  # (B,) long: where each image's crop starts in ``face``
+    coef: Tensor  # (B·Nf, 3, 3): screen-space barycentric plane coefficients (a, b, c) per corner
+    inv_z: Tensor  # (B·Nf, 3): 1/z of the corners
+    front: Tensor  # (B·Nf,) bool: the face looks towards the camera
+
+
+def _rasterize(
+    cam_xyz: Tensor, faces: Tensor, K: Tensor, width: int, height: int, s: int, near: float,
+    cull_backfaces: bool, chunk_size: int,
+) -> _Raster:
+    """Z-buffer B images at once over the s× sample grid.
+
+    Args:
+        cam_xyz: (B, Nv, 3) vertices in each image's camera frame.
+        faces: (Nf, 3).
+        K: (B, 3, 3) intrinsics already scaled to samples (fx·s, cx·s, ...).
+        width, height: sample-grid size (pixels × s).
+        s: supersampling factor; crops are aligned to whole pixels.
     """
     dev = cam_xyz.device
-    nf = faces.shape[0]
-    z = cam_xyz[:, 2]
-    px = K[0, 0] * cam_xyz[:, 0] / z + K[0, 2]
-    py = K[1, 1] * cam_xyz[:, 1] / z + K[1, 2]
-    fz = z[faces]  # (Nf, 3)
+    n_b, nf = cam_xyz.shape[0], faces.shape[0]
+    z = cam_xyz[..., 2]
+    px = K[:, 0, 0, None] * cam_xyz[..., 0] / z + K[:, 0, 2, None]
+    py = K[:, 1, 1, None] * cam_xyz[..., 1] / z + K[:, 1, 2, None]
+    fz = z[:, faces].reshape(-1, 3)  # (B·Nf, 3)
+    fx, fy = px[:, faces].reshape(-1, 3), py[:, faces].reshape(-1, 3)
     valid = (fz > near).all(dim=1)
-    tri = cam_xyz[faces]
+    tri = cam_xyz[:, faces].reshape(-1, 3, 3)
     n_cam = torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     front = (n_cam * tri[:, 0]).sum(dim=1) < 0
     if cull_backfaces:
         valid &= front
-    fx, fy = px[faces], py[faces]  # (Nf, 3)
     # barycentric of corner i is the edge function of the opposite edge (j, k), divided by the area
     j, k = [1, 2, 0], [2, 0, 1]
-    ex, ey = fx[:, k] - fx[:, j], fy[:, k] - fy[:, j]  # (Nf, 3)
+    ex, ey = fx[:, k] - fx[:, j], fy[:, k] - fy[:, j]
     area = (fx[:, 1] - fx[:, 0]) * (fy[:, 2] - fy[:, 0]) - (fy[:, 1] - fy[:, 0]) * (fx[:, 2] - fx[:, 0])
     valid &= area.abs() > 1e-9
     safe_area = torch.where(valid, area, torch.ones_like(area))[:, None]
     coef = torch.stack([-ey / safe_area, ex / safe_area, (ey * fx[:, j] - ex * fy[:, j]) / safe_area], dim=2)
     inv_z = 1.0 / torch.where(valid[:, None], fz, torch.ones_like(fz))
 
-    # sample X covers [X, X+1) with its centre at X + 0.5
+    # samples whose centre X + 0.5 lies in the triangle's bounding box
     x_lo = torch.ceil(fx.min(dim=1).values - 0.5).clamp(min=0)
     x_hi = torch.floor(fx.max(dim=1).values - 0.5).clamp(max=width - 1)
     y_lo = torch.ceil(fy.min(dim=1).values - 0.5).clamp(min=0)
     y_hi = torch.floor(fy.max(dim=1).values - 0.5).clamp(max=height - 1)
     valid &= (x_hi >= x_lo) & (y_hi >= y_lo)
+
+    # per image: the crop (whole pixels) holding every visible triangle's bounding box
+    big = float(max(width, height) + 1)
+    vb = valid.reshape(n_b, nf)
+    cx0 = torch.where(vb, x_lo.reshape(n_b, nf), big).min(dim=1).values
+    cy0 = torch.where(vb, y_lo.reshape(n_b, nf), big).min(dim=1).values
+    cx1 = torch.where(vb, x_hi.reshape(n_b, nf), -1.0).max(dim=1).values
+    cy1 = torch.where(vb, y_hi.reshape(n_b, nf), -1.0).max(dim=1).values
+    empty = ~vb.any(dim=1)
+    x0 = torch.where(empty, 0.0, torch.div(cx0, s, rounding_mode="floor") * s).long()
+    y0 = torch.where(empty, 0.0, torch.div(cy0, s, rounding_mode="floor") * s).long()
+    cw = torch.where(empty, 0.0, (torch.div(cx1, s, rounding_mode="floor") + 1) * s - x0).long()
+    ch = torch.where(empty, 0.0, (torch.div(cy1, s, rounding_mode="floor") + 1) * s - y0).long()
+    sizes = cw * ch
+    offset = torch.cumsum(sizes, 0) - sizes
+    crop = torch.stack([x0, y0, cw, ch], dim=1)
+    total_samples = int(sizes.sum())
+
     ids = torch.nonzero(valid).squeeze(1)
-    face_id = torch.full((height * width,), -1, dtype=torch.long, device=dev)
-    if ids.numel() == 0:
-        return face_id, coef, inv_z, front
-    bw = (x_hi[ids] - x_lo[ids] + 1).long()
-    bh = (y_hi[ids] - y_lo[ids] + 1).long()
-    counts = bw * bh
-    ends = torch.cumsum(counts, 0)
-    zbuf = torch.full((height * width,), _INT64_MAX, dtype=torch.long, device=dev)
-    coef_v, inv_z_v = coef[ids], inv_z[ids]
-    xlo_v, ylo_v = x_lo[ids].long(), y_lo[ids].long()
-    start = 0
-    total = int(ends[-1])
-    done = 0
-    while done < total:
-        # next chunk: whole triangles whose candidates fit in chunk_size (at least one triangle)
-        stop = int(torch.searchsorted(ends, done + chunk_size, right=True))
-        stop = max(stop, start + 1)
-        sl = slice(start, stop)
-        cnt = counts[sl]
-        m = stop - start
-        local_tri = torch.repeat_interleave(torch.arange(m, device=dev), cnt)
-        first = torch.cumsum(cnt, 0) - cnt
-        local = torch.arange(int(cnt.sum()), device=dev) - first[local_tri]
-        w = bw[sl][local_tri]
-        sx = xlo_v[sl][local_tri] + local % w
-        sy = ylo_v[sl][local_tri] + torch.div(local, w, rounding_mode="floor")
-        cx = sx.to(cam_xyz.dtype) + 0.5
-        cy = sy.to(cam_xyz.dtype) + 0.5
-        c = coef_v[sl][local_tri]  # (M, 3, 3)
-        b = c[:, :, 0] * cx[:, None] + c[:, :, 1] * cy[:, None] + c[:, :, 2]
-        inside = (b >= 0).all(dim=1)
-        iz = (b * inv_z_v[sl][local_tri]).sum(dim=1)
-        inside &= iz > 0
-        depth = (1.0 / iz[inside]).to(torch.float32)
-        key = (depth.view(torch.int32).to(torch.long) << 32) | ids[sl][local_tri[inside]]
-        zbuf.scatter_reduce_(0, (sy * width + sx)[inside], key, reduce="amin", include_self=True)
-        done = int(ends[stop - 1])
-        start = stop
-    hit = zbuf != _INT64_MAX
-    face_id[hit] = zbuf[hit] & 0xFFFFFFFF
-    return face_id, coef, inv_z, front
+    zbuf = torch.full((total_samples,), _INT64_MAX, dtype=torch.long, device=dev)
+    if ids.numel():
+        img = torch.div(ids, nf, rounding_mode="floor")
+        # per visible triangle: where its bounding box starts in the flat crop buffer, and the crop's row stride
+        xlo_v, ylo_v = x_lo[ids].long(), y_lo[ids].long()
+        bw = x_hi[ids].long() - xlo_v + 1
+        counts = bw * (y_hi[ids].long() - ylo_v + 1)
+        base = offset[img] + (ylo_v - y0[img]) * cw[img] + (xlo_v - x0[img])
+        stride = cw[img]
+        ends = torch.cumsum(counts, 0)
+        first = ends - counts
+        coef_v, inv_z_v = coef.index_select(0, ids), inv_z.index_select(0, ids)
+        total = int(ends[-1])
+        start, done = 0, 0
+        while done < total:
+            # next chunk: whole triangles whose candidates fit in chunk_size (at least one triangle)
+            stop = max(int(torch.searchsorted(ends, done + chunk_size, right=True)), start + 1)
+            cnt = counts[start:stop]
+            local_tri = torch.repeat_interleave(torch.arange(start, stop, device=dev), cnt)
+            local = torch.arange(done, int(ends[stop - 1]), device=dev) - first.index_select(0, local_tri)
+            w = bw.index_select(0, local_tri)
+            dy = torch.div(local, w, rounding_mode="floor")
+            dx = local - dy * w
+            sx = (xlo_v.index_select(0, local_tri) + dx).to(cam_xyz.dtype) + 0.5
+            sy = (ylo_v.index_select(0, local_tri) + dy).to(cam_xyz.dtype) + 0.5
+            g = ids.index_select(0, local_tri)
+            c = coef_v.index_select(0, local_tri)  # (M, 3, 3)
+            b = c[:, :, 0] * sx[:, None] + c[:, :, 1] * sy[:, None] + c[:, :, 2]
+            iz = (b * inv_z_v.index_select(0, local_tri)).sum(dim=1)
+            inside = torch.nonzero((b >= 0).all(dim=1) & (iz > 0)).squeeze(1)
+            depth = (1.0 / iz.index_select(0, inside)).to(torch.float32)
+            key = (depth.view(torch.int32).to(torch.long) << 32) | g.index_select(0, inside)
+            where = (base.index_select(0, local_tri) + dy * stride.index_select(0, local_tri) + dx).index_select(0, inside)
+            zbuf.scatter_reduce_(0, where, key, reduce="amin", include_self=True)
+            done = int(ends[stop - 1])
+            start = stop
+    face = torch.where(zbuf != _INT64_MAX, zbuf & 0xFFFFFFFF, torch.full_like(zbuf, -1))
+    return _Raster(face, crop, offset, coef, inv_z, front)
 
 
 @torch.no_grad()
@@ -209,6 +239,7 @@ def render_mesh(
     cull_backfaces: bool = True,
     wrap: str = "repeat",
     chunk_size: int = 1 << 21,
+    batch_samples: int = 1 << 23,
     progress: bool = False,
 ) -> tuple[Tensor, Tensor]:
     """Render a textured triangle mesh (optionally a sequence of deformed copies) from cameras.
@@ -226,7 +257,9 @@ def render_mesh(
         near: triangles with a vertex at camera depth ≤ ``near`` are dropped.
         cull_backfaces: drop triangles facing away from the camera.
         wrap: texture addressing outside [0, 1], ``"repeat"`` or ``"clamp"``.
-        chunk_size: most candidate samples processed at once (bounds memory).
+        chunk_size: most candidate (triangle, sample) pairs processed at once (bounds memory).
+        batch_samples: images are rasterized together in batches of about this many samples
+            (H·W·s² each, at least one image per batch); larger batches amortise per-call overhead.
         progress: show a tqdm bar over the V·T images.
 
     Returns:
@@ -254,6 +287,8 @@ def render_mesh(
         raise ValueError(f"near must be positive, got {near}")
     if wrap not in ("repeat", "clamp"):
         raise ValueError(f"wrap must be 'repeat' or 'clamp', got {wrap!r}")
+    if chunk_size < 1 or batch_samples < 1:
+        raise ValueError(f"chunk_size and batch_samples must be positive, got {chunk_size} and {batch_samples}")
     light = torch.as_tensor(light_dir, dtype=dtype, device=dev).reshape(-1)
     if light.shape != (3,) or float(light.norm()) == 0.0:
         raise ValueError(f"light_dir must be a non-zero 3-vector, got {light_dir!r}")
@@ -261,52 +296,76 @@ def render_mesh(
     s = int(supersample)
     single = verts.ndim == 2
     frames = verts[None] if single else verts
-    n_t, n_v = frames.shape[0], len(cameras)
+    n_t, n_v, nf = frames.shape[0], len(cameras), faces.shape[0]
     width, height = cameras[0].width, cameras[0].height
     sw, sh = width * s, height * s
+    if n_t * n_v * max(nf, 1) >= 2**31:
+        raise ValueError(f"too many frames × views × faces ({n_t} × {n_v} × {nf}) for 32-bit face ids; render in parts")
+
+    # per frame: normals in world space (the light is fixed in the world)
+    if shading == "smooth":
+        normals = torch.stack([vertex_normals(v, faces) for v in frames])  # (T, Nv, 3)
+    else:
+        tri = frames[:, faces]
+        fn = torch.linalg.cross(tri[:, :, 1] - tri[:, :, 0], tri[:, :, 2] - tri[:, :, 0])
+        normals = fn / fn.norm(dim=-1, keepdim=True).clamp_min(1e-30)  # (T, Nf, 3)
+    w2c = torch.stack([c.world_to_camera.to(device=dev, dtype=dtype) for c in cameras])  # (V, 4, 4)
+    ks = torch.stack([c.K.to(device=dev, dtype=dtype) for c in cameras])
+    ks = ks * torch.tensor([s, s, 1.0], dtype=dtype, device=dev)[None, :, None]
+
     rgb = torch.ones(n_v, n_t, height, width, 3, dtype=dtype, device=dev)
     alpha = torch.zeros(n_v, n_t, height, width, dtype=dtype, device=dev)
-    cams = [c.to(dev) for c in cameras]
-    scale = torch.tensor([s, s, 1.0], dtype=dtype, device=dev)[:, None]
+    per_batch = max(1, min(batch_samples // (sw * sh), (1 << 22) // max(nf, 1)))
+    image_t = torch.arange(n_t, device=dev).repeat_interleave(n_v)  # images ordered frame-major
+    image_v = torch.arange(n_v, device=dev).repeat(n_t)
     bar = tqdm(total=n_t * n_v, desc="render mesh", disable=not progress)
-    for t in range(n_t):
-        v = frames[t]
-        if shading == "smooth":
-            vn = vertex_normals(v, faces)
-        else:
-            tri = v[faces]
-            fn = torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-            fn = fn / fn.norm(dim=1, keepdim=True).clamp_min(1e-30)
-        for vi, cam in enumerate(cams):
-            w2c = cam.world_to_camera.to(dtype)
-            cam_xyz = v @ w2c[:3, :3].T + w2c[:3, 3]
-            K = cam.K.to(dtype) * scale
-            face_id, coef, inv_z, front = _rasterize(cam_xyz, faces, K, sw, sh, near, cull_backfaces, chunk_size)
-            hit = torch.nonzero(face_id >= 0).squeeze(1)
-            colour = torch.ones(sh * sw, 3, dtype=dtype, device=dev)
-            if hit.numel():
-                f = face_id[hit]
-                cx = (hit % sw).to(dtype) + 0.5
-                cy = torch.div(hit, sw, rounding_mode="floor").to(dtype) + 0.5
-                c = coef[f]
-                b = (c[:, :, 0] * cx[:, None] + c[:, :, 1] * cy[:, None] + c[:, :, 2]).clamp_min(0)
-                wp = b * inv_z[f]
-                wp = wp / wp.sum(dim=1, keepdim=True)  # perspective-correct barycentrics
-                uv = (wp[:, :, None] * uvs[f]).sum(dim=1)
-                tex = sample_texture(texture, uv, wrap)
-                if shading == "smooth":
-                    n = (wp[:, :, None] * vn[faces[f]]).sum(dim=1)
-                    n = n / n.norm(dim=1, keepdim=True).clamp_min(1e-30)
-                else:
-                    n = fn[f]
-                if not cull_backfaces:
-                    n = torch.where(front[f][:, None], n, -n)
-                shade = ambient + (1.0 - ambient) * (n @ light).clamp_min(0)
-                colour[hit] = tex * shade[:, None]
-            cover = (face_id >= 0).to(dtype)
-            rgb[vi, t] = colour.reshape(height, s, width, s, 3).mean(dim=(1, 3))
-            alpha[vi, t] = cover.reshape(height, s, width, s).mean(dim=(1, 3))
-            bar.update(1)
+    for b0 in range(0, n_t * n_v, per_batch):
+        tb, vb = image_t[b0 : b0 + per_batch], image_v[b0 : b0 + per_batch]
+        rot, trans = w2c[vb, :3, :3], w2c[vb, :3, 3]
+        cam_xyz = torch.einsum("bij,bnj->bni", rot, frames[tb]) + trans[:, None, :]
+        r = _rasterize(cam_xyz, faces, ks[vb], sw, sh, s, near, cull_backfaces, chunk_size)
+        colour = torch.ones(r.face.shape[0], 3, dtype=dtype, device=dev)
+        hit = torch.nonzero(r.face >= 0).squeeze(1)
+        if hit.numel():
+            g = r.face.index_select(0, hit)
+            img = torch.div(g, nf, rounding_mode="floor")
+            f = g - img * nf
+            crop = r.crop.index_select(0, img)
+            x0, y0, cw = crop[:, 0], crop[:, 1], crop[:, 2]
+            li = hit - r.offset.index_select(0, img)
+            ly = torch.div(li, cw, rounding_mode="floor")
+            sx = (x0 + li - ly * cw).to(dtype) + 0.5
+            sy = (y0 + ly).to(dtype) + 0.5
+            c = r.coef.index_select(0, g)
+            bary = (c[:, :, 0] * sx[:, None] + c[:, :, 1] * sy[:, None] + c[:, :, 2]).clamp_min(0)
+            wp = bary * r.inv_z.index_select(0, g)
+            wp = wp / wp.sum(dim=1, keepdim=True)  # perspective-correct barycentrics
+            uv = (wp[:, :, None] * uvs.index_select(0, f)).sum(dim=1)
+            tex = sample_texture(texture, uv, wrap)
+            frame = tb.index_select(0, img)
+            if shading == "smooth":
+                corner = (frame[:, None] * normals.shape[1] + faces.index_select(0, f)).reshape(-1)
+                vn = normals.reshape(-1, 3).index_select(0, corner).reshape(-1, 3, 3)
+                n = (wp[:, :, None] * vn).sum(dim=1)
+                n = n / n.norm(dim=1, keepdim=True).clamp_min(1e-30)
+            else:
+                n = normals.reshape(-1, 3).index_select(0, frame * nf + f)
+            if not cull_backfaces:
+                n = torch.where(r.front.index_select(0, g)[:, None], n, -n)
+            shade = ambient + (1.0 - ambient) * (n @ light).clamp_min(0)
+            colour.index_copy_(0, hit, tex * shade[:, None])
+        cover = (r.face >= 0).to(dtype)
+        crops = r.crop.tolist()
+        offsets = r.offset.tolist()
+        for i, ((x0, y0, cw, ch), off) in enumerate(zip(crops, offsets)):
+            if cw == 0:
+                continue
+            t_i, v_i = int(tb[i]), int(vb[i])
+            px0, py0, pw, ph = x0 // s, y0 // s, cw // s, ch // s
+            block = colour[off : off + cw * ch].reshape(ph, s, pw, s, 3).mean(dim=(1, 3))
+            rgb[v_i, t_i, py0 : py0 + ph, px0 : px0 + pw] = block
+            alpha[v_i, t_i, py0 : py0 + ph, px0 : px0 + pw] = cover[off : off + cw * ch].reshape(ph, s, pw, s).mean(dim=(1, 3))
+        bar.update(len(tb))
     bar.close()
     if single:
         return rgb[:, 0], alpha[:, 0]
