@@ -523,23 +523,32 @@ def _straight_colour(image: Tensor, mask: Tensor) -> tuple[np.ndarray, np.ndarra
     where a = 0, so that loading (c·a + 1 − a) gives the image back: exactly where the mask is 0
     or 1, and within half a grey level (0.5/255) where it is fractional.
     """
-    img = image.detach().to("cpu")
-    img = img.numpy().astype(np.float64) / 255.0 if img.dtype == torch.uint8 else img.to(torch.float64).numpy()
-    m = mask.detach().to("cpu")
-    a8 = m.numpy() if m.dtype == torch.uint8 else np.rint(m.to(torch.float64).numpy() * 255.0).astype(np.uint8)
-    a = a8.astype(np.float64)[..., None] / 255.0
+    # numpy rather than torch arithmetic: single-threaded, so the writer threads do not
+    # oversubscribe the cores with OpenMP; float32 is ample for rounding to 8 bits
+    img = image.detach().cpu()
+    img = (img.float() if img.dtype == torch.bfloat16 else img).numpy()  # numpy has no bfloat16
+    img = img.astype(np.float32) / np.float32(255.0) if img.dtype == np.uint8 else img.astype(np.float32, copy=False)
+    m = mask.detach().cpu()
+    m = (m.float() if m.dtype == torch.bfloat16 else m).numpy()
+    a8 = m if m.dtype == np.uint8 else np.rint(m.astype(np.float32, copy=False) * np.float32(255.0)).astype(np.uint8)
+    a = a8.astype(np.float32)[..., None] / np.float32(255.0)
     with np.errstate(divide="ignore", invalid="ignore"):
         colour = np.where(a > 0, (img - (1.0 - a)) / np.where(a > 0, a, 1.0), 1.0)
     rgb8 = np.clip(np.rint(colour * 255.0), 0, 255).astype(np.uint8)
     return rgb8, a8
 
 
-def _store(out: Tensor, index: tuple[int, ...], values: np.ndarray) -> None:
-    """Write float values in [0, 1] into ``out[index]`` (rounded to 0..255 for a uint8 ``out``)."""
-    if out.dtype == torch.uint8:
-        out[index] = torch.from_numpy(np.clip(np.rint(values * 255.0), 0, 255).astype(np.uint8))
+def _store(out: np.ndarray, index: tuple[int, ...], values: np.ndarray) -> None:
+    """Write float values in [0, 1] into ``out[index]`` (rounded to 0..255 for a uint8 ``out``).
+
+    Works on numpy arrays (the loaders wrap them with ``torch.from_numpy`` at the end): numpy
+    copies single-threaded, whereas torch's OpenMP copy from several loader threads at once
+    oversubscribes the cores.
+    """
+    if out.dtype == np.uint8:
+        out[index] = np.clip(np.rint(values * 255.0), 0, 255)
     else:
-        out[index] = torch.from_numpy(np.ascontiguousarray(values)).to(out.dtype)
+        out[index] = values
 
 
 def _run_parallel(
@@ -617,7 +626,7 @@ def load_scene(
     if plan.layout == "frames":
         cameras, images, masks, times = _load_frames(root, plan, config, dtype, progress, workers)
     else:
-        cameras, images, masks, times = _load_videos(root, plan, config, dtype, progress)
+        cameras, images, masks, times = _load_videos(root, plan, config, dtype, progress, workers)
     for message in index_problems(
         plan.num_views,
         int(images.shape[1]),
@@ -715,8 +724,9 @@ def _load_frames(
     problems.raise_if_any(root)
 
     W, H = cam_sizes[0]
-    images = torch.empty((V, T, H, W, 3), dtype=dtype)
-    masks = torch.empty((V, T, H, W), dtype=dtype)
+    np_dtype = {torch.uint8: np.uint8, torch.float32: np.float32, torch.float64: np.float64}[dtype]
+    images_np = np.empty((V, T, H, W, 3), dtype=np_dtype)
+    masks_np = np.empty((V, T, H, W), dtype=np_dtype)
     work = np.float64 if dtype == torch.float64 else np.float32
     lock = threading.Lock()
 
@@ -757,13 +767,13 @@ def _load_frames(
                     problems.add(f"{where}: cannot use mask '{e.mask_path}': {exc}")
                 return
             mask = _unit(mask, np.dtype(work))
-        _store(images, (v, t), _composite(_unit(colour, np.dtype(work)), mask))
-        _store(masks, (v, t), mask)
+        _store(images_np, (v, t), _composite(_unit(colour, np.dtype(work)), mask))
+        _store(masks_np, (v, t), mask)
 
     jobs = [lambda v=v, t=t: decode(v, t) for v in range(V) for t in range(T)]
     _run_parallel(jobs, workers, progress, "loading scene")
     problems.raise_if_any(root)
-    return cameras, images, masks, times
+    return cameras, torch.from_numpy(images_np), torch.from_numpy(masks_np), times
 
 
 def _read_mask(path: Path) -> np.ndarray:
@@ -803,36 +813,42 @@ def _check_time_steps(times: np.ndarray, dt: float, what: str, problems: Problem
 
 
 def _load_videos(
-    root: Path, plan: TransformsPlan, config: SceneConfig, dtype: torch.dtype, progress: bool
+    root: Path, plan: TransformsPlan, config: SceneConfig, dtype: torch.dtype, progress: bool, workers: int | None
 ) -> tuple[list[Camera], Tensor, Tensor, Tensor]:
     problems = Problems()
     entries = plan.camera_entries()
-    colour_frames: list[Tensor] = []
-    mask_frames: list[list[np.ndarray]] = []
-    for e in tqdm(entries, desc="loading videos", disable=not progress, unit="camera"):
+    V = len(entries)
+    colour_frames: list[Tensor | None] = [None] * V
+    mask_frames: list[list[np.ndarray] | None] = [None] * V
+    camera_problems = [Problems() for _ in range(V)]  # merged in camera order afterwards
+
+    def read_camera(v: int) -> None:
+        e, found = entries[v], camera_problems[v]
         assert isinstance(e, VideoEntry)
         where = f"{TRANSFORMS_JSON}: {e.where}"
         video = _resolve_file(root, e.video_path)
         if video is None:
-            problems.add(f"{where}: video file '{e.video_path}' not found")
-            continue
+            found.add(f"{where}: video file '{e.video_path}' not found")
+            return
         try:
             frames, info = load_video(video, dtype=torch.uint8)
         except VideoError as exc:
-            problems.add(f"{where}: {exc}")
-            continue
+            found.add(f"{where}: {exc}")
+            return
         if info.fps > 0 and abs(info.fps * config.dt - 1.0) > 1e-2:
-            problems.add(
+            found.add(
                 f"{where}: video '{e.video_path}' runs at {info.fps:g} fps but {SCENE_JSON} has dt = {config.dt:g} s "
                 f"({1.0 / config.dt:g} fps); re-encode the video or set dt = 1/fps"
             )
-        T = frames.shape[0]
-        H, W = frames.shape[1], frames.shape[2]
-        masks_v = _video_masks(root, e, T, W, H, where, problems)
-        if masks_v is None:
-            continue
-        colour_frames.append(frames)
-        mask_frames.append(masks_v)
+        masks_v = _video_masks(root, e, frames.shape[0], frames.shape[2], frames.shape[1], where, found)
+        if masks_v is not None:
+            colour_frames[v], mask_frames[v] = frames, masks_v
+
+    # ffmpeg decodes in subprocesses, so cameras are read in parallel threads
+    _run_parallel([lambda v=v: read_camera(v) for v in range(V)], workers, progress, "loading videos")
+    for found in camera_problems:
+        for message in found.items:
+            problems.add(message)
     problems.raise_if_any(root)
     counts = [f.shape[0] for f in colour_frames]
     shapes = [tuple(f.shape[1:3]) for f in colour_frames]
@@ -850,19 +866,21 @@ def _load_videos(
     sizes = [(s[1], s[0]) for s in shapes]
     cameras = _make_cameras(plan, sizes, [f"video '{e.video_path}'" for e in entries], problems)
     problems.raise_if_any(root)
-    V, T, (H, W) = len(entries), counts[0], shapes[0]
+    T, (H, W) = counts[0], shapes[0]
     work = np.dtype(np.float64 if dtype == torch.float64 else np.float32)
-    images = torch.empty((V, T, H, W, 3), dtype=dtype)
-    masks = torch.empty((V, T, H, W), dtype=dtype)
+    np_dtype = {torch.uint8: np.uint8, torch.float32: np.float32, torch.float64: np.float64}[dtype]
+    images_np = np.empty((V, T, H, W, 3), dtype=np_dtype)
+    masks_np = np.empty((V, T, H, W), dtype=np_dtype)
     for v in range(V):
         colour = colour_frames[v].numpy()
         for t in range(T):
             m = _unit(mask_frames[v][t], work)
-            _store(images, (v, t), _composite(_unit(colour[t], work), m))
-            _store(masks, (v, t), m)
+            _store(images_np, (v, t), _composite(_unit(colour[t], work), m))
+            _store(masks_np, (v, t), m)
+        colour_frames[v] = mask_frames[v] = None  # free as we go: peak memory ≈ output + one camera
     start = entries[0].start_time
     times = (start + torch.arange(T, dtype=torch.float64) * config.dt).to(torch.float32)
-    return cameras, images, masks, times
+    return cameras, torch.from_numpy(images_np), torch.from_numpy(masks_np), times
 
 
 def _video_masks(
@@ -886,7 +904,8 @@ def _video_masks(
             )
             return None
         # lossy codecs may tint grey slightly: use the mean of the three channels
-        return list(np.rint(frames.numpy().astype(np.float32).mean(axis=3)).astype(np.uint8))
+        total = frames.numpy().sum(axis=3, dtype=np.uint16)
+        return list(((total + 1) // 3).astype(np.uint8))  # round(total / 3)
     assert e.mask_paths is not None
     if len(e.mask_paths) != T:
         problems.add(f"{where}: mask_paths lists {len(e.mask_paths)} files but video '{e.video_path}' has {T} frames")
@@ -1087,10 +1106,7 @@ def _write_contents(
     else:
         (folder / "videos").mkdir()
         videos = []
-        for v in tqdm(range(V), desc="writing videos", disable=not progress, unit="camera"):
-            pairs = [_straight_colour(scene.images[v, t], scene.masks[v, t]) for t in range(T)]
-            write_video(folder / "videos" / f"c{v:0{cw}d}.mp4", np.stack([p[0] for p in pairs]), scene.config.fps, quality=video_quality, full_chroma=True)
-            write_video(folder / "videos" / f"c{v:0{cw}d}_mask.mp4", np.stack([p[1] for p in pairs]), scene.config.fps, lossless=True)
+        for v in range(V):
             entry = {
                 "camera_index": v,
                 "video_path": f"videos/c{v:0{cw}d}.mp4",
@@ -1101,6 +1117,16 @@ def _write_contents(
             if not shared:
                 entry.update(intrinsics[v])
             videos.append(entry)
+
+        def encode(v: int) -> None:
+            pairs = [_straight_colour(scene.images[v, t], scene.masks[v, t]) for t in range(T)]
+            fps = scene.config.fps
+            colour = np.stack([p[0] for p in pairs])
+            write_video(folder / videos[v]["video_path"], colour, fps, quality=video_quality, full_chroma=True)
+            write_video(folder / videos[v]["mask_video_path"], np.stack([p[1] for p in pairs]), fps, lossless=True)
+
+        # ffmpeg encodes in subprocesses, so cameras are encoded in parallel threads
+        _run_parallel([lambda v=v: encode(v) for v in range(V)], workers, progress, "writing videos")
         transforms["videos"] = videos
 
     scene_json = scene.config.to_json()
