@@ -623,19 +623,20 @@ def load_scene(
     problems.raise_if_any(root)
     assert plan is not None
     config = SceneConfig(**config_kwargs)
+
+    def check_indices(num_frames: int) -> None:
+        lists = (config.observed_frames, config.held_out_frames, config.observed_views, config.held_out_views)
+        for message in index_problems(plan.num_views, num_frames, *lists):
+            problems.add(f"{SCENE_JSON}: {message}")
+
+    if plan.num_frames is not None:  # frames layout: T is known before any pixel is read
+        check_indices(plan.num_frames)
+        problems.raise_if_any(root)
     if plan.layout == "frames":
         cameras, images, masks, times = _load_frames(root, plan, config, dtype, progress, workers)
     else:
         cameras, images, masks, times = _load_videos(root, plan, config, dtype, progress, workers)
-    for message in index_problems(
-        plan.num_views,
-        int(images.shape[1]),
-        config.observed_frames,
-        config.held_out_frames,
-        config.observed_views,
-        config.held_out_views,
-    ):
-        problems.add(f"{SCENE_JSON}: {message}")
+        check_indices(int(images.shape[1]))
     extras = _load_extras(root, extras_paths, problems)
     problems.raise_if_any(root)
     return Scene(cameras, images, masks, times, config, root, extras)
