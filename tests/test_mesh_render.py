@@ -88,8 +88,8 @@ def test_perspective_correct_uv_on_slanted_quad():
     f, size, c = 32.0, 32, 16.0
     slope, depth = 0.8, 2.0
     half = 0.6
-    v = torch.tensor([[x, y, depth + slope * x] for x, y in [(-half, -half), (half, -half), (half, half), (-half, half)]],
-                     dtype=F64)
+    corners = [(-half, -half), (half, -half), (half, half), (-half, half)]
+    v = torch.tensor([[x, y, depth + slope * x] for x, y in corners], dtype=F64)
     faces = torch.tensor([[0, 3, 2], [0, 2, 1]])
     corner_uv = torch.tensor([[0.0, 1.0], [1.0, 1.0], [1.0, 0.0], [0.0, 0.0]], dtype=F64)
     ramp = torch.zeros(1, 64, 3, dtype=F64)

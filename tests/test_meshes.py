@@ -284,7 +284,8 @@ def test_multi_material_obj_is_packed_into_one_texture(tmp_path):
         for c, (u, v) in zip(corners, [(0.1, 0.1), (0.9, 0.1), (0.9, 0.9), (0.1, 0.9)]):
             lines.append("v {} {} {}".format(*c))
             vts.append(f"vt {u} {v}")
-        faces += [f"f {n + 1}/{n + 1} {n + 2}/{n + 2} {n + 3}/{n + 3}", f"f {n + 1}/{n + 1} {n + 3}/{n + 3} {n + 4}/{n + 4}"]
+        for tri in [(1, 2, 3), (1, 3, 4)]:
+            faces.append("f " + " ".join(f"{n + i}/{n + i}" for i in tri))
         n += 4
     (tmp_path / "two.obj").write_text("\n".join(lines + vts + faces) + "\n")
     mesh = load_user_mesh(tmp_path / "two.obj")

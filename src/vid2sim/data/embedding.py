@@ -174,7 +174,9 @@ def apply_embedding(tet_vertices_deformed: Tensor, tet_index: Tensor, bary: Tens
             f"tet_index (P,) and bary (P, 4) must agree, got {tuple(tet_index.shape)} and {tuple(bary.shape)}"
         )
     if len(tet_index) and (int(tet_index.min()) < 0 or int(tet_index.max()) >= tets.shape[0]):
-        raise ValueError(f"tet_index must lie in [0, {tets.shape[0]}), got [{int(tet_index.min())}, {int(tet_index.max())}]")
+        raise ValueError(
+            f"tet_index must lie in [0, {tets.shape[0]}), got [{int(tet_index.min())}, {int(tet_index.max())}]"
+        )
     if len(tets) and int(tets.max()) >= x.shape[-2]:
         raise ValueError(f"tets index vertex {int(tets.max())} but tet_vertices_deformed has {x.shape[-2]} vertices")
     idx = tets[tet_index]  # (P, 4)

@@ -39,12 +39,15 @@ faces, the range is machine load) and 0.02–0.05 s per 128² image.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Sequence
+from typing import TYPE_CHECKING, Sequence
 
 import torch
 from torch import Tensor
 
 from ..splats.cameras import Camera
+
+if TYPE_CHECKING:
+    from .meshes import TexturedMesh
 
 _INT64_MAX = torch.iinfo(torch.int64).max
 DEFAULT_LIGHT_DIR = (0.35, 0.25, 1.0)
@@ -97,7 +100,8 @@ def _check_inputs(vertices: Tensor, faces: Tensor, uvs: Tensor, texture: Tensor,
         raise ValueError(f"faces must have shape (Nf, 3), got {tuple(faces.shape)}")
     if faces.numel() and (int(faces.min()) < 0 or int(faces.max()) >= vertices.shape[-2]):
         raise ValueError(
-            f"faces index vertices in [{int(faces.min())}, {int(faces.max())}] but there are {vertices.shape[-2]} vertices"
+            f"faces index vertices in [{int(faces.min())}, {int(faces.max())}] "
+            f"but there are {vertices.shape[-2]} vertices"
         )
     if uvs.shape != (faces.shape[0], 3, 2):
         raise ValueError(f"uvs must have shape (Nf, 3, 2) = ({faces.shape[0]}, 3, 2), got {tuple(uvs.shape)}")
@@ -216,7 +220,8 @@ def _rasterize(
             inside = torch.nonzero((b >= 0).all(dim=1) & (iz > 0)).squeeze(1)
             depth = (1.0 / iz.index_select(0, inside)).to(torch.float32)
             key = (depth.view(torch.int32).to(torch.long) << 32) | g.index_select(0, inside)
-            where = (base.index_select(0, local_tri) + dy * stride.index_select(0, local_tri) + dx).index_select(0, inside)
+            where = base.index_select(0, local_tri) + dy * stride.index_select(0, local_tri) + dx
+            where = where.index_select(0, inside)
             zbuf.scatter_reduce_(0, where, key, reduce="amin", include_self=True)
             done = int(ends[stop - 1])
             start = stop
@@ -300,7 +305,9 @@ def render_mesh(
     width, height = cameras[0].width, cameras[0].height
     sw, sh = width * s, height * s
     if n_t * n_v * max(nf, 1) >= 2**31:
-        raise ValueError(f"too many frames × views × faces ({n_t} × {n_v} × {nf}) for 32-bit face ids; render in parts")
+        raise ValueError(
+            f"too many frames × views × faces ({n_t} × {n_v} × {nf}) for 32-bit face ids; render in parts"
+        )
 
     # per frame: normals in world space (the light is fixed in the world)
     if shading == "smooth":
@@ -364,7 +371,8 @@ def render_mesh(
             px0, py0, pw, ph = x0 // s, y0 // s, cw // s, ch // s
             block = colour[off : off + cw * ch].reshape(ph, s, pw, s, 3).mean(dim=(1, 3))
             rgb[v_i, t_i, py0 : py0 + ph, px0 : px0 + pw] = block
-            alpha[v_i, t_i, py0 : py0 + ph, px0 : px0 + pw] = cover[off : off + cw * ch].reshape(ph, s, pw, s).mean(dim=(1, 3))
+            cov = cover[off : off + cw * ch].reshape(ph, s, pw, s).mean(dim=(1, 3))
+            alpha[v_i, t_i, py0 : py0 + ph, px0 : px0 + pw] = cov
         bar.update(len(tb))
     bar.close()
     if single:
@@ -372,7 +380,9 @@ def render_mesh(
     return rgb, alpha
 
 
-def render_textured_mesh(mesh, cameras: Sequence[Camera], vertices: Tensor | None = None, **kwargs) -> tuple[Tensor, Tensor]:
+def render_textured_mesh(
+    mesh: "TexturedMesh", cameras: Sequence[Camera], vertices: Tensor | None = None, **kwargs
+) -> tuple[Tensor, Tensor]:
     """:func:`render_mesh` for a :class:`vid2sim.data.meshes.TexturedMesh`.
 
     Args:

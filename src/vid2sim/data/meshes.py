@@ -248,7 +248,9 @@ def merge_vertices(
     return vertices[rep[used]], remap[faces]
 
 
-def _orient_components(faces: np.ndarray, uvs: np.ndarray | None, fa, fb, same) -> tuple[np.ndarray, np.ndarray | None, bool]:
+def _orient_components(
+    faces: np.ndarray, uvs: np.ndarray | None, fa: np.ndarray, fb: np.ndarray, same: np.ndarray
+) -> tuple[np.ndarray, np.ndarray | None, bool]:
     """Make winding consistent inside each component by flipping faces (BFS over face adjacency).
 
     Returns (faces, uvs, orientable).
@@ -370,7 +372,9 @@ def prepare_surface(
     if rep.inconsistent_edges:
         faces, uvs, orientable = _orient_components(faces, uvs, fa, fb, same)
         if not orientable:
-            raise ValueError(f"{name}: the surface is not orientable (e.g. a Möbius-like strip); cannot define an inside")
+            raise ValueError(
+                f"{name}: the surface is not orientable (e.g. a Möbius-like strip); cannot define an inside"
+            )
     ncomp, labels = _components(faces.shape[0], fa, fb)
     tri = vertices[faces]
     per_face = np.einsum("ij,ij->i", tri[:, 0], np.cross(tri[:, 1], tri[:, 2])) / 6.0

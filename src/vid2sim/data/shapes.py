@@ -233,7 +233,8 @@ def _largest_component(vertices: np.ndarray, faces: np.ndarray, name: str) -> tu
 
     n = len(vertices)
     e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]]])
-    ncomp, labels = connected_components(coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n)), directed=False)
+    graph = coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n))
+    ncomp, labels = connected_components(graph, directed=False)
     if ncomp == 1:
         return vertices, faces
     face_label = labels[faces[:, 0]]
