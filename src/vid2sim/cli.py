@@ -63,7 +63,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0
     try:
         return func(args)
-    except (UserError, ValueError, FileNotFoundError) as exc:
+    except (UserError, ValueError, OSError) as exc:
         print(f"vid2sim {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
