@@ -173,22 +173,49 @@ def _neo_hookean_twist_fix(F: Tensor, C: Tensor, mu: Scalar, lam: Scalar) -> Ten
     return out
 
 
+def symmetric_eigenvalues_3x3(A: Tensor) -> Tensor:
+    """Eigenvalues of symmetric 3×3 matrices A: (N, 3, 3) in closed form (trigonometric method), (N, 3) ascending."""
+    q = A.diagonal(dim1=1, dim2=2).sum(-1) / 3.0
+    p1 = A[:, 0, 1] ** 2 + A[:, 0, 2] ** 2 + A[:, 1, 2] ** 2
+    d = A.diagonal(dim1=1, dim2=2) - q[:, None]
+    p = torch.sqrt(((d * d).sum(-1) + 2.0 * p1) / 6.0)
+    safe_p = torch.where(p > 0, p, torch.ones_like(p))
+    B = (A - q[:, None, None] * torch.eye(3, dtype=A.dtype, device=A.device)) / safe_p[:, None, None]
+    r = (torch.linalg.det(B) / 2.0).clamp(-1.0, 1.0)
+    phi = torch.acos(r) / 3.0
+    e_max = q + 2.0 * p * torch.cos(phi)
+    e_min = q + 2.0 * p * torch.cos(phi + 2.0 * math.pi / 3.0)
+    e_mid = 3.0 * q - e_max - e_min
+    return torch.stack([e_min, e_mid, e_max], dim=-1)
+
+
 def project_tangent_psd(model: str, F: Tensor, C: Tensor, mu: Scalar, lam: Scalar, tolerance: float = 1e-6) -> Tensor:
     """PSD projection of the tangent C = ∂P/∂F (N, 9, 9) of ``model`` at F (N, 3, 3).
 
-    Like :func:`project_psd`, with a closed-form fix for the Neo-Hookean twist modes applied first to the
-    matrices that fail the fast positive-definiteness test; any matrix still indefinite after it (e.g.
-    under very large expansion) goes through the general eigendecomposition.
+    Neo-Hookean: the tangent's eigenvalues are known in closed form — twist modes μ − c σ_k / J with
+    c = μ − λ ln J, and a scaling block that is positive definite whenever c ≥ 0 — so the singular values
+    alone (closed-form eigenvalues of FᵀF) tell which points need projecting. Twist modes more negative
+    than ``tolerance`` · (λ + 2μ) are clamped in closed form (:func:`_neo_hookean_twist_fix`); points with
+    c < 0 (extreme expansion) go through the general eigendecomposition. Other models: like
+    :func:`project_psd`.
     """
     C = 0.5 * (C + C.transpose(1, 2))
-    bad = ~_nearly_pd(C, tolerance)
-    if not bool(bad.any()):
+    if model != "neo_hookean":
+        return project_psd(C, tolerance=tolerance)
+    J = torch.linalg.det(F)
+    c = mu - lam * torch.log(J)
+    sigma = symmetric_eigenvalues_3x3(F.transpose(1, 2) @ F).clamp_min(0.0).sqrt()
+    twist = mu - (c / J)[:, None] * sigma
+    scale = tolerance * (lam + 2.0 * mu)
+    general = c < 0
+    twist_bad = (twist < -scale).any(dim=1) & ~general
+    if not bool(twist_bad.any() | general.any()):
         return C
     out = C.clone()
-    sub = C[bad]
-    if model == "neo_hookean":
-        sub = _neo_hookean_twist_fix(F[bad], sub, mu, lam)
-    out[bad] = project_psd(sub, tolerance=tolerance)
+    if bool(twist_bad.any()):
+        out[twist_bad] = _neo_hookean_twist_fix(F[twist_bad], C[twist_bad], mu, lam)
+    if bool(general.any()):
+        out[general] = project_psd(C[general], tolerance=tolerance)
     return out
 
 

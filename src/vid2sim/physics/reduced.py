@@ -20,6 +20,7 @@ the skinning quantities (b, G) and the previous state.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from typing import Callable, Sequence
 
@@ -147,8 +148,9 @@ class StepProblem:
         u = self.b @ dy.reshape(3, -1).T  # (K, 3)
         return ((self.mass[:, None] * u).T @ self.b).reshape(-1)
 
+    @functools.cached_property
     def mass_matrix(self) -> Tensor:
-        """(D, D) reduced mass matrix."""
+        """(D, D) reduced mass matrix (constant during a step; computed once)."""
         Mb = (self.b * self.mass[:, None]).T @ self.b
         return torch.block_diag(Mb, Mb, Mb)
 
@@ -198,7 +200,7 @@ class StepProblem:
         hx = x.new_zeros(x.shape[0], 3, 3)
         for ext in self.externals:
             hx = hx + ext.hessian(x, self.mass, self.t, project=project)
-        H = self.mass_matrix() + self.dt**2 * (
+        H = self.mass_matrix + self.dt**2 * (
             self.basis.hessian(self.vol[:, None, None] * C) + self._reduced_point_hessian(hx)
         )
         return 0.5 * (H + H.T)
