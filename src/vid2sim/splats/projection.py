@@ -75,7 +75,7 @@ def project_gaussians(
     """
     R = viewmats[:, :3, :3]  # (V, 3, 3)
     t = viewmats[:, :3, 3]  # (V, 3)
-    p_c = torch.einsum("vij,nj->vni", R, means) + t[:, None, :]  # (V, N, 3)
+    p_c = torch.matmul(means, R.transpose(1, 2)) + t[:, None, :]  # (V, N, 3)
     x, y, z = p_c.unbind(-1)
     in_depth = (z > near_plane) & (z < far_plane)
     z_safe = torch.where(in_depth, z, torch.ones_like(z))
@@ -87,9 +87,12 @@ def project_gaussians(
     mean2d = torch.stack([fx * u + cx, fy * v + cy], dim=-1)  # (V, N, 2)
 
     sym = 0.5 * (covars + covars.transpose(1, 2))
-    cov_c = torch.einsum("vij,njk,vlk->vnil", R, sym, R)  # R Σ Rᵀ, (V, N, 3, 3)
-    c00, c01, c02 = cov_c[..., 0, 0], cov_c[..., 0, 1], cov_c[..., 0, 2]
-    c11, c12, c22 = cov_c[..., 1, 1], cov_c[..., 1, 2], cov_c[..., 2, 2]
+    # the six entries (il) of R Σ Rᵀ are linear in Σ: Σ_jk R_ij R_lk Σ_jk, one small GEMM per view
+    rows = torch.tensor([0, 0, 0, 1, 1, 2], device=R.device)
+    cols = torch.tensor([0, 1, 2, 1, 2, 2], device=R.device)
+    kron = (R[:, rows, :, None] * R[:, cols, None, :]).reshape(-1, 6, 9)  # (V, 6, 9)
+    cov_c = torch.matmul(sym.reshape(1, -1, 9), kron.transpose(1, 2))  # (V, N, 6)
+    c00, c01, c02, c11, c12, c22 = cov_c.unbind(-1)
 
     tan_x, tan_y = 0.5 * width / fx, 0.5 * height / fy
     u_c = torch.clamp(u, -(cx / fx + 0.3 * tan_x), (width - cx) / fx + 0.3 * tan_x)

@@ -138,30 +138,42 @@ def bin_gaussians(
     lam_min = 0.5 * (a + c) - torch.sqrt((0.25 * (a - c) ** 2 + b * b).clamp_min(0))
     reach2 = (2.0 * (_LOG_255 + lo) / lam_min.clamp_min(1e-12)) * (1 + 1e-5) + 1e-6
 
+    # per-entry arrays in depth order, so that expanding them to candidates reads memory in order
     order = torch.argsort(depths.detach(), stable=True)
-    counts_o = counts.index_select(0, order)
-    entry = torch.repeat_interleave(order, counts_o)
-    first = torch.cumsum(counts_o, 0) - counts_o
-    local = torch.arange(entry.shape[0], device=device) - torch.repeat_interleave(first, counts_o)
-    nx_e = nx.index_select(0, entry).clamp_min(1)
+    per = torch.stack([tx0, ty0, nx, counts, view_ids.long()], dim=1).index_select(0, order).to(torch.int32)
+    tx0_o, ty0_o, nx_o, counts_o, view_o = per.unbind(1)
+    geo_o = torch.stack([mux, muy, reach2], dim=1).index_select(0, order)
+    M = order.shape[0]
+    cand = torch.repeat_interleave(torch.arange(M, device=device, dtype=torch.int32), counts_o)  # ascending
+    first = torch.cumsum(counts_o, 0, dtype=torch.int32) - counts_o
+    local = torch.arange(cand.shape[0], device=device, dtype=torch.int32) - first.index_select(0, cand)
+    nx_e = nx_o.index_select(0, cand)
     ty_loc = torch.div(local, nx_e, rounding_mode="floor")
-    tx = tx0.index_select(0, entry) + (local - ty_loc * nx_e)
-    ty = ty0.index_select(0, entry) + ty_loc
-    # nearest pixel centre of the tile to μ
-    mx_e = mux.index_select(0, entry)
-    my_e = muy.index_select(0, entry)
-    dx = torch.minimum(torch.maximum(mx_e, tx * ts + 0.5), tx * ts + (ts - 0.5)) - mx_e
-    dy = torch.minimum(torch.maximum(my_e, ty * ts + 0.5), ty * ts + (ts - 0.5)) - my_e
-    kept = torch.nonzero(dx * dx + dy * dy <= reach2.index_select(0, entry)).squeeze(1)
-    entry, tx, ty = entry.index_select(0, kept), tx.index_select(0, kept), ty.index_select(0, kept)
-    tile = (view_ids.long().index_select(0, entry) * ty_n + ty) * tx_n + tx
+    tx = tx0_o.index_select(0, cand) + (local - ty_loc * nx_e)
+    ty = ty0_o.index_select(0, cand) + ty_loc
+    # conservative circle test against the tile's nearest pixel centre
+    g = geo_o.index_select(0, cand)
+    mx_e, my_e = g[:, 0], g[:, 1]
+    x0 = tx.to(p.dtype) * ts
+    y0 = ty.to(p.dtype) * ts
+    dx = torch.minimum(torch.maximum(mx_e, x0 + 0.5), x0 + (ts - 0.5)) - mx_e
+    dy = torch.minimum(torch.maximum(my_e, y0 + 0.5), y0 + (ts - 0.5)) - my_e
+    kept = torch.nonzero(dx * dx + dy * dy <= g[:, 2]).squeeze(1)
+    cand, tx, ty = cand.index_select(0, kept), tx.index_select(0, kept), ty.index_select(0, kept)
+    tile = (view_o.index_select(0, cand) * ty_n + ty) * tx_n + tx
     n_tiles = n_views * ty_n * tx_n
-    key = tile.to(torch.int32) if n_tiles < 2**31 else tile
+    if n_tiles <= 2**15:
+        key = tile.to(torch.int16)
+    elif n_tiles < 2**31:
+        key = tile
+    else:  # pragma: no cover - beyond 2³¹ tiles
+        key = tile.long()
     _, perm = torch.sort(key, stable=True)
     tile_count = torch.bincount(tile, minlength=n_tiles)
     tile_start = torch.cumsum(tile_count, 0) - tile_count
+    entry = order.index_select(0, cand.index_select(0, perm))
     return TileBins(
-        isect_entry=entry.index_select(0, perm),
+        isect_entry=entry,
         tile_start=tile_start,
         tile_count=tile_count,
         tiles_x=tx_n,
@@ -188,55 +200,92 @@ def _tile_centres(tiles: Tensor, bins: TileBins, dtype: torch.dtype) -> tuple[Te
     return cx[:, None], cy[:, None]
 
 
-class _Step:
-    """Per-step lookups for the active tiles: list offsets, lengths and tile centres."""
+class _Slots:
+    """Each tile's depth-sorted list cut into blocks of K slots (the last one padded).
 
-    def __init__(self, active: Tensor, bins: TileBins, dtype: torch.dtype):
-        self.active = active
-        self.start = bins.tile_start.index_select(0, active)
-        self.count = bins.tile_count.index_select(0, active)
-        self.cx, self.cy = _tile_centres(active, bins, dtype)
+    Block ``bstart[t] + c`` holds entries ``[cK, (c+1)K)`` of tile t's list, so one depth chunk of
+    a group of tiles is one gather of whole blocks. Per slot it holds the negated quadratic
+    coefficients ``ncoef = −coef`` (so that ``ncoef @ basis = −σ'``), the features and the centre
+    offset (μ − tile centre) needed by the backward pass. Padding slots get σ' = 10⁴ (α = 0, so
+    they add nothing) and point at entry 0.
+    """
+
+    def __init__(self, params: Tensor, feat1: Tensor, bins: TileBins, K: int):
+        dev, dtype = params.device, params.dtype
+        cnt = bins.tile_count
+        nb = torch.div(cnt + (K - 1), K, rounding_mode="floor")
+        self.bstart = torch.cumsum(nb, 0) - nb
+        B = int(nb.sum())
+        blk_tile = torch.repeat_interleave(torch.arange(bins.n_tiles, device=dev), nb)
+        rank = (torch.arange(B, device=dev) - self.bstart.index_select(0, blk_tile)) * K
+        rank = rank[:, None] + torch.arange(K, device=dev)  # (B, K) position in the tile's list
+        valid = rank < cnt.index_select(0, blk_tile)[:, None]
+        src = (bins.tile_start.index_select(0, blk_tile)[:, None] + rank) * valid
+        # padding slots point at entry 0: their α is forced to 0, so they contribute nothing either way
+        self.entry = bins.isect_entry.index_select(0, src.reshape(-1)) if B else src.reshape(-1)
+        table = torch.cat([params, feat1], dim=1).index_select(0, self.entry)  # (B·K, 6 + C1)
+        cx, cy = _tile_centres(blk_tile, bins, dtype)
+        mxy = table[:, :2].reshape(B, K, 2) - torch.stack([cx, cy], dim=-1)
+        mx, my = mxy.unbind(-1)
+        a, b, c, lo = (table[:, i].reshape(B, K) for i in range(2, 6))
+        ncoef = torch.empty(B, K, 6, dtype=dtype, device=dev)
+        bx = torch.add(a * mx, b * my, out=ncoef[..., 1])
+        by = torch.add(b * mx, c * my, out=ncoef[..., 2])
+        torch.mul(a, -0.5, out=ncoef[..., 3])
+        torch.neg(b, out=ncoef[..., 4])
+        torch.mul(c, -0.5, out=ncoef[..., 5])
+        validf = valid.to(dtype)
+        neg_const = lo - 0.5 * (mx * bx + my * by)  # −(½ mᵀQm − log o)
+        ncoef[..., 0] = neg_const * validf + (validf - 1.0) * _PAD_SIGMA
+        self.ncoef = ncoef  # (B, K, 6)
+        self.mxy = mxy  # (B, K, 2)
+        self.feat = table[:, 6:].reshape(B, K, -1).contiguous()  # (B, K, C1)
+        self.n_blocks = B
 
 
-class _Chunk:
-    """Depth chunk [c0, c0 + K) of tiles [s, e) of a step: gathered entries and α at every tile pixel."""
+def _param_grads(d_ncoef: Tensor, ncoef: Tensor, mxy: Tensor) -> Tensor:
+    """Per-slot ∂L/∂[μx, μy, a, b, c, log o] (…, 6) from ∂L/∂(−coef) (…, 6).
 
-    def __init__(self, params: Tensor, feat1: Tensor, bins: TileBins, step: _Step, s: int, e: int,
-                 c0: int, K: int, basis: Tensor, alpha_th: float):
-        A = e - s
-        pos = c0 + torch.arange(K, device=params.device)
-        valid = pos[None, :] < step.count[s:e, None]  # (A, K)
-        idx = (step.start[s:e, None] + pos[None, :]) * valid
-        ent = bins.isect_entry.index_select(0, idx.reshape(-1)).reshape(A, K)
-        self.ent = ent
-        prm = params.index_select(0, ent.reshape(-1)).reshape(A, K, 6)
-        self.mx = prm[..., 0] - step.cx[s:e]
-        self.my = prm[..., 1] - step.cy[s:e]
-        a, b, c = prm[..., 2], prm[..., 3], prm[..., 4]
-        self.a, self.b, self.c = a, b, c
-        self.bx = a * self.mx + b * self.my
-        self.by = b * self.mx + c * self.my
-        const = 0.5 * (self.mx * self.bx + self.my * self.by) - prm[..., 5]
-        const = const * valid + _PAD_SIGMA * (~valid)
-        coef = torch.stack([const, -self.bx, -self.by, 0.5 * a, b, 0.5 * c], dim=-1)  # (A, K, 6)
-        self.f = feat1.index_select(0, ent.reshape(-1)).reshape(A, K, -1)  # (A, K, C1)
-        vis = torch.exp((coef @ basis).neg_())  # (A, K, P) = o·exp(−σ)
-        self.vis = vis
-        alpha = vis.clamp(max=MAX_ALPHA)
-        self.alpha = F.threshold_(alpha, alpha_th, 0.0)
+    coef = [½ mᵀQm − log o, −(a mx + b my), −(b mx + c my), ½a, b, ½c], m = μ − tile centre.
+    """
+    g0, g1, g2, g3, g4, g5 = (-d_ncoef).unbind(-1)  # ∂L/∂coef
+    bx, by = ncoef[..., 1], ncoef[..., 2]
+    a, b, c = -2.0 * ncoef[..., 3], -ncoef[..., 4], -2.0 * ncoef[..., 5]
+    mx, my = mxy.unbind(-1)
+    return torch.stack(
+        [
+            g0 * bx - g1 * a - g2 * b,
+            g0 * by - g1 * b - g2 * c,
+            0.5 * g0 * mx * mx - g1 * mx + 0.5 * g3,
+            g0 * mx * my - g1 * my - g2 * mx + g4,
+            0.5 * g0 * my * my - g2 * my + 0.5 * g5,
+            -g0,
+        ],
+        dim=-1,
+    )
 
-    def transmittance(self, p_in: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """(T before each Gaussian, included mask as 0/1 floats, weights w), all (A, K, P)."""
-        om = torch.rsub(self.alpha, 1.0)
-        self.om = om
-        cp = torch.cumprod(torch.cat([p_in[:, None, :], om], dim=1), dim=1)
-        t_before = cp[:, :-1]
-        self.p_last = cp[:, -1]
-        incl = torch.empty_like(om)
-        torch.gt(cp[:, 1:], T_EPS, out=incl)
-        w = self.alpha * t_before
-        w.mul_(incl)
-        return t_before, incl, w
+
+def _alpha(ncoef: Tensor, basis: Tensor, alpha_th: float) -> tuple[Tensor, Tensor]:
+    """o·exp(−σ') and α = min(0.999, ·) zeroed below 1/255, both (A, K, P)."""
+    vis = torch.exp(ncoef @ basis)
+    alpha = F.threshold_(vis.clamp(max=MAX_ALPHA), alpha_th, 0.0)
+    return vis, alpha
+
+
+def _transmittance(alpha: Tensor, p_in: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """T before each Gaussian, the inclusion mask (0/1), weights w (all (A, K, P)) and the running
+    transmittance after the chunk (A, P)."""
+    A, K, P = alpha.shape
+    cp = torch.empty(A, K + 1, P, dtype=alpha.dtype, device=alpha.device)
+    cp[:, 0] = p_in
+    torch.sub(1.0, alpha, out=cp[:, 1:])
+    cp.cumprod_(dim=1)
+    t_before = cp[:, :-1]
+    incl = torch.empty_like(alpha)
+    torch.gt(cp[:, 1:], T_EPS, out=incl)
+    w = alpha * t_before
+    w.mul_(incl)
+    return t_before, incl, w, cp[:, -1]
 
 
 def _groups(n: int, K: int, P: int, max_elements: int) -> list[tuple[int, int]]:
@@ -263,93 +312,81 @@ class _Composite(torch.autograd.Function):
         basis = _pixel_basis(ts, dtype, device)
         th = _alpha_threshold(dtype)
         K = opts.chunk
+        slots = _Slots(params, feat1, bins, K)
         acc = torch.zeros(bins.n_tiles, C1, P, dtype=dtype, device=device)
         active = torch.nonzero(bins.tile_count > 0).squeeze(1)
         acc_act = torch.zeros(active.numel(), C1, P, dtype=dtype, device=device)
         p_act = torch.ones(active.numel(), P, dtype=dtype, device=device)
-        steps: list[tuple[_Step, int, Tensor, Tensor]] = []
-        c0 = 0
+        steps: list[tuple[Tensor, Tensor, Tensor, Tensor]] = []
+        c = 0
         while active.numel():
-            step = _Step(active, bins, dtype)
+            bids = slots.bstart.index_select(0, active) + c
+            count = bins.tile_count.index_select(0, active)
             p_next = torch.empty_like(p_act)
             for s, e in _groups(active.numel(), K, P, opts.max_elements):
-                ch = _Chunk(params, feat1, bins, step, s, e, c0, K, basis, th)
-                _, _, w = ch.transmittance(p_act[s:e])
-                acc_act[s:e] += ch.f.transpose(1, 2) @ w
-                p_next[s:e] = ch.p_last
-            c0 += K
-            keep = (step.count > c0) & (p_next > T_EPS).any(dim=1)
+                ncoef = slots.ncoef.index_select(0, bids[s:e])
+                f = slots.feat.index_select(0, bids[s:e])
+                _, alpha = _alpha(ncoef, basis, th)
+                _, _, w, p_last = _transmittance(alpha, p_act[s:e])
+                acc_act[s:e].baddbmm_(f.transpose(1, 2), w)
+                p_next[s:e] = p_last
+            c += 1
+            keep = (count > c * K) & (p_next > T_EPS).any(dim=1)
             kept = torch.nonzero(keep).squeeze(1)
             done = torch.nonzero(~keep).squeeze(1)
             acc.index_copy_(0, active.index_select(0, done), acc_act.index_select(0, done))
-            steps.append((step, c0 - K, p_act, kept))
+            steps.append((active, bids, p_act, kept))
             active = active.index_select(0, kept)
             acc_act = acc_act.index_select(0, kept)
             p_act = p_next.index_select(0, kept)
-        ctx.save_for_backward(params, feat1, acc)
-        ctx.bins, ctx.opts, ctx.steps = bins, opts, steps
+        ctx.save_for_backward(params, acc)
+        ctx.slots, ctx.opts, ctx.steps, ctx.C1 = slots, opts, steps, C1
         return acc
 
     @staticmethod
     def backward(ctx, grad_acc: Tensor):  # type: ignore[override]
-        params, feat1, acc = ctx.saved_tensors
-        bins: TileBins = ctx.bins
+        params, acc = ctx.saved_tensors
+        slots: _Slots = ctx.slots
         K = ctx.opts.chunk
-        ts = bins.tile_size
+        C = ctx.C1 - 1
+        ts = int(math.isqrt(acc.shape[2]))
         P = ts * ts
-        C1 = feat1.shape[1]
         basis = _pixel_basis(ts, params.dtype, params.device)
         basis_t = basis.T.contiguous()
         th = _alpha_threshold(params.dtype)
-        n_grad = 6 + C1
-        grad_all = torch.zeros(params.shape[0] * n_grad, dtype=params.dtype, device=params.device)
-        col = torch.arange(n_grad, device=params.device)
+        # per-slot gradients [∂μx, ∂μy, ∂a, ∂b, ∂c, ∂log o, ∂f_0 … ∂f_{C-1}]
+        d_slots = torch.zeros(slots.n_blocks, K, 6 + C, dtype=params.dtype, device=params.device)
         grad_acc = grad_acc.contiguous()
-        if not ctx.steps:
-            return grad_all.reshape(-1, n_grad)[:, :6], grad_all.reshape(-1, n_grad)[:, 6:-1], None, None
-        first = ctx.steps[0][0].active
-        g_act = grad_acc.index_select(0, first)  # (A, C1, P)
-        rem = (g_act * acc.index_select(0, first)).sum(1)  # Σ_all (g·f_j) w_j, (A, P)
-        for step, c0, p_in, kept in ctx.steps:
+        if ctx.steps:
+            first = ctx.steps[0][0]
+            g_act = grad_acc.index_select(0, first)  # (A, C1, P)
+            rem = (g_act * acc.index_select(0, first)).sum(1)  # Σ_all (g·f_j) w_j, (A, P)
+        for active, bids, p_in, kept in ctx.steps:
             rem_next = torch.empty_like(rem)
-            for s, e in _groups(step.active.numel(), K, P, ctx.opts.max_elements):
-                ch = _Chunk(params, feat1, bins, step, s, e, c0, K, basis, th)
-                t_before, incl, w = ch.transmittance(p_in[s:e])
+            for s, e in _groups(active.numel(), K, P, ctx.opts.max_elements):
+                b = bids[s:e]
+                ncoef = slots.ncoef.index_select(0, b)
+                f = slots.feat.index_select(0, b)
+                vis, alpha = _alpha(ncoef, basis, th)
+                t_before, incl, w, _ = _transmittance(alpha, p_in[s:e])
                 g = g_act[s:e]
-                gf = ch.f @ g  # (A, K, P): g·f_k
+                gf = f @ g  # (A, K, P): g·f_k
                 rest = torch.cumsum(gf * w, dim=1).neg_().add_(rem[s:e, None, :])  # Σ_{j>k} (g·f_j) w_j
                 rem_next[s:e] = rest[:, -1]
-                d_alpha = gf.mul_(t_before).sub_(rest.div_(ch.om))  # ∂L/∂α
-                unclamped = torch.empty_like(ch.vis)
-                torch.le(ch.vis, MAX_ALPHA, out=unclamped)
-                d_alpha.mul_(ch.alpha).mul_(incl).mul_(unclamped)  # = −∂L/∂σ'
-                g0, g1, g2, g3, g4, g5 = (d_alpha @ basis_t).neg_().unbind(-1)  # ∂L/∂coef, (A, K) each
-                # coef = [½ mᵀ Q m − lo, −(a mx + b my), −(b mx + c my), ½a, b, ½c], m = μ − tile centre
-                mx, my = ch.mx, ch.my
-                d_f = w @ g.transpose(1, 2)  # (A, K, C1)
-                d_all = torch.cat(
-                    [
-                        torch.stack(
-                            [
-                                g0 * ch.bx - g1 * ch.a - g2 * ch.b,
-                                g0 * ch.by - g1 * ch.b - g2 * ch.c,
-                                0.5 * g0 * mx * mx - g1 * mx + 0.5 * g3,
-                                g0 * mx * my - g1 * my - g2 * mx + g4,
-                                0.5 * g0 * my * my - g2 * my + 0.5 * g5,
-                                -g0,
-                            ],
-                            dim=-1,
-                        ),
-                        d_f,
-                    ],
-                    dim=-1,
-                )  # (A, K, 6 + C1); padding slots are exactly zero
-                flat = (ch.ent.reshape(-1, 1) * n_grad + col).reshape(-1)
-                grad_all.index_add_(0, flat, d_all.reshape(-1))
+                d_alpha = gf.mul_(t_before).sub_(rest.div_(torch.rsub(alpha, 1.0)))  # ∂L/∂α
+                unclamped = torch.empty_like(vis)
+                torch.le(vis, MAX_ALPHA, out=unclamped)
+                d_alpha.mul_(alpha).mul_(incl).mul_(unclamped)  # ∂L/∂(−σ') = α ∂L/∂α
+                d_ncoef = d_alpha @ basis_t  # (A, K, 6)
+                d = torch.empty(e - s, K, 6 + C, dtype=params.dtype, device=params.device)
+                d[..., :6] = _param_grads(d_ncoef, ncoef, slots.mxy.index_select(0, b))
+                d[..., 6:] = w @ g[:, :C].transpose(1, 2)
+                d_slots.index_copy_(0, b, d)
             g_act = g_act.index_select(0, kept)
             rem = rem_next.index_select(0, kept)
-        grad_all = grad_all.reshape(-1, n_grad)
-        return grad_all[:, :6], grad_all[:, 6 : 6 + C1 - 1], None, None
+        out = torch.zeros(params.shape[0], 6 + C, dtype=params.dtype, device=params.device)
+        out.index_add_(0, slots.entry, d_slots.reshape(-1, 6 + C))
+        return out[:, :6], out[:, 6:], None, None
 
 
 def composite(params: Tensor, feat: Tensor, bins: TileBins, opts: RasterOptions) -> Tensor:
