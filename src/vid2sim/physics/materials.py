@@ -42,21 +42,34 @@ def _check_F(F: Tensor) -> None:
         raise ValueError(f"deformation gradients F must have shape (N, 3, 3), got {tuple(F.shape)}")
 
 
+def det3(F: Tensor) -> Tensor:
+    """Determinants of 3×3 matrices F: (N, 3, 3) → (N,), by the triple product (differentiable, no LU)."""
+    return (F[:, 0] * torch.linalg.cross(F[:, 1], F[:, 2])).sum(-1)
+
+
+def inv3(F: Tensor) -> Tensor:
+    """Inverses of 3×3 matrices F: (N, 3, 3) by the adjugate (differentiable; det F must be nonzero)."""
+    cof = torch.stack([torch.linalg.cross(F[:, 1], F[:, 2]), torch.linalg.cross(F[:, 2], F[:, 0]),
+                       torch.linalg.cross(F[:, 0], F[:, 1])], dim=1)  # rows: cofactor rows of F
+    det = (F[:, 0] * cof[:, 0]).sum(-1)
+    return cof.transpose(1, 2) / det[:, None, None]
+
+
 # ---- Neo-Hookean -------------------------------------------------------------------------------
 
 def neo_hookean_energy_density(F: Tensor, mu: Scalar, lam: Scalar) -> Tensor:
     """Ψ(F) per point, (N,). Requires det F > 0 (returns NaN otherwise; the solver never goes there)."""
     _check_F(F)
     ic = (F * F).sum(dim=(1, 2))
-    logj = torch.log(torch.linalg.det(F))
+    logj = torch.log(det3(F))
     return 0.5 * mu * (ic - 3.0) - mu * logj + 0.5 * lam * logj * logj
 
 
 def neo_hookean_pk1(F: Tensor, mu: Scalar, lam: Scalar) -> Tensor:
     """First Piola–Kirchhoff stress P = ∂Ψ/∂F = μ(F − F⁻ᵀ) + λ ln J F⁻ᵀ, (N, 3, 3)."""
     _check_F(F)
-    finv_t = torch.linalg.inv(F).transpose(1, 2)
-    logj = torch.log(torch.linalg.det(F))[:, None, None]
+    finv_t = inv3(F).transpose(1, 2)
+    logj = torch.log(det3(F))[:, None, None]
     return mu * (F - finv_t) + lam * logj * finv_t
 
 
@@ -64,8 +77,8 @@ def neo_hookean_tangent(F: Tensor, mu: Scalar, lam: Scalar) -> Tensor:
     """∂P/∂F, (N, 9, 9): μ δ_ik δ_jl + (μ − λ ln J) F⁻¹_jk F⁻¹_li + λ F⁻¹_ji F⁻¹_lk."""
     _check_F(F)
     n = F.shape[0]
-    finv = torch.linalg.inv(F)
-    logj = torch.log(torch.linalg.det(F))
+    finv = inv3(F)
+    logj = torch.log(det3(F))
     eye9 = torch.eye(9, dtype=F.dtype, device=F.device)
     # term (μ − λ ln J) F⁻¹_jk F⁻¹_li  → index [i, j, k, l]
     swap = torch.einsum("njk,nli->nijkl", finv, finv).reshape(n, 9, 9)
@@ -152,6 +165,49 @@ def project_psd(H: Tensor, floor: float = 0.0, tolerance: float = 1e-6) -> Tenso
     return out
 
 
+def _unit(v: Tensor) -> Tensor:
+    return v / v.norm(dim=-1, keepdim=True).clamp_min(torch.finfo(v.dtype).tiny)
+
+
+def symmetric_eigen_3x3(A: Tensor) -> tuple[Tensor, Tensor]:
+    """Eigen-decomposition of symmetric 3×3 matrices in closed form, fully vectorised.
+
+    Returns (eigenvalues (N, 3) ascending, eigenvectors (N, 3, 3) as columns). The eigenvector of the
+    best-separated extreme eigenvalue comes from the largest cross product of two rows of A − eI; the other
+    two from an exact 2×2 rotation in the plane orthogonal to it, so repeated eigenvalues are handled.
+    """
+    e = symmetric_eigenvalues_3x3(A)
+    n = A.shape[0]
+    eye = torch.eye(3, dtype=A.dtype, device=A.device)
+    low_isolated = (e[:, 1] - e[:, 0]) > (e[:, 2] - e[:, 1])
+    e_iso = torch.where(low_isolated, e[:, 0], e[:, 2])
+    M = A - e_iso[:, None, None] * eye
+    crosses = torch.stack([torch.linalg.cross(M[:, 0], M[:, 1]), torch.linalg.cross(M[:, 0], M[:, 2]),
+                           torch.linalg.cross(M[:, 1], M[:, 2])], dim=1)
+    norms = crosses.norm(dim=-1)
+    best = norms.argmax(dim=1)
+    v = crosses[torch.arange(n, device=A.device), best]
+    fallback = norms.max(dim=1).values <= torch.finfo(A.dtype).tiny
+    v = torch.where(fallback[:, None], eye[0].expand(n, 3), v)
+    v = _unit(v)
+    # an orthonormal basis (p, q) of the plane orthogonal to v
+    axis = eye[v.abs().argmin(dim=1)]
+    p = _unit(torch.linalg.cross(v, axis))
+    q = torch.linalg.cross(v, p)
+    Ap, Aq = (A @ p[:, :, None])[:, :, 0], (A @ q[:, :, None])[:, :, 0]
+    a, b, c = (p * Ap).sum(-1), (p * Aq).sum(-1), (q * Aq).sum(-1)
+    theta = 0.5 * torch.atan2(2.0 * b, a - c)
+    ct, st = torch.cos(theta), torch.sin(theta)
+    w1 = ct[:, None] * p + st[:, None] * q  # Rayleigh quotient: the larger in-plane eigenvalue
+    w2 = -st[:, None] * p + ct[:, None] * q
+    # order the columns as the ascending eigenvalues
+    lo = low_isolated[:, None]
+    col0 = torch.where(lo, v, w2)
+    col1 = torch.where(lo, w2, w1)  # low isolated: (v, w2, w1); high isolated: (w2, w1, v)
+    col2 = torch.where(lo, w1, v)
+    return e, torch.stack([col0, col1, col2], dim=-1)
+
+
 def _neo_hookean_twist_fix(F: Tensor, C: Tensor, mu: Scalar, lam: Scalar) -> Tensor:
     """Clamp the Neo-Hookean tangent's twist eigenvalues at 0, exactly and in closed form.
 
@@ -159,10 +215,14 @@ def _neo_hookean_twist_fix(F: Tensor, C: Tensor, mu: Scalar, lam: Scalar) -> Ten
     D_ij = U (E_ij − E_ji) Vᵀ / √2 with eigenvalues μ − (μ − λ ln J)/(σ_i σ_j); these are the ones that
     turn negative under compression. Adding |λ_ij| vec(D_ij) vec(D_ij)ᵀ for each negative one removes
     them without touching the other modes. (Verified against a full eigendecomposition in the tests.)
+    The SVD comes from the closed-form eigen-decomposition of FᵀF (V, Σ²) and U = F V Σ⁻¹.
     """
-    U, S, Vh = torch.linalg.svd(F)
-    logj = torch.log(torch.linalg.det(F))
-    c = mu - lam * logj
+    e, V = symmetric_eigen_3x3(F.transpose(1, 2) @ F)
+    S = e.clamp_min(torch.finfo(F.dtype).tiny).sqrt()
+    U = (F @ V) / S[:, None, :]
+    Vh = V.transpose(1, 2)
+    J = det3(F)
+    c = mu - lam * torch.log(J)
     out = C.clone()
     for i, j in ((0, 1), (0, 2), (1, 2)):
         ev = mu - c / (S[:, i] * S[:, j])
@@ -181,7 +241,7 @@ def symmetric_eigenvalues_3x3(A: Tensor) -> Tensor:
     p = torch.sqrt(((d * d).sum(-1) + 2.0 * p1) / 6.0)
     safe_p = torch.where(p > 0, p, torch.ones_like(p))
     B = (A - q[:, None, None] * torch.eye(3, dtype=A.dtype, device=A.device)) / safe_p[:, None, None]
-    r = (torch.linalg.det(B) / 2.0).clamp(-1.0, 1.0)
+    r = (det3(B) / 2.0).clamp(-1.0, 1.0)
     phi = torch.acos(r) / 3.0
     e_max = q + 2.0 * p * torch.cos(phi)
     e_min = q + 2.0 * p * torch.cos(phi + 2.0 * math.pi / 3.0)
@@ -202,7 +262,7 @@ def project_tangent_psd(model: str, F: Tensor, C: Tensor, mu: Scalar, lam: Scala
     C = 0.5 * (C + C.transpose(1, 2))
     if model != "neo_hookean":
         return project_psd(C, tolerance=tolerance)
-    J = torch.linalg.det(F)
+    J = det3(F)
     c = mu - lam * torch.log(J)
     sigma = symmetric_eigenvalues_3x3(F.transpose(1, 2) @ F).clamp_min(0.0).sqrt()
     twist = mu - (c / J)[:, None] * sigma

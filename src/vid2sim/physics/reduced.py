@@ -27,7 +27,7 @@ from typing import Callable, Sequence
 import torch
 from torch import Tensor
 
-from vid2sim.physics.materials import elastic_model
+from vid2sim.physics.materials import det3, elastic_model
 
 
 def z_to_y_index(num_handles_total: int, device: torch.device | None = None) -> Tensor:
@@ -169,7 +169,7 @@ class StepProblem:
     def potential(self, y: Tensor) -> tuple[Tensor, bool]:
         """(Φ(y), valid) where valid is False if any cubature point is inverted (det F ≤ 0)."""
         F = self.basis.deformation_gradient(y)
-        if not bool((torch.linalg.det(F) > 0).all()):
+        if not bool((det3(F) > 0).all()):
             return y.new_full((), float("inf")), False
         psi = elastic_model(self.model)[0](F, self.mu, self.lam)
         e_ext = self._external_energy(self.positions(y))
