@@ -61,9 +61,23 @@ def test_seed_makes_initialisation_deterministic():
     for pa, pb in zip(a.parameters(), b.parameters()):
         assert torch.equal(pa, pb)
     assert not torch.equal(a.layers[0].weight, c.layers[0].weight)
-    # nn.Linear's default distribution: |w| <= 1/sqrt(fan_in)
+    # hidden layers Kaiming-uniform |w| <= sqrt(6 / fan_in); output layer small, zero bias
     wmax = float(a.layers[1].weight.detach().abs().max())
-    assert 0.9 / 8 < wmax <= 1 / 8 + 1e-7
+    assert 0.9 * math.sqrt(6 / 64) < wmax <= math.sqrt(6 / 64) + 1e-7
+    assert float(a.last_layer.weight.detach().abs().max()) <= 0.01 / 8 + 1e-9
+    assert float(a.last_layer.bias.detach().abs().max()) == 0.0
+
+
+def test_initial_features_are_well_conditioned():
+    """The last hidden features over a box keep >= 10 directions with O(0.1) singular values (see class doc)."""
+    f = SkinningField(seed=0).double()
+    X = _points(1000, seed=3)
+    h = X
+    with torch.no_grad():
+        for layer in f.layers[:-1]:
+            h = torch.nn.functional.elu(layer(h))
+        s = torch.linalg.svdvals(torch.cat([h, torch.ones(1000, 1, dtype=h.dtype)], 1) / 1000**0.5)
+    assert float(s[10]) > 0.2
 
 
 def test_rigid_column_and_forward_agree(field):

@@ -82,7 +82,7 @@ def test_elastic_loss_of_a_uniform_stretch_on_the_rigid_handle_is_volume_times_p
     # analytic Neo-Hookean: μ/2 (1.44 − 1) − μ ln 1.2 + λ/2 (ln 1.2)²
     analytic = 0.5 * MU * 0.44 - MU * math.log(1.2) + 0.5 * LAM * math.log(1.2) ** 2
     assert float(stretch) == pytest.approx(analytic, rel=1e-12)
-    le = elastic_loss(G, z, MU, LAM, volume=0.25)
+    le = elastic_loss(G, z, MU, LAM, volume=0.25).detach()
     assert float(le) == pytest.approx(0.25 * analytic / 2, rel=1e-12)  # batch mean of (0, volume·Ψ)
 
 
@@ -98,27 +98,29 @@ def test_sampled_transforms_leave_the_rigid_handle_at_rest():
 def _components(field, X, seed=123):
     w, dw = field.weights_and_gradients(X)
     z = sample_handle_transforms(8, field.num_handles_total, 0.1, torch.Generator().manual_seed(seed)).to(X)
-    return float(elastic_loss(gradient_basis(X, w, dw), z, MU, LAM)), float(orthogonality_loss(w[:, :-1]))
+    with torch.no_grad():
+        return float(elastic_loss(gradient_basis(X, w, dw), z, MU, LAM)), float(orthogonality_loss(w[:, :-1]))
 
 
 def test_training_lowers_the_loss_and_the_orthogonality_term():
-    torch.manual_seed(0)
     pts = _box(500, dtype=torch.float32)
+    probe = pts[:250]  # the Gram matrix is not normalised by the point count: probe with points_per_step points
     field = SkinningField(num_handles=3, width=32, hidden_layers=2, seed=0)
-    _, ortho0 = _components(field, pts)
+    _, ortho0 = _components(field, probe)
+    assert ortho0 > 0.3  # small initial output layer: W ≈ 0, MSE(WᵀW, I) ≈ 3/9
     cfg = SkinningTrainingConfig(iterations=200, points_per_step=250, batch_size=4, lr=3e-3, seed=0)
     losses = train_skinning(field, pts, cfg, progress=False)
     assert len(losses) == 200 and all(math.isfinite(v) for v in losses)
     early = sum(losses[:10]) / 10
     late = sum(losses[-10:]) / 10
-    assert late < 1e-2 * early
-    el1, ortho1 = _components(field, pts)
-    assert ortho1 < 1e-2 * ortho0
-    # with 250 points per step the learned weights have Σ_p w_j² ≈ 1 per step, i.e. |w| ≈ 1/√250
-    w = field(pts)[:, :-1]
+    assert late < 0.05 * early
+    el1, ortho1 = _components(field, probe)
+    assert ortho1 < 0.03 * ortho0
+    # Σ_p w_j² ≈ 1 over points_per_step points, i.e. |w| ≈ 1/√250, and the handles are nearly orthogonal
+    w = field(pts)[:, :-1].detach()
     gram = w.T @ w * (250 / 500)
-    assert torch.allclose(torch.diag(gram), torch.ones(3), atol=0.15)
-    assert float((gram - torch.diag(torch.diag(gram))).abs().max()) < 0.15
+    assert torch.allclose(torch.diag(gram), torch.ones(3), atol=0.1)
+    assert float((gram - torch.diag(torch.diag(gram))).abs().max()) < 0.1
     assert el1 > 0
 
 

@@ -75,11 +75,21 @@ class SkinningField(nn.Module):
         num_handles: learned handles (the constant rigid handle is added on top).
         width: hidden width.
         hidden_layers: number of width×width hidden layers.
-        seed: if given, the initialisation is deterministic (PyTorch's default ``nn.Linear`` distribution,
-            U(−1/√fan_in, 1/√fan_in) for weights and biases, drawn from a private generator) — this is the
+        seed: if given, the initialisation is deterministic (drawn from a private generator) — this is the
             "template network" whose hidden layers stay at their seeded init while Stage I predicts the
-            last layer. ``None`` draws from the global torch RNG like ``nn.Linear`` does.
+            last layer. ``None`` draws from the global torch RNG.
+
+    Initialisation (see :meth:`reset_parameters`): He/Kaiming-uniform hidden layers and a small output
+    layer. PyTorch's default ``nn.Linear`` init shrinks the signal by ≈ 1/√3 per layer, so after 9 ELU
+    layers the last hidden features over the unit box are numerically rank ≈ 4 (normalised singular values
+    1.2, 6e-3, 5e-3, 4e-3, then < 4e-4): 10 orthogonal weight functions are then out of reach for a
+    last-layer-only fit and data-free training stalls at the W = 0 saddle of the orthogonality loss
+    (orthogonality MSE still 0.07 after 1500 iterations at the paper's settings). With this init the features
+    keep O(1) singular values and the same training reaches 5e-4 by 1500 iterations.
     """
+
+    #: scale of the output layer's initial weights relative to U(−1/√fan_in, 1/√fan_in); biases start at 0
+    output_init_scale: float = 0.01
 
     def __init__(self, num_handles: int = 10, width: int = 64, hidden_layers: int = 8, seed: int | None = None) -> None:
         super().__init__()
@@ -95,16 +105,30 @@ class SkinningField(nn.Module):
 
     @torch.no_grad()
     def reset_parameters(self, seed: int | None = None) -> None:
-        """Re-draw all parameters from U(−1/√fan_in, 1/√fan_in) (deterministic for a given seed)."""
+        """Re-draw all parameters (deterministic for a given seed).
+
+        Input and hidden layers: weights U(±√(6/fan_in)) (Kaiming-uniform, gain √2), biases U(±1/√fan_in).
+        Output layer: weights U(±s/√fan_in) with s = ``output_init_scale`` (0.01), biases 0, so training starts
+        from small weights instead of Gram matrices ~10⁴× too large.
+        """
         gen = None
         if seed is not None:
             gen = torch.Generator(device="cpu")
             gen.manual_seed(int(seed))
-        for layer in self.layers:
-            bound = 1.0 / math.sqrt(layer.in_features)
-            for p in (layer.weight, layer.bias):
-                vals = torch.rand(p.shape, generator=gen, dtype=torch.float64) * (2 * bound) - bound
-                p.copy_(vals.to(dtype=p.dtype, device=p.device))
+
+        def uniform(p: Tensor, bound: float) -> None:
+            vals = torch.rand(p.shape, generator=gen, dtype=torch.float64) * (2 * bound) - bound
+            p.copy_(vals.to(dtype=p.dtype, device=p.device))
+
+        last = len(self.layers) - 1
+        for i, layer in enumerate(self.layers):
+            fan_in = layer.in_features
+            if i < last:
+                uniform(layer.weight, math.sqrt(6.0 / fan_in))
+                uniform(layer.bias, 1.0 / math.sqrt(fan_in))
+            else:
+                uniform(layer.weight, self.output_init_scale / math.sqrt(fan_in))
+                layer.bias.zero_()
 
     # ---- sizes ---------------------------------------------------------------------------------
     @property
