@@ -126,7 +126,7 @@ def test_plasticine_keeps_permanent_deformation_elastic_recovers(trained_field):
 
 
 def _window_loss(sim, pts, steps=5):
-    state = sim.rigid_velocity_state([0.2, 0.0, -2.0], [0.0, 1.5, 0.5])
+    state = sim.rigid_velocity_state([0.2, 0.0, -2.0], [0.0, 6.0, 2.0])
     states = sim.rollout(state, steps)
     x = sim.positions(pts[::10], states[-1].z)
     weights = torch.linspace(-1.0, 1.0, x.numel(), dtype=x.dtype).reshape(x.shape)
@@ -134,11 +134,16 @@ def _window_loss(sim, pts, steps=5):
 
 
 def test_adjoint_gradients_match_finite_differences(trained_field):
+    """Adjoint vs central differences on a smooth problem (a spinning, deforming object in free fall).
+
+    Contact makes the loss only piecewise smooth, which spoils finite differences; contact is covered by
+    the comparison with unrolled autograd below.
+    """
     field, pts = trained_field
     field = SkinningField(num_handles=4, seed=0).double()
     field.load_state_dict(trained_field[0].state_dict())
-    sim = _sim(field, pts, material=Material(3e4, 0.35), externals=[Gravity(), Floor(height=-0.35)],
-               config=SimConfig(newton_rtol=1e-9, newton_max_iters=40))
+    sim = _sim(field, pts, material=Material(3e4, 0.35), externals=[Gravity()],
+               config=SimConfig(newton_rtol=1e-10, newton_max_iters=40))
     for t in (sim.log10_E, sim.nu, sim.density):
         t.requires_grad_(True)
     W = list(field.parameters())[-2]
@@ -170,7 +175,7 @@ def test_adjoint_gradients_match_finite_differences(trained_field):
             lm = loss_at()
             W[a, b] = old
         fd = (lp - lm) / (2 * h)
-        assert abs(float(grads[3][a, b]) - fd) <= 1e-3 * abs(fd) + 1e-9, (a, b, float(grads[3][a, b]), fd)
+        assert abs(float(grads[3][a, b]) - fd) <= 1e-3 * abs(fd), (a, b, float(grads[3][a, b]), fd)
 
 
 def test_adjoint_matches_unrolled_autograd(trained_field):
