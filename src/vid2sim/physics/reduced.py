@@ -92,7 +92,9 @@ class ElasticBasis:
         if self.G is not None:
             G = self.G
             K, _, L = G.shape
-            T = torch.einsum("pacbd,pdm->pcabm", C.reshape(K, 3, 3, 3, 3), G)  # (K,3,3,3,L)
+            # T[p, (c, a, b), m] = Σ_d C[p, (a, c), (b, d)] G[p, d, m]
+            Cr = C.reshape(K, 3, 3, 3, 3).permute(0, 2, 1, 3, 4).reshape(K, 27, 3)
+            T = torch.bmm(Cr, G)  # (K, 27, L)
             Hm = G.permute(2, 0, 1).reshape(L, K * 3) @ T.reshape(K * 3, 9 * L)  # (L, 3·3·L)
             return Hm.reshape(L, 3, 3, L).permute(1, 0, 2, 3).reshape(3 * L, 3 * L)
         K, _, D = self.J.shape
