@@ -211,7 +211,7 @@ class SkinningField(nn.Module):
             u = layer(h)
             D = D @ layer.weight.T
             h = Fn.elu(u)
-            slope = torch.where(u > 0, torch.ones_like(u), torch.exp(torch.clamp(u, max=0.0)))
+            slope = torch.where(u > 0, 1.0, h + 1.0)  # elu'(u) = e^u = elu(u) + 1 for u <= 0
             D = D * slope[:, None, :]
         last = self.last_layer
         w = last(h)
