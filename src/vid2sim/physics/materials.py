@@ -13,6 +13,7 @@ Models (paper, supplementary "Generalized to Different Materials"):
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import Union
 
 import torch
@@ -78,15 +79,14 @@ def neo_hookean_tangent(F: Tensor, mu: Scalar, lam: Scalar) -> Tensor:
     _check_F(F)
     n = F.shape[0]
     finv = inv3(F)
-    logj = torch.log(det3(F))
-    eye9 = torch.eye(9, dtype=F.dtype, device=F.device)
-    # term (μ − λ ln J) F⁻¹_jk F⁻¹_li  → index [i, j, k, l]
-    swap = torch.einsum("njk,nli->nijkl", finv, finv).reshape(n, 9, 9)
-    # term λ F⁻¹_ji F⁻¹_lk = λ vec(F⁻ᵀ) vec(F⁻ᵀ)ᵀ
-    finv_t = finv.transpose(1, 2).reshape(n, 9)
-    outer = finv_t[:, :, None] * finv_t[:, None, :]
-    coef = (mu - lam * logj)[:, None, None]
-    return mu * eye9 + coef * swap + lam * outer
+    finv_t = finv.transpose(1, 2)
+    coef = (mu - lam * torch.log(det3(F)))[:, None, None]
+    # (μ − λ ln J) F⁻¹_jk F⁻¹_li at [i, j, k, l], the coefficient folded into the small factor
+    swap = ((coef * finv_t)[:, :, None, None, :] * finv[:, None, :, :, None]).reshape(n, 9, 9)
+    # λ F⁻¹_ji F⁻¹_lk = λ vec(F⁻ᵀ) vec(F⁻ᵀ)ᵀ
+    v = finv_t.reshape(n, 9)
+    outer = (lam * v)[:, :, None] * v[:, None, :]
+    return swap + outer + mu * torch.eye(9, dtype=F.dtype, device=F.device)
 
 
 # ---- St. Venant–Kirchhoff ----------------------------------------------------------------------
@@ -169,14 +169,15 @@ def _unit(v: Tensor) -> Tensor:
     return v / v.norm(dim=-1, keepdim=True).clamp_min(torch.finfo(v.dtype).tiny)
 
 
-def symmetric_eigen_3x3(A: Tensor) -> tuple[Tensor, Tensor]:
+def symmetric_eigen_3x3(A: Tensor, eigenvalues: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """Eigen-decomposition of symmetric 3×3 matrices in closed form, fully vectorised.
 
     Returns (eigenvalues (N, 3) ascending, eigenvectors (N, 3, 3) as columns). The eigenvector of the
     best-separated extreme eigenvalue comes from the largest cross product of two rows of A − eI; the other
     two from an exact 2×2 rotation in the plane orthogonal to it, so repeated eigenvalues are handled.
+    ``eigenvalues`` (N, 3) ascending, when already known (from :func:`symmetric_eigenvalues_3x3`), are reused.
     """
-    e = symmetric_eigenvalues_3x3(A)
+    e = symmetric_eigenvalues_3x3(A) if eigenvalues is None else eigenvalues
     n = A.shape[0]
     eye = torch.eye(3, dtype=A.dtype, device=A.device)
     low_isolated = (e[:, 1] - e[:, 0]) > (e[:, 2] - e[:, 1])
@@ -208,29 +209,58 @@ def symmetric_eigen_3x3(A: Tensor) -> tuple[Tensor, Tensor]:
     return e, torch.stack([col0, col1, col2], dim=-1)
 
 
-def _neo_hookean_twist_fix(F: Tensor, C: Tensor, mu: Scalar, lam: Scalar) -> Tensor:
-    """Clamp the Neo-Hookean tangent's twist eigenvalues at 0, exactly and in closed form.
+@dataclass
+class NeoHookeanIndefinite:
+    """Where a Neo-Hookean tangent is indefinite and the closed-form modes that fix it.
 
-    With F = U Σ Vᵀ, the tangent's eigenvectors include the three twist modes
-    D_ij = U (E_ij − E_ji) Vᵀ / √2 with eigenvalues μ − (μ − λ ln J)/(σ_i σ_j); these are the ones that
-    turn negative under compression. Adding |λ_ij| vec(D_ij) vec(D_ij)ᵀ for each negative one removes
-    them without touching the other modes. (Verified against a full eigendecomposition in the tests.)
-    The SVD comes from the closed-form eigen-decomposition of FᵀF (V, Σ²) and U = F V Σ⁻¹.
+    Attributes:
+        twist_index: (M,) points whose twist modes need clamping.
+        twist_modes: (M, 3, 3, 3) unit twist modes D_k (k = 0, 1, 2) as 3×3 matrices.
+        twist_amount: (M, 3) max(0, −eigenvalue) of each mode; adding Σ_k amount_k vec(D_k) vec(D_k)ᵀ
+            to the tangent clamps those eigenvalues at 0 and leaves every other mode unchanged.
+        general: (N,) bool, points with μ − λ ln J < 0 (extreme expansion) whose scaling block may be
+            indefinite too; they need a general eigendecomposition.
     """
-    e, V = symmetric_eigen_3x3(F.transpose(1, 2) @ F)
-    S = e.clamp_min(torch.finfo(F.dtype).tiny).sqrt()
-    U = (F @ V) / S[:, None, :]
-    Vh = V.transpose(1, 2)
+
+    twist_index: Tensor
+    twist_modes: Tensor
+    twist_amount: Tensor
+    general: Tensor
+
+    @property
+    def empty(self) -> bool:
+        return self.twist_index.numel() == 0 and not bool(self.general.any())
+
+
+def neo_hookean_indefinite(F: Tensor, mu: Scalar, lam: Scalar, tolerance: float = 1e-6) -> NeoHookeanIndefinite:
+    """Closed-form analysis of the Neo-Hookean tangent's negative eigenvalues at F: (N, 3, 3).
+
+    With F = U Σ Vᵀ and c = μ − λ ln J, the tangent's eigenvectors include the three twist modes
+    D_k = (u_i v_jᵀ − u_j v_iᵀ) / √2 ({i, j, k} = {0, 1, 2}) with eigenvalues μ − c σ_k / J; these turn
+    negative under compression. The remaining six eigenvalues (flip modes μ + c σ_k / J and a 3×3
+    scaling block) are positive whenever c ≥ 0. Twist eigenvalues below −``tolerance`` · (λ + 2μ) are
+    reported (smaller ones are round-off at rotations). Singular values and V come from the closed-form
+    eigen-decomposition of FᵀF, U = F V Σ⁻¹; eigenvectors are only computed where needed.
+    """
     J = det3(F)
     c = mu - lam * torch.log(J)
-    out = C.clone()
-    for i, j in ((0, 1), (0, 2), (1, 2)):
-        ev = mu - c / (S[:, i] * S[:, j])
-        neg = (ev < 0).to(C.dtype)
-        D = (U[:, :, i, None] * Vh[:, None, j, :] - U[:, :, j, None] * Vh[:, None, i, :]) / math.sqrt(2.0)
-        d = D.reshape(-1, 9)
-        out = out + (-ev * neg)[:, None, None] * d[:, :, None] * d[:, None, :]
-    return out
+    FtF = F.transpose(1, 2) @ F
+    e = symmetric_eigenvalues_3x3(FtF)
+    twist = mu - (c / J)[:, None] * e.clamp_min(0.0).sqrt()
+    general = c < 0
+    bad = (twist < -tolerance * (lam + 2.0 * mu)).any(dim=1) & ~general
+    index = bad.nonzero()[:, 0]
+    if index.numel() == 0:
+        return NeoHookeanIndefinite(index, F.new_zeros(0, 3, 3, 3), F.new_zeros(0, 3), general)
+    if index.numel() < F.shape[0]:
+        F, FtF, e, twist = F[index], FtF[index], e[index], twist[index]
+    _, V = symmetric_eigen_3x3(FtF, e)
+    S = e.clamp_min(torch.finfo(F.dtype).tiny).sqrt()
+    Ut = ((F @ V) / S[:, None, :]).transpose(1, 2)  # rows u_i
+    Vt = V.transpose(1, 2)  # rows v_i
+    i, j = [1, 0, 0], [2, 2, 1]  # mode k = 0, 1, 2 ↔ pair (i, j)
+    D = (Ut[:, i, :, None] * Vt[:, j, None, :] - Ut[:, j, :, None] * Vt[:, i, None, :]) / math.sqrt(2.0)
+    return NeoHookeanIndefinite(index, D, (-twist).clamp_min(0.0), general)
 
 
 def symmetric_eigenvalues_3x3(A: Tensor) -> Tensor:
@@ -255,27 +285,22 @@ def project_tangent_psd(model: str, F: Tensor, C: Tensor, mu: Scalar, lam: Scala
     Neo-Hookean: the tangent's eigenvalues are known in closed form — twist modes μ − c σ_k / J with
     c = μ − λ ln J, and a scaling block that is positive definite whenever c ≥ 0 — so the singular values
     alone (closed-form eigenvalues of FᵀF) tell which points need projecting. Twist modes more negative
-    than ``tolerance`` · (λ + 2μ) are clamped in closed form (:func:`_neo_hookean_twist_fix`); points with
+    than ``tolerance`` · (λ + 2μ) are clamped in closed form (:func:`neo_hookean_indefinite`); points with
     c < 0 (extreme expansion) go through the general eigendecomposition. Other models: like
     :func:`project_psd`.
     """
     C = 0.5 * (C + C.transpose(1, 2))
     if model != "neo_hookean":
         return project_psd(C, tolerance=tolerance)
-    J = det3(F)
-    c = mu - lam * torch.log(J)
-    sigma = symmetric_eigenvalues_3x3(F.transpose(1, 2) @ F).clamp_min(0.0).sqrt()
-    twist = mu - (c / J)[:, None] * sigma
-    scale = tolerance * (lam + 2.0 * mu)
-    general = c < 0
-    twist_bad = (twist < -scale).any(dim=1) & ~general
-    if not bool(twist_bad.any() | general.any()):
+    fix = neo_hookean_indefinite(F, mu, lam, tolerance)
+    if fix.empty:
         return C
     out = C.clone()
-    if bool(twist_bad.any()):
-        out[twist_bad] = _neo_hookean_twist_fix(F[twist_bad], C[twist_bad], mu, lam)
-    if bool(general.any()):
-        out[general] = project_psd(C[general], tolerance=tolerance)
+    if fix.twist_index.numel():
+        d = fix.twist_modes.reshape(-1, 3, 9)
+        out[fix.twist_index] += (d * fix.twist_amount[:, :, None]).transpose(1, 2) @ d
+    if bool(fix.general.any()):
+        out[fix.general] = project_psd(C[fix.general], tolerance=tolerance)
     return out
 
 

@@ -193,9 +193,8 @@ class StepProblem:
         (Newton), exact when not (the adjoint)."""
         from vid2sim.physics.materials import project_tangent_psd
 
-        tangent = elastic_model(self.model)[2]
         F = self.basis.deformation_gradient(y)
-        C = tangent(F, self.mu, self.lam)
+        C = elastic_model(self.model)[2](F, self.mu, self.lam)
         if project:
             C = project_tangent_psd(self.model, F, C, self.mu, self.lam)
         x = self.positions(y)

@@ -48,6 +48,11 @@ class SimConfig:
         reference_acceleration: sets the absolute force scale of the tolerance (m/s²).
         line_search_max_halvings: backtracking halvings before the step is declared failed.
         armijo: sufficient-decrease constant of the line search.
+        hessian_projection: "always" — Newton uses the Hessian with every per-point block projected to
+            positive semi-definite; "on_demand" — Newton uses the exact Hessian whenever it is positive
+            definite (its Cholesky factorisation succeeds, which the inertia term makes the common case)
+            and the projected one otherwise. Both give a descent direction for the line search; the
+            exact one converges at least as fast and costs less than half (no per-point eigen-analysis).
     """
 
     dt: float = 0.05
@@ -56,8 +61,12 @@ class SimConfig:
     reference_acceleration: float = 9.8
     line_search_max_halvings: int = 30
     armijo: float = 1e-4
+    hessian_projection: str = "on_demand"
 
     def __post_init__(self) -> None:
+        if self.hessian_projection not in ("always", "on_demand"):
+            raise ValueError(
+                f"SimConfig.hessian_projection must be 'always' or 'on_demand', got {self.hessian_projection!r}")
         if not (self.dt > 0 and math.isfinite(self.dt)):
             raise ValueError(f"SimConfig.dt must be a positive finite number, got {self.dt}")
         if self.newton_max_iters < 1:
@@ -128,6 +137,15 @@ def _cholesky_solve(H: Tensor, rhs: Tensor) -> Tensor:
     raise SimulationError("Newton system is not positive definite even after regularisation")
 
 
+def _newton_direction(problem: StepProblem, y: Tensor, g: Tensor, config: SimConfig) -> Tensor:
+    """−H⁻¹ g with H the exact Hessian when ``on_demand`` and it is positive definite, else the projected one."""
+    if config.hessian_projection == "on_demand":
+        L, info = torch.linalg.cholesky_ex(problem.hessian(y, project=False))
+        if int(info) == 0:
+            return -torch.cholesky_solve(g[:, None], L)[:, 0]
+    return -_cholesky_solve(problem.hessian(y, project=True), g)
+
+
 def newton_solve(problem: StepProblem, config: SimConfig) -> tuple[Tensor, StepStats]:
     """Minimise the step's incremental potential; returns (y*, stats). Inputs are treated as constants."""
     stats = StepStats()
@@ -146,7 +164,7 @@ def newton_solve(problem: StepProblem, config: SimConfig) -> tuple[Tensor, StepS
         if float(g.norm()) <= config.newton_rtol * ref:
             stats.converged = True
             break
-        d = -_cholesky_solve(problem.hessian(y), g)
+        d = _newton_direction(problem, y, g, config)
         slope = float(g @ d)
         alpha = 1.0
         inverted = False
