@@ -282,7 +282,8 @@ def tetrahedralize(
         env["PYTHONPATH"] = src_root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
         try:
             proc = subprocess.run([sys.executable, "-m", "vid2sim.data.tetwild_worker", in_path, out_path],
-                                  capture_output=True, text=True, timeout=timeout, env=env)
+                                  capture_output=True, text=True, timeout=timeout, env=env,
+                                  cwd=tmp)  # fTetWild writes scratch files into its working directory
         except subprocess.TimeoutExpired:
             raise TetrahedralizationError(f"{name}: fTetWild did not finish within {timeout:g} s") from None
         if proc.returncode != 0:

@@ -1,0 +1,337 @@
+"""FEM ground truth, validated against independent references:
+
+* scikit-fem's P1 linear elasticity on the identical mesh (static cantilever under gravity),
+* Euler–Bernoulli beam theory (static tip deflection, first bending period),
+* the mesh's own first eigenperiod from scikit-fem's stiffness matrix (the time integrator),
+* the closed-form implicit-Euler free fall, finite differences of the energy, force balance on the floor.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+import torch
+
+from vid2sim.data.fem import (
+    FEMConfig,
+    FEMResult,
+    FEMSolverError,
+    InitialPose,
+    TetFEM,
+    simulate_fem,
+    static_solve,
+)
+from vid2sim.data.tetra import box_tet_mesh
+
+skfem = pytest.importorskip("skfem")
+from skfem.models.elasticity import lame_parameters as skfem_lame  # noqa: E402
+from skfem.models.elasticity import linear_elasticity  # noqa: E402
+
+# Cantilever along x, clamped at x = 0, square cross-section b × b, gravity −z.
+BEAM_L, BEAM_B, BEAM_E, BEAM_RHO, G = 1.0, 0.1, 1e8, 1000.0, 9.8
+
+
+def _beam(resolution):
+    mesh = box_tet_mesh((BEAM_L, BEAM_B, BEAM_B), resolution)
+    X, T = mesh.vertices.numpy(), mesh.tets.numpy()
+    return X, T, X[:, 0] < 1e-9, X[:, 0] > BEAM_L - 1e-9
+
+
+def _beam_config(nu, **kw):
+    return FEMConfig(youngs_modulus=BEAM_E, poisson_ratio=nu, density=BEAM_RHO, floor_height=None, **kw)
+
+
+def _skfem_basis_and_stiffness(X, T, nu):
+    basis = skfem.Basis(skfem.MeshTet(X.T.copy(), T.T.copy()), skfem.ElementVector(skfem.ElementTetP1()))
+    K = skfem.asm(linear_elasticity(*skfem_lame(BEAM_E, nu)), basis)
+    return basis, K
+
+
+def _skfem_static_displacement(X, T, fixed, nu):
+    """Linear-elastic P1 displacement (Nv, 3) under the body force ρ g, clamped vertices fixed."""
+    basis, K = _skfem_basis_and_stiffness(X, T, nu)
+
+    @skfem.LinearForm
+    def weight(v, w):
+        return -BEAM_RHO * G * v[2]
+
+    f = skfem.asm(weight, basis)
+    u = skfem.solve(*skfem.condense(K, f, D=basis.nodal_dofs[:, fixed].ravel()))
+    return u[basis.nodal_dofs].T
+
+
+def test_static_cantilever_matches_scikit_fem_on_identical_mesh():
+    X, T, fixed, tip = _beam((20, 3, 3))
+    nu = 0.3
+    ours = static_solve(X, T, _beam_config(nu, newton_tol=1e-9), fixed).positions.numpy() - X
+    ref = _skfem_static_displacement(X, T, fixed, nu)
+    tip_ours, tip_ref = -ours[tip, 2].mean(), -ref[tip, 2].mean()
+    rel = abs(tip_ours / tip_ref - 1)
+    print(f"\n[FEM validation] cantilever tip deflection: ours {tip_ours:.6e} m, scikit-fem {tip_ref:.6e} m, "
+          f"rel. error {100 * rel:.3f} %")
+    assert tip_ref > 1e-3  # a real load: 0.5 % of the length, small enough for linear theory
+    assert rel < 0.02
+    # the whole displacement field agrees, not only the tip (Neo-Hookean vs linear: O(deflection/L))
+    assert np.abs(ours - ref).max() < 0.02 * np.abs(ref).max()
+    assert np.abs(ours[fixed]).max() == 0.0
+
+
+def test_static_cantilever_matches_euler_bernoulli():
+    X, T, fixed, tip = _beam((60, 1, 8))  # slender mesh: 8 layers through the bending direction
+    ours = static_solve(X, T, _beam_config(0.0, newton_tol=1e-8), fixed).positions.numpy() - X
+    delta = -ours[tip, 2].mean()
+    inertia = BEAM_B ** 4 / 12
+    q = BEAM_RHO * G * BEAM_B * BEAM_B
+    delta_eb = q * BEAM_L ** 4 / (8 * BEAM_E * inertia)
+    rel = abs(delta / delta_eb - 1)
+    print(f"\n[FEM validation] Euler-Bernoulli tip deflection: ours {delta:.6e} m, theory {delta_eb:.6e} m, "
+          f"rel. error {100 * rel:.2f} %")
+    assert rel < 0.10
+    # the deflected shape follows w(x) = q x² (6L² − 4Lx + x²) / (24 EI) along the beam's bottom edge
+    line = (np.abs(X[:, 1]) < 1e-9) & (np.abs(X[:, 2]) < 1e-9)
+    xs = X[line, 0]
+    w_eb = q * xs ** 2 * (6 * BEAM_L ** 2 - 4 * BEAM_L * xs + xs ** 2) / (24 * BEAM_E * inertia)
+    assert np.abs(-ours[line, 2] - w_eb).max() < 0.10 * delta_eb
+
+
+def _zero_crossings(t, s):
+    idx = np.where(np.sign(s[:-1]) != np.sign(s[1:]))[0]
+    return np.array([t[i] - s[i] * (t[i + 1] - t[i]) / (s[i + 1] - s[i]) for i in idx])
+
+
+def test_cantilever_first_bending_period():
+    """Release the beam undeformed under gravity: it oscillates about the static deflection in (mostly)
+    its first bending mode. The period from zero crossings matches (a) the first eigenperiod of the same
+    mesh from scikit-fem's stiffness and our lumped masses (checks the time integrator) and (b)
+    Euler–Bernoulli theory."""
+    X, T, fixed, tip = _beam((40, 1, 6))
+    nu = 0.0
+    inertia = BEAM_B ** 4 / 12
+    omega_eb = 1.8751 ** 2 * math.sqrt(BEAM_E * inertia / (BEAM_RHO * BEAM_B ** 2 * BEAM_L ** 4))
+    period_eb = 2 * math.pi / omega_eb
+
+    # (a) modal reference on the identical mesh
+    model = TetFEM(X, T, _beam_config(nu))
+    basis, K = _skfem_basis_and_stiffness(X, T, nu)
+    mass = np.zeros(K.shape[0])
+    mass[basis.nodal_dofs.T.ravel()] = np.repeat(model.masses, 3)
+    free = np.setdiff1d(np.arange(K.shape[0]), basis.nodal_dofs[:, fixed].ravel())
+    w2 = spla.eigsh(K[free][:, free].tocsc(), k=1, M=sp.diags(mass[free]).tocsc(), sigma=0, which="LM")[0]
+    period_modal = 2 * math.pi / math.sqrt(w2[0])
+
+    steps_per_period = 25
+    cfg = _beam_config(nu, dt=period_eb / steps_per_period, substeps=1, linear_solver="direct")
+    frames = int(0.9 * steps_per_period) + 1
+    result = simulate_fem(X, T, cfg, None, frames=frames, fixed=fixed, progress=False)
+    static_tip = static_solve(X, T, cfg, fixed).positions.numpy()[tip, 2].mean()
+    s = result.trajectory[:, tip, 2].mean(1).numpy() - static_tip
+    crossings = _zero_crossings(result.times.numpy(), s)
+    assert len(crossings) >= 2
+    period = 2 * (crossings[1] - crossings[0])  # crossings of a damped oscillation are half a period apart
+    rel_modal = abs(period / period_modal - 1)
+    rel_eb = abs(period / period_eb - 1)
+    print(f"\n[FEM validation] first bending period: ours {period:.5f} s, mesh eigenperiod {period_modal:.5f} s "
+          f"({100 * rel_modal:.2f} %), Euler-Bernoulli {period_eb:.5f} s ({100 * rel_eb:.2f} %)")
+    # implicit Euler lengthens the period by ≈ (ωh)²/3 = 2.1 % at 25 steps per period
+    assert rel_modal < 0.04
+    assert rel_eb < 0.10
+    # implicit Euler damps: the swing below equilibrium is smaller than the initial offset above it, but
+    # the motion is far from overdamped
+    assert 0.5 * s[0] < -s.min() < s[0]
+    assert bool((result.min_det > 0).all())
+
+
+def _small_box(res=(3, 2, 2), size=(0.3, 0.2, 0.2)):
+    mesh = box_tet_mesh(size, res, origin=tuple(-s / 2 for s in size))
+    return mesh.vertices, mesh.tets
+
+
+def test_free_fall_matches_implicit_euler_closed_form():
+    """Before contact every vertex follows x_n = x_0 + n h v_0 + h² g n(n+1)/2 exactly (a rigid motion
+    has zero elastic force), also for a rotated body."""
+    V, T = _small_box()
+    cfg = FEMConfig(floor_height=-100.0, substeps=4, dt=0.05, newton_tol=1e-10)
+    pose = InitialPose(drop_height=1.0, rotation=(0.3, -0.2, 0.5), linear_velocity=(0.5, -0.2, 1.0))
+    result = simulate_fem(V, T, cfg, pose, frames=6, progress=False)
+    x0 = result.trajectory[0].numpy()
+    assert x0[:, 2].min() == pytest.approx(-99.0)
+    h, g, v0 = cfg.dt / cfg.substeps, np.array(cfg.gravity), np.array(pose.linear_velocity)
+    for f in range(6):
+        n = f * cfg.substeps
+        expected = x0 + n * h * v0 + h * h * g * n * (n + 1) / 2
+        np.testing.assert_allclose(result.trajectory[f].numpy(), expected, atol=1e-8)
+        np.testing.assert_allclose(result.velocities[f].numpy(), np.broadcast_to(v0 + n * h * g, x0.shape), atol=1e-6)
+    assert result.energies["elastic"].abs().max() < 1e-9
+
+
+def test_dropped_box_comes_to_rest_on_floor():
+    V, T = _small_box(res=(3, 3, 2), size=(0.3, 0.3, 0.2))
+    cfg = FEMConfig(youngs_modulus=1e5, substeps=2, floor_height=-0.7)
+    pose = InitialPose(drop_height=0.1)
+    result = simulate_fem(V, T, cfg, pose, frames=30, progress=False)
+    traj = result.trajectory.numpy()
+    assert np.isfinite(traj).all()
+    assert bool((result.min_det > 0).all())
+    # energy never grows (implicit Euler dissipates; tolerance: round-off of the energy sum)
+    weight = TetFEM(V, T, cfg).masses.sum() * 9.8
+    total = result.energies["total"].numpy()
+    assert np.all(np.diff(total) <= 1e-9 * np.abs(total).max())
+    assert total[-1] < total[0] - 0.5 * weight * 0.1  # most of the drop's energy is dissipated
+    # at rest, lying flat on the floor
+    assert result.energies["kinetic"][-1] < 1e-3 * weight * 0.1
+    # force balance: the floor's penalty forces 2k·d carry the weight, and the penetration is small
+    depth = np.maximum(0.0, cfg.floor_height - traj[-1, :, 2])
+    assert 2 * cfg.floor_stiffness * depth.sum() == pytest.approx(weight, rel=0.02)
+    bottom = np.isclose(V[:, 2].numpy(), -0.1)
+    assert depth.max() < 5 * weight / (2 * cfg.floor_stiffness * bottom.sum())
+    assert result.max_penetration < 2e-3
+    # the elastic box sags under its own weight: its height shrinks a little, by the order ρ g H² / (2E)
+    height = traj[-1, :, 2].max() - traj[-1, :, 2].min()
+    assert 0 < 0.2 - height < 5 * 1000 * 9.8 * 0.2 ** 2 / (2 * 1e5)
+
+
+def test_random_pose_drop_is_valid_and_solvers_agree():
+    V, T = _small_box()
+    pose = InitialPose.random(7)
+    results = {}
+    for solver in ("cg", "direct"):
+        cfg = FEMConfig(youngs_modulus=2e4, substeps=2, linear_solver=solver)
+        results[solver] = simulate_fem(V, T, cfg, pose, frames=9, progress=False)
+    r = results["cg"]
+    assert r.trajectory.shape == (9, V.shape[0], 3)
+    assert bool(torch.isfinite(r.trajectory).all()) and bool((r.min_det > 0).all())
+    assert r.trajectory[:, :, 2].min() < -0.69  # it reached the floor
+    total = r.energies["total"].numpy()
+    assert np.all(np.diff(total) <= 1e-9 * np.abs(total).max())
+    assert torch.allclose(results["cg"].trajectory, results["direct"].trajectory, atol=1e-5)
+
+
+def test_violent_impact_never_inverts():
+    """A soft body thrown into the floor at 8 m/s with one big step per frame: full Newton steps would
+    invert tets; the line search rejects them and the converged states have all tets positive."""
+    V, T = _small_box()
+    cfg = FEMConfig(youngs_modulus=5e3, substeps=1, newton_max_iters=300)
+    pose = InitialPose(drop_height=0.0, linear_velocity=(0.0, 0.0, -8.0), angular_velocity=(3.0, 0.0, 0.0))
+    result = simulate_fem(V, T, cfg, pose, frames=3, progress=False)
+    assert int(result.inverted_rejections.sum()) > 0  # the guard was exercised
+    assert bool((result.min_det > 0).all())
+    assert float(result.min_det.min()) < 0.5  # strongly compressed
+    assert bool(torch.isfinite(result.trajectory).all())
+    # with too few Newton iterations the same step fails cleanly, naming the frame
+    with pytest.raises(FEMSolverError, match="frame 1, substep 1/1.*did not converge"):
+        simulate_fem(V, T, FEMConfig(youngs_modulus=5e3, substeps=1, newton_max_iters=5), pose, frames=2,
+                     progress=False)
+
+
+def test_gradient_and_hessian_match_finite_differences():
+    V, T = _small_box(res=(2, 1, 1))
+    cfg = FEMConfig(youngs_modulus=1e4, poisson_ratio=0.35, floor_height=-0.08)
+    model = TetFEM(V, T, cfg)
+    rng = np.random.default_rng(0)
+    X = model.rest
+    # a uniformly dilated state (all tangents positive definite, so the PSD projection leaves them
+    # unchanged), partly below the floor, with an inertia term
+    x = 1.05 * X + 0.002 * rng.normal(size=X.shape)
+    x_tilde = X + 0.01 * rng.normal(size=X.shape)
+    inertia = 400.0
+    assert (x[:, 2] < cfg.floor_height).any()
+    g, H = model._gradient_hessian(x, x_tilde, inertia)
+    phi = lambda y: model._objective(y, x_tilde, inertia, X)  # noqa: E731
+    eps = 1e-6
+    fd = np.zeros(x.size)
+    for i in range(x.size):
+        e = np.zeros(x.size)
+        e[i] = eps
+        fd[i] = (phi(x + e.reshape(x.shape)) - phi(x - e.reshape(x.shape))) / (2 * eps)
+    np.testing.assert_allclose(g, fd, rtol=1e-5, atol=1e-6 * np.abs(g).max())
+    d = rng.normal(size=x.size)
+    g_plus, _ = model._gradient_hessian(x + eps * d.reshape(x.shape), x_tilde, inertia)
+    g_minus, _ = model._gradient_hessian(x - eps * d.reshape(x.shape), x_tilde, inertia)
+    np.testing.assert_allclose(H @ d, (g_plus - g_minus) / (2 * eps), rtol=1e-5, atol=1e-6 * np.abs(H @ d).max())
+    # the Hessian is symmetric positive definite
+    Hd = H.toarray()
+    assert np.abs(Hd - Hd.T).max() < 1e-9 * np.abs(Hd).max()
+    assert np.linalg.eigvalsh(Hd).min() > 0
+
+
+def test_psd_projection_under_compression():
+    """Under strong compression the Neo-Hookean tangent is indefinite; the assembled Hessian is still PSD."""
+    V, T = _small_box(res=(2, 1, 1))
+    model = TetFEM(V, T, FEMConfig(floor_height=None))
+    x = model.rest * np.array([0.5, 0.6, 1.0])
+    _, H = model._gradient_hessian(x, x, 0.0)
+    ev = np.linalg.eigvalsh(H.toarray())
+    assert ev.min() > -1e-8 * ev.max()
+
+
+def test_initial_pose_apply_and_random():
+    V, T = _small_box()
+    masses = torch.from_numpy(TetFEM(V, T, FEMConfig()).masses)
+    pose = InitialPose(drop_height=0.25, rotation=(0.0, 0.0, math.pi / 2), linear_velocity=(1.0, 0.0, 0.0),
+                       angular_velocity=(0.0, 0.0, 2.0))
+    x, v = pose.apply(V, masses, floor_height=-0.7)
+    assert float(x[:, 2].min()) == pytest.approx(-0.45)
+    c = (masses[:, None] * x).sum(0) / masses.sum()
+    np.testing.assert_allclose(c[:2].numpy(), [0.0, 0.0], atol=1e-12)
+    # a quarter turn about z swaps the box's x and y extents
+    np.testing.assert_allclose((x.max(0).values - x.min(0).values).numpy(), [0.2, 0.3, 0.2], atol=1e-12)
+    expected_v = torch.tensor([1.0, 0.0, 0.0], dtype=x.dtype) + torch.linalg.cross(
+        torch.tensor([0.0, 0.0, 2.0], dtype=x.dtype).expand_as(x), x - c)
+    assert torch.allclose(v, expected_v)
+    a, b, c2 = InitialPose.random(3), InitialPose.random(3), InitialPose.random(4)
+    assert a == b and a != c2
+    R = np.array(a.rotation)
+    np.testing.assert_allclose(R.T @ R, np.eye(3), atol=1e-12)
+    assert np.linalg.det(R) == pytest.approx(1.0)
+    assert 0.05 <= a.drop_height <= 0.3 and a.linear_velocity[2] <= 0
+    with pytest.raises(ValueError, match="rotation"):
+        InitialPose(rotation=((1, 0, 0), (0, 1, 0), (0, 0, -1)))
+    with pytest.raises(ValueError, match="drop_height"):
+        InitialPose(drop_height=-1.0)
+    with pytest.raises(ValueError, match="angular_velocity"):
+        InitialPose(angular_velocity=(1.0, 2.0))
+
+
+def test_config_and_input_errors():
+    with pytest.raises(ValueError, match="substeps"):
+        FEMConfig(substeps=0)
+    with pytest.raises(ValueError, match="Poisson"):
+        FEMConfig(poisson_ratio=0.5)
+    with pytest.raises(ValueError, match="linear_solver"):
+        FEMConfig(linear_solver="magic")
+    with pytest.raises(ValueError, match="floor_stiffness"):
+        FEMConfig(floor_stiffness=-1.0)
+    V, T = _small_box()
+    with pytest.raises(ValueError, match="rest volume"):
+        TetFEM(V, T[:, [0, 2, 1, 3]], FEMConfig())
+    with pytest.raises(ValueError, match="tet indices"):
+        TetFEM(V, T + 1000, FEMConfig())
+    with pytest.raises(ValueError, match="fixed"):
+        simulate_fem(V, T, FEMConfig(), frames=2, fixed=np.zeros(3, dtype=bool), progress=False)
+    with pytest.raises(ValueError, match="fixed vertex"):
+        static_solve(V, T, FEMConfig(), fixed=np.zeros(V.shape[0], dtype=bool))
+    with pytest.raises(ValueError, match="frames"):
+        simulate_fem(V, T, FEMConfig(), frames=0, progress=False)
+    model = TetFEM(V, T, FEMConfig())
+    inverted = model.rest.copy()
+    inverted[:, 0] *= -1
+    with pytest.raises(FEMSolverError, match="inverted"):
+        model.minimize(inverted)
+
+
+def test_result_save_load_roundtrip(tmp_path):
+    V, T = _small_box(res=(1, 1, 1))
+    result = simulate_fem(V, T, FEMConfig(substeps=1), InitialPose.random(1), frames=3, progress=False)
+    path = result.save(tmp_path / "fem.npz")
+    loaded = FEMResult.load(path)
+    assert loaded.config == result.config and loaded.pose == result.pose
+    for name in ("rest_vertices", "tets", "trajectory", "velocities", "times", "min_det", "newton_iterations",
+                 "line_search_halvings", "inverted_rejections", "fixed"):
+        assert torch.equal(getattr(loaded, name), getattr(result, name)), name
+    assert set(loaded.energies) == {"kinetic", "elastic", "gravity", "floor", "total"}
+    with pytest.raises(FileNotFoundError, match="does not exist"):
+        FEMResult.load(tmp_path / "missing.npz")
