@@ -30,6 +30,69 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
+_SCENE_OPTIONS = {  # CLI option → SyntheticSceneConfig field
+    "E": "youngs_modulus", "nu": "poisson_ratio", "density": "density", "material": "material",
+    "drop_height": "drop_height", "views": "views", "resolution": "resolution", "frames": "frames",
+    "observed_frames": "observed_frames", "substeps": "substeps", "layout": "layout",
+}
+
+
+def _scene_overrides(args: argparse.Namespace) -> dict:
+    """The SyntheticSceneConfig fields given on the command line (make-benchmark has no --E / --nu)."""
+    values = {field: getattr(args, opt, None) for opt, field in _SCENE_OPTIONS.items()}
+    return {field: value for field, value in values.items() if value is not None}
+
+
+def _generation_errors() -> tuple[type[Exception], ...]:
+    from vid2sim.data.fem import FEMSolverError
+    from vid2sim.data.tetra import TetrahedralizationError
+
+    return (FEMSolverError, TetrahedralizationError)
+
+
+def _cmd_make_scene(args: argparse.Namespace) -> int:
+    from vid2sim.data.synthetic import SyntheticSceneConfig, make_scene
+
+    config = SyntheticSceneConfig.preset(args.preset, seed=args.seed, mesh=args.mesh, tet_mesh=args.tet_mesh,
+                                         **_scene_overrides(args))
+    try:
+        path = make_scene(config, args.out, overwrite=args.overwrite, progress=not args.quiet)
+    except _generation_errors() as exc:
+        raise UserError(f"{exc} (nothing was written)") from exc
+    print(f"wrote {path}")
+    return 0
+
+
+def _cmd_make_benchmark(args: argparse.Namespace) -> int:
+    from vid2sim.data.synthetic import make_benchmark
+
+    try:
+        path = make_benchmark(args.n, args.out, preset=args.preset, seed=args.seed, progress=not args.quiet,
+                              **_scene_overrides(args))
+    except _generation_errors() as exc:
+        raise UserError(f"{exc} (finished scenes are kept; run the command again to resume)") from exc
+    print(f"wrote {path} ({args.n} scenes, index.json)")
+    return 0
+
+
+def _add_scene_options(p: argparse.ArgumentParser, material_options: bool) -> None:
+    p.add_argument("--preset", choices=["full", "small"], default="full",
+                   help="full: 12 views, 448x448, 24 frames (the paper); small: 4 views, 128x128, 24 frames (CPU)")
+    if material_options:
+        p.add_argument("--E", type=float, default=None, help="Young's modulus in Pa (default 1e5)")
+        p.add_argument("--nu", type=float, default=None, help="Poisson's ratio (default 0.3)")
+    p.add_argument("--density", type=float, default=None, help="kg/m^3 (default 1000)")
+    p.add_argument("--material", default=None, help="FEM elastic model: neo_hookean (default) or stvk")
+    p.add_argument("--drop-height", type=float, default=None, help="m above the floor (default: random from the seed)")
+    p.add_argument("--views", type=int, default=None, help="cameras on the ring")
+    p.add_argument("--resolution", type=int, default=None, help="image side in pixels")
+    p.add_argument("--frames", type=int, default=None, help="frames T")
+    p.add_argument("--observed-frames", type=int, default=None, help="observed frames (the rest are held out)")
+    p.add_argument("--substeps", type=int, default=None, help="FEM substeps per frame (default 16)")
+    p.add_argument("--layout", choices=["rgba", "rgb+mask", "video"], default=None, help="scene folder layout")
+    p.add_argument("--quiet", action="store_true", help="no progress output")
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of the ``vid2sim`` command (one subparser per subcommand)."""
     parser = argparse.ArgumentParser(
@@ -50,6 +113,25 @@ def build_parser() -> argparse.ArgumentParser:
     )
     speed.add_argument("--quick", action="store_true", help="fewer repetitions (for smoke tests)")
     speed.set_defaults(func=_cmd_bench)
+
+    scene = sub.add_parser("make-scene", help="simulate (FEM) and render one synthetic scene folder")
+    scene.add_argument("out", help="scene folder to create")
+    scene.add_argument("--mesh", default=None, help="a watertight textured mesh (OBJ/GLB/GLTF/PLY) instead of a "
+                       "procedural shape")
+    scene.add_argument("--seed", type=int, default=0,
+                       help="seed of the procedural shape and texture (unless --mesh) and of the initial pose (default 0)")
+    scene.add_argument("--tet-mesh", default=None, help="reuse the tet mesh of an earlier scene (its fem_result.npz) "
+                       "instead of fTetWild, which is not reproducible; same settings then give the same scene")
+    scene.add_argument("--overwrite", action="store_true", help="replace an existing scene folder")
+    _add_scene_options(scene, material_options=True)
+    scene.set_defaults(func=_cmd_make_scene)
+
+    suite = sub.add_parser("make-benchmark", help="a deterministic suite of synthetic scenes (E, nu sampled)")
+    suite.add_argument("out", help="benchmark folder (resumed if it holds an index.json)")
+    suite.add_argument("--n", type=int, required=True, help="number of scenes")
+    suite.add_argument("--seed", type=int, default=0, help="suite seed (default 0)")
+    _add_scene_options(suite, material_options=False)
+    suite.set_defaults(func=_cmd_make_benchmark)
     return parser
 
 

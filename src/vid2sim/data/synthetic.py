@@ -1,0 +1,489 @@
+"""Synthetic scenes: an object dropped on the floor, simulated by FEM and rendered from a camera ring.
+
+The paper's benchmark (DESIGN.md): objects dropped onto a floor, FEM ground truth, 12 views at 448 × 448,
+24 frames (16 observed + 8 for future prediction). Google Scanned Objects and Blender are not available
+here, so vid2sim makes its own:
+
+1. the object — a seeded procedural union of primitives with a procedural texture
+   (:func:`vid2sim.data.shapes.make_procedural_object`) or a user mesh
+   (:func:`vid2sim.data.meshes.load_user_mesh`), in the canonical frame (half bounding-box diagonal 0.5);
+2. its tetrahedralization (fTetWild, :func:`vid2sim.data.tetra.tetrahedralize`);
+3. the FEM drop (:func:`vid2sim.data.fem.simulate_fem`): random rotation, drop height and rigid velocity
+   from the seed, Neo-Hookean with the given E, ν, density, the floor of DESIGN.md;
+4. the textured surface carried by the tets (:mod:`vid2sim.data.embedding`) and rendered at every frame
+   from every camera (:func:`vid2sim.data.mesh_render.render_textured_mesh`), RGBA on white;
+5. one scene folder, complete or absent (staged next to the target, then renamed): the scene written by
+   :func:`vid2sim.data.scene.write_scene` with the ground truth (E, ν, density, material, seed, initial
+   pose, FEM statistics) in ``scene.json``'s metadata and the tet trajectory as the ``tet_trajectory``
+   extra, plus ``fem_result.npz`` (:meth:`vid2sim.data.fem.FEMResult.save`: rest mesh, positions and
+   velocities at every frame, energies, solver statistics) and ``synthetic.json`` (this module's
+   :class:`SyntheticSceneConfig`).
+
+fTetWild draws random numbers from ``std::random_device``, so two runs of it on the same surface give
+different tet meshes (and so slightly different FEM trajectories). Everything after meshing is
+deterministic: ``SyntheticSceneConfig.tet_mesh`` reuses the tet mesh of an earlier scene (its
+``fem_result.npz``) and then reproduces that scene bit for bit (same settings, same machine type).
+
+:func:`make_benchmark` writes a deterministic suite of such scenes with E log-uniform in [1e4, 1e6] and
+ν uniform in [0.2, 0.5] (the ranges of the paper's training data), resumable scene by scene.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+import zipfile
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import torch
+
+if TYPE_CHECKING:
+    from vid2sim.data.tetra import TetMesh
+
+PRESETS: dict[str, dict[str, Any]] = {
+    "full": {"views": 12, "resolution": 448, "frames": 24, "observed_frames": 16},
+    # a coarser tet mesh (about 3 000 tets instead of about 13 000 for a 3 000-face surface) for CPUs
+    "small": {"views": 4, "resolution": 128, "frames": 24, "observed_frames": 16, "tet_edge_length": 0.08,
+              "tet_envelope": 5e-3},
+}
+
+BENCHMARK_E_RANGE = (1e4, 1e6)
+BENCHMARK_NU_RANGE = (0.2, 0.5)
+
+
+@dataclass
+class SyntheticSceneConfig:
+    """Settings of one synthetic scene (defaults: the paper's benchmark, :data:`PRESETS` ``"full"``).
+
+    Attributes:
+        seed: seeds the procedural shape and texture, and the initial pose.
+        mesh: a user mesh file (OBJ/GLB/GLTF/PLY) instead of a procedural shape, or None.
+        youngs_modulus, poisson_ratio, density: the material (Pa, −, kg/m³).
+        material: elastic model of the FEM ground truth ('neo_hookean', the paper's, or 'stvk').
+        drop_height: clearance (m) between the object's lowest point and the floor at frame 0, or None
+            for a random height in [0.05, 0.3] m from the seed.
+        max_horizontal_speed, max_downward_speed, max_angular_speed: bounds of the random initial rigid
+            velocity (m/s, m/s, rad/s).
+        views, resolution: a ring of ``views`` cameras rendering ``resolution`` × ``resolution`` images.
+        frames, observed_frames: T frames, the first ``observed_frames`` observed, the rest held out.
+        dt: seconds between frames (one reduced implicit step per frame in vid2sim).
+        substeps: FEM implicit-Euler steps per frame.
+        floor_height, floor_stiffness: the floor plane z = h and its penalty stiffness k.
+        tet_edge_length: fTetWild's target edge length relative to the bounding-box diagonal.
+        tet_envelope: fTetWild's envelope (largest distance of the tet boundary from the surface) relative
+            to the bounding-box diagonal; a wider envelope lets it coarsen the surface (fewer tets).
+        tet_mesh: an earlier scene's ``fem_result.npz`` (or any ``.npz`` with ``rest_vertices`` or
+            ``vertices`` (Nv, 3) and ``tets`` (Nt, 4)) whose rest tet mesh is used instead of running
+            fTetWild; the object's surface must lie in it (same seed / mesh file).
+        camera_radius, camera_elevation_deg, camera_fov_deg, camera_target: the camera ring.
+        supersample: anti-aliasing samples per pixel side of the mesh renderer.
+        layout: scene-folder layout ('rgba', 'rgb+mask' or 'video').
+    """
+
+    seed: int = 0
+    mesh: str | None = None
+    youngs_modulus: float = 1e5
+    poisson_ratio: float = 0.3
+    density: float = 1000.0
+    material: str = "neo_hookean"
+    drop_height: float | None = None
+    max_horizontal_speed: float = 0.2
+    max_downward_speed: float = 1.0
+    max_angular_speed: float = 2.0
+    views: int = 12
+    resolution: int = 448
+    frames: int = 24
+    observed_frames: int = 16
+    dt: float = 0.05
+    substeps: int = 16
+    floor_height: float = -0.7
+    floor_stiffness: float = 1e5
+    tet_edge_length: float = 0.06
+    tet_envelope: float = 1e-3
+    tet_mesh: str | None = None
+    camera_radius: float = 2.4
+    camera_elevation_deg: float = 20.0
+    camera_fov_deg: float = 40.0
+    camera_target: tuple[float, float, float] = (0.0, 0.0, -0.4)
+    supersample: int = 2
+    layout: str = "rgba"
+
+    def __post_init__(self) -> None:
+        from vid2sim.physics.materials import ELASTIC_MODELS, lame_parameters
+
+        def bad(name: str, expected: str) -> ValueError:
+            return ValueError(f"SyntheticSceneConfig.{name} must be {expected}, got {getattr(self, name)!r}")
+
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
+            raise bad("seed", "an integer >= 0")
+        for name in ("mesh", "tet_mesh"):
+            value = getattr(self, name)
+            if value is not None and not isinstance(value, (str, Path)):
+                raise bad(name, "a file path or None")
+            setattr(self, name, None if value is None else str(value))
+        for name in ("youngs_modulus", "poisson_ratio", "density", "max_horizontal_speed", "max_downward_speed",
+                     "max_angular_speed", "dt", "floor_height", "floor_stiffness", "tet_edge_length",
+                     "tet_envelope", "camera_radius", "camera_elevation_deg", "camera_fov_deg"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+                raise bad(name, "a finite number")
+        try:
+            lame_parameters(self.youngs_modulus, self.poisson_ratio)
+        except ValueError as exc:
+            raise ValueError(f"SyntheticSceneConfig: {exc}") from None
+        for name in ("density", "dt", "floor_stiffness", "tet_edge_length", "tet_envelope", "camera_radius"):
+            if not getattr(self, name) > 0:
+                raise bad(name, "positive")
+        for name in ("max_horizontal_speed", "max_downward_speed", "max_angular_speed"):
+            if getattr(self, name) < 0:
+                raise bad(name, ">= 0")
+        if not 0 < self.camera_fov_deg < 180:
+            raise bad("camera_fov_deg", "in (0, 180) degrees")
+        if self.material not in ELASTIC_MODELS:
+            raise ValueError(
+                f"SyntheticSceneConfig.material must be one of {sorted(ELASTIC_MODELS)} (the FEM ground truth is "
+                f"elastic; plasticine and sand are not simulated by it), got {self.material!r}")
+        if self.drop_height is not None and not (isinstance(self.drop_height, (int, float))
+                                                 and math.isfinite(self.drop_height) and self.drop_height >= 0):
+            raise bad("drop_height", "a finite number >= 0 or None")
+        for name, lo in (("views", 1), ("resolution", 8), ("frames", 2), ("observed_frames", 1), ("substeps", 1),
+                         ("supersample", 1)):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < lo:
+                raise bad(name, f"an integer >= {lo}")
+        if self.observed_frames > self.frames:
+            raise ValueError(f"SyntheticSceneConfig.observed_frames ({self.observed_frames}) must not exceed "
+                             f"frames ({self.frames})")
+        target = tuple(float(c) for c in self.camera_target)
+        if len(target) != 3 or not all(math.isfinite(c) for c in target):
+            raise bad("camera_target", "three finite numbers")
+        self.camera_target = target  # type: ignore[assignment]
+        if self.layout not in ("rgba", "rgb+mask", "video"):
+            raise bad("layout", "'rgba', 'rgb+mask' or 'video'")
+
+    @classmethod
+    def preset(cls, name: str, **overrides: Any) -> "SyntheticSceneConfig":
+        """The named preset (``"full"``: 12 views, 448², 24 frames; ``"small"``: 4 views, 128², 24 frames)
+        with ``overrides`` applied (None values are ignored)."""
+        if name not in PRESETS:
+            raise ValueError(f"unknown preset {name!r}; expected one of {sorted(PRESETS)}")
+        values = {**PRESETS[name], **{k: v for k, v in overrides.items() if v is not None}}
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(values) - known)
+        if unknown:
+            raise ValueError(f"unknown SyntheticSceneConfig fields {unknown}")
+        return cls(**values)
+
+
+    @classmethod
+    def from_json(cls, path: str | Path) -> "SyntheticSceneConfig":
+        """Read a ``synthetic.json`` written by :func:`make_scene`."""
+        path = Path(path)
+        try:
+            values = json.loads(path.read_text())
+        except json.JSONDecodeError as exc:
+            raise ValueError(f"{path}: not valid JSON ({exc})") from None
+        if not isinstance(values, dict):
+            raise ValueError(f"{path}: expected a JSON object of SyntheticSceneConfig fields")
+        unknown = sorted(set(values) - {f.name for f in fields(cls)})
+        if unknown:
+            raise ValueError(f"{path}: unknown SyntheticSceneConfig fields {unknown}")
+        return cls(**values)
+
+
+SYNTHETIC_JSON = "synthetic.json"
+FEM_RESULT_NPZ = "fem_result.npz"
+
+
+def _stage(progress: bool, message: str) -> None:
+    if progress:
+        from tqdm.auto import tqdm
+
+        tqdm.write(f"[make-scene] {message}")
+
+
+def _check_target(out: Path, overwrite: bool) -> None:
+    """Refuse a target that exists (unless an empty folder, or a scene folder with ``overwrite``)."""
+    if not (out.exists() or out.is_symlink()):
+        return
+    if not out.is_dir() or out.is_symlink():
+        raise FileExistsError(f"{out} exists and is not a folder")
+    if not any(out.iterdir()):
+        return
+    if not overwrite:
+        raise FileExistsError(f"{out} already exists and is not empty (pass overwrite=True / --overwrite to "
+                              "replace a scene folder)")
+    if not (out / "scene.json").is_file():
+        raise FileExistsError(f"{out} is not a scene folder (no scene.json): refusing to replace it")
+
+
+def load_tet_mesh(path: str | Path) -> "TetMesh":
+    """The rest tet mesh stored in an ``.npz``: an earlier scene's ``fem_result.npz`` (``rest_vertices``,
+    ``tets``) or a file with ``vertices`` (Nv, 3) and ``tets`` (Nt, 4).
+
+    Raises:
+        FileNotFoundError: no such file. ValueError: not an npz with those arrays, or degenerate tets.
+    """
+    from vid2sim.data.tetra import TetMesh, TetrahedralizationError, clean_tet_mesh
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"tet mesh file {path} does not exist")
+    if not zipfile.is_zipfile(path):
+        raise ValueError(f"tet mesh file {path} is not a readable .npz (numpy.savez) file")
+    with np.load(path, allow_pickle=False) as z:
+        key = "rest_vertices" if "rest_vertices" in z.files else "vertices"
+        if key not in z.files or "tets" not in z.files:
+            raise ValueError(f"tet mesh file {path} holds {sorted(z.files)}; expected 'rest_vertices' (or "
+                             "'vertices') and 'tets'")
+        vertices, tets = z[key], z["tets"]
+    if not np.issubdtype(tets.dtype, np.integer):
+        raise ValueError(f"tet mesh file {path}: 'tets' must hold integers, got dtype {tets.dtype}")
+    try:
+        v, t, _ = clean_tet_mesh(vertices, tets, name=f"tet mesh file {path}")
+    except TetrahedralizationError as exc:
+        raise ValueError(str(exc)) from None
+    return TetMesh(v, t, name=str(path))
+
+
+def make_scene(config: SyntheticSceneConfig, out_dir: str | Path, overwrite: bool = False,
+               progress: bool = True) -> Path:
+    """Generate one synthetic scene folder (see the module docstring) and return its path.
+
+    The folder is assembled next to ``out_dir`` and renamed into place only when complete, so a failure
+    or an interrupt leaves nothing behind (and an existing scene replaced with ``overwrite`` untouched).
+
+    Raises:
+        FileExistsError: ``out_dir`` exists and is not empty, unless ``overwrite`` and it is a scene folder.
+        FileNotFoundError / ValueError: a bad mesh or tet-mesh file (not found, unsupported, not
+            watertight, surface outside the tet mesh).
+        vid2sim.data.tetra.TetrahedralizationError, vid2sim.data.fem.FEMSolverError: meshing or the
+            FEM failed (nothing is written).
+    """
+    import shutil
+    import uuid
+
+    from vid2sim.data.embedding import apply_embedding, embed_points
+    from vid2sim.data.fem import FEMConfig, InitialPose, simulate_fem
+    from vid2sim.data.mesh_render import render_textured_mesh
+    from vid2sim.data.meshes import load_user_mesh
+    from vid2sim.data.scene import Scene, SceneConfig, _move_into_place, write_scene
+    from vid2sim.data.shapes import make_procedural_object
+    from vid2sim.data.tetra import tetrahedralize
+    from vid2sim.splats.cameras import camera_ring
+
+    if not isinstance(config, SyntheticSceneConfig):
+        raise TypeError(f"config must be a SyntheticSceneConfig, got {type(config).__name__}")
+    out = Path(out_dir)
+    _check_target(out, overwrite)
+    for name in ("mesh", "tet_mesh"):  # fail before any work
+        value = getattr(config, name)
+        if value is not None and not Path(value).is_file():
+            raise FileNotFoundError(f"SyntheticSceneConfig.{name}: file {value} does not exist")
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+
+    def lap(name: str) -> None:
+        nonlocal t0
+        now = time.perf_counter()
+        timings[name] = now - t0
+        t0 = now
+
+    if config.mesh is not None:
+        _stage(progress, f"loading {config.mesh}")
+        mesh = load_user_mesh(config.mesh)
+    else:
+        _stage(progress, f"procedural object, seed {config.seed}")
+        mesh = make_procedural_object(config.seed)
+    lap("object")
+    if config.tet_mesh is not None:
+        _stage(progress, f"tet mesh from {config.tet_mesh}")
+        tet = load_tet_mesh(config.tet_mesh)
+    else:
+        _stage(progress, f"tetrahedralizing {len(mesh.faces)} faces (fTetWild)")
+        tet = tetrahedralize(mesh.vertices, mesh.faces, edge_length_fac=config.tet_edge_length,
+                             epsilon=config.tet_envelope, name=mesh.name)
+    try:
+        tet_index, bary = embed_points(mesh.vertices.double(), tet.vertices, tet.tets)
+    except ValueError as exc:
+        raise ValueError(f"the surface of {mesh.name} does not fit the tet mesh {tet.name or ''}: {exc}") from None
+    lap("tetrahedralize")
+
+    height = (0.05, 0.3) if config.drop_height is None else (config.drop_height, config.drop_height)
+    pose = InitialPose.random(config.seed, drop_height=height, max_horizontal_speed=config.max_horizontal_speed,
+                              max_downward_speed=config.max_downward_speed,
+                              max_angular_speed=config.max_angular_speed)
+    fem_config = FEMConfig(youngs_modulus=config.youngs_modulus, poisson_ratio=config.poisson_ratio,
+                           density=config.density, material=config.material, dt=config.dt,
+                           substeps=config.substeps, floor_height=config.floor_height,
+                           floor_stiffness=config.floor_stiffness)
+    _stage(progress, f"FEM drop: {len(tet.tets)} tets, {config.frames} frames x {config.substeps} substeps")
+    result = simulate_fem(tet.vertices, tet.tets, fem_config, pose, frames=config.frames, progress=progress)
+    lap("fem")
+
+    surface = apply_embedding(result.trajectory, tet_index, bary, tet.tets).float()  # (T, Nv, 3)
+    cameras = camera_ring(config.views, config.camera_radius, config.camera_elevation_deg, config.resolution,
+                          config.resolution, fov_x_deg=config.camera_fov_deg, target=config.camera_target)
+    _stage(progress, f"rendering {config.views} views x {config.frames} frames at {config.resolution}x"
+                     f"{config.resolution}")
+    rgb, alpha = render_textured_mesh(mesh, cameras, vertices=surface, supersample=config.supersample,
+                                      progress=progress)
+    lap("render")
+
+    metadata = {
+        "generator": "vid2sim.data.synthetic",
+        "E": config.youngs_modulus,
+        "nu": config.poisson_ratio,
+        "density": config.density,
+        "material": config.material,
+        "seed": config.seed,
+        "object": mesh.name,
+        "initial_pose": _jsonable(asdict(pose)),
+        "fem": {
+            "tets": int(len(tet.tets)),
+            "vertices": int(len(tet.vertices)),
+            "substeps": config.substeps,
+            "floor_stiffness": config.floor_stiffness,
+            "max_penetration_m": float(result.max_penetration),
+            "min_det_F": float(result.min_det.min()),
+            "newton_iterations_total": int(result.newton_iterations.sum()),
+        },
+        "files": {"config": SYNTHETIC_JSON, "fem_result": FEM_RESULT_NPZ},
+    }
+    scene = Scene(
+        cameras=cameras,
+        images=rgb,
+        masks=alpha,
+        config=SceneConfig(dt=config.dt, gravity=(0.0, 0.0, -9.8), floor_height=config.floor_height,
+                           observed_frames=list(range(config.observed_frames)), metadata=metadata),
+        extras={"tet_trajectory": {"vertices": result.trajectory.float(), "tets": tet.tets.to(torch.int32)}},
+    )
+    _stage(progress, f"writing {out}")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    staging = out.parent / f".{out.name}.making-{uuid.uuid4().hex[:12]}"
+    try:
+        write_scene(scene, staging, layout=config.layout, progress=progress)
+        result.save(staging / FEM_RESULT_NPZ)
+        (staging / SYNTHETIC_JSON).write_text(json.dumps(_jsonable(asdict(config)), indent=2) + "\n")
+        if out.is_dir() and not any(out.iterdir()):
+            out.rmdir()
+        _move_into_place(staging, out)
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+    lap("write")
+    _stage(progress, "done in " + ", ".join(f"{k} {v:.1f} s" for k, v in timings.items())
+           + f" (total {sum(timings.values()):.1f} s)")
+    return out
+
+
+def _jsonable(obj: Any) -> Any:
+    """Tuples to lists, numpy scalars to Python numbers (for scene.json metadata)."""
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, np.generic):
+        return obj.item()
+    return obj
+
+
+def benchmark_parameters(n: int, seed: int = 0) -> list[dict[str, float | int]]:
+    """The deterministic (seed, E, ν) of an N-scene suite: E log-uniform in [1e4, 1e6], ν uniform in [0.2, 0.5].
+
+    Scene i uses object/pose seed ``seed * 100003 + i``; its E and ν come from a generator seeded by
+    ``(seed, i)``, so scene i is the same whatever N is.
+    """
+    if isinstance(n, bool) or not isinstance(n, int) or n < 1:
+        raise ValueError(f"the number of scenes must be an integer >= 1, got {n!r}")
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        raise ValueError(f"the suite seed must be an integer >= 0, got {seed!r}")
+    out = []
+    for i in range(n):
+        rng = np.random.default_rng([seed, i])
+        log_e = rng.uniform(math.log10(BENCHMARK_E_RANGE[0]), math.log10(BENCHMARK_E_RANGE[1]))
+        nu = rng.uniform(*BENCHMARK_NU_RANGE)
+        nu = min(nu, 0.49)  # ν = 0.5 is incompressible: the Lamé λ is infinite
+        out.append({"seed": seed * 100003 + i, "youngs_modulus": float(10.0**log_e), "poisson_ratio": float(nu)})
+    return out
+
+
+def make_benchmark(n: int, out_dir: str | Path, preset: str = "small", seed: int = 0, progress: bool = True,
+                   **overrides: Any) -> Path:
+    """Write a suite of ``n`` synthetic scenes ``scene_000`` … and an ``index.json`` of their ground truth.
+
+    Scene i has the object/pose seed, E and ν of :func:`benchmark_parameters`; ``overrides`` are
+    :class:`SyntheticSceneConfig` fields applied to every scene (not ``seed``, ``youngs_modulus``,
+    ``poisson_ratio``). Resumable: a scene folder that already exists (they are written atomically) is
+    kept if its ``synthetic.json`` matches the settings the suite asks for, else this raises;
+    ``index.json`` is rewritten after every scene. Returns ``out_dir``.
+
+    Raises:
+        FileExistsError: ``out_dir`` is a file, or a non-empty folder that is not a benchmark.
+        ValueError: bad settings, or an existing suite / scene written with other settings.
+    """
+    from tqdm.auto import tqdm
+
+    params = benchmark_parameters(n, seed)
+    fixed = sorted({"seed", "youngs_modulus", "poisson_ratio", "mesh", "tet_mesh"} & set(overrides))
+    if fixed:
+        raise ValueError(f"make_benchmark: {fixed} are set per scene by the suite and cannot be overridden")
+    configs = [SyntheticSceneConfig.preset(preset, **{**overrides, **p}) for p in params]  # validates up front
+    root = Path(out_dir)
+    index_path = root / "index.json"
+    if root.exists() and not root.is_dir():
+        raise FileExistsError(f"{root} exists and is not a folder")
+    if root.exists() and any(root.iterdir()) and not index_path.is_file():
+        raise FileExistsError(f"{root} is not empty and holds no index.json: refusing to write a benchmark there")
+    header = {"preset": preset, "seed": seed, "overrides": _jsonable(overrides),
+              "E_range": list(BENCHMARK_E_RANGE), "nu_range": list(BENCHMARK_NU_RANGE)}
+    if index_path.is_file():
+        previous = json.loads(index_path.read_text())
+        differ = {k: (previous.get(k), v) for k, v in header.items() if previous.get(k) != v}
+        if differ:
+            raise ValueError(f"{index_path} was written with other settings {differ} (found, asked); resume with "
+                             "the same settings or use another folder")
+    created = not root.exists()
+    root.mkdir(parents=True, exist_ok=True)
+    entries: list[dict[str, Any]] = []
+    try:
+        for i, config in enumerate(tqdm(configs, desc="benchmark scenes", unit="scene", disable=not progress)):
+            name = f"scene_{i:03d}"
+            folder = root / name
+            if folder.exists():
+                _check_existing_scene(folder, config)
+            else:
+                make_scene(config, folder, progress=False)
+            entries.append({"name": name, "seed": config.seed, "E": config.youngs_modulus,
+                            "nu": config.poisson_ratio, "density": config.density, "material": config.material})
+            _write_json_atomic(index_path, {**header, "n": n, "complete": len(entries) == n, "scenes": entries})
+    except BaseException:
+        if created and not entries:
+            root.rmdir()  # make_scene leaves nothing behind, so the folder is empty
+        raise
+    return root
+
+
+def _check_existing_scene(folder: Path, config: SyntheticSceneConfig) -> None:
+    """Raise unless ``folder`` is a finished scene made with ``config`` (up to the tet mesh reuse)."""
+    path = folder / SYNTHETIC_JSON
+    if not path.is_file():
+        raise ValueError(f"{folder} exists but holds no {SYNTHETIC_JSON}: not a scene of this benchmark "
+                         "(remove it to regenerate)")
+    found = asdict(SyntheticSceneConfig.from_json(path))
+    wanted = asdict(config)
+    differ = sorted(k for k in wanted if k != "tet_mesh" and found[k] != wanted[k])
+    if differ:
+        changes = ", ".join(f"{k}: {found[k]!r} != {wanted[k]!r}" for k in differ)
+        raise ValueError(f"{folder} was made with other settings ({changes}); remove it to regenerate")
+
+
+def _write_json_atomic(path: Path, obj: Any) -> None:
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(json.dumps(obj, indent=2))
+    tmp.replace(path)
+
