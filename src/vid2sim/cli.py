@@ -30,6 +30,15 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_bench_jacobian(args: argparse.Namespace) -> int:
+    from vid2sim.bench import jacobian_accuracy
+    from vid2sim.bench.timing import resolve_device
+
+    result = jacobian_accuracy.run(resolve_device(args.device), iterations=args.iterations, progress=True)
+    print(json.dumps(result, indent=2, sort_keys=True))
+    return 0
+
+
 _SCENE_OPTIONS = {  # CLI option → SyntheticSceneConfig field
     "E": "youngs_modulus", "nu": "poisson_ratio", "density": "density", "material": "material",
     "drop_height": "drop_height", "views": "views", "resolution": "resolution", "frames": "frames",
@@ -113,6 +122,10 @@ def build_parser() -> argparse.ArgumentParser:
     )
     speed.add_argument("--quick", action="store_true", help="fewer repetitions (for smoke tests)")
     speed.set_defaults(func=_cmd_bench)
+    jac = bench_sub.add_parser("jacobian", help="train the Neural Jacobian data-free and report its error")
+    jac.add_argument("--iterations", type=int, default=1000, help="training iterations (paper: 10000)")
+    jac.add_argument("--device", default=None, help="torch device (default: cuda if available, else cpu)")
+    jac.set_defaults(func=_cmd_bench_jacobian)
 
     scene = sub.add_parser("make-scene", help="simulate (FEM) and render one synthetic scene folder")
     scene.add_argument("out", help="scene folder to create")
