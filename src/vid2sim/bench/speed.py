@@ -11,15 +11,9 @@ from vid2sim.bench.timing import resolve_device
 
 
 def _sections() -> dict[str, Callable[..., dict[str, Any]]]:
-    from vid2sim.bench import physics_speed
+    from vid2sim.bench import physics_speed, render_speed
 
-    sections: dict[str, Callable[..., dict[str, Any]]] = {"physics": physics_speed.run}
-    try:
-        from vid2sim.bench import render_speed
-    except ImportError:  # the renderer's benchmark lands with the splats layer
-        return sections
-    sections["render"] = render_speed.run
-    return sections
+    return {"physics": physics_speed.run, "render": render_speed.run}
 
 
 def run_speed_benchmark(

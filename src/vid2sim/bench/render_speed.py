@@ -1,0 +1,94 @@
+"""Renderer timings for ``vid2sim bench speed``: forward + backward of :func:`vid2sim.splats.render`.
+
+Figures (milliseconds, median of several runs):
+
+- ``render_ms`` — always measured on the CPU with the pure-PyTorch backend: 20 000 Gaussians (SH
+  degree 3), 4 views at 128 × 128, forward + backward of a loss on RGB, alpha and depth.
+- ``render_ms_cuda_448`` — only when CUDA is available: 100 000 Gaussians, 12 views at 448 × 448,
+  forward + backward, with ``backend="auto"`` (gsplat when it is installed, the torch backend on
+  the GPU otherwise).
+
+The scene stands in for a fitted object: Gaussians in a 5 cm-thick shell around a sphere of radius
+0.5 (the canonical object size), spaced and sized like a converged 3DGS fit (scales about the mean
+spacing, opacities 0.3–1), seen by a ring of cameras 2 units away with a 40° field of view, so the
+object fills about 70 % of each image.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from vid2sim.bench.timing import time_ms
+from vid2sim.splats.cameras import Camera, camera_ring
+from vid2sim.splats.render import render
+from vid2sim.splats.sh import num_sh_bases, rgb_to_sh_dc
+
+
+def benchmark_scene(
+    n: int, device: torch.device | str = "cpu", seed: int = 0, sh_degree: int = 3
+) -> dict[str, torch.Tensor]:
+    """A reproducible shell-of-Gaussians scene (see module docstring) as leaf tensors needing grad.
+
+    Returns a dict with ``means (n, 3)``, ``quats (n, 4)``, ``scales (n, 3)``, ``opacities (n,)``
+    and ``sh (n, K, 3)``.
+    """
+    g = torch.Generator().manual_seed(seed)
+    dirs = torch.randn(n, 3, generator=g)
+    dirs = dirs / dirs.norm(dim=1, keepdim=True)
+    radius = 0.5 + 0.05 * (torch.rand(n, 1, generator=g) - 0.5)
+    means = dirs * radius
+    spacing = math.sqrt(4 * math.pi * 0.25 / n)
+    scales = spacing * (0.5 + torch.rand(n, 3, generator=g))
+    quats = torch.randn(n, 4, generator=g)
+    opacities = 0.3 + 0.7 * torch.rand(n, generator=g)
+    sh = 0.1 * torch.randn(n, num_sh_bases(sh_degree), 3, generator=g)
+    sh[:, 0] = rgb_to_sh_dc(torch.rand(n, 3, generator=g))
+    out = {"means": means, "quats": quats, "scales": scales, "opacities": opacities, "sh": sh}
+    return {k: v.to(device).requires_grad_() for k, v in out.items()}
+
+
+def benchmark_cameras(n_views: int, size: int, device: torch.device | str = "cpu") -> list[Camera]:
+    """``n_views`` cameras on a ring 2 units from the origin, 20° elevation, 40° FoV, size × size."""
+    return [c.to(device) for c in camera_ring(n_views, 2.0, 20.0, size, size, fov_x_deg=40.0)]
+
+
+def time_render(
+    n_gaussians: int,
+    n_views: int,
+    size: int,
+    device: torch.device,
+    backend: str = "auto",
+    repeats: int = 5,
+    sh_degree: int = 3,
+) -> float:
+    """Median milliseconds of one forward + backward render of the benchmark scene."""
+    scene = benchmark_scene(n_gaussians, device, sh_degree=sh_degree)
+    cams = benchmark_cameras(n_views, size, device)
+
+    def step() -> None:
+        out = render(
+            scene["means"],
+            scene["opacities"],
+            scene["sh"],
+            cams,
+            quats=scene["quats"],
+            scales=scene["scales"],
+            sh_degree=sh_degree,
+            backend=backend,
+        )
+        loss = out.rgb.mean() + out.alpha.mean() + 0.1 * out.depth.mean()
+        loss.backward()
+
+    return time_ms(step, device, repeats=repeats, warmup=1)
+
+
+def run(device: torch.device, quick: bool = False) -> dict[str, float]:
+    """Renderer timings (see module docstring). ``device`` is ignored for ``render_ms`` (always CPU)."""
+    repeats = 3 if quick else 7
+    result = {"render_ms": time_render(20_000, 4, 128, torch.device("cpu"), backend="torch", repeats=repeats)}
+    if torch.cuda.is_available():
+        cuda = device if device.type == "cuda" else torch.device("cuda")
+        result["render_ms_cuda_448"] = time_render(100_000, 12, 448, cuda, backend="auto", repeats=repeats)
+    return result
