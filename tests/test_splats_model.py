@@ -2,6 +2,8 @@
 
 import math
 import struct
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -179,3 +181,14 @@ def test_ply_malformed_files_give_clear_errors(tmp_path):
     _write_ply(tmp_path / "nan.ply", "binary_little_endian", props, [[float("nan")] + [0] * 9 + [1, 0, 0, 0]])
     with pytest.raises(PlyFormatError, match="non-finite"):
         load_ply(tmp_path / "nan.ply")
+
+
+def test_package_exports_without_importing_physics():
+    code = (
+        "import sys, vid2sim.splats as s\n"
+        "missing = [n for n in s.__all__ if not hasattr(s, n)]\n"
+        "assert not missing, missing\n"
+        "bad = [m for m in sys.modules if m.startswith('vid2sim.physics')]\n"
+        "assert not bad, bad\n"
+    )
+    subprocess.run([sys.executable, "-c", code], check=True)
