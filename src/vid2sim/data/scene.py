@@ -1017,14 +1017,16 @@ def write_scene(
     tmp.mkdir()
     try:
         _write_contents(scene, tmp, layout, float(video_quality), progress, workers)
-        _move_into_place(tmp, target)
+        move_into_place(tmp, target)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     return target
 
 
-def _move_into_place(tmp: Path, target: Path) -> None:
+def move_into_place(tmp: Path, target: Path) -> None:
+    """Rename the finished folder ``tmp`` to ``target``, replacing an existing ``target`` only at the
+    last moment (it is restored if the rename fails). Both must be on the same file system."""
     if not target.exists():
         os.replace(tmp, target)
         return

@@ -270,7 +270,7 @@ def make_scene(config: SyntheticSceneConfig, out_dir: str | Path, overwrite: boo
     from vid2sim.data.fem import FEMConfig, InitialPose, simulate_fem
     from vid2sim.data.mesh_render import render_textured_mesh
     from vid2sim.data.meshes import load_user_mesh
-    from vid2sim.data.scene import Scene, SceneConfig, _move_into_place, write_scene
+    from vid2sim.data.scene import Scene, SceneConfig, move_into_place, write_scene
     from vid2sim.data.shapes import make_procedural_object
     from vid2sim.data.tetra import tetrahedralize
     from vid2sim.splats.cameras import camera_ring
@@ -370,7 +370,7 @@ def make_scene(config: SyntheticSceneConfig, out_dir: str | Path, overwrite: boo
         (staging / SYNTHETIC_JSON).write_text(json.dumps(_jsonable(asdict(config)), indent=2) + "\n")
         if out.is_dir() and not any(out.iterdir()):
             out.rmdir()
-        _move_into_place(staging, out)
+        move_into_place(staging, out)
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
         raise
