@@ -8,7 +8,7 @@ after 6 steps and bounces; 15 steps in all.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from typing import Any
 
 import torch
@@ -63,7 +63,9 @@ def build_standard_simulator(settings: PhysicsBenchSettings, device: torch.devic
 
 
 def run(device: torch.device, quick: bool = False, settings: PhysicsBenchSettings | None = None) -> dict[str, Any]:
-    """Figures: sim_step_ms, sim_window_ms, sim_window_points_ms, skinning/jacobian training ms per iteration."""
+    """Figures: sim_step_ms (and sim_step_ms_always_projected, the same steps with Newton's Hessian projected
+    at every iteration, as a same-run baseline), sim_window_ms, sim_window_points_ms, skinning/jacobian
+    training ms per iteration."""
     from vid2sim.physics.neural_jacobian import NeuralJacobian, NeuralJacobianTrainingConfig, train_neural_jacobian
     from vid2sim.physics.skinning_training import SkinningTrainingConfig, train_skinning
 
@@ -78,6 +80,10 @@ def run(device: torch.device, quick: bool = False, settings: PhysicsBenchSetting
     with torch.no_grad():
         states = sim.rollout(rest, s.steps)
         rollout_ms = time_ms(lambda: sim.rollout(rest, s.steps), device, repeats)
+        # same-run baseline: Newton with the PSD-projected Hessian at every iteration
+        sim.config = replace(sim.config, hessian_projection="always")
+        projected_ms = time_ms(lambda: sim.rollout(rest, s.steps), device, repeats)
+        sim.config = replace(sim.config, hessian_projection="on_demand")
     iters = [st.newton_iterations for st in states]
     x_final = sim.positions(pts, states[-1].z).detach()
     penetration = max(0.0, s.floor_height - float(x_final[:, 2].min()))
@@ -118,6 +124,7 @@ def run(device: torch.device, quick: bool = False, settings: PhysicsBenchSetting
 
     return {
         "sim_step_ms": rollout_ms / s.steps,
+        "sim_step_ms_always_projected": projected_ms / s.steps,
         "sim_newton_iterations": iters,
         "sim_floor_penetration_m": penetration,
         "sim_window_ms": window_ms,
