@@ -57,8 +57,8 @@ def test_jacobian_error_definitions():
         net.output.weight.normal_(0, 0.1, generator=torch.Generator().manual_seed(0))
     X = _points(50, seed=1)
     w, dw = field.weights_and_gradients(X)
-    J_true = dF_dz(gradient_basis(X, w, dw))
-    diff = (net(X) - J_true).double()
+    J_true = dF_dz(gradient_basis(X, w, dw)).detach()
+    diff = (net(X) - J_true).detach().double()
     err = jacobian_error(net, field, X, chunk=16)  # chunking must not change the result
     assert err["mse"] == pytest.approx(float((diff**2).sum()) / 50, rel=1e-6)
     assert err["mse_per_entry"] == pytest.approx(float((diff**2).mean()), rel=1e-6)
