@@ -154,7 +154,8 @@ def test_free_fall_matches_implicit_euler_closed_form():
     """Before contact every vertex follows x_n = x_0 + n h v_0 + h² g n(n+1)/2 exactly (a rigid motion
     has zero elastic force), also for a rotated body."""
     V, T = _small_box()
-    cfg = FEMConfig(floor_height=-100.0, substeps=4, dt=0.05, newton_tol=1e-10)
+    # a tilted, non-default gravity: the closed form must follow the configured vector
+    cfg = FEMConfig(floor_height=-100.0, substeps=4, dt=0.05, newton_tol=1e-10, gravity=(0.8, -0.3, -9.0))
     pose = InitialPose(drop_height=1.0, rotation=(0.3, -0.2, 0.5), linear_velocity=(0.5, -0.2, 1.0))
     result = simulate_fem(V, T, cfg, pose, frames=6, progress=False)
     x0 = result.trajectory[0].numpy()
@@ -168,9 +169,10 @@ def test_free_fall_matches_implicit_euler_closed_form():
     assert result.energies["elastic"].abs().max() < 1e-9
 
 
-def test_dropped_box_comes_to_rest_on_floor():
+@pytest.mark.parametrize("floor_stiffness", [1e5, 2e4])
+def test_dropped_box_comes_to_rest_on_floor(floor_stiffness):
     V, T = _small_box(res=(3, 3, 2), size=(0.3, 0.3, 0.2))
-    cfg = FEMConfig(youngs_modulus=1e5, substeps=2, floor_height=-0.7)
+    cfg = FEMConfig(youngs_modulus=1e5, substeps=2, floor_height=-0.7, floor_stiffness=floor_stiffness)
     pose = InitialPose(drop_height=0.1)
     result = simulate_fem(V, T, cfg, pose, frames=30, progress=False)
     traj = result.trajectory.numpy()
@@ -188,7 +190,8 @@ def test_dropped_box_comes_to_rest_on_floor():
     assert 2 * cfg.floor_stiffness * depth.sum() == pytest.approx(weight, rel=0.02)
     bottom = np.isclose(V[:, 2].numpy(), -0.1)
     assert depth.max() < 5 * weight / (2 * cfg.floor_stiffness * bottom.sum())
-    assert result.max_penetration < 2e-3
+    # during the impact: at most the whole drop energy stored in the floor springs of the flat bottom face
+    assert result.max_penetration < math.sqrt(weight * pose.drop_height / (cfg.floor_stiffness * bottom.sum()))
     # the elastic box sags under its own weight: its height shrinks a little, by the order ρ g H² / (2E)
     height = traj[-1, :, 2].max() - traj[-1, :, 2].min()
     assert 0 < 0.2 - height < 5 * 1000 * 9.8 * 0.2 ** 2 / (2 * 1e5)
