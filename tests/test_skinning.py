@@ -101,7 +101,7 @@ def test_closed_form_weight_gradient_matches_central_differences(field):
             fd[:, :, c] = (field(X + e) - field(X - e)) / (2 * h)
     scale = float(dw.detach().abs().max())
     assert scale > 1e-3  # a non-trivial field
-    assert float((dw - fd).abs().max()) < 1e-7 * max(1.0, scale)
+    assert float((dw.detach() - fd).abs().max()) < 1e-7 * max(1.0, scale)
 
 
 def test_deformation_gradient_matches_finite_differences_of_deform(field):
