@@ -10,7 +10,7 @@ from vid2sim.splats.cameras import camera_ring
 from vid2sim.splats.gaussians import covariances_from_scales_quats, quat_to_rotmat
 from vid2sim.splats.render import render
 
-pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+pytestmark = pytest.mark.cuda
 
 
 @pytest.fixture(scope="module", autouse=True)

@@ -10,6 +10,15 @@ channel), ``packed=False`` (so that ``means2d`` and ``radii`` come back as (V, N
 backend; with ``covars`` given, quats and scales are not passed. gsplat evaluates SH colours as
 ``max(0, SH(d) + 0.5)`` with d from the camera centre to the Gaussian, exactly like
 :func:`vid2sim.splats.sh.eval_sh`.
+
+Covariances are symmetrised, ``(Σ + Σᵀ)/2``, before gsplat reads them: gsplat keeps only the upper
+triangle, so the gradient it returns for a 3×3 Σ sits on the upper triangle with doubled off-diagonal
+entries. Through the symmetrisation it becomes the symmetric gradient the torch backend returns (the
+same chain rule for anything Σ was computed from, e.g. the simulator's F).
+
+``tests/test_splats_gsplat_cpu.py`` runs this wrapper through gsplat's real Python front end on a CPU
+(its kernels replaced by gsplat's PyTorch reference code); ``tests/test_splats_gsplat.py`` runs it on the
+real CUDA kernels.
 """
 
 from __future__ import annotations
@@ -51,6 +60,7 @@ def render_gsplat(
         ) from e
     if covars is not None:
         quats_arg, scales_arg = None, None
+        covars = 0.5 * (covars + covars.transpose(-1, -2))
     else:
         quats_arg, scales_arg = quats, scales
     rendered, alphas, meta = rasterization(
