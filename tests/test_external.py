@@ -297,7 +297,7 @@ def test_bad_inputs_raise_clear_errors():
         total_external([Gravity()], x, mass[None], 0.0)
 
 
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
+@pytest.mark.cuda
 def test_cuda_matches_cpu():
     x, mass = points(40, seed=12)
     parts = list(ENERGIES.values())

@@ -264,7 +264,7 @@ def test_bad_inputs():
         render_mesh(v, faces + 4, uvs, TEX2, cam)
 
 
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+@pytest.mark.cuda
 def test_cuda_matches_cpu():
     mesh = make_procedural_object(2, ProceduralShapeConfig(target_faces=600, texture_size=64))
     cams = camera_ring(2, 2.0, 20.0, 64, 64)

@@ -114,7 +114,7 @@ def test_bad_inputs():
         NeuralJacobianTrainingConfig(lr=0)
 
 
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+@pytest.mark.cuda
 def test_cuda_training_step_runs_and_matches_layout():
     field = SkinningField(num_handles=2, width=8, hidden_layers=1, seed=0).cuda()
     net = NeuralJacobian(num_handles_total=3, encoding_dim=16, widths=(16, 16), seed=0).cuda()

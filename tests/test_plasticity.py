@@ -267,7 +267,7 @@ def test_bad_inputs_raise_clear_errors():
         update_plastic_state(VM, F, torch.eye(3, dtype=DT).repeat(3, 1, 1), MU, LAM)
 
 
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
+@pytest.mark.cuda
 def test_cuda_matches_cpu():
     gen = torch.Generator().manual_seed(20)
     F = from_strain(0.3 * torch.randn(50, 3, generator=gen, dtype=DT), seed=21)

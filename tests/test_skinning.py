@@ -251,7 +251,7 @@ def test_bad_inputs_raise_clear_errors(field):
         SkinningField(num_handles=0)
 
 
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+@pytest.mark.cuda
 def test_cuda_matches_cpu(field):
     X = _points(64, seed=10)
     z = _z(field.num_handles_total)

@@ -282,6 +282,26 @@ def test_fit_reaches_30db_on_its_training_views():
     assert seconds < 120
 
 
+@pytest.mark.cuda
+@pytest.mark.parametrize("backend", ["torch", "gsplat"])
+def test_fit_on_cuda_reaches_30db(backend):
+    """The acceptance fit again, with the images on the GPU and either backend rendering."""
+    if backend == "gsplat":
+        pytest.importorskip("gsplat")
+    images, masks, cams = blob_scene(64, 4)
+    cfg = FitConfig(iterations=120, sh_degree=1, densify_from=0.25, densify=DensifyConfig(max_gaussians=5000),
+                    backend=backend)
+    history: list[dict[str, float]] = []
+    fitted = fit_gaussians(images.cuda(), masks.cuda(), cams, cfg, initializer=VisualHullInitializer(num_points=2500),
+                           progress=False, history=history)
+    assert fitted.means.is_cuda
+    assert any(h["densified"] for h in history) and fitted.num > 2500
+    with torch.no_grad():
+        out = render_gaussians(fitted, [c.to("cuda") for c in cams], backend=backend)
+    assert out.backend == backend
+    assert psnr(out.rgb, images.cuda()) >= 30.0
+
+
 def test_fit_fires_the_opacity_reset_and_is_seedable():
     images, masks, cams = blob_scene(24, 2)
     cfg = FitConfig(iterations=13, sh_degree=0, densify_from=0.0, densify_until=1.0, densify_every=4,

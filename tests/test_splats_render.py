@@ -1,6 +1,9 @@
 """The pure-PyTorch renderer against a brute-force per-pixel reference, finite differences and analytic cases."""
 
+import importlib
 import math
+import sys
+import types
 
 import pytest
 import torch
@@ -235,6 +238,34 @@ def test_render_gaussians_and_validation_errors():
         RasterOptions(tile_size=3)
 
 
+def test_backend_choice_when_gsplat_cannot_run(monkeypatch):
+    """On CUDA tensors, 'auto' falls back to torch with a warning that says why; 'gsplat' raises it."""
+    render_module = importlib.import_module("vid2sim.splats.render")  # the attribute is the function
+
+    cuda = torch.device("cuda")  # a device object only: nothing is allocated on it
+    monkeypatch.setattr(render_module, "gsplat_unavailable_reason", lambda: "gsplat found no CUDA toolkit")
+    with pytest.warns(RuntimeWarning, match="torch backend on cuda: gsplat found no CUDA toolkit"):
+        assert resolve_backend("auto", cuda, torch.float32) == "torch"
+    with pytest.raises(RuntimeError, match="gsplat found no CUDA toolkit.*backend='torch'"):
+        resolve_backend("gsplat", cuda, torch.float32)
+    assert resolve_backend("auto", cuda, torch.float64) == "torch"  # gsplat renders float32 only
+    monkeypatch.setattr(render_module, "gsplat_unavailable_reason", lambda: None)
+    assert resolve_backend("auto", cuda, torch.float32) == "gsplat"
+    assert resolve_backend("auto", torch.device("cpu"), torch.float32) == "torch"
+
+
+def test_gsplat_probe_names_what_is_missing(monkeypatch):
+    render_module = importlib.import_module("vid2sim.splats.render")
+    fake = types.ModuleType("gsplat.cuda._backend")
+    fake._C = None
+    monkeypatch.setitem(sys.modules, "gsplat", types.ModuleType("gsplat"))
+    monkeypatch.setitem(sys.modules, "gsplat.cuda", types.ModuleType("gsplat.cuda"))
+    monkeypatch.setitem(sys.modules, "gsplat.cuda._backend", fake)
+    assert "no CUDA toolkit" in render_module._probe_gsplat()
+    monkeypatch.setitem(sys.modules, "gsplat", None)  # import gsplat → ImportError
+    assert "not importable" in render_module._probe_gsplat()
+
+
 def test_screen_space_gradients_for_densification():
     means, scales, quats, ops, cols = _scene(10, 2)
     cams = camera_ring(2, 2.0, 10.0, 16, 16)
@@ -248,7 +279,7 @@ def test_screen_space_gradients_for_densification():
     assert float(out.means2d.grad.norm(dim=-1)[visible].max()) > 0
 
 
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+@pytest.mark.cuda
 def test_torch_backend_on_cuda_matches_cpu():
     means, scales, quats, ops, cols = (t.float() for t in _scene(200, 9))
     cams = camera_ring(3, 2.5, 20.0, 64, 48)

@@ -6,7 +6,7 @@ Figures (milliseconds, median of several runs):
   degree 3), 4 views at 128 × 128, forward + backward of a loss on RGB, alpha and depth.
 - ``render_ms_cuda_448`` — only when CUDA is available: 100 000 Gaussians, 12 views at 448 × 448,
   forward + backward, with ``backend="auto"`` (gsplat when it is installed, the torch backend on
-  the GPU otherwise).
+  the GPU otherwise); ``render_cuda_backend`` names the backend that ran.
 
 The scene stands in for a fitted object: Gaussians in a 5 cm-thick shell around a sphere of radius
 0.5 (the canonical object size), spaced and sized like a converged 3DGS fit (scales about the mean
@@ -22,7 +22,7 @@ import torch
 
 from vid2sim.bench.timing import time_ms
 from vid2sim.splats.cameras import Camera, camera_ring
-from vid2sim.splats.render import render
+from vid2sim.splats.render import render, resolve_backend
 from vid2sim.splats.sh import num_sh_bases, rgb_to_sh_dc
 
 
@@ -84,11 +84,12 @@ def time_render(
     return time_ms(step, device, repeats=repeats, warmup=1)
 
 
-def run(device: torch.device, quick: bool = False) -> dict[str, float]:
+def run(device: torch.device, quick: bool = False) -> dict[str, float | str]:
     """Renderer timings (see module docstring). ``device`` is ignored for ``render_ms`` (always CPU)."""
     repeats = 3 if quick else 7
-    result = {"render_ms": time_render(20_000, 4, 128, torch.device("cpu"), backend="torch", repeats=repeats)}
+    result: dict[str, float | str] = {"render_ms": time_render(20_000, 4, 128, torch.device("cpu"), backend="torch", repeats=repeats)}
     if torch.cuda.is_available():
         cuda = device if device.type == "cuda" else torch.device("cuda")
         result["render_ms_cuda_448"] = time_render(100_000, 12, 448, cuda, backend="auto", repeats=repeats)
+        result["render_cuda_backend"] = resolve_backend("auto", cuda, torch.float32)
     return result

@@ -8,14 +8,17 @@ and expected depth for every view. Backends:
 - ``"gsplat"`` — gsplat 1.5.3's CUDA rasteriser (:mod:`vid2sim.splats.gsplat_backend`); CUDA and
   float32 only; install with ``pip install "vid2sim[cuda]"``.
 
-``backend="auto"`` takes gsplat when the tensors are float32 on a CUDA device and gsplat imports,
-and the torch backend otherwise. Both follow the same conventions (EWA projection with a 0.3 px²
+``backend="auto"`` takes gsplat when the tensors are float32 on a CUDA device and gsplat's kernels
+load (they are built on first use), and the torch backend otherwise — with a warning saying why when
+the tensors are on CUDA but gsplat cannot run. Both follow the same conventions (EWA projection with a 0.3 px²
 low-pass, α = min(0.999, o·G), skip α < 1/255, stop at T ≤ 1e-4, 3DGS spherical harmonics with the
 ``+0.5`` offset, pixel centres at +0.5), so their images agree to float32 rounding.
 """
 
 from __future__ import annotations
 
+import functools
+import warnings
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Sequence
 
@@ -57,12 +60,25 @@ class RenderOutput:
     backend: str
 
 
-def _gsplat_available() -> bool:
+def _probe_gsplat() -> str | None:
+    """None when gsplat's CUDA kernels load (building them on first use), else one line saying why not."""
     try:
         import gsplat  # noqa: F401
-    except Exception:  # ImportError, or a broken CUDA build
-        return False
-    return True
+    except Exception as e:  # ImportError, or a broken install
+        return f"gsplat is not importable ({type(e).__name__}: {e})"
+    try:
+        from gsplat.cuda._backend import _C
+    except Exception as e:  # the JIT build of its kernels failed
+        return f"gsplat's CUDA kernels failed to build or load ({type(e).__name__}: {e})"
+    if _C is None:
+        return "gsplat found no CUDA toolkit (nvcc) to build its kernels with"
+    return None
+
+
+@functools.lru_cache(maxsize=None)
+def gsplat_unavailable_reason() -> str | None:
+    """Why the gsplat backend cannot run here (None when it can). Probed once per process."""
+    return _probe_gsplat()
 
 
 def resolve_backend(backend: str, device: torch.device, dtype: torch.dtype) -> str:
@@ -70,8 +86,14 @@ def resolve_backend(backend: str, device: torch.device, dtype: torch.dtype) -> s
     if backend not in BACKENDS:
         raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
     if backend == "auto":
-        if device.type == "cuda" and dtype == torch.float32 and _gsplat_available():
+        if device.type != "cuda" or dtype != torch.float32:
+            return "torch"
+        reason = gsplat_unavailable_reason()
+        if reason is None:
             return "gsplat"
+        warnings.warn(f"rendering with the torch backend on {device}: {reason} (the gsplat backend is much faster "
+                      "on CUDA: pip install 'vid2sim[cuda]' where the CUDA toolkit is installed)",
+                      RuntimeWarning, stacklevel=3)
         return "torch"
     if backend == "gsplat":
         if device.type != "cuda":
@@ -81,10 +103,12 @@ def resolve_backend(backend: str, device: torch.device, dtype: torch.dtype) -> s
             )
         if dtype != torch.float32:
             raise ValueError(f"backend 'gsplat' renders float32 only, got {dtype}; use backend='torch' for {dtype}")
-        if not _gsplat_available():
-            raise ImportError(
-                "backend 'gsplat' requested but gsplat is not importable; install it with "
-                "pip install 'gsplat==1.5.3' packaging  (or pip install 'vid2sim[cuda]')"
+        reason = gsplat_unavailable_reason()
+        if reason is not None:
+            raise RuntimeError(
+                f"backend 'gsplat' requested but {reason}; install it with "
+                "pip install 'gsplat==1.5.3' packaging  (or pip install 'vid2sim[cuda]') on a machine with "
+                "the CUDA toolkit, or use backend='torch'"
             )
     return backend
 
