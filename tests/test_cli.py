@@ -15,7 +15,7 @@ def test_version_and_help(capsys):
     assert __version__ in capsys.readouterr().out
     assert main([]) == 0
     out = capsys.readouterr().out
-    for command in ("bench", "make-scene", "make-benchmark"):
+    for command in ("bench", "make-scene", "make-benchmark", "fit-gaussians"):
         assert command in out
 
 

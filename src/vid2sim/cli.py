@@ -84,6 +84,65 @@ def _cmd_make_benchmark(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_fit_gaussians(args: argparse.Namespace) -> int:
+    import dataclasses
+    import shutil
+    import tempfile
+    import time
+    from pathlib import Path
+
+    import torch
+
+    from vid2sim.bench.timing import resolve_device
+    from vid2sim.data.scene import SceneFormatError, load_scene, move_into_place
+    from vid2sim.splats.fitting import FitConfig, fit_gaussians
+    from vid2sim.splats.losses import psnr
+    from vid2sim.splats.ply import save_ply
+    from vid2sim.splats.render import render_gaussians
+
+    out = Path(args.out)
+    if out.exists() and not args.overwrite:
+        raise UserError(f"{out} exists; pass --overwrite to replace it")
+    if out.exists() and not (out / "gaussians.ply").exists() and any(out.iterdir()):
+        raise UserError(f"{out} is a non-empty folder without gaussians.ply; refusing to replace it")
+    given = {"iterations": args.iterations, "sh_degree": args.sh_degree, "views_per_step": args.views_per_step}
+    config = FitConfig(seed=args.seed, **{k: v for k, v in given.items() if v is not None})
+    device = resolve_device(args.device)
+    try:
+        scene = load_scene(args.scene, progress=not args.quiet)
+    except SceneFormatError as exc:
+        raise UserError(str(exc)) from exc
+    T = scene.images.shape[1]
+    if not 0 <= args.frame < T:
+        raise UserError(f"--frame {args.frame} is outside the scene's frames 0..{T - 1}")
+    images = scene.images[:, args.frame].to(device)
+    masks = scene.masks[:, args.frame].to(device)
+    start = time.perf_counter()
+    fitted = fit_gaussians(images, masks, scene.cameras, config, progress=not args.quiet)
+    seconds = time.perf_counter() - start
+    cams = [c.to(device) for c in scene.cameras]
+    with torch.no_grad():
+        rgb = render_gaussians(fitted, cams, background=config.background, backend=config.backend).rgb
+    report = {
+        "scene": str(Path(args.scene).resolve()), "frame": args.frame, "device": str(device),
+        "gaussians": fitted.num, "seconds": round(seconds, 2),
+        "psnr_db": round(psnr(rgb, images), 3),
+        "psnr_db_per_view": [round(psnr(rgb[v : v + 1], images[v : v + 1]), 3) for v in range(images.shape[0])],
+    }
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.writing-", dir=out.parent))
+    try:
+        save_ply(fitted, tmp / "gaussians.ply")
+        (tmp / "fit_config.json").write_text(json.dumps(dataclasses.asdict(config), indent=2) + "\n")
+        (tmp / "fit_report.json").write_text(json.dumps(report, indent=2) + "\n")
+        move_into_place(tmp, out)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    print(f"wrote {out / 'gaussians.ply'}: {fitted.num} Gaussians, {report['psnr_db']:.2f} dB on the "
+          f"{images.shape[0]} training views of frame {args.frame}, {seconds:.1f} s")
+    return 0
+
+
 def _add_scene_options(p: argparse.ArgumentParser, material_options: bool) -> None:
     p.add_argument("--preset", choices=["full", "small"], default="full",
                    help="full: 12 views, 448x448, 24 frames (the paper); small: 4 views, 128x128, 24 frames (CPU)")
@@ -145,6 +204,20 @@ def build_parser() -> argparse.ArgumentParser:
     suite.add_argument("--seed", type=int, default=0, help="suite seed (default 0)")
     _add_scene_options(suite, material_options=False)
     suite.set_defaults(func=_cmd_make_benchmark)
+
+    fit = sub.add_parser("fit-gaussians", help="fit 3D Gaussians to one frame of a scene folder (all its views)")
+    fit.add_argument("scene", help="scene folder (scene.json + transforms.json)")
+    fit.add_argument("out", help="output folder: gaussians.ply (3DGS layout), fit_config.json, fit_report.json")
+    fit.add_argument("--frame", type=int, default=0, help="frame index to fit (default 0)")
+    fit.add_argument("--iterations", type=int, default=None, help="optimisation steps (default: FitConfig's, 1000)")
+    fit.add_argument("--sh-degree", type=int, default=None, choices=range(4),
+                     help="spherical-harmonics degree (default: FitConfig's, 3)")
+    fit.add_argument("--views-per-step", type=int, default=None, help="views rendered per step (default: all)")
+    fit.add_argument("--seed", type=int, default=0, help="seed (default 0)")
+    fit.add_argument("--device", default=None, help="torch device (default: cuda if available, else cpu)")
+    fit.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
+    fit.add_argument("--quiet", action="store_true", help="no progress output")
+    fit.set_defaults(func=_cmd_fit_gaussians)
     return parser
 
 
