@@ -242,7 +242,7 @@ def test_gradient_and_hessian_match_finite_differences():
     x_tilde = X + 0.01 * rng.normal(size=X.shape)
     inertia = 400.0
     assert (x[:, 2] < cfg.floor_height).any()
-    g, H = model._gradient_hessian(x, x_tilde, inertia)
+    g, H, _ = model._gradient_hessian(x, x_tilde, inertia, project=False)
     phi = lambda y: model._objective(y, x_tilde, inertia, X)  # noqa: E731
     eps = 1e-6
     fd = np.zeros(x.size)
@@ -252,13 +252,32 @@ def test_gradient_and_hessian_match_finite_differences():
         fd[i] = (phi(x + e.reshape(x.shape)) - phi(x - e.reshape(x.shape))) / (2 * eps)
     np.testing.assert_allclose(g, fd, rtol=1e-5, atol=1e-6 * np.abs(g).max())
     d = rng.normal(size=x.size)
-    g_plus, _ = model._gradient_hessian(x + eps * d.reshape(x.shape), x_tilde, inertia)
-    g_minus, _ = model._gradient_hessian(x - eps * d.reshape(x.shape), x_tilde, inertia)
+    g_plus = model._gradient_hessian(x + eps * d.reshape(x.shape), x_tilde, inertia, project=False)[0]
+    g_minus = model._gradient_hessian(x - eps * d.reshape(x.shape), x_tilde, inertia, project=False)[0]
     np.testing.assert_allclose(H @ d, (g_plus - g_minus) / (2 * eps), rtol=1e-5, atol=1e-6 * np.abs(H @ d).max())
-    # the Hessian is symmetric positive definite
+    # the Hessian is symmetric positive definite, and projecting it changes nothing here
     Hd = H.toarray()
     assert np.abs(Hd - Hd.T).max() < 1e-9 * np.abs(Hd).max()
     assert np.linalg.eigvalsh(Hd).min() > 0
+    H_projected = model._gradient_hessian(x, x_tilde, inertia, project=True)[1].toarray()
+    np.testing.assert_allclose(H_projected, Hd, rtol=0, atol=1e-9 * np.abs(Hd).max())
+
+
+def test_exact_hessian_matches_finite_differences_under_compression():
+    """The exact (unprojected) Hessian is the derivative of the gradient also where it is indefinite."""
+    V, T = _small_box(res=(2, 1, 1))
+    model = TetFEM(V, T, FEMConfig(floor_height=None))
+    rng = np.random.default_rng(1)
+    x = model.rest * np.array([0.5, 0.6, 1.0]) + 0.002 * rng.normal(size=model.rest.shape)
+    g, H, _ = model._gradient_hessian(x, x, 0.0, project=False)
+    assert np.linalg.eigvalsh(H.toarray()).min() < 0  # compressed Neo-Hookean: indefinite
+    eps = 1e-6
+    for _ in range(3):
+        d = rng.normal(size=x.size)
+        g_plus = model._gradient_hessian(x + eps * d.reshape(x.shape), x, 0.0, project=False)[0]
+        g_minus = model._gradient_hessian(x - eps * d.reshape(x.shape), x, 0.0, project=False)[0]
+        np.testing.assert_allclose(H @ d, (g_plus - g_minus) / (2 * eps), rtol=1e-5,
+                                   atol=1e-6 * np.abs(H @ d).max())
 
 
 def test_psd_projection_under_compression():
@@ -266,9 +285,49 @@ def test_psd_projection_under_compression():
     V, T = _small_box(res=(2, 1, 1))
     model = TetFEM(V, T, FEMConfig(floor_height=None))
     x = model.rest * np.array([0.5, 0.6, 1.0])
-    _, H = model._gradient_hessian(x, x, 0.0)
+    H_exact = model._gradient_hessian(x, x, 0.0, project=False)[1]
+    assert np.linalg.eigvalsh(H_exact.toarray()).min() < 0
+    _, H, _ = model._gradient_hessian(x, x, 0.0, project=True)
     ev = np.linalg.eigvalsh(H.toarray())
     assert ev.min() > -1e-8 * ev.max()
+
+
+def test_exact_hessian_newton_matches_projected_and_converges_faster():
+    """The impact of a soft box: Newton on the exact Hessian (projected only where it is indefinite)
+    reaches the same states as Newton on the always-projected Hessian, which slows to linear
+    convergence while tets are compressed into Neo-Hookean's indefinite range."""
+    V, T = _small_box()
+    pose = InitialPose(drop_height=0.0, linear_velocity=(0.0, 0.0, -8.0), angular_velocity=(3.0, 0.0, 0.0))
+    results = {mode: simulate_fem(V, T, FEMConfig(youngs_modulus=5e3, substeps=1, newton_max_iters=300,
+                                                  hessian_projection=mode), pose, frames=3, progress=False)
+               for mode in ("always", "on_demand")}
+    exact, projected = results["on_demand"], results["always"]
+    assert float(exact.min_det.min()) < 0.5  # strongly compressed
+    assert torch.allclose(exact.trajectory, projected.trajectory, atol=2e-5)
+    assert int(exact.newton_iterations.max()) * 3 < int(projected.newton_iterations.max())
+
+
+@pytest.mark.parametrize("solver", ["direct", "cg"])
+def test_newton_from_a_compressed_state_converges_with_either_solver(solver):
+    """From a box squeezed to half its width with weak inertia the exact Hessian is indefinite: the
+    direct solver sees it in its pivots and projects; CG still returns descent directions. Both converge
+    to the state the always-projected Newton finds, a stationary point of the incremental potential."""
+    V, T = _small_box()
+    model = TetFEM(V, T, FEMConfig(floor_height=None, linear_solver=solver))
+    x = model.rest * np.array([0.5, 0.5, 1.0])
+    v = np.zeros_like(x)
+    h = 0.05
+    x_new, _, stats = model.step(x, v, h)
+    assert stats.converged
+    if solver == "direct":
+        assert stats.projected_solves > 0
+    reference = TetFEM(V, T, FEMConfig(floor_height=None, linear_solver=solver, hessian_projection="always"))
+    x_ref, _, ref_stats = reference.step(x, v, h)
+    assert ref_stats.projected_solves == 0
+    np.testing.assert_allclose(x_new, x_ref, atol=1e-5)
+    g = model._gradient_hessian(x_new, x + h * v, 1.0 / h**2, project=False)[0]
+    weight = float(model.masses.sum()) * 9.8
+    assert np.abs(g).max() < 1e-4 * weight
 
 
 def test_initial_pose_apply_and_random():
@@ -306,6 +365,8 @@ def test_config_and_input_errors():
         FEMConfig(poisson_ratio=0.5)
     with pytest.raises(ValueError, match="linear_solver"):
         FEMConfig(linear_solver="magic")
+    with pytest.raises(ValueError, match="hessian_projection"):
+        FEMConfig(hessian_projection="sometimes")
     with pytest.raises(ValueError, match="floor_stiffness"):
         FEMConfig(floor_stiffness=-1.0)
     V, T = _small_box()

@@ -88,6 +88,12 @@ class FEMConfig:
         cg_rtol: relative residual at which CG stops (the Newton convergence test is on the step, so
             this only needs to make the step accurate to well below ``newton_tol``).
         cg_max_iters: CG iterations before the direct solver takes over.
+        hessian_projection: "on_demand" — Newton uses the exact Hessian while it gives a descent
+            direction (CG converges and gᵀp < 0, or the direct factorisation shows it positive definite)
+            and the Hessian with every element tangent projected to PSD otherwise; "always" — the
+            projected one every iteration. Projection is robust but slows Newton to linear convergence
+            whenever elements are compressed into the indefinite range of Neo-Hookean (at impacts:
+            50+ iterations instead of 6), so the exact Hessian comes first.
     """
 
     youngs_modulus: float = 1e5
@@ -106,9 +112,13 @@ class FEMConfig:
     linear_solver: str = "auto"
     cg_rtol: float = 1e-6
     cg_max_iters: int = 1000
+    hessian_projection: str = "on_demand"
 
     def __post_init__(self) -> None:
         lame_parameters(self.youngs_modulus, self.poisson_ratio)  # validates E and ν
+        if self.hessian_projection not in ("always", "on_demand"):
+            raise ValueError(
+                f"FEMConfig.hessian_projection must be 'always' or 'on_demand', got {self.hessian_projection!r}")
         if self.material not in ELASTIC_MODELS:
             raise ValueError(f"FEMConfig.material must be one of {sorted(ELASTIC_MODELS)}, got {self.material!r}")
         if self.linear_solver not in ("auto", "direct", "cg"):
@@ -243,6 +253,7 @@ class NewtonStats:
     cg_iterations: int = 0
     direct_solves: int = 0
     inverted_rejections: int = 0
+    projected_solves: int = 0
 
 
 class TetFEM:
@@ -355,34 +366,44 @@ class TetFEM:
             scale += 0.5 * inertia * float(self.masses @ (r * r).sum(1))
         return 1e-12 * scale
 
-    def _gradient_hessian(self, x, x_tilde, inertia) -> tuple[np.ndarray, sp.csr_matrix]:
-        """∇Φ (3Nv,) and the PSD-projected sparse Hessian (3Nv × 3Nv CSR)."""
+    def _gradient_hessian(self, x, x_tilde, inertia, project: bool) -> tuple[np.ndarray, sp.csr_matrix, Tensor]:
+        """∇Φ (3Nv,), the sparse Hessian (3Nv × 3Nv CSR; element tangents PSD-projected if ``project``) and
+        the element deformation gradients F (Nt, 3, 3) for :meth:`_hessian`."""
         F = torch.from_numpy(self.deformation_gradients(x))
         P = self._pk1(F, self.mu, self.lam).numpy()
-        C = self._tangent(F, self.mu, self.lam)
-        C = project_tangent_psd(self.config.material, F, C, self.mu, self.lam).numpy()
         vol = self.volumes
         # element forces: ∂(V Ψ)/∂x_{a,i} = V Σ_j P_ij G_aj
         fe = vol[:, None, None] * np.matmul(self.G, P.transpose(0, 2, 1))  # (Nt, 4, 3)
         flat = self.tets.ravel()
         grad = np.stack([np.bincount(flat, weights=fe[..., c].ravel(), minlength=self.num_vertices)
                          for c in range(3)], axis=1)
-        # element Hessians V Bᵀ C⁺ B (Nt, 12, 12), PSD because C⁺ is
-        Ke = vol[:, None, None] * np.matmul(self.B.transpose(0, 2, 1), np.matmul(C, self.B))
-        data = np.bincount(self._scatter, weights=Ke.ravel(), minlength=self._nnz)
         grad -= self.masses[:, None] * self.gravity[None, :]
-        diag = np.zeros((self.num_vertices, 3))
         if self.config.floor_height is not None:
             d = np.maximum(0.0, self.config.floor_height - x[:, 2])
             grad[:, 2] -= 2.0 * self.config.floor_stiffness * d
-            diag[:, 2] += 2.0 * self.config.floor_stiffness * (d > 0)
         if inertia:
             grad += inertia * self.masses[:, None] * (x - x_tilde)
+        return grad.ravel(), self._hessian(x, inertia, F, project), F
+
+    def _hessian(self, x: np.ndarray, inertia: float, F: Tensor, project: bool) -> sp.csr_matrix:
+        """Sparse Hessian of Φ at x (3Nv × 3Nv CSR) from the element F (Nt, 3, 3); element tangents are
+        projected to PSD (making H PSD) if ``project``, else exact."""
+        C = self._tangent(F, self.mu, self.lam)
+        if project:
+            C = project_tangent_psd(self.config.material, F, C, self.mu, self.lam)
+        else:
+            C = 0.5 * (C + C.transpose(1, 2))
+        # element Hessians V Bᵀ C B (Nt, 12, 12)
+        Ke = self.volumes[:, None, None] * np.matmul(self.B.transpose(0, 2, 1), np.matmul(C.numpy(), self.B))
+        data = np.bincount(self._scatter, weights=Ke.ravel(), minlength=self._nnz)
+        diag = np.zeros((self.num_vertices, 3))
+        if self.config.floor_height is not None:
+            diag[:, 2] += 2.0 * self.config.floor_stiffness * (self.config.floor_height - x[:, 2] > 0)
+        if inertia:
             diag += inertia * self.masses[:, None]
         data[self._diag_pos] += diag.ravel()
         n = 3 * self.num_vertices
-        H = sp.csr_matrix((data, self._indices, self._indptr), shape=(n, n))
-        return grad.ravel(), H
+        return sp.csr_matrix((data, self._indices, self._indptr), shape=(n, n))
 
     def minimize(self, x_start: np.ndarray, x_tilde: np.ndarray | None = None, inertia: float = 0.0,
                  free: np.ndarray | None = None) -> tuple[np.ndarray, NewtonStats]:
@@ -407,17 +428,27 @@ class TetFEM:
         free_dofs = None if free is None else np.repeat(np.asarray(free, dtype=bool), 3)
         stats = NewtonStats()
         use_cg = cfg.linear_solver == "cg" or (cfg.linear_solver == "auto" and inertia > 0)
+        always_project = cfg.hessian_projection == "always"
+
+        def direction(H: sp.csr_matrix, g: np.ndarray, exact: bool) -> tuple[np.ndarray | None, float]:
+            """Newton step p (3Nv,) and gᵀp over the free dofs; (None, nan) if the exact H gives none."""
+            if free_dofs is None:
+                p = self._solve(H, -g, use_cg, stats, exact)
+            else:
+                sol = self._solve(H[free_dofs][:, free_dofs], -g[free_dofs], use_cg, stats, exact)
+                p = None if sol is None else np.zeros_like(g)
+                if p is not None:
+                    p[free_dofs] = sol
+            return (None, math.nan) if p is None else (p, float(g @ p))
+
         phi = self._objective(x, x_tilde, inertia, x_start)
         tol = cfg.newton_tol * self.bbox_diagonal
         for it in range(cfg.newton_max_iters):
-            g, H = self._gradient_hessian(x, x_tilde, inertia)
-            p = np.zeros_like(g)
-            if free_dofs is None:
-                p = self._solve(H, -g, use_cg, stats)
-                gp = float(g @ p)
-            else:
-                p[free_dofs] = self._solve(H[free_dofs][:, free_dofs], -g[free_dofs], use_cg, stats)
-                gp = float(g[free_dofs] @ p[free_dofs])
+            g, H, F = self._gradient_hessian(x, x_tilde, inertia, project=always_project)
+            p, gp = direction(H, g, exact=not always_project)
+            if not always_project and not gp < 0:  # exact Hessian indefinite here: project it
+                stats.projected_solves += 1
+                p, gp = direction(self._hessian(x, inertia, F, project=True), g, exact=False)
             stats.iterations = it + 1
             step = p.reshape(-1, 3)
             if np.abs(step).max() <= tol:
@@ -448,9 +479,15 @@ class TetFEM:
             f"Newton did not converge in {cfg.newton_max_iters} iterations (last step "
             f"{np.abs(step).max():.3g} m > tolerance {tol:.3g} m); raise FEMConfig.newton_max_iters or substeps")
 
-    def _solve(self, H: sp.csr_matrix, rhs: np.ndarray, use_cg: bool, stats: NewtonStats) -> np.ndarray:
-        """Solve the SPD system H p = rhs: Jacobi-preconditioned CG if ``use_cg`` (direct if CG does not
-        reach ``cg_rtol``), else a sparse direct LU with a symmetric ordering."""
+    def _solve(self, H: sp.csr_matrix, rhs: np.ndarray, use_cg: bool, stats: NewtonStats,
+               exact: bool = False) -> np.ndarray | None:
+        """Solve the symmetric system H p = rhs: Jacobi-preconditioned CG if ``use_cg`` (direct if CG does not
+        reach ``cg_rtol``), else a sparse direct LU with a symmetric ordering.
+
+        With ``exact`` (H may be indefinite), returns None instead of falling back or raising when CG does
+        not converge, or the factorisation is singular or shows H is not positive definite; the caller
+        then projects H. Without it H must be positive (semi-)definite.
+        """
         if use_cg:
             count = [0]
 
@@ -462,16 +499,27 @@ class TetFEM:
             stats.cg_iterations += count[0]
             if info == 0 and np.isfinite(p).all():
                 return p
+            if exact:
+                return None
         stats.direct_solves += 1
         # H is symmetric, so its CSR arrays are also its CSC arrays
         Hc = sp.csc_matrix((H.data, H.indices, H.indptr), shape=H.shape)
         try:
             lu = spla.splu(Hc, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
         except RuntimeError as err:  # SuperLU: "Factor is exactly singular"
+            if exact:
+                return None
             raise FEMSolverError(f"the Newton system is singular ({err}): is part of the mesh unconstrained in "
                                  "a static solve?") from None
+        if exact:
+            # diagonal pivoting with the same row and column order is a symmetric LDLᵀ (D = diag U):
+            # by Sylvester's law H is positive definite iff every pivot is positive
+            if not (np.array_equal(lu.perm_r, lu.perm_c) and (lu.U.diagonal() > 0).all()):
+                return None
         p = lu.solve(rhs)
         if not np.isfinite(p).all():
+            if exact:
+                return None
             raise FEMSolverError("the Newton system produced a non-finite step (singular Hessian: is the object "
                                  "floating with no mass or are all vertices fixed?)")
         return p
