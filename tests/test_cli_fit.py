@@ -69,6 +69,9 @@ def test_fit_gaussians_writes_ply_config_and_report(blob_scene_folder: Path, tmp
     [
         (["--frame", "2"], "--frame 2 is outside the scene's frames 0..1"),
         (["--iterations", "0"], "iterations must be >= 1"),
+        (["--test-views", "0,1,2,3"], "holds out all 4 views"),
+        (["--test-views", "1,7"], "--test-views [7] outside the scene's views 0..3"),
+        (["--test-views", "one"], "comma-separated view indices"),
     ],
 )
 def test_fit_gaussians_bad_arguments_are_one_line(blob_scene_folder, tmp_path, capsys, extra, message):
@@ -91,3 +94,21 @@ def test_fit_gaussians_refuses_to_replace_a_foreign_folder(blob_scene_folder, tm
     assert main(["fit-gaussians", str(blob_scene_folder), str(foreign), "--overwrite", "--quiet"]) == 2
     assert "without gaussians.ply" in capsys.readouterr().err
     assert (foreign / "notes.txt").read_text() == "keep me"
+
+
+def test_fit_gaussians_scores_held_out_views_separately(blob_scene_folder: Path, tmp_path: Path, capsys):
+    out = tmp_path / "fit"
+    assert main(["fit-gaussians", str(blob_scene_folder), str(out), "--iterations", "40", "--sh-degree", "0",
+                 "--test-views", "2", "--quiet"]) == 0
+    assert "dB on the 3 training views of frame 0" in capsys.readouterr().out
+    report = json.loads((out / "fit_report.json").read_text())
+    assert report["train_views"] == [0, 1, 3] and report["test_views"] == [2]
+    assert len(report["psnr_db_per_view"]) == 3 and len(report["psnr_db_test_per_view"]) == 1
+    g = load_ply(out / "gaussians.ply")
+    scene = load_scene(blob_scene_folder)
+    with torch.no_grad():
+        rgb = render_gaussians(g, scene.cameras).rgb
+    assert psnr(rgb[2:3], scene.images[2:3, 0]) == pytest.approx(report["psnr_db_test"], abs=1e-3)
+    assert psnr(rgb[[0, 1, 3]], scene.images[[0, 1, 3], 0]) == pytest.approx(report["psnr_db"], abs=1e-3)
+    # the held-out view was not fitted: it scores below every training view
+    assert report["psnr_db_test"] < min(report["psnr_db_per_view"])

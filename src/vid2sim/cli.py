@@ -115,19 +115,31 @@ def _cmd_fit_gaussians(args: argparse.Namespace) -> int:
     T = scene.images.shape[1]
     if not 0 <= args.frame < T:
         raise UserError(f"--frame {args.frame} is outside the scene's frames 0..{T - 1}")
+    V = len(scene.cameras)
+    test = _parse_views(args.test_views, V)
+    train = [v for v in range(V) if v not in test]
     images = scene.images[:, args.frame].to(device)
     masks = scene.masks[:, args.frame].to(device)
     start = time.perf_counter()
-    fitted = fit_gaussians(images, masks, scene.cameras, config, progress=not args.quiet)
+    fitted = fit_gaussians(images[train], masks[train], [scene.cameras[v] for v in train], config,
+                           progress=not args.quiet)
     seconds = time.perf_counter() - start
     cams = [c.to(device) for c in scene.cameras]
     with torch.no_grad():
         rgb = render_gaussians(fitted, cams, background=config.background, backend=config.backend).rgb
+
+    def scores(views: list[int]) -> tuple[float | None, list[float]]:
+        if not views:
+            return None, []
+        return (round(psnr(rgb[views], images[views]), 3),
+                [round(psnr(rgb[v : v + 1], images[v : v + 1]), 3) for v in views])
+
+    (train_psnr, train_per_view), (test_psnr, test_per_view) = scores(train), scores(test)
     report = {
         "scene": str(Path(args.scene).resolve()), "frame": args.frame, "device": str(device),
         "gaussians": fitted.num, "seconds": round(seconds, 2),
-        "psnr_db": round(psnr(rgb, images), 3),
-        "psnr_db_per_view": [round(psnr(rgb[v : v + 1], images[v : v + 1]), 3) for v in range(images.shape[0])],
+        "train_views": train, "psnr_db": train_psnr, "psnr_db_per_view": train_per_view,
+        "test_views": test, "psnr_db_test": test_psnr, "psnr_db_test_per_view": test_per_view,
     }
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.writing-", dir=out.parent))
@@ -138,9 +150,26 @@ def _cmd_fit_gaussians(args: argparse.Namespace) -> int:
         move_into_place(tmp, out)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
-    print(f"wrote {out / 'gaussians.ply'}: {fitted.num} Gaussians, {report['psnr_db']:.2f} dB on the "
-          f"{images.shape[0]} training views of frame {args.frame}, {seconds:.1f} s")
+    held_out = f", {test_psnr:.2f} dB on the {len(test)} held-out views" if test else ""
+    print(f"wrote {out / 'gaussians.ply'}: {fitted.num} Gaussians, {train_psnr:.2f} dB on the "
+          f"{len(train)} training views of frame {args.frame}{held_out}, {seconds:.1f} s")
     return 0
+
+
+def _parse_views(text: str | None, num_views: int) -> list[int]:
+    """``"0,6"`` → [0, 6]: sorted distinct view indices in 0..num_views − 1, leaving at least one view."""
+    if not text:
+        return []
+    try:
+        views = sorted({int(part) for part in text.split(",")})
+    except ValueError:
+        raise UserError(f"--test-views must be comma-separated view indices, e.g. 0,6; got {text!r}") from None
+    bad = [v for v in views if not 0 <= v < num_views]
+    if bad:
+        raise UserError(f"--test-views {bad} outside the scene's views 0..{num_views - 1}")
+    if len(views) == num_views:
+        raise UserError(f"--test-views holds out all {num_views} views; leave at least one to fit")
+    return views
 
 
 def _add_scene_options(p: argparse.ArgumentParser, material_options: bool) -> None:
@@ -205,7 +234,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_scene_options(suite, material_options=False)
     suite.set_defaults(func=_cmd_make_benchmark)
 
-    fit = sub.add_parser("fit-gaussians", help="fit 3D Gaussians to one frame of a scene folder (all its views)")
+    fit = sub.add_parser("fit-gaussians", help="fit 3D Gaussians to one frame of a scene folder (all views, or all but --test-views)")
     fit.add_argument("scene", help="scene folder (scene.json + transforms.json)")
     fit.add_argument("out", help="output folder: gaussians.ply (3DGS layout), fit_config.json, fit_report.json")
     fit.add_argument("--frame", type=int, default=0, help="frame index to fit (default 0)")
@@ -213,6 +242,8 @@ def build_parser() -> argparse.ArgumentParser:
     fit.add_argument("--sh-degree", type=int, default=None, choices=range(4),
                      help="spherical-harmonics degree (default: FitConfig's, 3)")
     fit.add_argument("--views-per-step", type=int, default=None, help="views rendered per step (default: all)")
+    fit.add_argument("--test-views", default=None, metavar="I,J,...",
+                     help="views held out of the fit (initialisation included) and scored separately")
     fit.add_argument("--seed", type=int, default=0, help="seed (default 0)")
     fit.add_argument("--device", default=None, help="torch device (default: cuda if available, else cpu)")
     fit.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
