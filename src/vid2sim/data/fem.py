@@ -245,7 +245,18 @@ class InitialPose:
 
 @dataclass
 class NewtonStats:
-    """Outcome of one Newton minimisation."""
+    """Outcome of one Newton minimisation.
+
+    Attributes:
+        iterations: Newton iterations.
+        line_search_halvings: backtracking halvings over all iterations.
+        converged: the step fell below ``newton_tol``.
+        cg_iterations: CG iterations over all linear solves.
+        direct_solves: sparse LU factorisations (direct solver, or CG fallbacks).
+        inverted_rejections: line-search trials rejected for inverting a tet.
+        projected_solves: iterations whose exact Hessian gave no descent direction and were re-solved
+            with the PSD-projected one (``hessian_projection="on_demand"`` only).
+    """
 
     iterations: int = 0
     line_search_halvings: int = 0
