@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import pytest
 
 from vid2sim import __version__
@@ -25,6 +27,7 @@ def test_version_and_help(capsys):
         (["bench", "speed", "--only", "nonsense"], "unknown benchmark section"),
         (["bench", "jacobian", "--iterations", "0"], "iterations must be a positive integer"),
         (["bench", "speed", "--device", "cuda:7"], "CUDA is not available"),
+        (["bench", "fem", "--frames", "1"], "SyntheticSceneConfig.frames must be an integer >= 2"),
     ],
 )
 def test_bench_argument_errors_are_one_line(capsys, argv, message):
@@ -36,3 +39,17 @@ def test_bench_argument_errors_are_one_line(capsys, argv, message):
     assert main(argv) == 2
     err = capsys.readouterr().err
     assert message in err and "Traceback" not in err
+
+
+def test_bench_fem_times_both_hessian_strategies_on_one_mesh(capsys):
+    """Eight frames of the small preset's seed-0 drop (it reaches the floor): both Newton strategies
+    solve every step to the tolerance, so they give the same trajectory."""
+    assert main(["bench", "fem", "--frames", "8", "--quiet"]) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert result["preset"] == "small" and result["frames"] == 8 and result["tets"] > 1000
+    assert result["fem_seconds"] > 0 and result["fem_seconds_always_projected"] > 0
+    ratio = result["fem_seconds_always_projected"] / result["fem_seconds"]
+    assert result["fem_speedup_vs_always_projected"] == pytest.approx(ratio)
+    assert result["trajectory_max_difference_m"] < 1e-5
+    for suffix in ("", "_always_projected"):
+        assert 1 <= result[f"newton_iterations_mean{suffix}"] <= result[f"newton_iterations_max{suffix}"] < 100

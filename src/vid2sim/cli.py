@@ -39,6 +39,17 @@ def _cmd_bench_jacobian(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_bench_fem(args: argparse.Namespace) -> int:
+    from vid2sim.bench import fem_speed
+
+    try:
+        result = fem_speed.run(args.preset, seed=args.seed, frames=args.frames, progress=not args.quiet)
+    except _generation_errors() as exc:
+        raise UserError(str(exc)) from exc
+    print(json.dumps(result, indent=2, sort_keys=True))
+    return 0
+
+
 _SCENE_OPTIONS = {  # CLI option → SyntheticSceneConfig field
     "E": "youngs_modulus", "nu": "poisson_ratio", "density": "density", "material": "material",
     "drop_height": "drop_height", "views": "views", "resolution": "resolution", "frames": "frames",
@@ -214,6 +225,12 @@ def build_parser() -> argparse.ArgumentParser:
     jac.add_argument("--iterations", type=int, default=1000, help="training iterations (paper: 10000)")
     jac.add_argument("--device", default=None, help="torch device (default: cuda if available, else cpu)")
     jac.set_defaults(func=_cmd_bench_jacobian)
+    fem = bench_sub.add_parser("fem", help="FEM ground-truth time: exact-Hessian Newton vs projecting every iteration")
+    fem.add_argument("--preset", choices=["full", "small"], default="small", help="scene preset (default small)")
+    fem.add_argument("--seed", type=int, default=0, help="object and pose seed (default 0)")
+    fem.add_argument("--frames", type=int, default=None, help="frames to simulate (default: the preset's 24)")
+    fem.add_argument("--quiet", action="store_true", help="no progress bars")
+    fem.set_defaults(func=_cmd_bench_fem)
 
     scene = sub.add_parser("make-scene", help="simulate (FEM) and render one synthetic scene folder")
     scene.add_argument("out", help="scene folder to create")

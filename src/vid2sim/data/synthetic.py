@@ -42,6 +42,7 @@ import numpy as np
 import torch
 
 if TYPE_CHECKING:
+    from vid2sim.data.fem import FEMConfig, InitialPose
     from vid2sim.data.tetra import TetMesh
 
 PRESETS: dict[str, dict[str, Any]] = {
@@ -174,6 +175,24 @@ class SyntheticSceneConfig:
         return cls._from_fields({**PRESETS[name], **{k: v for k, v in overrides.items() if v is not None}},
                                 "SyntheticSceneConfig")
 
+    def fem_config(self, **overrides: Any) -> "FEMConfig":
+        """The FEM settings of this scene (material, frame time, substeps, floor), with ``overrides``."""
+        from vid2sim.data.fem import FEMConfig
+
+        return FEMConfig(**{"youngs_modulus": self.youngs_modulus, "poisson_ratio": self.poisson_ratio,
+                            "density": self.density, "material": self.material, "dt": self.dt,
+                            "substeps": self.substeps, "floor_height": self.floor_height,
+                            "floor_stiffness": self.floor_stiffness, **overrides})
+
+    def initial_pose(self) -> "InitialPose":
+        """The seeded random drop pose (orientation, height above the floor, rigid velocity)."""
+        from vid2sim.data.fem import InitialPose
+
+        height = (0.05, 0.3) if self.drop_height is None else (self.drop_height, self.drop_height)
+        return InitialPose.random(self.seed, drop_height=height, max_horizontal_speed=self.max_horizontal_speed,
+                                  max_downward_speed=self.max_downward_speed,
+                                  max_angular_speed=self.max_angular_speed)
+
     @classmethod
     def from_json(cls, path: str | Path) -> "SyntheticSceneConfig":
         """Read a ``synthetic.json`` written by :func:`make_scene`."""
@@ -267,7 +286,7 @@ def make_scene(config: SyntheticSceneConfig, out_dir: str | Path, overwrite: boo
     import uuid
 
     from vid2sim.data.embedding import apply_embedding, embed_points
-    from vid2sim.data.fem import FEMConfig, InitialPose, simulate_fem
+    from vid2sim.data.fem import simulate_fem
     from vid2sim.data.mesh_render import render_textured_mesh
     from vid2sim.data.meshes import load_user_mesh
     from vid2sim.data.scene import Scene, SceneConfig, move_into_place, write_scene
@@ -312,14 +331,8 @@ def make_scene(config: SyntheticSceneConfig, out_dir: str | Path, overwrite: boo
         raise ValueError(f"the surface of {mesh.name} does not fit the tet mesh {tet.name or ''}: {exc}") from None
     lap("tetrahedralize")
 
-    height = (0.05, 0.3) if config.drop_height is None else (config.drop_height, config.drop_height)
-    pose = InitialPose.random(config.seed, drop_height=height, max_horizontal_speed=config.max_horizontal_speed,
-                              max_downward_speed=config.max_downward_speed,
-                              max_angular_speed=config.max_angular_speed)
-    fem_config = FEMConfig(youngs_modulus=config.youngs_modulus, poisson_ratio=config.poisson_ratio,
-                           density=config.density, material=config.material, dt=config.dt,
-                           substeps=config.substeps, floor_height=config.floor_height,
-                           floor_stiffness=config.floor_stiffness)
+    pose = config.initial_pose()
+    fem_config = config.fem_config()
     _stage(progress, f"FEM drop: {len(tet.tets)} tets, {config.frames} frames x {config.substeps} substeps")
     result = simulate_fem(tet.vertices, tet.tets, fem_config, pose, frames=config.frames, progress=progress)
     lap("fem")
