@@ -5,14 +5,17 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
+from PIL import Image
 
 from vid2sim.cli import main
 from vid2sim.data.scene import Scene, SceneConfig, load_scene, write_scene
 from vid2sim.splats.cameras import camera_ring
 from vid2sim.splats.ply import load_ply
 from vid2sim.splats.losses import psnr
+from vid2sim.splats.preview import LABEL_HEIGHT
 from vid2sim.splats.render import render, render_gaussians
 
 
@@ -43,7 +46,8 @@ def test_fit_gaussians_writes_ply_config_and_report(blob_scene_folder: Path, tmp
             "--sh-degree", "1", "--quiet"]
     assert main(argv) == 0
     assert "dB on the 4 training views of frame 1" in capsys.readouterr().out
-    assert sorted(p.name for p in out.iterdir()) == ["fit_config.json", "fit_report.json", "gaussians.ply"]
+    assert sorted(p.name for p in out.iterdir()) == ["comparison.png", "fit_config.json", "fit_report.json",
+                                                     "gaussians.ply"]
     g = load_ply(out / "gaussians.ply")
     config = json.loads((out / "fit_config.json").read_text())
     report = json.loads((out / "fit_report.json").read_text())
@@ -56,6 +60,14 @@ def test_fit_gaussians_writes_ply_config_and_report(blob_scene_folder: Path, tmp
         rgb = render_gaussians(g, scene.cameras).rgb
     assert psnr(rgb, scene.images[:, 1]) == pytest.approx(report["psnr_db"], abs=1e-3)
     assert psnr(rgb, scene.images[:, 1]) > psnr(rgb, scene.images[:, 0]) + 5.0
+    picture = np.array(Image.open(out / "comparison.png"))  # rows: label strip, then target | render | error
+    row = LABEL_HEIGHT + 40
+    assert picture.shape == (4 * row, 3 * 40, 3)
+    target_panel = torch.from_numpy(picture[row + LABEL_HEIGHT : 2 * row, :40]).float() / 255
+    render_panel = torch.from_numpy(picture[row + LABEL_HEIGHT : 2 * row, 40:80]).float() / 255
+    assert torch.allclose(target_panel, scene.images[1, 1], atol=1 / 255)
+    assert torch.allclose(render_panel, rgb[1], atol=1 / 255)
+    assert picture[:LABEL_HEIGHT].max() > 200 and picture[:LABEL_HEIGHT].min() == 0  # white text on black
 
     assert main(argv) == 2  # the folder exists now
     assert "--overwrite" in capsys.readouterr().err

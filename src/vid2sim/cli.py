@@ -103,12 +103,14 @@ def _cmd_fit_gaussians(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     import torch
+    from PIL import Image
 
     from vid2sim.bench.timing import resolve_device
     from vid2sim.data.scene import SceneFormatError, load_scene, move_into_place
     from vid2sim.splats.fitting import FitConfig, fit_gaussians
     from vid2sim.splats.losses import psnr
     from vid2sim.splats.ply import save_ply
+    from vid2sim.splats.preview import comparison_image
     from vid2sim.splats.render import render_gaussians
 
     out = Path(args.out)
@@ -158,6 +160,9 @@ def _cmd_fit_gaussians(args: argparse.Namespace) -> int:
         save_ply(fitted, tmp / "gaussians.ply")
         (tmp / "fit_config.json").write_text(json.dumps(dataclasses.asdict(config), indent=2) + "\n")
         (tmp / "fit_report.json").write_text(json.dumps(report, indent=2) + "\n")
+        labels = [f"view {v}{' (held out)' if v in test else ''}: {psnr(rgb[v : v + 1], images[v : v + 1]):.1f} dB"
+                  for v in range(V)]
+        Image.fromarray(comparison_image(images, rgb, labels)).save(tmp / "comparison.png")
         move_into_place(tmp, out)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
@@ -253,7 +258,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     fit = sub.add_parser("fit-gaussians", help="fit 3D Gaussians to one frame of a scene folder (all views, or all but --test-views)")
     fit.add_argument("scene", help="scene folder (scene.json + transforms.json)")
-    fit.add_argument("out", help="output folder: gaussians.ply (3DGS layout), fit_config.json, fit_report.json")
+    fit.add_argument("out", help="output folder: gaussians.ply (3DGS layout), comparison.png (target | render | "
+                     "error per view), fit_config.json, fit_report.json")
     fit.add_argument("--frame", type=int, default=0, help="frame index to fit (default 0)")
     fit.add_argument("--iterations", type=int, default=None, help="optimisation steps (default: FitConfig's, 1000)")
     fit.add_argument("--sh-degree", type=int, default=None, choices=range(4),
