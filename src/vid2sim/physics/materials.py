@@ -74,6 +74,41 @@ def neo_hookean_pk1(F: Tensor, mu: Scalar, lam: Scalar) -> Tensor:
     return mu * (F - finv_t) + lam * logj * finv_t
 
 
+def neo_hookean_energy_and_pk1(F: Tensor, mu: Scalar, lam: Scalar) -> tuple[Tensor, Tensor, Tensor]:
+    """(Ψ (N,), P (N, 3, 3), J (N,)) in one pass (shared cofactors, det and log). Where J ≤ 0, Ψ and P are
+    not finite; callers check J."""
+    _check_F(F)
+    cof = torch.stack([torch.linalg.cross(F[:, 1], F[:, 2]), torch.linalg.cross(F[:, 2], F[:, 0]),
+                       torch.linalg.cross(F[:, 0], F[:, 1])], dim=1)  # rows of the cofactor matrix = J F⁻ᵀ
+    J = (F[:, 0] * cof[:, 0]).sum(-1)
+    logj = torch.log(J)
+    finv_t = cof / J[:, None, None]
+    psi = 0.5 * mu * ((F * F).sum(dim=(1, 2)) - 3.0) - mu * logj + 0.5 * lam * logj * logj
+    P = mu * F + (lam * logj - mu)[:, None, None] * finv_t
+    return psi, P, J
+
+
+def stvk_energy_and_pk1(F: Tensor, mu: Scalar, lam: Scalar, C_ref: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    """(Ψ (N,), P (N, 3, 3)) of StVK measured from C_ref (identity when None) in one pass."""
+    _check_F(F)
+    G = green_strain(F, C_ref)
+    tr = G.diagonal(dim1=1, dim2=2).sum(-1)
+    psi = mu * (G * G).sum(dim=(1, 2)) + 0.5 * lam * tr * tr
+    eye = torch.eye(3, dtype=F.dtype, device=F.device)
+    P = F @ (2.0 * mu * G + (lam * tr)[:, None, None] * eye)
+    return psi, P
+
+
+def energy_and_pk1(model: str, F: Tensor, mu: Scalar, lam: Scalar) -> tuple[Tensor, Tensor, Tensor]:
+    """(Ψ (N,), P (N, 3, 3), J (N,)) of the named elastic model in one pass."""
+    if model == "neo_hookean":
+        return neo_hookean_energy_and_pk1(F, mu, lam)
+    if model == "stvk":
+        psi, P = stvk_energy_and_pk1(F, mu, lam)
+        return psi, P, det3(F)
+    raise ValueError(f"unknown elastic model {model!r}; expected one of {sorted(ELASTIC_MODELS)}")
+
+
 def neo_hookean_tangent(F: Tensor, mu: Scalar, lam: Scalar) -> Tensor:
     """∂P/∂F, (N, 9, 9): μ δ_ik δ_jl + (μ − λ ln J) F⁻¹_jk F⁻¹_li + λ F⁻¹_ji F⁻¹_lk."""
     _check_F(F)
@@ -91,35 +126,49 @@ def neo_hookean_tangent(F: Tensor, mu: Scalar, lam: Scalar) -> Tensor:
 
 # ---- St. Venant–Kirchhoff ----------------------------------------------------------------------
 
-def _green_strain(F: Tensor) -> Tensor:
-    eye = torch.eye(3, dtype=F.dtype, device=F.device)
-    return 0.5 * (F.transpose(1, 2) @ F - eye)
+def green_strain(F: Tensor, C_ref: Tensor | None = None) -> Tensor:
+    """G = ½ (FᵀF − C_ref), (N, 3, 3); C_ref: (N, 3, 3) or None for the identity (the Green strain)."""
+    C = F.transpose(1, 2) @ F
+    if C_ref is None:
+        return 0.5 * (C - torch.eye(3, dtype=F.dtype, device=F.device))
+    return 0.5 * (C - C_ref)
 
 
-def stvk_energy_density(F: Tensor, mu: Scalar, lam: Scalar) -> Tensor:
-    """Ψ(F) = μ tr(G²) + λ/2 tr(G)², (N,)."""
+def _stvk_stress(G: Tensor, mu: Scalar, lam: Scalar) -> Tensor:
+    """Second Piola–Kirchhoff stress S = 2μ G + λ tr(G) I of the strain G: (N, 3, 3)."""
+    eye = torch.eye(3, dtype=G.dtype, device=G.device)
+    return 2.0 * mu * G + lam * G.diagonal(dim1=1, dim2=2).sum(-1)[:, None, None] * eye
+
+
+def stvk_energy_density(F: Tensor, mu: Scalar, lam: Scalar, C_ref: Tensor | None = None) -> Tensor:
+    """Ψ(F) = μ tr(G²) + λ/2 tr(G)², G = ½ (FᵀF − C_ref) (C_ref = I: StVK), (N,)."""
     _check_F(F)
-    G = _green_strain(F)
+    G = green_strain(F, C_ref)
     tr = G.diagonal(dim1=1, dim2=2).sum(-1)
     return mu * (G * G).sum(dim=(1, 2)) + 0.5 * lam * tr * tr
 
 
-def stvk_pk1(F: Tensor, mu: Scalar, lam: Scalar) -> Tensor:
-    """P = F S with S = 2μ G + λ tr(G) I, (N, 3, 3)."""
+def stvk_pk1(F: Tensor, mu: Scalar, lam: Scalar, C_ref: Tensor | None = None) -> Tensor:
+    """P = F S with S = 2μ G + λ tr(G) I, G = ½ (FᵀF − C_ref), (N, 3, 3)."""
     _check_F(F)
-    G = _green_strain(F)
-    eye = torch.eye(3, dtype=F.dtype, device=F.device)
-    S = 2.0 * mu * G + lam * G.diagonal(dim1=1, dim2=2).sum(-1)[:, None, None] * eye
-    return F @ S
+    return F @ _stvk_stress(green_strain(F, C_ref), mu, lam)
 
 
-def stvk_tangent(F: Tensor, mu: Scalar, lam: Scalar) -> Tensor:
-    """∂P/∂F, (N, 9, 9): δ_ik S_lj + μ (F_il F_kj + (F Fᵀ)_ik δ_lj) + λ F_ij F_kl."""
+def stvk_tangent(F: Tensor, mu: Scalar, lam: Scalar, C_ref: Tensor | None = None, psd: bool = False) -> Tensor:
+    """∂P/∂F, (N, 9, 9): δ_ik S_lj + μ (F_il F_kj + (F Fᵀ)_ik δ_lj) + λ F_ij F_kl.
+
+    The last three terms are the Gauss–Newton part (∂G/∂F)ᵀ ∂²Ψ/∂G² (∂G/∂F), positive semi-definite for
+    μ ≥ 0, 3λ + 2μ ≥ 0; only δ_ik S_lj can be indefinite. With ``psd`` S is replaced by its positive part
+    (eigenvalues clamped at 0), which makes the whole tangent positive semi-definite — a cheap PSD
+    surrogate, exact wherever S ⪰ 0.
+    """
     _check_F(F)
     n = F.shape[0]
-    G = _green_strain(F)
+    S = _stvk_stress(green_strain(F, C_ref), mu, lam)
+    if psd:
+        evals, evecs = torch.linalg.eigh(0.5 * (S + S.transpose(1, 2)))
+        S = (evecs * evals.clamp_min(0.0)[:, None, :]) @ evecs.transpose(1, 2)
     eye = torch.eye(3, dtype=F.dtype, device=F.device)
-    S = 2.0 * mu * G + lam * G.diagonal(dim1=1, dim2=2).sum(-1)[:, None, None] * eye
     t1 = torch.einsum("ik,nlj->nijkl", eye, S)
     t2 = torch.einsum("nil,nkj->nijkl", F, F)
     t3 = torch.einsum("nik,lj->nijkl", F @ F.transpose(1, 2), eye)
