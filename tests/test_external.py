@@ -165,8 +165,38 @@ def test_moving_floor_without_motion_equals_floor():
     floor, moving = Floor(height=-0.2, stiffness=3e4), MovingFloor(height=-0.2, stiffness=3e4)
     for t in TIMES:
         assert torch.allclose(moving.energy(x, mass, t), floor.energy(x, mass, t), rtol=1e-14)
-        assert torch.equal(moving.gradient(x, mass, t), floor.gradient(x, mass, t))
-        assert torch.equal(moving.hessian(x, mass, t), floor.hessian(x, mass, t))
+        assert torch.allclose(moving.gradient(x, mass, t), floor.gradient(x, mass, t), rtol=1e-14, atol=0)
+        assert torch.allclose(moving.hessian(x, mass, t), floor.hessian(x, mass, t), rtol=1e-14, atol=0)
+
+
+@pytest.mark.parametrize("name", sorted(ENERGIES))
+def test_energy_and_gradient_in_one_pass_equals_the_separate_calls(name):
+    from vid2sim.physics.external import energy_and_gradient
+
+    x, w = points(60, seed=11)
+    energy = ENERGIES[name]
+    for t in TIMES:
+        E, g = energy_and_gradient(energy, x, w, t)
+        assert torch.allclose(E, energy.energy(x, w, t), rtol=1e-13)
+        assert torch.allclose(g, energy.gradient(x, w, t), rtol=1e-13, atol=1e-12)
+
+
+def test_barrier_weights_scale_each_points_penalty():
+    """Barriers take per-point weights: w = 1 is the paper's per-point penalty k Σ max(0, −s)²; surface
+    samples weighted by their area make k a contact pressure per metre of penetration, so splitting one
+    contact point into two half-weight points changes nothing."""
+    x = torch.tensor([[0.0, 0.0, -0.8], [1.0, 2.0, -0.75], [0.0, 0.0, -0.6]], dtype=DT)
+    w = torch.tensor([2.0, 0.5, 3.0], dtype=DT)
+    for barrier in (Floor(height=-0.7), MovingFloor(height=-0.7), SphereObstacle(center=(0.0, 0.0, -2.0), radius=1.3)):
+        depth = -barrier.signed_distance(x, 0.0).clamp(max=0.0)
+        assert float(barrier.energy(x, w, 0.0)) == pytest.approx(float(K * (w * depth**2).sum()), rel=1e-12)
+        split = torch.cat([x, x[:1]])
+        w_split = torch.cat([w, w[:1]])
+        w_split[0] = w_split[-1] = w[0] / 2
+        assert float(barrier.energy(split, w_split, 0.0)) == pytest.approx(float(barrier.energy(x, w, 0.0)))
+        H = barrier.hessian(x, w, 0.0, project=False)
+        H1 = barrier.hessian(x, torch.ones_like(w), 0.0, project=False)
+        assert torch.allclose(H, w[:, None, None] * H1)
 
 
 def test_moving_floor_height_follows_its_schedule():
@@ -206,9 +236,9 @@ def test_sphere_pushes_points_outward():
     force = -sphere.gradient(x, mass, 0.0)
     radial = (force * (x - c)).sum(1)
     assert bool((radial[inside] > 0).all()) and not bool(force[~inside].any())
-    # magnitude 2k(r − d), along the radius
+    # magnitude 2k w (r − d), along the radius
     d = (x - c).norm(dim=1)
-    assert torch.allclose(force.norm(dim=1)[inside], 2 * K * (sphere.radius - d[inside]))
+    assert torch.allclose(force.norm(dim=1)[inside], 2 * K * mass[inside] * (sphere.radius - d[inside]))
 
 
 def test_sphere_centre_is_finite():
@@ -289,11 +319,11 @@ def test_bad_inputs_raise_clear_errors():
     floor = Floor(0.0)
     with pytest.raises(ValueError, match=r"positions x must have shape \(N, 3\)"):
         floor.energy(x[:, :2], mass, 0.0)
-    with pytest.raises(ValueError, match=r"mass must have shape \(5,\)"):
+    with pytest.raises(ValueError, match=r"per-point weights must have shape \(5,\)"):
         floor.gradient(x, mass[:3], 0.0)
     with pytest.raises(ValueError, match="time t must be finite"):
         MOVING.energy(x, mass, float("nan"))
-    with pytest.raises(ValueError, match=r"mass must have shape"):
+    with pytest.raises(ValueError, match=r"per-point weights must have shape"):
         total_external([Gravity()], x, mass[None], 0.0)
 
 

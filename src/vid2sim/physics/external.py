@@ -3,20 +3,28 @@
 Paper, supplementary "Boundary Condition Implementation": contacts are penalty barriers that add potential
 energy, e.g. the floor ``E_f = 1e5 · Σ_i max(0, h_f − z_i)²``; other barriers (a moving floor, spheres —
 supplementary "Generalized to Complex Boundary Conditions") follow the same pattern
-``E = k Σ_i max(0, −signed_distance(x_i, t))²``. Gravity is ``E_g = −Σ_i m_i g·x_i``.
+``E = k Σ_i w_i max(0, −signed_distance(x_i, t))²``. Gravity is ``E_g = −Σ_i m_i g·x_i``.
 
-Every energy is separable over points, so its Hessian w.r.t. all positions is block diagonal; ``hessian``
+Every energy is a sum over points with a per-point weight ``w_i``, so its Hessian w.r.t. all positions is
+block diagonal. The weights mean: for the body force (:class:`Gravity`, ``kind = "body"``) the point masses
+in kg, evaluated at the simulator's cubature points; for the barriers (``kind = "contact"``) a factor on each
+point's penalty, evaluated at the simulator's *contact points* — weight 1 on the cubature points is the
+paper's per-point formula, surface samples weighted by their area make the penalty a contact pressure
+k · depth (Pa) integrated over the surface, independent of how finely the surface is sampled. ``hessian``
 returns the per-point 3×3 blocks (N, 3, 3), projected to positive semi-definite (exactly: the eigenvalues
 of each block are clamped at 0) unless ``project=False``. Energies and gradients are plain differentiable
-torch expressions of ``x`` (and ``mass``), so ``torch.autograd.grad(..., create_graph=True)`` works
+torch expressions of ``x`` (and ``weights``), so ``torch.autograd.grad(..., create_graph=True)`` works
 through them (the solver's adjoint differentiates the gradient).
 
-Common interface (:class:`ExternalEnergy`), with ``x: (N, 3)`` world positions in metres, ``mass: (N,)``
-point masses in kg, ``t`` time in seconds:
+Common interface (:class:`ExternalEnergy`), with ``x: (N, 3)`` world positions in metres, ``weights: (N,)``
+per-point weights (above), ``t`` time in seconds:
 
-- ``energy(x, mass, t) -> ()``
-- ``gradient(x, mass, t) -> (N, 3)``
-- ``hessian(x, mass, t, project=True) -> (N, 3, 3)``
+- ``kind``: "body" or "contact"
+- ``energy(x, weights, t) -> ()``
+- ``gradient(x, weights, t) -> (N, 3)``
+- ``hessian(x, weights, t, project=True) -> (N, 3, 3)``
+- ``energy_and_gradient(x, weights, t) -> ((), (N, 3))``: both in one pass (what the solver calls; use
+  :func:`energy_and_gradient` for energies that only define the two separately)
 - ``to_dict() -> dict`` and ``from_dict(d)``; :func:`external_from_dict` dispatches on ``d["type"]``
   ('gravity', 'floor', 'moving_floor', 'sphere').
 
@@ -28,17 +36,19 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, fields
-from typing import Any, Mapping, Protocol, Sequence, runtime_checkable
+from typing import Any, ClassVar, Mapping, Protocol, Sequence, runtime_checkable
 
 import torch
 from torch import Tensor
 
 __all__ = [
+    "AREA_CONTACT_STIFFNESS",
     "ExternalEnergy",
     "Gravity",
     "Floor",
     "MovingFloor",
     "SphereObstacle",
+    "energy_and_gradient",
     "total_external",
     "external_from_dict",
 ]
@@ -47,6 +57,8 @@ __all__ = [
 @runtime_checkable
 class ExternalEnergy(Protocol):
     """A per-point separable external potential (see the module docstring for shapes and units)."""
+
+    kind: ClassVar[str]  # "body" (weights = masses, at cubature points) or "contact" (at contact points)
 
     def energy(self, x: Tensor, mass: Tensor, t: float) -> Tensor:
         """Total energy, a 0-d tensor."""
@@ -63,6 +75,13 @@ class ExternalEnergy(Protocol):
     def to_dict(self) -> dict:
         """A JSON/YAML-serialisable dict with a "type" key."""
         ...
+
+
+#: Barrier stiffness κ (Pa per metre of penetration) for contact points weighted by their surface area
+#: (m²): the FEM ground truth's floor and the reconstruction's contact points use it. At the small preset
+#: it is about what the paper's 1e5 per point gives per FEM surface vertex (5–7e7); a resting 1 m object
+#: sinks in by a fraction of a millimetre.
+AREA_CONTACT_STIFFNESS = 5e7
 
 
 # ---- validation helpers -------------------------------------------------------------------------
@@ -105,7 +124,7 @@ def _check_inputs(x: Tensor, mass: Tensor, t: float) -> float:
         raise ValueError(f"positions x must have shape (N, 3), got {shape}")
     if not isinstance(mass, Tensor) or mass.shape != (x.shape[0],):
         shape = tuple(mass.shape) if isinstance(mass, Tensor) else type(mass).__name__
-        raise ValueError(f"mass must have shape ({x.shape[0]},) to match x, got {shape}")
+        raise ValueError(f"per-point weights must have shape ({x.shape[0]},) to match x, got {shape}")
     tf = float(t.detach()) if isinstance(t, Tensor) else t
     return _real(tf, "time t")
 
@@ -130,9 +149,10 @@ def _to_dict(obj, kind: str) -> dict:
     return out
 
 
-def _plane_energy(dist: Tensor, k: float) -> Tensor:
+def _penalty_energy(dist: Tensor, k: float, w: Tensor) -> Tensor:
+    """k Σ_i w_i max(0, −dist_i)²."""
     pen = (-dist).clamp_min(0.0)
-    return k * (pen * pen).sum()
+    return k * (w * pen * pen).sum()
 
 
 # ---- gravity ------------------------------------------------------------------------------------
@@ -146,6 +166,7 @@ class Gravity:
     """
 
     acceleration: tuple[float, float, float] = (0.0, 0.0, -9.8)
+    kind: ClassVar[str] = "body"
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "acceleration", _vector(self.acceleration, 3, "Gravity.acceleration"))
@@ -162,6 +183,12 @@ class Gravity:
         """∂E/∂x_i = −m_i g, (N, 3)."""
         _check_inputs(x, mass, t)
         return -mass[:, None] * self._g(x)[None, :]
+
+    def energy_and_gradient(self, x: Tensor, mass: Tensor, t: float = 0.0) -> tuple[Tensor, Tensor]:
+        """(E, ∂E/∂x) in one pass."""
+        _check_inputs(x, mass, t)
+        g = self._g(x)
+        return -(mass * (x @ g)).sum(), -mass[:, None] * g[None, :]
 
     def hessian(self, x: Tensor, mass: Tensor, t: float = 0.0, project: bool = True) -> Tensor:
         """Zero blocks, (N, 3, 3)."""
@@ -180,15 +207,17 @@ class Gravity:
 
 @dataclass(frozen=True)
 class Floor:
-    """The paper's floor barrier ``E = k Σ_i max(0, h − z_i)²`` (plane z = h, z-up).
+    """The paper's floor barrier ``E = k Σ_i w_i max(0, h − z_i)²`` (plane z = h, z-up; w_i = 1 in the paper).
 
     Attributes:
         height: h in metres (the public release's canonical frame uses −0.7).
-        stiffness: k in J/m² per point (paper: 1e5).
+        stiffness: k, in J/m² per unit weight (paper: 1e5 per point with w = 1; with area weights in m²
+            it is a contact pressure per metre of penetration, Pa/m).
     """
 
     height: float
     stiffness: float = 1e5
+    kind: ClassVar[str] = "contact"
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "height", _real(self.height, "Floor.height"))
@@ -199,23 +228,31 @@ class Floor:
         return x[:, 2] - self.height
 
     def energy(self, x: Tensor, mass: Tensor, t: float = 0.0) -> Tensor:
-        """E: () = k Σ max(0, h − z_i)²."""
+        """E: () = k Σ w_i max(0, h − z_i)² (``mass`` holds the weights w)."""
         _check_inputs(x, mass, t)
-        return _plane_energy(self.signed_distance(x), self.stiffness)
+        return _penalty_energy(self.signed_distance(x), self.stiffness, mass)
 
     def gradient(self, x: Tensor, mass: Tensor, t: float = 0.0) -> Tensor:
-        """(N, 3): (0, 0, −2k max(0, h − z_i))."""
+        """(N, 3): (0, 0, −2k w_i max(0, h − z_i))."""
         _check_inputs(x, mass, t)
         pen = (-self.signed_distance(x)).clamp_min(0.0)
         zero = torch.zeros_like(pen)
-        return torch.stack([zero, zero, -2.0 * self.stiffness * pen], dim=1)
+        return torch.stack([zero, zero, -2.0 * self.stiffness * mass * pen], dim=1)
+
+    def energy_and_gradient(self, x: Tensor, mass: Tensor, t: float = 0.0) -> tuple[Tensor, Tensor]:
+        """(E, ∂E/∂x) in one pass."""
+        _check_inputs(x, mass, t)
+        pen = (self.height - x[:, 2]).clamp_min(0.0)
+        wpen = mass * pen
+        zero = torch.zeros_like(pen)
+        return self.stiffness * (wpen * pen).sum(), torch.stack([zero, zero, -2.0 * self.stiffness * wpen], dim=1)
 
     def hessian(self, x: Tensor, mass: Tensor, t: float = 0.0, project: bool = True) -> Tensor:
-        """(N, 3, 3): 2k e_z e_zᵀ for points below the floor, else 0 (already PSD)."""
+        """(N, 3, 3): 2k w_i e_z e_zᵀ for points below the floor, else 0 (already PSD)."""
         _check_inputs(x, mass, t)
         active = (self.signed_distance(x) < 0).to(x.dtype)
         H = x.new_zeros(x.shape[0], 3, 3)
-        H[:, 2, 2] = 2.0 * self.stiffness * active
+        H[:, 2, 2] = 2.0 * self.stiffness * mass * active
         return H
 
     def to_dict(self) -> dict:
@@ -230,7 +267,7 @@ class Floor:
 
 @dataclass(frozen=True)
 class MovingFloor:
-    """A floor plane that translates vertically and tilts over time; ``E = k Σ_i max(0, −s(x_i, t))²``.
+    """A floor plane that translates vertically and tilts over time; ``E = k Σ_i w_i max(0, −s(x_i, t))²``.
 
     The plane passes through the pivot point ``p(t) = (pivot_xy[0], pivot_xy[1], height(t))`` with
 
@@ -264,6 +301,7 @@ class MovingFloor:
     tilt_axis: tuple[float, float, float] = (1.0, 0.0, 0.0)
     pivot_xy: tuple[float, float] = (0.0, 0.0)
     stiffness: float = 1e5
+    kind: ClassVar[str] = "contact"
 
     def __post_init__(self) -> None:
         for name in ("height", "velocity", "amplitude", "frequency", "tilt_deg", "tilt_rate_deg"):
@@ -303,23 +341,31 @@ class MovingFloor:
         return (x - p) @ n
 
     def energy(self, x: Tensor, mass: Tensor, t: float) -> Tensor:
-        """E: () = k Σ max(0, −s(x_i, t))²."""
+        """E: () = k Σ w_i max(0, −s(x_i, t))² (``mass`` holds the weights w)."""
         t = _check_inputs(x, mass, t)
-        return _plane_energy(self.signed_distance(x, t), self.stiffness)
+        return _penalty_energy(self.signed_distance(x, t), self.stiffness, mass)
 
     def gradient(self, x: Tensor, mass: Tensor, t: float) -> Tensor:
-        """(N, 3): −2k max(0, −s_i) n(t)."""
+        """(N, 3): −2k w_i max(0, −s_i) n(t)."""
         t = _check_inputs(x, mass, t)
         n, p = self._plane(x, t)
         pen = (-((x - p) @ n)).clamp_min(0.0)
-        return (-2.0 * self.stiffness) * pen[:, None] * n[None, :]
+        return (-2.0 * self.stiffness) * (mass * pen)[:, None] * n[None, :]
+
+    def energy_and_gradient(self, x: Tensor, mass: Tensor, t: float) -> tuple[Tensor, Tensor]:
+        """(E, ∂E/∂x) in one pass."""
+        t = _check_inputs(x, mass, t)
+        n, p = self._plane(x, t)
+        pen = (-((x - p) @ n)).clamp_min(0.0)
+        wpen = mass * pen
+        return self.stiffness * (wpen * pen).sum(), (-2.0 * self.stiffness) * wpen[:, None] * n[None, :]
 
     def hessian(self, x: Tensor, mass: Tensor, t: float, project: bool = True) -> Tensor:
-        """(N, 3, 3): 2k n nᵀ for points below the plane, else 0 (already PSD)."""
+        """(N, 3, 3): 2k w_i n nᵀ for points below the plane, else 0 (already PSD)."""
         t = _check_inputs(x, mass, t)
         n, p = self._plane(x, t)
         active = (((x - p) @ n) < 0).to(x.dtype)
-        return (2.0 * self.stiffness) * active[:, None, None] * (n[:, None] * n[None, :])[None]
+        return (2.0 * self.stiffness) * (mass * active)[:, None, None] * (n[:, None] * n[None, :])[None]
 
     def to_dict(self) -> dict:
         return _to_dict(self, "moving_floor")
@@ -333,7 +379,7 @@ class MovingFloor:
 
 @dataclass(frozen=True)
 class SphereObstacle:
-    """A fixed solid ball, ``E = k Σ_i max(0, r − ‖x_i − c‖)²``.
+    """A fixed solid ball, ``E = k Σ_i w_i max(0, r − ‖x_i − c‖)²``.
 
     With d = ‖x − c‖, n̂ = (x − c)/d and φ = max(0, r − d): gradient −2kφ n̂; exact Hessian
     2k [φ > 0] (n̂n̂ᵀ − φ/d (I − n̂n̂ᵀ)), whose eigenvalues are 2k (normal) and −2kφ/d (twice,
@@ -349,6 +395,7 @@ class SphereObstacle:
     center: tuple[float, float, float]
     radius: float
     stiffness: float = 1e5
+    kind: ClassVar[str] = "contact"
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "center", _vector(self.center, 3, "SphereObstacle.center"))
@@ -372,16 +419,24 @@ class SphereObstacle:
         return self._geometry(x)[0] - self.radius
 
     def energy(self, x: Tensor, mass: Tensor, t: float = 0.0) -> Tensor:
-        """E: () = k Σ max(0, r − ‖x_i − c‖)²."""
+        """E: () = k Σ w_i max(0, r − ‖x_i − c‖)² (``mass`` holds the weights w)."""
         _check_inputs(x, mass, t)
-        return _plane_energy(self.signed_distance(x), self.stiffness)
+        return _penalty_energy(self.signed_distance(x), self.stiffness, mass)
 
     def gradient(self, x: Tensor, mass: Tensor, t: float = 0.0) -> Tensor:
-        """(N, 3): −2k max(0, r − d_i) n̂_i (points inside are pushed outward)."""
+        """(N, 3): −2k w_i max(0, r − d_i) n̂_i (points inside are pushed outward)."""
         _check_inputs(x, mass, t)
         d, nhat, _ = self._geometry(x)
         pen = (self.radius - d).clamp_min(0.0)
-        return (-2.0 * self.stiffness) * pen[:, None] * nhat
+        return (-2.0 * self.stiffness) * (mass * pen)[:, None] * nhat
+
+    def energy_and_gradient(self, x: Tensor, mass: Tensor, t: float = 0.0) -> tuple[Tensor, Tensor]:
+        """(E, ∂E/∂x) in one pass."""
+        _check_inputs(x, mass, t)
+        d, nhat, _ = self._geometry(x)
+        pen = (self.radius - d).clamp_min(0.0)
+        wpen = mass * pen
+        return self.stiffness * (wpen * pen).sum(), (-2.0 * self.stiffness) * wpen[:, None] * nhat
 
     def hessian(self, x: Tensor, mass: Tensor, t: float = 0.0, project: bool = True) -> Tensor:
         """(N, 3, 3): 2k n̂n̂ᵀ inside the ball (exact PSD projection); ``project=False`` adds the
@@ -397,7 +452,7 @@ class SphereObstacle:
             safe_d = torch.where(at_centre, torch.ones_like(d), d)
             ratio = torch.where(at_centre, torch.zeros_like(d), pen / safe_d)
             H = H - (2.0 * self.stiffness) * ratio[:, None, None] * (eye - nn)
-        return H
+        return mass[:, None, None] * H
 
     def to_dict(self) -> dict:
         return _to_dict(self, "sphere")
@@ -420,6 +475,15 @@ def external_from_dict(d: Mapping[str, Any]) -> ExternalEnergy:
     if kind not in _TYPES:
         raise ValueError(f"unknown external energy type {kind!r}; expected one of {sorted(_TYPES)}")
     return _TYPES[kind].from_dict(d)
+
+
+def energy_and_gradient(energy: ExternalEnergy, x: Tensor, weights: Tensor, t: float) -> tuple[Tensor, Tensor]:
+    """(E (), ∂E/∂x (N, 3)) of one external energy: its ``energy_and_gradient`` when it has one, else its
+    ``energy`` and ``gradient``."""
+    both = getattr(energy, "energy_and_gradient", None)
+    if both is not None:
+        return both(x, weights, t)
+    return energy.energy(x, weights, t), energy.gradient(x, weights, t)
 
 
 def total_external(
