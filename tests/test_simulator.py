@@ -60,13 +60,22 @@ def test_layout_permutations_are_inverse():
     assert torch.equal(z[perm].reshape(3, 3, 4), Z.permute(1, 0, 2))
 
 
-def test_free_fall_matches_discrete_implicit_euler(trained_field):
+@pytest.mark.parametrize("integrator", ["implicit_euler", "bdf2"])
+def test_free_fall_matches_the_integrators_closed_form(trained_field, integrator):
+    """Free fall is a rigid motion (no elastic or viscous force, with the default damping on) that follows
+    the integrator's closed form: implicit Euler x_n = −g h² n(n+1)/2; BDF2 (first step implicit Euler,
+    then exact for quadratics) x_n = −g h² n²/2 − (3/4) g h² (1 − 3⁻ⁿ), n substeps of h."""
     field, pts = trained_field
-    sim = _sim(field, pts, externals=[Gravity()])
+    sim = _sim(field, pts, externals=[Gravity()], config=SimConfig(substeps=3, integrator=integrator))
+    assert float(sim.damping_ratio) > 0
     states = sim.rollout(sim.rest_state(), 6)
-    for n, st in enumerate(states, start=1):
-        # implicit Euler under constant gravity: v_n = -g n dt, x_n = -g dt² n(n+1)/2
-        expected = -G * sim.config.dt**2 * n * (n + 1) / 2
+    h = sim.config.dt / 3
+    for f, st in enumerate(states, start=1):
+        n = 3 * f
+        if integrator == "implicit_euler":
+            expected = -G * h**2 * n * (n + 1) / 2
+        else:
+            expected = -G * h**2 * n * n / 2 - 0.75 * G * h**2 * (1 - 3.0**-n)
         x = sim.positions(pts[:200], st.z) - pts[:200]
         assert torch.allclose(x[:, 2], torch.full_like(x[:, 2], expected), atol=1e-8)
         assert float(x[:, :2].abs().max()) < 1e-8
@@ -75,16 +84,158 @@ def test_free_fall_matches_discrete_implicit_euler(trained_field):
         assert st.converged
 
 
+def test_automatic_substeps_follow_the_material_time_scale(trained_field):
+    from vid2sim.physics.integrators import auto_substeps
+
+    assert [auto_substeps(0.05, E, 1000.0, 1.0) for E in (1e4, 1e5, 1e6, 1e8)] == [4, 10, 32, 64]
+    field, pts = trained_field
+    sim = _sim(field, pts, material=Material(1e6, 0.3))
+    assert sim.config.substeps is None
+    assert sim.substeps() == auto_substeps(0.05, 1e6, 1000.0, sim.length_scale)
+    with torch.no_grad():
+        sim.log10_E.fill_(4.0)
+    assert sim.substeps() == 4
+    assert _sim(field, pts, config=SimConfig(substeps=7)).substeps() == 7
+    with pytest.raises(ValueError, match="substeps"):
+        SimConfig(substeps=0)
+
+
+def test_bdf2_converges_at_second_order_and_beats_implicit_euler(trained_field):
+    """A damped, tumbling drop onto the floor: halving the substep divides BDF2's trajectory change by
+    about 4 (implicit Euler: 2), and BDF2 at 4 substeps is closer to the refined answer than implicit
+    Euler at 16."""
+    from vid2sim.metrics import trajectory_distance
+
+    field, pts = trained_field
+    P = pts[::5]
+    size = float((pts.max(0).values - pts.min(0).values).norm())
+
+    def run(n, integrator="bdf2"):
+        sim = _sim(field, pts, material=Material(5e4, 0.35),
+                   config=SimConfig(substeps=n, integrator=integrator, newton_tol=1e-10))
+        start = sim.rigid_velocity_state([0.3, 0.0, -1.5], [2.0, 1.0, 0.0])
+        with torch.no_grad():
+            states = sim.rollout(start, 12)
+        return torch.stack([sim.positions(P, start.z)] + [sim.positions(P, s.z) for s in states])
+
+    bdf = {n: run(n) for n in (4, 8, 16, 64)}
+    ie = {n: run(n, "implicit_euler") for n in (8, 16)}
+    ref = bdf[64]
+    err = {n: trajectory_distance(bdf[n], ref, size).mean for n in (4, 8, 16)}
+    assert 3.0 < err[4] / err[8] < 6.0 and 3.0 < err[8] / err[16] < 6.0
+    ie_err = {n: trajectory_distance(ie[n], ref, size).mean for n in (8, 16)}
+    assert 1.5 < ie_err[8] / ie_err[16] < 2.6
+    assert err[4] < ie_err[16]
+
+
+def test_reused_hessian_reaches_the_same_states_with_fewer_factorisations(trained_field):
+    """Chord Newton (the kept Hessian, turned with the object) converges to the same minimiser as plain
+    Newton on a tumbling impact, with far fewer Hessian factorisations."""
+    import vid2sim.physics.solver as solver
+
+    field, pts = trained_field
+    counts = {}
+    original = solver.newton_solve
+
+    def counting(*args, **kwargs):
+        y, stats = original(*args, **kwargs)
+        counts[mode] = counts.get(mode, 0) + stats.hessians
+        return y, stats
+
+    runs = {}
+    solver.newton_solve = counting
+    try:
+        for mode in (True, False):
+            sim = _sim(field, pts, material=Material(3e4, 0.4),
+                       config=SimConfig(substeps=8, reuse_hessian=mode, newton_tol=1e-10, newton_rtol=1e-9))
+            with torch.no_grad():
+                states = sim.rollout(sim.rigid_velocity_state([0.5, 0.0, -2.0], [0.0, 4.0, 1.0]), 10)
+            runs[mode] = torch.stack([s.z for s in states])
+    finally:
+        solver.newton_solve = original
+    assert torch.allclose(runs[True], runs[False], atol=1e-8)
+    assert counts[True] * 3 < counts[False]
+
+
+def test_contact_points_default_to_the_cubature_points_with_unit_weights(trained_field):
+    field, pts = trained_field
+    base = _sim(field, pts)
+    explicit = _sim(field, pts)
+    explicit.contact_points = base.X.clone()
+    explicit.contact_weights = torch.ones(base.X.shape[0], dtype=torch.float64)
+    a = base.rollout(base.rest_state(), 10)[-1].z
+    b = explicit.rollout(explicit.rest_state(), 10)[-1].z
+    assert torch.allclose(a, b, atol=1e-10)
+    with pytest.raises(ValueError, match="contact_weights"):
+        Simulator(field, base.X, base.vol, Material(), contact_points=base.X, contact_weights=-base.vol)
+
+
+def test_rigid_spin_is_not_damped_and_a_vibration_decays_at_the_predicted_rate(trained_field):
+    """Kelvin–Voigt damping acts on the strain rate: a heavily damped object spinning freely keeps its
+    kinetic energy; its lowest elastic mode (from the reduced stiffness and mass matrices) decays with the
+    damping ratio ζ₁ = τ ω₁ / 2 (small amplitude: the reduced model is Rayleigh damping C = τK)."""
+    from scipy.linalg import eigh
+
+    from vid2sim.physics.integrators import BDFStep
+    from vid2sim.physics.solver import _StepSpec
+
+    field, pts = trained_field
+    # stiff, so that the centrifugal stretch (ρ ω² L² / E ~ 1e-4) stores no energy worth mentioning
+    stiff = _sim(field, pts, material=Material(1e7, 0.3, damping_ratio=0.5), externals=[],
+                 config=SimConfig(substeps=8))
+    spin = stiff.rigid_velocity_state([0.0, 0.0, 0.0], [0.4, 1.0, 1.5])
+    with torch.no_grad():
+        states = stiff.rollout(spin, 20)
+
+    def kinetic(state):  # ½ Σ m_p |v_p|² over the simulated (cubature) masses; velocities are linear in zdot
+        v = stiff.positions(stiff.X, state.zdot) - stiff.X
+        return 0.5 * float((stiff.masses()[:, None] * v * v).sum())
+
+    assert abs(kinetic(states[-1]) / kinetic(spin) - 1) < 2e-3
+    sim = _sim(field, pts, material=Material(2e4, 0.3, damping_ratio=0.02), externals=[],
+               config=SimConfig(substeps=8))
+    # the lowest elastic mode of the reduced model
+    basis = sim.reduced_basis()
+    mu, lam = sim.lame()
+    K = sim.X.shape[0]
+    A = torch.eye(3, dtype=torch.float64).expand(K, 3, 3)
+    spec = _StepSpec(sim.X, sim.vol, A, True, "neo_hookean", [], 1.0, BDFStep(1.0, 1.0, 0.0, 1.0), sim.config)
+    y0 = torch.zeros(sim.num_dofs, dtype=torch.float64)
+    prob = spec.problem(y0, y0, None, None, mu, lam, None, sim.masses(), basis.b, basis.basis, None)
+    M = prob.mass_matrix
+    Kr = prob.hessian(y0, project=False) - M  # h = 1: the stiffness
+    w2, modes = eigh(Kr.numpy(), M.numpy())
+    first = int((w2 > 1e-6 * w2.max()).argmax())
+    omega = math.sqrt(w2[first])
+    tau = float(sim.retardation_time())
+    zeta = tau * omega / 2
+    assert 0.02 < zeta < 0.3
+    # release the mode with a small velocity and measure its decay over one period
+    mode = torch.from_numpy(modes[:, first])
+    period = 2 * math.pi / omega
+    sim.config = SimConfig(dt=period / 16, substeps=4, newton_tol=1e-12)
+    start = SimState(torch.zeros(sim.num_dofs, dtype=torch.float64), 1e-3 * mode[sim._inv])
+    with torch.no_grad():
+        states = sim.rollout(start, 48)
+    amplitude = torch.stack([s.z[sim._perm] @ (M @ mode) for s in states]).numpy()
+    peaks = [abs(amplitude[i]) for i in range(1, len(amplitude) - 1)
+             if abs(amplitude[i]) >= abs(amplitude[i - 1]) and abs(amplitude[i]) >= abs(amplitude[i + 1])]
+    decrement = math.log(peaks[0] / peaks[2])  # over one period (peaks of |a| are half a period apart)
+    measured = decrement / math.sqrt(4 * math.pi**2 + decrement**2)
+    assert measured == pytest.approx(zeta, rel=0.1)
+
+
 def test_dropped_elastic_object_comes_to_rest_on_floor(trained_field):
     field, pts = trained_field
-    sim = _sim(field, pts, material=Material(1e5, 0.3))
-    states = sim.rollout(sim.rest_state(), 40)
+    sim = _sim(field, pts, material=Material(1e5, 0.3, damping_ratio=0.1))
+    states = sim.rollout(sim.rest_state(), 60)
     zs = torch.stack([s.z for s in states])
     assert bool(torch.isfinite(zs).all())
     x = sim.positions(pts, states[-1].z)
     size = float((pts.max(0).values - pts.min(0).values).norm())
     penetration = max(0.0, -0.5 - float(x[:, 2].min()))
-    assert penetration < 0.01 * size
+    # the paper's floor acts on the ~10 cubature points near the bottom: m g / (2 k n) ≈ 1 cm at rest
+    assert penetration < 0.015 * size
     assert float(x[:, 2].min()) < -0.5 + 0.02 * size  # it is on the floor, not hovering
     # at rest: the last steps barely move the centre of mass
     com_v = (sim.positions(pts, states[-1].z) - sim.positions(pts, states[-2].z)).mean(0) / sim.config.dt
@@ -97,8 +248,9 @@ def test_projected_and_on_demand_newton_reach_the_same_steps(trained_field):
     projected one only linearly, so on demand takes fewer iterations."""
     field, pts = trained_field
     runs, iterations = {}, {}
-    for mode in ("always", "on_demand"):
-        cfg = SimConfig(newton_rtol=1e-11, newton_max_iters=60, hessian_projection=mode)
+    for mode in ("always", "on_demand"):  # one step per frame: large steps, strong compression at impact
+        cfg = SimConfig(substeps=1, newton_tol=1e-12, newton_rtol=1e-10, newton_max_iters=60,
+                        hessian_projection=mode, reuse_hessian=False)
         sim = _sim(field, pts, material=Material(3e4, 0.4), config=cfg)
         states = sim.rollout(sim.rest_state(), 12)
         assert all(s.converged for s in states)
@@ -158,8 +310,13 @@ def _window_loss(sim, pts, steps=5):
     return (x * weights).sum()
 
 
+TIGHT = dict(newton_tol=1e-13, newton_rtol=1e-12, newton_max_iters=60)
+
+
 def test_adjoint_gradients_match_finite_differences(trained_field):
-    """Adjoint vs central differences on a smooth problem (a spinning, deforming object in free fall).
+    """Adjoint vs central differences on a smooth problem (a spinning, deforming, damped object in free
+    fall, BDF2 with 3 substeps per frame): gradients to log10 E, ν, density, the damping ratio and a
+    skinning weight, relative error < 1e-3.
 
     Contact makes the loss only piecewise smooth, which spoils finite differences; contact is covered by
     the comparison with unrolled autograd below.
@@ -167,31 +324,31 @@ def test_adjoint_gradients_match_finite_differences(trained_field):
     field, pts = trained_field
     field = SkinningField(num_handles=4, seed=0).double()
     field.load_state_dict(trained_field[0].state_dict())
-    sim = _sim(field, pts, material=Material(3e4, 0.35), externals=[Gravity()],
-               config=SimConfig(newton_rtol=1e-10, newton_max_iters=40))
-    for t in (sim.log10_E, sim.nu, sim.density):
-        t.requires_grad_(True)
+    sim = _sim(field, pts, material=Material(3e4, 0.35, damping_ratio=0.2), externals=[Gravity()],
+               config=SimConfig(substeps=3, **TIGHT))
+    names = ("log10_E", "nu", "density", "damping_ratio")
+    for name in names:
+        getattr(sim, name).requires_grad_(True)
     W = list(field.parameters())[-2]
     loss = _window_loss(sim, pts)
-    grads = torch.autograd.grad(loss, [sim.log10_E, sim.nu, sim.density, W])
+    grads = torch.autograd.grad(loss, [getattr(sim, name) for name in names] + [W])
 
     def loss_at(**kw) -> float:
         with torch.no_grad():
-            saved = {k: getattr(sim, k).detach().clone() for k in ("log10_E", "nu", "density")}
+            saved = {k: getattr(sim, k).detach().clone() for k in names}
             for k, v in kw.items():
-                if k in saved:
-                    setattr(sim, k, v)
+                setattr(sim, k, v)
             value = float(_window_loss(sim, pts))
             for k, v in saved.items():
                 setattr(sim, k, v)
         return value
 
-    for i, (name, h) in enumerate((("log10_E", 1e-3), ("nu", 1e-3), ("density", 1.0))):
+    for i, (name, h) in enumerate(zip(names, (1e-3, 1e-3, 1.0, 1e-3))):
         base = getattr(sim, name).detach()
         fd = (loss_at(**{name: base + h}) - loss_at(**{name: base - h})) / (2 * h)
         assert abs(float(grads[i]) - fd) <= 1e-3 * abs(fd), (name, float(grads[i]), fd)
     for a, b in ((0, 3), (2, 17)):
-        h = 1e-3
+        h = 1e-4  # the central difference's own error is ~1e-3 relative at h = 1e-3 (it falls as h²)
         old = float(W[a, b].detach())
         with torch.no_grad():
             W[a, b] = old + h
@@ -200,68 +357,76 @@ def test_adjoint_gradients_match_finite_differences(trained_field):
             lm = loss_at()
             W[a, b] = old
         fd = (lp - lm) / (2 * h)
-        assert abs(float(grads[3][a, b]) - fd) <= 1e-3 * abs(fd), (a, b, float(grads[3][a, b]), fd)
+        assert abs(float(grads[4][a, b]) - fd) <= 1e-3 * abs(fd), (a, b, float(grads[4][a, b]), fd)
 
 
 def test_adjoint_gradients_wrt_the_initial_state_match_finite_differences(trained_field):
+    """Through BDF2 substeps, including the history state (z, ż one substep back) a resumed rollout
+    starts from."""
     field, pts = trained_field
-    sim = _sim(field, pts, material=Material(3e4, 0.35), externals=[Gravity()],
-               config=SimConfig(newton_rtol=1e-10, newton_max_iters=40))
-    start = sim.rigid_velocity_state([0.2, 0.0, -2.0], [0.0, 6.0, 2.0])
+    sim = _sim(field, pts, material=Material(3e4, 0.35), externals=[Gravity()], config=SimConfig(substeps=3, **TIGHT))
+    start = sim.rollout(sim.rigid_velocity_state([0.2, 0.0, -2.0], [0.0, 6.0, 2.0]), 1)[-1]
     target_w = torch.linspace(-1.0, 1.0, 3 * pts[::10].shape[0], dtype=torch.float64).reshape(-1, 3)
+    keys = ("z", "zdot", "z_prev")
 
-    def loss_of(z0: torch.Tensor, zdot0: torch.Tensor) -> torch.Tensor:
-        states = sim.rollout(SimState(z0, zdot0), 4)
+    def loss_of(values: dict) -> torch.Tensor:
+        state = SimState(values["z"], values["zdot"], start.t, None, z_prev=values["z_prev"],
+                         zdot_prev=start.zdot_prev, h_prev=start.h_prev)
+        states = sim.rollout(state, 3)
         return (sim.positions(pts[::10], states[-1].z) * target_w).sum()
 
-    z0 = start.z.clone().requires_grad_(True)
-    zdot0 = start.zdot.clone().requires_grad_(True)
-    g_z, g_zdot = torch.autograd.grad(loss_of(z0, zdot0), [z0, zdot0])
+    base = {k: getattr(start, k).detach().clone() for k in keys}
+    leaves = {k: v.clone().requires_grad_(True) for k, v in base.items()}
+    grads = dict(zip(keys, torch.autograd.grad(loss_of(leaves), [leaves[k] for k in keys])))
     h = 1e-5
-    for which, grad in (("z", g_z), ("zdot", g_zdot)):
+    for which in keys:
         for i in (3, 14, 25):  # a translation, a learned handle's entry, another handle's entry
             e = torch.zeros_like(start.z)
             e[i] = h
             with torch.no_grad():
-                if which == "z":
-                    fd = (loss_of(start.z + e, start.zdot) - loss_of(start.z - e, start.zdot)) / (2 * h)
-                else:
-                    fd = (loss_of(start.z, start.zdot + e) - loss_of(start.z, start.zdot - e)) / (2 * h)
-            assert abs(float(grad[i]) - float(fd)) <= 1e-3 * abs(float(fd)) + 1e-9, (which, i, float(grad[i]), float(fd))
+                fd = (loss_of({**base, which: base[which] + e}) - loss_of({**base, which: base[which] - e})) / (2 * h)
+            g = float(grads[which][i])
+            assert abs(g - float(fd)) <= 1e-3 * abs(float(fd)) + 1e-9, (which, i, g, float(fd))
 
 
 def test_adjoint_matches_unrolled_autograd(trained_field):
-    """The per-step adjoint equals backpropagation through many plain Newton iterations."""
+    """The per-step adjoint equals backpropagation through many plain Newton iterations: BDF2 with
+    damping, 2 substeps per frame, over a floor impact."""
+    from vid2sim.physics.integrators import bdf_step
     from vid2sim.physics.reduced import ElasticBasis, StepProblem, lbs_rows
 
     field, pts = trained_field
-    sim = _sim(field, pts, material=Material(5e4, 0.3), externals=[Gravity(), Floor(height=-0.3)], k=60,
-               config=SimConfig(newton_rtol=1e-11, newton_max_iters=50))
-    sim.log10_E.requires_grad_(True)
-    sim.nu.requires_grad_(True)
+    sim = _sim(field, pts, material=Material(5e4, 0.3, damping_ratio=0.1), externals=[Gravity(), Floor(height=-0.3)],
+               k=60, config=SimConfig(substeps=2, **TIGHT))
+    for name in ("log10_E", "nu", "damping_ratio"):
+        getattr(sim, name).requires_grad_(True)
+    wrt = [sim.log10_E, sim.nu, sim.damping_ratio]
     state = sim.rigid_velocity_state([0.0, 0.0, -3.0], [1.0, 0.0, 0.0])
     states = sim.rollout(state, 3)
     loss = (states[-1].z * torch.linspace(0.5, 1.5, states[-1].z.numel(), dtype=torch.float64)).sum()
-    g_adj = torch.autograd.grad(loss, [sim.log10_E, sim.nu])
+    g_adj = torch.autograd.grad(loss, wrt)
 
     # unrolled reference: differentiable Newton with autograd Hessians, no line search (states are close)
     mu, lam = sim.lame()
+    tau = sim.retardation_time()
     w, dw = field.weights_and_gradients(sim.X)
     basis = ElasticBasis(torch.eye(3, dtype=torch.float64).expand(sim.X.shape[0], 3, 3), gradient_basis(sim.X, w, dw))
     b = lbs_rows(sim.X, w)
     perm, inv = z_to_y_index(field.num_handles_total), y_to_z_index(field.num_handles_total)
-    y, ydot, t = state.z[perm], state.zdot[perm], 0.0
-    for _ in range(3):
-        t += sim.config.dt
+    y, ydot, y2, ydot2, t = state.z[perm], state.zdot[perm], None, None, 0.0
+    h = sim.config.dt / 2
+    for _ in range(6):
+        t += h
+        step = bdf_step("bdf2", h, h if y2 is not None else None)
         prob = StepProblem(sim.X, sim.vol, sim.masses(), b, basis, mu, lam, "neo_hookean", sim.externals, t,
-                           sim.config.dt, y, ydot)
+                           step, y, ydot, y2 if step.needs_history else None, ydot2 if step.needs_history else None,
+                           tau)
         yk = y.detach().clone() + 0 * mu  # start at the previous state, keep the graph
         for _ in range(12):
             yk = yk - torch.linalg.solve(prob.hessian(yk, project=False), prob.gradient(yk))
-        ydot = (yk - y) / sim.config.dt
-        y = yk
+        y2, ydot2, y, ydot = y, ydot, yk, step.velocity(yk, y, y2 if step.needs_history else None)
     loss_ref = (y[inv] * torch.linspace(0.5, 1.5, y.numel(), dtype=torch.float64)).sum()
-    g_ref = torch.autograd.grad(loss_ref, [sim.log10_E, sim.nu])
+    g_ref = torch.autograd.grad(loss_ref, wrt)
     assert torch.allclose(y[inv].detach(), states[-1].z.detach(), atol=1e-8)
     for ga, gr in zip(g_adj, g_ref):
         assert abs(float(ga) - float(gr)) <= 2e-5 * abs(float(gr)) + 1e-12
@@ -291,7 +456,7 @@ def test_sphere_obstacle_is_never_penetrated(trained_field):
     sim = _sim(field, pts, externals=[Gravity(), SphereObstacle(center=(0.0, 0.0, -0.9), radius=0.5, stiffness=1e6)])
     states = sim.rollout(sim.rest_state(), 24)
     gaps = [float((sim.positions(pts, s.z).detach() - center).norm(dim=1).min()) - 0.5 for s in states]
-    assert min(gaps) > -0.01  # the (stiffer) barrier holds the object out of the ball
+    assert min(gaps) > -0.015  # the (stiffer) barrier holds the object out of the ball (≈ 1 cm at impact)
     assert min(gaps) < 0.01  # and it did land on it
     assert all(bool(torch.isfinite(s.z).all()) for s in states)
 
@@ -320,6 +485,10 @@ def test_bad_inputs_give_clear_errors(trained_field):
         Simulator(field, torch.zeros(0, 3, dtype=torch.float64), torch.zeros(0, dtype=torch.float64), Material())
     with pytest.raises(ValueError, match="dt"):
         SimConfig(dt=0.0)
+    with pytest.raises(ValueError, match="integrator"):
+        SimConfig(integrator="rk4")
+    with pytest.raises(ValueError, match="damping_ratio"):
+        Material(damping_ratio=-0.1)
     sim = _sim(field, pts)
     st = sim.rest_state()
     with pytest.raises(ValueError, match="shape"):

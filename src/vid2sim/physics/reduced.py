@@ -22,12 +22,15 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass
-from typing import Callable, Sequence
+from typing import Sequence
 
 import torch
 from torch import Tensor
 
-from vid2sim.physics.materials import det3, elastic_model
+from vid2sim.physics.damping import reference_metric, viscous_tangent
+from vid2sim.physics.external import energy_and_gradient
+from vid2sim.physics.integrators import BDFStep
+from vid2sim.physics.materials import det3, elastic_model, energy_and_pk1, stvk_energy_and_pk1
 
 
 def z_to_y_index(num_handles_total: int, device: torch.device | None = None) -> Tensor:
@@ -75,15 +78,16 @@ class ElasticBasis:
     def deformation_gradient(self, y: Tensor) -> Tensor:
         """F: (K, 3, 3) for the row-major state y: (D,)."""
         if self.G is not None:
-            Y = y.reshape(3, -1)
-            return self.A + torch.einsum("al,pcl->pac", Y, self.G)
+            # (G_p Yᵀ)[c, a] = Σ_l G_p[c, l] Y[a, l] = (Y G_p)[a, c]
+            return self.A + (self.G @ y.reshape(3, -1).T).transpose(1, 2)
         K = self.A.shape[0]
         return self.A + (self.J @ y).reshape(K, 3, 3)
 
     def force(self, P: Tensor) -> Tensor:
         """Σ_p ∂vec(F_p)/∂y ᵀ vec(P_p) for P: (K, 3, 3) (already volume-weighted) → (D,)."""
         if self.G is not None:
-            return torch.einsum("pac,pcl->al", P, self.G).reshape(-1)
+            K, _, L = self.G.shape
+            return (P.transpose(0, 1).reshape(3, 3 * K) @ self.G.reshape(3 * K, L)).reshape(-1)
         K = P.shape[0]
         return torch.einsum("pi,pid->d", P.reshape(K, 9), self.J)
 
@@ -112,14 +116,19 @@ def apply_plastic_state(basis_tensor: Tensor, structured: bool, Fp_inv: Tensor) 
     return ElasticBasis(Fp_inv, None, J)
 
 
-ExternalTotal = Callable[[Tensor, Tensor, float], tuple[Tensor, Tensor, Tensor]]
-
-
 @dataclass
 class StepProblem:
-    """One implicit-Euler step's incremental potential, at fixed inputs.
+    """One implicit step's incremental potential, at fixed inputs (see :mod:`vid2sim.physics.integrators`).
 
-    Φ(y) = ½ (y − ỹ)ᵀ M (y − ỹ) + Δt² (Σ_p v_p Ψ(F_p(y)) + E_ext(x(y), t)),   ỹ = y_prev + Δt ẏ_prev.
+    Φ(y) = ½ (y − ŷ)ᵀ M (y − ŷ) + k_E (Σ_p v_p Ψ(F_p(y)) + E_ext(x(y), t)) + k_D Σ_p v_p ψ(F_p(y); C_ref,p)
+
+    with ŷ, k_E = h²/a₀² and k_D = h τ/a₀ from the BDF step, Ψ the elastic energy density and ψ the
+    Kelvin–Voigt viscous potential (:mod:`vid2sim.physics.damping`) measured from the metric
+    C_ref = (a₁ C(y_prev) + a₂ C(y_prev2)) / a₀. ``tau`` None means undamped.
+
+    External energies of kind "body" (gravity) act on the cubature points with their masses; those of
+    kind "contact" (barriers) on the contact points (``contact_X``, LBS rows ``contact_b``) with the
+    weights ``contact_w`` — by default the cubature points with weight 1 (the paper's floor formula).
     """
 
     X: Tensor  # (K, 3) cubature rest positions
@@ -132,64 +141,170 @@ class StepProblem:
     model: str
     externals: Sequence  # ExternalEnergy objects (vid2sim.physics.external)
     t: float  # time at the end of the step
-    dt: float
-    y_prev: Tensor  # (D,)
+    step: BDFStep
+    y_prev: Tensor  # (D,) state at the start of the step
     ydot_prev: Tensor  # (D,)
+    y_prev2: Tensor | None = None  # (D,) state one step earlier (BDF2)
+    ydot_prev2: Tensor | None = None
+    tau: Tensor | None = None  # Kelvin–Voigt retardation time (s), None = undamped
+    contact_X: Tensor | None = None  # (Nc, 3) contact points' rest positions (None: the cubature points)
+    contact_b: Tensor | None = None  # (Nc, L) their LBS rows
+    contact_w: Tensor | None = None  # (Nc,) their barrier weights
 
     # ---- pieces ------------------------------------------------------------------------------
     @property
+    def dt(self) -> float:
+        """The step length h."""
+        return self.step.h
+
+    @functools.cached_property
     def y_pred(self) -> Tensor:
-        return self.y_prev + self.dt * self.ydot_prev
+        """ŷ, the inertial target of the step (D,)."""
+        return self.step.target(self.y_prev, self.ydot_prev, self.y_prev2, self.ydot_prev2)
+
+    @functools.cached_property
+    def c_ref(self) -> Tensor | None:
+        """C_ref (K, 3, 3) of the viscous potential, or None when undamped."""
+        if self.tau is None:
+            return None
+        F_prev = self.basis.deformation_gradient(self.y_prev)
+        F_prev2 = self.basis.deformation_gradient(self.y_prev2) if self.step.needs_history else None
+        return reference_metric(self.step.coefficients, F_prev, F_prev2)
 
     def positions(self, y: Tensor) -> Tensor:
         """x: (K, 3) cubature positions."""
         return self.X + self.b @ y.reshape(3, -1).T
 
+    @functools.cached_property
+    def mass_block(self) -> Tensor:
+        """(L, L) block Σ_p m_p b_p b_pᵀ of the reduced mass matrix M = I₃ ⊗ block (differentiable)."""
+        return (self.b * self.mass[:, None]).T @ self.b
+
     def mass_times(self, dy: Tensor) -> Tensor:
-        """M dy for dy: (D,), with M = I₃ ⊗ Σ_p m_p b_p b_pᵀ (never formed here; differentiable)."""
-        u = self.b @ dy.reshape(3, -1).T  # (K, 3)
-        return ((self.mass[:, None] * u).T @ self.b).reshape(-1)
+        """M dy for dy: (D,), with M = I₃ ⊗ Σ_p m_p b_p b_pᵀ (differentiable)."""
+        return (dy.reshape(3, -1) @ self.mass_block).reshape(-1)
 
     @functools.cached_property
     def mass_matrix(self) -> Tensor:
         """(D, D) reduced mass matrix (constant during a step; computed once)."""
-        Mb = (self.b * self.mass[:, None]).T @ self.b
+        Mb = self.mass_block
         return torch.block_diag(Mb, Mb, Mb)
 
-    def _external_energy(self, x: Tensor) -> Tensor:
-        e = x.new_zeros(())
-        for ext in self.externals:
-            e = e + ext.energy(x, self.mass, self.t)
-        return e
+    @functools.cached_property
+    def _contact(self) -> tuple[Tensor, Tensor, Tensor]:
+        """(rest positions (Nc, 3), LBS rows (Nc, L), weights (Nc,)) of the contact points."""
+        if self.contact_b is None:
+            return self.X, self.b, torch.ones_like(self.mass)
+        return self.contact_X, self.contact_b, self.contact_w
 
-    def _external_gradient(self, x: Tensor) -> Tensor:
-        g = torch.zeros_like(x)
-        for ext in self.externals:
-            g = g + ext.gradient(x, self.mass, self.t)
-        return g
+    @functools.cached_property
+    def _externals_by_kind(self) -> tuple[list, list]:
+        body = [e for e in self.externals if getattr(e, "kind", "body") == "body"]
+        contact = [e for e in self.externals if getattr(e, "kind", "body") == "contact"]
+        return body, contact
+
+    def _contact_positions(self, y: Tensor) -> Tensor:
+        X, b, _ = self._contact
+        return X + b @ y.reshape(3, -1).T
+
+    def _external_energy_and_force(self, y: Tensor, energy: bool = True) -> tuple[Tensor, Tensor]:
+        """(E_ext (), ∂E_ext/∂y (D,)); ``energy`` is unused (the energy comes with the gradient)."""
+        body, contact = self._externals_by_kind
+        e = y.new_zeros(())
+        f = y.new_zeros(y.shape)
+        for points, b, weights, energies in ((None, self.b, self.mass, body), (True, None, None, contact)):
+            if not energies:
+                continue
+            if points is None:
+                x = self.positions(y)
+            else:
+                _, b, weights = self._contact
+                x = self._contact_positions(y)
+            g = torch.zeros_like(x)
+            for ext in energies:
+                e_i, g_i = energy_and_gradient(ext, x, weights, self.t)
+                e = e + e_i
+                g = g + g_i
+            f = f + (g.T @ b).reshape(-1)
+        return e, f
+
+    def _external_hessian(self, y: Tensor, project: bool) -> Tensor:
+        body, contact = self._externals_by_kind
+        L = self.b.shape[1]
+        H = y.new_zeros(3 * L, 3 * L)
+        if body:
+            x = self.positions(y)
+            hx = x.new_zeros(x.shape[0], 3, 3)
+            for ext in body:
+                hx = hx + ext.hessian(x, self.mass, self.t, project=project)
+            H = H + _reduced_point_hessian(hx, self.b)
+        if contact:
+            xc, w = self._contact_positions(y), self._contact[2]
+            hx = xc.new_zeros(xc.shape[0], 3, 3)
+            for ext in contact:
+                hx = hx + ext.hessian(xc, w, self.t, project=project)
+            H = H + _reduced_point_hessian(hx, self._contact[1])
+        return H
+
+    def evaluate(self, y: Tensor, energy: bool = True) -> tuple[Tensor, Tensor | None, bool]:
+        """(Φ(y) (), ∇Φ(y) (D,), valid) in one pass over the points. ``valid`` is False (Φ = inf, ∇Φ None)
+        when a cubature point is inverted (det F ≤ 0). With ``energy=False`` Φ is not computed (0).
+        A differentiable expression of every input (the adjoint differentiates ∇Φ)."""
+        F = self.basis.deformation_gradient(y)
+        psi, P, J = energy_and_pk1(self.model, F, self.mu, self.lam)
+        if not bool((J > 0).all()):
+            return y.new_full((), float("inf")), None, False
+        k_e = self.step.energy_scale
+        dy = y - self.y_pred
+        m_dy = self.mass_times(dy)
+        e_ext, f_ext = self._external_energy_and_force(y, energy)
+        stress = k_e * P
+        phi = y.new_zeros(())
+        if energy:
+            phi = 0.5 * (dy @ m_dy) + k_e * ((self.vol * psi).sum() + e_ext)
+        if self.tau is not None:
+            k_d = self.step.damping_scale(self.tau)
+            psi_d, P_d = stvk_energy_and_pk1(F, self.mu, self.lam, self.c_ref)
+            stress = stress + k_d * P_d
+            if energy:
+                phi = phi + k_d * (self.vol * psi_d).sum()
+        g = m_dy + self.basis.force(self.vol[:, None, None] * stress) + k_e * f_ext
+        return phi, g, True
+
+    @property
+    def y_start(self) -> Tensor:
+        """Newton's starting point: the extrapolation of :meth:`BDFStep.start` when the step has history,
+        else the inertial target ŷ."""
+        if self.ydot_prev2 is None:
+            return self.y_pred
+        return self.step.start(self.y_prev, self.ydot_prev, self.ydot_prev2)
+
+    def valid(self, y: Tensor) -> bool:
+        """No cubature point is inverted at y (det F > 0 everywhere)."""
+        return bool((det3(self.basis.deformation_gradient(y)) > 0).all())
 
     def potential(self, y: Tensor) -> tuple[Tensor, bool]:
         """(Φ(y), valid) where valid is False if any cubature point is inverted (det F ≤ 0)."""
-        F = self.basis.deformation_gradient(y)
-        if not bool((det3(F) > 0).all()):
-            return y.new_full((), float("inf")), False
-        psi = elastic_model(self.model)[0](F, self.mu, self.lam)
-        e_ext = self._external_energy(self.positions(y))
-        dy = y - self.y_pred
-        phi = 0.5 * dy @ self.mass_times(dy) + self.dt**2 * ((self.vol * psi).sum() + e_ext)
-        return phi, True
+        phi, _, ok = self.evaluate(y)
+        return phi, ok
 
     def gradient(self, y: Tensor) -> Tensor:
         """∇Φ(y): (D,). A differentiable expression of every input (used by the adjoint)."""
-        F = self.basis.deformation_gradient(y)
-        P = elastic_model(self.model)[1](F, self.mu, self.lam)
-        gx = self._external_gradient(self.positions(y))
-        f_ext = (gx.T @ self.b).reshape(-1)
-        f_el = self.basis.force(self.vol[:, None, None] * P)
-        return self.mass_times(y - self.y_pred) + self.dt**2 * (f_el + f_ext)
+        _, g, ok = self.evaluate(y, energy=False)
+        if not ok:
+            raise ValueError("the gradient is undefined where a cubature point is inverted (det F <= 0)")
+        return g
+
+    def displacement(self, dy: Tensor) -> float:
+        """Largest coordinate change max |Δx| over the cubature and contact points for a change dy: (D,)."""
+        dY = dy.reshape(3, -1).T
+        out = float((self.b @ dY).abs().max())
+        if self.contact_b is not None:
+            out = max(out, float((self.contact_b @ dY).abs().max()))
+        return out
 
     def hessian(self, y: Tensor, project: bool = True) -> Tensor:
-        """∇²Φ(y): (D, D); per-point elastic and external blocks projected to PSD when ``project``
+        """∇²Φ(y): (D, D); per-point elastic, viscous and external blocks projected to PSD when ``project``
         (Newton), exact when not (the adjoint)."""
         from vid2sim.physics.materials import project_tangent_psd
 
@@ -197,21 +312,22 @@ class StepProblem:
         C = elastic_model(self.model)[2](F, self.mu, self.lam)
         if project:
             C = project_tangent_psd(self.model, F, C, self.mu, self.lam)
-        x = self.positions(y)
-        hx = x.new_zeros(x.shape[0], 3, 3)
-        for ext in self.externals:
-            hx = hx + ext.hessian(x, self.mass, self.t, project=project)
-        H = self.mass_matrix + self.dt**2 * (
-            self.basis.hessian(self.vol[:, None, None] * C) + self._reduced_point_hessian(hx)
-        )
+        C = self.step.energy_scale * C
+        if self.tau is not None:
+            Cd = viscous_tangent(F, self.c_ref, self.mu, self.lam, psd=project)
+            C = C + self.step.damping_scale(self.tau) * Cd
+        H = self.mass_matrix + self.basis.hessian(self.vol[:, None, None] * C) \
+            + self.step.energy_scale * self._external_hessian(y, project)
         return 0.5 * (H + H.T)
 
-    def _reduced_point_hessian(self, hx: Tensor) -> Tensor:
-        """Σ_p (I₃ ⊗ b_p) H_p (I₃ ⊗ b_p)ᵀ for per-point blocks hx: (K, 3, 3), over active points only."""
-        L = self.b.shape[1]
-        active = hx.abs().amax(dim=(1, 2)) > 0
-        if not bool(active.any()):
-            return hx.new_zeros(3 * L, 3 * L)
-        ba, ha = self.b[active], hx[active]
-        Hr = torch.einsum("pab,pl,pm->albm", ha, ba, ba)
-        return Hr.reshape(3 * L, 3 * L)
+
+def _reduced_point_hessian(hx: Tensor, b: Tensor) -> Tensor:
+    """Σ_p (I₃ ⊗ b_p) H_p (I₃ ⊗ b_p)ᵀ (3L, 3L) for per-point blocks hx: (N, 3, 3) and LBS rows b: (N, L),
+    over the points with a nonzero block only."""
+    L = b.shape[1]
+    active = hx.abs().amax(dim=(1, 2)) > 0
+    if not bool(active.any()):
+        return hx.new_zeros(3 * L, 3 * L)
+    ba, ha = b[active], hx[active]
+    Hr = torch.einsum("pab,pl,pm->albm", ha, ba, ba)
+    return Hr.reshape(3 * L, 3 * L)

@@ -1,16 +1,20 @@
-"""Implicit-Euler time integration of the reduced model, with the adjoint of each converged step.
+"""Implicit time integration of the reduced model, with the adjoint of each converged step.
 
-One step minimises the incremental potential (paper Eq. 2, DESIGN.md)
+One video frame of length Δt is ``SimConfig.substeps`` implicit steps of h = Δt / substeps with the
+integrator ``SimConfig.integrator`` (BDF2 by default, or implicit Euler; :mod:`vid2sim.physics.integrators`).
+Each step minimises the incremental potential
 
-    z_{t+1} = argmin_z ½ ‖z − z_t − Δt ż_t‖²_M + Δt² E_pot(z),      ż_{t+1} = (z_{t+1} − z_t) / Δt
+    y_{n+1} = argmin_y ½ ‖y − ŷ‖²_M + k_E E_pot(y) + k_D Σ_p v_p ψ(F_p(y))
 
-by Newton's method with PSD-projected Hessians and a backtracking line search that starts from the full
-Newton step and never accepts a state with an inverted cubature point (det F ≤ 0).
+(inertia, elastic + external potential, Kelvin–Voigt damping of :mod:`vid2sim.physics.damping`) by
+Newton's method with a backtracking line search that starts from the full Newton step and never accepts a
+state with an inverted cubature point (det F ≤ 0).
 
-Gradients: the converged step satisfies ∇Φ(z*; θ) = 0, so dz*/dθ = −H⁻¹ ∂∇Φ/∂θ. The backward pass of
-:class:`_ImplicitStep` solves H λ = ∂L/∂z* once (H the exact, unprojected Hessian at z*) and returns
-−λᵀ ∂∇Φ/∂θ for every input θ (previous state, Lamé parameters, masses, the skinning field's LBS rows and
-F-basis) — no backpropagation through Newton iterations or the line search.
+Gradients: the converged step satisfies ∇Φ(y*; θ) = 0, so dy*/dθ = −H⁻¹ ∂∇Φ/∂θ. The backward pass of
+:class:`_ImplicitStep` solves H λ = ∂L/∂y* once (H the exact, unprojected Hessian at y*) and returns
+−λᵀ ∂∇Φ/∂θ for every input θ (the previous states and velocities, Lamé parameters, retardation time,
+masses, the skinning field's LBS rows and F-basis) — no backpropagation through Newton iterations or the
+line search.
 """
 
 from __future__ import annotations
@@ -22,6 +26,8 @@ from typing import Sequence
 import torch
 from torch import Tensor
 
+from vid2sim.physics.damping import DEFAULT_DAMPING_RATIO, check_damping_ratio, retardation_time
+from vid2sim.physics.integrators import INTEGRATORS, BDFStep, auto_substeps, bdf_step
 from vid2sim.physics.materials import ELASTIC_MODELS, lame_parameters
 from vid2sim.physics.reduced import (
     ElasticBasis,
@@ -39,13 +45,30 @@ class SimulationError(RuntimeError):
 
 @dataclass
 class SimConfig:
-    """Time-integration settings (defaults: the paper / its public release).
+    """Time-integration settings.
 
     Attributes:
-        dt: time step in seconds (one implicit step per video frame).
+        dt: time between video frames in seconds; one :meth:`Simulator.step` advances one frame.
+        substeps: implicit steps per frame (step h = dt / substeps), or None (default) for
+            :func:`~vid2sim.physics.integrators.auto_substeps` of the current material: ⌈20 Δt √(E/ρ)/L⌉ in
+            [4, 64] (4 at E = 1e4, 10 at 1e5, 32 at 1e6 for ρ = 1000, L = 1), which keeps a tumbling drop
+            within 1 % of the object's size of the same simulation refined 4× in time.
+        integrator: 'bdf2' (second order, the default) or 'implicit_euler' (first order; with
+            ``substeps=1`` the paper's one implicit-Euler step per frame, which damps the object's
+            elastic modes numerically and makes E hard to identify — see docs/architecture.md).
         newton_max_iters: Newton iterations per step at most.
-        newton_rtol: converged when ‖∇Φ‖ ≤ rtol · max(‖∇Φ(z₀)‖, Δt² Σm · reference_acceleration).
-        reference_acceleration: sets the absolute force scale of the tolerance (m/s²).
+        newton_tol: a step is converged when the Newton step moves no cubature or contact point by more
+            than newton_tol × the simulator's length scale, nor by more than ``newton_rtol`` × the largest
+            move of a point over the step (so that the leftovers of many short steps do not add up); never
+            below 30 ε of the dtype × the length scale.
+        newton_rtol: that relative part of the tolerance.
+        reuse_hessian: keep the factorised Hessian across Newton iterations and substeps (a chord
+            iteration: every iteration then costs one gradient and two triangular solves), turned with the
+            object by a fitted rotation (:class:`NewtonCache`), and refactorise it when a line search needs
+            halvings or an iteration shrinks the step by less than ``reuse_rate``. The converged state is
+            the same minimiser; the adjoint always uses the exact Hessian at it. False: a fresh Hessian at
+            every iteration (plain Newton).
+        reuse_rate: the contraction per iteration below which a kept Hessian is reused.
         line_search_max_halvings: backtracking halvings before the step is declared failed.
         armijo: sufficient-decrease constant of the line search.
         hessian_projection: "always" — Newton uses the Hessian with every per-point block projected to
@@ -56,9 +79,13 @@ class SimConfig:
     """
 
     dt: float = 0.05
-    newton_max_iters: int = 10
+    substeps: int | None = None
+    integrator: str = "bdf2"
+    newton_max_iters: int = 20
+    newton_tol: float = 1e-6
     newton_rtol: float = 1e-4
-    reference_acceleration: float = 9.8
+    reuse_hessian: bool = True
+    reuse_rate: float = 0.25
     line_search_max_halvings: int = 30
     armijo: float = 1e-4
     hessian_projection: str = "on_demand"
@@ -67,19 +94,37 @@ class SimConfig:
         if self.hessian_projection not in ("always", "on_demand"):
             raise ValueError(
                 f"SimConfig.hessian_projection must be 'always' or 'on_demand', got {self.hessian_projection!r}")
+        if self.integrator not in INTEGRATORS:
+            raise ValueError(f"SimConfig.integrator must be one of {list(INTEGRATORS)}, got {self.integrator!r}")
         if not (self.dt > 0 and math.isfinite(self.dt)):
             raise ValueError(f"SimConfig.dt must be a positive finite number, got {self.dt}")
+        if self.substeps is not None and (isinstance(self.substeps, bool) or not isinstance(self.substeps, int)
+                                          or self.substeps < 1):
+            raise ValueError(f"SimConfig.substeps must be an integer >= 1 or None (automatic), got {self.substeps!r}")
         if self.newton_max_iters < 1:
             raise ValueError(f"SimConfig.newton_max_iters must be >= 1, got {self.newton_max_iters}")
+        if not self.newton_tol > 0:
+            raise ValueError(f"SimConfig.newton_tol must be > 0, got {self.newton_tol}")
         if not self.newton_rtol > 0:
             raise ValueError(f"SimConfig.newton_rtol must be > 0, got {self.newton_rtol}")
+        if not 0 < self.reuse_rate < 1:
+            raise ValueError(f"SimConfig.reuse_rate must be in (0, 1), got {self.reuse_rate}")
 
 
 @dataclass
 class Material:
-    """A homogeneous material. ``model`` is 'neo_hookean' (the paper's elastic model) or 'stvk';
-    ``plasticity`` is None, a :class:`~vid2sim.physics.plasticity.VonMises` (plasticine) or a
-    :class:`~vid2sim.physics.plasticity.DruckerPrager` (sand) return map (both used with 'stvk' in the paper).
+    """A homogeneous material.
+
+    Attributes:
+        youngs_modulus: E in Pa.
+        poisson_ratio: ν in (−1, 0.5).
+        density: ρ in kg/m³.
+        model: 'neo_hookean' (the paper's elastic model) or 'stvk'.
+        plasticity: None, a :class:`~vid2sim.physics.plasticity.VonMises` (plasticine) or a
+            :class:`~vid2sim.physics.plasticity.DruckerPrager` (sand) return map (both used with 'stvk' in
+            the paper).
+        damping_ratio: ζ of the Kelvin–Voigt material damping at ω_ref = √(E/ρ)/L
+            (:mod:`vid2sim.physics.damping`; retardation time τ = 2 ζ L √(ρ/E)); 0 is undamped.
     """
 
     youngs_modulus: float = 1e5
@@ -87,9 +132,11 @@ class Material:
     density: float = 1000.0
     model: str = "neo_hookean"
     plasticity: object | None = None
+    damping_ratio: float = DEFAULT_DAMPING_RATIO
 
     def __post_init__(self) -> None:
         lame_parameters(self.youngs_modulus, self.poisson_ratio)  # validates E and ν
+        self.damping_ratio = check_damping_ratio(self.damping_ratio, "Material.damping_ratio")
         if not (self.density > 0 and math.isfinite(self.density)):
             raise ValueError(f"Material.density must be a positive finite number (kg/m³), got {self.density}")
         if self.model not in ELASTIC_MODELS:
@@ -105,8 +152,11 @@ class SimState:
         zdot: (12H,) their velocities.
         t: time in seconds.
         Fp_inv: (K, 3, 3) inverse plastic deformation gradient per cubature point, or None (elastic).
-        newton_iterations: Newton iterations the step into this state took (0 for an initial state).
-        converged: whether that step met the gradient tolerance.
+        newton_iterations: Newton iterations of all substeps of the frame into this state (0 initially).
+        converged: whether every one of those substeps met the gradient tolerance.
+        z_prev, zdot_prev: (12H,) the state one substep earlier, which BDF2 needs; None for an initial
+            state (the first substep is then an implicit-Euler step).
+        h_prev: the length (s) of that last substep, or None.
     """
 
     z: Tensor
@@ -115,68 +165,171 @@ class SimState:
     Fp_inv: Tensor | None = None
     newton_iterations: int = 0
     converged: bool = True
+    z_prev: Tensor | None = None
+    zdot_prev: Tensor | None = None
+    h_prev: float | None = None
+
+
+@dataclass
+class ReducedBasis:
+    """Skinning quantities of a simulator's points (from :meth:`Simulator.reduced_basis`).
+
+    Attributes:
+        b: (K, L) LBS rows of the cubature points (x_p = X_p + Y b_p, L = 4H).
+        basis: (K, 3, L) structured F-basis, or (K, 9, 12H) dense (Neural Jacobian) in y layout.
+        structured: which of the two ``basis`` is.
+        contact_b: (Nc, L) LBS rows of the contact points, or None when they are the cubature points.
+    """
+
+    b: Tensor
+    basis: Tensor
+    structured: bool
+    contact_b: Tensor | None = None
 
 
 @dataclass
 class StepStats:
+    """Outcome of one implicit step: Newton iterations (direction solves), Hessian factorisations, whether
+    it converged, and the line-search halvings per iteration."""
+
     iterations: int = 0
+    hessians: int = 0
     converged: bool = False
     line_search_halvings: list[int] = field(default_factory=list)
 
 
+@dataclass
+class NewtonCache:
+    """The factorised Newton matrix kept between iterations and substeps (``SimConfig.reuse_hessian``).
+
+    The Hessian of a rotation-invariant energy (inertia, elasticity, damping) at a configuration turned by
+    a rotation R is (R ⊗ I) H (R ⊗ I)ᵀ in the row-major layout (y = vec of the 3 × L matrix Y), so the
+    kept factor stays useful while the object tumbles: each solve turns the gradient back by the rotation
+    fitted (weighted Kabsch) between the cubature points now and when the factor was made.
+
+    Attributes:
+        factor: Cholesky factor (D, D) of the last Hessian, or None.
+        points: (K, 3) cubature positions where it was made (centred), for the rotation fit.
+        stale: refactorise at the next iteration.
+    """
+
+    factor: Tensor | None = None
+    points: Tensor | None = None
+    stale: bool = True
+
+    def direction(self, problem: StepProblem, y: Tensor, g: Tensor) -> Tensor:
+        """The chord step −(R ⊗ I) H₀⁻¹ (R ⊗ I)ᵀ g (D,) with the factorised H₀ and the fitted rotation R."""
+        R = _fitted_rotation(self.points, problem.positions(y), problem.mass)
+        gy = (R.T @ g.reshape(3, -1)).reshape(-1)
+        d = torch.cholesky_solve(gy[:, None], self.factor)[:, 0]
+        return -(R @ d.reshape(3, -1)).reshape(-1)
+
+
+def _centred(x: Tensor, m: Tensor) -> Tensor:
+    return x - (m[:, None] * x).sum(0) / m.sum()
+
+
+def _fitted_rotation(reference: Tensor, x: Tensor, m: Tensor) -> Tensor:
+    """The rotation R (3, 3) minimising Σ m_p ‖R a_p − b_p‖² for centred reference points a and the centred
+    points b of x: (K, 3) (Kabsch, with the reflection removed)."""
+    b = _centred(x, m)
+    cov = (b * m[:, None]).T @ reference  # Σ m b aᵀ
+    U, _, Vh = torch.linalg.svd(cov)
+    D = torch.ones(3, dtype=x.dtype, device=x.device)
+    D[2] = torch.sign(torch.linalg.det(U @ Vh))
+    return (U * D) @ Vh
+
+
+def _factorize(H: Tensor) -> Tensor | None:
+    L, info = torch.linalg.cholesky_ex(H)
+    return L if int(info) == 0 else None
+
+
 def _cholesky_solve(H: Tensor, rhs: Tensor) -> Tensor:
     """Solve H x = rhs for symmetric positive (semi-)definite H, regularising if needed."""
-    L, info = torch.linalg.cholesky_ex(H)
-    if int(info) == 0:
+    L = _factorize(H)
+    if L is not None:
         return torch.cholesky_solve(rhs[:, None], L)[:, 0]
+    return torch.cholesky_solve(rhs[:, None], _regularized_factor(H))[:, 0]
+
+
+def _regularized_factor(H: Tensor) -> Tensor:
     scale = float(H.diagonal().abs().mean())
+    eye = torch.eye(H.shape[0], dtype=H.dtype, device=H.device)
     for k in range(1, 12):
-        L, info = torch.linalg.cholesky_ex(H + (scale * 10.0 ** (k - 10)) * torch.eye(H.shape[0], dtype=H.dtype, device=H.device))
-        if int(info) == 0:
-            return torch.cholesky_solve(rhs[:, None], L)[:, 0]
+        L = _factorize(H + (scale * 10.0 ** (k - 10)) * eye)
+        if L is not None:
+            return L
     raise SimulationError("Newton system is not positive definite even after regularisation")
 
 
-def _newton_direction(problem: StepProblem, y: Tensor, g: Tensor, config: SimConfig) -> Tensor:
-    """−H⁻¹ g with H the exact Hessian when ``on_demand`` and it is positive definite, else the projected one."""
+def _newton_factor(problem: StepProblem, y: Tensor, config: SimConfig) -> Tensor:
+    """Cholesky factor of the exact Hessian when ``on_demand`` and it is positive definite, else of the
+    projected one (regularised if even that is singular)."""
     if config.hessian_projection == "on_demand":
-        L, info = torch.linalg.cholesky_ex(problem.hessian(y, project=False))
-        if int(info) == 0:
-            return -torch.cholesky_solve(g[:, None], L)[:, 0]
-    return -_cholesky_solve(problem.hessian(y, project=True), g)
+        L = _factorize(problem.hessian(y, project=False))
+        if L is not None:
+            return L
+    H = problem.hessian(y, project=True)
+    L = _factorize(H)
+    return L if L is not None else _regularized_factor(H)
 
 
-def newton_solve(problem: StepProblem, config: SimConfig) -> tuple[Tensor, StepStats]:
-    """Minimise the step's incremental potential; returns (y*, stats). Inputs are treated as constants."""
+def newton_solve(problem: StepProblem, config: SimConfig, length_scale: float,
+                 cache: NewtonCache | None = None) -> tuple[Tensor, StepStats]:
+    """Minimise the step's incremental potential; returns (y*, stats). Inputs are treated as constants.
+
+    Converged when the (chord or Newton) step moves no point by more than ``config.newton_tol`` ×
+    ``length_scale``. With ``config.reuse_hessian`` the factorised Hessian in ``cache`` is reused while the
+    steps shrink by at least ``config.reuse_rate`` per iteration (see :class:`SimConfig`).
+    """
+    cache = cache if cache is not None else NewtonCache()
     stats = StepStats()
     eps = torch.finfo(problem.y_prev.dtype).eps
-    y = problem.y_pred
-    phi, ok = problem.potential(y)
-    if not ok:  # the inertial prediction inverts something: start from the previous (valid) state
+    floor = 30.0 * eps * length_scale
+    absolute = max(config.newton_tol * length_scale, floor)
+    y = problem.y_start
+    phi, g, ok = problem.evaluate(y)
+    if not ok:  # the prediction inverts something: start from the previous (valid) state
         y = problem.y_prev
-        phi, ok = problem.potential(y)
+        phi, g, ok = problem.evaluate(y)
         if not ok:
             raise SimulationError(f"state at t = {problem.t - problem.dt:.4g} s has inverted cubature points (det F <= 0)")
-    force_scale = problem.dt**2 * float(problem.mass.sum()) * config.reference_acceleration
-    g = problem.gradient(y)
-    ref = max(float(g.norm()), force_scale)
+    previous = math.inf
     for it in range(config.newton_max_iters):
-        if float(g.norm()) <= config.newton_rtol * ref:
+        fresh = cache.factor is None or cache.stale or not config.reuse_hessian
+        if fresh:
+            cache.factor = _newton_factor(problem, y, config)
+            cache.points = _centred(problem.positions(y), problem.mass)
+            cache.stale = False
+            stats.hessians += 1
+            d = -torch.cholesky_solve(g[:, None], cache.factor)[:, 0]
+        else:
+            d = cache.direction(problem, y, g)
+        stats.iterations = it + 1
+        size = problem.displacement(d)
+        tol = max(floor, min(absolute, config.newton_rtol * problem.displacement(y + d - problem.y_prev)))
+        if size <= tol:
+            if problem.valid(y + d):
+                y = y + d
             stats.converged = True
             break
-        d = _newton_direction(problem, y, g, config)
         slope = float(g @ d)
         alpha = 1.0
         inverted = False
         for halving in range(config.line_search_max_halvings + 1):
             y_new = y + alpha * d
-            phi_new, ok = problem.potential(y_new)
+            phi_new, g_new, ok = problem.evaluate(y_new)
             inverted = not ok
-            tol = 16 * eps * max(abs(float(phi)), abs(float(phi_new)) if ok else 0.0, 1.0)
-            if ok and float(phi_new) <= float(phi) + config.armijo * alpha * slope + tol:
+            slack = 16 * eps * max(abs(float(phi)), abs(float(phi_new)) if ok else 0.0, 1.0)
+            if ok and float(phi_new) <= float(phi) + config.armijo * alpha * slope + slack:
                 break
             alpha *= 0.5
         else:
+            if not fresh:  # the reused Hessian led nowhere: retry from here with a fresh one
+                cache.stale = True
+                stats.line_search_halvings.append(config.line_search_max_halvings + 1)
+                continue
             if abs(slope) <= 1e4 * eps * max(abs(float(phi)), 1.0):
                 # the remaining decrease is below round-off: this is as converged as the precision allows
                 stats.converged = True
@@ -190,11 +343,10 @@ def newton_solve(problem: StepProblem, config: SimConfig) -> tuple[Tensor, StepS
             )
             raise SimulationError(f"line search failed at t = {problem.t:.4g} s (Newton iteration {it + 1}): {cause}")
         stats.line_search_halvings.append(halving)
-        y, phi = y_new, phi_new
-        stats.iterations = it + 1
-        g = problem.gradient(y)
-    else:
-        stats.converged = float(g.norm()) <= config.newton_rtol * ref
+        if halving > 0 or (not fresh and size > config.reuse_rate * previous):
+            cache.stale = True  # far from converged or slow contraction: refactorise at the next iteration
+        previous = size
+        y, phi, g = y_new, phi_new, g_new
     if not bool(torch.isfinite(y).all()):
         raise SimulationError(f"Newton produced a non-finite state at t = {problem.t:.4g} s")
     return y, stats
@@ -211,36 +363,49 @@ class _StepSpec:
     model: str
     externals: Sequence
     t: float
+    step: BDFStep
     config: SimConfig
+    contact_X: Tensor | None = None
+    contact_w: Tensor | None = None
+    length_scale: float = 1.0
+    cache: NewtonCache | None = None
     stats: StepStats | None = None
 
-    def problem(self, y_prev, ydot_prev, mu, lam, mass, b, basis_t) -> StepProblem:
+    def problem(self, y_prev, ydot_prev, y_prev2, ydot_prev2, mu, lam, tau, mass, b, basis_t, contact_b) -> StepProblem:
         basis = ElasticBasis(self.A, basis_t, None) if self.structured else ElasticBasis(self.A, None, basis_t)
         return StepProblem(self.X, self.vol, mass, b, basis, mu, lam, self.model, self.externals,
-                           self.t, self.config.dt, y_prev, ydot_prev)
+                           self.t, self.step, y_prev, ydot_prev, y_prev2, ydot_prev2, tau,
+                           self.contact_X, contact_b, self.contact_w)
 
 
 class _ImplicitStep(torch.autograd.Function):
-    """y_next = argmin Φ(y; inputs); backward by the adjoint of the converged step."""
+    """y_next = argmin Φ(y; inputs); backward by the adjoint of the converged step.
+
+    Inputs after ``spec``: y_prev, ydot_prev, y_prev2, ydot_prev2 (None unless BDF2 has history), μ, λ,
+    τ (None when undamped), masses, LBS rows b, F-basis, contact points' LBS rows (None: the cubature points).
+    """
 
     @staticmethod
-    def forward(ctx, spec: _StepSpec, y_prev, ydot_prev, mu, lam, mass, b, basis_t):  # type: ignore[override]
-        problem = spec.problem(y_prev, ydot_prev, mu, lam, mass, b, basis_t)
-        y, stats = newton_solve(problem, spec.config)
+    def forward(ctx, spec: _StepSpec, *inputs):  # type: ignore[override]
+        problem = spec.problem(*inputs)
+        y, stats = newton_solve(problem, spec.config, spec.length_scale, spec.cache)
         spec.stats = stats
         ctx.spec = spec
-        ctx.save_for_backward(y, y_prev, ydot_prev, mu, lam, mass, b, basis_t)
+        ctx.present = [t is not None for t in inputs]
+        ctx.save_for_backward(y, *[t for t in inputs if t is not None])
         return y
 
     @staticmethod
     def backward(ctx, grad_y):  # type: ignore[override]
         spec: _StepSpec = ctx.spec
-        y, *inputs = ctx.saved_tensors
+        y, *saved = ctx.saved_tensors
+        it_saved = iter(saved)
+        inputs = [next(it_saved) if p else None for p in ctx.present]
         H = spec.problem(*inputs).hessian(y, project=False)
         adj = _cholesky_solve(H, grad_y) if torch.linalg.cholesky_ex(H)[1] == 0 else torch.linalg.solve(H, grad_y)
-        needs = ctx.needs_input_grad[1:]
+        needs = [n and t is not None for n, t in zip(ctx.needs_input_grad[1:], inputs)]
         with torch.enable_grad():
-            req = [t.detach().requires_grad_(n) for t, n in zip(inputs, needs)]
+            req = [t.detach().requires_grad_(n) if t is not None else None for t, n in zip(inputs, needs)]
             g = spec.problem(*req).gradient(y.detach())
             wanted = [r for r, n in zip(req, needs) if n]
             grads = torch.autograd.grad(g, wanted, grad_outputs=-adj, allow_unused=True) if wanted else ()
@@ -256,12 +421,19 @@ class Simulator:
         field: the skinning field (:class:`~vid2sim.physics.skinning.SkinningField`); H = field.num_handles_total.
         cubature_points: (K, 3) rest positions of the cubature points (canonical frame).
         cubature_weights: (K,) integration weights (volume / K in the paper).
-        material: a :class:`Material`. Its E, ν and density become the differentiable tensors
-            ``log10_E``, ``nu`` and ``density`` of this simulator (set ``requires_grad`` on them to optimise).
+        material: a :class:`Material`. Its E, ν, density and damping ratio become the differentiable
+            tensors ``log10_E``, ``nu``, ``density`` and ``damping_ratio`` of this simulator (set
+            ``requires_grad`` on them to optimise).
         externals: external energies (gravity, floor, moving floor, spheres; :mod:`vid2sim.physics.external`).
         config: :class:`SimConfig`.
         jacobian: optional Neural Jacobian (:class:`~vid2sim.physics.neural_jacobian.NeuralJacobian`); when
             given and ``use_neural_jacobian`` is True, dF/dz comes from it instead of the exact closed form.
+        length_scale: L (m) of the damping's reference frequency √(E/ρ)/L; default the diagonal of the
+            cubature points' bounding box (the object's size). Give the same L to compare with an FEM.
+        contact_points: (Nc, 3) rest positions where the barrier energies (floor, spheres) act, e.g.
+            samples of the object's surface; default the cubature points (the paper).
+        contact_weights: (Nc,) their barrier weights (default 1 each: the paper's per-point penalty; area
+            weights in m² make the barrier stiffness a contact pressure per metre of penetration).
     """
 
     def __init__(
@@ -274,6 +446,9 @@ class Simulator:
         config: SimConfig | None = None,
         jacobian: torch.nn.Module | None = None,
         use_neural_jacobian: bool = False,
+        length_scale: float | None = None,
+        contact_points: Tensor | None = None,
+        contact_weights: Tensor | None = None,
     ) -> None:
         if cubature_points.ndim != 2 or cubature_points.shape[1] != 3 or cubature_points.shape[0] == 0:
             raise ValueError(f"cubature_points must have shape (K, 3) with K >= 1, got {tuple(cubature_points.shape)}")
@@ -297,6 +472,28 @@ class Simulator:
         self.log10_E = torch.tensor(math.log10(material.youngs_modulus), dtype=dtype, device=device)
         self.nu = torch.tensor(material.poisson_ratio, dtype=dtype, device=device)
         self.density = torch.tensor(material.density, dtype=dtype, device=device)
+        self.damping_ratio = torch.tensor(material.damping_ratio, dtype=dtype, device=device)
+        if length_scale is None:
+            extent = cubature_points.detach().amax(0) - cubature_points.detach().amin(0)
+            length_scale = float(extent.norm())
+        if not (isinstance(length_scale, (int, float)) and math.isfinite(length_scale) and length_scale > 0):
+            raise ValueError(f"length_scale must be a positive finite number of metres, got {length_scale!r}")
+        self.length_scale = float(length_scale)
+        if contact_points is None:
+            if contact_weights is not None:
+                raise ValueError("contact_weights were given without contact_points")
+        else:
+            if contact_points.ndim != 2 or contact_points.shape[1] != 3 or contact_points.shape[0] == 0:
+                raise ValueError(f"contact_points must have shape (Nc, 3) with Nc >= 1, got {tuple(contact_points.shape)}")
+            if contact_weights is None:
+                contact_weights = torch.ones(contact_points.shape[0], dtype=dtype, device=device)
+            if contact_weights.shape != contact_points.shape[:1] or not bool((contact_weights > 0).all()):
+                raise ValueError(f"contact_weights must be positive with shape ({contact_points.shape[0]},), "
+                                 f"got {tuple(contact_weights.shape)}")
+            if not bool(torch.isfinite(contact_points).all()):
+                raise ValueError("contact_points must be finite")
+        self.contact_points = contact_points
+        self.contact_weights = contact_weights
         H = field.num_handles_total
         self.num_dofs = 12 * H
         self._perm = z_to_y_index(H, device)
@@ -311,22 +508,41 @@ class Simulator:
             )
         return lame_parameters(10.0**self.log10_E, self.nu)  # type: ignore[return-value]
 
+    def retardation_time(self) -> Tensor | None:
+        """Kelvin–Voigt τ = 2 ζ L √(ρ/E) (s) from the current ``damping_ratio``, ``log10_E`` and ``density``;
+        None for an undamped material (ζ = 0 and not being optimised)."""
+        zeta = self.damping_ratio
+        if not bool(torch.isfinite(zeta)) or float(zeta.detach()) < 0:
+            raise ValueError(f"damping_ratio must be a finite number >= 0, got {float(zeta.detach())}")
+        if float(zeta.detach()) == 0.0 and not zeta.requires_grad:
+            return None
+        return retardation_time(zeta, 10.0**self.log10_E, self.density, self.length_scale)
+
+    def substeps(self) -> int:
+        """Implicit steps per frame: ``config.substeps``, or the automatic count for the current E, density
+        and length scale (:func:`~vid2sim.physics.integrators.auto_substeps`)."""
+        if self.config.substeps is not None:
+            return self.config.substeps
+        return auto_substeps(self.config.dt, 10.0 ** float(self.log10_E.detach()), float(self.density.detach()),
+                             self.length_scale)
+
     def masses(self) -> Tensor:
         """(K,) lumped masses ρ·v_p."""
         if not float(self.density.detach()) > 0:
             raise ValueError(f"density must be positive, got {float(self.density.detach())}")
         return self.density * self.vol
 
-    def reduced_basis(self) -> tuple[Tensor, Tensor, bool]:
-        """(b (K, L), basis (K, 3, L) structured or (K, 9, D) dense in y layout, structured?) from the field."""
+    def reduced_basis(self) -> "ReducedBasis":
+        """The skinning quantities of the cubature (and contact) points from the field (differentiable)."""
         from vid2sim.physics.skinning import gradient_basis
 
         w, dw = self.field.weights_and_gradients(self.X)
         b = lbs_rows(self.X, w)
+        contact_b = None if self.contact_points is None else lbs_rows(self.contact_points, self.field(self.contact_points))
         if self.use_neural_jacobian:
             J = self.jacobian(self.X)  # (K, 9, 12H) in z layout
-            return b, J[:, :, self._perm], False
-        return b, gradient_basis(self.X, w, dw), True
+            return ReducedBasis(b, J[:, :, self._perm], False, contact_b)
+        return ReducedBasis(b, gradient_basis(self.X, w, dw), True, contact_b)
 
     # ---- states --------------------------------------------------------------------------------
     def rest_state(self, zdot: Tensor | None = None) -> SimState:
@@ -353,52 +569,85 @@ class Simulator:
         return state
 
     # ---- stepping ------------------------------------------------------------------------------
-    def step(self, state: SimState, basis: tuple[Tensor, Tensor, bool] | None = None,
-             lame: tuple[Tensor, Tensor] | None = None) -> SimState:
-        """One implicit-Euler step. Differentiable (adjoint) w.r.t. the state, E, ν, density and the field."""
+    def step(self, state: SimState, basis: "ReducedBasis | None" = None,
+             lame: tuple[Tensor, Tensor] | None = None, tau: Tensor | None | str = "auto",
+             cache: NewtonCache | None = None, substeps: int | None = None) -> SimState:
+        """Advance one video frame (``config.substeps`` implicit steps). Differentiable (adjoint of every
+        step) w.r.t. the state, E, ν, density, the damping ratio and the field.
+
+        ``basis``, ``lame``, ``tau`` and ``substeps`` may be passed precomputed and ``cache`` shared between
+        frames (as :meth:`rollout` does); the cache must only be shared by steps with the same inputs."""
         if state.z.shape != (self.num_dofs,) or state.zdot.shape != (self.num_dofs,):
             raise ValueError(f"state z and zdot must have shape ({self.num_dofs},), got {tuple(state.z.shape)}, {tuple(state.zdot.shape)}")
-        if not bool(torch.isfinite(state.z).all() & torch.isfinite(state.zdot).all()):
+        if (state.z_prev is None) != (state.zdot_prev is None):
+            raise ValueError("state.z_prev and state.zdot_prev must be given together (or both None)")
+        history = [state.z, state.zdot] + ([state.z_prev, state.zdot_prev] if state.z_prev is not None else [])
+        if not all(bool(torch.isfinite(v).all()) for v in history):
             raise SimulationError(f"state at t = {state.t:.4g} s contains NaN or infinite values")
-        b, basis_t, structured = basis if basis is not None else self.reduced_basis()
+        basis = basis if basis is not None else self.reduced_basis()
+        b, basis_t, structured = basis.b, basis.basis, basis.structured
         mu, lam = lame if lame is not None else self.lame()
-        A = torch.eye(3, dtype=self.X.dtype, device=self.X.device).expand(self.X.shape[0], 3, 3)
-        if state.Fp_inv is not None:
-            folded = apply_plastic_state(basis_t, structured, state.Fp_inv)
-            A, basis_t = folded.A, folded.tensor
-        t_next = state.t + self.config.dt
-        spec = _StepSpec(self.X, self.vol, A, structured, self.material.model, self.externals, t_next, self.config)
-        y_prev, ydot_prev = state.z[self._perm], state.zdot[self._perm]
-        y = _ImplicitStep.apply(spec, y_prev, ydot_prev, torch.as_tensor(mu), torch.as_tensor(lam),
-                                self.masses(), b, basis_t)
-        z = y[self._inv]
-        zdot = (z - state.z) / self.config.dt
+        tau = self.retardation_time() if isinstance(tau, str) else tau
+        mu, lam = torch.as_tensor(mu), torch.as_tensor(lam)
+        cfg = self.config
+        cache = cache if cache is not None else NewtonCache()
+        n = substeps if substeps is not None else self.substeps()
+        h = cfg.dt / n
+        h_prev = state.h_prev if state.z_prev is not None else None
+        y, ydot = state.z[self._perm], state.zdot[self._perm]
+        y2 = state.z_prev[self._perm] if state.z_prev is not None else None
+        ydot2 = state.zdot_prev[self._perm] if state.zdot_prev is not None else None
         Fp_inv = state.Fp_inv
-        if self.material.plasticity is not None:
-            Fp_inv = self._update_plastic(state, z.detach(), structured, b, mu, lam)
-        return SimState(z, zdot, t_next, Fp_inv, spec.stats.iterations, spec.stats.converged)
+        iterations, converged = 0, True
+        for s in range(n):
+            A = torch.eye(3, dtype=self.X.dtype, device=self.X.device).expand(self.X.shape[0], 3, 3)
+            step_basis = basis_t
+            if Fp_inv is not None:
+                folded = apply_plastic_state(basis_t, structured, Fp_inv)
+                A, step_basis = folded.A, folded.tensor
+            bdf = bdf_step(cfg.integrator, h, h_prev if y2 is not None else None)
+            t_next = state.t + (s + 1) * h
+            if Fp_inv is not None:
+                cache.stale = True  # the plastic state changed the basis
+            spec = _StepSpec(self.X, self.vol, A, structured, self.material.model, self.externals, t_next, bdf, cfg,
+                             self.contact_points, self.contact_weights, self.length_scale, cache)
+            y_new = _ImplicitStep.apply(spec, y, ydot, y2 if bdf.needs_history else None,
+                                        ydot2 if bdf.needs_history else None, mu, lam, tau, self.masses(), b,
+                                        step_basis, basis.contact_b)
+            ydot_new = bdf.velocity(y_new, y, y2 if bdf.needs_history else None)
+            iterations += spec.stats.iterations
+            converged = converged and spec.stats.converged
+            y2, ydot2, y, ydot = y, ydot, y_new, ydot_new
+            h_prev = h
+            if self.material.plasticity is not None:
+                Fp_inv = self._update_plastic(Fp_inv, y.detach()[self._inv], mu, lam)
+        return SimState(y[self._inv], ydot[self._inv], state.t + cfg.dt, Fp_inv, iterations, converged,
+                        y2[self._inv], ydot2[self._inv], h)
 
-    def _update_plastic(self, state: SimState, z: Tensor, structured: bool, b: Tensor, mu, lam) -> Tensor:
+    def _update_plastic(self, Fp_inv: Tensor, z: Tensor, mu, lam) -> Tensor:
         from vid2sim.physics.plasticity import update_plastic_state
 
         F_total = self.deformation_gradients_at_cubature(z)
-        return update_plastic_state(self.material.plasticity, F_total, state.Fp_inv,
+        return update_plastic_state(self.material.plasticity, F_total, Fp_inv,
                                     torch.as_tensor(mu).detach(), torch.as_tensor(lam).detach())
 
     def rollout(self, state: SimState, steps: int, progress: bool = False) -> list[SimState]:
-        """``steps`` implicit steps from ``state``; returns the states after each step (length ``steps``)."""
+        """``steps`` video frames from ``state``; returns the states at the end of each (length ``steps``)."""
         if steps < 0:
             raise ValueError(f"steps must be >= 0, got {steps}")
         basis = self.reduced_basis()
         lame = self.lame()
+        tau = self.retardation_time()
+        cache = NewtonCache()
+        n = self.substeps()
         out = []
         iterator = range(steps)
         if progress:
             from tqdm.auto import tqdm
 
-            iterator = tqdm(iterator, desc="simulate", unit="step")
+            iterator = tqdm(iterator, desc="simulate", unit="frame")
         for _ in iterator:
-            state = self.step(state, basis, lame)
+            state = self.step(state, basis, lame, tau, cache, n)
             out.append(state)
         return out
 
