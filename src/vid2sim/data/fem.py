@@ -1,5 +1,6 @@
 """Finite-element ground truth for the synthetic benchmark: linear tetrahedra, the paper's Neo-Hookean
-energy, gravity and the floor penalty of DESIGN.md, integrated with implicit Euler and Newton's method.
+energy, gravity, the floor penalty of DESIGN.md and Kelvin–Voigt damping, integrated in time (BDF2 or implicit
+Euler) with Newton's method.
 
 Model
 -----
@@ -7,24 +8,27 @@ Model
   Σ_e V_e Ψ(F_e) with Ψ from :mod:`vid2sim.physics.materials` (Neo-Hookean by default, as in the paper).
 * Mass: lumped, ρ V_e / 4 to each vertex of each tet (the same lumped-mass choice as the reduced
   simulator's ρ V / N per cubature point). Gravity energy −Σ_i m_i g·x_i.
-* Floor: the plane z = h with the paper's penalty E_f = k Σ_i max(0, h − z_i)² (k = 1e5 by default),
-  summed **per mesh vertex** (only surface vertices can reach the floor). The reduced simulator sums the
-  same formula over its cubature points, so the two models see the same total contact stiffness only
-  when about as many points touch the floor; a FEM mesh usually has more contact vertices than the
-  reduced model has contact cubature points, so its penetration is smaller. The resting penetration is
-  m g / (2 k n_contact); :attr:`FEMResult.max_penetration` reports it. No friction (the paper's floor
-  has none either).
-* Damping: none besides implicit Euler's numerical dissipation (the paper's model has none either);
-  it is what makes a dropped object settle, and it depends on h — see :attr:`FEMConfig.substeps`.
-* Time integration: implicit Euler with ``substeps`` steps of h = dt / substeps per video frame; each
-  step minimises the incremental potential ½‖x − x_n − h v_n‖²_M / h² + E(x) by Newton's method with a
-  sparse Hessian whose per-element 9×9 tangent C = ∂P/∂F is projected to positive semi-definite (so
-  every element Hessian V Bᵀ C⁺ B, B = ∂vec(F)/∂x_e, is PSD and the system matrix M/h² + K⁺ + floor
-  is SPD). Linear systems: Jacobi-preconditioned CG for time steps, sparse direct LU for statics
-  (:attr:`FEMConfig.linear_solver`). Backtracking line
-  search from the full Newton step; a trial state with any det F ≤ 0, a non-finite energy or no
+* Floor: the plane z = h with a penalty on the surface, E_f = κ Σ_i a_i max(0, h − z_i)² over the boundary
+  vertices with their lumped rest areas a_i (:func:`vid2sim.data.tetra.surface_vertex_areas`): a contact
+  pressure κ · depth integrated over the surface, so the contact stiffness does not change when the mesh
+  is refined (the paper's per-point k Σ max(0, h − z)² would grow with the number of surface vertices).
+  κ = :data:`vid2sim.physics.external.AREA_CONTACT_STIFFNESS` by default; the reduced simulator uses
+  the same law on area-weighted surface contact points. No friction (the paper's floor has none either).
+* Damping: Kelvin–Voigt viscosity on the Green-strain rate, the same model and parameter as the reduced
+  simulator (:mod:`vid2sim.physics.damping`): viscous Lamé parameters τ μ and τ λ with the retardation
+  time τ = 2 ζ L √(ρ/E) from the damping ratio ζ (:attr:`FEMConfig.damping_ratio`) and the object's size
+  L (rest bounding-box diagonal unless :attr:`FEMConfig.damping_length` is given). ζ = 0 is undamped.
+* Time integration: ``substeps`` steps of h = dt / substeps per video frame with BDF2 (default) or
+  implicit Euler (:mod:`vid2sim.physics.integrators`); each step minimises the incremental potential
+  a₀²/(2h²) ‖x − x̂‖²_M + E(x) + (a₀ τ / h) Σ_e V_e ψ(F_e; C_ref,e) by Newton's method with a sparse
+  Hessian (exact first; element tangents projected to positive semi-definite when the exact Hessian gives
+  no descent direction, see :attr:`FEMConfig.hessian_projection`), solved by a sparse LDLᵀ
+  (:attr:`FEMConfig.linear_solver`). Time steps keep the factorisation, turned with the object, while
+  Newton contracts fast (:attr:`FEMConfig.reuse_factorization`). Backtracking line search from the full
+  Newton step; a trial state with any det F ≤ 0, a non-finite energy or no
   sufficient decrease is rejected. Converged when the Newton step's largest vertex move is below
-  ``newton_tol`` × the rest bounding-box diagonal.
+  ``newton_tol`` × the rest bounding-box diagonal. :func:`simulate_fem_converged` doubles the substeps
+  until the trajectory no longer changes by more than a tolerance (the benchmark's ground truth).
 * Fixed (Dirichlet) vertices: a boolean mask; those vertices keep their initial position.
 
 Everything runs in float64 on the CPU with numpy/scipy (the per-element stress and tangent come from
@@ -34,12 +38,13 @@ float64 CPU tensors. This is offline ground-truth generation, so exactness comes
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 import scipy.sparse as sp
@@ -48,7 +53,23 @@ import torch
 from torch import Tensor
 from tqdm.auto import tqdm
 
-from vid2sim.physics.materials import ELASTIC_MODELS, elastic_model, lame_parameters, project_tangent_psd
+from vid2sim.physics.damping import (
+    DEFAULT_DAMPING_RATIO,
+    check_damping_ratio,
+    reference_metric,
+    retardation_time,
+    viscous_tangent,
+)
+from vid2sim.physics.external import AREA_CONTACT_STIFFNESS
+from vid2sim.physics.integrators import INTEGRATORS, bdf_step
+from vid2sim.physics.materials import (
+    ELASTIC_MODELS,
+    elastic_model,
+    lame_parameters,
+    neo_hookean_energy_and_pk1,
+    project_tangent_psd,
+    stvk_energy_and_pk1,
+)
 
 
 class FEMSolverError(RuntimeError):
@@ -65,26 +86,33 @@ class FEMConfig:
         density: ρ in kg/m³.
         material: elastic model, 'neo_hookean' (the paper's) or 'stvk'.
         dt: time between video frames (s).
-        substeps: implicit-Euler steps per frame (h = dt / substeps = 3.1 ms by default). Measured on
-            random drops of a 0.6 × 0.4 × 0.3 m box (E = 1e4…1e6): up to the first impact (frames
-            0–7) the trajectory is first-order convergent and 16 substeps stay within 0.3–1.3 % of the
-            bounding-box diagonal (mean vertex distance) of a 64-substep run; over all 24 frames the
-            mean distance is 2–15 %, because the model has no physical damping (elastic body,
-            conservative penalty floor, no friction) and after an impact implicit Euler's numerical
-            dissipation — which shrinks with h — decides how high the object bounces and how it
-            tumbles. 16 is a cost/accuracy compromise; raise it for more faithful post-impact motion.
+        substeps: time steps per frame (h = dt / substeps). :func:`simulate_fem_converged` refines this
+            until the trajectory is converged in time; see docs/architecture.md for measured figures.
+        integrator: 'bdf2' (second order, default) or 'implicit_euler' (first order, strongly
+            dissipative at large h: on an undamped drop 16 substeps were 14 % of the object's size away
+            from 64 over 24 frames).
+        damping_ratio: ζ of the Kelvin–Voigt material damping at ω_ref = √(E/ρ)/L (0 = undamped).
+        damping_length: L in metres for that reference frequency; None = the rest bounding-box diagonal.
         floor_height: z of the floor plane, or None for no floor.
-        floor_stiffness: k of the floor penalty k Σ_vertices max(0, h − z)².
+        floor_stiffness: κ of the floor penalty κ Σ_i a_i max(0, h − z_i)² over the surface vertices with
+            their lumped areas a_i (Pa per metre of penetration).
         gravity: (3,) acceleration (m/s²).
         newton_max_iters: Newton iterations per step before :class:`FEMSolverError`.
-        newton_tol: convergence when max_i |Δx_i| ≤ newton_tol × rest bounding-box diagonal.
+        newton_tol: convergence when the Newton step's largest vertex move is at most newton_tol × the rest
+            bounding-box diagonal and, in a time step, at most ``newton_rtol`` × the step's largest vertex
+            move (otherwise the small leftover of many short steps would add up).
+        newton_rtol: that relative part of the tolerance.
         line_search_max_halvings: backtracking halvings before :class:`FEMSolverError`.
         armijo: sufficient-decrease constant.
-        linear_solver: Newton system solver: 'direct' (sparse LU, symmetric ordering), 'cg'
-            (Jacobi-preconditioned conjugate gradients; a system CG cannot solve to ``cg_rtol`` in
-            ``cg_max_iters`` is re-solved directly and counted in :attr:`NewtonStats.direct_solves`), or
-            'auto': CG for implicit-Euler steps (the mass term M/h² makes them well conditioned; several
-            times faster on 3D meshes, whose direct factors fill in badly) and direct for static solves.
+        linear_solver: Newton system solver: 'direct' (sparse LU with a symmetric ordering and diagonal
+            pivoting, an LDLᵀ; default) or 'cg' (Jacobi-preconditioned conjugate gradients on a fresh Hessian
+            every iteration; a system CG cannot solve to ``cg_rtol`` in ``cg_max_iters`` is solved directly).
+        reuse_factorization: with the direct solver, keep the factorised Hessian across Newton iterations
+            and time steps (turned with the object by a fitted rotation) and refactorise only when an
+            iteration contracts the step by less than ``reuse_rate`` or needs the line search (a chord
+            Newton method: most steps then cost one gradient and one triangular solve). Static solves
+            always refactorise.
+        reuse_rate: the contraction per iteration below which a kept factorisation is reused.
         cg_rtol: relative residual at which CG stops (the Newton convergence test is on the step, so
             this only needs to make the step accurate to well below ``newton_tol``).
         cg_max_iters: CG iterations before the direct solver takes over.
@@ -102,14 +130,20 @@ class FEMConfig:
     material: str = "neo_hookean"
     dt: float = 0.05
     substeps: int = 16
+    integrator: str = "bdf2"
+    damping_ratio: float = DEFAULT_DAMPING_RATIO
+    damping_length: float | None = None
     floor_height: float | None = -0.7
-    floor_stiffness: float = 1e5
+    floor_stiffness: float = AREA_CONTACT_STIFFNESS
     gravity: tuple[float, float, float] = (0.0, 0.0, -9.8)
     newton_max_iters: int = 100
     newton_tol: float = 1e-6
+    newton_rtol: float = 1e-4
     line_search_max_halvings: int = 40
     armijo: float = 1e-4
-    linear_solver: str = "auto"
+    linear_solver: str = "direct"
+    reuse_factorization: bool = True
+    reuse_rate: float = 0.5
     cg_rtol: float = 1e-6
     cg_max_iters: int = 1000
     hessian_projection: str = "on_demand"
@@ -121,9 +155,18 @@ class FEMConfig:
                 f"FEMConfig.hessian_projection must be 'always' or 'on_demand', got {self.hessian_projection!r}")
         if self.material not in ELASTIC_MODELS:
             raise ValueError(f"FEMConfig.material must be one of {sorted(ELASTIC_MODELS)}, got {self.material!r}")
-        if self.linear_solver not in ("auto", "direct", "cg"):
-            raise ValueError(f"FEMConfig.linear_solver must be 'auto', 'direct' or 'cg', got {self.linear_solver!r}")
-        for name in ("density", "dt", "floor_stiffness", "newton_tol", "cg_rtol"):
+        if self.integrator not in INTEGRATORS:
+            raise ValueError(f"FEMConfig.integrator must be one of {list(INTEGRATORS)}, got {self.integrator!r}")
+        self.damping_ratio = check_damping_ratio(self.damping_ratio, "FEMConfig.damping_ratio")
+        if self.damping_length is not None and not (isinstance(self.damping_length, (int, float))
+                                                    and math.isfinite(self.damping_length) and self.damping_length > 0):
+            raise ValueError(f"FEMConfig.damping_length must be a positive number of metres or None, "
+                             f"got {self.damping_length!r}")
+        if self.linear_solver not in ("direct", "cg"):
+            raise ValueError(f"FEMConfig.linear_solver must be 'direct' or 'cg', got {self.linear_solver!r}")
+        if not 0 < self.reuse_rate < 1:
+            raise ValueError(f"FEMConfig.reuse_rate must be in (0, 1), got {self.reuse_rate!r}")
+        for name in ("density", "dt", "floor_stiffness", "newton_tol", "newton_rtol", "cg_rtol"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and value > 0 and math.isfinite(value)):
                 raise ValueError(f"FEMConfig.{name} must be a positive finite number, got {value!r}")
@@ -256,6 +299,8 @@ class NewtonStats:
         inverted_rejections: line-search trials rejected for inverting a tet.
         projected_solves: iterations whose exact Hessian gave no descent direction and were re-solved
             with the PSD-projected one (``hessian_projection="on_demand"`` only).
+        factorizations: Hessians assembled (and factorised, with the direct solver); fewer than
+            ``iterations`` when a factorisation is reused.
     """
 
     iterations: int = 0
@@ -265,6 +310,7 @@ class NewtonStats:
     direct_solves: int = 0
     inverted_rejections: int = 0
     projected_solves: int = 0
+    factorizations: int = 0
 
 
 class TetFEM:
@@ -315,11 +361,26 @@ class TetFEM:
         if np.any(m <= 0):
             raise ValueError(f"{int(np.sum(m <= 0))} vertices belong to no tet; drop unreferenced vertices first")
         self.masses = m
+        from vid2sim.data.tetra import surface_vertex_areas
+
+        #: (Nv,) lumped rest surface area per vertex (0 inside): the floor penalty's weights
+        self.contact_areas = surface_vertex_areas(torch.from_numpy(X), torch.from_numpy(self.tets)).numpy()
         self.gravity = np.asarray(config.gravity, dtype=np.float64)
+        #: damping length L (m) and Kelvin–Voigt retardation time τ (s); τ = 0 when undamped
+        self.damping_length = float(config.damping_length) if config.damping_length is not None else diag
+        self.tau = float(retardation_time(config.damping_ratio, config.youngs_modulus, config.density,
+                                          self.damping_length))
         self._build_pattern()
 
     # -- sparse pattern: CSR structure of the 3Nv × 3Nv Hessian and where each element entry lands --
     def _build_pattern(self) -> None:
+        # D (9Nt × 3Nv) with F[e, i, j] = Σ_a x[tets[e, a], i] G[e, a, j]: row 9e + 3i + j, column 3 tets[e, a] + i
+        nt = len(self.tets)
+        e, a, i, j = np.meshgrid(np.arange(nt), np.arange(4), np.arange(3), np.arange(3), indexing="ij")
+        self._F_operator = sp.csr_matrix(
+            (self.G[e, a, j].ravel(), ((9 * e + 3 * i + j).ravel(), (3 * self.tets[e, a] + i).ravel())),
+            shape=(9 * nt, 3 * self.num_vertices))
+        self._F_operator_t = self._F_operator.T.tocsr()
         n = 3 * self.num_vertices
         edofs = (3 * self.tets[:, :, None] + np.arange(3)[None, None, :]).reshape(-1, 12)
         rows = np.broadcast_to(edofs[:, :, None], (len(edofs), 12, 12)).ravel()
@@ -332,71 +393,84 @@ class TetFEM:
         self._nnz = len(keys)
 
     def deformation_gradients(self, x: np.ndarray) -> np.ndarray:
-        """F per tet, (Nt, 3, 3), for positions x (Nv, 3)."""
-        return np.matmul(x[self.tets].transpose(0, 2, 1), self.G)
+        """F per tet, (Nt, 3, 3), for positions x (Nv, 3): one sparse product vec F = D x (D is built once)."""
+        return (self._F_operator @ np.ascontiguousarray(x).reshape(-1)).reshape(-1, 3, 3)
 
     def min_det(self, x: np.ndarray) -> float:
         """Smallest det F over the tets (≤ 0 means an inverted tet)."""
-        return float(np.linalg.det(self.deformation_gradients(x)).min())
+        return float(_det3(self.deformation_gradients(x)).min())
 
     def energy_terms(self, x: np.ndarray) -> dict[str, float]:
         """Elastic, gravity (−Σ m g·x) and floor energies at positions x (Nv, 3); elastic is +inf if inverted."""
         F = self.deformation_gradients(x)
-        if np.linalg.det(F).min() <= 0:
+        if _det3(F).min() <= 0:
             elastic = math.inf
         else:
             elastic = float(self.volumes @ self._psi(torch.from_numpy(F), self.mu, self.lam).numpy())
         return {"elastic": elastic, "gravity": float(-(self.masses @ (x @ self.gravity))), "floor": self._floor(x)[0]}
+
+    def viscous_term(self, coefficients: tuple[float, float, float], h: float, F_prev: np.ndarray,
+                     F_prev2: np.ndarray | None) -> "ViscousTerm | None":
+        """The damping part of a time step's incremental potential (None when undamped): reference metric
+        C_ref (Nt, 3, 3) from the element F of the last one or two steps, weight a₀ τ / h."""
+        if self.tau == 0.0:
+            return None
+        c_ref = reference_metric(coefficients, torch.from_numpy(F_prev),
+                                 None if F_prev2 is None else torch.from_numpy(F_prev2))
+        return ViscousTerm(c_ref, coefficients[0] * self.tau / h)
 
     def _floor(self, x: np.ndarray) -> tuple[float, np.ndarray]:
         """Floor energy and the per-vertex penetration depths max(0, h − z) (Nv,)."""
         if self.config.floor_height is None:
             return 0.0, np.zeros(self.num_vertices)
         d = np.maximum(0.0, self.config.floor_height - x[:, 2])
-        return float(self.config.floor_stiffness * (d @ d)), d
+        return float(self.config.floor_stiffness * (self.contact_areas @ (d * d))), d
 
-    def _objective(self, x, x_tilde, inertia, x_ref) -> float:
-        """Φ(x) = inertia/2 ‖x − x̃‖²_M + Ψ(x) + E_floor(x) − Σ m g·(x − x_ref); +inf if any tet is inverted."""
+    def _evaluate(self, x: np.ndarray, x_tilde, inertia: float, x_ref: np.ndarray,
+                  viscous: "ViscousTerm | None" = None) -> tuple[float, np.ndarray | None, Tensor | None, float]:
+        """Φ(x) = inertia/2 ‖x − x̃‖²_M + Ψ(x) + w Σ V ψ(F; C_ref) + E_floor(x) − Σ m g·(x − x_ref), its gradient
+        (3Nv,), the element F (Nt, 3, 3) and the round-off size of Φ (1e-12 × the sum of the magnitudes of its
+        terms), in one pass; (inf, None, None, 0) if a tet is inverted."""
         F = self.deformation_gradients(x)
-        if not np.linalg.det(F).min() > 0:
-            return math.inf
-        phi = float(self.volumes @ self._psi(torch.from_numpy(F), self.mu, self.lam).numpy())
-        phi += self._floor(x)[0] - float(self.masses @ ((x - x_ref) @ self.gravity))
-        if inertia:
-            r = x - x_tilde
-            phi += 0.5 * inertia * float(self.masses @ (r * r).sum(1))
-        return phi
-
-    def _roundoff(self, x, x_tilde, inertia) -> float:
-        """Size of the round-off in Φ: 1e-12 × the sum of the magnitudes of its terms (energy units)."""
-        F = self.deformation_gradients(x)
-        scale = float(self.volumes @ np.abs(self._psi(torch.from_numpy(F), self.mu, self.lam).numpy()))
-        scale += self._floor(x)[0] + float(self.masses @ np.abs(x @ self.gravity))
-        if inertia:
-            r = x - x_tilde
-            scale += 0.5 * inertia * float(self.masses @ (r * r).sum(1))
-        return 1e-12 * scale
-
-    def _gradient_hessian(self, x, x_tilde, inertia, project: bool) -> tuple[np.ndarray, sp.csr_matrix, Tensor]:
-        """∇Φ (3Nv,), the sparse Hessian (3Nv × 3Nv CSR; element tangents PSD-projected if ``project``) and
-        the element deformation gradients F (Nt, 3, 3) for :meth:`_hessian`."""
-        F = torch.from_numpy(self.deformation_gradients(x))
-        P = self._pk1(F, self.mu, self.lam).numpy()
-        vol = self.volumes
-        # element forces: ∂(V Ψ)/∂x_{a,i} = V Σ_j P_ij G_aj
-        fe = vol[:, None, None] * np.matmul(self.G, P.transpose(0, 2, 1))  # (Nt, 4, 3)
-        flat = self.tets.ravel()
-        grad = np.stack([np.bincount(flat, weights=fe[..., c].ravel(), minlength=self.num_vertices)
-                         for c in range(3)], axis=1)
+        if not _det3(F).min() > 0:
+            return math.inf, None, None, 0.0
+        Ft = torch.from_numpy(F)
+        psi, P = self._energy_and_pk1(Ft)
+        elastic = float(self.volumes @ psi.numpy())
+        scale = float(self.volumes @ np.abs(psi.numpy()))
+        phi = elastic
+        if viscous is not None:
+            psi_d, P_d = stvk_energy_and_pk1(Ft, self.mu, self.lam, viscous.c_ref)
+            phi += viscous.weight * float(self.volumes @ psi_d.numpy())
+            P = P + viscous.weight * P_d
+        # forces ∂(Σ V Ψ)/∂x = Dᵀ vec(V P) with vec F = D x
+        grad = (self._F_operator_t @ (self.volumes[:, None, None] * P.numpy()).reshape(-1)).reshape(-1, 3)
         grad -= self.masses[:, None] * self.gravity[None, :]
+        gravity = float(self.masses @ ((x - x_ref) @ self.gravity))
+        phi -= gravity
+        scale += float(self.masses @ np.abs(x @ self.gravity))
         if self.config.floor_height is not None:
             d = np.maximum(0.0, self.config.floor_height - x[:, 2])
-            grad[:, 2] -= 2.0 * self.config.floor_stiffness * d
+            floor = float(self.config.floor_stiffness * (self.contact_areas @ (d * d)))
+            phi += floor
+            scale += floor
+            grad[:, 2] -= 2.0 * self.config.floor_stiffness * self.contact_areas * d
         if inertia:
-            grad += inertia * self.masses[:, None] * (x - x_tilde)
-        return grad.ravel(), self._hessian(x, inertia, F, project), F
+            r = x - x_tilde
+            kinetic = 0.5 * inertia * float(self.masses @ (r * r).sum(1))
+            phi += kinetic
+            scale += kinetic
+            grad += inertia * self.masses[:, None] * r
+        return phi, grad.ravel(), Ft, 1e-12 * scale
 
-    def _hessian(self, x: np.ndarray, inertia: float, F: Tensor, project: bool) -> sp.csr_matrix:
+    def _energy_and_pk1(self, F: Tensor) -> tuple[Tensor, Tensor]:
+        if self.config.material == "neo_hookean":
+            psi, P, _ = neo_hookean_energy_and_pk1(F, self.mu, self.lam)
+            return psi, P
+        return stvk_energy_and_pk1(F, self.mu, self.lam)
+
+    def _hessian(self, x: np.ndarray, inertia: float, F: Tensor, project: bool,
+                 viscous: "ViscousTerm | None" = None) -> sp.csr_matrix:
         """Sparse Hessian of Φ at x (3Nv × 3Nv CSR) from the element F (Nt, 3, 3); element tangents are
         projected to PSD (making H PSD) if ``project``, else exact."""
         C = self._tangent(F, self.mu, self.lam)
@@ -404,12 +478,14 @@ class TetFEM:
             C = project_tangent_psd(self.config.material, F, C, self.mu, self.lam)
         else:
             C = 0.5 * (C + C.transpose(1, 2))
+        if viscous is not None:
+            C = C + viscous.weight * viscous_tangent(F, viscous.c_ref, self.mu, self.lam, psd=project)
         # element Hessians V Bᵀ C B (Nt, 12, 12)
         Ke = self.volumes[:, None, None] * np.matmul(self.B.transpose(0, 2, 1), np.matmul(C.numpy(), self.B))
         data = np.bincount(self._scatter, weights=Ke.ravel(), minlength=self._nnz)
         diag = np.zeros((self.num_vertices, 3))
         if self.config.floor_height is not None:
-            diag[:, 2] += 2.0 * self.config.floor_stiffness * (self.config.floor_height - x[:, 2] > 0)
+            diag[:, 2] += 2.0 * self.config.floor_stiffness * self.contact_areas * (self.config.floor_height - x[:, 2] > 0)
         if inertia:
             diag += inertia * self.masses[:, None]
         data[self._diag_pos] += diag.ravel()
@@ -417,14 +493,22 @@ class TetFEM:
         return sp.csr_matrix((data, self._indices, self._indptr), shape=(n, n))
 
     def minimize(self, x_start: np.ndarray, x_tilde: np.ndarray | None = None, inertia: float = 0.0,
-                 free: np.ndarray | None = None) -> tuple[np.ndarray, NewtonStats]:
-        """Newton minimisation of Φ(x) = inertia/2 ‖x − x̃‖²_M + E(x) over the free vertices.
+                 free: np.ndarray | None = None, viscous: "ViscousTerm | None" = None,
+                 factor: "FactorCache | None" = None, step_origin: np.ndarray | None = None
+                 ) -> tuple[np.ndarray, NewtonStats]:
+        """Newton minimisation of Φ(x) = inertia/2 ‖x − x̃‖²_M + E(x) (+ the viscous term) over the free vertices.
 
         Args:
             x_start: (Nv, 3) start positions (must have no inverted tet); fixed vertices keep these.
-            x_tilde: (Nv, 3) inertial target x_n + h v_n (ignored when ``inertia`` is 0).
-            inertia: 1/h² for an implicit-Euler step, 0 for a static equilibrium.
+            x_tilde: (Nv, 3) inertial target x̂ of the time step (ignored when ``inertia`` is 0).
+            inertia: a₀²/h² for a time step, 0 for a static equilibrium.
             free: (Nv,) bool, the vertices that move (default: all).
+            viscous: the damping term of a time step (:meth:`viscous_term`), or None.
+            factor: with the direct solver, a :class:`FactorCache` whose sparse factorisation is kept
+                between calls and reused (rotated with the object) while the steps contract by at least
+                ``FEMConfig.reuse_rate`` per iteration; None factorises at every iteration (plain Newton).
+            step_origin: (Nv, 3) the positions at the start of the time step: the Newton tolerance is then
+                also relative to the step's largest vertex move (``FEMConfig.newton_rtol``).
 
         Returns:
             ``(x (Nv, 3), NewtonStats)``.
@@ -438,80 +522,138 @@ class TetFEM:
             raise FEMSolverError(f"the start state has an inverted tet (min det F = {self.min_det(x):.3g})")
         free_dofs = None if free is None else np.repeat(np.asarray(free, dtype=bool), 3)
         stats = NewtonStats()
-        use_cg = cfg.linear_solver == "cg" or (cfg.linear_solver == "auto" and inertia > 0)
+        use_cg = cfg.linear_solver == "cg"
+        reuse = factor is not None and not use_cg
+        factor = factor if reuse else FactorCache()
         always_project = cfg.hessian_projection == "always"
 
-        def direction(H: sp.csr_matrix, g: np.ndarray, exact: bool) -> tuple[np.ndarray | None, float]:
-            """Newton step p (3Nv,) and gᵀp over the free dofs; (None, nan) if the exact H gives none."""
-            if free_dofs is None:
-                p = self._solve(H, -g, use_cg, stats, exact)
-            else:
-                sol = self._solve(H[free_dofs][:, free_dofs], -g[free_dofs], use_cg, stats, exact)
-                p = None if sol is None else np.zeros_like(g)
-                if p is not None:
-                    p[free_dofs] = sol
-            return (None, math.nan) if p is None else (p, float(g @ p))
+        def restrict(H: sp.csr_matrix) -> sp.csr_matrix:
+            return H if free_dofs is None else H[free_dofs][:, free_dofs]
 
-        phi = self._objective(x, x_tilde, inertia, x_start)
-        tol = cfg.newton_tol * self.bbox_diagonal
-        for it in range(cfg.newton_max_iters):
-            g, H, F = self._gradient_hessian(x, x_tilde, inertia, project=always_project)
-            p, gp = direction(H, g, exact=not always_project)
-            if not always_project and not gp < 0:  # exact Hessian indefinite here: project it
+        def refresh(x: np.ndarray, F: Tensor) -> None:
+            """Factorise (direct) or store (CG) the Hessian at x: exact when it is positive definite
+            (``on_demand``), else with projected element tangents."""
+            if not always_project:
+                H = restrict(self._hessian(x, inertia, F, False, viscous))
+                if use_cg:
+                    factor.set(H, None, self._centred(x, free))
+                    return
+                lu = self._factorize(H, stats, exact=True)
+                if lu is not None:
+                    factor.set(H, lu, self._centred(x, free))
+                    return
                 stats.projected_solves += 1
-                p, gp = direction(self._hessian(x, inertia, F, project=True), g, exact=False)
+            H = restrict(self._hessian(x, inertia, F, True, viscous))
+            factor.set(H, None if use_cg else self._factorize(H, stats, exact=False), self._centred(x, free))
+
+        phi, g, F, slack = self._evaluate(x, x_tilde, inertia, x_start, viscous)
+        absolute = cfg.newton_tol * self.bbox_diagonal
+        previous = math.inf
+        step = np.zeros_like(x)
+        for it in range(cfg.newton_max_iters):
+            fresh = factor.stale or not reuse
+            if fresh:
+                refresh(x, F)
+                stats.factorizations += 1
+            p = self._direction(factor, g, x, free, free_dofs, use_cg, stats)
+            gp = float(g @ p) if p is not None else math.nan
+            if use_cg and not always_project and not gp < 0:  # CG found the exact Hessian indefinite: project
+                stats.projected_solves += 1
+                H = restrict(self._hessian(x, inertia, F, True, viscous))
+                factor.set(H, None, self._centred(x, free))
+                p = self._direction(factor, g, x, free, free_dofs, use_cg, stats)
+                gp = float(g @ p)
             stats.iterations = it + 1
             step = p.reshape(-1, 3)
-            if np.abs(step).max() <= tol:
+            size = float(np.abs(step).max())
+            tol = absolute
+            if step_origin is not None:  # a time step: also relative to how far it moves the vertices
+                motion = float(np.abs(x + step - step_origin).max())
+                tol = max(1e-12 * self.bbox_diagonal, min(absolute, cfg.newton_rtol * motion))
+            if size <= tol:
                 x_try = x + step
                 if self.min_det(x_try) > 0:
                     x = x_try
                 stats.converged = True
                 return x, stats
-            if gp >= 0:
+            if not gp < 0:
+                if not fresh:
+                    factor.stale = True
+                    continue
                 raise FEMSolverError(f"Newton direction is not a descent direction (gᵀp = {gp:.3g}) at iteration {it}")
             alpha = 1.0
-            slack = self._roundoff(x, x_tilde, inertia)  # accept changes of Φ below its round-off
+            halvings = 0
             for _ in range(cfg.line_search_max_halvings):
                 x_try = x + alpha * step
-                phi_try = self._objective(x_try, x_tilde, inertia, x_start)
-                if phi_try <= phi + cfg.armijo * alpha * gp + slack:
+                phi_try, g_try, F_try, slack_try = self._evaluate(x_try, x_tilde, inertia, x_start, viscous)
+                if phi_try <= phi + cfg.armijo * alpha * gp + slack:  # changes of Φ below its round-off pass
                     break
                 stats.inverted_rejections += int(math.isinf(phi_try))
                 alpha *= 0.5
-                stats.line_search_halvings += 1
+                halvings += 1
             else:
+                if not fresh:  # the reused factorisation led nowhere: retry from here with a fresh one
+                    factor.stale = True
+                    continue
                 raise FEMSolverError(
                     f"line search found no valid step after {cfg.line_search_max_halvings} halvings at Newton iteration "
                     f"{it} (min det F along the step: {self.min_det(x + alpha * step):.3g}, max step "
                     f"{np.abs(step).max():.3g} m)")
-            x, phi = x_try, phi_try
+            stats.line_search_halvings += halvings
+            if halvings > 0 or (not fresh and size > cfg.reuse_rate * previous):
+                factor.stale = True  # far from converged or slow contraction: refactorise at the next iteration
+            previous = size
+            x, phi, g, F, slack = x_try, phi_try, g_try, F_try, slack_try
         raise FEMSolverError(
             f"Newton did not converge in {cfg.newton_max_iters} iterations (last step "
             f"{np.abs(step).max():.3g} m > tolerance {tol:.3g} m); raise FEMConfig.newton_max_iters or substeps")
 
-    def _solve(self, H: sp.csr_matrix, rhs: np.ndarray, use_cg: bool, stats: NewtonStats,
-               exact: bool = False) -> np.ndarray | None:
-        """Solve the symmetric system H p = rhs: Jacobi-preconditioned CG if ``use_cg`` (direct if CG does not
-        reach ``cg_rtol``), else a sparse direct LU with a symmetric ordering.
+    def _centred(self, x: np.ndarray, free: np.ndarray | None) -> np.ndarray | None:
+        """Mass-centred positions (for the rotation fit of a reused factorisation); None with fixed vertices
+        (a clamped body does not turn as a whole)."""
+        if free is not None and not free.all():
+            return None
+        return x - (self.masses @ x) / self.masses.sum()
 
-        With ``exact`` (H may be indefinite), returns None instead of falling back or raising when CG does
-        not converge, or the factorisation is singular or shows H is not positive definite; the caller
-        then projects H. Without it H must be positive (semi-)definite.
-        """
+    def _direction(self, factor: "FactorCache", g: np.ndarray, x: np.ndarray, free: np.ndarray | None,
+                   free_dofs: np.ndarray | None, use_cg: bool, stats: NewtonStats) -> np.ndarray | None:
+        """−H⁻¹ g over the free dofs (3Nv,) with the kept matrix, turned by the rotation the object made
+        since it was formed: H(R x) = (I ⊗ R) H(x) (I ⊗ R)ᵀ for the rotation-invariant energy."""
+        R = None
+        if factor.points is not None:
+            R = _fitted_rotation(factor.points, self._centred(x, free), self.masses)
+        gg = g.reshape(-1, 3)
+        if R is not None:
+            gg = gg @ R  # rows Rᵀ g_i
+        rhs = -gg.reshape(-1)
+        if free_dofs is not None:
+            rhs = rhs[free_dofs]
         if use_cg:
-            count = [0]
+            sol, iterations, ok = _jacobi_pcg(factor.matrix, rhs, self.config.cg_rtol, self.config.cg_max_iters)
+            stats.cg_iterations += iterations
+            if not ok:
+                lu = self._factorize(factor.matrix, stats, exact=False)
+                sol = lu.solve(rhs)
+        else:
+            sol = factor.lu.solve(rhs)
+        if not np.isfinite(sol).all():
+            raise FEMSolverError("the Newton system produced a non-finite step (singular Hessian: is the object "
+                                 "floating with no mass or are all vertices fixed?)")
+        p = np.zeros(3 * self.num_vertices)
+        if free_dofs is None:
+            p = sol
+        else:
+            p[free_dofs] = sol
+        if R is not None:
+            p = (p.reshape(-1, 3) @ R.T).reshape(-1)
+        return p
 
-            def tick(_):
-                count[0] += 1
+    def _factorize(self, H: sp.csr_matrix, stats: NewtonStats, exact: bool):
+        """Sparse LU of the symmetric H with a symmetric ordering and diagonal pivoting (an LDLᵀ).
 
-            p, info = spla.cg(H, rhs, rtol=self.config.cg_rtol, maxiter=self.config.cg_max_iters,
-                              M=sp.diags(1.0 / H.diagonal()), callback=tick)
-            stats.cg_iterations += count[0]
-            if info == 0 and np.isfinite(p).all():
-                return p
-            if exact:
-                return None
+        With ``exact`` (H may be indefinite) returns None when H is singular or not positive definite
+        (Sylvester: a pivot ≤ 0); otherwise raises :class:`FEMSolverError` when H is singular.
+        """
         stats.direct_solves += 1
         # H is symmetric, so its CSR arrays are also its CSC arrays
         Hc = sp.csc_matrix((H.data, H.indices, H.indptr), shape=H.shape)
@@ -522,43 +664,130 @@ class TetFEM:
                 return None
             raise FEMSolverError(f"the Newton system is singular ({err}): is part of the mesh unconstrained in "
                                  "a static solve?") from None
-        if exact:
-            # diagonal pivoting with the same row and column order is a symmetric LDLᵀ (D = diag U):
-            # by Sylvester's law H is positive definite iff every pivot is positive
-            if not (np.array_equal(lu.perm_r, lu.perm_c) and (lu.U.diagonal() > 0).all()):
-                return None
-        p = lu.solve(rhs)
-        if not np.isfinite(p).all():
-            if exact:
-                return None
-            raise FEMSolverError("the Newton system produced a non-finite step (singular Hessian: is the object "
-                                 "floating with no mass or are all vertices fixed?)")
-        return p
+        if exact and not (np.array_equal(lu.perm_r, lu.perm_c) and (lu.U.diagonal() > 0).all()):
+            return None
+        return lu
 
     def step(self, x: np.ndarray, v: np.ndarray, h: float, free: np.ndarray | None = None,
-             v_prev: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, NewtonStats]:
-        """One implicit-Euler step of length h: (x, v) (Nv, 3) each → (x', v', stats), v' = (x' − x)/h.
+             history: tuple[np.ndarray, np.ndarray] | None = None,
+             factor: "FactorCache | None" = None) -> tuple[np.ndarray, np.ndarray, NewtonStats]:
+        """One time step of length h with ``config.integrator``: (x, v) (Nv, 3) each → (x', v', stats).
 
-        Newton starts from the candidate with the lowest incremental potential among x + h(2v − v_prev)
-        (constant-acceleration extrapolation, when the previous velocity ``v_prev`` is given), the
-        inertial prediction x + h v, and x itself; the start only affects the iteration count.
+        Args:
+            x, v: positions and velocities at the start of the step.
+            h: step length (s).
+            free: (Nv,) bool, the vertices that move (default: all).
+            history: (x_prev, v_prev), the state one step earlier, or None (the first step, which BDF2
+                takes as an implicit-Euler step).
+            factor: a :class:`FactorCache` shared by consecutive steps (see :meth:`minimize`), or None.
+
+        Newton starts from the extrapolation x + h(3/2 v − 1/2 v_prev) when there is history (error O(h³)),
+        else from the inertial target x̂ (or x itself if that inverts a tet). All steps of a run have the
+        same h.
         """
-        x_tilde = x + h * v
-        inertia = 1.0 / (h * h)
-        candidates = [x_tilde, x] if v_prev is None else [x + h * (2.0 * v - v_prev), x_tilde, x]
-        best, best_phi = x, math.inf
-        for c in candidates:
-            c = c.copy()
-            if free is not None:
-                c[~free] = x[~free]
-            phi = self._objective(c, x_tilde, inertia, x)
-            if phi < best_phi:
-                best, best_phi = c, phi
-        x_new, stats = self.minimize(best, x_tilde, inertia, free)
-        v_new = (x_new - x) / h
+        bdf = bdf_step(self.config.integrator, h, h if history is not None else None)
+        x_prev, v_prev = history if history is not None else (None, None)
+        hist = bdf.needs_history
+        x_hat = bdf.target(x, v, x_prev if hist else None, v_prev if hist else None)
+        inertia = 1.0 / bdf.energy_scale
+        viscous = self.viscous_term(bdf.coefficients, h, self.deformation_gradients(x),
+                                    self.deformation_gradients(x_prev) if hist else None)
+        start = x_hat if v_prev is None else bdf.start(x, v, v_prev)
+        start = start.copy()
+        if free is not None:
+            start[~free] = x[~free]
+        if not self.min_det(start) > 0:
+            start = x
+        x_new, stats = self.minimize(start, x_hat, inertia, free, viscous, factor, step_origin=x)
+        v_new = bdf.velocity(x_new, x, x_prev if hist else None)
         if free is not None:
             v_new[~free] = 0.0
         return x_new, v_new, stats
+
+
+@dataclass
+class FactorCache:
+    """The Newton matrix kept between iterations and time steps by :meth:`TetFEM.minimize`.
+
+    Attributes:
+        matrix: the (free-dof) Hessian it was made from (CSR).
+        lu: its sparse factorisation (direct solver), or None.
+        points: (Nv, 3) mass-centred positions where it was made (for the rotation fit), or None.
+        stale: refactorise at the next iteration.
+    """
+
+    matrix: sp.csr_matrix | None = None
+    lu: object | None = None
+    points: np.ndarray | None = None
+    stale: bool = True
+
+    def set(self, matrix: sp.csr_matrix, lu, points: np.ndarray | None) -> None:
+        self.matrix, self.lu, self.points, self.stale = matrix, lu, points, False
+
+
+@dataclass
+class ViscousTerm:
+    """The Kelvin–Voigt part w Σ_e V_e ψ(F_e; C_ref,e) of a time step's incremental potential (FEM scale).
+
+    Attributes:
+        c_ref: (Nt, 3, 3) reference metric per tet (float64 tensor).
+        weight: w = a₀ τ / h.
+    """
+
+    c_ref: Tensor
+    weight: float
+
+
+def _jacobi_pcg(H: sp.csr_matrix, b: np.ndarray, rtol: float, max_iters: int) -> tuple[np.ndarray, int, bool]:
+    """Conjugate gradients on H x = b with the Jacobi preconditioner: (x, iterations, converged).
+
+    Not converged (returns False) when the residual does not reach ``rtol``·‖b‖ in ``max_iters`` iterations,
+    or when a search direction has pᵀHp ≤ 0 (H not positive definite along it) or a value is not finite.
+    """
+    d = H.diagonal()
+    if not (d > 0).all():
+        return np.zeros_like(b), 0, False
+    dinv = 1.0 / d
+    x = np.zeros_like(b)
+    r = b.copy()
+    z = dinv * r
+    p = z.copy()
+    rz = float(r @ z)
+    target = rtol * float(np.linalg.norm(b))
+    if float(np.linalg.norm(r)) <= target:
+        return x, 0, True
+    for it in range(1, max_iters + 1):
+        Hp = H @ p
+        curvature = float(p @ Hp)
+        if not curvature > 0:
+            return x, it, False
+        a = rz / curvature
+        x += a * p
+        r -= a * Hp
+        if float(np.linalg.norm(r)) <= target:
+            return x, it, bool(np.isfinite(x).all())
+        z = dinv * r
+        rz_new = float(r @ z)
+        p *= rz_new / rz
+        p += z
+        rz = rz_new
+    return x, max_iters, False
+
+
+def _det3(F: np.ndarray) -> np.ndarray:
+    """Determinants of (N, 3, 3) matrices by the triple product (faster than LU for 3×3)."""
+    return (F[:, 0, 0] * (F[:, 1, 1] * F[:, 2, 2] - F[:, 1, 2] * F[:, 2, 1])
+            - F[:, 0, 1] * (F[:, 1, 0] * F[:, 2, 2] - F[:, 1, 2] * F[:, 2, 0])
+            + F[:, 0, 2] * (F[:, 1, 0] * F[:, 2, 1] - F[:, 1, 1] * F[:, 2, 0]))
+
+
+def _fitted_rotation(reference: np.ndarray, x: np.ndarray, m: np.ndarray) -> np.ndarray:
+    """The rotation R (3, 3) minimising Σ m_i ‖R a_i − b_i‖² for centred point sets a (reference) and b (x)
+    (Kabsch, reflection removed)."""
+    cov = (x * m[:, None]).T @ reference
+    U, _, Vt = np.linalg.svd(cov)
+    d = np.sign(np.linalg.det(U @ Vt))
+    return (U * np.array([1.0, 1.0, d])) @ Vt
 
 
 # ---- results and drivers --------------------------------------------------------------------------
@@ -583,6 +812,10 @@ class FEMResult:
         pose: the InitialPose used.
         fixed: (Nv,) bool mask of fixed vertices.
         wall_time: seconds spent simulating.
+        time_convergence: how the time step was checked (:func:`simulate_fem_converged`): the substeps
+            compared, the trajectory difference between them (percent of the size, mean over frames 1 … T−1
+            and the largest frame), the tolerance, every comparison made and the wall time of all runs;
+            None for a single run.
     """
 
     rest_vertices: Tensor
@@ -599,6 +832,7 @@ class FEMResult:
     pose: InitialPose
     fixed: Tensor
     wall_time: float = 0.0
+    time_convergence: dict | None = None
 
     @property
     def max_penetration(self) -> float:
@@ -615,7 +849,7 @@ class FEMResult:
                    "line_search_halvings", "inverted_rejections", "fixed")}
         arrays.update({f"energy_{k}": v.numpy() for k, v in self.energies.items()})
         np.savez_compressed(path, config=json.dumps(asdict(self.config)), pose=json.dumps(asdict(self.pose)),
-                            wall_time=self.wall_time, **arrays)
+                            wall_time=self.wall_time, time_convergence=json.dumps(self.time_convergence), **arrays)
         return path if path.suffix == ".npz" else path.with_name(path.name + ".npz")
 
     @classmethod
@@ -637,7 +871,8 @@ class FEMResult:
                        min_det=t("min_det"), newton_iterations=t("newton_iterations"),
                        line_search_halvings=t("line_search_halvings"), inverted_rejections=t("inverted_rejections"),
                        config=FEMConfig(**cfg), pose=InitialPose(**json.loads(str(z["pose"]))),
-                       fixed=t("fixed"), wall_time=float(z["wall_time"]))
+                       fixed=t("fixed"), wall_time=float(z["wall_time"]),
+                       time_convergence=json.loads(str(z["time_convergence"])) if "time_convergence" in z.files else None)
 
 
 def _fixed_mask(fixed, num_vertices: int) -> np.ndarray:
@@ -658,7 +893,8 @@ def _mechanical_energy(model: TetFEM, x: np.ndarray, v: np.ndarray) -> dict[str,
 
 def simulate_fem(vertices: Tensor | np.ndarray, tets: Tensor | np.ndarray, config: FEMConfig | None = None,
                  pose: InitialPose | None = None, frames: int = 24, fixed: Tensor | np.ndarray | None = None,
-                 initial_velocity: Tensor | np.ndarray | None = None, progress: bool = True) -> FEMResult:
+                 initial_velocity: Tensor | np.ndarray | None = None, progress: bool = True,
+                 on_frame: Callable[[], None] | None = None) -> FEMResult:
     """Simulate an elastic tet mesh dropped onto the floor.
 
     Args:
@@ -671,6 +907,7 @@ def simulate_fem(vertices: Tensor | np.ndarray, tets: Tensor | np.ndarray, confi
         fixed: (Nv,) bool mask of vertices held at their initial positions (Dirichlet), or None.
         initial_velocity: (Nv, 3) velocity overriding the pose's rigid velocity (e.g. a mode shape).
         progress: show a tqdm bar over frames.
+        on_frame: called after every simulated frame (progress reporting from another process).
 
     Returns:
         FEMResult with (T, Nv, 3) trajectory and velocities, energies, Newton statistics.
@@ -681,6 +918,29 @@ def simulate_fem(vertices: Tensor | np.ndarray, tets: Tensor | np.ndarray, confi
     config = config or FEMConfig()
     if not (isinstance(frames, int) and frames >= 1):
         raise ValueError(f"frames must be an integer >= 1, got {frames!r}")
+    with single_torch_thread():
+        return _simulate(vertices, tets, config, pose, frames, fixed, initial_velocity, progress, on_frame)
+
+
+@contextlib.contextmanager
+def single_torch_thread():
+    """Run torch on one intra-op thread inside the block (restored after).
+
+    The FEM alternates small torch kernels (per-tet stresses) with numpy/scipy work; with several torch
+    threads their OpenMP workers keep spinning through the numpy parts and slow both down (measured 4.5×
+    on a 13 000-tet mesh with 2 threads). Parallelism comes from running independent simulations side by
+    side instead (:func:`simulate_fem_converged`).
+    """
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(previous)
+
+
+def _simulate(vertices, tets, config: FEMConfig, pose, frames: int, fixed, initial_velocity, progress: bool,
+              on_frame: Callable[[], None] | None) -> FEMResult:
     model = TetFEM(vertices, tets, config)
     fixed_np = _fixed_mask(fixed, model.num_vertices)
     free = None if not fixed_np.any() else ~fixed_np
@@ -709,12 +969,13 @@ def simulate_fem(vertices: Tensor | np.ndarray, tets: Tensor | np.ndarray, confi
     halvings = np.zeros(frames - 1, dtype=np.int64)
     rejections = np.zeros(frames - 1, dtype=np.int64)
     start = time.perf_counter()
-    v_prev = None
+    history = None
+    factor = FactorCache() if config.reuse_factorization else None
     for f in tqdm(range(frames - 1), desc="FEM frames", disable=not progress):
         for s in range(config.substeps):
             try:
-                x, v_new, stats = model.step(x, v, h, free, v_prev)
-                v_prev, v = v, v_new
+                x_new, v_new, stats = model.step(x, v, h, free, history, factor)
+                history, x, v = (x, v), x_new, v_new
             except FEMSolverError as err:
                 raise FEMSolverError(f"frame {f + 1}, substep {s + 1}/{config.substeps}: {err}") from None
             iters[f, s] = stats.iterations
@@ -725,6 +986,8 @@ def simulate_fem(vertices: Tensor | np.ndarray, tets: Tensor | np.ndarray, confi
         dets.append(model.min_det(x))
         for k, val in _mechanical_energy(model, x, v).items():
             energies[k].append(val)
+        if on_frame is not None:
+            on_frame()
     wall = time.perf_counter() - start
     return FEMResult(
         rest_vertices=rest, tets=torch.from_numpy(model.tets), trajectory=torch.from_numpy(np.stack(traj)),
@@ -733,6 +996,102 @@ def simulate_fem(vertices: Tensor | np.ndarray, tets: Tensor | np.ndarray, confi
         min_det=torch.tensor(dets, dtype=torch.float64), newton_iterations=torch.from_numpy(iters),
         line_search_halvings=torch.from_numpy(halvings), inverted_rejections=torch.from_numpy(rejections),
         config=config, pose=pose_used, fixed=torch.from_numpy(fixed_np), wall_time=wall)
+
+
+def simulate_fem_converged(vertices: Tensor | np.ndarray, tets: Tensor | np.ndarray, config: FEMConfig | None = None,
+                           pose: InitialPose | None = None, frames: int = 24, tolerance: float = 1.0,
+                           start_substeps: int | None = None, max_substeps: int = 256,
+                           progress: bool = True, workers: int = 1) -> FEMResult:
+    """An FEM trajectory converged in time: simulate with n and 2n substeps per frame, doubling n until the
+    two trajectories differ by at most ``tolerance`` percent of the object's size (mean over frames 1 … T−1
+    of the mean vertex distance, :func:`vid2sim.metrics.trajectory_distance`); return the finer run with
+    :attr:`FEMResult.time_convergence` filled in.
+
+    Args:
+        vertices, tets, pose, frames: as :func:`simulate_fem`.
+        config: FEMConfig; its ``substeps`` is replaced.
+        tolerance: largest allowed change under 2× refinement, in percent of the rest bounding-box diagonal.
+        start_substeps: the first n; default half of :func:`vid2sim.physics.integrators.auto_substeps` for the
+            material (at least 4), so that stiff materials start finer.
+        max_substeps: give up (:class:`FEMSolverError`) rather than go beyond this.
+        progress: show a progress bar.
+        workers: processes for the first pair of runs (n and 2n are independent, so 2 workers take about
+            the time of the finer run alone); 1 (default) runs everything in this process. Workers are
+            spawned, so a script calling this with ``workers > 1`` needs the usual
+            ``if __name__ == "__main__":`` guard.
+
+    Raises:
+        FEMSolverError: a step failed, or the tolerance was not met with ``max_substeps``.
+    """
+    from vid2sim.metrics.trajectory import trajectory_distance
+    from vid2sim.physics.integrators import auto_substeps
+
+    config = config or FEMConfig()
+    X = np.asarray(vertices.detach().cpu() if isinstance(vertices, Tensor) else vertices, dtype=np.float64)
+    T = np.asarray(tets.detach().cpu() if isinstance(tets, Tensor) else tets)
+    size = float(np.linalg.norm(X.max(0) - X.min(0)))
+    if not tolerance > 0:
+        raise ValueError(f"tolerance must be a positive percentage, got {tolerance!r}")
+    if start_substeps is None:
+        length = config.damping_length if config.damping_length is not None else size
+        start_substeps = max(4, auto_substeps(config.dt, config.youngs_modulus, config.density, length) // 2)
+    n = int(start_substeps)
+    if n < 1 or 2 * n > max_substeps:
+        raise ValueError(f"start_substeps must be in [1, {max_substeps // 2}], got {start_substeps!r}")
+    if not (isinstance(workers, int) and workers >= 1):
+        raise ValueError(f"workers must be an integer >= 1, got {workers!r}")
+
+    coarse, fine = _simulate_each(X, T, [replace(config, substeps=n), replace(config, substeps=2 * n)], pose,
+                                  frames, workers, progress)
+    history = []
+    total = coarse.wall_time + fine.wall_time
+    while True:
+        d = trajectory_distance(coarse.trajectory, fine.trajectory, size)
+        history.append({"substeps": [n, 2 * n], "mean_percent": round(d.mean, 4), "max_percent": round(d.max, 4)})
+        if d.mean <= tolerance:
+            fine.time_convergence = {
+                "substeps": [n, 2 * n], "kept": 2 * n, "tolerance_percent": tolerance,
+                "mean_percent": d.mean, "max_percent": d.max, "per_frame_percent": d.per_frame,
+                "measure": "mean over frames 1..T-1 of the mean vertex distance, percent of the rest bounding-box "
+                           "diagonal, between the runs with n and 2n substeps",
+                "comparisons": history, "wall_time_all_runs": total}
+            return fine
+        if 4 * n > max_substeps:
+            raise FEMSolverError(
+                f"the trajectory is not converged in time: {n} and {2 * n} substeps per frame differ by {d.mean:.2f} % "
+                f"of the size (tolerance {tolerance} %) and {4 * n} would exceed max_substeps={max_substeps}")
+        n, coarse = 2 * n, fine
+        (fine,) = _simulate_each(X, T, [replace(config, substeps=2 * n)], pose, frames, 1, progress)
+        total += fine.wall_time
+
+
+def _simulate_each(vertices: np.ndarray, tets: np.ndarray, configs: list[FEMConfig], pose, frames: int,
+                   workers: int, progress: bool) -> list[FEMResult]:
+    """simulate_fem for each config, in up to ``workers`` processes, with one progress bar over all frames."""
+    label = "FEM frames (" + ", ".join(f"{c.substeps} substeps" for c in configs) + ")"
+    if workers == 1 or len(configs) == 1:
+        with tqdm(total=len(configs) * (frames - 1), desc=label, disable=not progress) as bar:
+            return [simulate_fem(vertices, tets, c, pose, frames, progress=False, on_frame=lambda: bar.update())
+                    for c in configs]
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor, wait
+
+    ctx = mp.get_context("spawn")  # a fresh interpreter: no inherited torch/OpenMP thread state
+    with ctx.Manager() as manager:
+        queue = manager.Queue()
+        with ProcessPoolExecutor(max_workers=min(workers, len(configs)), mp_context=ctx) as pool, \
+                tqdm(total=len(configs) * (frames - 1), desc=label, disable=not progress) as bar:
+            futures = [pool.submit(_simulate_in_worker, vertices, tets, c, pose, frames, queue) for c in configs]
+            pending = set(futures)
+            while pending:
+                _, pending = wait(pending, timeout=0.5)
+                while not queue.empty():
+                    bar.update(queue.get())
+            return [f.result() for f in futures]
+
+
+def _simulate_in_worker(vertices, tets, config, pose, frames, queue) -> FEMResult:
+    return simulate_fem(vertices, tets, config, pose, frames, progress=False, on_frame=lambda: queue.put(1))
 
 
 @dataclass

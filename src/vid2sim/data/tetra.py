@@ -95,6 +95,17 @@ def boundary_faces(tets: Tensor) -> Tensor:
     return faces[counts[inverse] == 1]
 
 
+def surface_vertex_areas(vertices: Tensor, tets: Tensor) -> Tensor:
+    """Lumped boundary area per vertex (Nv,): a third of the area of every boundary face (m² for metres)
+    goes to each of its vertices; interior vertices get 0. Sums to the surface area."""
+    X = torch.as_tensor(vertices).to(torch.float64)
+    f = boundary_faces(tets).to(X.device)
+    area = 0.5 * torch.linalg.cross(X[f[:, 1]] - X[f[:, 0]], X[f[:, 2]] - X[f[:, 0]], dim=1).norm(dim=1)
+    out = torch.zeros(X.shape[0], dtype=torch.float64, device=X.device)
+    out.index_add_(0, f.reshape(-1), (area / 3.0).repeat_interleave(3))
+    return out
+
+
 def _surface_volume_and_closed(vertices: np.ndarray, faces: np.ndarray) -> tuple[float, bool]:
     """Signed enclosed volume of a triangle surface, and whether every edge is shared by exactly two
     faces with opposite directions (closed, consistently oriented 2-manifold edges)."""
