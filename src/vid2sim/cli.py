@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from typing import Callable, Sequence
 
@@ -54,6 +55,7 @@ _SCENE_OPTIONS = {  # CLI option → SyntheticSceneConfig field
     "E": "youngs_modulus", "nu": "poisson_ratio", "density": "density", "material": "material",
     "drop_height": "drop_height", "views": "views", "resolution": "resolution", "frames": "frames",
     "observed_frames": "observed_frames", "substeps": "substeps", "layout": "layout",
+    "damping_ratio": "damping_ratio",
 }
 
 
@@ -76,7 +78,7 @@ def _cmd_make_scene(args: argparse.Namespace) -> int:
     config = SyntheticSceneConfig.preset(args.preset, seed=args.seed, mesh=args.mesh, tet_mesh=args.tet_mesh,
                                          **_scene_overrides(args))
     try:
-        path = make_scene(config, args.out, overwrite=args.overwrite, progress=not args.quiet)
+        path = make_scene(config, args.out, overwrite=args.overwrite, progress=not args.quiet, workers=args.workers)
     except _generation_errors() as exc:
         raise UserError(f"{exc} (nothing was written)") from exc
     print(f"wrote {path}")
@@ -88,7 +90,7 @@ def _cmd_make_benchmark(args: argparse.Namespace) -> int:
 
     try:
         path = make_benchmark(args.n, args.out, preset=args.preset, seed=args.seed, progress=not args.quiet,
-                              **_scene_overrides(args))
+                              workers=args.workers, **_scene_overrides(args))
     except _generation_errors() as exc:
         raise UserError(f"{exc} (finished scenes are kept; run the command again to resume)") from exc
     print(f"wrote {path} ({args.n} scenes, index.json)")
@@ -201,7 +203,13 @@ def _add_scene_options(p: argparse.ArgumentParser, material_options: bool) -> No
     p.add_argument("--resolution", type=int, default=None, help="image side in pixels")
     p.add_argument("--frames", type=int, default=None, help="frames T")
     p.add_argument("--observed-frames", type=int, default=None, help="observed frames (the rest are held out)")
-    p.add_argument("--substeps", type=int, default=None, help="FEM substeps per frame (default 16)")
+    p.add_argument("--substeps", type=int, default=None,
+                   help="the FEM's first substep count per frame; it doubles them until the trajectory is converged "
+                        "in time (default: from the material's stiffness)")
+    p.add_argument("--damping", type=float, default=None, dest="damping_ratio",
+                   help="material damping ratio zeta (Kelvin-Voigt; default 0.05, 0 = undamped)")
+    p.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1),
+                   help="processes for the FEM's side-by-side time resolutions (default: 2, or 1 on a 1-CPU machine)")
     p.add_argument("--layout", choices=["rgba", "rgb+mask", "video"], default=None, help="scene folder layout")
     p.add_argument("--quiet", action="store_true", help="no progress output")
 

@@ -41,6 +41,9 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import torch
 
+from vid2sim.physics.damping import DEFAULT_DAMPING_RATIO
+from vid2sim.physics.external import AREA_CONTACT_STIFFNESS
+
 if TYPE_CHECKING:
     from vid2sim.data.fem import FEMConfig, InitialPose
     from vid2sim.data.tetra import TetMesh
@@ -71,9 +74,15 @@ class SyntheticSceneConfig:
             velocity (m/s, m/s, rad/s).
         views, resolution: a ring of ``views`` cameras rendering ``resolution`` × ``resolution`` images.
         frames, observed_frames: T frames, the first ``observed_frames`` observed, the rest held out.
-        dt: seconds between frames (one reduced implicit step per frame in vid2sim).
-        substeps: FEM implicit-Euler steps per frame.
-        floor_height, floor_stiffness: the floor plane z = h and its penalty stiffness k.
+        dt: seconds between frames.
+        damping_ratio: ζ of the Kelvin–Voigt material damping (:mod:`vid2sim.physics.damping`).
+        substeps: the FEM's first substep count per frame, or None for half the automatic count of the
+            material (:func:`vid2sim.physics.integrators.auto_substeps`); the FEM then doubles it until the
+            trajectory is converged in time (:func:`vid2sim.data.fem.simulate_fem_converged`).
+        time_tolerance: the FEM's convergence tolerance: largest change of the trajectory under 2× time
+            refinement, percent of the object's size (mean over frames).
+        floor_height, floor_stiffness: the floor plane z = h and its penalty stiffness κ per unit surface
+            area (Pa per metre of penetration; :class:`vid2sim.data.fem.FEMConfig`).
         tet_edge_length: fTetWild's target edge length relative to the bounding-box diagonal.
         tet_envelope: fTetWild's envelope (largest distance of the tet boundary from the surface) relative
             to the bounding-box diagonal; a wider envelope lets it coarsen the surface (fewer tets).
@@ -100,9 +109,11 @@ class SyntheticSceneConfig:
     frames: int = 24
     observed_frames: int = 16
     dt: float = 0.05
-    substeps: int = 16
+    damping_ratio: float = DEFAULT_DAMPING_RATIO
+    substeps: int | None = None
+    time_tolerance: float = 1.0
     floor_height: float = -0.7
-    floor_stiffness: float = 1e5
+    floor_stiffness: float = AREA_CONTACT_STIFFNESS
     tet_edge_length: float = 0.06
     tet_envelope: float = 1e-3
     tet_mesh: str | None = None
@@ -128,7 +139,8 @@ class SyntheticSceneConfig:
             setattr(self, name, None if value is None else str(value))
         for name in ("youngs_modulus", "poisson_ratio", "density", "max_horizontal_speed", "max_downward_speed",
                      "max_angular_speed", "dt", "floor_height", "floor_stiffness", "tet_edge_length",
-                     "tet_envelope", "camera_radius", "camera_elevation_deg", "camera_fov_deg"):
+                     "tet_envelope", "camera_radius", "camera_elevation_deg", "camera_fov_deg", "damping_ratio",
+                     "time_tolerance"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
                 raise bad(name, "a finite number")
@@ -136,10 +148,11 @@ class SyntheticSceneConfig:
             lame_parameters(self.youngs_modulus, self.poisson_ratio)
         except ValueError as exc:
             raise ValueError(f"SyntheticSceneConfig: {exc}") from None
-        for name in ("density", "dt", "floor_stiffness", "tet_edge_length", "tet_envelope", "camera_radius"):
+        for name in ("density", "dt", "floor_stiffness", "tet_edge_length", "tet_envelope", "camera_radius",
+                     "time_tolerance"):
             if not getattr(self, name) > 0:
                 raise bad(name, "positive")
-        for name in ("max_horizontal_speed", "max_downward_speed", "max_angular_speed"):
+        for name in ("max_horizontal_speed", "max_downward_speed", "max_angular_speed", "damping_ratio"):
             if getattr(self, name) < 0:
                 raise bad(name, ">= 0")
         if not 0 < self.camera_fov_deg < 180:
@@ -154,6 +167,8 @@ class SyntheticSceneConfig:
         for name, lo in (("views", 1), ("resolution", 8), ("frames", 2), ("observed_frames", 1), ("substeps", 1),
                          ("supersample", 1)):
             value = getattr(self, name)
+            if name == "substeps" and value is None:
+                continue
             if isinstance(value, bool) or not isinstance(value, int) or value < lo:
                 raise bad(name, f"an integer >= {lo}")
         if self.observed_frames > self.frames:
@@ -176,13 +191,17 @@ class SyntheticSceneConfig:
                                 "SyntheticSceneConfig")
 
     def fem_config(self, **overrides: Any) -> "FEMConfig":
-        """The FEM settings of this scene (material, frame time, substeps, floor), with ``overrides``."""
+        """The FEM settings of this scene (material, damping, frame time, floor), with ``overrides``; the
+        substeps are those of :attr:`substeps` when set (the converged run chooses its own)."""
         from vid2sim.data.fem import FEMConfig
 
-        return FEMConfig(**{"youngs_modulus": self.youngs_modulus, "poisson_ratio": self.poisson_ratio,
-                            "density": self.density, "material": self.material, "dt": self.dt,
-                            "substeps": self.substeps, "floor_height": self.floor_height,
-                            "floor_stiffness": self.floor_stiffness, **overrides})
+        fields_ = {"youngs_modulus": self.youngs_modulus, "poisson_ratio": self.poisson_ratio,
+                   "density": self.density, "material": self.material, "dt": self.dt,
+                   "damping_ratio": self.damping_ratio, "floor_height": self.floor_height,
+                   "floor_stiffness": self.floor_stiffness}
+        if self.substeps is not None:
+            fields_["substeps"] = self.substeps
+        return FEMConfig(**{**fields_, **overrides})
 
     def initial_pose(self) -> "InitialPose":
         """The seeded random drop pose (orientation, height above the floor, rigid velocity)."""
@@ -269,8 +288,11 @@ def load_tet_mesh(path: str | Path) -> "TetMesh":
 
 
 def make_scene(config: SyntheticSceneConfig, out_dir: str | Path, overwrite: bool = False,
-               progress: bool = True) -> Path:
+               progress: bool = True, workers: int = 1) -> Path:
     """Generate one synthetic scene folder (see the module docstring) and return its path.
+
+    ``workers`` processes run the FEM's first pair of time resolutions side by side
+    (:func:`vid2sim.data.fem.simulate_fem_converged`); the result does not depend on it.
 
     The folder is assembled next to ``out_dir`` and renamed into place only when complete, so a failure
     or an interrupt leaves nothing behind (and an existing scene replaced with ``overwrite`` untouched).
@@ -286,7 +308,7 @@ def make_scene(config: SyntheticSceneConfig, out_dir: str | Path, overwrite: boo
     import uuid
 
     from vid2sim.data.embedding import apply_embedding, embed_points
-    from vid2sim.data.fem import simulate_fem
+    from vid2sim.data.fem import simulate_fem_converged
     from vid2sim.data.mesh_render import render_textured_mesh
     from vid2sim.data.meshes import load_user_mesh
     from vid2sim.data.scene import Scene, SceneConfig, move_into_place, write_scene
@@ -333,8 +355,11 @@ def make_scene(config: SyntheticSceneConfig, out_dir: str | Path, overwrite: boo
 
     pose = config.initial_pose()
     fem_config = config.fem_config()
-    _stage(progress, f"FEM drop: {len(tet.tets)} tets, {config.frames} frames x {config.substeps} substeps")
-    result = simulate_fem(tet.vertices, tet.tets, fem_config, pose, frames=config.frames, progress=progress)
+    _stage(progress, f"FEM drop: {len(tet.tets)} tets, {config.frames} frames, substeps refined until the "
+                     f"trajectory changes by <= {config.time_tolerance} % of the size")
+    result = simulate_fem_converged(tet.vertices, tet.tets, fem_config, pose, frames=config.frames,
+                                    tolerance=config.time_tolerance, start_substeps=config.substeps,
+                                    progress=progress, workers=workers)
     lap("fem")
 
     surface = apply_embedding(result.trajectory, tet_index, bary, tet.tets).float()  # (T, Nv, 3)
@@ -355,10 +380,14 @@ def make_scene(config: SyntheticSceneConfig, out_dir: str | Path, overwrite: boo
         "seed": config.seed,
         "object": mesh.name,
         "initial_pose": _jsonable(asdict(pose)),
+        "damping_ratio": config.damping_ratio,
         "fem": {
             "tets": int(len(tet.tets)),
             "vertices": int(len(tet.vertices)),
-            "substeps": config.substeps,
+            "integrator": result.config.integrator,
+            "substeps": result.config.substeps,
+            "time_convergence": {k: result.time_convergence[k] for k in
+                                 ("substeps", "kept", "tolerance_percent", "mean_percent", "max_percent")},
             "floor_stiffness": config.floor_stiffness,
             "max_penetration_m": float(result.max_penetration),
             "min_det_F": float(result.min_det.min()),
@@ -426,7 +455,7 @@ def benchmark_parameters(n: int, seed: int = 0) -> list[dict[str, float | int]]:
 
 
 def make_benchmark(n: int, out_dir: str | Path, preset: str = "full", seed: int = 0, progress: bool = True,
-                   **overrides: Any) -> Path:
+                   workers: int = 1, **overrides: Any) -> Path:
     """Write a suite of ``n`` synthetic scenes ``scene_000`` … and an ``index.json`` of their ground truth.
 
     Scene i has the object/pose seed, E and ν of :func:`benchmark_parameters`; ``overrides`` are
@@ -470,7 +499,7 @@ def make_benchmark(n: int, out_dir: str | Path, preset: str = "full", seed: int 
             if folder.exists():
                 _check_existing_scene(folder, config)
             else:
-                make_scene(config, folder, progress=False)
+                make_scene(config, folder, progress=False, workers=workers)
             entries.append({"name": name, "seed": config.seed, "E": config.youngs_modulus,
                             "nu": config.poisson_ratio, "density": config.density, "material": config.material})
             _write_json_atomic(index_path, {**header, "n": n, "complete": len(entries) == n, "scenes": entries})
