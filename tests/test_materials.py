@@ -243,3 +243,27 @@ def test_neo_hookean_matches_its_definition_on_a_uniaxial_stretch():
     expect = 0.5 * MU * (s * s - 1) - MU * ln + 0.5 * LAM * ln * ln
     assert torch.allclose(neo_hookean_energy_density(F, MU, LAM), expect)
     assert torch.allclose(neo_hookean_pk1(F, MU, LAM)[:, 0, 0], MU * (s - 1 / s) + LAM * ln / s)
+
+
+def test_fused_neo_hookean_viscous_tangent_equals_the_separate_tangents():
+    """The damped step's exact tangent, assembled from outer and Kronecker products, equals
+    k_e ∂P_NH/∂F + k_v ∂P_StVK(C_ref)/∂F, and the viscous part is the derivative of its stress."""
+    from vid2sim.physics.damping import viscous_pk1
+    from vid2sim.physics.materials import neo_hookean_viscous_tangent, neo_hookean_tangent, stvk_tangent
+
+    gen = torch.Generator().manual_seed(3)
+    F = torch.eye(3, dtype=torch.float64) + 0.2 * torch.randn(40, 3, 3, generator=gen, dtype=torch.float64)
+    C_ref = torch.eye(3, dtype=torch.float64) + 0.1 * torch.randn(40, 3, 3, generator=gen, dtype=torch.float64)
+    C_ref = 0.5 * (C_ref + C_ref.transpose(1, 2))
+    mu, lam = torch.tensor(3.0, dtype=torch.float64), torch.tensor(5.0, dtype=torch.float64)
+    fused = neo_hookean_viscous_tangent(F, mu, lam, 0.7, 0.3, C_ref)
+    separate = 0.7 * neo_hookean_tangent(F, mu, lam) + 0.3 * stvk_tangent(F, mu, lam, C_ref)
+    assert torch.allclose(fused, separate, atol=1e-12)
+    assert torch.allclose(neo_hookean_viscous_tangent(F, mu, lam, 0.7, 0.0, None), 0.7 * neo_hookean_tangent(F, mu, lam),
+                          atol=1e-12)
+    # the viscous tangent is the derivative of the viscous stress (central differences)
+    d = torch.randn(40, 3, 3, generator=gen, dtype=torch.float64)
+    eps = 1e-6
+    fd = (viscous_pk1(F + eps * d, C_ref, mu, lam) - viscous_pk1(F - eps * d, C_ref, mu, lam)) / (2 * eps)
+    lin = (stvk_tangent(F, mu, lam, C_ref) @ d.reshape(40, 9, 1)).reshape(40, 3, 3)
+    assert torch.allclose(lin, fd, atol=1e-6)

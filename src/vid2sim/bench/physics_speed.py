@@ -58,7 +58,9 @@ def build_standard_simulator(settings: PhysicsBenchSettings, device: torch.devic
     idx, weights = sample_cubature(pts, settings.num_cubature, volume=1.0, seed=settings.seed)
     material = Material(settings.youngs_modulus, settings.poisson_ratio)
     externals = [Gravity(), Floor(height=settings.floor_height)]
-    sim = Simulator(field, pts[idx], weights.to(pts), material, externals, SimConfig(dt=settings.dt))
+    # the box is normalised to a bounding-box diagonal of exactly 1: the damping's and the automatic
+    # substeps' length scale (the cubature points' own box is slightly smaller)
+    sim = Simulator(field, pts[idx], weights.to(pts), material, externals, SimConfig(dt=settings.dt), length_scale=1.0)
     return sim, pts
 
 

@@ -104,18 +104,20 @@ def bdf_step(integrator: str, h: float, h_prev: float | None) -> BDFStep:
 
 
 #: Substeps per frame per radian of the material's reference frequency (see :func:`auto_substeps`).
-SUBSTEPS_PER_RADIAN = 20.0
+SUBSTEPS_PER_RADIAN = 16.0
 
 
 def auto_substeps(dt: float, youngs_modulus: float, density: float, length: float, minimum: int = 4,
                   maximum: int = 64) -> int:
-    """Time steps per video frame that keep a drop converged in time: ⌈20 Δt ω_ref⌉ within [minimum, maximum],
+    """Time steps per video frame that keep a drop converged in time: ⌈16 Δt ω_ref⌉ within [minimum, maximum],
     with ω_ref = √(E/ρ)/L the material's reference angular frequency (its elastic modes and bounces scale
     with it).
 
-    Calibrated on tumbling drops of procedural objects (L ≈ 1 m, E = 1e4 … 1e6 Pa, ζ = 0.05, BDF2): with
-    this count each simulator's trajectory moved by ≤ 1 % of the object's size (mean over 24 frames) when the
-    step was refined 4×; e.g. E = 1e4 → 4, 1e5 → 10, 1e6 → 32 at Δt = 0.05 s, ρ = 1000, L = 1.
+    Calibrated on tumbling drops of three procedural objects (L ≈ 1 m, E = 1e4 … 1e6 Pa, ζ = 0.05, BDF2, the
+    area-weighted floor): with this count the reduced simulator's trajectory moved by ≤ 0.5 % of the object's
+    size (mean over 24 frames) when the step was refined 4× (the hardest case, E = 1e6, needs ≈ 16 per
+    radian; ``vid2sim bench identify`` re-measures it per scene); e.g. E = 1e4 → 4, 1e5 → 8, 1e6 → 26 at
+    Δt = 0.05 s, ρ = 1000, L = 1.
     """
     if not (dt > 0 and youngs_modulus > 0 and density > 0 and length > 0):
         raise ValueError(f"auto_substeps needs positive dt, E, density and length, got {dt}, {youngs_modulus}, "

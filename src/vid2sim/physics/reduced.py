@@ -28,9 +28,15 @@ import torch
 from torch import Tensor
 
 from vid2sim.physics.damping import reference_metric, viscous_tangent
-from vid2sim.physics.external import energy_and_gradient
+from vid2sim.physics.external import Gravity, energy_and_gradient
 from vid2sim.physics.integrators import BDFStep
-from vid2sim.physics.materials import det3, elastic_model, energy_and_pk1, stvk_energy_and_pk1
+from vid2sim.physics.materials import (
+    det3,
+    elastic_model,
+    energy_and_pk1,
+    neo_hookean_viscous_tangent,
+    stvk_energy_and_pk1,
+)
 
 
 def z_to_y_index(num_handles_total: int, device: torch.device | None = None) -> Tensor:
@@ -96,11 +102,20 @@ class ElasticBasis:
         if self.G is not None:
             G = self.G
             K, _, L = G.shape
-            # T[p, (c, a, b), m] = Σ_d C[p, (a, c), (b, d)] G[p, d, m]
-            Cr = C.reshape(K, 3, 3, 3, 3).permute(0, 2, 1, 3, 4).reshape(K, 27, 3)
-            T = torch.bmm(Cr, G)  # (K, 27, L)
-            Hm = G.permute(2, 0, 1).reshape(L, K * 3) @ T.reshape(K * 3, 9 * L)  # (L, 3·3·L)
-            return Hm.reshape(L, 3, 3, L).permute(1, 0, 2, 3).reshape(3 * L, 3 * L)
+            # H[(a, l), (b, m)] = Σ_p Σ_cd G[p, c, l] C[p, (a, c), (b, d)] G[p, d, m]; C is symmetric
+            # ((a, c) ↔ (b, d)), so only the row blocks a ≤ b are computed and the others are their transposes
+            C5 = C.reshape(K, 3, 3, 3, 3)  # [p, a, c, b, d]
+            pairs = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+            Cr = torch.stack([C5[:, a, :, b, :] for a, b in pairs], dim=1)  # (K, 6, c, d)
+            T = (Cr.reshape(K, 18, 3) @ G).reshape(K, 6, 3, L)  # [p, pair, c, m]
+            Hm = G.permute(2, 0, 1).reshape(L, K * 3) @ T.permute(0, 2, 1, 3).reshape(K * 3, 6 * L)
+            Hm = Hm.reshape(L, 6, L)
+            H = C.new_empty(3, L, 3, L)
+            for q, (a, b) in enumerate(pairs):
+                H[a, :, b, :] = Hm[:, q, :]
+                if a != b:
+                    H[b, :, a, :] = Hm[:, q, :].T
+            return H.reshape(3 * L, 3 * L)
         K, _, D = self.J.shape
         CJ = C @ self.J
         return self.J.reshape(K * 9, D).T @ CJ.reshape(K * 9, D)
@@ -207,11 +222,26 @@ class StepProblem:
         X, b, _ = self._contact
         return X + b @ y.reshape(3, -1).T
 
+    @functools.cached_property
+    def _gravity(self) -> tuple[Tensor, Tensor] | None:
+        """Uniform gravity is linear in y: E = −Σ_p m_p g·(X_p + Y b_p) = e₀ − f·y with the constant force
+        f = vec(g (Σ_p m_p b_p)ᵀ) (D,); returns (e₀, f) for the sum of the Gravity terms, or None."""
+        g = [ext for ext in self._externals_by_kind[0] if isinstance(ext, Gravity)]
+        if not g:
+            return None
+        acc = sum(torch.tensor(ext.acceleration, dtype=self.X.dtype, device=self.X.device) for ext in g)
+        e0 = -(self.mass * (self.X @ acc)).sum()
+        return e0, (acc[:, None] * (self.mass @ self.b)[None, :]).reshape(-1)
+
     def _external_energy_and_force(self, y: Tensor, energy: bool = True) -> tuple[Tensor, Tensor]:
         """(E_ext (), ∂E_ext/∂y (D,)); ``energy`` is unused (the energy comes with the gradient)."""
         body, contact = self._externals_by_kind
         e = y.new_zeros(())
         f = y.new_zeros(y.shape)
+        if self._gravity is not None:
+            e0, fg = self._gravity
+            e, f = e0 - fg @ y, -fg
+            body = [ext for ext in body if not isinstance(ext, Gravity)]
         for points, b, weights, energies in ((None, self.b, self.mass, body), (True, None, None, contact)):
             if not energies:
                 continue
@@ -309,13 +339,16 @@ class StepProblem:
         from vid2sim.physics.materials import project_tangent_psd
 
         F = self.basis.deformation_gradient(y)
-        C = elastic_model(self.model)[2](F, self.mu, self.lam)
-        if project:
-            C = project_tangent_psd(self.model, F, C, self.mu, self.lam)
-        C = self.step.energy_scale * C
-        if self.tau is not None:
-            Cd = viscous_tangent(F, self.c_ref, self.mu, self.lam, psd=project)
-            C = C + self.step.damping_scale(self.tau) * Cd
+        k_d = self.step.damping_scale(self.tau) if self.tau is not None else 0.0
+        if not project and self.model == "neo_hookean":
+            C = neo_hookean_viscous_tangent(F, self.mu, self.lam, self.step.energy_scale, k_d, self.c_ref)
+        else:
+            C = elastic_model(self.model)[2](F, self.mu, self.lam)
+            if project:
+                C = project_tangent_psd(self.model, F, C, self.mu, self.lam)
+            C = self.step.energy_scale * C
+            if self.tau is not None:
+                C = C + k_d * viscous_tangent(F, self.c_ref, self.mu, self.lam, psd=project)
         H = self.mass_matrix + self.basis.hessian(self.vol[:, None, None] * C) \
             + self.step.energy_scale * self._external_hessian(y, project)
         return 0.5 * (H + H.T)
@@ -329,5 +362,7 @@ def _reduced_point_hessian(hx: Tensor, b: Tensor) -> Tensor:
     if not bool(active.any()):
         return hx.new_zeros(3 * L, 3 * L)
     ba, ha = b[active], hx[active]
-    Hr = torch.einsum("pab,pl,pm->albm", ha, ba, ba)
-    return Hr.reshape(3 * L, 3 * L)
+    P = ba.shape[0]
+    # Hr[(a, b), (l, m)] = Σ_p h_p[a, b] b_p[l] b_p[m]: one matmul (9 × P)(P × L²)
+    Hr = ha.reshape(P, 9).T @ (ba[:, :, None] * ba[:, None, :]).reshape(P, L * L)
+    return Hr.reshape(3, 3, L, L).permute(0, 2, 1, 3).reshape(3 * L, 3 * L)

@@ -50,8 +50,8 @@ class SimConfig:
     Attributes:
         dt: time between video frames in seconds; one :meth:`Simulator.step` advances one frame.
         substeps: implicit steps per frame (step h = dt / substeps), or None (default) for
-            :func:`~vid2sim.physics.integrators.auto_substeps` of the current material: ⌈20 Δt √(E/ρ)/L⌉ in
-            [4, 64] (4 at E = 1e4, 10 at 1e5, 32 at 1e6 for ρ = 1000, L = 1), which keeps a tumbling drop
+            :func:`~vid2sim.physics.integrators.auto_substeps` of the current material: ⌈16 Δt √(E/ρ)/L⌉ in
+            [4, 64] (4 at E = 1e4, 8 at 1e5, 26 at 1e6 for ρ = 1000, L = 1), which keeps a tumbling drop
             within 1 % of the object's size of the same simulation refined 4× in time.
         integrator: 'bdf2' (second order, the default) or 'implicit_euler' (first order; with
             ``substeps=1`` the paper's one implicit-Euler step per frame, which damps the object's
@@ -216,10 +216,14 @@ class NewtonCache:
     factor: Tensor | None = None
     points: Tensor | None = None
     stale: bool = True
+    rotation: Tensor | None = None
 
-    def direction(self, problem: StepProblem, y: Tensor, g: Tensor) -> Tensor:
-        """The chord step −(R ⊗ I) H₀⁻¹ (R ⊗ I)ᵀ g (D,) with the factorised H₀ and the fitted rotation R."""
-        R = _fitted_rotation(self.points, problem.positions(y), problem.mass)
+    def direction(self, problem: StepProblem, y: Tensor, g: Tensor, refit: bool = True) -> Tensor:
+        """The chord step −(R ⊗ I) H₀⁻¹ (R ⊗ I)ᵀ g (D,) with the factorised H₀ and the rotation R fitted now
+        (``refit``) or at the last fit (within one short step the object turns by a negligible angle)."""
+        if refit or self.rotation is None:
+            self.rotation = _fitted_rotation(self.points, problem.positions(y), problem.mass)
+        R = self.rotation
         gy = (R.T @ g.reshape(3, -1)).reshape(-1)
         d = torch.cholesky_solve(gy[:, None], self.factor)[:, 0]
         return -(R @ d.reshape(3, -1)).reshape(-1)
@@ -302,10 +306,11 @@ def newton_solve(problem: StepProblem, config: SimConfig, length_scale: float,
             cache.factor = _newton_factor(problem, y, config)
             cache.points = _centred(problem.positions(y), problem.mass)
             cache.stale = False
+            cache.rotation = torch.eye(3, dtype=y.dtype, device=y.device)
             stats.hessians += 1
             d = -torch.cholesky_solve(g[:, None], cache.factor)[:, 0]
         else:
-            d = cache.direction(problem, y, g)
+            d = cache.direction(problem, y, g, refit=it == 0)
         stats.iterations = it + 1
         size = problem.displacement(d)
         tol = max(floor, min(absolute, config.newton_rtol * problem.displacement(y + d - problem.y_prev)))
