@@ -51,6 +51,54 @@ def _cmd_bench_fem(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_bench_identify(args: argparse.Namespace) -> int:
+    import dataclasses
+    from pathlib import Path
+
+    import torch
+
+    from vid2sim.bench import identify
+
+    if args.threads is not None:
+        if args.threads < 1:
+            raise UserError(f"--threads must be >= 1, got {args.threads}")
+        torch.set_num_threads(args.threads)
+    given = {"scenes": args.n, "seed": args.seed, "preset": args.preset, "handles": args.handles,
+             "skinning_iterations": args.skinning_iterations, "fit_iterations": args.fit_iterations,
+             "points": args.points, "truth": args.truth}
+    flags = {"scenes": "--n", "seed": "--seed", "preset": "--preset", "handles": "--handles",
+             "skinning_iterations": "--skinning-iterations", "fit_iterations": "--fit-iterations", "points": "--points"}
+    try:
+        config = identify.IdentifyConfig(**{k: v for k, v in given.items() if v is not None})
+    except ValueError as exc:
+        message = str(exc)
+        for field, flag in flags.items():
+            message = message.replace(f"IdentifyConfig.{field} ", f"{flag} ")
+        raise UserError(message) from exc
+    try:
+        report = identify.run(config, args.workdir, progress=not args.quiet)
+    except _generation_errors() as exc:
+        raise UserError(f"{exc} (finished scenes are cached in {args.workdir}; run again to resume)") from exc
+    text = json.dumps(report, indent=2)
+    if args.out:
+        out = Path(args.out)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        tmp = out.with_name(f".{out.name}.tmp")
+        tmp.write_text(text + "\n")
+        tmp.replace(out)
+    summary = report["summary"]
+    rows = ["scene  object           log10E true/fit    nu true/fit     zeta true/fit   model err obs/fut %  fitted err obs/fut %"]
+    for r in report["scenes"]:
+        t, f, m, e = r["true"], r["fitted"], r["model_error_at_truth_percent"], r["trajectory_error_fitted_percent"]
+        rows.append(f"{r['scene']:5d}  {r['object']:15s}  {t['log10_E']:5.2f} / {f['log10_E']:5.2f}     "
+                    f"{t['nu']:.3f} / {f['nu']:.3f}   {t['damping_ratio']:.3f} / {f['damping_ratio']:.3f}   "
+                    f"{m['observed_percent']:5.2f} / {m['future_percent']:5.2f}       "
+                    f"{e['observed_percent']:5.2f} / {e['future_percent']:5.2f}")
+    print("\n".join(rows), file=sys.stderr)
+    print(json.dumps(summary, indent=2) if not args.out else f"wrote {args.out}\n" + json.dumps(summary, indent=2))
+    return 0
+
+
 _SCENE_OPTIONS = {  # CLI option → SyntheticSceneConfig field
     "E": "youngs_modulus", "nu": "poisson_ratio", "density": "density", "material": "material",
     "drop_height": "drop_height", "views": "views", "resolution": "resolution", "frames": "frames",
@@ -244,6 +292,25 @@ def build_parser() -> argparse.ArgumentParser:
     fem.add_argument("--frames", type=int, default=None, help="frames to simulate (default: the preset's 24)")
     fem.add_argument("--quiet", action="store_true", help="no progress bars")
     fem.set_defaults(func=_cmd_bench_fem)
+
+    ident = bench_sub.add_parser("identify", help="identify E, nu and damping from perfect-geometry 3-D motion "
+                                 "(the upper bound of the video pipeline)")
+    ident.add_argument("--n", type=int, default=None, help="scenes (default 6)")
+    ident.add_argument("--seed", type=int, default=None, help="suite seed (default 0)")
+    ident.add_argument("--preset", choices=["small", "full"], default=None, help="tet resolution (default small)")
+    ident.add_argument("--handles", type=int, default=None, help="learned skinning handles (default 10)")
+    ident.add_argument("--skinning-iterations", type=int, default=None, help="data-free skinning iterations (default 2000)")
+    ident.add_argument("--fit-iterations", type=int, default=None, help="L-BFGS iterations (default 12)")
+    ident.add_argument("--points", type=int, default=None, help="sample points (default 3000)")
+    ident.add_argument("--truth", choices=["fem", "reduced"], default=None,
+                       help="fit the FEM's motion (default) or the reduced model's own motion at the true "
+                            "parameters (identifiability without model error)")
+    ident.add_argument("--workdir", default="vid2sim-identify", help="cache of FEM runs and skinning fields "
+                       "(default ./vid2sim-identify)")
+    ident.add_argument("--out", default=None, help="write the full JSON report here")
+    ident.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
+    ident.add_argument("--quiet", action="store_true", help="no progress bars")
+    ident.set_defaults(func=_cmd_bench_identify)
 
     scene = sub.add_parser("make-scene", help="simulate (FEM) and render one synthetic scene folder")
     scene.add_argument("out", help="scene folder to create")

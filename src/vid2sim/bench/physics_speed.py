@@ -1,9 +1,23 @@
-"""Speed of the reduced simulator and of the data-free network training (issue: simulator foundation).
+"""Speed of the reduced simulator and of the data-free network training.
 
 Standard setting: 10 learned handles + 1 rigid, 500 cubature points, 20 000 object points sampled in a
 box (half bounding-box diagonal 0.5, the canonical frame), Neo-Hookean E = 1e5 Pa, ν = 0.3, ρ = 1000,
-Δt = 0.05 s, gravity −z, floor barrier at z = −0.7 (k = 1e5): the object falls 0.45 m, hits the floor
-after 6 steps and bounces; 15 steps in all.
+the default damping (ζ = 0.05), video frames of Δt = 0.05 s, gravity −z, the paper's floor barrier at
+z = −0.7 (k = 1e5 per cubature point): the object falls 0.45 m, hits the floor in frame 6 and bounces;
+15 frames in all.
+
+Figures (medians; every baseline is measured in the same run):
+
+- ``sim_frame_ms`` — one video frame at the default accuracy (BDF2, automatic substeps
+  ``sim_frame_substeps``, chord Newton), no gradients; ``sim_frame_time_convergence_percent`` says how far
+  that trajectory is from the same simulation with 4× the substeps (mean over frames, % of the size);
+- ``sim_frame_ms_plain_newton`` — the same with a fresh Hessian every Newton iteration;
+- ``sim_step_ms`` — one implicit-Euler step per frame (the paper's and this project's former setting),
+  and ``sim_step_ms_always_projected`` with the Hessian projected every iteration;
+  ``sim_step_time_convergence_percent`` is its distance from the 4× refined default;
+- ``sim_window_ms`` — 4 frames at the default accuracy with gradients to log10 E, ν and the skinning
+  parameters (forward + backward), ``sim_window_ms_one_step_per_frame`` the same with one implicit-Euler
+  step per frame; ``sim_window_points_ms`` with the loss on all 20 000 points.
 """
 
 from __future__ import annotations
@@ -65,54 +79,77 @@ def build_standard_simulator(settings: PhysicsBenchSettings, device: torch.devic
 
 
 def run(device: torch.device, quick: bool = False, settings: PhysicsBenchSettings | None = None) -> dict[str, Any]:
-    """Figures: sim_step_ms (and sim_step_ms_always_projected, the same steps with Newton's Hessian projected
-    at every iteration, as a same-run baseline), sim_window_ms, sim_window_points_ms, skinning/jacobian
-    training ms per iteration."""
+    """The figures of the module docstring, plus skinning/Neural Jacobian training ms per iteration."""
     from vid2sim.physics.neural_jacobian import NeuralJacobian, NeuralJacobianTrainingConfig, train_neural_jacobian
     from vid2sim.physics.skinning_training import SkinningTrainingConfig, train_skinning
 
     s = settings or PhysicsBenchSettings()
     if quick:
         s.skinning_pretrain_iters, s.train_timing_iters = 20, 2
-    repeats = 1 if quick else 9  # medians over several runs: a shared 2-core machine is noisy
+    repeats = 1 if quick else 7  # medians over several runs: a shared 2-core machine is noisy
     sim, pts = build_standard_simulator(s, device)
     rest = sim.rest_state()
+    default = sim.config
+    n = sim.substeps()
+    one_step = replace(default, substeps=1, integrator="implicit_euler")
+    size = float((pts.max(0).values - pts.min(0).values).norm())
 
-    # --- no-grad implicit steps ------------------------------------------------------------------
-    with torch.no_grad():
-        states = sim.rollout(rest, s.steps)
-        rollout_ms = time_ms(lambda: sim.rollout(rest, s.steps), device, repeats)
-        # same-run baseline: Newton with the PSD-projected Hessian at every iteration
-        sim.config = replace(sim.config, hessian_projection="always")
-        projected_ms = time_ms(lambda: sim.rollout(rest, s.steps), device, repeats)
-        sim.config = replace(sim.config, hessian_projection="on_demand")
-    iters = [st.newton_iterations for st in states]
+    def timed_rollout(config) -> tuple[float, list]:
+        sim.config = config
+        with torch.no_grad():
+            states = sim.rollout(rest, s.steps)
+            ms = time_ms(lambda: sim.rollout(rest, s.steps), device, repeats)
+        return ms / s.steps, states
+
+    frame_ms, states = timed_rollout(default)
+    plain_ms, _ = timed_rollout(replace(default, reuse_hessian=False))
+    step_ms, ie_states = timed_rollout(one_step)
+    projected_ms, _ = timed_rollout(replace(one_step, hessian_projection="always"))
+    _, refined = timed_rollout(replace(default, substeps=4 * n)) if not quick else (0.0, states)
+    sim.config = default
+    from vid2sim.metrics import trajectory_distance
+
+    probe = pts[::20]
+
+    def traj(seq) -> torch.Tensor:
+        return torch.stack([sim.positions(probe, st.z).detach() for st in seq])
+
+    convergence = trajectory_distance(traj(states), traj(refined), size, frames=list(range(s.steps))).mean
+    ie_distance = trajectory_distance(traj(ie_states), traj(refined), size, frames=list(range(s.steps))).mean
     x_final = sim.positions(pts, states[-1].z).detach()
     penetration = max(0.0, s.floor_height - float(x_final[:, 2].min()))
 
-    # --- a 4-step window with gradients to log10 E, ν and the skinning parameters --------------------
-    start = states[s.window_start - 1]
-    start = type(start)(start.z.detach(), start.zdot.detach(), start.t, None)
+    # --- a 4-frame window with gradients to log10 E, ν and the skinning parameters --------------------
     sim.log10_E.requires_grad_(True)
     sim.nu.requires_grad_(True)
     params = [sim.log10_E, sim.nu, *sim.field.parameters()]
     cub_target = sim.X.detach()
 
-    def window_cubature() -> None:
-        seq = sim.rollout(start, s.window)
-        loss = sum(((sim.positions(sim.X, st.z) - cub_target) ** 2).mean() for st in seq)
-        torch.autograd.grad(loss, params, allow_unused=True)
+    def window(config, seq, points: bool = False):
+        sim.config = config
+        start = seq[s.window_start - 1]
+        start = type(start)(start.z.detach(), start.zdot.detach(), start.t, None,
+                            z_prev=None if start.z_prev is None else start.z_prev.detach(),
+                            zdot_prev=None if start.zdot_prev is None else start.zdot_prev.detach(),
+                            h_prev=start.h_prev)
 
-    def window_points() -> None:
-        seq = sim.rollout(start, s.window)
-        w = sim.field(pts)
-        from vid2sim.physics.skinning import deform
+        def run_window() -> None:
+            out = sim.rollout(start, s.window)
+            if points:
+                from vid2sim.physics.skinning import deform
 
-        loss = sum(((deform(pts, w, st.z) - pts) ** 2).mean() for st in seq)
-        torch.autograd.grad(loss, params, allow_unused=True)
+                w = sim.field(pts)
+                loss = sum(((deform(pts, w, st.z) - pts) ** 2).mean() for st in out)
+            else:
+                loss = sum(((sim.positions(sim.X, st.z) - cub_target) ** 2).mean() for st in out)
+            torch.autograd.grad(loss, params, allow_unused=True)
 
-    window_ms = time_ms(window_cubature, device, repeats)
-    window_points_ms = time_ms(window_points, device, repeats)
+        return time_ms(run_window, device, repeats)
+
+    window_ms = window(default, states)
+    window_one_step_ms = window(one_step, ie_states)
+    window_points_ms = window(default, states, points=True)
+    sim.config = default
     sim.log10_E.requires_grad_(False)
     sim.nu.requires_grad_(False)
 
@@ -125,11 +162,16 @@ def run(device: torch.device, quick: bool = False, settings: PhysicsBenchSetting
         iterations=n, seed=s.seed), progress=False), device, repeats=1) / n
 
     return {
-        "sim_step_ms": rollout_ms / s.steps,
-        "sim_step_ms_always_projected": projected_ms / s.steps,
-        "sim_newton_iterations": iters,
+        "sim_frame_ms": frame_ms,
+        "sim_frame_substeps": n,
+        "sim_frame_time_convergence_percent": convergence,
+        "sim_frame_ms_plain_newton": plain_ms,
+        "sim_step_ms": step_ms,
+        "sim_step_ms_always_projected": projected_ms,
+        "sim_step_time_convergence_percent": ie_distance,
         "sim_floor_penetration_m": penetration,
         "sim_window_ms": window_ms,
+        "sim_window_ms_one_step_per_frame": window_one_step_ms,
         "sim_window_points_ms": window_points_ms,
         "skinning_train_ms_per_iter": skin_ms,
         "jacobian_train_ms_per_iter": nj_ms,

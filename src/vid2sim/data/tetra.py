@@ -106,6 +106,28 @@ def surface_vertex_areas(vertices: Tensor, tets: Tensor) -> Tensor:
     return out
 
 
+def sample_points_in_tets(vertices: Tensor, tets: Tensor, n: int, seed: int = 0) -> tuple[Tensor, Tensor, Tensor]:
+    """n points uniform in the volume of a tet mesh: a tet drawn with probability ∝ its volume, then a
+    uniform point in it (barycentric coordinates from sorted uniforms).
+
+    Returns:
+        points (n, 3) float64, tet_index (n,) long, bary (n, 4) float64 — the embedding of
+        :func:`vid2sim.data.embedding.apply_embedding`, which carries the points with the deformed mesh.
+    """
+    if not (isinstance(n, int) and n >= 1):
+        raise ValueError(f"n must be an integer >= 1, got {n!r}")
+    X = torch.as_tensor(vertices).to(torch.float64)
+    T = torch.as_tensor(tets).to(torch.long)
+    vol = tet_volumes(X, T).abs()
+    gen = torch.Generator().manual_seed(int(seed))
+    index = torch.multinomial(vol / vol.sum(), n, replacement=True, generator=gen)
+    u = torch.sort(torch.rand(n, 3, generator=gen, dtype=torch.float64), dim=1).values
+    bary = torch.diff(torch.cat([torch.zeros(n, 1, dtype=torch.float64), u, torch.ones(n, 1, dtype=torch.float64)],
+                                dim=1), dim=1)
+    points = (X[T[index]] * bary[:, :, None]).sum(1)
+    return points, index, bary
+
+
 def _surface_volume_and_closed(vertices: np.ndarray, faces: np.ndarray) -> tuple[float, bool]:
     """Signed enclosed volume of a triangle surface, and whether every edge is shared by exactly two
     faces with opposite directions (closed, consistently oriented 2-manifold edges)."""

@@ -1,0 +1,370 @@
+"""``vid2sim bench identify``: how well the reduced simulator identifies E, ν and the damping from 3-D motion.
+
+This is the upper bound of the video pipeline: the same question with perfect geometry and no rendering.
+For every scene of a suite (procedural objects, E log-uniform in [1e4, 1e6], ν uniform in [0.2, 0.49],
+:func:`vid2sim.data.synthetic.benchmark_parameters`):
+
+1. the ground truth — the object tetrahedralized (fTetWild, the preset's resolution) and dropped by the FEM
+   with the scene's material and the default damping, converged in time
+   (:func:`vid2sim.data.fem.simulate_fem_converged`);
+2. perfect geometry — points sampled uniformly in the FEM's rest tets (their true trajectories by
+   barycentric interpolation), a skinning field trained data-free on them, farthest-point cubature with
+   the mesh volume, the FEM's surface vertices with their areas as contact points, the FEM's density,
+   length scale and floor, and the exact rigid initial state fitted to the FEM's frame 0;
+3. the model error — the reduced simulation at the true parameters against the FEM (frames 1–15 and
+   16–23), and the reduced simulation's own time convergence (its default substeps against 4× as many);
+4. the fit — log10 E, ν and the damping ratio ζ from the prior (E = 1e5, ν = 0.3, ζ = 0.05) by
+   L-BFGS on the adjoint gradients of the mean squared point distance over the observed frames 1–15;
+5. the E valley — the same loss swept over log10 E around the fitted value (ν, ζ fitted), and its depth
+   at ±0.5 decade.
+
+Trajectory errors are :func:`vid2sim.metrics.trajectory_distance` (mean point distance, percent of the
+object's size). Everything expensive is cached in a work folder, so a rerun only fits.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+
+@dataclass
+class IdentifyConfig:
+    """Settings of ``vid2sim bench identify`` (the defaults are the ones reported in docs/architecture.md).
+
+    Attributes:
+        scenes: number of scenes (≥ 1; the reported figures use 6).
+        seed: suite seed (scene i: object/pose seed and material of :func:`benchmark_parameters`).
+        preset: tet resolution and drop of the synthetic preset ("small" or "full").
+        frames, observed_frames: frames simulated and observed (the rest are the future).
+        points: sample points for the loss and the errors.
+        handles: learned skinning handles (+ 1 rigid).
+        skinning_iterations: data-free skinning training iterations.
+        cubature: cubature points.
+        prior_E, prior_nu, prior_damping: the fit's start.
+        fit_iterations: L-BFGS iterations (each takes a few loss evaluations).
+        sweep_decades, sweep_points: the log10 E sweep around the fit.
+        fem_tolerance: the ground truth's time-convergence tolerance (percent of the size).
+        truth: "fem" — fit the FEM's motion (model error included); "reduced" — fit the reduced model's
+            own motion at the true parameters (pure identifiability: the loss landscape and the optimiser,
+            without model error).
+    """
+
+    scenes: int = 6
+    seed: int = 0
+    preset: str = "small"
+    frames: int = 24
+    observed_frames: int = 16
+    points: int = 3000
+    handles: int = 10
+    skinning_iterations: int = 2000
+    cubature: int = 500
+    prior_E: float = 1e5
+    prior_nu: float = 0.3
+    prior_damping: float = 0.05
+    fit_iterations: int = 12
+    sweep_decades: float = 0.5
+    sweep_points: int = 5
+    fem_tolerance: float = 1.0
+    truth: str = "fem"
+
+    def __post_init__(self) -> None:
+        for name in ("scenes", "frames", "observed_frames", "points", "handles", "cubature", "fit_iterations",
+                     "sweep_points"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"IdentifyConfig.{name} must be an integer >= 1, got {value!r}")
+        if self.observed_frames >= self.frames:
+            raise ValueError(f"IdentifyConfig.observed_frames ({self.observed_frames}) must be < frames ({self.frames})")
+        if self.truth not in ("fem", "reduced"):
+            raise ValueError(f"IdentifyConfig.truth must be 'fem' or 'reduced', got {self.truth!r}")
+        if self.preset not in ("small", "full"):
+            raise ValueError(f"IdentifyConfig.preset must be 'small' or 'full', got {self.preset!r}")
+
+
+@dataclass
+class PerfectGeometry:
+    """One scene's ground truth and the reduced simulator built on its exact geometry.
+
+    Attributes:
+        simulator: the reduced simulator at the prior material (float64).
+        start: the exact initial state (rigid pose and velocity of the FEM's frame 0).
+        rest_points: (P, 3) sample points in the rest tets; lbs: (P, 4H) their LBS rows.
+        truth: (T, P, 3) their FEM trajectory.
+        size: the object's rest bounding-box diagonal (m).
+        material: {"E", "nu", "damping_ratio"} of the ground truth.
+        info: facts about the scene (tets, substeps, time convergence, wall times).
+    """
+
+    simulator: Any
+    start: Any
+    rest_points: torch.Tensor
+    lbs: torch.Tensor
+    truth: torch.Tensor
+    size: float
+    material: dict
+    info: dict
+
+    def positions(self, z: torch.Tensor) -> torch.Tensor:
+        """(P, 3) sample-point positions for the reduced state z: (12H,)."""
+        return self.rest_points + self.lbs @ z.reshape(-1, 3, 4).transpose(0, 1).reshape(3, -1).T
+
+    def trajectory(self, frames: int, grad: bool = False) -> torch.Tensor:
+        """(frames, P, 3) reduced trajectory from the exact start (frame 0 included)."""
+        context = torch.enable_grad() if grad else torch.no_grad()
+        with context:
+            states = self.simulator.rollout(self.start, frames - 1)
+            return torch.stack([self.positions(self.start.z)] + [self.positions(s.z) for s in states])
+
+
+def _rigid_affine(rest: np.ndarray, posed: np.ndarray) -> np.ndarray:
+    """(3, 4) affine A with posed ≈ A [rest; 1] (least squares; exact for a rigid pose or velocity field)."""
+    Xh = np.concatenate([rest, np.ones((len(rest), 1))], axis=1)
+    A, *_ = np.linalg.lstsq(Xh, posed, rcond=None)
+    return A.T
+
+
+def prepare_scene(index: int, params: dict, config: IdentifyConfig, workdir: Path, progress: bool = False
+                  ) -> PerfectGeometry:
+    """Build (or load from ``workdir``) scene ``index`` of the suite: FEM ground truth and perfect geometry."""
+    from vid2sim.data.embedding import apply_embedding
+    from vid2sim.data.fem import FEMResult, simulate_fem_converged
+    from vid2sim.data.shapes import make_procedural_object
+    from vid2sim.data.synthetic import SyntheticSceneConfig
+    from vid2sim.data.tetra import sample_points_in_tets, surface_vertex_areas, tet_volumes, tetrahedralize
+    from vid2sim.physics import Floor, Gravity, Material, SimConfig, SimState, Simulator, SkinningField
+    from vid2sim.physics.cubature import sample_cubature
+    from vid2sim.physics.skinning_training import SkinningTrainingConfig, train_skinning
+
+    folder = workdir / f"scene_{index:03d}"
+    folder.mkdir(parents=True, exist_ok=True)
+    scene_cfg = SyntheticSceneConfig.preset(config.preset, frames=config.frames,
+                                            observed_frames=config.observed_frames, **params)
+    key = {"params": params, "preset": config.preset, "frames": config.frames, "fem_tolerance": config.fem_tolerance}
+    fem_path, key_path = folder / "fem_result.npz", folder / "fem_key.json"
+    if fem_path.is_file() and key_path.is_file() and json.loads(key_path.read_text()) == key:
+        fem = FEMResult.load(fem_path)
+    else:
+        mesh = make_procedural_object(scene_cfg.seed)
+        tet = tetrahedralize(mesh.vertices, mesh.faces, edge_length_fac=scene_cfg.tet_edge_length,
+                             epsilon=scene_cfg.tet_envelope, name=mesh.name)
+        fem = simulate_fem_converged(tet.vertices, tet.tets, scene_cfg.fem_config(), scene_cfg.initial_pose(),
+                                     frames=config.frames, tolerance=config.fem_tolerance, progress=progress)
+        fem.save(fem_path)
+        key_path.write_text(json.dumps(key))
+    X, T = fem.rest_vertices, fem.tets
+    size = float((X.max(0).values - X.min(0).values).norm())
+    volume = float(tet_volumes(X, T).abs().sum())
+    points, tet_index, bary = sample_points_in_tets(X, T, config.points, seed=index)
+    truth = apply_embedding(fem.trajectory, tet_index, bary, T)  # (T, P, 3)
+
+    field = SkinningField(num_handles=config.handles, seed=0).double()
+    field_path = folder / f"skinning_{config.handles}h_{config.skinning_iterations}it_{config.points}p.pt"
+    if field_path.is_file():
+        field.load_state_dict(torch.load(field_path))
+    else:
+        train_skinning(field, points, SkinningTrainingConfig(iterations=config.skinning_iterations, seed=index),
+                       progress=progress, volume=volume)
+        torch.save(field.state_dict(), field_path)
+    for p in field.parameters():
+        p.requires_grad_(False)
+    idx, weights = sample_cubature(points, config.cubature, volume=volume, seed=0)
+    areas = surface_vertex_areas(X, T)
+    surface = areas > 0
+    fc = fem.config
+    material = Material(config.prior_E, config.prior_nu, fc.density, damping_ratio=config.prior_damping)
+    sim = Simulator(field, points[idx], weights, material,
+                    [Gravity(fc.gravity), Floor(height=fc.floor_height, stiffness=fc.floor_stiffness)], SimConfig(),
+                    length_scale=fem_length(fem, size), contact_points=X[surface], contact_weights=areas[surface])
+    H = field.num_handles_total
+    Z0 = np.zeros((H, 3, 4))
+    Z0[-1] = _rigid_affine(X.numpy(), fem.trajectory[0].numpy()) - np.hstack([np.eye(3), np.zeros((3, 1))])
+    Zd = np.zeros((H, 3, 4))
+    Zd[-1] = _rigid_affine(X.numpy(), fem.velocities[0].numpy())
+    start = SimState(torch.from_numpy(Z0.reshape(-1)), torch.from_numpy(Zd.reshape(-1)))
+    with torch.no_grad():
+        w = field(points)
+    from vid2sim.physics.reduced import lbs_rows
+
+    lbs = lbs_rows(points, w)
+    info = {"object": f"procedural-{scene_cfg.seed}", "tets": int(len(T)), "fem_substeps": fc.substeps,
+            "fem_time_convergence_percent": (fem.time_convergence or {}).get("mean_percent"),
+            "fem_seconds": (fem.time_convergence or {}).get("wall_time_all_runs", fem.wall_time)}
+    truth_material = {"E": fc.youngs_modulus, "nu": fc.poisson_ratio, "damping_ratio": fc.damping_ratio}
+    return PerfectGeometry(sim, start, points, lbs, truth, size, truth_material, info)
+
+
+def fem_length(fem, size: float) -> float:
+    """The FEM's damping length scale (its config's, else the rest bounding-box diagonal)."""
+    return float(fem.config.damping_length) if fem.config.damping_length is not None else size
+
+
+def set_material(sim, log10_E: float, nu: float, damping: float) -> None:
+    with torch.no_grad():
+        sim.log10_E.fill_(log10_E)
+        sim.nu.fill_(nu)
+        sim.damping_ratio.fill_(damping)
+
+
+def trajectory_loss(scene: PerfectGeometry, frames: int, grad: bool = False) -> torch.Tensor:
+    """Mean over frames 1 … frames−1 and points of the squared distance to the truth, in units of size²."""
+    traj = scene.trajectory(frames, grad=grad)
+    diff = traj[1:] - scene.truth[1:frames]
+    return (diff * diff).sum(-1).mean() / scene.size**2
+
+
+def model_errors(scene: PerfectGeometry, config: IdentifyConfig) -> dict:
+    """Trajectory errors (percent of the size) on the observed frames 1–15 and the future 16–23."""
+    from vid2sim.metrics import trajectory_distance
+
+    traj = scene.trajectory(config.frames)
+    obs = trajectory_distance(traj, scene.truth, scene.size, frames=slice(1, config.observed_frames))
+    fut = trajectory_distance(traj, scene.truth, scene.size, frames=slice(config.observed_frames, config.frames))
+    return {"observed_percent": obs.mean, "future_percent": fut.mean, "all_percent":
+            trajectory_distance(traj, scene.truth, scene.size).mean}
+
+
+def fit(scene: PerfectGeometry, config: IdentifyConfig, progress: bool = False) -> dict:
+    """Fit log10 E, ν and ζ from the prior with L-BFGS on the adjoint gradients of the observed-frame loss.
+
+    ν is optimised as ν = 0.5·sigmoid(u) (inside (0, 0.5)) and ζ as softplus(v) (≥ 0), so the search is
+    unconstrained; the substep count follows the current E (:meth:`Simulator.substeps`)."""
+    from tqdm.auto import tqdm
+
+    sim = scene.simulator
+    logE = torch.tensor(math.log10(config.prior_E), dtype=torch.float64, requires_grad=True)
+    u = torch.tensor(math.log(config.prior_nu / (0.5 - config.prior_nu)), dtype=torch.float64, requires_grad=True)
+    v = torch.tensor(math.log(math.expm1(config.prior_damping)), dtype=torch.float64, requires_grad=True)
+    history = []
+
+    def assign():
+        sim.log10_E = logE
+        sim.nu = 0.5 * torch.sigmoid(u)
+        sim.damping_ratio = torch.nn.functional.softplus(v)
+
+    optimizer = torch.optim.LBFGS([logE, u, v], lr=1.0, max_iter=4, history_size=10,
+                                  line_search_fn="strong_wolfe", tolerance_grad=1e-12, tolerance_change=1e-12)
+
+    def closure():
+        optimizer.zero_grad()
+        assign()
+        loss = trajectory_loss(scene, config.observed_frames, grad=True)
+        loss.backward()
+        with torch.no_grad():
+            history.append({"log10_E": float(logE), "nu": float(0.5 * torch.sigmoid(u)),
+                            "damping_ratio": float(torch.nn.functional.softplus(v)), "loss": float(loss)})
+        return loss
+
+    start = time.perf_counter()
+    bar = tqdm(range(config.fit_iterations), desc="fit", leave=False, disable=not progress)
+    for _ in bar:
+        try:
+            optimizer.step(closure)
+        except Exception as exc:  # a line search that pushed E or ν to where the simulation fails
+            history.append({"error": str(exc).splitlines()[0][:200]})
+            break
+        bar.set_postfix(log10_E=f"{history[-1].get('log10_E', float('nan')):.3f}", loss=f"{history[-1].get('loss', 0):.2e}")
+    seconds = time.perf_counter() - start
+    best = min((h for h in history if "loss" in h), key=lambda h: h["loss"])
+    # restore plain tensors at the best point
+    sim.log10_E = torch.tensor(best["log10_E"], dtype=torch.float64)
+    sim.nu = torch.tensor(best["nu"], dtype=torch.float64)
+    sim.damping_ratio = torch.tensor(best["damping_ratio"], dtype=torch.float64)
+    return {"log10_E": best["log10_E"], "nu": best["nu"], "damping_ratio": best["damping_ratio"],
+            "loss": best["loss"], "evaluations": len([h for h in history if "loss" in h]), "seconds": seconds,
+            "history": history}
+
+
+def sweep(scene: PerfectGeometry, config: IdentifyConfig, centre: float) -> dict:
+    """The observed-frame loss over log10 E ∈ centre ± sweep_decades (ν, ζ as set), and the valley depth:
+    loss(±0.5 decade) / loss(centre)."""
+    sim = scene.simulator
+    nu, zeta = float(sim.nu), float(sim.damping_ratio)
+    offsets = np.linspace(-config.sweep_decades, config.sweep_decades, config.sweep_points)
+    losses = []
+    for off in offsets:
+        set_material(sim, centre + off, nu, zeta)
+        losses.append(float(trajectory_loss(scene, config.observed_frames)))
+    set_material(sim, centre, nu, zeta)
+    mid = losses[len(losses) // 2]
+    return {"log10_E": [centre + float(o) for o in offsets], "loss": losses,
+            "depth_at_minus": losses[0] / mid, "depth_at_plus": losses[-1] / mid}
+
+
+def time_convergence(scene: PerfectGeometry, config: IdentifyConfig) -> dict:
+    """The reduced simulation's default substeps against 4× as many, at the current material (percent)."""
+    from dataclasses import replace
+
+    from vid2sim.metrics import trajectory_distance
+
+    sim = scene.simulator
+    n = sim.substeps()
+    base = scene.trajectory(config.frames)
+    saved = sim.config
+    sim.config = replace(saved, substeps=4 * n)
+    fine = scene.trajectory(config.frames)
+    sim.config = saved
+    d = trajectory_distance(base, fine, scene.size)
+    return {"substeps": n, "refined_substeps": 4 * n, "mean_percent": d.mean, "max_percent": d.max}
+
+
+def run(config: IdentifyConfig, workdir: str | Path, progress: bool = True) -> dict:
+    """Run the benchmark; returns the JSON-ready report (per scene and means)."""
+    from tqdm.auto import tqdm
+
+    from vid2sim.data.synthetic import benchmark_parameters
+
+    workdir = Path(workdir)
+    workdir.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for i, params in enumerate(tqdm(benchmark_parameters(config.scenes, config.seed), desc="identify scenes",
+                                    unit="scene", disable=not progress)):
+        t0 = time.perf_counter()
+        scene = prepare_scene(i, params, config, workdir, progress=False)
+        truth = scene.material
+        set_material(scene.simulator, math.log10(truth["E"]), truth["nu"], truth["damping_ratio"])
+        if config.truth == "reduced":
+            scene.truth = scene.trajectory(config.frames)
+        at_truth = model_errors(scene, config)
+        converged = time_convergence(scene, config)
+        result = fit(scene, config, progress=progress)
+        fitted_errors = model_errors(scene, config)
+        valley = sweep(scene, config, result["log10_E"])
+        rows.append({
+            "scene": i, **scene.info,
+            "true": {"log10_E": math.log10(truth["E"]), "nu": truth["nu"], "damping_ratio": truth["damping_ratio"]},
+            "fitted": {k: result[k] for k in ("log10_E", "nu", "damping_ratio")},
+            "abs_error": {"log10_E": abs(result["log10_E"] - math.log10(truth["E"])),
+                          "nu": abs(result["nu"] - truth["nu"]),
+                          "damping_ratio": abs(result["damping_ratio"] - truth["damping_ratio"])},
+            "model_error_at_truth_percent": at_truth,
+            "trajectory_error_fitted_percent": fitted_errors,
+            "reduced_time_convergence_at_truth": converged,
+            "fit": {k: result[k] for k in ("loss", "evaluations", "seconds")},
+            "fit_history": result["history"],
+            "e_valley": valley,
+            "seconds": time.perf_counter() - t0,
+        })
+    def mean(get):
+        return float(np.mean([get(r) for r in rows]))
+
+    summary = {
+        "mean_abs_error_log10_E": mean(lambda r: r["abs_error"]["log10_E"]),
+        "mean_abs_error_nu": mean(lambda r: r["abs_error"]["nu"]),
+        "mean_abs_error_damping_ratio": mean(lambda r: r["abs_error"]["damping_ratio"]),
+        "mean_model_error_observed_percent": mean(lambda r: r["model_error_at_truth_percent"]["observed_percent"]),
+        "mean_model_error_future_percent": mean(lambda r: r["model_error_at_truth_percent"]["future_percent"]),
+        "mean_fitted_error_observed_percent": mean(lambda r: r["trajectory_error_fitted_percent"]["observed_percent"]),
+        "mean_fitted_error_future_percent": mean(lambda r: r["trajectory_error_fitted_percent"]["future_percent"]),
+        "mean_valley_depth_at_half_decade": mean(lambda r: min(r["e_valley"]["depth_at_minus"], r["e_valley"]["depth_at_plus"])),
+        "max_reduced_time_convergence_percent": max(r["reduced_time_convergence_at_truth"]["mean_percent"] for r in rows),
+        "mean_fit_seconds": mean(lambda r: r["fit"]["seconds"]),
+    }
+    return {"config": asdict(config), "summary": summary, "scenes": rows, "threads": torch.get_num_threads()}

@@ -1,0 +1,63 @@
+"""vid2sim bench identify at a tiny size: the pieces are consistent and the report is complete."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+import torch
+
+from vid2sim.bench import identify
+from vid2sim.cli import main
+
+TINY = dict(scenes=1, frames=10, observed_frames=6, points=400, skinning_iterations=40, cubature=120,
+            fit_iterations=1, sweep_points=3, handles=4)
+
+
+@pytest.fixture(scope="module")
+def report(tmp_path_factory):
+    workdir = tmp_path_factory.mktemp("identify")
+    config = identify.IdentifyConfig(**TINY)
+    return identify.run(config, workdir, progress=False), config, workdir
+
+
+def test_perfect_geometry_starts_exactly_where_the_fem_starts(report):
+    _, config, workdir = report
+    from vid2sim.data.synthetic import benchmark_parameters
+
+    scene = identify.prepare_scene(0, benchmark_parameters(1, 0)[0], config, workdir)  # from the cache
+    x0 = scene.positions(scene.start.z)
+    assert torch.allclose(x0, scene.truth[0], atol=1e-9)  # the rigid pose is fitted exactly
+    assert (scene.simulator.contact_weights > 0).all()
+    assert scene.simulator.length_scale == pytest.approx(scene.size)
+    # the truth's own material at frame 1: nearly ballistic, so the reduced model follows it closely
+    truth = scene.material
+    identify.set_material(scene.simulator, math.log10(truth["E"]), truth["nu"], truth["damping_ratio"])
+    traj = scene.trajectory(2)
+    assert float((traj[1] - scene.truth[1]).norm(dim=1).mean()) < 0.01 * scene.size
+
+
+def test_report_has_per_scene_figures_and_means(report):
+    result, config, _ = report
+    (row,) = result["scenes"]
+    for key in ("true", "fitted", "abs_error", "model_error_at_truth_percent", "trajectory_error_fitted_percent",
+                "reduced_time_convergence_at_truth", "e_valley", "fit", "seconds"):
+        assert key in row, key
+    assert row["abs_error"]["log10_E"] == pytest.approx(abs(row["fitted"]["log10_E"] - row["true"]["log10_E"]))
+    assert 0 < row["fitted"]["nu"] < 0.5 and row["fitted"]["damping_ratio"] >= 0
+    # the fit starts at the prior and never ends worse than it started
+    losses = [h["loss"] for h in row["fit_history"] if "loss" in h]
+    assert row["fit"]["loss"] == min(losses) <= losses[0]
+    assert row["fit_history"][0]["log10_E"] == pytest.approx(math.log10(config.prior_E))
+    assert len(row["e_valley"]["loss"]) == config.sweep_points
+    assert row["reduced_time_convergence_at_truth"]["refined_substeps"] == 4 * row["reduced_time_convergence_at_truth"]["substeps"]
+    summary = result["summary"]
+    assert summary["mean_abs_error_log10_E"] == pytest.approx(row["abs_error"]["log10_E"])
+    json.dumps(result)  # JSON-ready
+
+
+def test_cli_rejects_bad_options_with_the_flag_name(tmp_path, capsys):
+    assert main(["bench", "identify", "--n", "0", "--workdir", str(tmp_path / "w"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "--n must be an integer >= 1" in err
