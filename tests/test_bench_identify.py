@@ -24,7 +24,7 @@ def report(tmp_path_factory):
 
 def test_perfect_geometry_starts_exactly_where_the_fem_starts(report):
     _, config, workdir = report
-    from vid2sim.data.synthetic import benchmark_parameters
+    from vid2sim.synthetic.scenes import benchmark_parameters
 
     scene = identify.prepare_scene(0, benchmark_parameters(1, 0)[0], config, workdir)  # from the cache
     x0 = scene.positions(scene.start.z)

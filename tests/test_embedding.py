@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from vid2sim.data.embedding import apply_embedding, embed_points
+from vid2sim.synthetic.embedding import apply_embedding, embed_points
 
 
 def grid_tets(n: int = 3, size: float = 1.0) -> tuple[torch.Tensor, torch.Tensor]:

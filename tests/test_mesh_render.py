@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from vid2sim.data.mesh_render import render_mesh, render_textured_mesh, sample_texture, vertex_normals
-from vid2sim.data.shapes import ProceduralShapeConfig, make_procedural_object
+from vid2sim.synthetic.mesh_render import render_mesh, render_textured_mesh, sample_texture, vertex_normals
+from vid2sim.synthetic.shapes import ProceduralShapeConfig, make_procedural_object
 from vid2sim.splats.cameras import Camera, camera_ring
 
 F64 = torch.float64

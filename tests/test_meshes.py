@@ -7,8 +7,8 @@ import pytest
 import torch
 from PIL import Image
 
-from vid2sim.data.mesh_render import sample_texture
-from vid2sim.data.meshes import (
+from vid2sim.synthetic.mesh_render import sample_texture
+from vid2sim.synthetic.meshes import (
     TexturedMesh,
     bake_corner_colors,
     load_user_mesh,
@@ -17,7 +17,7 @@ from vid2sim.data.meshes import (
     save_obj,
     surface_report,
 )
-from vid2sim.data.shapes import ProceduralShapeConfig, make_procedural_object
+from vid2sim.synthetic.shapes import ProceduralShapeConfig, make_procedural_object
 
 # six face colours of the test cube, one per signed axis +x, +y, +z, -x, -y, -z
 FACE_COLORS = np.array(

@@ -15,8 +15,8 @@ import pytest
 import torch
 from PIL import Image
 
-import vid2sim.data.scene as scene_mod
-from vid2sim.data.scene import LAYOUTS, Scene, SceneConfig, SceneFormatError, load_scene, write_scene
+import vid2sim.scene.folder as scene_mod
+from vid2sim.scene.folder import LAYOUTS, Scene, SceneConfig, SceneFormatError, load_scene, write_scene
 from vid2sim.splats.cameras import Camera, camera_ring
 
 V, T, H, W = 3, 5, 12, 16

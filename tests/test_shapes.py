@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from vid2sim.data.meshes import surface_report
-from vid2sim.data.shapes import (
+from vid2sim.synthetic.meshes import surface_report
+from vid2sim.synthetic.shapes import (
     PRIMITIVE_KINDS,
     Primitive,
     ProceduralShapeConfig,
@@ -17,7 +17,7 @@ from vid2sim.data.shapes import (
     random_rotation,
     union_sdf,
 )
-from vid2sim.data.textures import TEXTURE_KINDS, checkers, procedural_texture, stripes, value_noise
+from vid2sim.synthetic.textures import TEXTURE_KINDS, checkers, procedural_texture, stripes, value_noise
 
 SMALL = ProceduralShapeConfig(target_faces=800, texture_size=32)
 

@@ -18,9 +18,9 @@ import pytest
 import torch
 
 from vid2sim.cli import main
-from vid2sim.data.fem import FEMResult
-from vid2sim.data.scene import load_scene
-from vid2sim.data.synthetic import (
+from vid2sim.synthetic.fem import FEMResult
+from vid2sim.scene.folder import load_scene
+from vid2sim.synthetic.scenes import (
     BENCHMARK_E_RANGE,
     BENCHMARK_NU_RANGE,
     SyntheticSceneConfig,
@@ -154,8 +154,8 @@ def test_tet_mesh_of_another_object_is_refused(small_scene, tmp_path):
 
 
 def test_user_mesh_scene(tmp_path):
-    from vid2sim.data.meshes import save_obj
-    from vid2sim.data.shapes import make_procedural_object
+    from vid2sim.synthetic.meshes import save_obj
+    from vid2sim.synthetic.shapes import make_procedural_object
 
     mesh_file = save_obj(make_procedural_object(11), tmp_path / "mesh" / "thing.obj")
     out = tmp_path / "scene"

@@ -114,14 +114,14 @@ def _scene_overrides(args: argparse.Namespace) -> dict:
 
 
 def _generation_errors() -> tuple[type[Exception], ...]:
-    from vid2sim.data.fem import FEMSolverError
-    from vid2sim.data.tetra import TetrahedralizationError
+    from vid2sim.synthetic.fem import FEMSolverError
+    from vid2sim.synthetic.tetra import TetrahedralizationError
 
     return (FEMSolverError, TetrahedralizationError)
 
 
 def _cmd_make_scene(args: argparse.Namespace) -> int:
-    from vid2sim.data.synthetic import SyntheticSceneConfig, make_scene
+    from vid2sim.synthetic.scenes import SyntheticSceneConfig, make_scene
 
     config = SyntheticSceneConfig.preset(args.preset, seed=args.seed, mesh=args.mesh, tet_mesh=args.tet_mesh,
                                          **_scene_overrides(args))
@@ -134,7 +134,7 @@ def _cmd_make_scene(args: argparse.Namespace) -> int:
 
 
 def _cmd_make_benchmark(args: argparse.Namespace) -> int:
-    from vid2sim.data.synthetic import make_benchmark
+    from vid2sim.synthetic.scenes import make_benchmark
 
     try:
         path = make_benchmark(args.n, args.out, preset=args.preset, seed=args.seed, progress=not args.quiet,
@@ -156,7 +156,7 @@ def _cmd_fit_gaussians(args: argparse.Namespace) -> int:
     from PIL import Image
 
     from vid2sim.bench.timing import resolve_device
-    from vid2sim.data.scene import SceneFormatError, load_scene, move_into_place
+    from vid2sim.scene.folder import SceneFormatError, load_scene, move_into_place
     from vid2sim.splats.fitting import FitConfig, fit_gaussians
     from vid2sim.splats.losses import psnr
     from vid2sim.splats.ply import save_ply

@@ -2,11 +2,11 @@
 
 This is the upper bound of the video pipeline: the same question with perfect geometry and no rendering.
 For every scene of a suite (procedural objects, E log-uniform in [1e4, 1e6], ν uniform in [0.2, 0.49],
-:func:`vid2sim.data.synthetic.benchmark_parameters`):
+:func:`vid2sim.synthetic.scenes.benchmark_parameters`):
 
 1. the ground truth — the object tetrahedralized (fTetWild, the preset's resolution) and dropped by the FEM
    with the scene's material and the default damping, converged in time
-   (:func:`vid2sim.data.fem.simulate_fem_converged`);
+   (:func:`vid2sim.synthetic.fem.simulate_fem_converged`);
 2. perfect geometry — points sampled uniformly in the FEM's rest tets (their true trajectories by
    barycentric interpolation), a skinning field trained data-free on them, farthest-point cubature with
    the mesh volume, the FEM's surface vertices with their areas as contact points, the FEM's density,
@@ -134,11 +134,11 @@ def _rigid_affine(rest: np.ndarray, posed: np.ndarray) -> np.ndarray:
 def prepare_scene(index: int, params: dict, config: IdentifyConfig, workdir: Path, progress: bool = False
                   ) -> PerfectGeometry:
     """Build (or load from ``workdir``) scene ``index`` of the suite: FEM ground truth and perfect geometry."""
-    from vid2sim.data.embedding import apply_embedding
-    from vid2sim.data.fem import FEMResult, simulate_fem_converged
-    from vid2sim.data.shapes import make_procedural_object
-    from vid2sim.data.synthetic import SyntheticSceneConfig
-    from vid2sim.data.tetra import sample_points_in_tets, surface_vertex_areas, tet_volumes, tetrahedralize
+    from vid2sim.synthetic.embedding import apply_embedding
+    from vid2sim.synthetic.fem import FEMResult, simulate_fem_converged
+    from vid2sim.synthetic.shapes import make_procedural_object
+    from vid2sim.synthetic.scenes import SyntheticSceneConfig
+    from vid2sim.synthetic.tetra import sample_points_in_tets, surface_vertex_areas, tet_volumes, tetrahedralize
     from vid2sim.physics import Floor, Gravity, Material, SimConfig, SimState, Simulator, SkinningField
     from vid2sim.physics.cubature import sample_cubature
     from vid2sim.physics.skinning_training import SkinningTrainingConfig, train_skinning
@@ -319,7 +319,7 @@ def run(config: IdentifyConfig, workdir: str | Path, progress: bool = True) -> d
     """Run the benchmark; returns the JSON-ready report (per scene and means)."""
     from tqdm.auto import tqdm
 
-    from vid2sim.data.synthetic import benchmark_parameters
+    from vid2sim.synthetic.scenes import benchmark_parameters
 
     workdir = Path(workdir)
     workdir.mkdir(parents=True, exist_ok=True)

@@ -15,11 +15,11 @@ How a shape is made (:func:`make_procedural_object`):
    ``target_faces`` triangles. Marching cubes gives a closed manifold surface without the
    self-intersections that an exact boolean of tessellated primitives must fight; edges and the
    creases where primitives meet come out slightly rounded (by about one grid cell).
-3. Check watertightness and orient outward (:func:`vid2sim.data.meshes.prepare_surface`), keep
+3. Check watertightness and orient outward (:func:`vid2sim.synthetic.meshes.prepare_surface`), keep
    the largest connected piece, normalise into the canonical frame (centred, half bounding-box
    diagonal 0.5) and record that similarity transform.
 4. Bake box-projection UVs per face corner and draw a procedural texture
-   (:func:`vid2sim.data.textures.procedural_texture`).
+   (:func:`vid2sim.synthetic.textures.procedural_texture`).
 
 Box projection: each face is projected along the axis its normal is closest to; the six signed
 axes map to the six cells of a 3 × 2 grid over the texture, so every side of the object shows a

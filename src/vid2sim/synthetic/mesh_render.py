@@ -383,7 +383,7 @@ def render_mesh(
 def render_textured_mesh(
     mesh: "TexturedMesh", cameras: Sequence[Camera], vertices: Tensor | None = None, **kwargs
 ) -> tuple[Tensor, Tensor]:
-    """:func:`render_mesh` for a :class:`vid2sim.data.meshes.TexturedMesh`.
+    """:func:`render_mesh` for a :class:`vid2sim.synthetic.meshes.TexturedMesh`.
 
     Args:
         mesh: the mesh (its faces, uvs and texture are used).

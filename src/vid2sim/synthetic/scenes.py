@@ -5,17 +5,17 @@ The paper's benchmark (DESIGN.md): objects dropped onto a floor, FEM ground trut
 here, so vid2sim makes its own:
 
 1. the object — a seeded procedural union of primitives with a procedural texture
-   (:func:`vid2sim.data.shapes.make_procedural_object`) or a user mesh
-   (:func:`vid2sim.data.meshes.load_user_mesh`), in the canonical frame (half bounding-box diagonal 0.5);
-2. its tetrahedralization (fTetWild, :func:`vid2sim.data.tetra.tetrahedralize`);
-3. the FEM drop (:func:`vid2sim.data.fem.simulate_fem`): random rotation, drop height and rigid velocity
+   (:func:`vid2sim.synthetic.shapes.make_procedural_object`) or a user mesh
+   (:func:`vid2sim.synthetic.meshes.load_user_mesh`), in the canonical frame (half bounding-box diagonal 0.5);
+2. its tetrahedralization (fTetWild, :func:`vid2sim.synthetic.tetra.tetrahedralize`);
+3. the FEM drop (:func:`vid2sim.synthetic.fem.simulate_fem`): random rotation, drop height and rigid velocity
    from the seed, Neo-Hookean with the given E, ν, density, the floor of DESIGN.md;
-4. the textured surface carried by the tets (:mod:`vid2sim.data.embedding`) and rendered at every frame
-   from every camera (:func:`vid2sim.data.mesh_render.render_textured_mesh`), RGBA on white;
+4. the textured surface carried by the tets (:mod:`vid2sim.synthetic.embedding`) and rendered at every frame
+   from every camera (:func:`vid2sim.synthetic.mesh_render.render_textured_mesh`), RGBA on white;
 5. one scene folder, complete or absent (staged next to the target, then renamed): the scene written by
-   :func:`vid2sim.data.scene.write_scene` with the ground truth (E, ν, density, material, seed, initial
+   :func:`vid2sim.scene.folder.write_scene` with the ground truth (E, ν, density, material, seed, initial
    pose, FEM statistics) in ``scene.json``'s metadata and the tet trajectory as the ``tet_trajectory``
-   extra, plus ``fem_result.npz`` (:meth:`vid2sim.data.fem.FEMResult.save`: rest mesh, positions and
+   extra, plus ``fem_result.npz`` (:meth:`vid2sim.synthetic.fem.FEMResult.save`: rest mesh, positions and
    velocities at every frame, energies, solver statistics) and ``synthetic.json`` (this module's
    :class:`SyntheticSceneConfig`).
 
@@ -45,8 +45,8 @@ from vid2sim.physics.damping import DEFAULT_DAMPING_RATIO
 from vid2sim.physics.external import AREA_CONTACT_STIFFNESS
 
 if TYPE_CHECKING:
-    from vid2sim.data.fem import FEMConfig, InitialPose
-    from vid2sim.data.tetra import TetMesh
+    from vid2sim.synthetic.fem import FEMConfig, InitialPose
+    from vid2sim.synthetic.tetra import TetMesh
 
 PRESETS: dict[str, dict[str, Any]] = {
     "full": {"views": 12, "resolution": 448, "frames": 24, "observed_frames": 16},
@@ -78,11 +78,11 @@ class SyntheticSceneConfig:
         damping_ratio: ζ of the Kelvin–Voigt material damping (:mod:`vid2sim.physics.damping`).
         substeps: the FEM's first substep count per frame, or None for half the automatic count of the
             material (:func:`vid2sim.physics.integrators.auto_substeps`); the FEM then doubles it until the
-            trajectory is converged in time (:func:`vid2sim.data.fem.simulate_fem_converged`).
+            trajectory is converged in time (:func:`vid2sim.synthetic.fem.simulate_fem_converged`).
         time_tolerance: the FEM's convergence tolerance: largest change of the trajectory under 2× time
             refinement, percent of the object's size (mean over frames).
         floor_height, floor_stiffness: the floor plane z = h and its penalty stiffness κ per unit surface
-            area (Pa per metre of penetration; :class:`vid2sim.data.fem.FEMConfig`).
+            area (Pa per metre of penetration; :class:`vid2sim.synthetic.fem.FEMConfig`).
         tet_edge_length: fTetWild's target edge length relative to the bounding-box diagonal.
         tet_envelope: fTetWild's envelope (largest distance of the tet boundary from the surface) relative
             to the bounding-box diagonal; a wider envelope lets it coarsen the surface (fewer tets).
@@ -193,7 +193,7 @@ class SyntheticSceneConfig:
     def fem_config(self, **overrides: Any) -> "FEMConfig":
         """The FEM settings of this scene (material, damping, frame time, floor), with ``overrides``; the
         substeps are those of :attr:`substeps` when set (the converged run chooses its own)."""
-        from vid2sim.data.fem import FEMConfig
+        from vid2sim.synthetic.fem import FEMConfig
 
         fields_ = {"youngs_modulus": self.youngs_modulus, "poisson_ratio": self.poisson_ratio,
                    "density": self.density, "material": self.material, "dt": self.dt,
@@ -205,7 +205,7 @@ class SyntheticSceneConfig:
 
     def initial_pose(self) -> "InitialPose":
         """The seeded random drop pose (orientation, height above the floor, rigid velocity)."""
-        from vid2sim.data.fem import InitialPose
+        from vid2sim.synthetic.fem import InitialPose
 
         height = (0.05, 0.3) if self.drop_height is None else (self.drop_height, self.drop_height)
         return InitialPose.random(self.seed, drop_height=height, max_horizontal_speed=self.max_horizontal_speed,
@@ -265,7 +265,7 @@ def load_tet_mesh(path: str | Path) -> "TetMesh":
     Raises:
         FileNotFoundError: no such file. ValueError: not an npz with those arrays, or degenerate tets.
     """
-    from vid2sim.data.tetra import TetMesh, TetrahedralizationError, clean_tet_mesh
+    from vid2sim.synthetic.tetra import TetMesh, TetrahedralizationError, clean_tet_mesh
 
     path = Path(path)
     if not path.is_file():
@@ -292,7 +292,7 @@ def make_scene(config: SyntheticSceneConfig, out_dir: str | Path, overwrite: boo
     """Generate one synthetic scene folder (see the module docstring) and return its path.
 
     ``workers`` processes run the FEM's first pair of time resolutions side by side
-    (:func:`vid2sim.data.fem.simulate_fem_converged`); the result does not depend on it.
+    (:func:`vid2sim.synthetic.fem.simulate_fem_converged`); the result does not depend on it.
 
     The folder is assembled next to ``out_dir`` and renamed into place only when complete, so a failure
     or an interrupt leaves nothing behind (and an existing scene replaced with ``overwrite`` untouched).
@@ -301,19 +301,19 @@ def make_scene(config: SyntheticSceneConfig, out_dir: str | Path, overwrite: boo
         FileExistsError: ``out_dir`` exists and is not empty, unless ``overwrite`` and it is a scene folder.
         FileNotFoundError / ValueError: a bad mesh or tet-mesh file (not found, unsupported, not
             watertight, surface outside the tet mesh).
-        vid2sim.data.tetra.TetrahedralizationError, vid2sim.data.fem.FEMSolverError: meshing or the
+        vid2sim.synthetic.tetra.TetrahedralizationError, vid2sim.synthetic.fem.FEMSolverError: meshing or the
             FEM failed (nothing is written).
     """
     import shutil
     import uuid
 
-    from vid2sim.data.embedding import apply_embedding, embed_points
-    from vid2sim.data.fem import simulate_fem_converged
-    from vid2sim.data.mesh_render import render_textured_mesh
-    from vid2sim.data.meshes import load_user_mesh
-    from vid2sim.data.scene import Scene, SceneConfig, move_into_place, write_scene
-    from vid2sim.data.shapes import make_procedural_object
-    from vid2sim.data.tetra import tetrahedralize
+    from vid2sim.synthetic.embedding import apply_embedding, embed_points
+    from vid2sim.synthetic.fem import simulate_fem_converged
+    from vid2sim.synthetic.mesh_render import render_textured_mesh
+    from vid2sim.synthetic.meshes import load_user_mesh
+    from vid2sim.scene.folder import Scene, SceneConfig, move_into_place, write_scene
+    from vid2sim.synthetic.shapes import make_procedural_object
+    from vid2sim.synthetic.tetra import tetrahedralize
     from vid2sim.splats.cameras import camera_ring
 
     if not isinstance(config, SyntheticSceneConfig):
@@ -372,7 +372,7 @@ def make_scene(config: SyntheticSceneConfig, out_dir: str | Path, overwrite: boo
     lap("render")
 
     metadata = {
-        "generator": "vid2sim.data.synthetic",
+        "generator": "vid2sim.synthetic.scenes",
         "E": config.youngs_modulus,
         "nu": config.poisson_ratio,
         "density": config.density,

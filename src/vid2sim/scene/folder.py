@@ -43,7 +43,7 @@ from PIL import Image, UnidentifiedImageError
 from torch import Tensor
 from tqdm import tqdm
 
-from vid2sim.data.scene_validation import (
+from vid2sim.scene.validation import (
     SCENE_FORMAT_NAME,
     SCENE_FORMAT_VERSION,
     TIME_RTOL,
@@ -59,7 +59,7 @@ from vid2sim.data.scene_validation import (
     read_json,
     resolve_intrinsics,
 )
-from vid2sim.data.video import VideoError, load_video, write_video
+from vid2sim.scene.video import VideoError, load_video, write_video
 from vid2sim.splats.cameras import Camera
 
 __all__ = [

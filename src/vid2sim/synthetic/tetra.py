@@ -4,11 +4,11 @@ structured box mesher, and validation (positive volumes, orientation, unreferenc
 
 Conventions: ``vertices: (Nv, 3)`` float64, ``tets: (Nt, 4)`` long, every tet positively oriented,
 i.e. ``det[x1 − x0, x2 − x0, x3 − x0] > 0``. Boundary faces are wound counter-clockwise seen from
-outside (the convention of :mod:`vid2sim.data.meshes`).
+outside (the convention of :mod:`vid2sim.synthetic.meshes`).
 
 The mesher is `fTetWild <https://github.com/wildmeshing/fTetWild>`_ through the ``pytetwild`` wheel
 (MPL-2.0; robust on imperfect real assets). pytetwild imports PyVista at package import time, which
-we do not need; the child process (:mod:`vid2sim.data.tetwild_worker`) loads its compiled extension
+we do not need; the child process (:mod:`vid2sim.synthetic.tetwild_worker`) loads its compiled extension
 directly instead.
 """
 
@@ -112,7 +112,7 @@ def sample_points_in_tets(vertices: Tensor, tets: Tensor, n: int, seed: int = 0)
 
     Returns:
         points (n, 3) float64, tet_index (n,) long, bary (n, 4) float64 — the embedding of
-        :func:`vid2sim.data.embedding.apply_embedding`, which carries the points with the deformed mesh.
+        :func:`vid2sim.synthetic.embedding.apply_embedding`, which carries the points with the deformed mesh.
     """
     if not (isinstance(n, int) and n >= 1):
         raise ValueError(f"n must be an integer >= 1, got {n!r}")
@@ -298,7 +298,7 @@ def tetrahedralize(
         if not closed:
             raise TetrahedralizationError(
                 f"{name}: the surface is not closed and consistently oriented (some edges are not shared by "
-                "exactly two faces in opposite directions); repair it (vid2sim.data.meshes) or pass "
+                "exactly two faces in opposite directions); repair it (vid2sim.synthetic.meshes) or pass "
                 "require_closed=False")
         if surface_volume <= 0:
             raise TetrahedralizationError(
@@ -314,7 +314,7 @@ def tetrahedralize(
         env = dict(os.environ)
         env["PYTHONPATH"] = src_root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
         try:
-            proc = subprocess.run([sys.executable, "-m", "vid2sim.data.tetwild_worker", in_path, out_path],
+            proc = subprocess.run([sys.executable, "-m", "vid2sim.synthetic.tetwild_worker", in_path, out_path],
                                   capture_output=True, text=True, timeout=timeout, env=env,
                                   cwd=tmp)  # fTetWild writes scratch files into its working directory
         except subprocess.TimeoutExpired:

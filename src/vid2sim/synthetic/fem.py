@@ -9,7 +9,7 @@ Model
 * Mass: lumped, ρ V_e / 4 to each vertex of each tet (the same lumped-mass choice as the reduced
   simulator's ρ V / N per cubature point). Gravity energy −Σ_i m_i g·x_i.
 * Floor: the plane z = h with a penalty on the surface, E_f = κ Σ_i a_i max(0, h − z_i)² over the boundary
-  vertices with their lumped rest areas a_i (:func:`vid2sim.data.tetra.surface_vertex_areas`): a contact
+  vertices with their lumped rest areas a_i (:func:`vid2sim.synthetic.tetra.surface_vertex_areas`): a contact
   pressure κ · depth integrated over the surface, so the contact stiffness does not change when the mesh
   is refined (the paper's per-point k Σ max(0, h − z)² would grow with the number of surface vertices).
   κ = :data:`vid2sim.physics.external.AREA_CONTACT_STIFFNESS` by default; the reduced simulator uses
@@ -319,7 +319,7 @@ class TetFEM:
 
     Args:
         vertices: (Nv, 3) rest positions.
-        tets: (Nt, 4) positively oriented tets (see :mod:`vid2sim.data.tetra`).
+        tets: (Nt, 4) positively oriented tets (see :mod:`vid2sim.synthetic.tetra`).
         config: material, floor and solver settings.
     """
 
@@ -345,7 +345,7 @@ class TetFEM:
         if np.any(det <= 1e-14 * diag ** 3):
             bad = int(np.sum(det <= 1e-14 * diag ** 3))
             raise ValueError(f"{bad} of {len(det)} tets have non-positive or zero rest volume; "
-                             "reorient/clean the mesh with vid2sim.data.tetra.clean_tet_mesh")
+                             "reorient/clean the mesh with vid2sim.synthetic.tetra.clean_tet_mesh")
         self.volumes = det / 6.0
         Dm_inv = np.linalg.inv(Dm)
         # shape-function gradients G[e, a, j] = ∂N_a/∂X_j; F_ij = Σ_a x_{a,i} G_aj
@@ -361,7 +361,7 @@ class TetFEM:
         if np.any(m <= 0):
             raise ValueError(f"{int(np.sum(m <= 0))} vertices belong to no tet; drop unreferenced vertices first")
         self.masses = m
-        from vid2sim.data.tetra import surface_vertex_areas
+        from vid2sim.synthetic.tetra import surface_vertex_areas
 
         #: (Nv,) lumped rest surface area per vertex (0 inside): the floor penalty's weights
         self.contact_areas = surface_vertex_areas(torch.from_numpy(X), torch.from_numpy(self.tets)).numpy()

@@ -1,1 +1,0 @@
-"""Scene folders, video I/O and the synthetic benchmark generator."""

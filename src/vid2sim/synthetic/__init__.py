@@ -1,0 +1,5 @@
+"""The synthetic ground-truth generator: procedural and user meshes, tetrahedralization, the FEM drop,
+the textured-mesh renderer, and the scenes and suites built from them (``scenes``).
+
+Writes scene folders through :mod:`vid2sim.scene`; the reconstruction never imports this package.
+"""
