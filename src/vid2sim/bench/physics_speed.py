@@ -154,12 +154,12 @@ def run(device: torch.device, quick: bool = False, settings: PhysicsBenchSetting
     sim.nu.requires_grad_(False)
 
     # --- data-free training iterations --------------------------------------------------------------
-    n = s.train_timing_iters
-    skin_ms = time_ms(lambda: train_skinning(sim.field, pts, SkinningTrainingConfig(iterations=n, seed=s.seed),
-                                             progress=False), device, repeats=1) / n
+    iters = s.train_timing_iters
+    skin_ms = time_ms(lambda: train_skinning(sim.field, pts, SkinningTrainingConfig(iterations=iters, seed=s.seed),
+                                             progress=False), device, repeats=1) / iters
     nj = NeuralJacobian(num_handles_total=sim.field.num_handles_total, seed=s.seed).to(device)
     nj_ms = time_ms(lambda: train_neural_jacobian(nj, sim.field, pts, NeuralJacobianTrainingConfig(
-        iterations=n, seed=s.seed), progress=False), device, repeats=1) / n
+        iterations=iters, seed=s.seed), progress=False), device, repeats=1) / iters
 
     return {
         "sim_frame_ms": frame_ms,
