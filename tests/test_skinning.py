@@ -104,6 +104,32 @@ def test_closed_form_weight_gradient_matches_central_differences(field):
     assert float((dw.detach() - fd).abs().max()) < 1e-7 * max(1.0, scale)
 
 
+def test_input_frame_maps_world_points_to_the_canonical_network():
+    canonical = SkinningField(num_handles=4, width=16, hidden_layers=2, seed=3).double()
+    world = SkinningField(num_handles=4, width=16, hidden_layers=2, seed=3).double()
+    centre, scale = torch.tensor([0.3, -1.0, 2.0], dtype=torch.float64), 0.25
+    world.set_input_frame(centre, scale)
+    Xc = _points(30, seed=4)
+    Xw = centre + scale * Xc
+    w_c, dw_c = canonical.weights_and_gradients(Xc)
+    w_w, dw_w = world.weights_and_gradients(Xw)
+    assert torch.allclose(w_w, w_c) and torch.allclose(world(Xw), w_c)
+    assert torch.allclose(dw_w, dw_c / scale)  # chain rule of the input frame
+    h = 1e-6
+    with torch.no_grad():
+        for c in range(3):
+            e = torch.zeros(3, dtype=torch.float64)
+            e[c] = h
+            fd = (world(Xw + e) - world(Xw - e)) / (2 * h)
+            assert float((dw_w[:, :, c] - fd).abs().max()) < 1e-6 * float(dw_w.abs().max())
+    state = world.state_dict()  # the frame is saved with the weights
+    again = SkinningField(num_handles=4, width=16, hidden_layers=2).double()
+    again.load_state_dict(state)
+    assert torch.allclose(again(Xw), w_c)
+    with pytest.raises(ValueError, match="scale"):
+        world.set_input_frame(centre, 0.0)
+
+
 def test_deformation_gradient_matches_finite_differences_of_deform(field):
     X = _points(30, seed=3)
     H = field.num_handles_total

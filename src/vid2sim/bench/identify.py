@@ -166,7 +166,7 @@ def prepare_scene(index: int, params: dict, config: IdentifyConfig, workdir: Pat
     truth = apply_embedding(fem.trajectory, tet_index, bary, T)  # (T, P, 3)
 
     field = SkinningField(num_handles=config.handles, seed=0).double()
-    field_path = folder / f"skinning_{config.handles}h_{config.skinning_iterations}it_{config.points}p.pt"
+    field_path = folder / f"skinning_{config.handles}h_{config.skinning_iterations}it_{config.points}p_v2.pt"
     if field_path.is_file():
         field.load_state_dict(torch.load(field_path))
     else:

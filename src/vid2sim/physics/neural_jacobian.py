@@ -32,6 +32,7 @@ import torch
 from torch import Tensor, nn
 from torch.nn import functional as Fn
 
+from vid2sim.physics.input_frame import InputFrame
 from vid2sim.physics.skinning import SkinningField, dF_dz, deformation_gradient, gradient_basis
 from vid2sim.physics.skinning_training import sample_handle_transforms
 
@@ -59,7 +60,7 @@ class _ResidualBlock(nn.Module):
         return Fn.gelu(skip + self.fc2(Fn.gelu(self.fc1(x))))
 
 
-class NeuralJacobian(nn.Module):
+class NeuralJacobian(InputFrame):
     """J_θ(X): (N, 9, 12H), the predicted ∂F/∂z per point.
 
     Args:
@@ -98,6 +99,7 @@ class NeuralJacobian(nn.Module):
             gen.manual_seed(int(seed))
         freqs = torch.randn(encoding_dim // 2, 3, generator=gen, dtype=torch.float64) * self.frequency_scale
         self.register_buffer("frequencies", freqs.to(torch.get_default_dtype()))
+        self._init_input_frame()  # encodes (X − input_centre) / input_scale; identity unless set
         dims = (encoding_dim,) + widths
         self.blocks = nn.ModuleList(_ResidualBlock(a, b) for a, b in zip(dims[:-1], dims[1:]))
         self.output = nn.Linear(widths[-1], 9 * 12 * num_handles_total)
@@ -109,7 +111,7 @@ class NeuralJacobian(nn.Module):
 
     def encode(self, X: Tensor) -> Tensor:
         """Fourier features γ(X) = [sin 2πBX, cos 2πBX]: (N, encoding_dim) for X: (N, 3)."""
-        proj = (2.0 * math.pi) * (X @ self.frequencies.T)
+        proj = (2.0 * math.pi) * (self._canonical(X) @ self.frequencies.T)
         return torch.cat([torch.sin(proj), torch.cos(proj)], dim=1)
 
     def forward(self, X: Tensor) -> Tensor:

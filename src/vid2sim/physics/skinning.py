@@ -27,6 +27,8 @@ import torch
 from torch import Tensor, nn
 from torch.nn import functional as Fn
 
+from vid2sim.physics.input_frame import InputFrame
+
 
 def _check_points(X: Tensor, name: str = "X") -> None:
     if not isinstance(X, Tensor):
@@ -64,7 +66,7 @@ def homogeneous(X: Tensor) -> Tensor:
     return torch.cat([X, torch.ones_like(X[:, :1])], dim=1)
 
 
-class SkinningField(nn.Module):
+class SkinningField(InputFrame):
     """Neural skinning weights w(X) = [MLP(X), 1] (paper §3 and supplementary "LBS and Jacobian Network").
 
     Architecture: Linear(3, width) + ELU, ``hidden_layers`` × [Linear(width, width) + ELU],
@@ -101,6 +103,7 @@ class SkinningField(nn.Module):
         self.hidden_layers = hidden_layers
         dims = [3] + [width] * (hidden_layers + 1) + [num_handles]
         self.layers = nn.ModuleList(nn.Linear(a, b) for a, b in zip(dims[:-1], dims[1:]))
+        self._init_input_frame()  # MLP((X − input_centre) / input_scale); identity unless set
         self.reset_parameters(seed)
 
     @torch.no_grad()
@@ -180,7 +183,7 @@ class SkinningField(nn.Module):
     def learned_weights(self, X: Tensor) -> Tensor:
         """MLP output only (no rigid column): (N, num_handles) for X: (N, 3)."""
         self._check_input(X)
-        h = X
+        h = self._canonical(X)
         for layer in self.layers[:-1]:
             h = Fn.elu(layer(h))
         return self.layers[-1](h)
@@ -204,9 +207,9 @@ class SkinningField(nn.Module):
         """
         self._check_input(X)
         n = X.shape[0]
-        h = X
+        h = self._canonical(X)
         # D: (N, 3, d) — Jacobian transposed so that Linear is a right-multiplication by Wᵀ.
-        D = torch.eye(3, dtype=X.dtype, device=X.device).expand(n, 3, 3)
+        D = (torch.eye(3, dtype=X.dtype, device=X.device) / self.input_scale).expand(n, 3, 3)
         for layer in self.layers[:-1]:
             u = layer(h)
             D = D @ layer.weight.T
