@@ -1,5 +1,36 @@
-"""Metrics: trajectory distances (and, as the pipeline grows, image and physical-parameter errors)."""
+"""Metrics: trajectory distances, image quality (PSNR, SSIM, optional FovVideoVDP), geometry (Chamfer
+distance, surface sampling) and material-parameter errors — the library behind ``vid2sim evaluate``.
 
+``fovvdp`` imports its CC BY-NC dependency ``pyfvvdp`` only when called (``pip install "vid2sim[fvvdp]"``).
+"""
+
+from vid2sim.metrics.fvvdp import fovvdp
+from vid2sim.metrics.geometry import (
+    ChamferDistance,
+    chamfer,
+    chamfer_distance,
+    material_errors,
+    nearest_neighbours,
+    sample_surface,
+    surface_chamfer,
+)
+from vid2sim.metrics.images import gaussian_window, image_metrics, psnr, ssim, ssim_map
 from vid2sim.metrics.trajectory import TrajectoryDistance, trajectory_distance
 
-__all__ = ["TrajectoryDistance", "trajectory_distance"]
+__all__ = [
+    "ChamferDistance",
+    "TrajectoryDistance",
+    "chamfer",
+    "chamfer_distance",
+    "fovvdp",
+    "gaussian_window",
+    "image_metrics",
+    "material_errors",
+    "nearest_neighbours",
+    "psnr",
+    "sample_surface",
+    "ssim",
+    "ssim_map",
+    "surface_chamfer",
+    "trajectory_distance",
+]

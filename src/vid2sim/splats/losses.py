@@ -3,16 +3,18 @@
 SSIM follows Wang et al. (2004) as 3DGS uses it: an 11 × 11 Gaussian window with σ = 1.5,
 C1 = (0.01 L)², C2 = (0.03 L)² with dynamic range L = 1, local statistics over the window's valid
 positions only ("valid" convolution: no padding, so image borders add no artificial edges), mean
-over positions and channels.
+over positions and channels. The SSIM itself is `vid2sim.metrics.images.ssim_map` (one implementation
+for training and evaluation; evaluation uses its "same" zero-padded variant, 3DGS's metric convention).
 """
 
 from __future__ import annotations
 
 import math
 
-import torch
-import torch.nn.functional as F
 from torch import Tensor
+
+from vid2sim.metrics.images import gaussian_window  # noqa: F401  (re-exported: it used to live here)
+from vid2sim.metrics.images import ssim_map as _ssim_map
 
 
 def _check_pair(a: Tensor, b: Tensor) -> None:
@@ -22,37 +24,13 @@ def _check_pair(a: Tensor, b: Tensor) -> None:
         raise ValueError(f"images must be batched (V, H, W, C), got shape {tuple(a.shape)}")
 
 
-def gaussian_window(size: int = 11, sigma: float = 1.5, dtype: torch.dtype = torch.float32,
-                    device: torch.device | str | None = None) -> Tensor:
-    """Normalised 1-D Gaussian window (size,)."""
-    x = torch.arange(size, dtype=dtype, device=device) - (size - 1) / 2
-    w = torch.exp(-(x**2) / (2 * sigma**2))
-    return w / w.sum()
-
-
 def ssim_map(a: Tensor, b: Tensor, window: int = 11, sigma: float = 1.5) -> Tensor:
-    """Per-position SSIM of two image batches ``(V, H, W, C)`` in [0, 1] → ``(V, H−w+1, W−w+1, C)``."""
+    """Per-position SSIM of two image batches ``(V, H, W, C)`` in [0, 1] → ``(V, H−w+1, W−w+1, C)``.
+
+    The "valid" variant of the one SSIM implementation, :func:`vid2sim.metrics.images.ssim_map`.
+    """
     _check_pair(a, b)
-    V, H, W, C = a.shape
-    if H < window or W < window:
-        raise ValueError(f"images of {H}x{W} are smaller than the {window}x{window} SSIM window")
-    g = gaussian_window(window, sigma, a.dtype, a.device)
-    kx = g.reshape(1, 1, 1, window).expand(C, 1, 1, window)
-    ky = g.reshape(1, 1, window, 1).expand(C, 1, window, 1)
-
-    def blur(x: Tensor) -> Tensor:
-        return F.conv2d(F.conv2d(x, kx, groups=C), ky, groups=C)
-
-    x = a.permute(0, 3, 1, 2)
-    y = b.permute(0, 3, 1, 2)
-    stats = blur(torch.cat([x, y, x * x, y * y, x * y], dim=0))
-    mu_x, mu_y, xx, yy, xy = stats.split(V, dim=0)
-    var_x = xx - mu_x * mu_x
-    var_y = yy - mu_y * mu_y
-    cov = xy - mu_x * mu_y
-    c1, c2 = 0.01**2, 0.03**2
-    s = ((2 * mu_x * mu_y + c1) * (2 * cov + c2)) / ((mu_x * mu_x + mu_y * mu_y + c1) * (var_x + var_y + c2))
-    return s.permute(0, 2, 3, 1)
+    return _ssim_map(a, b, window, sigma, padding="valid")
 
 
 def ssim(a: Tensor, b: Tensor) -> Tensor:

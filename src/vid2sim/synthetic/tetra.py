@@ -26,6 +26,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from vid2sim.metrics.geometry import boundary_faces  # noqa: F401  (re-exported: the tet mesh's surface)
+
 
 class TetrahedralizationError(RuntimeError):
     """The surface could not be turned into a valid tetrahedral mesh (bad input, mesher crash or failure)."""
@@ -80,19 +82,6 @@ def tet_volumes(vertices: Tensor, tets: Tensor) -> Tensor:
     x = vertices[tets]
     e = x[:, 1:] - x[:, :1]
     return torch.linalg.det(e.transpose(1, 2)) / 6.0
-
-
-def boundary_faces(tets: Tensor) -> Tensor:
-    """Faces (Nf, 3) used by exactly one tet, wound counter-clockwise seen from outside the mesh.
-
-    For a positive tet (0, 1, 2, 3) the outward faces are (1, 2, 3), (0, 3, 2), (0, 1, 3), (0, 2, 1).
-    """
-    t = torch.as_tensor(tets).to(torch.long)
-    local = torch.tensor([[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]], device=t.device)
-    faces = t[:, local].reshape(-1, 3)
-    key = torch.sort(faces, dim=1).values
-    _, inverse, counts = torch.unique(key, dim=0, return_inverse=True, return_counts=True)
-    return faces[counts[inverse] == 1]
 
 
 def surface_vertex_areas(vertices: Tensor, tets: Tensor) -> Tensor:
