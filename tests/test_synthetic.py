@@ -51,7 +51,8 @@ def _project(world_to_camera: torch.Tensor, K: torch.Tensor, points: torch.Tenso
 
 def test_small_scene_folder_loads_with_the_ground_truth(small_scene):
     scene = load_scene(small_scene)
-    assert scene.images.shape == (4, 24, RES, RES, 3) and scene.masks.shape == (4, 24, RES, RES)
+    assert scene.images.shape == (6, 24, RES, RES, 3) and scene.masks.shape == (6, 24, RES, RES)
+    assert scene.config.observed_views == [0, 2, 3, 5] and scene.config.held_out_views == [1, 4]  # novel views
     assert scene.config.observed_frames == list(range(16)) and scene.config.held_out_frames == list(range(16, 24))
     assert scene.config.dt == pytest.approx(0.05) and scene.config.floor_height == pytest.approx(FLOOR)
     assert tuple(scene.config.gravity) == pytest.approx((0.0, 0.0, -9.8))
@@ -115,7 +116,7 @@ def test_object_falls_and_ends_resting_on_the_floor(small_scene):
 
 def test_reusing_the_tet_mesh_reproduces_the_scene(small_scene, tmp_path):
     """Same settings + the same tet mesh → identical files; and the first frames of the original FEM run."""
-    config = SyntheticSceneConfig.preset("small", seed=3, frames=3, observed_frames=2, resolution=32, views=2,
+    config = SyntheticSceneConfig.preset("small", seed=3, frames=3, observed_frames=2, resolution=32, views=2, held_out_views=0,
                                          tet_mesh=str(small_scene / "fem_result.npz"))
     a = make_scene(config, tmp_path / "a", progress=False)
     b = make_scene(config, tmp_path / "b", progress=False)
@@ -135,7 +136,7 @@ def test_failure_leaves_nothing_behind(small_scene, tmp_path, monkeypatch):
         raise OSError("disk full (simulated)")
 
     monkeypatch.setattr(FEMResult, "save", broken_save)
-    config = SyntheticSceneConfig.preset("small", seed=3, frames=2, observed_frames=1, resolution=16, views=1,
+    config = SyntheticSceneConfig.preset("small", seed=3, frames=2, observed_frames=1, resolution=16, views=1, held_out_views=0,
                                          tet_mesh=str(small_scene / "fem_result.npz"))
     with pytest.raises(OSError, match="disk full"):
         make_scene(config, tmp_path / "s", progress=False)
@@ -161,7 +162,7 @@ def test_user_mesh_scene(tmp_path):
     out = tmp_path / "scene"
     assert main(["make-scene", str(out), "--mesh", str(mesh_file), "--preset", "small", "--quiet", "--E", "2e5",
                  "--drop-height", "0.1", "--frames", "2", "--observed-frames", "1", "--resolution", "24",
-                 "--views", "1", "--substeps", "2"]) == 0
+                 "--views", "1", "--held-out-views", "0", "--substeps", "2"]) == 0
     scene = load_scene(out)
     assert scene.config.metadata["object"] == "thing.obj" and scene.config.metadata["E"] == 2e5
     fem = FEMResult.load(out / "fem_result.npz")
@@ -176,8 +177,9 @@ def test_user_mesh_scene(tmp_path):
     (["--nu", "0.5"], "0.5"),
     (["--nu", "-1.2"], "-1.2"),
     (["--material", "plasticine"], "plasticine"),
-    (["--resolution", "0"], "resolution"),
-    (["--frames", "10", "--observed-frames", "12"], "observed_frames"),
+    (["--resolution", "0"], "--resolution"),  # the flag typed, not the config field
+    (["--frames", "10", "--observed-frames", "12"], "--observed-frames (12)"),
+    (["--views", "2", "--held-out-views", "2"], "--held-out-views"),
 ])
 def test_bad_options_are_clean_errors(tmp_path, capsys, args, message):
     out = tmp_path / "scene"
@@ -217,7 +219,8 @@ def test_benchmark_parameters_are_deterministic_and_in_range():
         benchmark_parameters(0)
 
 
-TINY = ["--frames", "3", "--observed-frames", "2", "--resolution", "24", "--views", "2", "--substeps", "4"]
+TINY = ["--frames", "3", "--observed-frames", "2", "--resolution", "24", "--views", "2", "--held-out-views", "1",
+        "--substeps", "4"]
 
 
 def test_make_benchmark_writes_an_index_and_resumes(tmp_path, capsys):
