@@ -52,17 +52,11 @@ def _cmd_bench_fem(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench_identify(args: argparse.Namespace) -> int:
-    import dataclasses
     from pathlib import Path
-
-    import torch
 
     from vid2sim.bench import identify
 
-    if args.threads is not None:
-        if args.threads < 1:
-            raise UserError(f"--threads must be >= 1, got {args.threads}")
-        torch.set_num_threads(args.threads)
+    _set_threads(args.threads)
     given = {"scenes": args.n, "seed": args.seed, "preset": args.preset, "handles": args.handles,
              "skinning_iterations": args.skinning_iterations, "fit_iterations": args.fit_iterations,
              "points": args.points, "truth": args.truth}
@@ -103,7 +97,7 @@ _SCENE_OPTIONS = {  # CLI option → SyntheticSceneConfig field
     "E": "youngs_modulus", "nu": "poisson_ratio", "density": "density", "material": "material",
     "drop_height": "drop_height", "views": "views", "resolution": "resolution", "frames": "frames",
     "observed_frames": "observed_frames", "substeps": "substeps", "layout": "layout",
-    "damping_ratio": "damping_ratio",
+    "damping_ratio": "damping_ratio", "held_out_views": "held_out_views",
 }
 
 
@@ -111,6 +105,15 @@ def _scene_overrides(args: argparse.Namespace) -> dict:
     """The SyntheticSceneConfig fields given on the command line (make-benchmark has no --E / --nu)."""
     values = {field: getattr(args, opt, None) for opt, field in _SCENE_OPTIONS.items()}
     return {field: value for field, value in values.items() if value is not None}
+
+
+def _scene_config_error(exc: ValueError) -> UserError:
+    """A SyntheticSceneConfig error with the command-line flag the user typed instead of the field's name."""
+    message = str(exc)
+    for opt, field in _SCENE_OPTIONS.items():
+        flag = "--" + opt.replace("_", "-") if opt != "damping_ratio" else "--damping"
+        message = message.replace(f"SyntheticSceneConfig.{field} ", f"{flag} ")
+    return UserError(message)
 
 
 def _generation_errors() -> tuple[type[Exception], ...]:
@@ -123,8 +126,11 @@ def _generation_errors() -> tuple[type[Exception], ...]:
 def _cmd_make_scene(args: argparse.Namespace) -> int:
     from vid2sim.synthetic.scenes import SyntheticSceneConfig, make_scene
 
-    config = SyntheticSceneConfig.preset(args.preset, seed=args.seed, mesh=args.mesh, tet_mesh=args.tet_mesh,
-                                         **_scene_overrides(args))
+    try:
+        config = SyntheticSceneConfig.preset(args.preset, seed=args.seed, mesh=args.mesh, tet_mesh=args.tet_mesh,
+                                             **_scene_overrides(args))
+    except ValueError as exc:
+        raise _scene_config_error(exc) from exc
     try:
         path = make_scene(config, args.out, overwrite=args.overwrite, progress=not args.quiet, workers=args.workers)
     except _generation_errors() as exc:
@@ -139,6 +145,8 @@ def _cmd_make_benchmark(args: argparse.Namespace) -> int:
     try:
         path = make_benchmark(args.n, args.out, preset=args.preset, seed=args.seed, progress=not args.quiet,
                               workers=args.workers, **_scene_overrides(args))
+    except ValueError as exc:
+        raise _scene_config_error(exc) from exc
     except _generation_errors() as exc:
         raise UserError(f"{exc} (finished scenes are kept; run the command again to resume)") from exc
     print(f"wrote {path} ({args.n} scenes, index.json)")
@@ -222,6 +230,60 @@ def _cmd_fit_gaussians(args: argparse.Namespace) -> int:
     return 0
 
 
+def _set_threads(threads: int | None) -> None:
+    import torch
+
+    if threads is not None:
+        if threads < 1:
+            raise UserError(f"--threads must be >= 1, got {threads}")
+        torch.set_num_threads(threads)
+
+
+def _cmd_reconstruct(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from vid2sim.pipeline.reconstruct import ReconstructConfig, reconstruct
+
+    _set_threads(args.threads)
+    out = Path(args.out)
+    if out.exists() and not args.overwrite:
+        raise UserError(f"{out} exists; pass --overwrite to replace it")
+    overrides = {}
+    if args.jacobian is not None:
+        overrides["jacobian"] = args.jacobian
+    if args.seed is not None:
+        overrides["seed"] = args.seed
+    config = ReconstructConfig.preset(args.preset, **overrides)
+    if args.iterations is not None:
+        if args.iterations < 0:
+            raise UserError(f"--iterations must be >= 0, got {args.iterations}")
+        config.joint.iterations = args.iterations
+    path = reconstruct(args.scene, out, config, progress=not args.quiet, restart=args.restart)
+    material = json.loads((path / "material.json").read_text())
+    print(f"wrote {path}: E = {material['E']:.4g} Pa (log10 E = {material['log10_E']:.3f}), nu = {material['nu']:.3f}")
+    return 0
+
+
+def _cmd_evaluate(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from vid2sim.pipeline.evaluate import evaluate, write_report
+
+    _set_threads(args.threads)
+    report = evaluate(args.asset, args.scene, fovvdp=args.fovvdp, progress=not args.quiet)
+    out = Path(args.out) if args.out else Path(args.asset) / "evaluation.json"
+    write_report(report, out)
+    lines = []
+    for key in ("dynamic", "future", "novel_views"):
+        if report[key]:
+            lines.append(f"{key}: PSNR {report[key]['psnr']:.2f} dB, SSIM {report[key]['ssim']:.4f}")
+    mat = report["material"]
+    if "abs_error_log10_E" in mat:
+        lines.append(f"|d log10 E| = {mat['abs_error_log10_E']:.3f}, |d nu| = {mat['abs_error_nu']:.3f}")
+    print("\n".join(lines + [f"wrote {out}"]))
+    return 0
+
+
 def _parse_views(text: str | None, num_views: int) -> list[int]:
     """``"0,6"`` → [0, 6]: sorted distinct view indices in 0..num_views − 1, leaving at least one view."""
     if not text:
@@ -240,14 +302,17 @@ def _parse_views(text: str | None, num_views: int) -> list[int]:
 
 def _add_scene_options(p: argparse.ArgumentParser, material_options: bool) -> None:
     p.add_argument("--preset", choices=["full", "small"], default="full",
-                   help="full: 12 views, 448x448, 24 frames (the paper); small: 4 views, 128x128, 24 frames (CPU)")
+                   help="full: 12 + 2 held-out views, 448x448, 24 frames (the paper); small: 4 + 2 held-out views, "
+                        "128x128, 24 frames (CPU)")
     if material_options:
         p.add_argument("--E", type=float, default=None, help="Young's modulus in Pa (default 1e5)")
         p.add_argument("--nu", type=float, default=None, help="Poisson's ratio (default 0.3)")
     p.add_argument("--density", type=float, default=None, help="kg/m^3 (default 1000)")
     p.add_argument("--material", default=None, help="FEM elastic model: neo_hookean (default) or stvk")
     p.add_argument("--drop-height", type=float, default=None, help="m above the floor (default: random from the seed)")
-    p.add_argument("--views", type=int, default=None, help="cameras on the ring")
+    p.add_argument("--views", type=int, default=None, help="cameras on the ring (held-out ones included)")
+    p.add_argument("--held-out-views", type=int, default=None,
+                   help="ring cameras held out as novel views, spread evenly (preset: 2)")
     p.add_argument("--resolution", type=int, default=None, help="image side in pixels")
     p.add_argument("--frames", type=int, default=None, help="frames T")
     p.add_argument("--observed-frames", type=int, default=None, help="observed frames (the rest are held out)")
@@ -347,6 +412,32 @@ def build_parser() -> argparse.ArgumentParser:
     fit.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
     fit.add_argument("--quiet", action="store_true", help="no progress output")
     fit.set_defaults(func=_cmd_fit_gaussians)
+
+    rec = sub.add_parser("reconstruct", help="reconstruct a scene folder into a simulation-ready asset "
+                         "(Gaussians, skinning field, material)")
+    rec.add_argument("scene", help="scene folder (scene.json + transforms.json)")
+    rec.add_argument("out", help="asset folder to create (docs/asset-format.md)")
+    rec.add_argument("--preset", choices=["small", "full"], default="small",
+                     help="sizes: small (CPU minutes) or full (the paper's iterations); default small")
+    rec.add_argument("--iterations", type=int, default=None, help="joint-optimisation iterations (default: the preset's)")
+    rec.add_argument("--jacobian", choices=["closed_form", "neural"], default=None,
+                     help="dF/dz: exact closed form (default, faster on a CPU) or the paper's Neural Jacobian")
+    rec.add_argument("--seed", type=int, default=None, help="seed (default 0)")
+    rec.add_argument("--restart", action="store_true", help="discard an interrupted run's finished stages")
+    rec.add_argument("--overwrite", action="store_true", help="replace an existing asset folder")
+    rec.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
+    rec.add_argument("--quiet", action="store_true", help="no progress output")
+    rec.set_defaults(func=_cmd_reconstruct)
+
+    ev = sub.add_parser("evaluate", help="score an asset on a scene: PSNR/SSIM on observed, future and novel "
+                        "views, material and Chamfer errors against ground truth")
+    ev.add_argument("asset", help="asset folder written by reconstruct")
+    ev.add_argument("scene", help="scene folder")
+    ev.add_argument("--out", default=None, help="JSON report (default ASSET/evaluation.json)")
+    ev.add_argument("--fovvdp", action="store_true", help="also FoVVDP (needs the optional pyfvvdp, CC BY-NC)")
+    ev.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
+    ev.add_argument("--quiet", action="store_true", help="no progress output")
+    ev.set_defaults(func=_cmd_evaluate)
     return parser
 
 

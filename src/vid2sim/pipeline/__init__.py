@@ -1,0 +1,1 @@
+"""Stage II orchestration: reconstruct a scene folder into a simulation-ready asset."""

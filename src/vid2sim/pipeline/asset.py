@@ -1,0 +1,223 @@
+"""The simulation-ready asset: what ``vid2sim reconstruct`` writes and :func:`load_asset` reads back.
+
+A folder (docs/asset-format.md)::
+
+    asset.json          format/version, units, networks' architecture, simulator settings, floor and gravity,
+                        initial rigid velocity, the canonical frame, the files below
+    material.json       model, E (Pa), log10 E, ν, density (kg/m³), damping ratio
+    gaussians.ply       the Gaussians at frame 0 (standard 3DGS PLY, any splat viewer opens it)
+    skinning.pt         the skinning field's weights (its input frame included)
+    jacobian.pt         the Neural Jacobian's weights (only when the asset uses it)
+    points.npz          cubature points and weights, contact points and areas, interior points, volume
+    config.json         the reconstruction settings used
+    log.json            the optimisation log (loss, E, ν per iteration) and stage timings
+
+Written atomically (a temporary folder moved into place), so a folder named like an asset is complete.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+import tempfile
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from vid2sim.physics.solver import SimConfig, SimState, Simulator
+from vid2sim.splats.gaussians import Gaussians
+
+ASSET_FORMAT = "vid2sim-asset"
+ASSET_VERSION = 1
+FILES = {"asset": "asset.json", "material": "material.json", "gaussians": "gaussians.ply", "skinning": "skinning.pt",
+         "jacobian": "jacobian.pt", "points": "points.npz", "config": "config.json", "log": "log.json"}
+
+
+class AssetFormatError(ValueError):
+    """An asset folder is missing a file or holds an invalid value (the message names it)."""
+
+
+@dataclass
+class Asset:
+    """A simulation-ready object.
+
+    Attributes:
+        gaussians: the Gaussians at frame 0 (the rest configuration, world frame).
+        field: the skinning field (input frame = the object's canonical frame).
+        jacobian: the Neural Jacobian, or None (closed-form dF/dz).
+        material: {"model", "E", "log10_E", "nu", "density", "damping_ratio"}.
+        cubature_points: (K, 3); cubature_weights: (K,) (m³).
+        contact_points: (S, 3); contact_areas: (S,) (m²).
+        points: (N, 3) interior samples; volume: m³.
+        sim_config: the simulator's :class:`SimConfig`.
+        gravity: (3,) m/s²; floor_height: m or None; floor_stiffness: Pa/m (a contact pressure per metre).
+        length_scale: the damping's and automatic substeps' length (m).
+        initial_velocity: {"linear": [3], "angular": [3], "centre": [3]} at frame 0.
+        dt: the video frame time (s).
+        extra: free-form records (canonical frame, source scene, timings).
+    """
+
+    gaussians: Gaussians
+    field: torch.nn.Module
+    jacobian: torch.nn.Module | None
+    material: dict[str, Any]
+    cubature_points: Tensor
+    cubature_weights: Tensor
+    contact_points: Tensor
+    contact_areas: Tensor
+    points: Tensor
+    volume: float
+    sim_config: SimConfig
+    gravity: list[float]
+    floor_height: float | None
+    floor_stiffness: float
+    length_scale: float
+    initial_velocity: dict[str, list[float]]
+    dt: float
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def simulator(self, externals: list | None = None, **material_overrides: Any) -> Simulator:
+        """A ready :class:`Simulator` for this asset (the captured floor and gravity unless ``externals``
+        is given; ``material_overrides`` replace E (``youngs_modulus``), ``poisson_ratio``, ``density``,
+        ``damping_ratio``, ``plasticity``)."""
+        from vid2sim.physics.external import Floor, Gravity
+        from vid2sim.physics.solver import Material
+
+        values = {"youngs_modulus": float(self.material["E"]), "poisson_ratio": float(self.material["nu"]),
+                  "density": float(self.material["density"]), "damping_ratio": float(self.material["damping_ratio"])}
+        values.update(material_overrides)
+        if externals is None:
+            externals = [Gravity(self.gravity)]
+            if self.floor_height is not None:
+                externals.append(Floor(height=self.floor_height, stiffness=self.floor_stiffness))
+        return Simulator(self.field, self.cubature_points, self.cubature_weights, Material(**values), externals,
+                         self.sim_config, jacobian=self.jacobian, use_neural_jacobian=self.jacobian is not None,
+                         length_scale=self.length_scale, contact_points=self.contact_points,
+                         contact_weights=self.contact_areas)
+
+    def initial_state(self, sim: Simulator) -> SimState:
+        """The captured initial state: rest shape moving with the recovered rigid velocity."""
+        v = self.initial_velocity
+        return sim.rigid_velocity_state(v["linear"], v["angular"], v["centre"])
+
+
+def _tensor_list(x: Tensor) -> list:
+    return x.detach().cpu().tolist()
+
+
+def save_asset(asset: Asset, folder: str | Path, config: dict[str, Any] | None = None,
+               log: dict[str, Any] | None = None) -> Path:
+    """Write ``asset`` to ``folder`` (replaced if it exists) atomically; returns the folder."""
+    from vid2sim.scene.folder import move_into_place
+    from vid2sim.splats.ply import save_ply
+
+    folder = Path(folder)
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", dir=folder.parent))
+    try:
+        save_ply(asset.gaussians, tmp / FILES["gaussians"])
+        torch.save(asset.field.state_dict(), tmp / FILES["skinning"])
+        if asset.jacobian is not None:
+            torch.save(asset.jacobian.state_dict(), tmp / FILES["jacobian"])
+        np.savez(tmp / FILES["points"], cubature_points=asset.cubature_points.detach().cpu().numpy(),
+                 cubature_weights=asset.cubature_weights.detach().cpu().numpy(),
+                 contact_points=asset.contact_points.detach().cpu().numpy(),
+                 contact_areas=asset.contact_areas.detach().cpu().numpy(),
+                 points=asset.points.detach().cpu().numpy(), volume=np.float64(asset.volume))
+        (tmp / FILES["material"]).write_text(json.dumps(asset.material, indent=2))
+        f = asset.field
+        networks = {"skinning": {"num_handles": f.num_handles, "width": f.width, "hidden_layers": f.hidden_layers,
+                                 "input_centre": _tensor_list(f.input_centre), "input_scale": float(f.input_scale)}}
+        if asset.jacobian is not None:
+            j = asset.jacobian
+            networks["jacobian"] = {"num_handles_total": j.num_handles_total, "encoding_dim": j.encoding_dim,
+                                    "widths": list(j.widths), "frequency_scale": j.frequency_scale}
+        meta = {"format": ASSET_FORMAT, "version": ASSET_VERSION, "units": "SI (m, s, kg, Pa)",
+                "dt": asset.dt, "gravity": list(asset.gravity), "floor_height": asset.floor_height,
+                "floor_stiffness": asset.floor_stiffness, "length_scale": asset.length_scale,
+                "sim_config": asdict(asset.sim_config), "initial_velocity": asset.initial_velocity,
+                "networks": networks, "files": {k: v for k, v in FILES.items() if (tmp / v).exists() or k in
+                                                ("config", "log")},
+                "extra": asset.extra}
+        (tmp / FILES["asset"]).write_text(json.dumps(meta, indent=2))
+        (tmp / FILES["config"]).write_text(json.dumps(config or {}, indent=2, default=str))
+        (tmp / FILES["log"]).write_text(json.dumps(log or {}, default=float))
+        move_into_place(tmp, folder)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return folder
+
+
+def _read_json(path: Path) -> dict:
+    if not path.is_file():
+        raise AssetFormatError(f"{path}: missing (an asset folder holds {', '.join(FILES.values())})")
+    try:
+        value = json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise AssetFormatError(f"{path}: not valid JSON ({exc})") from None
+    if not isinstance(value, dict):
+        raise AssetFormatError(f"{path}: expected a JSON object")
+    return value
+
+
+def load_asset(folder: str | Path, device: torch.device | str = "cpu") -> Asset:
+    """Read an asset folder written by :func:`save_asset` (``vid2sim reconstruct``).
+
+    Raises:
+        AssetFormatError: a missing file or invalid value, named.
+    """
+    from vid2sim.physics.neural_jacobian import NeuralJacobian
+    from vid2sim.physics.skinning import SkinningField
+    from vid2sim.splats.ply import load_ply
+
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise AssetFormatError(f"{folder}: not a folder (expected an asset written by `vid2sim reconstruct`)")
+    meta = _read_json(folder / FILES["asset"])
+    if meta.get("format") != ASSET_FORMAT:
+        raise AssetFormatError(f"{folder / FILES['asset']}: format must be {ASSET_FORMAT!r}, got {meta.get('format')!r}")
+    if meta.get("version") != ASSET_VERSION:
+        raise AssetFormatError(f"{folder / FILES['asset']}: version {meta.get('version')!r} is not supported "
+                               f"(this vid2sim reads version {ASSET_VERSION})")
+    material = _read_json(folder / FILES["material"])
+    for key in ("E", "nu", "density", "damping_ratio"):
+        value = material.get(key)
+        if not isinstance(value, (int, float)) or not math.isfinite(value):
+            raise AssetFormatError(f"{folder / FILES['material']}: {key} must be a finite number, got {value!r}")
+    pts_path = folder / FILES["points"]
+    if not pts_path.is_file():
+        raise AssetFormatError(f"{pts_path}: missing")
+    with np.load(pts_path) as z:
+        arrays = {k: torch.from_numpy(np.asarray(z[k])).to(device) for k in z.files if k != "volume"}
+        volume = float(z["volume"])
+    dtype = arrays["cubature_points"].dtype  # the networks are loaded in the precision they were saved in
+    nets = meta.get("networks", {})
+    try:
+        s = nets["skinning"]
+        field_ = SkinningField(s["num_handles"], s["width"], s["hidden_layers"]).to(device=device, dtype=dtype)
+        field_.load_state_dict(torch.load(folder / FILES["skinning"], map_location=device, weights_only=True))
+        jac = None
+        if "jacobian" in nets:
+            j = nets["jacobian"]
+            jac = NeuralJacobian(j["num_handles_total"], j["encoding_dim"], tuple(j["widths"]),
+                                 frequency_scale=j["frequency_scale"]).to(device=device, dtype=dtype)
+            jac.load_state_dict(torch.load(folder / FILES["jacobian"], map_location=device, weights_only=True))
+    except (KeyError, FileNotFoundError, RuntimeError) as exc:
+        raise AssetFormatError(f"{folder}: cannot load the networks ({type(exc).__name__}: {exc})") from None
+    try:
+        sim_config = SimConfig(**meta["sim_config"])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise AssetFormatError(f"{folder / FILES['asset']}: sim_config is invalid ({exc})") from None
+    return Asset(gaussians=load_ply(folder / FILES["gaussians"], device=device), field=field_, jacobian=jac,
+                 material=material, cubature_points=arrays["cubature_points"],
+                 cubature_weights=arrays["cubature_weights"], contact_points=arrays["contact_points"],
+                 contact_areas=arrays["contact_areas"], points=arrays["points"], volume=volume,
+                 sim_config=sim_config, gravity=list(meta["gravity"]), floor_height=meta.get("floor_height"),
+                 floor_stiffness=float(meta["floor_stiffness"]), length_scale=float(meta["length_scale"]),
+                 initial_velocity=meta["initial_velocity"], dt=float(meta["dt"]), extra=meta.get("extra", {}))

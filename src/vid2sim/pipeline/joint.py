@@ -1,0 +1,377 @@
+"""Stage II joint optimisation (paper Eq. 6): material, initial velocity and networks from the images.
+
+The simulator starts from the object's frame-0 configuration (its rest shape) with a rigid initial velocity;
+each frame's state z moves the Gaussians fitted at frame 0 (centres by LBS, covariances by F Σ Fᵀ), they are
+rendered in the observed views and compared with the video. Gradients reach log10 E, ν (and optionally the
+damping ratio), the initial linear and angular velocity, the skinning MLP and the Neural Jacobian through the
+renderer and the simulator's per-substep adjoint.
+
+Paper settings (DESIGN.md): 400 Adam iterations with learning rates (5e-3, 1e-3, 5e-7, 5e-7) on (log10 E, ν,
+skinning MLP, Jacobian net), windows of Δs = 4 frames starting at a random frame s ∈ [s′, T − Δs], loss = mean
+squared image error over the views. Beyond the paper, so that it converges and fits a CPU budget:
+
+* a coarse search over log10 E before gradient descent (the loss is not convex in E: the wrong bounce phase is
+  a local minimum): whole observed rollouts at a grid of E, rendered at a reduced resolution;
+* a window starts from the state at frame s of the latest whole rollout (no gradients before s), refreshed
+  every ``refresh_every`` iterations; windows at s = 0 carry gradients to the initial velocity;
+* views subsampled per iteration (``views_per_iteration``) and a coarse-to-fine resolution schedule;
+* every ``validate_every`` iterations the whole observed clip is rendered in all observed views; the best
+  state by that validation loss is kept.
+"""
+
+from __future__ import annotations
+
+import copy
+import time
+from dataclasses import dataclass, field
+from typing import Callable, Sequence
+
+import torch
+from torch import Tensor
+
+from vid2sim.physics.solver import SimState, Simulator
+from vid2sim.splats.cameras import Camera
+from vid2sim.splats.gaussians import Gaussians
+
+
+@dataclass
+class JointConfig:
+    """Settings of :func:`joint_optimisation` (defaults: the paper's, plus the CPU measures above).
+
+    Attributes:
+        iterations: Adam iterations.
+        window: frames per window (Δs).
+        lr_log10_E, lr_nu, lr_skinning, lr_jacobian: the paper's learning rates.
+        lr_velocity: learning rate of the initial linear (m/s) and angular (rad/s) velocity.
+        fit_damping: also fit the damping ratio (learning rate ``lr_damping``); otherwise it stays at its prior.
+        coarse_log10_E: grid of the coarse search (empty: skip it).
+        coarse_scale: image scale of the coarse search and the first ``coarse_fraction`` of the iterations.
+        coarse_fraction: fraction of the iterations rendered at ``coarse_scale`` (then full resolution).
+        views_per_iteration: views rendered per iteration (None: all observed views).
+        refresh_every: iterations between the whole rollouts that provide the windows' start states.
+        validate_every: iterations between validations on all observed frames and views.
+        nu_bounds: ν is kept in this interval.
+        seed: seeds the windows and view subsets.
+    """
+
+    iterations: int = 400
+    window: int = 4
+    lr_log10_E: float = 5e-3
+    lr_nu: float = 1e-3
+    lr_skinning: float = 5e-7
+    lr_jacobian: float = 5e-7
+    lr_velocity: float = 5e-3
+    fit_damping: bool = False
+    lr_damping: float = 1e-3
+    coarse_log10_E: tuple[float, ...] = (4.0, 4.25, 4.5, 4.75, 5.0, 5.25, 5.5, 5.75, 6.0)
+    coarse_scale: float = 0.5
+    coarse_fraction: float = 0.5
+    views_per_iteration: int | None = None
+    refresh_every: int = 10
+    validate_every: int = 50
+    nu_bounds: tuple[float, float] = (0.0, 0.49)
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.iterations < 0:
+            raise ValueError(f"JointConfig.iterations must be >= 0, got {self.iterations}")
+        if self.window < 1:
+            raise ValueError(f"JointConfig.window must be >= 1, got {self.window}")
+        if not 0 < self.coarse_scale <= 1:
+            raise ValueError(f"JointConfig.coarse_scale must be in (0, 1], got {self.coarse_scale}")
+        if not 0 <= self.coarse_fraction <= 1:
+            raise ValueError(f"JointConfig.coarse_fraction must be in [0, 1], got {self.coarse_fraction}")
+        if self.views_per_iteration is not None and self.views_per_iteration < 1:
+            raise ValueError(f"JointConfig.views_per_iteration must be >= 1 or None, got {self.views_per_iteration}")
+        if self.refresh_every < 1 or self.validate_every < 1:
+            raise ValueError("JointConfig.refresh_every and validate_every must be >= 1")
+        lo, hi = self.nu_bounds
+        if not 0 <= lo < hi < 0.5:
+            raise ValueError(f"JointConfig.nu_bounds must satisfy 0 <= lo < hi < 0.5, got {self.nu_bounds}")
+        self.coarse_log10_E = tuple(float(v) for v in self.coarse_log10_E)
+
+
+@dataclass
+class Observations:
+    """The observed video as the optimisation sees it.
+
+    Attributes:
+        images: (V, T, H, W, 3) observed frames 0 … T−1 of the observed views, composited on white, float.
+        cameras: the V cameras.
+        background: RGB background (white for vid2sim scenes).
+    """
+
+    images: Tensor
+    cameras: list[Camera]
+    background: tuple[float, float, float] = (1.0, 1.0, 1.0)
+
+    def at_scale(self, scale: float) -> "Observations":
+        """The same observations at ``scale`` × the resolution (area-averaged images, rescaled cameras)."""
+        if scale == 1.0:
+            return self
+        V, T, H, W, _ = self.images.shape
+        h, w = max(8, round(H * scale)), max(8, round(W * scale))
+        x = self.images.reshape(V * T, H, W, 3).permute(0, 3, 1, 2)
+        x = torch.nn.functional.interpolate(x, size=(h, w), mode="area")
+        imgs = x.permute(0, 2, 3, 1).reshape(V, T, h, w, 3)
+        return Observations(imgs, [c.resized(w, h) for c in self.cameras], self.background)
+
+
+@dataclass
+class JointResult:
+    """What :func:`joint_optimisation` found (the best state by validation loss).
+
+    Attributes:
+        log10_E, nu, damping_ratio: the material.
+        linear_velocity, angular_velocity: (3,) the initial rigid velocity about ``centre``.
+        validation_loss: the best validation loss (mean squared image error, all observed frames and views).
+        coarse: the coarse search, one ``{"log10_E", "loss"}`` per grid value.
+        log: one dict per iteration (``iteration``, ``loss``, ``log10_E``, ``nu``, ``damping_ratio``,
+            ``window_start``, ``scale``, ``ms``) and per validation (``validation_loss``).
+        seconds: wall time.
+    """
+
+    log10_E: float
+    nu: float
+    damping_ratio: float
+    linear_velocity: list[float]
+    angular_velocity: list[float]
+    validation_loss: float
+    coarse: list[dict[str, float]] = field(default_factory=list)
+    log: list[dict[str, float]] = field(default_factory=list)
+    seconds: float = 0.0
+
+
+class GaussianRig:
+    """Moves the frame-0 Gaussians with the simulator's state.
+
+    Args:
+        sim: the simulator (its field, and Neural Jacobian when ``sim.use_neural_jacobian``).
+        gaussians: the Gaussians fitted to frame 0 (world frame = the rest configuration).
+    """
+
+    def __init__(self, sim: Simulator, gaussians: Gaussians) -> None:
+        self.sim = sim
+        self.gaussians = gaussians
+        self.X = gaussians.means.detach().to(sim.X.dtype)
+
+    def basis(self) -> tuple[Tensor, Tensor | None, Tensor | None]:
+        """(w (N, H), gradient basis G (N, 3, 4H) or None, Neural Jacobian dF/dz (N, 9, 12H) or None) at the
+        Gaussian centres, differentiable w.r.t. the networks."""
+        from vid2sim.physics.skinning import gradient_basis
+
+        if self.sim.use_neural_jacobian:
+            return self.sim.field(self.X), None, self.sim.jacobian(self.X)
+        w, dw = self.sim.field.weights_and_gradients(self.X)
+        return w, gradient_basis(self.X, w, dw), None
+
+    def deformed(self, z: Tensor, basis: tuple[Tensor, Tensor | None, Tensor | None]):
+        """:class:`~vid2sim.splats.deform.DeformedGaussians` for the state z: (12H,)."""
+        from vid2sim.physics.skinning import deform, deformation_gradient
+        from vid2sim.splats.deform import deform_gaussians
+
+        w, G, J = basis
+        x = deform(self.X, w, z)
+        if J is None:
+            F = deformation_gradient(G, z)
+        else:
+            F = torch.eye(3, dtype=z.dtype, device=z.device) + (J @ z).reshape(-1, 3, 3)
+        g = self.gaussians
+        return deform_gaussians(g, x.to(g.means.dtype), F.to(g.means.dtype))
+
+
+def _detached(state: SimState) -> SimState:
+    d = (lambda t: None if t is None else t.detach())
+    return SimState(d(state.z), d(state.zdot), state.t, d(state.Fp_inv), z_prev=d(state.z_prev),
+                    zdot_prev=d(state.zdot_prev), h_prev=state.h_prev)
+
+
+def render_frames(rig: GaussianRig, states: Sequence[SimState], obs: Observations, views: Sequence[int],
+                  basis: tuple[Tensor, Tensor] | None = None) -> Tensor:
+    """(len(states), len(views), H, W, 3) renders of the states in the given views of ``obs``."""
+    from vid2sim.splats.render import render_gaussians
+
+    basis = rig.basis() if basis is None else basis
+    cams = [obs.cameras[v] for v in views]
+    out = [render_gaussians(rig.deformed(s.z, basis), cams, background=list(obs.background)).rgb for s in states]
+    return torch.stack(out)
+
+
+def _image_loss(renders: Tensor, targets: Tensor) -> Tensor:
+    return ((renders - targets) ** 2).mean()
+
+
+def clip_loss(sim: Simulator, rig: GaussianRig, start: SimState, obs: Observations) -> tuple[float, list[SimState]]:
+    """Mean squared image error of the whole observed clip (frames 1 … T−1, all views), without gradients,
+    and the simulated states of frames 0 … T−1 (frame 0 = ``start``)."""
+    T = obs.images.shape[1]
+    with torch.no_grad():
+        states = [start] + sim.rollout(start, T - 1)
+        basis = rig.basis()
+        total = 0.0
+        for t in range(1, T):
+            r = render_frames(rig, [states[t]], obs, range(len(obs.cameras)), basis)[0]
+            total += float(_image_loss(r, obs.images[:, t].to(r)))
+    return total / max(1, T - 1), states
+
+
+def first_moving_frame(images: Tensor, threshold: float = 1e-3) -> int:
+    """s′: the first frame (≥ 1) whose images differ from frame 0 by a mean squared error above ``threshold``
+    (the paper's start of the window range); 1 when every frame differs."""
+    T = images.shape[1]
+    for t in range(1, T):
+        if float(((images[:, t] - images[:, 0]) ** 2).mean()) > threshold:
+            return t
+    return 1
+
+
+def joint_optimisation(
+    sim: Simulator,
+    gaussians: Gaussians,
+    observations: Observations,
+    linear_velocity: Sequence[float],
+    angular_velocity: Sequence[float],
+    centre: Sequence[float],
+    config: JointConfig | None = None,
+    progress: bool = True,
+    on_iteration: Callable[[dict[str, float]], None] | None = None,
+) -> JointResult:
+    """Fit the material, the initial velocity and the networks of ``sim`` to the observed video.
+
+    Args:
+        sim: the simulator built on the object's points (its material is the prior; it is updated in place
+            to the best state found, as are its field and Neural Jacobian).
+        gaussians: (N Gaussians) fitted to frame 0.
+        observations: :class:`Observations` of frames 0 … T−1 (T ≥ window + 1).
+        linear_velocity, angular_velocity: (3,) initial rigid velocity estimate about ``centre`` (3,).
+        config: :class:`JointConfig`.
+        on_iteration: called with each log entry.
+    Returns:
+        :class:`JointResult`.
+    """
+    from tqdm.auto import tqdm
+
+    cfg = config or JointConfig()
+    t_start = time.perf_counter()
+    V, T = observations.images.shape[:2]
+    if T < cfg.window + 1:
+        raise ValueError(f"the joint optimisation needs at least window + 1 = {cfg.window + 1} observed frames, got {T}")
+    dtype = sim.X.dtype
+    gen = torch.Generator().manual_seed(cfg.seed)
+    rig = GaussianRig(sim, gaussians)
+    v_lin = torch.as_tensor(linear_velocity, dtype=dtype).clone().requires_grad_(True)
+    v_ang = torch.as_tensor(angular_velocity, dtype=dtype).clone().requires_grad_(True)
+    c = [float(x) for x in centre]
+
+    def initial_state() -> SimState:
+        return sim.rigid_velocity_state(v_lin, v_ang, c)
+
+    coarse_obs = observations.at_scale(cfg.coarse_scale)
+    log: list[dict[str, float]] = []
+
+    # ---- coarse search over log10 E ------------------------------------------------------------------
+    coarse: list[dict[str, float]] = []
+    if cfg.coarse_log10_E:
+        bar = tqdm(cfg.coarse_log10_E, desc="coarse search over log10 E", disable=not progress, leave=False)
+        for value in bar:
+            with torch.no_grad():
+                sim.log10_E.fill_(value)
+            loss, _ = clip_loss(sim, rig, _detached(initial_state()), coarse_obs)
+            coarse.append({"log10_E": value, "loss": loss})
+            bar.set_postfix(log10_E=value, loss=f"{loss:.2e}")
+        best = min(coarse, key=lambda r: r["loss"])
+        i = coarse.index(best)
+        value = best["log10_E"]
+        if 0 < i < len(coarse) - 1:  # vertex of the parabola through the best and its neighbours
+            (x0, y0), (x1, y1), (x2, y2) = [(coarse[j]["log10_E"], coarse[j]["loss"]) for j in (i - 1, i, i + 1)]
+            denom = (x0 - x1) * (x0 - x2) * (x1 - x2)
+            a = (x2 * (y1 - y0) + x1 * (y0 - y2) + x0 * (y2 - y1)) / denom
+            b = (x2 ** 2 * (y0 - y1) + x1 ** 2 * (y2 - y0) + x0 ** 2 * (y1 - y2)) / denom
+            if a > 0:
+                value = min(max(-b / (2 * a), x0), x2)
+        with torch.no_grad():
+            sim.log10_E.fill_(value)
+
+    # ---- gradient descent ----------------------------------------------------------------------------
+    net_params = [p for p in sim.field.parameters()]
+    groups = [{"params": [sim.log10_E], "lr": cfg.lr_log10_E}, {"params": [sim.nu], "lr": cfg.lr_nu},
+              {"params": [v_lin, v_ang], "lr": cfg.lr_velocity}]
+    if cfg.lr_skinning > 0:
+        groups.append({"params": net_params, "lr": cfg.lr_skinning})
+    if sim.use_neural_jacobian and cfg.lr_jacobian > 0:
+        groups.append({"params": list(sim.jacobian.parameters()), "lr": cfg.lr_jacobian})
+    if cfg.fit_damping:
+        groups.append({"params": [sim.damping_ratio], "lr": cfg.lr_damping})
+    trainable = [p for g in groups for p in g["params"]]
+    was = [p.requires_grad for p in trainable]
+    for p in trainable:
+        p.requires_grad_(True)
+    opt = torch.optim.Adam(groups)
+
+    def snapshot() -> dict:
+        return {"log10_E": float(sim.log10_E.detach()), "nu": float(sim.nu.detach()),
+                "damping_ratio": float(sim.damping_ratio.detach()),
+                "v": v_lin.detach().clone(), "w": v_ang.detach().clone(),
+                "field": copy.deepcopy(sim.field.state_dict()),
+                "jacobian": copy.deepcopy(sim.jacobian.state_dict()) if sim.jacobian is not None else None}
+
+    def validate() -> tuple[float, list[SimState]]:
+        return clip_loss(sim, rig, _detached(initial_state()), observations)
+
+    best_loss, states = validate()
+    best = snapshot()
+    log.append({"iteration": 0, "validation_loss": best_loss, "log10_E": best["log10_E"], "nu": best["nu"]})
+    s_first = first_moving_frame(observations.images)
+    # windows start at s ∈ [s′ − 1, T − 1 − Δs] and compare frames s + 1 … s + Δs; s = 0 reaches the initial velocity
+    s_hi = T - 1 - cfg.window
+    s_lo = min(s_first - 1, s_hi)
+    n_views = V if cfg.views_per_iteration is None else min(V, cfg.views_per_iteration)
+    bar = tqdm(range(1, cfg.iterations + 1), desc="joint optimisation", disable=not progress)
+    try:
+        for it in bar:
+            t0 = time.perf_counter()
+            scale = cfg.coarse_scale if it <= cfg.coarse_fraction * cfg.iterations else 1.0
+            obs = coarse_obs if scale != 1.0 else observations
+            s = int(torch.randint(s_lo, s_hi + 1, (1,), generator=gen))
+            views = sorted(torch.randperm(V, generator=gen)[:n_views].tolist())
+            start = initial_state() if s == 0 else _detached(states[s])
+            opt.zero_grad(set_to_none=True)
+            window_states = sim.rollout(start, cfg.window)
+            renders = render_frames(rig, window_states, obs, views)
+            target = obs.images[views][:, s + 1: s + 1 + cfg.window].transpose(0, 1).to(renders)
+            loss = _image_loss(renders, target)
+            loss.backward()
+            opt.step()
+            with torch.no_grad():
+                sim.nu.clamp_(*cfg.nu_bounds)
+                sim.damping_ratio.clamp_(0.0, 1.0)
+            entry = {"iteration": it, "loss": float(loss.detach()), "log10_E": float(sim.log10_E.detach()),
+                     "nu": float(sim.nu.detach()), "damping_ratio": float(sim.damping_ratio.detach()),
+                     "window_start": s, "scale": scale,
+                     "ms": 1000 * (time.perf_counter() - t0)}
+            if it % cfg.validate_every == 0 or it == cfg.iterations:
+                value, states = validate()
+                entry["validation_loss"] = value
+                if value < best_loss:
+                    best_loss, best = value, snapshot()
+            elif it % cfg.refresh_every == 0:
+                with torch.no_grad():
+                    s0 = _detached(initial_state())
+                    states = [s0] + sim.rollout(s0, T - 1)
+            log.append(entry)
+            if on_iteration is not None:
+                on_iteration(entry)
+            bar.set_postfix(loss=f"{entry['loss']:.2e}", log10_E=f"{entry['log10_E']:.3f}", nu=f"{entry['nu']:.3f}")
+    finally:
+        for p, flag in zip(trainable, was):
+            p.requires_grad_(flag)
+    with torch.no_grad():
+        sim.log10_E.fill_(best["log10_E"])
+        sim.nu.fill_(best["nu"])
+        sim.damping_ratio.fill_(best["damping_ratio"])
+        sim.field.load_state_dict(best["field"])
+        if best["jacobian"] is not None:
+            sim.jacobian.load_state_dict(best["jacobian"])
+    return JointResult(log10_E=best["log10_E"], nu=best["nu"], damping_ratio=best["damping_ratio"],
+                       linear_velocity=best["v"].tolist(), angular_velocity=best["w"].tolist(),
+                       validation_loss=best_loss, coarse=coarse, log=log, seconds=time.perf_counter() - t_start)

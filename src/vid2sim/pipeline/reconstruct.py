@@ -1,0 +1,314 @@
+"""``vid2sim reconstruct``: a scene folder in, a simulation-ready asset out (paper §4.2).
+
+Stages (each saved in a work folder beside the output, so an interrupted run resumes after its last finished
+stage; the asset folder itself appears only when everything is done):
+
+1. ``gaussians`` — 3D Gaussians fitted to frame 0 of the observed views (:func:`vid2sim.splats.fit_gaussians`).
+2. ``points`` — the object's interior at frame 0 (:func:`vid2sim.pipeline.points.object_points`): simulation
+   points, volume, contact points, canonical frame.
+3. ``velocity`` — the initial rigid velocity from the ballistic pre-contact frames
+   (:func:`vid2sim.pipeline.initial_state.estimate_initial_velocity`).
+4. ``networks`` — the skinning field trained data-free on the canonical points (and the Neural Jacobian when
+   ``jacobian="neural"``), then moved to the metric frame by its input frame.
+5. ``joint`` — the joint optimisation (:func:`vid2sim.pipeline.joint.joint_optimisation`) from the prior
+   material (Stage I's predictor fills this slot when it exists).
+
+Physics runs in the scene's metric frame: E in Pa is the real material if the scene's scale is metric and the
+density right. A drop only identifies E/ρ; the density comes from ``scene.json`` ``metadata.density`` when
+present, else ``ReconstructConfig.density`` (1000 kg/m³).
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from vid2sim.pipeline.joint import JointConfig
+from vid2sim.pipeline.points import PointsConfig
+from vid2sim.physics.solver import SimConfig
+from vid2sim.splats.fitting import FitConfig
+
+STAGES = ("gaussians", "points", "velocity", "networks", "joint")
+
+
+@dataclass
+class ReconstructConfig:
+    """Settings of :func:`reconstruct` (saved as the asset's ``config.json``).
+
+    Attributes:
+        gaussians: Gaussian fitting of frame 0.
+        points: interior points.
+        handles: learned skinning handles (+1 rigid).
+        skinning_iterations: data-free skinning iterations (paper: 10 000; 17 ms each on 2 CPU cores).
+        num_cubature: cubature points (paper: 500).
+        jacobian: "closed_form" (exact dF/dz from the field; faster on a CPU) or "neural" (paper's Neural Jacobian).
+        jacobian_iterations: data-free Neural Jacobian iterations when ``jacobian="neural"``.
+        velocity_frames: at most this many pre-contact frames estimate the initial velocity.
+        prior_E, prior_nu, prior_damping: the starting material (Stage II from the prior).
+        density: kg/m³ when the scene does not give one.
+        sim: the simulator's settings (time-converged BDF2 substeps by default).
+        joint: the joint optimisation.
+        seed: seeds every stage.
+    """
+
+    gaussians: FitConfig = field(default_factory=lambda: FitConfig(iterations=1000))
+    points: PointsConfig = field(default_factory=PointsConfig)
+    handles: int = 10
+    skinning_iterations: int = 2000
+    num_cubature: int = 500
+    jacobian: str = "closed_form"
+    jacobian_iterations: int = 2000
+    velocity_frames: int = 8
+    prior_E: float = 1e5
+    prior_nu: float = 0.3
+    prior_damping: float = 0.05
+    density: float = 1000.0
+    sim: SimConfig = field(default_factory=SimConfig)
+    joint: JointConfig = field(default_factory=JointConfig)
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.jacobian not in ("closed_form", "neural"):
+            raise ValueError(f"ReconstructConfig.jacobian must be 'closed_form' or 'neural', got {self.jacobian!r}")
+        for name in ("handles", "skinning_iterations", "num_cubature", "velocity_frames"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"ReconstructConfig.{name} must be >= 1, got {getattr(self, name)}")
+        if not (self.prior_E > 0 and 0 <= self.prior_nu < 0.5 and self.density > 0):
+            raise ValueError("ReconstructConfig needs prior_E > 0, 0 <= prior_nu < 0.5 and density > 0")
+
+    @classmethod
+    def preset(cls, name: str, **overrides: Any) -> "ReconstructConfig":
+        """``"small"`` (CPU minutes, the CI-sized suite) or ``"full"`` (the paper's sizes)."""
+        if name == "small":
+            base = cls(gaussians=FitConfig(iterations=500), skinning_iterations=1000,
+                       joint=JointConfig(iterations=100, validate_every=25))
+        elif name == "full":
+            base = cls(gaussians=FitConfig(iterations=1000, views_per_step=2), skinning_iterations=2000,
+                       joint=JointConfig(iterations=400, views_per_iteration=4))
+        else:
+            raise ValueError(f"unknown reconstruct preset {name!r} (expected 'small' or 'full')")
+        for key, value in overrides.items():
+            if not hasattr(base, key):
+                raise ValueError(f"ReconstructConfig has no field {key!r}")
+            setattr(base, key, value)
+        base.__post_init__()
+        return base
+
+    def to_dict(self) -> dict[str, Any]:
+        return _jsonable(asdict(self))
+
+
+def _jsonable(x: Any) -> Any:
+    if isinstance(x, dict):
+        return {k: _jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, (int, float, str, bool)) or x is None:
+        return x
+    return repr(x)
+
+
+class ReconstructionError(ValueError):
+    """The scene cannot be reconstructed as given (the message names the view, frame or field)."""
+
+
+def check_scene(scene) -> None:
+    """Raise :class:`ReconstructionError` for what would make the reconstruction meaningless: fewer than
+    window + 1 observed frames, a view whose frame-0 mask is empty (named), an object touching the image
+    border at frame 0 in a view (named)."""
+    V = scene.config.observed_views
+    T = scene.config.observed_frames
+    if len(T) < 2:
+        raise ReconstructionError(f"{scene.root}: needs at least 2 observed frames, the scene lists {len(T)} "
+                                  "(scene.json observed_frames)")
+    if len(V) < 1:
+        raise ReconstructionError(f"{scene.root}: no observed views (scene.json observed_views)")
+    if T[0] != 0 or list(T) != list(range(len(T))):
+        raise ReconstructionError(f"{scene.root}: observed_frames must be 0 … T−1 without gaps, got {list(T)}")
+    for v in V:
+        m = scene.masks[v, 0].float()
+        if float(m.max()) <= 0.5:
+            raise ReconstructionError(f"{scene.root}: the frame-0 mask of view {v} is empty: the camera does not "
+                                      "see the object (fix the mask or drop the view from observed_views)")
+        border = torch.cat([m[0], m[-1], m[:, 0], m[:, -1]])
+        if float(border.max()) > 0.5:
+            raise ReconstructionError(f"{scene.root}: the object touches the border of view {v} at frame 0; the "
+                                      "visual hull needs it whole in every observed view")
+
+
+class _Work:
+    """The stage cache beside the output folder."""
+
+    def __init__(self, out: Path, config: ReconstructConfig, scene_root: Path | None, restart: bool) -> None:
+        self.dir = out.parent / f".{out.name}.work"
+        key = {"config": config.to_dict(), "scene": str(scene_root.resolve()) if scene_root else None}
+        key_path = self.dir / "key.json"
+        if restart and self.dir.exists():
+            shutil.rmtree(self.dir)
+        if key_path.is_file() and json.loads(key_path.read_text()) != key:
+            raise ReconstructionError(
+                f"{self.dir} holds an interrupted reconstruction with other settings or another scene; run with "
+                "the same settings to resume it, or with --restart to start over")
+        self.dir.mkdir(parents=True, exist_ok=True)
+        key_path.write_text(json.dumps(key))
+        self.timings_path = self.dir / "timings.json"
+        self.timings = json.loads(self.timings_path.read_text()) if self.timings_path.is_file() else {}
+
+    def done(self, stage: str) -> bool:
+        return (self.dir / f"{stage}.done").is_file()
+
+    def finish(self, stage: str, seconds: float) -> None:
+        self.timings[stage] = seconds
+        self.timings_path.write_text(json.dumps(self.timings))
+        (self.dir / f"{stage}.done").write_text("")
+
+
+def _stage(progress: bool, text: str) -> None:
+    if progress:
+        from tqdm.auto import tqdm
+
+        tqdm.write(text)
+
+
+def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConfig | None = None,
+                progress: bool = True, restart: bool = False) -> Path:
+    """Reconstruct the scene folder ``scene_path`` into the asset folder ``out`` (see the module docstring).
+
+    Returns:
+        the asset folder (readable with :func:`vid2sim.pipeline.asset.load_asset`).
+    Raises:
+        vid2sim.scene.validation.SceneFormatError: the scene folder is invalid.
+        ReconstructionError: the scene cannot be reconstructed as given.
+    """
+    from vid2sim.physics import Floor, Gravity, Material, SkinningField, Simulator
+    from vid2sim.physics.cubature import sample_cubature
+    from vid2sim.physics.external import AREA_CONTACT_STIFFNESS
+    from vid2sim.physics.neural_jacobian import NeuralJacobian, NeuralJacobianTrainingConfig, train_neural_jacobian
+    from vid2sim.physics.skinning_training import SkinningTrainingConfig, train_skinning
+    from vid2sim.pipeline.asset import Asset, save_asset
+    from vid2sim.pipeline.initial_state import estimate_initial_velocity
+    from vid2sim.pipeline.joint import Observations, joint_optimisation
+    from vid2sim.pipeline.points import ObjectPoints, object_points
+    from vid2sim.scene.folder import load_scene
+    from vid2sim.splats.fitting import fit_gaussians
+    from vid2sim.splats.ply import load_ply, save_ply
+
+    cfg = config or ReconstructConfig()
+    out = Path(out)
+    scene = load_scene(scene_path)
+    check_scene(scene)
+    work = _Work(out, cfg, scene.root, restart)
+    V, T = scene.config.observed_views, scene.config.observed_frames
+    images = scene.images[V][:, T].float()
+    masks = scene.masks[V][:, T].float()
+    cameras = [scene.cameras[v] for v in V]
+    torch.manual_seed(cfg.seed)
+
+    # 1. Gaussians ---------------------------------------------------------------------------------------
+    ply = work.dir / "gaussians.ply"
+    if not work.done("gaussians"):
+        _stage(progress, "[1/5] fitting Gaussians to frame 0")
+        t0 = time.perf_counter()
+        g = fit_gaussians(images[:, 0], masks[:, 0], cameras, cfg.gaussians, progress=progress)
+        save_ply(g, ply)
+        work.finish("gaussians", time.perf_counter() - t0)
+    gaussians = load_ply(ply)
+
+    # 2. points ------------------------------------------------------------------------------------------
+    pts_path = work.dir / "points.pt"
+    if not work.done("points"):
+        _stage(progress, "[2/5] filling the object with simulation points")
+        t0 = time.perf_counter()
+        torch.save(asdict(object_points(masks[:, 0], cameras, gaussians, cfg.points)), pts_path)
+        work.finish("points", time.perf_counter() - t0)
+    obj = ObjectPoints(**torch.load(pts_path))
+
+    # 3. initial velocity --------------------------------------------------------------------------------
+    vel_path = work.dir / "velocity.json"
+    if not work.done("velocity"):
+        _stage(progress, "[3/5] estimating the initial velocity from the pre-contact frames")
+        t0 = time.perf_counter()
+        est = estimate_initial_velocity(obj.points, masks, cameras, scene.config.dt,
+                                        torch.tensor(scene.config.gravity, dtype=torch.float32),
+                                        scene.config.floor_height, max_frames=cfg.velocity_frames)
+        vel_path.write_text(json.dumps({"linear": est.linear.tolist(), "angular": est.angular.tolist(),
+                                        "centre": est.centre.tolist(), "frames_used": est.frames_used,
+                                        "residual_px": est.residual_px}))
+        work.finish("velocity", time.perf_counter() - t0)
+    velocity = json.loads(vel_path.read_text())
+
+    # 4. networks ----------------------------------------------------------------------------------------
+    field_path, jac_path = work.dir / "skinning.pt", work.dir / "jacobian.pt"
+    field = SkinningField(cfg.handles, seed=cfg.seed)
+    jacobian = NeuralJacobian(num_handles_total=cfg.handles + 1, seed=cfg.seed) if cfg.jacobian == "neural" else None
+    if not work.done("networks"):
+        _stage(progress, "[4/5] training the skinning field data-free" +
+               (" and the Neural Jacobian" if jacobian is not None else ""))
+        t0 = time.perf_counter()
+        canonical = obj.canonical(obj.points)
+        train_skinning(field, canonical, SkinningTrainingConfig(iterations=cfg.skinning_iterations, seed=cfg.seed),
+                       progress=progress, volume=obj.volume / obj.scale ** 3)
+        field.set_input_frame(obj.centre, obj.scale)
+        torch.save(field.state_dict(), field_path)
+        if jacobian is not None:
+            jacobian.set_input_frame(obj.centre, obj.scale)
+            train_neural_jacobian(jacobian, field, obj.points, NeuralJacobianTrainingConfig(
+                iterations=cfg.jacobian_iterations, seed=cfg.seed), progress=progress)
+            torch.save(jacobian.state_dict(), jac_path)
+        work.finish("networks", time.perf_counter() - t0)
+    field.load_state_dict(torch.load(field_path, weights_only=True))
+    if jacobian is not None:
+        jacobian.load_state_dict(torch.load(jac_path, weights_only=True))
+
+    # 5. joint optimisation ------------------------------------------------------------------------------
+    density = float(scene.config.metadata.get("density", cfg.density)) if isinstance(
+        scene.config.metadata.get("density"), (int, float)) else cfg.density
+    idx, weights = sample_cubature(obj.points, cfg.num_cubature, volume=obj.volume, seed=cfg.seed)
+    externals = [Gravity(list(scene.config.gravity))]
+    if scene.config.floor_height is not None:
+        externals.append(Floor(height=scene.config.floor_height, stiffness=AREA_CONTACT_STIFFNESS))
+    material = Material(cfg.prior_E, cfg.prior_nu, density, damping_ratio=cfg.prior_damping)
+    sim = Simulator(field, obj.points[idx], weights, material, externals, cfg.sim, jacobian=jacobian,
+                    use_neural_jacobian=jacobian is not None, length_scale=obj.scale,
+                    contact_points=obj.contact_points, contact_weights=obj.contact_areas)
+    joint_path = work.dir / "joint.json"
+    if not work.done("joint"):
+        _stage(progress, "[5/5] joint optimisation of the material, initial velocity and networks")
+        t0 = time.perf_counter()
+        result = joint_optimisation(sim, gaussians, Observations(images, cameras), velocity["linear"],
+                                    velocity["angular"], velocity["centre"], cfg.joint, progress=progress)
+        torch.save(field.state_dict(), work.dir / "skinning_joint.pt")
+        if jacobian is not None:
+            torch.save(jacobian.state_dict(), work.dir / "jacobian_joint.pt")
+        joint_path.write_text(json.dumps(asdict(result)))
+        work.finish("joint", time.perf_counter() - t0)
+    result = json.loads(joint_path.read_text())
+    field.load_state_dict(torch.load(work.dir / "skinning_joint.pt", weights_only=True))
+    if jacobian is not None:
+        jacobian.load_state_dict(torch.load(work.dir / "jacobian_joint.pt", weights_only=True))
+
+    material_json = {"model": "neo-hookean", "E": float(10.0 ** result["log10_E"]), "log10_E": result["log10_E"],
+                     "nu": result["nu"], "density": density, "damping_ratio": result["damping_ratio"]}
+    asset = Asset(gaussians=gaussians, field=field, jacobian=jacobian, material=material_json,
+                  cubature_points=obj.points[idx], cubature_weights=weights, contact_points=obj.contact_points,
+                  contact_areas=obj.contact_areas, points=obj.points, volume=obj.volume, sim_config=cfg.sim,
+                  gravity=list(scene.config.gravity), floor_height=scene.config.floor_height,
+                  floor_stiffness=AREA_CONTACT_STIFFNESS, length_scale=obj.scale,
+                  initial_velocity={"linear": result["linear_velocity"], "angular": result["angular_velocity"],
+                                    "centre": velocity["centre"]},
+                  dt=float(scene.config.dt),
+                  extra={"canonical_frame": {"centre": obj.centre.tolist(), "scale": obj.scale,
+                                             "maps": "X -> (X - centre) / scale"},
+                         "scene": str(scene.root), "observed_views": list(V), "observed_frames": len(T),
+                         "volume_m3": obj.volume, "gaussians": gaussians.num,
+                         "initial_velocity_estimate": velocity, "validation_loss": result["validation_loss"]})
+    log = {"timings_seconds": work.timings, "coarse_search": result["coarse"], "iterations": result["log"]}
+    save_asset(asset, out, config=cfg.to_dict(), log=log)
+    shutil.rmtree(work.dir, ignore_errors=True)
+    return out
