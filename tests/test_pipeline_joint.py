@@ -203,3 +203,12 @@ def test_asset_errors_name_the_file_and_field(tmp_path):
         load_asset(folder)
     with pytest.raises(AssetFormatError, match="not a folder"):
         load_asset(tmp_path / "nothing")
+
+
+def test_bench_speed_joint_section_times_one_iteration():
+    from vid2sim.bench.joint_speed import run
+
+    result = run(torch.device("cpu"), quick=True)
+    assert result["joint_settings"]["gaussians"] == 6000 and result["joint_settings"]["views"] == 4
+    for key in ("joint_iter_ms", "joint_iter_ms_half_resolution", "joint_iter_ms_with_networks"):
+        assert 0 < result[key] < 60_000

@@ -20,6 +20,7 @@ from vid2sim.synthetic.scenes import SyntheticSceneConfig, make_scene
 
 def _tiny_config() -> ReconstructConfig:
     return ReconstructConfig(gaussians=FitConfig(iterations=30), points=PointsConfig(resolution=24, num_points=1000),
+                             appearance_iterations=5,
                              handles=3, skinning_iterations=10, num_cubature=60,
                              joint=JointConfig(iterations=2, coarse_log10_E=(4.5, 5.0), validate_every=1, window=2))
 
@@ -50,7 +51,7 @@ def test_reconstruct_writes_a_complete_asset(tiny_asset, tiny_scene):
     assert config["joint"]["iterations"] == 2 and config["handles"] == 3
     log = json.loads((tiny_asset / "log.json").read_text())
     assert [r["log10_E"] for r in log["coarse_search"]] == [4.5, 5.0]
-    assert set(log["timings_seconds"]) == {"gaussians", "points", "velocity", "networks", "joint"}
+    assert set(log["timings_seconds"]) == {"gaussians", "points", "velocity", "appearance", "networks", "joint"}
     # the simulator runs in the scene's metric frame: the Gaussians sit where the object is at frame 0
     scene = load_scene(tiny_scene)
     truth = scene.extras["tet_trajectory"]["vertices"][0]
@@ -86,7 +87,7 @@ def test_an_interrupted_reconstruction_resumes_after_its_last_finished_stage(tin
         reconstruct(tiny_scene, out, _tiny_config(), progress=False)
     work = tmp_path / ".asset.work"
     assert not out.exists()  # nothing that looks like a finished asset
-    assert {p.name for p in work.glob("*.done")} == {"gaussians.done", "points.done", "velocity.done",
+    assert {p.name for p in work.glob("*.done")} == {"gaussians.done", "points.done", "velocity.done", "appearance.done",
                                                       "networks.done"}
     monkeypatch.undo()
 
@@ -127,4 +128,4 @@ def test_presets_and_config_errors():
         ReconstructConfig(jacobian="finite_differences")
     with pytest.raises(ValueError, match="preset"):
         ReconstructConfig.preset("huge")
-    assert reconstruct_module.STAGES == ("gaussians", "points", "velocity", "networks", "joint")
+    assert reconstruct_module.STAGES == ("gaussians", "points", "velocity", "appearance", "networks", "joint")

@@ -318,6 +318,12 @@ def joint_optimisation(
     def validate() -> tuple[float, list[SimState]]:
         return clip_loss(sim, rig, _detached(initial_state()), observations)
 
+    # the networks' quantities at the Gaussians, computed once when no network is optimised
+    networks_trained = cfg.lr_skinning > 0 or (sim.use_neural_jacobian and cfg.lr_jacobian > 0)
+    fixed_basis = None
+    if not networks_trained:
+        with torch.no_grad():
+            fixed_basis = rig.basis()
     best_loss, states = validate()
     best = snapshot()
     log.append({"iteration": 0, "validation_loss": best_loss, "log10_E": best["log10_E"], "nu": best["nu"]})
@@ -337,7 +343,7 @@ def joint_optimisation(
             start = initial_state() if s == 0 else _detached(states[s])
             opt.zero_grad(set_to_none=True)
             window_states = sim.rollout(start, cfg.window)
-            renders = render_frames(rig, window_states, obs, views)
+            renders = render_frames(rig, window_states, obs, views, fixed_basis)
             target = obs.images[views][:, s + 1: s + 1 + cfg.window].transpose(0, 1).to(renders)
             loss = _image_loss(renders, target)
             loss.backward()

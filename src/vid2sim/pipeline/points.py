@@ -36,6 +36,8 @@ class PointsConfig:
             surface before it is carved.
         alpha_threshold: the rendered opacity above which a pixel's depth is trusted.
         mask_threshold: mask values above it count as object.
+        max_contact_points: the surface voxels are reduced to at most this many contact points (farthest-point
+            sampling; each keeps the area of the voxels nearest to it) — the contact's cost grows with them.
         seed: seeds the sampling.
     """
 
@@ -44,6 +46,7 @@ class PointsConfig:
     depth_tolerance: float = 1.5
     alpha_threshold: float = 0.5
     mask_threshold: float = 0.5
+    max_contact_points: int = 1000
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -51,6 +54,8 @@ class PointsConfig:
             raise ValueError(f"PointsConfig.resolution must be >= 8, got {self.resolution}")
         if self.num_points < 100:
             raise ValueError(f"PointsConfig.num_points must be >= 100, got {self.num_points}")
+        if self.max_contact_points < 1:
+            raise ValueError(f"PointsConfig.max_contact_points must be >= 1, got {self.max_contact_points}")
         if self.depth_tolerance < 0:
             raise ValueError(f"PointsConfig.depth_tolerance must be >= 0, got {self.depth_tolerance}")
 
@@ -146,6 +151,13 @@ def object_points(masks: Tensor, cameras: Sequence[Camera], gaussians: Gaussians
                   ((1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0), (0, 0, 1), (0, 0, -1)))
     contact = lo + (s_idx.to(dtype) + 0.5) * voxel
     areas = exposed.to(dtype) * voxel ** 2 / 1.5  # a staircase overestimates a surface's area by 3/2 on average
+    if contact.shape[0] > cfg.max_contact_points:
+        from vid2sim.physics.cubature import farthest_point_sampling
+
+        keep = farthest_point_sampling(contact, cfg.max_contact_points, seed=cfg.seed)
+        nearest = torch.cdist(contact, contact[keep]).argmin(dim=1)
+        areas = torch.zeros(len(keep), dtype=dtype).index_add_(0, nearest, areas)
+        contact = contact[keep]
     box_lo, box_hi = points.min(0).values, points.max(0).values
     return ObjectPoints(points=points, volume=kept * voxel ** 3, contact_points=contact, contact_areas=areas,
                         centre=0.5 * (box_lo + box_hi), scale=float((box_hi - box_lo).norm()), voxel=voxel,

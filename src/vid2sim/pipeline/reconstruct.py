@@ -8,9 +8,13 @@ stage; the asset folder itself appears only when everything is done):
    points, volume, contact points, canonical frame.
 3. ``velocity`` — the initial rigid velocity from the ballistic pre-contact frames
    (:func:`vid2sim.pipeline.initial_state.estimate_initial_velocity`).
-4. ``networks`` — the skinning field trained data-free on the canonical points (and the Neural Jacobian when
+4. ``appearance`` — the Gaussians refined on all those ballistic frames at once: the object's fitted rigid pose
+   in frame t turns each camera into a virtual camera looking at the frame-0 object, so K frames of V views
+   become K·V views of one rigid object (a few views of frame 0 alone leave the Gaussians overfitted to
+   those viewpoints; as the object turns and moves, that shows).
+5. ``networks`` — the skinning field trained data-free on the canonical points (and the Neural Jacobian when
    ``jacobian="neural"``), then moved to the metric frame by its input frame.
-5. ``joint`` — the joint optimisation (:func:`vid2sim.pipeline.joint.joint_optimisation`) from the prior
+6. ``joint`` — the joint optimisation (:func:`vid2sim.pipeline.joint.joint_optimisation`) from the prior
    material (Stage I's predictor fills this slot when it exists).
 
 Physics runs in the scene's metric frame: E in Pa is the real material if the scene's scale is metric and the
@@ -20,6 +24,7 @@ present, else ``ReconstructConfig.density`` (1000 kg/m³).
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 import time
@@ -32,9 +37,10 @@ import torch
 from vid2sim.pipeline.joint import JointConfig
 from vid2sim.pipeline.points import PointsConfig
 from vid2sim.physics.solver import SimConfig
+from vid2sim.splats.densify import DensifyConfig
 from vid2sim.splats.fitting import FitConfig
 
-STAGES = ("gaussians", "points", "velocity", "networks", "joint")
+STAGES = ("gaussians", "points", "velocity", "appearance", "networks", "joint")
 
 
 @dataclass
@@ -50,6 +56,7 @@ class ReconstructConfig:
         jacobian: "closed_form" (exact dF/dz from the field; faster on a CPU) or "neural" (paper's Neural Jacobian).
         jacobian_iterations: data-free Neural Jacobian iterations when ``jacobian="neural"``.
         velocity_frames: at most this many pre-contact frames estimate the initial velocity.
+        appearance_iterations: Gaussian refinement steps on the ballistic frames (0: skip).
         prior_E, prior_nu, prior_damping: the starting material (Stage II from the prior).
         density: kg/m³ when the scene does not give one.
         sim: the simulator's settings (time-converged BDF2 substeps by default).
@@ -65,6 +72,7 @@ class ReconstructConfig:
     jacobian: str = "closed_form"
     jacobian_iterations: int = 2000
     velocity_frames: int = 8
+    appearance_iterations: int = 300
     prior_E: float = 1e5
     prior_nu: float = 0.3
     prior_damping: float = 0.05
@@ -86,8 +94,12 @@ class ReconstructConfig:
     def preset(cls, name: str, **overrides: Any) -> "ReconstructConfig":
         """``"small"`` (CPU minutes, the CI-sized suite) or ``"full"`` (the paper's sizes)."""
         if name == "small":
-            base = cls(gaussians=FitConfig(iterations=500), skinning_iterations=1000,
-                       joint=JointConfig(iterations=100, validate_every=25))
+            # CPU minutes: at most 6 000 Gaussians (4 views of 128² need no more; rendering cost grows with
+            # them), and the networks fixed during the joint optimisation (the paper's learning rate of 5e-7
+            # moves them imperceptibly in 100 iterations, and their gradient costs a third of an iteration)
+            base = cls(gaussians=FitConfig(iterations=500, densify=DensifyConfig(max_gaussians=6000)),
+                       skinning_iterations=1000,
+                       joint=JointConfig(iterations=100, validate_every=25, lr_skinning=0.0, lr_jacobian=0.0))
         elif name == "full":
             base = cls(gaussians=FitConfig(iterations=1000, views_per_step=2), skinning_iterations=2000,
                        joint=JointConfig(iterations=400, views_per_iteration=4))
@@ -112,6 +124,40 @@ def _jsonable(x: Any) -> Any:
     if isinstance(x, (int, float, str, bool)) or x is None:
         return x
     return repr(x)
+
+
+class _Given:
+    """An initializer that returns Gaussians already fitted (to refine them)."""
+
+    def __init__(self, gaussians) -> None:
+        self.gaussians = gaussians
+
+    def __call__(self, images, masks, cameras, sh_degree, generator):
+        return self.gaussians
+
+
+def virtual_views(images: torch.Tensor, masks: torch.Tensor, cameras: list, rotations, translations
+                  ) -> tuple[torch.Tensor, torch.Tensor, list]:
+    """K frames of V views of a rigidly moving object as K·V views of the object at frame 0.
+
+    Args:
+        images: (V, K, H, W, 3); masks: (V, K, H, W); cameras: V cameras.
+        rotations: (K, 3, 3), translations: (K, 3): frame t maps a frame-0 point X to R_t X + T_t.
+    Returns:
+        (K·V, H, W, 3) images, (K·V, H, W) masks, K·V cameras with world-to-camera = camera ∘ (R_t, T_t).
+    """
+    from vid2sim.splats.cameras import Camera
+
+    V, K = images.shape[:2]
+    R = torch.as_tensor(rotations, dtype=torch.float32)
+    T = torch.as_tensor(translations, dtype=torch.float32)
+    cams = []
+    for t in range(K):
+        M = torch.eye(4)
+        M[:3, :3], M[:3, 3] = R[t], T[t]
+        cams += [Camera(c.world_to_camera @ M, c.K, c.width, c.height) for c in cameras]
+    return (images.transpose(0, 1).reshape(K * V, *images.shape[2:]),
+            masks.transpose(0, 1).reshape(K * V, *masks.shape[2:]), cams)
 
 
 class ReconstructionError(ValueError):
@@ -213,7 +259,7 @@ def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConf
     # 1. Gaussians ---------------------------------------------------------------------------------------
     ply = work.dir / "gaussians.ply"
     if not work.done("gaussians"):
-        _stage(progress, "[1/5] fitting Gaussians to frame 0")
+        _stage(progress, "[1/6] fitting Gaussians to frame 0")
         t0 = time.perf_counter()
         g = fit_gaussians(images[:, 0], masks[:, 0], cameras, cfg.gaussians, progress=progress)
         save_ply(g, ply)
@@ -223,7 +269,7 @@ def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConf
     # 2. points ------------------------------------------------------------------------------------------
     pts_path = work.dir / "points.pt"
     if not work.done("points"):
-        _stage(progress, "[2/5] filling the object with simulation points")
+        _stage(progress, "[2/6] filling the object with simulation points")
         t0 = time.perf_counter()
         torch.save(asdict(object_points(masks[:, 0], cameras, gaussians, cfg.points)), pts_path)
         work.finish("points", time.perf_counter() - t0)
@@ -232,23 +278,43 @@ def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConf
     # 3. initial velocity --------------------------------------------------------------------------------
     vel_path = work.dir / "velocity.json"
     if not work.done("velocity"):
-        _stage(progress, "[3/5] estimating the initial velocity from the pre-contact frames")
+        _stage(progress, "[3/6] estimating the initial velocity from the pre-contact frames")
         t0 = time.perf_counter()
         est = estimate_initial_velocity(obj.points, masks, cameras, scene.config.dt,
                                         torch.tensor(scene.config.gravity, dtype=torch.float32),
                                         scene.config.floor_height, max_frames=cfg.velocity_frames)
         vel_path.write_text(json.dumps({"linear": est.linear.tolist(), "angular": est.angular.tolist(),
                                         "centre": est.centre.tolist(), "frames_used": est.frames_used,
-                                        "residual_px": est.residual_px}))
+                                        "residual_px": est.residual_px, "rotations": est.rotations.tolist(),
+                                        "translations": est.translations.tolist()}))
         work.finish("velocity", time.perf_counter() - t0)
     velocity = json.loads(vel_path.read_text())
 
-    # 4. networks ----------------------------------------------------------------------------------------
+    # 4. appearance on the ballistic frames ---------------------------------------------------------------
+    app_ply = work.dir / "gaussians_refined.ply"
+    if not work.done("appearance"):
+        t0 = time.perf_counter()
+        K = int(velocity["frames_used"])
+        if cfg.appearance_iterations > 0 and K > 1:
+            _stage(progress, f"[4/6] refining the Gaussians on {K} ballistic frames x {len(cameras)} views")
+            views, vmasks, vcams = virtual_views(images[:, :K], masks[:, :K], cameras, velocity["rotations"],
+                                                 velocity["translations"])
+            refine = dataclasses.replace(cfg.gaussians, iterations=cfg.appearance_iterations, densify_from=0.0,
+                                         densify_until=0.0, views_per_step=len(cameras), sh_band_every=0.0,
+                                         seed=cfg.seed)
+            g = fit_gaussians(views, vmasks, vcams, refine, initializer=_Given(gaussians), progress=progress)
+        else:
+            g = gaussians
+        save_ply(g, app_ply)
+        work.finish("appearance", time.perf_counter() - t0)
+    gaussians = load_ply(app_ply)
+
+    # 5. networks ----------------------------------------------------------------------------------------
     field_path, jac_path = work.dir / "skinning.pt", work.dir / "jacobian.pt"
     field = SkinningField(cfg.handles, seed=cfg.seed)
     jacobian = NeuralJacobian(num_handles_total=cfg.handles + 1, seed=cfg.seed) if cfg.jacobian == "neural" else None
     if not work.done("networks"):
-        _stage(progress, "[4/5] training the skinning field data-free" +
+        _stage(progress, "[5/6] training the skinning field data-free" +
                (" and the Neural Jacobian" if jacobian is not None else ""))
         t0 = time.perf_counter()
         canonical = obj.canonical(obj.points)
@@ -266,7 +332,7 @@ def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConf
     if jacobian is not None:
         jacobian.load_state_dict(torch.load(jac_path, weights_only=True))
 
-    # 5. joint optimisation ------------------------------------------------------------------------------
+    # 6. joint optimisation ------------------------------------------------------------------------------
     density = float(scene.config.metadata.get("density", cfg.density)) if isinstance(
         scene.config.metadata.get("density"), (int, float)) else cfg.density
     idx, weights = sample_cubature(obj.points, cfg.num_cubature, volume=obj.volume, seed=cfg.seed)
@@ -279,7 +345,7 @@ def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConf
                     contact_points=obj.contact_points, contact_weights=obj.contact_areas)
     joint_path = work.dir / "joint.json"
     if not work.done("joint"):
-        _stage(progress, "[5/5] joint optimisation of the material, initial velocity and networks")
+        _stage(progress, "[6/6] joint optimisation of the material, initial velocity and networks")
         t0 = time.perf_counter()
         result = joint_optimisation(sim, gaussians, Observations(images, cameras), velocity["linear"],
                                     velocity["angular"], velocity["centre"], cfg.joint, progress=progress)

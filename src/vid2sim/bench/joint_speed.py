@@ -1,0 +1,102 @@
+"""``vid2sim bench speed`` section ``joint``: one Stage II joint-optimisation iteration at the small preset.
+
+The standard object of the physics section (a box, half-diagonal 0.5 m, 500 cubature points, 10 + 1 handles,
+E = 1e5, ν = 0.3) carries 6 000 Gaussians on its surface (the small preset's cap) and 1 000 area-weighted
+contact points on a floor; 4 cameras of 128² look at it (the small preset's observed views). One iteration =
+a 4-frame window simulated with gradients (time-converged BDF2 substeps), rendered in the 4 views, the mean
+squared image error against target images, and the backward pass through the renderer and the simulator's
+adjoint to log10 E, ν and the initial velocity.
+
+Figures: ``joint_iter_ms`` (the small preset: networks fixed, full resolution), ``joint_iter_ms_half_resolution``
+(the first half of the small preset's iterations) and ``joint_iter_ms_with_networks`` (the paper's setting:
+the skinning MLP optimised too, so its weights and gradients at the Gaussians are recomputed every
+iteration). Medians over repeats.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+
+from vid2sim.bench.physics_speed import PhysicsBenchSettings, box_points, build_standard_simulator
+from vid2sim.bench.timing import time_ms
+
+
+def _box_surface(n: int, size: torch.Tensor, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(n, 3) points uniform on the surface of a centred box of edge lengths ``size`` (3,), and their areas."""
+    g = torch.Generator().manual_seed(seed)
+    a, b, c = (float(v) for v in size)
+    faces = torch.tensor([b * c, b * c, a * c, a * c, a * b, a * b], dtype=torch.float64)
+    face = torch.multinomial(faces / faces.sum(), n, replacement=True, generator=g)
+    p = (torch.rand(n, 3, generator=g, dtype=torch.float64) - 0.5) * size
+    axis, sign = face // 2, (face % 2) * 2 - 1
+    p[torch.arange(n), axis] = sign.to(p.dtype) * size[axis] / 2
+    return p.float(), torch.full((n,), float(faces.sum()) / n)
+
+
+def run(device: torch.device, quick: bool = False, settings: PhysicsBenchSettings | None = None) -> dict[str, Any]:
+    """The figures of the module docstring."""
+    from dataclasses import replace
+
+    from vid2sim.physics.external import AREA_CONTACT_STIFFNESS, Floor, Gravity
+    from vid2sim.physics.solver import Simulator
+    from vid2sim.pipeline.joint import GaussianRig, Observations, _image_loss, render_frames
+    from vid2sim.splats.cameras import camera_ring
+    from vid2sim.splats.gaussians import Gaussians
+
+    s = settings or PhysicsBenchSettings()
+    if quick:
+        s = replace(s, skinning_pretrain_iters=20)
+    repeats = 1 if quick else 5
+    base, pts = build_standard_simulator(s, device)
+    size = pts.max(0).values - pts.min(0).values
+    contact, areas = _box_surface(1000, size.double().cpu(), s.seed)
+    sim = Simulator(base.field, base.X, base.vol, base.material,
+                    [Gravity(), Floor(height=s.floor_height, stiffness=AREA_CONTACT_STIFFNESS)], base.config,
+                    length_scale=1.0, contact_points=contact.to(pts), contact_weights=areas.to(pts))
+    centres, _ = _box_surface(6000, size.double().cpu(), s.seed + 1)
+    g = torch.Generator().manual_seed(s.seed)
+    gaussians = Gaussians.from_values(centres.to(pts), torch.full((6000,), 0.012, device=device),
+                                      (0.2 + 0.6 * torch.rand(6000, 3, generator=g)).to(pts),
+                                      torch.full((6000,), 0.9, device=device))
+    cams = camera_ring(4, 2.4, 20.0, 128, 128, fov_x_deg=40.0, target=(0.0, 0.0, -0.4))
+    rig = GaussianRig(sim, gaussians)
+    start = sim.rigid_velocity_state([0.1, 0.0, -1.0], [0.0, 1.0, 0.0], [0.0, 0.0, 0.0])
+    with torch.no_grad():
+        states = [start] + sim.rollout(start, 9)
+        target = render_frames(rig, states, Observations(torch.zeros(4, 10, 128, 128, 3), cams),
+                               range(4)).transpose(0, 1)  # (V, T, H, W, 3)
+    full = Observations(target, cams)
+    half = full.at_scale(0.5)
+    with torch.no_grad():
+        sim.log10_E.fill_(5.3)  # a wrong guess: the gradients are not zero
+        fixed = rig.basis()
+    window_start = states[5]
+
+    def iteration(obs: Observations, basis) -> None:
+        sim.log10_E.requires_grad_(True)
+        sim.nu.requires_grad_(True)
+        out = sim.rollout(window_start, 4)
+        renders = render_frames(rig, out, obs, range(4), basis)
+        loss = _image_loss(renders, obs.images[:, 6:10].transpose(0, 1))
+        loss.backward()
+        sim.log10_E.grad = sim.nu.grad = None
+        sim.log10_E.requires_grad_(False)
+        sim.nu.requires_grad_(False)
+
+    def with_networks() -> None:
+        for p in sim.field.parameters():
+            p.requires_grad_(True)
+        iteration(full, None)
+        for p in sim.field.parameters():
+            p.requires_grad_(False)
+            p.grad = None
+
+    return {
+        "joint_iter_ms": time_ms(lambda: iteration(full, fixed), device, repeats),
+        "joint_iter_ms_half_resolution": time_ms(lambda: iteration(half, fixed), device, repeats),
+        "joint_iter_ms_with_networks": time_ms(with_networks, device, repeats),
+        "joint_settings": {"gaussians": 6000, "views": 4, "resolution": 128, "window": 4, "contact_points": 1000,
+                           "substeps": sim.substeps()},
+    }
