@@ -210,5 +210,6 @@ def test_bench_speed_joint_section_times_one_iteration():
 
     result = run(torch.device("cpu"), quick=True)
     assert result["joint_settings"]["gaussians"] == 6000 and result["joint_settings"]["views"] == 4
-    for key in ("joint_iter_ms", "joint_iter_ms_half_resolution", "joint_iter_ms_with_networks"):
+    for key in ("joint_iter_ms", "joint_iter_ms_half_resolution", "joint_iter_ms_with_networks",
+                "joint_iter_ms_with_networks_neural_jacobian"):
         assert 0 < result[key] < 60_000

@@ -10,7 +10,8 @@ adjoint to log10 E, ν and the initial velocity.
 Figures: ``joint_iter_ms`` (the small preset: networks fixed, full resolution), ``joint_iter_ms_half_resolution``
 (the first half of the small preset's iterations) and ``joint_iter_ms_with_networks`` (the paper's setting:
 the skinning MLP optimised too, so its weights and gradients at the Gaussians are recomputed every
-iteration). Medians over repeats.
+iteration), and ``joint_iter_ms_with_networks_neural_jacobian`` (the same with the paper's Neural Jacobian
+for dF/dz instead of the exact closed form). Medians over repeats.
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ from typing import Any
 
 import torch
 
-from vid2sim.bench.physics_speed import PhysicsBenchSettings, box_points, build_standard_simulator
+from vid2sim.bench.physics_speed import PhysicsBenchSettings, build_standard_simulator
 from vid2sim.bench.timing import time_ms
 
 
@@ -40,6 +41,7 @@ def run(device: torch.device, quick: bool = False, settings: PhysicsBenchSetting
     from dataclasses import replace
 
     from vid2sim.physics.external import AREA_CONTACT_STIFFNESS, Floor, Gravity
+    from vid2sim.physics.neural_jacobian import NeuralJacobian
     from vid2sim.physics.solver import Simulator
     from vid2sim.pipeline.joint import GaussianRig, Observations, _image_loss, render_frames
     from vid2sim.splats.cameras import camera_ring
@@ -86,17 +88,25 @@ def run(device: torch.device, quick: bool = False, settings: PhysicsBenchSetting
         sim.nu.requires_grad_(False)
 
     def with_networks() -> None:
-        for p in sim.field.parameters():
+        nets = list(sim.field.parameters()) + (list(sim.jacobian.parameters()) if sim.use_neural_jacobian else [])
+        for p in nets:
             p.requires_grad_(True)
         iteration(full, None)
-        for p in sim.field.parameters():
+        for p in nets:
             p.requires_grad_(False)
             p.grad = None
+
+    closed_form = time_ms(with_networks, device, repeats)
+    # the paper's Neural Jacobian instead of the exact closed-form dF/dz (untrained: the cost is the same)
+    sim.jacobian = NeuralJacobian(num_handles_total=sim.field.num_handles_total, seed=s.seed).to(pts)
+    sim.use_neural_jacobian = True
+    neural = time_ms(with_networks, device, repeats)
 
     return {
         "joint_iter_ms": time_ms(lambda: iteration(full, fixed), device, repeats),
         "joint_iter_ms_half_resolution": time_ms(lambda: iteration(half, fixed), device, repeats),
-        "joint_iter_ms_with_networks": time_ms(with_networks, device, repeats),
+        "joint_iter_ms_with_networks": closed_form,
+        "joint_iter_ms_with_networks_neural_jacobian": neural,
         "joint_settings": {"gaussians": 6000, "views": 4, "resolution": 128, "window": 4, "contact_points": 1000,
                            "substeps": sim.substeps()},
     }

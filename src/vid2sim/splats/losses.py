@@ -13,7 +13,6 @@ import math
 
 from torch import Tensor
 
-from vid2sim.metrics.images import gaussian_window  # noqa: F401  (re-exported: it used to live here)
 from vid2sim.metrics.images import ssim_map as _ssim_map
 
 

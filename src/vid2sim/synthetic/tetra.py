@@ -26,7 +26,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from vid2sim.metrics.geometry import boundary_faces  # noqa: F401  (re-exported: the tet mesh's surface)
+from vid2sim.metrics.geometry import boundary_faces
 
 
 class TetrahedralizationError(RuntimeError):
