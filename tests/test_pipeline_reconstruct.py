@@ -129,3 +129,23 @@ def test_presets_and_config_errors():
     with pytest.raises(ValueError, match="preset"):
         ReconstructConfig.preset("huge")
     assert reconstruct_module.STAGES == ("gaussians", "points", "velocity", "appearance", "networks", "joint")
+
+
+def test_a_drop_that_meets_the_floor_by_frame_1_still_reconstructs(tiny_scene, tmp_path, monkeypatch):
+    from vid2sim.pipeline import initial_state
+
+    real = initial_state.estimate_initial_velocity
+    calls = []
+
+    def early_contact(*args, **kwargs):
+        calls.append(args[5])  # floor_height
+        if args[5] is not None:
+            raise initial_state.TooFewBallisticFrames("fewer than 2 usable frames (frame 1 reaches the floor)")
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(initial_state, "estimate_initial_velocity", early_contact)
+    out = reconstruct(tiny_scene, tmp_path / "asset", _tiny_config(), progress=False)
+    assert calls == [pytest.approx(-0.7), None]  # then frames 0 and 1 without the floor test
+    extra = json.loads((out / "asset.json").read_text())["extra"]
+    assert extra["initial_velocity_estimate"]["contact_before_frame_1"] is True
+    assert extra["initial_velocity_estimate"]["frames_used"] == 2

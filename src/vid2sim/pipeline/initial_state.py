@@ -85,6 +85,10 @@ ROTATION_MODELS = ("torque_free", "constant")
 SHAPE_MODELS = ("surface", "points")
 
 
+class TooFewBallisticFrames(ValueError):
+    """The object touches the floor before frame 1 (or at frame 0): no two frames of free flight."""
+
+
 @dataclass
 class InitialVelocity:
     """A rigid initial velocity, v_i = linear + angular × (x_i − centre), at frame 0.
@@ -618,7 +622,7 @@ def estimate_initial_velocity(
     rotations, centroids, residuals = [R_fit], [p_fit], [res]
     say(f"frame 0: residual {res:.2f} px")
     if up is not None and clearance(R_fit, p_fit) <= floor_margin:
-        raise ValueError(
+        raise TooFewBallisticFrames(
             f"{name}: fewer than 2 usable frames: the object already touches the floor at frame 0 (its lowest point "
             f"is {1000 * clearance(R_fit, p_fit):.1f} mm above it, margin {1000 * floor_margin:.1f} mm)"
         )
@@ -651,7 +655,7 @@ def estimate_initial_velocity(
         model = trial
     K = len(rotations)
     if model is None:
-        raise ValueError(f"{name}: fewer than 2 usable frames ({stop}); the velocity needs frames 0 and 1 before "
+        raise TooFewBallisticFrames(f"{name}: fewer than 2 usable frames ({stop}); the velocity needs frames 0 and 1 before "
                          "any contact with the floor")
 
     Rs, ps = np.stack(rotations), np.stack(centroids)

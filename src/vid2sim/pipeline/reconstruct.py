@@ -238,7 +238,7 @@ def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConf
     from vid2sim.physics.neural_jacobian import NeuralJacobian, NeuralJacobianTrainingConfig, train_neural_jacobian
     from vid2sim.physics.skinning_training import SkinningTrainingConfig, train_skinning
     from vid2sim.pipeline.asset import Asset, save_asset
-    from vid2sim.pipeline.initial_state import estimate_initial_velocity
+    from vid2sim.pipeline.initial_state import TooFewBallisticFrames, estimate_initial_velocity
     from vid2sim.pipeline.joint import Observations, joint_optimisation
     from vid2sim.pipeline.points import ObjectPoints, object_points
     from vid2sim.scene.folder import load_scene
@@ -280,10 +280,20 @@ def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConf
     if not work.done("velocity"):
         _stage(progress, "[3/6] estimating the initial velocity from the pre-contact frames")
         t0 = time.perf_counter()
-        est = estimate_initial_velocity(obj.points, masks, cameras, scene.config.dt,
-                                        torch.tensor(scene.config.gravity, dtype=torch.float32),
-                                        scene.config.floor_height, max_frames=cfg.velocity_frames)
-        vel_path.write_text(json.dumps({"linear": est.linear.tolist(), "angular": est.angular.tolist(),
+        gravity = torch.tensor(scene.config.gravity, dtype=torch.float32)
+        contact_before_frame_1 = False
+        try:
+            est = estimate_initial_velocity(obj.points, masks, cameras, scene.config.dt, gravity,
+                                            scene.config.floor_height, max_frames=cfg.velocity_frames)
+        except TooFewBallisticFrames as exc:
+            # the object meets the floor by frame 1: frames 0 and 1 still give the velocity to first order
+            # (the floor test off); the joint optimisation refines it, and the asset records what happened
+            _stage(progress, f"      {exc}; estimating from frames 0 and 1 regardless of the floor")
+            est = estimate_initial_velocity(obj.points, masks, cameras, scene.config.dt, gravity, None,
+                                            max_frames=2)
+            contact_before_frame_1 = True
+        vel_path.write_text(json.dumps({"contact_before_frame_1": contact_before_frame_1,
+                                        "linear": est.linear.tolist(), "angular": est.angular.tolist(),
                                         "centre": est.centre.tolist(), "frames_used": est.frames_used,
                                         "residual_px": est.residual_px, "rotations": est.rotations.tolist(),
                                         "translations": est.translations.tolist()}))
