@@ -116,8 +116,9 @@ def run(device: torch.device, quick: bool = False, settings: PhysicsBenchSetting
 
     convergence = trajectory_distance(traj(states), traj(refined), size, frames=list(range(s.steps))).mean
     ie_distance = trajectory_distance(traj(ie_states), traj(refined), size, frames=list(range(s.steps))).mean
-    x_final = sim.positions(pts, states[-1].z).detach()
-    penetration = max(0.0, s.floor_height - float(x_final[:, 2].min()))
+    with torch.no_grad():  # the deepest any object point goes below the floor over the drop
+        lowest = min(float(sim.positions(pts, st.z)[:, 2].min()) for st in states)
+    penetration = max(0.0, s.floor_height - lowest)
 
     # --- a 4-frame window with gradients to log10 E, ν and the skinning parameters --------------------
     sim.log10_E.requires_grad_(True)

@@ -310,7 +310,7 @@ def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConf
             views, vmasks, vcams = virtual_views(images[:, :K], masks[:, :K], cameras, velocity["rotations"],
                                                  velocity["translations"])
             refine = dataclasses.replace(cfg.gaussians, iterations=cfg.appearance_iterations, densify_from=0.0,
-                                         densify_until=0.0, views_per_step=len(cameras), sh_band_every=0.0,
+                                         densify_until=0.0, views_per_step=cfg.gaussians.views_per_step or len(cameras), sh_band_every=0.0,
                                          seed=cfg.seed)
             g = fit_gaussians(views, vmasks, vcams, refine, initializer=_Given(gaussians), progress=progress)
         else:
