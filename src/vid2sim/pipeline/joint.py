@@ -88,7 +88,7 @@ class JointConfig:
         lo, hi = self.nu_bounds
         if not 0 <= lo < hi < 0.5:
             raise ValueError(f"JointConfig.nu_bounds must satisfy 0 <= lo < hi < 0.5, got {self.nu_bounds}")
-        self.coarse_log10_E = tuple(float(v) for v in self.coarse_log10_E)
+        self.coarse_log10_E = tuple(sorted(float(v) for v in self.coarse_log10_E))  # the parabola needs order
 
 
 @dataclass
