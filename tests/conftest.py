@@ -14,3 +14,43 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     for item in items:
         if item.get_closest_marker("cuda") is not None:
             item.add_marker(skip)
+
+
+# --- a tiny synthetic scene and its reconstructed asset, shared by the pipeline, simulate, export and report
+# tests (built once per test session: about half a minute on two cores).
+
+def _tiny_reconstruct_config():
+    from vid2sim.pipeline.joint import JointConfig
+    from vid2sim.pipeline.points import PointsConfig
+    from vid2sim.pipeline.reconstruct import ReconstructConfig
+    from vid2sim.splats.fitting import FitConfig
+
+    return ReconstructConfig(gaussians=FitConfig(iterations=30), points=PointsConfig(resolution=24, num_points=1000),
+                             appearance_iterations=5, handles=3, skinning_iterations=10, num_cubature=60,
+                             joint=JointConfig(iterations=2, coarse_log10_E=(4.5, 5.0), validate_every=1, window=2))
+
+
+@pytest.fixture
+def tiny_config():
+    """A factory of the tiny ReconstructConfig (each call a fresh, mutable copy)."""
+    return _tiny_reconstruct_config
+
+
+@pytest.fixture(scope="session")
+def tiny_scene(tmp_path_factory):
+    """A 4-view (1 held out), 40x40, 6-frame synthetic drop scene folder."""
+    from vid2sim.synthetic.scenes import SyntheticSceneConfig, make_scene
+
+    out = tmp_path_factory.mktemp("scene") / "drop"
+    config = SyntheticSceneConfig.preset("small", seed=1, frames=6, observed_frames=5, resolution=40, views=4,
+                                         held_out_views=1, substeps=4)
+    return make_scene(config, out, progress=False)
+
+
+@pytest.fixture(scope="session")
+def tiny_asset(tiny_scene, tmp_path_factory):
+    """The asset folder reconstructed from ``tiny_scene`` with the tiny config."""
+    from vid2sim.pipeline.reconstruct import reconstruct
+
+    out = tmp_path_factory.mktemp("asset") / "asset"
+    return reconstruct(tiny_scene, out, _tiny_reconstruct_config(), progress=False)

@@ -10,33 +10,9 @@ import torch
 from vid2sim.cli import main
 from vid2sim.pipeline import reconstruct as reconstruct_module
 from vid2sim.pipeline.asset import load_asset
-from vid2sim.pipeline.joint import JointConfig
-from vid2sim.pipeline.points import PointsConfig
 from vid2sim.pipeline.reconstruct import ReconstructConfig, ReconstructionError, reconstruct
 from vid2sim.scene.folder import load_scene, write_scene
-from vid2sim.splats.fitting import FitConfig
 from vid2sim.synthetic.scenes import SyntheticSceneConfig, make_scene
-
-
-def _tiny_config() -> ReconstructConfig:
-    return ReconstructConfig(gaussians=FitConfig(iterations=30), points=PointsConfig(resolution=24, num_points=1000),
-                             appearance_iterations=5,
-                             handles=3, skinning_iterations=10, num_cubature=60,
-                             joint=JointConfig(iterations=2, coarse_log10_E=(4.5, 5.0), validate_every=1, window=2))
-
-
-@pytest.fixture(scope="module")
-def tiny_scene(tmp_path_factory):
-    out = tmp_path_factory.mktemp("scene") / "drop"
-    config = SyntheticSceneConfig.preset("small", seed=1, frames=6, observed_frames=5, resolution=40, views=4,
-                                         held_out_views=1, substeps=4)
-    return make_scene(config, out, progress=False)
-
-
-@pytest.fixture(scope="module")
-def tiny_asset(tiny_scene, tmp_path_factory):
-    out = tmp_path_factory.mktemp("asset") / "asset"
-    return reconstruct(tiny_scene, out, _tiny_config(), progress=False)
 
 
 def test_reconstruct_writes_a_complete_asset(tiny_asset, tiny_scene):
@@ -76,7 +52,7 @@ def test_evaluate_reports_views_frames_material_and_chamfer(tiny_asset, tiny_sce
     assert len(report["chamfer"]["per_frame"]) == 6 and 0 < report["chamfer"]["observed_mean"] < 0.1
 
 
-def test_an_interrupted_reconstruction_resumes_after_its_last_finished_stage(tiny_scene, tmp_path, monkeypatch):
+def test_an_interrupted_reconstruction_resumes_after_its_last_finished_stage(tiny_scene, tmp_path, monkeypatch, tiny_config):
     out = tmp_path / "asset"
 
     def interrupted(*args, **kwargs):
@@ -84,7 +60,7 @@ def test_an_interrupted_reconstruction_resumes_after_its_last_finished_stage(tin
 
     monkeypatch.setattr("vid2sim.pipeline.joint.joint_optimisation", interrupted)
     with pytest.raises(KeyboardInterrupt):
-        reconstruct(tiny_scene, out, _tiny_config(), progress=False)
+        reconstruct(tiny_scene, out, tiny_config(), progress=False)
     work = tmp_path / ".asset.work"
     assert not out.exists()  # nothing that looks like a finished asset
     assert {p.name for p in work.glob("*.done")} == {"gaussians.done", "points.done", "velocity.done", "appearance.done",
@@ -96,9 +72,9 @@ def test_an_interrupted_reconstruction_resumes_after_its_last_finished_stage(tin
 
     monkeypatch.setattr("vid2sim.splats.fitting.fit_gaussians", must_not_run)
     monkeypatch.setattr("vid2sim.physics.skinning_training.train_skinning", must_not_run)
-    reconstruct(tiny_scene, out, _tiny_config(), progress=False)
+    reconstruct(tiny_scene, out, tiny_config(), progress=False)
     assert (out / "material.json").is_file() and not work.exists()
-    other = _tiny_config()
+    other = tiny_config()
     other.handles = 4
     (tmp_path / ".asset2.work").mkdir()
     (tmp_path / ".asset2.work" / "key.json").write_text(json.dumps({"config": {}, "scene": None}))
@@ -106,13 +82,13 @@ def test_an_interrupted_reconstruction_resumes_after_its_last_finished_stage(tin
         reconstruct(tiny_scene, tmp_path / "asset2", other, progress=False)
 
 
-def test_bad_scenes_get_clear_errors_and_leave_nothing(tiny_scene, tmp_path):
+def test_bad_scenes_get_clear_errors_and_leave_nothing(tiny_scene, tmp_path, tiny_config):
     scene = load_scene(tiny_scene)
     scene.masks[1, 0] = 0.0
     scene.images[1, 0] = 1.0
     broken = write_scene(scene, tmp_path / "broken")
     with pytest.raises(ReconstructionError, match="view 1 is empty"):
-        reconstruct(broken, tmp_path / "asset", _tiny_config(), progress=False)
+        reconstruct(broken, tmp_path / "asset", tiny_config(), progress=False)
     assert not (tmp_path / "asset").exists() and not (tmp_path / ".asset.work").exists()
     rc = main(["reconstruct", str(broken), str(tmp_path / "asset"), "--quiet"])
     assert rc == 2
@@ -131,7 +107,7 @@ def test_presets_and_config_errors():
     assert reconstruct_module.STAGES == ("gaussians", "points", "velocity", "appearance", "networks", "joint")
 
 
-def test_a_drop_that_meets_the_floor_by_frame_1_still_reconstructs(tiny_scene, tmp_path, monkeypatch):
+def test_a_drop_that_meets_the_floor_by_frame_1_still_reconstructs(tiny_scene, tmp_path, monkeypatch, tiny_config):
     from vid2sim.pipeline import initial_state
 
     real = initial_state.estimate_initial_velocity
@@ -144,7 +120,7 @@ def test_a_drop_that_meets_the_floor_by_frame_1_still_reconstructs(tiny_scene, t
         return real(*args, **kwargs)
 
     monkeypatch.setattr(initial_state, "estimate_initial_velocity", early_contact)
-    out = reconstruct(tiny_scene, tmp_path / "asset", _tiny_config(), progress=False)
+    out = reconstruct(tiny_scene, tmp_path / "asset", tiny_config(), progress=False)
     assert calls == [pytest.approx(-0.7), None]  # then frames 0 and 1 without the floor test
     extra = json.loads((out / "asset.json").read_text())["extra"]
     assert extra["initial_velocity_estimate"]["contact_before_frame_1"] is True
