@@ -2,21 +2,24 @@
 
 Each subcommand is a ``_cmd_*`` function taking the parsed arguments and returning an exit code.
 Heavy imports (torch, the layers) happen inside those functions so ``vid2sim --help`` stays fast.
+Newer subcommands live in their own modules of this package (``vid2sim.cli.<name>``), each with a
+``register(subparsers)`` function that adds its parser; :func:`build_parser` finds them.
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib
 import json
 import os
+import pkgutil
 import sys
 from typing import Callable, Sequence
 
 from vid2sim import __version__
+from vid2sim.cli.common import UserError, set_threads
 
-
-class UserError(Exception):
-    """An error caused by the user's input; printed as one clear line, without a traceback."""
+SHARED_MODULES = ("common",)  # modules of this package that are not subcommands
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:
@@ -56,7 +59,7 @@ def _cmd_bench_identify(args: argparse.Namespace) -> int:
 
     from vid2sim.bench import identify
 
-    _set_threads(args.threads)
+    set_threads(args.threads)
     given = {"scenes": args.n, "seed": args.seed, "preset": args.preset, "handles": args.handles,
              "skinning_iterations": args.skinning_iterations, "fit_iterations": args.fit_iterations,
              "points": args.points, "truth": args.truth}
@@ -230,21 +233,12 @@ def _cmd_fit_gaussians(args: argparse.Namespace) -> int:
     return 0
 
 
-def _set_threads(threads: int | None) -> None:
-    import torch
-
-    if threads is not None:
-        if threads < 1:
-            raise UserError(f"--threads must be >= 1, got {threads}")
-        torch.set_num_threads(threads)
-
-
 def _cmd_reconstruct(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from vid2sim.pipeline.reconstruct import ReconstructConfig, reconstruct
 
-    _set_threads(args.threads)
+    set_threads(args.threads)
     out = Path(args.out)
     if out.exists() and not args.overwrite:
         raise UserError(f"{out} exists; pass --overwrite to replace it")
@@ -269,7 +263,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 
     from vid2sim.pipeline.evaluate import evaluate, write_report
 
-    _set_threads(args.threads)
+    set_threads(args.threads)
     report = evaluate(args.asset, args.scene, fovvdp=args.fovvdp, progress=not args.quiet)
     out = Path(args.out) if args.out else Path(args.asset) / "evaluation.json"
     write_report(report, out)
@@ -438,6 +432,9 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
     ev.add_argument("--quiet", action="store_true", help="no progress output")
     ev.set_defaults(func=_cmd_evaluate)
+    for info in sorted(pkgutil.iter_modules(__path__), key=lambda m: m.name):
+        if info.name not in SHARED_MODULES:
+            importlib.import_module(f"{__name__}.{info.name}").register(sub)
     return parser
 
 
