@@ -27,6 +27,8 @@ def test_version_and_help(capsys):
         (["bench", "speed", "--only", "nonsense"], "unknown benchmark section"),
         (["bench", "jacobian", "--iterations", "0"], "iterations must be a positive integer"),
         (["bench", "speed", "--device", "cuda:7"], "CUDA is not available"),
+        (["bench", "speed", "--device", "banana"], "--device 'banana' is not a torch device"),
+        (["bench", "speed", "--device", "meta"], "vid2sim runs on cpu or cuda"),
         (["bench", "fem", "--frames", "1"], "SyntheticSceneConfig.frames must be an integer >= 2"),
     ],
 )

@@ -308,7 +308,13 @@ CASES = {
     ),
     "one image of another size": (
         lambda root: Image.new("RGBA", (16, 10)).save(root / "images" / "c02_t001.png"),
-        f"{TJ}: frame 11 (camera 2, time index 1): image size 16x10 of 'images/c02_t001.png' differs from 16x12",
+        f"{TJ}: frame 11 (camera 2, time index 1): image 'images/c02_t001.png' is 16x10 but camera 2's other "
+        "images are 16x12",
+    ),
+    "the first image of a camera of another size": (  # the odd image is named, not the good ones after it
+        lambda root: Image.new("RGBA", (16, 10)).save(root / "images" / "c02_t000.png"),
+        f"{TJ}: frame 10 (camera 2, time index 0): image 'images/c02_t000.png' is 16x10 but camera 2's other "
+        "images are 16x12",
     ),
     "unknown top-level key": (
         lambda root: edit_json(root / TJ, lambda o: o.__setitem__("fl_z", 3.0)),
@@ -614,3 +620,26 @@ def test_sixteen_bit_masks_palette_images_and_moving_to_a_device(tmp_path: Path)
     assert torch.equal(moved.images, scene.images) and moved.config == scene.config
     with pytest.raises(ValueError, match="dtype must be torch.uint8, torch.float32 or torch.float64"):
         load_scene(root, dtype=torch.int32)
+
+
+def test_one_odd_image_size_is_one_problem_naming_that_image(written: Path) -> None:
+    """A camera's first image of the wrong size must not make every good image after it 'differ'."""
+    Image.new("RGBA", (16, 10)).save(written / "images" / "c02_t000.png")
+    _, problems = problems_of(written)
+    assert len(problems) == 1 and "'images/c02_t000.png' is 16x10" in problems[0]
+
+
+def test_finished_folders_get_the_usual_permissions_not_mkdtemps_private_ones(tmp_path: Path) -> None:
+    import os
+    import stat
+    import tempfile
+
+    from vid2sim.scene.folder import move_into_place
+
+    old = os.umask(0o022)
+    try:
+        tmp = Path(tempfile.mkdtemp(dir=tmp_path))  # 0700
+        move_into_place(tmp, tmp_path / "out")
+    finally:
+        os.umask(old)
+    assert stat.S_IMODE((tmp_path / "out").stat().st_mode) == 0o755

@@ -530,3 +530,9 @@ def test_cuda_rollout_and_adjoint_match_cpu(trained_field):
     assert torch.allclose(x_gpu, x_cpu, atol=1e-8)
     for a, b in zip(g_cpu, g_gpu):
         assert abs(a - b) <= 1e-6 * abs(a), (a, b)
+
+
+def test_a_material_with_an_unknown_plasticity_is_refused_when_made():
+    with pytest.raises(ValueError, match="Material.plasticity must be None, VonMises"):
+        Material(plasticity="x")
+    assert Material(plasticity={"type": "von_mises", "yield_stress": 300.0}).plasticity.yield_stress == 300.0

@@ -180,6 +180,8 @@ def test_user_mesh_scene(tmp_path):
     (["--resolution", "0"], "--resolution"),  # the flag typed, not the config field
     (["--frames", "10", "--observed-frames", "12"], "--observed-frames (12)"),
     (["--views", "2", "--held-out-views", "2"], "--held-out-views"),
+    (["--resolution", "100000"], "--resolution must be at most 4096"),  # before the FEM runs
+    (["--resolution", "4000"], "GiB of images"),
 ])
 def test_bad_options_are_clean_errors(tmp_path, capsys, args, message):
     out = tmp_path / "scene"

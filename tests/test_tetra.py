@@ -170,3 +170,14 @@ def test_mesher_failure_status_becomes_clean_error(tmp_path, monkeypatch):
     ico = trimesh.creation.icosphere(subdivisions=1)
     with pytest.raises(TetrahedralizationError, match="status 3.*something went wrong"):
         tetrahedralize(ico.vertices, ico.faces, name="failing")
+
+
+def test_ctrl_c_in_the_mesher_is_an_interrupt_not_a_meshing_failure(tmp_path, monkeypatch):
+    """Ctrl-C reaches the whole process group; a mesher that died of it must not be reported as fTetWild failing."""
+    fake = tmp_path / "interrupted_python"
+    fake.write_text("#!/bin/sh\nkill -INT $$\n")
+    fake.chmod(fake.stat().st_mode | stat.S_IEXEC)
+    monkeypatch.setattr(sys, "executable", str(fake))
+    ico = trimesh.creation.icosphere(subdivisions=1)
+    with pytest.raises(KeyboardInterrupt):
+        tetrahedralize(ico.vertices, ico.faces, name="interrupted")

@@ -141,6 +141,21 @@ class Material:
             raise ValueError(f"Material.density must be a positive finite number (kg/m³), got {self.density}")
         if self.model not in ELASTIC_MODELS:
             raise ValueError(f"Material.model must be one of {sorted(ELASTIC_MODELS)}, got {self.model!r}")
+        self.plasticity = _check_plasticity(self.plasticity)
+
+
+def _check_plasticity(value: object) -> object:
+    """None, a return-map model, or its ``to_dict()`` form (converted); anything else is a named error."""
+    from collections.abc import Mapping
+
+    from vid2sim.physics.plasticity import DruckerPrager, VonMises, plasticity_from_dict
+
+    if value is None or isinstance(value, (VonMises, DruckerPrager)):
+        return value
+    if isinstance(value, Mapping):
+        return plasticity_from_dict(value)
+    raise ValueError("Material.plasticity must be None, VonMises(yield_stress=...) (plasticine), "
+                     f"DruckerPrager(friction_angle_deg=...) (sand) or their dict form, got {value!r}")
 
 
 @dataclass

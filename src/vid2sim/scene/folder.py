@@ -32,6 +32,7 @@ import os
 import shutil
 import threading
 import uuid
+from collections import Counter
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -703,28 +704,31 @@ def _load_frames(
                     f"{sizes[(v, t)][0]}x{sizes[(v, t)][1]}"
                 )
     problems.raise_if_any(root)
+    # the reference size is the most common one (per camera, then between cameras), so one odd image is
+    # named as the odd one instead of every good image being blamed for differing from it
+    cam_sizes = []
     for v in range(V):
-        first = plan.grid[v][0]
-        for t in range(1, T):
-            if sizes[(v, t)] != sizes[(v, 0)]:
+        usual = Counter(sizes[(v, t)] for t in range(T)).most_common(1)[0][0]
+        cam_sizes.append(usual)
+        for t in range(T):
+            if sizes[(v, t)] != usual:
                 e = plan.grid[v][t]
                 problems.add(
-                    f"{TRANSFORMS_JSON}: {e.where}: image size {sizes[(v, t)][0]}x{sizes[(v, t)][1]} of "
-                    f"'{e.file_path}' differs from {sizes[(v, 0)][0]}x{sizes[(v, 0)][1]} of '{first.file_path}' "
-                    "(same camera)"
+                    f"{TRANSFORMS_JSON}: {e.where}: image '{e.file_path}' is {sizes[(v, t)][0]}x{sizes[(v, t)][1]} "
+                    f"but camera {v}'s other images are {usual[0]}x{usual[1]}"
                 )
-    cam_sizes = [sizes[(v, 0)] for v in range(V)]
     cameras = _make_cameras(plan, cam_sizes, [f"'{plan.grid[v][0].file_path}'" for v in range(V)], problems)
-    for v in range(1, V):
-        if cam_sizes[v] != cam_sizes[0]:
+    usual = Counter(cam_sizes).most_common(1)[0][0]
+    for v in range(V):
+        if cam_sizes[v] != usual:
             problems.add(
-                f"{TRANSFORMS_JSON}: camera {v} has {cam_sizes[v][0]}x{cam_sizes[v][1]} images but camera 0 has "
-                f"{cam_sizes[0][0]}x{cam_sizes[0][1]}; all cameras must have the same image size"
+                f"{TRANSFORMS_JSON}: camera {v} has {cam_sizes[v][0]}x{cam_sizes[v][1]} images but the other "
+                f"cameras have {usual[0]}x{usual[1]}; all cameras must have the same image size"
             )
     times = _frame_times(plan, config, problems)
     problems.raise_if_any(root)
 
-    W, H = cam_sizes[0]
+    W, H = usual
     np_dtype = {torch.uint8: np.uint8, torch.float32: np.float32, torch.float64: np.float64}[dtype]
     images_np = np.empty((V, T, H, W, 3), dtype=np_dtype)
     masks_np = np.empty((V, T, H, W), dtype=np_dtype)
@@ -853,16 +857,18 @@ def _load_videos(
     problems.raise_if_any(root)
     counts = [f.shape[0] for f in colour_frames]
     shapes = [tuple(f.shape[1:3]) for f in colour_frames]
-    for v in range(1, len(entries)):
-        if counts[v] != counts[0]:
+    usual_count = Counter(counts).most_common(1)[0][0]
+    usual_shape = Counter(shapes).most_common(1)[0][0]
+    for v in range(len(entries)):
+        if counts[v] != usual_count:
             problems.add(
                 f"{TRANSFORMS_JSON}: {entries[v].where}: video '{entries[v].video_path}' has {counts[v]} frames but "
-                f"camera 0's has {counts[0]}; all videos must cover the same time steps"
+                f"the other cameras' have {usual_count}; all videos must cover the same time steps"
             )
-        if shapes[v] != shapes[0]:
+        if shapes[v] != usual_shape:
             problems.add(
-                f"{TRANSFORMS_JSON}: camera {v} has {shapes[v][1]}x{shapes[v][0]} frames but camera 0 has "
-                f"{shapes[0][1]}x{shapes[0][0]}; all cameras must have the same image size"
+                f"{TRANSFORMS_JSON}: camera {v} has {shapes[v][1]}x{shapes[v][0]} frames but the other cameras "
+                f"have {usual_shape[1]}x{usual_shape[0]}; all cameras must have the same image size"
             )
     sizes = [(s[1], s[0]) for s in shapes]
     cameras = _make_cameras(plan, sizes, [f"video '{e.video_path}'" for e in entries], problems)
@@ -1026,7 +1032,11 @@ def write_scene(
 
 def move_into_place(tmp: Path, target: Path) -> None:
     """Rename the finished folder ``tmp`` to ``target``, replacing an existing ``target`` only at the
-    last moment (it is restored if the rename fails). Both must be on the same file system."""
+    last moment (it is restored if the rename fails). Both must be on the same file system.
+
+    ``tmp`` usually comes from :func:`tempfile.mkdtemp`, which makes it private (mode 0700); it is given the
+    permissions a folder made with ``mkdir`` would have (0777 minus the umask) before it takes its name."""
+    _apply_umask(tmp)
     if not target.exists():
         os.replace(tmp, target)
         return
@@ -1038,6 +1048,12 @@ def move_into_place(tmp: Path, target: Path) -> None:
         os.replace(old, target)
         raise
     shutil.rmtree(old, ignore_errors=True)
+
+
+def _apply_umask(folder: Path) -> None:
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(folder, 0o777 & ~umask)
 
 
 def _f32(x: float | Tensor) -> float:

@@ -23,6 +23,7 @@ def comparison_image(
     labels: Sequence[str] | None = None,
     max_size: int = 256,
     error_gain: float = 4.0,
+    headings: bool = True,
 ) -> np.ndarray:
     """One row per view: target | render | error (|render − target| averaged over RGB, × ``error_gain``).
 
@@ -33,10 +34,12 @@ def comparison_image(
         max_size: panels larger than this (in either side) are downscaled by an integer factor (area
             averaging) so that the picture of a 12-view 448² scene stays a few megabytes.
         error_gain: brightness gain of the error panel (an error of 1/gain shows white).
+        headings: a black strip of ``LABEL_HEIGHT`` pixels on top naming the columns ("target", "render",
+            "|error| x gain").
 
     Returns:
-        uint8 array of shape (V · (h + l), 3 · w, 3), h × w the (possibly downscaled) panel size, l the
-        label strip (``LABEL_HEIGHT`` with labels, else 0).
+        uint8 array of shape (c + V · (h + l), 3 · w, 3), h × w the (possibly downscaled) panel size, l the
+        label strip (``LABEL_HEIGHT`` with labels, else 0), c the headings strip (``LABEL_HEIGHT`` or 0).
     """
     if targets.ndim != 4 or targets.shape[-1] != 3:
         raise ValueError(f"targets must have shape (V, H, W, 3), got {tuple(targets.shape)}")
@@ -66,4 +69,11 @@ def comparison_image(
         for i, label in enumerate(labels):
             draw.text((2, i * row.shape[1] + 1), label, fill=(255, 255, 255))
         grid = np.asarray(picture).copy()
+    if headings:
+        top = Image.new("RGB", (grid.shape[1], LABEL_HEIGHT))
+        draw = ImageDraw.Draw(top)
+        w = grid.shape[1] // 3
+        for i, name in enumerate(("target", "render", f"|error| x{error_gain:g}")):
+            draw.text((i * w + 2, 1), name, fill=(255, 255, 255))
+        grid = np.concatenate([np.asarray(top), grid], axis=0)
     return grid

@@ -48,6 +48,9 @@ if TYPE_CHECKING:
     from vid2sim.synthetic.fem import FEMConfig, InitialPose
     from vid2sim.synthetic.tetra import TetMesh
 
+MAX_RESOLUTION = 4096  # the largest image side a synthetic scene renders
+MAX_IMAGE_BYTES = 8 * 2**30  # rendered images of one scene in memory (checked before the FEM runs)
+
 PRESETS: dict[str, dict[str, Any]] = {
     # 12 observed views (the paper's benchmark) + 2 held-out novel views
     "full": {"views": 14, "held_out_views": 2, "resolution": 448, "frames": 24, "observed_frames": 16},
@@ -178,6 +181,13 @@ class SyntheticSceneConfig:
                 continue
             if isinstance(value, bool) or not isinstance(value, int) or value < lo:
                 raise bad(name, f"an integer >= {lo}")
+        if self.resolution > MAX_RESOLUTION:
+            raise bad("resolution", f"at most {MAX_RESOLUTION} pixels (the image side)")
+        need = self.image_bytes()
+        if need > MAX_IMAGE_BYTES:
+            raise ValueError(f"SyntheticSceneConfig.resolution {self.resolution} with {self.views} views x "
+                             f"{self.frames} frames needs {need / 2**30:.1f} GiB of images; at most "
+                             f"{MAX_IMAGE_BYTES / 2**30:.0f} GiB (lower the resolution, views or frames)")
         if self.observed_frames > self.frames:
             raise ValueError(f"SyntheticSceneConfig.observed_frames ({self.observed_frames}) must not exceed "
                              f"frames ({self.frames})")
@@ -187,6 +197,10 @@ class SyntheticSceneConfig:
         self.camera_target = target  # type: ignore[assignment]
         if self.layout not in ("rgba", "rgb+mask", "video"):
             raise bad("layout", "'rgba', 'rgb+mask' or 'video'")
+
+    def image_bytes(self) -> int:
+        """Bytes of the rendered scene in memory (float32 RGB + alpha, views x frames x resolution²)."""
+        return self.views * self.frames * self.resolution ** 2 * 4 * 4
 
     @classmethod
     def preset(cls, name: str, **overrides: Any) -> "SyntheticSceneConfig":

@@ -15,6 +15,7 @@ directly instead.
 from __future__ import annotations
 
 import os
+import signal
 import subprocess
 import sys
 import tempfile
@@ -309,6 +310,8 @@ def tetrahedralize(
         except subprocess.TimeoutExpired:
             raise TetrahedralizationError(f"{name}: fTetWild did not finish within {timeout:g} s") from None
         if proc.returncode != 0:
+            if proc.returncode == -signal.SIGINT or "KeyboardInterrupt" in (proc.stderr or ""):
+                raise KeyboardInterrupt  # Ctrl-C reached the mesher first: an interrupt, not a meshing failure
             if proc.returncode < 0:
                 cause = f"the mesher process was killed by signal {-proc.returncode}"
             else:
