@@ -17,7 +17,7 @@ import sys
 from typing import Callable, Sequence
 
 from vid2sim import __version__
-from vid2sim.cli.common import UserError, set_threads
+from vid2sim.cli.common import UserError, add_threads_option, set_threads
 
 SHARED_MODULES = ("common",)  # modules of this package that are not subcommands
 
@@ -25,6 +25,7 @@ SHARED_MODULES = ("common",)  # modules of this package that are not subcommands
 def _cmd_bench(args: argparse.Namespace) -> int:
     from vid2sim.bench.speed import run_speed_benchmark
 
+    set_threads(args.threads)
     result = run_speed_benchmark(device=args.device, sections=args.only, quick=args.quick)
     if args.json:
         print(json.dumps(result, indent=2, sort_keys=True))
@@ -129,6 +130,7 @@ def _generation_errors() -> tuple[type[Exception], ...]:
 def _cmd_make_scene(args: argparse.Namespace) -> int:
     from vid2sim.synthetic.scenes import SyntheticSceneConfig, make_scene
 
+    set_threads(args.threads)
     try:
         config = SyntheticSceneConfig.preset(args.preset, seed=args.seed, mesh=args.mesh, tet_mesh=args.tet_mesh,
                                              **_scene_overrides(args))
@@ -145,6 +147,7 @@ def _cmd_make_scene(args: argparse.Namespace) -> int:
 def _cmd_make_benchmark(args: argparse.Namespace) -> int:
     from vid2sim.synthetic.scenes import make_benchmark
 
+    set_threads(args.threads)
     try:
         path = make_benchmark(args.n, args.out, preset=args.preset, seed=args.seed, progress=not args.quiet,
                               workers=args.workers, **_scene_overrides(args))
@@ -174,6 +177,7 @@ def _cmd_fit_gaussians(args: argparse.Namespace) -> int:
     from vid2sim.splats.preview import comparison_image
     from vid2sim.splats.render import render_gaussians
 
+    set_threads(args.threads)
     out = Path(args.out)
     if out.exists() and not args.overwrite:
         raise UserError(f"{out} exists; pass --overwrite to replace it")
@@ -318,6 +322,7 @@ def _add_scene_options(p: argparse.ArgumentParser, material_options: bool) -> No
     p.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1),
                    help="processes for the FEM's side-by-side time resolutions (default: 2, or 1 on a 1-CPU machine)")
     p.add_argument("--layout", choices=["rgba", "rgb+mask", "video"], default=None, help="scene folder layout")
+    add_threads_option(p)
     p.add_argument("--quiet", action="store_true", help="no progress output")
 
 
@@ -340,6 +345,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="run only these sections (physics, render); default: all",
     )
     speed.add_argument("--quick", action="store_true", help="fewer repetitions (for smoke tests)")
+    add_threads_option(speed)
     speed.set_defaults(func=_cmd_bench)
     jac = bench_sub.add_parser("jacobian", help="train the Neural Jacobian data-free and report its error")
     jac.add_argument("--iterations", type=int, default=1000, help="training iterations (paper: 10000)")
@@ -367,7 +373,7 @@ def build_parser() -> argparse.ArgumentParser:
     ident.add_argument("--workdir", default="vid2sim-identify", help="cache of FEM runs and skinning fields "
                        "(default ./vid2sim-identify)")
     ident.add_argument("--out", default=None, help="write the full JSON report here")
-    ident.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
+    add_threads_option(ident)
     ident.add_argument("--quiet", action="store_true", help="no progress bars")
     ident.set_defaults(func=_cmd_bench_identify)
 
@@ -404,6 +410,7 @@ def build_parser() -> argparse.ArgumentParser:
     fit.add_argument("--seed", type=int, default=0, help="seed (default 0)")
     fit.add_argument("--device", default=None, help="torch device (default: cuda if available, else cpu)")
     fit.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
+    add_threads_option(fit)
     fit.add_argument("--quiet", action="store_true", help="no progress output")
     fit.set_defaults(func=_cmd_fit_gaussians)
 
@@ -419,7 +426,7 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--seed", type=int, default=None, help="seed (default 0)")
     rec.add_argument("--restart", action="store_true", help="discard an interrupted run's finished stages")
     rec.add_argument("--overwrite", action="store_true", help="replace an existing asset folder")
-    rec.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
+    add_threads_option(rec)
     rec.add_argument("--quiet", action="store_true", help="no progress output")
     rec.set_defaults(func=_cmd_reconstruct)
 
@@ -429,7 +436,7 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("scene", help="scene folder")
     ev.add_argument("--out", default=None, help="JSON report (default ASSET/evaluation.json)")
     ev.add_argument("--fovvdp", action="store_true", help="also FoVVDP (needs the optional pyfvvdp, CC BY-NC)")
-    ev.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
+    add_threads_option(ev)
     ev.add_argument("--quiet", action="store_true", help="no progress output")
     ev.set_defaults(func=_cmd_evaluate)
     for info in sorted(pkgutil.iter_modules(__path__), key=lambda m: m.name):
