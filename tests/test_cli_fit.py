@@ -60,7 +60,8 @@ def test_fit_gaussians_writes_ply_config_and_report(blob_scene_folder: Path, tmp
         rgb = render_gaussians(g, scene.cameras).rgb
     assert psnr(rgb, scene.images[:, 1]) == pytest.approx(report["psnr_db"], abs=1e-3)
     assert psnr(rgb, scene.images[:, 1]) > psnr(rgb, scene.images[:, 0]) + 5.0
-    picture = np.array(Image.open(out / "comparison.png"))  # rows: label strip, then target | render | error
+    picture = np.array(Image.open(out / "comparison.png"))  # column headings, then per view: label strip,
+    picture = picture[LABEL_HEIGHT:]                         # target | render | error
     row = LABEL_HEIGHT + 40
     assert picture.shape == (4 * row, 3 * 40, 3)
     target_panel = torch.from_numpy(picture[row + LABEL_HEIGHT : 2 * row, :40]).float() / 255
