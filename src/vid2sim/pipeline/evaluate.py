@@ -10,6 +10,10 @@ rendered in every camera. Reported (means, and per frame):
   optional ``pyfvvdp`` is installed (its display model is named in the output);
 * with ground truth in the scene: the absolute errors of log10 E and ν, and the Chamfer distance (m) of the
   simulated Gaussian centres to the ground-truth surface (the ``tet_trajectory`` extra) per frame.
+
+The simulation and the rendering are two reusable steps, :func:`simulate_gaussians` (the asset's captured
+drop as deformed Gaussians per frame) and :func:`render_frames` (those in any cameras); ``evaluate(...,
+return_renders=True)`` also hands back the renders it scored, so that ``vid2sim report`` shows exactly them.
 """
 
 from __future__ import annotations
@@ -33,24 +37,65 @@ def _group(renders: torch.Tensor, targets: torch.Tensor, views: list[int], frame
             "psnr_per_frame": m["psnr_per_frame"], "ssim_per_frame": m["ssim_per_frame"]}
 
 
+def simulate_gaussians(asset: Any, num_frames: int, progress: bool = True) -> list[Any]:
+    """The asset's captured drop: its Gaussians deformed by the simulator, one set per frame.
+
+    Args:
+        asset: a loaded :class:`~vid2sim.pipeline.asset.Asset`.
+        num_frames: T ≥ 1 frames (frame 0 is the initial state; frames are ``asset.dt`` apart).
+        progress: tqdm bars for the rollout and the deformation.
+
+    Returns:
+        T :class:`~vid2sim.splats.deform.DeformedGaussians` (world frame, m), without gradients.
+    """
+    from tqdm.auto import tqdm
+
+    from vid2sim.pipeline.joint import GaussianRig
+
+    if num_frames < 1:
+        raise ValueError(f"simulate_gaussians: num_frames must be >= 1, got {num_frames}")
+    sim = asset.simulator()
+    start = asset.initial_state(sim)
+    with torch.no_grad():
+        states = [start] + sim.rollout(start, num_frames - 1, progress=progress)
+        rig = GaussianRig(sim, asset.gaussians)
+        basis = rig.basis()
+        return [rig.deformed(s.z, basis) for s in tqdm(states, desc="deform", disable=not progress, leave=False)]
+
+
+def render_frames(frames: list[Any], cameras: list[Any], background: float = 1.0,
+                  progress: bool = True) -> torch.Tensor:
+    """Render deformed Gaussians (one set per frame, e.g. from :func:`simulate_gaussians`) in every camera.
+
+    Returns:
+        (V, T, H, W, 3) RGB in [0, 1] on the given ``background`` (1.0 = white, the scenes' background).
+    """
+    from tqdm.auto import tqdm
+
+    from vid2sim.splats.render import render_gaussians
+
+    with torch.no_grad():
+        renders = [render_gaussians(d, cameras, background=background).rgb
+                   for d in tqdm(frames, desc="render", disable=not progress, leave=False)]
+    return torch.stack(renders, dim=1).clamp(0, 1)
+
+
 def evaluate(asset_path: str | Path, scene_path: str | Path, fovvdp: bool = False,
-             display: str = "standard_4k", progress: bool = True) -> dict[str, Any]:
+             display: str = "standard_4k", progress: bool = True, return_renders: bool = False) -> Any:
     """Evaluate the asset at ``asset_path`` on the scene folder ``scene_path`` (see the module docstring).
 
     Returns:
         a JSON-ready dict: ``dynamic``, ``future``, ``novel_views`` (each ``psnr``, ``ssim``, per-frame lists,
         optionally ``fovvdp``), ``material`` (fitted, truth, errors when known), ``chamfer`` (per frame and
         means over observed and future frames, when the scene has a ``tet_trajectory``), ``timing``.
+        With ``return_renders=True``: the pair (that dict, the renders (V, T, H, W, 3) in [0, 1] it scored,
+        every scene camera and frame).
     """
     import time
 
-    from tqdm.auto import tqdm
-
     from vid2sim.metrics.geometry import boundary_faces, material_errors, surface_chamfer
     from vid2sim.pipeline.asset import load_asset
-    from vid2sim.pipeline.joint import GaussianRig
     from vid2sim.scene.folder import load_scene
-    from vid2sim.splats.render import render_gaussians
 
     t0 = time.perf_counter()
     asset = load_asset(asset_path)
@@ -58,18 +103,9 @@ def evaluate(asset_path: str | Path, scene_path: str | Path, fovvdp: bool = Fals
     if abs(float(scene.config.dt) - asset.dt) > 1e-6 * asset.dt:
         raise ValueError(f"{scene_path}: frame time {scene.config.dt} s differs from the asset's {asset.dt} s")
     V, T = scene.images.shape[:2]
-    sim = asset.simulator()
-    start = asset.initial_state(sim)
-    with torch.no_grad():
-        states = [start] + sim.rollout(start, T - 1, progress=progress)
-        rig = GaussianRig(sim, asset.gaussians)
-        basis = rig.basis()
-        renders, centres = [], []
-        for s in tqdm(states, desc="render", disable=not progress, leave=False):
-            d = rig.deformed(s.z, basis)
-            renders.append(render_gaussians(d, scene.cameras, background=1.0).rgb)
-            centres.append(d.means)
-    renders = torch.stack(renders, dim=1).clamp(0, 1)  # (V, T, H, W, 3)
+    deformed = simulate_gaussians(asset, T, progress=progress)
+    centres = [d.means for d in deformed]
+    renders = render_frames(deformed, scene.cameras, background=1.0, progress=progress)  # (V, T, H, W, 3)
     targets = scene.images.float()
     obs_v, held_v = list(scene.config.observed_views), list(scene.config.held_out_views)
     obs_f, held_f = list(scene.config.observed_frames), list(scene.config.held_out_frames)
@@ -110,6 +146,8 @@ def evaluate(asset_path: str | Path, scene_path: str | Path, fovvdp: bool = Fals
             "units": "m (mean of both directions, simulated Gaussian centres vs the ground-truth surface)",
         }
     report["timing"] = {"seconds": time.perf_counter() - t0}
+    if return_renders:
+        return report, renders
     return report
 
 

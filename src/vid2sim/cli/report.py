@@ -1,0 +1,54 @@
+"""``vid2sim report ASSET OUT [--scene SCENE]``: the self-contained HTML report of an asset (docs/report.md).
+
+With ``--scene`` the asset is simulated and rendered in every camera of the scene and compared with its
+frames (the metrics come from ``ASSET/evaluation.json`` when it was computed on that scene, otherwise the
+evaluation runs); without, the asset's own drop is rendered in a ring of cameras.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+from vid2sim.cli.common import UserError, add_threads_option, set_threads
+
+
+def _cmd_report(args: argparse.Namespace) -> int:
+    from vid2sim.pipeline.asset import AssetFormatError
+    from vid2sim.report import ReportConfig, ReportInputError, write_report
+    from vid2sim.scene.validation import SceneFormatError
+
+    set_threads(args.threads)
+    asset = Path(args.asset)
+    if not asset.is_dir():
+        raise UserError(f"ASSET {asset}: no such folder (an asset folder written by vid2sim reconstruct)")
+    if args.scene is not None and not Path(args.scene).is_dir():
+        raise UserError(f"--scene {args.scene}: no such folder (a scene folder with scene.json)")
+    start = time.perf_counter()
+    try:
+        config = ReportConfig(video_format=args.video_format, crop=not args.full_frame)
+        out = write_report(args.out, asset, scene=args.scene, progress=not args.quiet, config=config)
+    except (ReportInputError, AssetFormatError, SceneFormatError) as exc:
+        raise UserError(str(exc)) from exc
+    files = [p for p in out.rglob("*") if p.is_file()]
+    size = sum(p.stat().st_size for p in files)
+    print(f"wrote {out / 'index.html'} ({len(files)} files, {size / 1e6:.2f} MB) in {time.perf_counter() - start:.1f} s")
+    return 0
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    """Add the ``report`` subcommand."""
+    p = sub.add_parser("report", help="write a self-contained HTML report of an asset: ground truth | reconstruction "
+                       "| error videos per view, metrics, material found vs truth, optimisation curves")
+    p.add_argument("asset", help="asset folder written by vid2sim reconstruct")
+    p.add_argument("out", help="report folder to write (index.html + media/; a previous report there is replaced)")
+    p.add_argument("--scene", default=None, help="the scene folder to compare with (default: none, the asset's drop "
+                   "in a ring of cameras)")
+    p.add_argument("--video-format", choices=["webm", "webp"], default="webm",
+                   help="webm: VP9 videos with synchronised controls (default); webp: animated images")
+    p.add_argument("--full-frame", action="store_true", help="show whole frames instead of each view cropped to "
+                   "the object's trajectory")
+    add_threads_option(p)
+    p.add_argument("--quiet", action="store_true", help="no progress output")
+    p.set_defaults(func=_cmd_report)

@@ -1,0 +1,636 @@
+"""The report of one asset (and the scene it was reconstructed from): :func:`write_report`.
+
+A folder that a person opens in a browser (``index.html``, everything else under ``media/``)::
+
+    index.html          header, summary figures, material found vs truth, metric tables, videos, key-frame
+                        strips, per-frame PSNR, optimisation curves, stage timings, files
+    report.json         the numbers shown (evaluation, material, per-view PSNR), the settings, the file list
+    media/view_00.webm  per view: ground truth | reconstruction | |error| heat map, frame labels and timeline
+    media/keyframes_*.png, media/psnr_per_frame.svg, media/optimisation.svg, media/thumb.png, …
+
+With a scene, the videos compare the asset's simulated and rendered drop with the scene's frames in every
+camera (observed and held-out views; observed and future frames, marked). Without one, the asset's own drop
+is rendered in a ring of cameras around it.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import math
+import shutil
+import time
+import uuid
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from vid2sim.report import html as H
+from vid2sim.report import media as M
+from vid2sim.report.config import ReportConfig, ReportInputError
+from vid2sim.report.inputs import GROUPS, check_evaluation, read_evaluation
+
+GROUP_TITLES = {"dynamic": "Dynamic reconstruction", "future": "Future prediction", "novel_views": "Novel views"}
+
+
+# ---------------------------------------------------------------------------------------------------------
+# inputs
+# ---------------------------------------------------------------------------------------------------------
+
+def _read_json(path: Path, required: bool) -> dict[str, Any] | None:
+    if not path.is_file():
+        if required:
+            raise ReportInputError(f"{path} not found (an asset folder written by vid2sim reconstruct holds it)")
+        return None
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise ReportInputError(f"{path}: cannot read it as JSON ({exc})") from exc
+    if not isinstance(data, dict):
+        raise ReportInputError(f"{path}: expected a JSON object, got {type(data).__name__}")
+    return data
+
+
+def _check_out(out: Path) -> None:
+    if out.exists() and not out.is_dir():
+        raise ReportInputError(f"report folder {out} exists and is not a folder")
+    if out.is_dir() and any(out.iterdir()) and not (out / "index.html").is_file():
+        raise ReportInputError(f"report folder {out} is a non-empty folder without index.html; refusing to replace it")
+
+
+def _same_folder(a: Any, b: Any) -> bool:
+    try:
+        return a is not None and b is not None and Path(a).resolve() == Path(b).resolve()
+    except OSError:
+        return False
+
+
+def _ring_cameras(frames: Sequence[Any], config: ReportConfig) -> tuple[list[Any], list[float]]:
+    """Cameras on a ring around the whole trajectory (the 2nd–98th percentile box of the Gaussian centres over
+    all frames), far enough that it fits the 40° field of view; returns (cameras, azimuths in degrees)."""
+    from vid2sim.splats.cameras import camera_ring
+
+    means = torch.cat([f.means.detach().reshape(-1, 3) for f in frames]).double()
+    if means.shape[0] > 200_000:
+        means = means[torch.randperm(means.shape[0], generator=torch.Generator().manual_seed(0))[:200_000]]
+    lo, hi = torch.quantile(means, 0.02, dim=0), torch.quantile(means, 0.98, dim=0)
+    centre, radius = (lo + hi) / 2, float((hi - lo).norm()) / 2
+    radius = max(radius, 1e-3)
+    fov = 40.0
+    distance = 1.15 * radius / math.sin(math.radians(fov / 2))
+    cams = camera_ring(config.ring_views, distance, config.ring_elevation_deg, config.ring_resolution,
+                       config.ring_resolution, fov_x_deg=fov, target=tuple(float(c) for c in centre))
+    return cams, [360.0 * i / config.ring_views for i in range(config.ring_views)]
+
+
+# ---------------------------------------------------------------------------------------------------------
+# the report
+# ---------------------------------------------------------------------------------------------------------
+
+def write_report(out_dir: str | Path, asset: str | Path, scene: Any = None, evaluation: Mapping[str, Any] | None = None,
+                 renders: Tensor | None = None, progress: bool = True, config: ReportConfig | None = None) -> Path:
+    """Write the HTML report of an asset into ``out_dir`` (atomically; a previous report there is replaced).
+
+    Args:
+        out_dir: the report folder to create (``index.html`` + ``media/`` + ``report.json``).
+        asset: the asset folder (``material.json``, ``log.json``, …; docs/asset-format.md).
+        scene: the scene folder (path) or a loaded :class:`~vid2sim.scene.folder.Scene`, or None for the
+            asset's own drop in a ring of cameras.
+        evaluation: the evaluation dict (``vid2sim evaluate``'s JSON). None: the asset's ``evaluation.json``
+            if it exists (with a scene: only if it was computed on that scene folder); with a scene path and
+            no evaluation, :func:`~vid2sim.pipeline.evaluate.evaluate` runs and provides the renders too.
+        renders: (V, T, H, W, 3) renders in [0, 1] of the asset in the scene's cameras (e.g. from
+            ``evaluate(..., return_renders=True)``); None renders them (one simulation). Only with a scene.
+        progress: tqdm progress bars.
+        config: :class:`ReportConfig` (sizes, colour map, video format); None for the defaults.
+
+    Returns:
+        ``out_dir`` as a Path.
+
+    Raises:
+        ReportInputError: a missing or malformed input (the message names it); SceneFormatError /
+        AssetFormatError from loading the scene or the asset.
+    """
+    from vid2sim.scene.folder import Scene, load_scene, move_into_place
+
+    t_start = time.perf_counter()
+    config = config or ReportConfig()
+    out = Path(out_dir)
+    asset_dir = Path(asset)
+    if not asset_dir.is_dir():
+        raise ReportInputError(f"asset folder {asset_dir} not found")
+    material = _read_json(asset_dir / "material.json", required=True)
+    log = _read_json(asset_dir / "log.json", required=False) or {}
+    asset_json = _read_json(asset_dir / "asset.json", required=False) or {}
+    _check_out(out)
+    if renders is not None and scene is None:
+        raise ReportInputError("renders were given without a scene; renders are the asset in the scene's cameras")
+    if evaluation is not None:
+        evaluation = check_evaluation(evaluation)
+
+    scene_obj: Scene | None = None
+    scene_path: Path | None = None
+    if scene is not None:
+        if isinstance(scene, Scene):
+            scene_obj, scene_path = scene, scene.root
+        elif isinstance(scene, (str, Path)):
+            scene_path = Path(scene)
+            if not scene_path.is_dir():
+                raise ReportInputError(f"scene folder {scene_path} not found")
+            scene_obj = load_scene(scene_path, progress=progress)
+        else:
+            raise ReportInputError(f"scene must be a scene folder path or a loaded Scene, got {type(scene).__name__}")
+    stored = asset_dir / "evaluation.json"
+    if evaluation is None and stored.is_file():
+        candidate = read_evaluation(stored)
+        if scene_obj is None or _same_folder(candidate.get("scene"), scene_path):
+            evaluation = candidate
+    timings: dict[str, float] = {}
+    if scene_obj is not None:
+        V, T, Hh, Ww, _ = scene_obj.images.shape
+        if renders is None and evaluation is None and scene_path is not None:
+            from vid2sim.pipeline.evaluate import evaluate
+
+            t0 = time.perf_counter()
+            evaluation, renders = evaluate(asset_dir, scene_path, progress=progress, return_renders=True)
+            timings["evaluate (simulate, render, score)"] = time.perf_counter() - t0
+        elif renders is None:
+            from vid2sim.pipeline.asset import load_asset
+            from vid2sim.pipeline.evaluate import render_frames, simulate_gaussians
+
+            t0 = time.perf_counter()
+            loaded = load_asset(asset_dir)
+            renders = render_frames(simulate_gaussians(loaded, T, progress=progress), scene_obj.cameras,
+                                    progress=progress)
+            timings["simulate and render"] = time.perf_counter() - t0
+        if not isinstance(renders, Tensor) or tuple(renders.shape) != (V, T, Hh, Ww, 3):
+            shape = tuple(renders.shape) if isinstance(renders, Tensor) else type(renders).__name__
+            raise ReportInputError(f"renders must be a tensor of the scene's shape {(V, T, Hh, Ww, 3)} "
+                                   f"(V, T, H, W, 3), got {shape}")
+    tmp = out.parent / f".{out.name}.tmp-{uuid.uuid4().hex[:10]}"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    (tmp / "media").mkdir(parents=True)
+    try:
+        builder = _Builder(tmp, asset_dir, material, log, asset_json, evaluation, config, progress)
+        if scene_obj is not None:
+            builder.scene_media(scene_obj, scene_path, renders.detach().float().cpu())
+        else:
+            builder.ring_media()
+        builder.timings.update(timings)
+        builder.finish(time.perf_counter() - t_start)
+        move_into_place(tmp, out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return out
+
+
+class _Builder:
+    """Writes the media of one report into ``root/media`` and assembles its page."""
+
+    def __init__(self, root: Path, asset_dir: Path, material: dict, log: dict, asset_json: dict,
+                 evaluation: dict | None, config: ReportConfig, progress: bool) -> None:
+        self.root, self.media = root, root / "media"
+        self.asset_dir, self.material, self.log, self.asset_json = asset_dir, material, log, asset_json
+        self.evaluation, self.config, self.progress = evaluation, config, progress
+        self.sections: list[tuple[str, str, str]] = []  # (anchor, nav label, html)
+        self.timings: dict[str, float] = {}
+        self.data: dict[str, Any] = {"asset": str(asset_dir), "evaluation": evaluation, "material": material,
+                                     "config": config.to_dict()}
+        self.scene_desc = ""
+        self.truth: dict[str, Any] = {}
+        self.video_count = 0
+
+    # ---- media -------------------------------------------------------------------------------------
+
+    def _encode(self, name: str, frames: np.ndarray) -> Path:
+        return M.encode_video(self.media / name, frames, self.config.video_fps, self.config.video_crf,
+                              self.config.video_format, threads=torch.get_num_threads())
+
+    def _video_html(self, path: Path, probe: str, size: tuple[int, int]) -> str:
+        """A looping, muted, synchronised ``<video>`` (WebM) or an animated ``<img>`` (WebP); ``size`` is the
+        video's (width, height), given so the page does not reflow when it loads."""
+        rel = f"media/{path.name}"
+        wh = f'width="{size[0]}" height="{size[1]}"'
+        if path.suffix == ".webm":
+            return (f'<video class="sync" src="{H.esc(rel)}" {wh} data-fps="{self.config.video_fps:g}" '
+                    f'data-probe="{probe}" autoplay muted loop playsinline preload="auto">'
+                    f'Your browser cannot play WebM (VP9); open <a href="{H.esc(rel)}">{H.esc(path.name)}</a>.</video>')
+        return f'<img class="anim" src="{H.esc(rel)}" {wh} alt="{H.esc(path.stem)}" data-probe="{probe}">'
+
+    def scene_media(self, scene: Any, scene_path: Path | None, renders: Tensor) -> None:
+        from tqdm.auto import tqdm
+
+        from vid2sim.metrics.images import psnr
+
+        cfg = self.config
+        targets = scene.float_images() if hasattr(scene, "float_images") else scene.images.float()
+        V, T, Hh, Ww, _ = targets.shape
+        sc = scene.config.resolved(V, T)
+        obs_v, held_v = list(sc.observed_views), list(sc.held_out_views)
+        obs_f, held_f = list(sc.observed_frames), list(sc.held_out_frames)
+        future = [t in set(held_f) for t in range(T)]
+        self.future, self.dt = future, float(sc.dt)
+        meta = sc.metadata or {}
+        self.truth = {k: meta[k] for k in ("E", "nu", "damping_ratio", "density") if isinstance(meta.get(k), (int, float))}
+        if isinstance(self.truth.get("E"), (int, float)) and self.truth["E"] > 0:
+            self.truth["log10_E"] = math.log10(self.truth["E"])
+        name = scene_path.name if scene_path is not None else "scene"
+        self.scene_name = name
+        self.scene_desc = (f"{V} views ({len(obs_v)} observed, {len(held_v)} held out) · {Ww}×{Hh} px · "
+                           f"{T} frames ({len(obs_f)} observed + {len(held_f)} future) · Δt = {sc.dt:g} s")
+        self.data.update({"scene": None if scene_path is None else str(scene_path), "views": V, "frames": T,
+                          "observed_views": obs_v, "held_out_views": held_v, "observed_frames": obs_f,
+                          "held_out_frames": held_f, "dt": sc.dt, "truth": self.truth})
+        # per-view, per-frame PSNR (the same per-image PSNR as the evaluation's means)
+        per_view = [[psnr(renders[v, t], targets[v, t]) for t in range(T)] for v in range(V)]
+        self.data["psnr_per_view_frame"] = per_view
+        gt8, rd8 = M.to_uint8(targets), M.to_uint8(renders)
+        err8 = np.stack([M.error_heatmap(renders[v], targets[v], cfg.error_max, cfg.error_cmap) for v in range(V)])
+        masks = scene.float_masks() if hasattr(scene, "float_masks") else scene.masks.float()
+        boxes = [M.crop_box(masks[v], renders[v]) if cfg.crop else (0, Hh, 0, Ww) for v in range(V)]
+        self.data["crop_boxes_y0_y1_x0_x1"] = boxes
+
+        def panels(v: int, frames: Any, target: int) -> list[np.ndarray]:
+            y0, y1, x0, x1 = boxes[v]
+            f = M.scale_factor(max(y1 - y0, x1 - x0), target)
+            return [M.rescale(x[v][frames, y0:y1, x0:x1], f) for x in (gt8, rd8, err8)]
+
+        headings = [("ground truth", "scene frames"), ("reconstruction", "simulated + rendered"), ("|error|", "")]
+        cards = []
+        videos = []
+        for v in tqdm(range(V), desc="report videos", disable=not self.progress, leave=False):
+            frames = M.compose_video(panels(v, slice(None), cfg.panel_size), headings, future, self.dt,
+                                     psnr=per_view[v], error_panel=2, error_max=cfg.error_max, cmap=cfg.error_cmap)
+            path = self._encode(f"view_{v:02d}", frames)
+            videos.append(path.name)
+            held = v in held_v
+            obs_mean = _mean([per_view[v][t] for t in obs_f if t > 0])
+            fut_mean = _mean([per_view[v][t] for t in held_f])
+            role = '<span class="tag novel">held-out view</span>' if held else '<span class="tag obs">observed view</span>'
+            y0, y1, x0, x1 = boxes[v]
+            crop = ("full frame" if (y0, y1, x0, x1) == (0, Hh, 0, Ww)
+                    else f"crop x {x0}–{x1 - 1}, y {y0}–{y1 - 1} of {Ww}×{Hh}")
+            cards.append(
+                f'<div class="video-card"><div class="caption"><span><b>View {v}</b> {role} '
+                f'<span class="crop">{crop}</span></span>'
+                f'<span>PSNR <span class="tag obs">observed frames</span> {H.fmt(obs_mean)} dB · '
+                f'<span class="tag fut">future</span> {H.fmt(fut_mean)} dB</span></div>'
+                f'{self._video_html(path, f"video:{v}", (frames.shape[2], frames.shape[1]))}</div>')
+        self.video_count = len(videos)
+        self.data["videos"] = videos
+        # key-frame strips of the first observed and first held-out view
+        strips = []
+        picks = _keyframes(T, held_f[0] if held_f else None, cfg.filmstrip_frames)
+        for v in ([obs_v[0]] if obs_v else []) + ([held_v[0]] if held_v else []):
+            rows = panels(v, picks, 128)
+            kind = "held-out view" if v in held_v else "observed view"
+            grid = M.labelled_grid(rows, ["ground truth", "reconstruction", f"|error|\n0 … {cfg.error_max:g}"],
+                                   [f"frame {t}" for t in picks],
+                                   [H.FUTURE_COLOUR if future[t] else H.OBSERVED_COLOUR for t in picks])
+            path = M.save_png(self.media / f"keyframes_view_{v:02d}.png", grid)
+            strips.append(f'<h3>View {v} ({kind})</h3><div class="figure strip">'
+                          f'<img src="media/{path.name}" alt="key frames of view {v}" data-probe="strip:{v}"></div>')
+        # thumbnail: frame 0 of the first observed view, ground truth | reconstruction
+        tv = obs_v[0] if obs_v else 0
+        gt_t, rd_t, _ = panels(tv, [0], cfg.thumb_size)
+        M.save_png(self.media / "thumb.png", M.titled_panels([gt_t[0], rd_t[0]], ["ground truth", "reconstruction"]))
+        # per-frame PSNR plot
+        from vid2sim.report.plots import psnr_figure
+
+        labels = {v: f"view {v}" + (" (held out)" if v in held_v else "") for v in range(V)}
+        means = []
+        ev = self.evaluation or {}
+        obs_mean_curve: list[float | None] = [None] * T
+        for group in ("dynamic", "future"):
+            g = ev.get(group) or {}
+            for f, value in zip(g.get("frames") or [], g.get("psnr_per_frame") or []):
+                if 0 <= f < T:
+                    obs_mean_curve[f] = value
+        if any(x is not None for x in obs_mean_curve):
+            means.append(("mean, observed views (evaluation)", obs_mean_curve, False))
+        g = ev.get("novel_views") or {}
+        novel_curve: list[float | None] = [None] * T
+        for f, value in zip(g.get("frames") or [], g.get("psnr_per_frame") or []):
+            if 0 <= f < T:
+                novel_curve[f] = value
+        if any(x is not None for x in novel_curve):
+            means.append(("mean, held-out views (evaluation)", novel_curve, True))
+        psnr_figure(self.media / "psnr_per_frame.svg", {labels[v]: per_view[v] for v in range(V)},
+                    [labels[v] for v in held_v], future, means)
+        # sections
+        self._summary_and_tables()
+        controls = _controls(T, self.config, videos and videos[0].endswith(".webm"))
+        crop_note = (" Each view is cropped to the square around everything that appears in it over the video "
+                     "(named above the video)." if cfg.crop else "")
+        self.sections.append(("videos", "Videos", H.section(
+            "videos", "Videos: ground truth | reconstruction | error, per view",
+            f'<div class="controls">{controls}</div><div class="video-grid">{"".join(cards)}</div>',
+            "Each video shows the scene's frames, the asset simulated from its recovered initial state and rendered "
+            "in the same camera, and their difference as a heat map (mean over RGB of the absolute error, "
+            f"black = 0, brightest = {cfg.error_max:g} or more). The strip under each video names the frame, its "
+            'PSNR and whether it was <span class="tag obs">observed</span> during the reconstruction or is a '
+            '<span class="tag fut">future</span> frame the simulator predicted; the timeline below it marks the '
+            "boundary. Held-out views were never seen by the reconstruction." + crop_note)))
+        if strips:
+            self.sections.append(("keyframes", "Key frames", H.section(
+                "keyframes", "Key frames", "".join(strips),
+                f"{len(picks)} frames of the first observed and the first held-out view at a glance "
+                "(green labels: observed frames, orange: future frames).")))
+        self.sections.append(("psnr", "Per-frame PSNR", H.section(
+            "psnr", "PSNR per frame and view",
+            '<div class="figure"><img src="media/psnr_per_frame.svg" alt="PSNR per frame" data-probe="plot:psnr"></div>',
+            "Per-image PSNR of the reconstruction against the ground truth, one line per view (held-out views dashed); "
+            "bold lines are the evaluation's means over views. Frame 0 is the fitted initial state (not part of "
+            "the evaluation's means); the shaded frames were held out and predicted.")))
+
+    def ring_media(self) -> None:
+        from vid2sim.pipeline.asset import load_asset
+        from vid2sim.pipeline.evaluate import render_frames, simulate_gaussians
+
+        cfg = self.config
+        t0 = time.perf_counter()
+        asset = load_asset(self.asset_dir)
+        T = cfg.ring_frames
+        frames = simulate_gaussians(asset, T, progress=self.progress)
+        cams, azimuths = _ring_cameras(frames, cfg)
+        renders = render_frames(frames, cams, progress=self.progress)  # (V, T, R, R, 3)
+        self.timings["simulate and render (ring)"] = time.perf_counter() - t0
+        observed = asset.extra.get("observed_frames")
+        observed = int(observed) if isinstance(observed, int) else T
+        future = [t >= observed for t in range(T)]
+        self.future, self.dt = future, float(asset.dt)
+        self.scene_name = None
+        self.scene_desc = (f"no scene: the asset's captured drop in {cfg.ring_views} ring cameras · "
+                           f"{cfg.ring_resolution}×{cfg.ring_resolution} px · {T} frames "
+                           f"(the observed video had {observed}) · Δt = {asset.dt:g} s")
+        self.data.update({"scene": None, "views": cfg.ring_views, "frames": T, "dt": asset.dt,
+                          "ring_azimuths_deg": azimuths})
+        ev_truth = ((self.evaluation or {}).get("material") or {}).get("truth") or {}
+        self.truth = {k: ev_truth[k] for k in ("E", "nu") if isinstance(ev_truth.get(k), (int, float))}
+        if self.truth.get("E", 0) > 0:
+            self.truth["log10_E"] = math.log10(self.truth["E"])
+        r8 = M.to_uint8(renders)
+        factor = M.scale_factor(cfg.ring_resolution, cfg.panel_size)
+        video = M.compose_video([M.rescale(r8[v], factor) for v in range(cfg.ring_views)],
+                                [(f"camera {v}", f"azimuth {a:.0f}°") for v, a in enumerate(azimuths)], future, self.dt,
+                                tags=("OBSERVED TIME SPAN", "FUTURE · predicted"))
+        path = self._encode("ring", video)
+        self.video_count = 1
+        self.data["videos"] = [path.name]
+        tf = M.scale_factor(cfg.ring_resolution, cfg.thumb_size)
+        M.save_png(self.media / "thumb.png", M.titled_panels([M.rescale(r8[0, 0], tf)], ["reconstruction"]))
+        self._summary_and_tables()
+        controls = _controls(T, cfg, path.suffix == ".webm")
+        self.sections.append(("videos", "Video", H.section(
+            "videos", "The asset's drop in a ring of cameras",
+            f'<div class="controls">{controls}</div><div class="video-card">'
+            f'{self._video_html(path, "video:ring", (video.shape[2], video.shape[1]))}</div>',
+            "No scene was given, so there is no ground truth to compare with: the asset is simulated from its "
+            f"recovered initial state with its recovered material and rendered in {cfg.ring_views} cameras around "
+            'its trajectory. Frames past the length of the observed video are marked <span class="tag fut">future'
+            "</span>; give <code>--scene</code> for the comparison with the scene's frames.")))
+
+    # ---- sections ----------------------------------------------------------------------------------
+
+    def _summary_and_tables(self) -> None:
+        ev = self.evaluation or {}
+        mat_ev = ev.get("material") or {}
+        found = {"E": self.material.get("E"), "log10_E": self.material.get("log10_E"), "nu": self.material.get("nu"),
+                 "damping_ratio": self.material.get("damping_ratio"), "density": self.material.get("density")}
+        truth = dict(self.truth)
+        for k, v in (mat_ev.get("truth") or {}).items():
+            truth.setdefault(k, v)
+        if isinstance(truth.get("E"), (int, float)) and truth["E"] > 0:
+            truth.setdefault("log10_E", math.log10(truth["E"]))
+        errors = {"log10_E": mat_ev.get("abs_error_log10_E"), "nu": mat_ev.get("abs_error_nu")}
+        for key in ("log10_E", "nu", "damping_ratio"):
+            if errors.get(key) is None and _isnum(found.get(key)) and _isnum(truth.get(key)):
+                errors[key] = abs(found[key] - truth[key])
+        self.found, self.truth = found, truth
+        self.data["material_table"] = {"found": found, "truth": truth, "errors": errors}
+        # summary cards
+        cards = []
+        for group, label in (("dynamic", "PSNR observed"), ("future", "PSNR future"), ("novel_views", "PSNR novel views")):
+            g = ev.get(group) or {}
+            if _isnum(g.get("psnr")):
+                cards.append(H.card(label, H.fmt(g["psnr"], 2), f"SSIM {H.fmt(g.get('ssim'), 4)}", unit="dB"))
+        cards.append(H.card("Young's modulus E", H.fmt_sci(found["E"]),
+                            f"truth {H.fmt_sci(truth['E'])} Pa" if _isnum(truth.get("E")) else "truth unknown", unit="Pa"))
+        cards.append(H.card("Poisson's ratio ν", H.fmt(found["nu"], 3),
+                            f"truth {H.fmt(truth['nu'], 3)}" if _isnum(truth.get("nu")) else "truth unknown"))
+        if _isnum(errors.get("log10_E")):
+            cards.append(H.card("|Δ log10 E|", H.fmt(errors["log10_E"], 3), "target ≤ 0.2",
+                                "good" if errors["log10_E"] <= 0.2 else "bad", unit="decades"))
+        if _isnum(errors.get("nu")):
+            cards.append(H.card("|Δ ν|", H.fmt(errors["nu"], 3), "target ≤ 0.05",
+                                "good" if errors["nu"] <= 0.05 else "bad"))
+        ch = ev.get("chamfer") or {}
+        if _isnum(ch.get("observed_mean")):
+            cards.append(H.card("Chamfer, observed frames", H.fmt(100 * ch["observed_mean"], 2),
+                                f"future frames {H.fmt(100 * ch['future_mean'], 2, 'cm')}"
+                                if _isnum(ch.get("future_mean")) else "", unit="cm"))
+        intro = ("Figures from the evaluation; green/red mark the issue's targets (|Δ log10 E| ≤ 0.2, |Δ ν| ≤ 0.05)."
+                 if ev else "No evaluation is available (run <code>vid2sim evaluate ASSET SCENE</code> or give "
+                            "<code>--scene</code>): only the material found is shown.")
+        self.sections.append(("summary", "Summary", H.section("summary", "Summary",
+                                                               f'<div class="cards">{"".join(cards)}</div>', intro)))
+        # material
+        start = next((e for e in self.log.get("iterations", []) if isinstance(e, dict) and e.get("iteration") == 0), {})
+        rows = []
+        specs = [("Young's modulus E (Pa)", "E", H.fmt_sci, None),
+                 ("log10 E", "log10_E", lambda x: H.fmt(x, 3), "decades"),
+                 ("Poisson's ratio ν", "nu", lambda x: H.fmt(x, 3), ""),
+                 ("damping ratio ζ", "damping_ratio", lambda x: H.fmt(x, 3), ""),
+                 ("density (kg/m³, not fitted)", "density", lambda x: H.fmt(x, 0), None)]
+        for label, key, f, unit in specs:
+            st = start.get(key) if key != "E" else (10 ** start["log10_E"] if _isnum(start.get("log10_E")) else None)
+            cells = [f"<td>{H.esc(label)}</td>", H.num_cell(st, f(st) if _isnum(st) else "—", key=f"start.{key}"),
+                     H.num_cell(found.get(key), f(found.get(key)), key=f"found.{key}"),
+                     H.num_cell(truth.get(key), f(truth.get(key)) if _isnum(truth.get(key)) else "—", key=f"truth.{key}")]
+            if key == "E" and _isnum(found.get("E")) and _isnum(truth.get("E")):
+                ratio = found["E"] / truth["E"]
+                cells.append(H.num_cell(ratio, f"found / truth = {ratio:.2f}×", key="ratio.E"))
+            elif unit is not None and _isnum(errors.get(key)):
+                cells.append(H.num_cell(errors[key], f"{errors[key]:.3f}" + (f" {unit}" if unit else ""),
+                                        key=f"error.{key}"))
+            else:
+                cells.append('<td class="na">—</td>')
+            rows.append("".join(cells))
+        self.sections.append(("material", "Material", H.section(
+            "material", "Material found vs truth",
+            H.table(["", "start (after the coarse search)", "found", "truth", "absolute error"], rows,
+                    table_id="material-table"),
+            "“Found” is the asset's material (the joint optimisation's best validation iterate); “truth” is the "
+            "synthetic scene's ground truth when it is known.")))
+        # metrics
+        has_fov = any(_isnum((ev.get(g) or {}).get("fovvdp_jod")) for g in GROUPS)
+        headers = ["", "views", "frames", "PSNR (dB)", "SSIM"] + (["FoVVDP (JOD)"] if has_fov else []) + ["Chamfer (cm)"]
+        rows = []
+        chamfer_key = {"dynamic": "observed_mean", "future": "future_mean"}
+        for group in GROUPS:
+            g = ev.get(group) or {}
+            if not g:
+                continue
+            cells = [f'<td><b>{GROUP_TITLES[group]}</b></td>', f"<td>{H.esc(_ranges(g.get('views')))}</td>",
+                     f"<td>{H.esc(_ranges(g.get('frames')))}</td>",
+                     H.num_cell(g.get("psnr"), digits=2, key=f"{group}.psnr"),
+                     H.num_cell(g.get("ssim"), digits=4, key=f"{group}.ssim")]
+            if has_fov:
+                cells.append(H.num_cell(g.get("fovvdp_jod"), digits=3, key=f"{group}.fovvdp_jod"))
+            cv = ch.get(chamfer_key[group]) if group in chamfer_key else None
+            cells.append(H.num_cell(cv, H.fmt(100 * cv, 2) if _isnum(cv) else "—",
+                                    key=f"chamfer.{chamfer_key[group]}" if group in chamfer_key else ""))
+            rows.append("".join(cells))
+        if rows:
+            note = ("PSNR and SSIM are means over every (view, frame) image of the group (3DGS-lineage SSIM); "
+                    "Chamfer is the mean distance between the simulated Gaussian centres and the ground-truth surface "
+                    "over the observed / future frames (the cell's data-value is in metres).")
+            if has_fov:
+                disp = next(((ev.get(g) or {}).get("fovvdp_display") for g in GROUPS
+                             if (ev.get(g) or {}).get("fovvdp_display")), None)
+                note += f" FoVVDP in JOD (10 = identical), display model {H.esc(disp or 'unknown')}."
+            if ev.get("scene") and self.scene_desc.startswith("no scene"):
+                note += f" From the asset's evaluation.json on {H.esc(ev['scene'])}."
+            body = H.table(headers, rows, table_id="metrics-table")
+        else:
+            note, body = "", '<p class="note">No evaluation: no metrics.</p>'
+        self.sections.append(("metrics", "Metrics", H.section("metrics", "Metrics", body, note)))
+
+    def _optimisation_section(self) -> None:
+        from vid2sim.report.plots import optimisation_figure
+
+        if not self.log:
+            self.sections.append(("optimisation", "Optimisation", H.section(
+                "optimisation", "Optimisation", '<p class="note">The asset has no log.json.</p>')))
+            return
+        optimisation_figure(self.media / "optimisation.svg", self.log, self.found, self.truth)
+        n = sum(1 for e in self.log.get("iterations", []) if isinstance(e, dict) and "loss" in e)
+        self.sections.append(("optimisation", "Optimisation", H.section(
+            "optimisation", "Joint optimisation of the material and the motion",
+            '<div class="figure"><img src="media/optimisation.svg" alt="optimisation curves" '
+            'data-probe="plot:optimisation"></div>',
+            f"{n} joint iterations. The image loss of each iteration's random window of frames and views (grey) "
+            "and of the validation rollout over all observed frames (blue; the asset keeps the best, ★); "
+            "log10 E, ν and ζ per iteration against the value found (blue dotted) and the truth (red dashed); "
+            "the coarse grid search of E that picks the start; the wall time of each iteration.")))
+
+    def _timings_section(self, total: float) -> None:
+        rows = []
+        stages = {f"reconstruct: {k}": v for k, v in (self.log.get("timings_seconds") or {}).items() if _isnum(v)}
+        ev_t = ((self.evaluation or {}).get("timing") or {}).get("seconds")
+        if _isnum(ev_t):
+            stages["evaluate (evaluation.json)"] = ev_t
+        stages.update({f"report: {k}": v for k, v in self.timings.items()})
+        stages["report: total (this page)"] = total
+        top = max(stages.values()) if stages else 1.0
+        for name, secs in stages.items():
+            rows.append(f"<td>{H.esc(name)}</td>" + H.num_cell(secs, H.fmt(secs, 1)) +
+                        f'<td style="width:45%"><div class="bar" '
+                        f'style="width:{100 * secs / max(top, 1e-9):.1f}%"></div></td>')
+        recon_total = sum(v for k, v in stages.items() if k.startswith("reconstruct:"))
+        foot = ([f"<td>reconstruct: total</td>{H.num_cell(recon_total, H.fmt(recon_total, 1))}<td></td>"]
+                if recon_total else [])
+        self.sections.append(("timings", "Timings", H.section(
+            "timings", "Stage timings", H.table(["stage", "seconds", ""], rows, table_id="timings-table", foot=foot),
+            "Wall-clock seconds of the reconstruction's stages (log.json), of the evaluation, and of writing this "
+            "report.")))
+
+    def finish(self, elapsed: float) -> None:
+        from vid2sim import __version__
+
+        self._optimisation_section()
+        self._timings_section(elapsed)
+        self.data["timings_seconds"] = {**self.timings, "total": elapsed}
+        files = sorted(p.relative_to(self.root).as_posix() for p in self.media.iterdir())
+        self.data["files"] = ["index.html", "report.json"] + files
+        items = "".join(f'<li><a href="{H.esc(f)}">{H.esc(f)}</a> ({_size(self.root / f)})</li>' for f in files)
+        scene = self.data.get("scene")
+        command = f"vid2sim report {self.asset_dir} OUT" + (f" --scene {scene}" if scene else "")
+        self.sections.append(("files", "Files", H.section(
+            "files", "Files",
+            f'<ul>{items}<li><a href="report.json">report.json</a>: the numbers of this page</li></ul>'
+            f"<p class=\"note\">Reproduce: <code>{H.esc(command)}</code></p>")))
+        date = _dt.datetime.now().astimezone().strftime("%Y-%m-%d %H:%M %Z")
+        self.data.update({"date": date, "vid2sim_version": __version__})
+        order = ["summary", "material", "metrics", "videos", "keyframes", "psnr", "optimisation", "timings", "files"]
+        secs = sorted(self.sections, key=lambda s: order.index(s[0]))
+        subtitle = (f"asset <b>{H.esc(self.asset_dir.name)}</b> <span title=\"{H.esc(self.asset_dir)}\">"
+                    f"({H.esc(self.asset_dir)})</span>")
+        if scene:
+            subtitle += f" · scene <b>{H.esc(Path(scene).name)}</b> ({H.esc(scene)})"
+        extra = self.asset_json.get("extra") or {}
+        if isinstance(extra.get("gaussians"), int):
+            subtitle += f" · {extra['gaussians']:,} Gaussians".replace(",", " ")
+        subtitle += f"<br>{H.esc(self.scene_desc)}<br>written {H.esc(date)} · vid2sim {H.esc(__version__)}"
+        title = f"vid2sim report · {self.asset_dir.name}"
+        page = H.page(title, subtitle, [(a, n) for a, n, _ in secs], "\n".join(s for _, _, s in secs),
+                      f"vid2sim {H.esc(__version__)} · self-contained report: open index.html; no network needed.")
+        (self.root / "index.html").write_text(page, encoding="utf-8")
+        (self.root / "report.json").write_text(json.dumps(self.data, indent=1, default=str), encoding="utf-8")
+
+
+# ---------------------------------------------------------------------------------------------------------
+# helpers
+# ---------------------------------------------------------------------------------------------------------
+
+def _isnum(x: Any) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+
+
+def _mean(values: Sequence[float]) -> float | None:
+    values = [v for v in values if _isnum(v)]
+    return sum(values) / len(values) if values else None
+
+
+def _ranges(indices: Sequence[int] | None) -> str:
+    """[1, 2, 3, 5] → "1–3, 5"."""
+    if not indices:
+        return "—"
+    parts, start, prev = [], indices[0], indices[0]
+    for i in list(indices[1:]) + [None]:
+        if i is not None and i == prev + 1:
+            prev = i
+            continue
+        parts.append(f"{start}" if start == prev else f"{start}–{prev}")
+        if i is not None:
+            start = prev = i
+    return ", ".join(parts)
+
+
+def _keyframes(T: int, first_future: int | None, k: int) -> list[int]:
+    """``k`` frames spread over 0 … T−1 that include the last observed and the first future frame."""
+    k = min(k, T)
+    picks = {round(i * (T - 1) / max(1, k - 1)) for i in range(k)}
+    if first_future is not None and first_future > 0:
+        picks |= {first_future - 1, first_future}
+    picks = sorted(picks)
+    while len(picks) > k:  # drop the evenly spread frame nearest another pick, never the boundary pair
+        keep = {0, T - 1, (first_future or 0) - 1, first_future}
+        gaps = [(picks[i + 1] - picks[i - 1], picks[i]) for i in range(1, len(picks) - 1) if picks[i] not in keep]
+        if not gaps:
+            break
+        picks.remove(min(gaps)[1])
+    return picks
+
+
+def _controls(T: int, config: ReportConfig, webm: bool) -> str:
+    if not webm:
+        return ("Animated images (WebP) play on their own; "
+                f"{config.video_fps:g} frames per second.")
+    speeds = "".join(f'<option value="{s}"{" selected" if s == 1 else ""}>{s:g}×</option>' for s in (0.25, 0.5, 1, 2))
+    return (f'<button id="play-toggle" type="button">Pause</button>'
+            f'<label>speed <select id="speed">{speeds}</select></label>'
+            f'<label>frame <input id="frame-slider" type="range" min="0" max="{T - 1}" value="0" step="1"></label>'
+            f'<span id="frame-label">frame 0</span>'
+            f'<span class="note" style="margin:0">played at {config.video_fps:g} frames/s; the slider pauses all '
+            "videos on one frame</span>")
+
+
+def _size(path: Path) -> str:
+    n = path.stat().st_size
+    return f"{n / 1e6:.2f} MB" if n >= 1e6 else f"{n / 1e3:.0f} kB"
