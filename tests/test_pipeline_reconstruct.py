@@ -39,9 +39,13 @@ def test_reconstruct_writes_a_complete_asset(tiny_asset, tiny_scene):
 
 
 def test_evaluate_reports_views_frames_material_and_chamfer(tiny_asset, tiny_scene, tmp_path):
+    asset = shutil.copytree(tiny_asset, tmp_path / "asset")  # the HTML report is written into the asset folder
     out = tmp_path / "eval.json"
-    assert main(["evaluate", str(tiny_asset), str(tiny_scene), "--out", str(out), "--quiet"]) == 0
+    assert main(["evaluate", str(asset), str(tiny_scene), "--out", str(out), "--quiet"]) == 0
     report = json.loads(out.read_text())
+    shown = json.loads((asset / "report" / "report.json").read_text())  # the report shows the same evaluation
+    assert (asset / "report" / "index.html").is_file()
+    assert shown["evaluation"]["dynamic"]["psnr"] == report["dynamic"]["psnr"]
     assert report["dynamic"]["frames"] == [1, 2, 3, 4] and report["future"]["frames"] == [5]
     assert report["novel_views"]["views"] == [2]  # the held-out ring camera
     for key in ("dynamic", "future", "novel_views"):
