@@ -97,6 +97,31 @@ def _cmd_bench_identify(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_bench_suite(args: argparse.Namespace) -> int:
+    from vid2sim.bench.ray_runner import RayUnavailable
+    from vid2sim.bench.suite import SUITE_JSON, SuiteConfig, format_table, run_suite
+
+    if args.iterations is not None and args.iterations < 0:
+        raise UserError(f"--iterations must be >= 0, got {args.iterations}")
+    if args.threads is not None and args.threads < 1:
+        raise UserError(f"--threads must be >= 1, got {args.threads}")
+    config = SuiteConfig(preset=args.preset, iterations=args.iterations, threads=args.threads)
+    try:
+        result = run_suite(args.suite, args.out, config, progress=not args.quiet, ray_address=args.ray_address)
+    except RayUnavailable as exc:
+        raise UserError(str(exc)) from exc
+    print(format_table(result))
+    path = os.path.join(args.out, SUITE_JSON)
+    failed = [r["name"] for r in result["scenes"] if r["status"] != "ok"]
+    if failed:
+        print(f"vid2sim bench suite: {len(failed)} of {len(result['scenes'])} scenes failed ({', '.join(failed)}); "
+              f"the others finished. Wrote {path}; each failed scene's traceback is in OUT/NAME/error.txt; run "
+              "the command again to retry only the failed scenes.", file=sys.stderr)
+        return 1
+    print(f"wrote {path}; report: {os.path.join(args.out, 'report', 'index.html')}")
+    return 0
+
+
 _SCENE_OPTIONS = {  # CLI option → SyntheticSceneConfig field
     "E": "youngs_modulus", "nu": "poisson_ratio", "density": "density", "material": "material",
     "drop_height": "drop_height", "views": "views", "resolution": "resolution", "frames": "frames",
@@ -145,17 +170,20 @@ def _cmd_make_scene(args: argparse.Namespace) -> int:
 
 
 def _cmd_make_benchmark(args: argparse.Namespace) -> int:
+    from vid2sim.bench.ray_runner import RayUnavailable
     from vid2sim.synthetic.scenes import make_benchmark
 
     set_threads(args.threads)
     try:
         path = make_benchmark(args.n, args.out, preset=args.preset, seed=args.seed, progress=not args.quiet,
-                              workers=args.workers, **_scene_overrides(args))
+                              workers=args.workers, ray_address=args.ray_address, **_scene_overrides(args))
+    except RayUnavailable as exc:
+        raise UserError(str(exc)) from exc
+    except _generation_errors() as exc:  # before ValueError, in case one of them is a ValueError
+        raise UserError(f"{exc} (finished scenes are kept; run the command again to resume)") from exc
     except ValueError as exc:
         raise _scene_config_error(exc) from exc
-    except _generation_errors() as exc:
-        raise UserError(f"{exc} (finished scenes are kept; run the command again to resume)") from exc
-    print(f"wrote {path} ({args.n} scenes, index.json)")
+    print(f"wrote {path} ({args.n} scene{'s' if args.n != 1 else ''}, index.json)")
     return 0
 
 
@@ -259,7 +287,20 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
     path = reconstruct(args.scene, out, config, progress=not args.quiet, restart=args.restart)
     material = json.loads((path / "material.json").read_text())
     print(f"wrote {path}: E = {material['E']:.4g} Pa (log10 E = {material['log10_E']:.3f}), nu = {material['nu']:.3f}")
+    if not args.no_report:
+        _write_report(path / "report", path, args.scene, quiet=args.quiet)
     return 0
+
+
+def _write_report(out, asset, scene, quiet: bool, evaluation=None, renders=None) -> None:
+    """The HTML report of ``asset`` compared with ``scene`` (vid2sim.report), and one line saying where it is."""
+    from vid2sim.report import ReportInputError, write_report
+
+    try:
+        path = write_report(out, asset, scene=scene, evaluation=evaluation, renders=renders, progress=not quiet)
+    except ReportInputError as exc:
+        raise UserError(f"the report could not be written: {exc}") from exc
+    print(f"report: {path / 'index.html'}")
 
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
@@ -268,7 +309,8 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     from vid2sim.pipeline.evaluate import evaluate, write_report
 
     set_threads(args.threads)
-    report = evaluate(args.asset, args.scene, fovvdp=args.fovvdp, progress=not args.quiet)
+    report, renders = evaluate(args.asset, args.scene, fovvdp=args.fovvdp, progress=not args.quiet,
+                               return_renders=True)
     out = Path(args.out) if args.out else Path(args.asset) / "evaluation.json"
     write_report(report, out)
     lines = []
@@ -279,6 +321,9 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     if "abs_error_log10_E" in mat:
         lines.append(f"|d log10 E| = {mat['abs_error_log10_E']:.3f}, |d nu| = {mat['abs_error_nu']:.3f}")
     print("\n".join(lines + [f"wrote {out}"]))
+    if not args.no_report:
+        _write_report(Path(args.asset) / "report", args.asset, args.scene, quiet=args.quiet, evaluation=report,
+                      renders=renders)
     return 0
 
 
@@ -377,6 +422,25 @@ def build_parser() -> argparse.ArgumentParser:
     ident.add_argument("--quiet", action="store_true", help="no progress bars")
     ident.set_defaults(func=_cmd_bench_identify)
 
+    bsuite = bench_sub.add_parser("suite", help="reconstruct + evaluate every scene of a make-benchmark suite; "
+                                  "per-scene table and means, suite.json (resumable)")
+    bsuite.add_argument("suite", help="benchmark folder written by make-benchmark (index.json + scenes)")
+    bsuite.add_argument("out", help="results folder: NAME/asset, NAME/evaluation.json per scene, suite.json "
+                        "(resumed if it holds a suite_config.json)")
+    bsuite.add_argument("--preset", choices=["small", "full"], default="small",
+                        help="reconstruct preset: small (CPU minutes per scene) or full; default small")
+    bsuite.add_argument("--iterations", type=int, default=None,
+                        help="joint-optimisation iterations (default: the preset's)")
+    bsuite.add_argument("--ray-address", default=None, metavar="ADDR",
+                        help="run each scene as a Ray task: 'local' starts Ray on this machine, or a cluster "
+                             "address (auto, HOST:6379); OUT must be a path every node sees (needs "
+                             "pip install \"vid2sim[ray]\")")
+    bsuite.add_argument("--threads", type=int, default=None,
+                        help="torch threads per scene, and CPUs each Ray task reserves (default: torch's; "
+                             "1 per Ray task)")
+    bsuite.add_argument("--quiet", action="store_true", help="no progress bar")
+    bsuite.set_defaults(func=_cmd_bench_suite)
+
     scene = sub.add_parser("make-scene", help="simulate (FEM) and render one synthetic scene folder")
     scene.add_argument("out", help="scene folder to create")
     scene.add_argument("--mesh", default=None, help="a watertight textured mesh (OBJ/GLB/GLTF/PLY) instead of a "
@@ -393,6 +457,10 @@ def build_parser() -> argparse.ArgumentParser:
     suite.add_argument("out", help="benchmark folder (resumed if it holds an index.json)")
     suite.add_argument("--n", type=int, required=True, help="number of scenes")
     suite.add_argument("--seed", type=int, default=0, help="suite seed (default 0)")
+    suite.add_argument("--ray-address", default=None, metavar="ADDR",
+                       help="make each scene as a Ray task: 'local' starts Ray on this machine, or a cluster "
+                            "address (auto, HOST:6379); OUT must be a path every node sees (needs "
+                            "pip install \"vid2sim[ray]\")")
     _add_scene_options(suite, material_options=False)
     suite.set_defaults(func=_cmd_make_benchmark)
 
@@ -426,6 +494,8 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--seed", type=int, default=None, help="seed (default 0)")
     rec.add_argument("--restart", action="store_true", help="discard an interrupted run's finished stages")
     rec.add_argument("--overwrite", action="store_true", help="replace an existing asset folder")
+    rec.add_argument("--no-report", action="store_true", help="do not write the HTML report (OUT/report/index.html: "
+                     "the asset against the scene, docs/report.md)")
     add_threads_option(rec)
     rec.add_argument("--quiet", action="store_true", help="no progress output")
     rec.set_defaults(func=_cmd_reconstruct)
@@ -436,6 +506,7 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("scene", help="scene folder")
     ev.add_argument("--out", default=None, help="JSON report (default ASSET/evaluation.json)")
     ev.add_argument("--fovvdp", action="store_true", help="also FoVVDP (needs the optional pyfvvdp, CC BY-NC)")
+    ev.add_argument("--no-report", action="store_true", help="do not write the HTML report (ASSET/report/index.html)")
     add_threads_option(ev)
     ev.add_argument("--quiet", action="store_true", help="no progress output")
     ev.set_defaults(func=_cmd_evaluate)

@@ -485,18 +485,29 @@ def benchmark_parameters(n: int, seed: int = 0) -> list[dict[str, float | int]]:
 
 
 def make_benchmark(n: int, out_dir: str | Path, preset: str = "full", seed: int = 0, progress: bool = True,
-                   workers: int = 1, **overrides: Any) -> Path:
+                   workers: int = 1, ray_address: str | None = None, **overrides: Any) -> Path:
     """Write a suite of ``n`` synthetic scenes ``scene_000`` … and an ``index.json`` of their ground truth.
 
     Scene i has the object/pose seed, E and ν of :func:`benchmark_parameters`; ``overrides`` are
     :class:`SyntheticSceneConfig` fields applied to every scene (not ``seed``, ``youngs_modulus``,
     ``poisson_ratio``). Resumable: a scene folder that already exists (they are written atomically) is
-    kept if its ``synthetic.json`` matches the settings the suite asks for, else this raises;
-    ``index.json`` is rewritten after every scene. Returns ``out_dir``.
+    kept if its ``synthetic.json`` matches the settings the suite asks for, else this raises (before any
+    work); ``index.json`` is rewritten after every scene (listing the finished ones in order, ``complete``
+    once all are). A larger ``n`` extends a suite; a smaller one than the scene folders already there is
+    refused (it would leave scenes outside ``index.json``).
+
+    With ``ray_address`` (``"local"`` or a Ray cluster address, :mod:`vid2sim.bench.ray_runner`) every
+    missing scene is made by a Ray task reserving ``workers`` CPUs, with the same settings and seeds as here;
+    on a cluster of several machines ``out_dir`` must be on a file system all of them see at the same path.
+    A scene whose task fails does not stop the others; the first failure is raised once all have finished.
+    fTetWild is not reproducible, so scenes made twice (here or there) differ slightly after meshing.
+    Returns ``out_dir``.
 
     Raises:
         FileExistsError: ``out_dir`` is a file, or a non-empty folder that is not a benchmark.
-        ValueError: bad settings, or an existing suite / scene written with other settings.
+        ValueError: bad settings, an existing suite / scene written with other settings, or scene folders
+            beyond ``n``.
+        vid2sim.bench.ray_runner.RayUnavailable: ``ray_address`` given but Ray missing or unreachable.
     """
     from tqdm.auto import tqdm
 
@@ -505,6 +516,10 @@ def make_benchmark(n: int, out_dir: str | Path, preset: str = "full", seed: int 
     if fixed:
         raise ValueError(f"make_benchmark: {fixed} are set per scene by the suite and cannot be overridden")
     configs = [SyntheticSceneConfig.preset(preset, **{**overrides, **p}) for p in params]  # validates up front
+    if ray_address is not None:  # fail before any work
+        from vid2sim.bench.ray_runner import check_ray
+
+        check_ray(ray_address)
     root = Path(out_dir)
     index_path = root / "index.json"
     if root.exists() and not root.is_dir():
@@ -519,25 +534,75 @@ def make_benchmark(n: int, out_dir: str | Path, preset: str = "full", seed: int 
         if differ:
             raise ValueError(f"{index_path} was written with other settings {differ} (found, asked); resume with "
                              "the same settings or use another folder")
+        _check_no_scenes_beyond(root, n)
+    names = [f"scene_{i:03d}" for i in range(n)]
+    todo = []
+    for i, config in enumerate(configs):  # every existing scene is checked before any work
+        if (root / names[i]).exists():
+            _check_existing_scene(root / names[i], config)
+        else:
+            todo.append(i)
     created = not root.exists()
     root.mkdir(parents=True, exist_ok=True)
-    entries: list[dict[str, Any]] = []
+    entries: dict[int, dict[str, Any]] = {}
+
+    def finished(i: int) -> None:
+        c = configs[i]
+        entries[i] = {"name": names[i], "seed": c.seed, "E": c.youngs_modulus, "nu": c.poisson_ratio,
+                      "density": c.density, "material": c.material}
+        _write_json_atomic(index_path, {**header, "n": n, "complete": len(entries) == n,
+                                        "scenes": [entries[k] for k in sorted(entries)]})
+
     try:
-        for i, config in enumerate(tqdm(configs, desc="benchmark scenes", unit="scene", disable=not progress)):
-            name = f"scene_{i:03d}"
-            folder = root / name
-            if folder.exists():
-                _check_existing_scene(folder, config)
+        bar = tqdm(total=n, desc="benchmark scenes", unit="scene", disable=not progress)
+        with bar:
+            waiting = set(todo)
+            for i in range(n):
+                if i not in waiting:
+                    finished(i)
+                    bar.update(1)
+            if ray_address is None:
+                for i in todo:
+                    make_scene(configs[i], root / names[i], progress=False, workers=workers)
+                    finished(i)
+                    bar.update(1)
             else:
-                make_scene(config, folder, progress=False, workers=workers)
-            entries.append({"name": name, "seed": config.seed, "E": config.youngs_modulus,
-                            "nu": config.poisson_ratio, "density": config.density, "material": config.material})
-            _write_json_atomic(index_path, {**header, "n": n, "complete": len(entries) == n, "scenes": entries})
+                from vid2sim.bench.ray_runner import ray_map
+
+                failures: list[BaseException] = []
+
+                def gathered(k: int, result: Any) -> None:
+                    if isinstance(result, BaseException):
+                        failures.append(result)
+                        bar.write(f"[make-benchmark] {names[todo[k]]} failed: {type(result).__name__}: {result}")
+                    else:
+                        finished(todo[k])
+                    bar.update(1)
+
+                calls = [((configs[i], str((root / names[i]).resolve())), {"progress": False, "workers": workers})
+                         for i in todo]
+                ray_map(make_scene, calls, ray_address, num_cpus=max(1, workers), on_done=gathered)
+                if failures:
+                    raise failures[0]
     except BaseException:
-        if created and not entries:
+        if created and not entries and not any(root.iterdir()):
             root.rmdir()  # make_scene leaves nothing behind, so the folder is empty
         raise
     return root
+
+
+def _check_no_scenes_beyond(root: Path, n: int) -> None:
+    """Refuse to shrink a suite: scene folders ``scene_NNN`` with NNN >= ``n`` would be left out of index.json."""
+    found = sorted(int(p.name[len("scene_"):]) for p in root.iterdir()
+                   if p.is_dir() and p.name.startswith("scene_") and p.name[len("scene_"):].isdigit())
+    beyond = [i for i in found if i >= n]
+    if beyond:
+        have = max(found) + 1
+        extra = ", ".join(f"scene_{i:03d}" for i in beyond)
+        raise ValueError(
+            f"{root} holds a suite of {have} scene{'s' if have != 1 else ''}; asking for {n} would leave "
+            f"{extra} outside index.json. Resume or extend it with n = {have} or more (scene i is the same "
+            f"whatever n), or write the smaller suite to another folder")
 
 
 def _check_existing_scene(folder: Path, config: SyntheticSceneConfig) -> None:

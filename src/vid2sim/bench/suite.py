@@ -1,0 +1,429 @@
+"""``vid2sim bench suite``: reconstruct + evaluate every scene of a ``make-benchmark`` suite, and the table.
+
+For each scene ``NAME`` listed in ``SUITE/index.json`` (:func:`vid2sim.synthetic.scenes.make_benchmark`):
+
+1. ``OUT/NAME/asset`` — :func:`vid2sim.pipeline.reconstruct.reconstruct` with the suite's
+   :class:`SuiteConfig` (skipped when a complete asset is already there; a reconstruction interrupted
+   half-way resumes after its last finished stage through reconstruct's own work folder);
+2. ``OUT/NAME/evaluation.json`` — :func:`vid2sim.pipeline.evaluate.evaluate` of that asset on the scene
+   (written last and atomically: a scene with this file is finished and skipped by the next run);
+3. ``OUT/NAME/run.json`` — the scene's wall time; ``OUT/NAME/error.txt`` — the traceback when it failed.
+
+A scene that raises is recorded as failed with its error message and the suite goes on; rerunning the
+command retries the failed and unfinished scenes only. The scenes run one after the other in this process,
+or as Ray tasks (``ray_address``, :mod:`vid2sim.bench.ray_runner`) with the same code and seeds, so the
+numbers do not depend on where a scene ran. ``OUT/suite.json`` (written atomically at the end) holds
+every scene's record and the means over the finished scenes (schema in :func:`run_suite`);
+``OUT/suite_config.json`` the settings, checked when a run resumes. :func:`format_table` prints the
+paper's Table 1 layout: one row per metric and subset, one column per scene, then the mean.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import json
+import math
+import os
+import time
+import traceback
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from vid2sim.pipeline.reconstruct import ReconstructConfig
+
+SUITE_JSON = "suite.json"
+SUITE_CONFIG_JSON = "suite_config.json"
+EVALUATION_JSON = "evaluation.json"
+RUN_JSON = "run.json"
+ERROR_TXT = "error.txt"
+REPORT_DIR = "report"  # the HTML reports: OUT/report (the suite) and OUT/NAME/report (each scene)
+
+# suite.json "means" key -> path into a scene's evaluation.json (``seconds`` is the scene record's own)
+METRICS: dict[str, tuple[str, ...]] = {
+    "dynamic_psnr": ("dynamic", "psnr"),
+    "dynamic_ssim": ("dynamic", "ssim"),
+    "future_psnr": ("future", "psnr"),
+    "future_ssim": ("future", "ssim"),
+    "novel_psnr": ("novel_views", "psnr"),
+    "novel_ssim": ("novel_views", "ssim"),
+    "abs_error_log10_E": ("material", "abs_error_log10_E"),
+    "abs_error_nu": ("material", "abs_error_nu"),
+    "chamfer_observed": ("chamfer", "observed_mean"),
+    "chamfer_future": ("chamfer", "future_mean"),
+    "seconds": (),
+}
+
+
+@dataclass
+class SuiteConfig:
+    """Settings of :func:`run_suite` (saved as ``OUT/suite_config.json``).
+
+    Attributes:
+        preset: the reconstruction preset, "small" (CPU minutes per scene) or "full" (the paper's sizes);
+            see :meth:`vid2sim.pipeline.reconstruct.ReconstructConfig.preset`.
+        iterations: joint-optimisation iterations instead of the preset's (None: the preset's).
+        reconstruct: a complete ReconstructConfig used instead of the preset (tests, studies); ``iterations``
+            still applies when given. suite.json then names the preset "custom".
+        threads: torch threads per scene (None: torch's default in this process, 1 in a Ray task); a Ray
+            task reserves this many CPUs. The thread count can change float sums in the last bits, so
+            compare runs made with the same count.
+        fovvdp: also score FoVVDP (needs the optional pyfvvdp).
+    """
+
+    preset: str = "small"
+    iterations: int | None = None
+    reconstruct: "ReconstructConfig | None" = None
+    threads: int | None = None
+    fovvdp: bool = False
+
+    def __post_init__(self) -> None:
+        if self.preset not in ("small", "full"):
+            raise ValueError(f"SuiteConfig.preset must be 'small' or 'full', got {self.preset!r}")
+        if self.iterations is not None and (isinstance(self.iterations, bool) or not isinstance(self.iterations, int)
+                                            or self.iterations < 0):
+            raise ValueError(f"SuiteConfig.iterations must be an integer >= 0, got {self.iterations!r}")
+        if self.threads is not None and (isinstance(self.threads, bool) or not isinstance(self.threads, int)
+                                         or self.threads < 1):
+            raise ValueError(f"SuiteConfig.threads must be an integer >= 1, got {self.threads!r}")
+
+    @property
+    def preset_name(self) -> str:
+        """The preset as suite.json names it: the preset, or "custom" for an explicit ReconstructConfig."""
+        return "custom" if self.reconstruct is not None else self.preset
+
+    def reconstruct_config(self) -> "ReconstructConfig":
+        """The ReconstructConfig every scene uses (a fresh copy)."""
+        from vid2sim.pipeline.reconstruct import ReconstructConfig
+
+        cfg = copy.deepcopy(self.reconstruct) if self.reconstruct is not None else ReconstructConfig.preset(self.preset)
+        if self.iterations is not None:
+            cfg.joint.iterations = self.iterations
+        return cfg
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready: the settings and the resolved ReconstructConfig."""
+        return {"preset": self.preset_name, "iterations": self.iterations, "threads": self.threads,
+                "fovvdp": self.fovvdp, "reconstruct": self.reconstruct_config().to_dict()}
+
+
+@dataclass
+class SceneTask:
+    """One scene's job (picklable: it travels to a Ray worker). Paths are absolute."""
+
+    name: str
+    scene: str
+    out: str
+    config: SuiteConfig = field(default_factory=SuiteConfig)
+
+
+def run_scene(task: SceneTask, progress: bool = False) -> dict[str, Any]:
+    """Reconstruct and evaluate one scene into ``task.out`` (= ``OUT/NAME``); never raises for the scene's
+    own errors (KeyboardInterrupt and the like still propagate).
+
+    Returns:
+        the scene record of suite.json: ``name``, ``scene``, ``asset`` (path or None), ``status`` ("ok" |
+        "failed"), ``error`` (``"Type: message"`` or None), ``evaluation`` (the evaluation.json dict or
+        None), ``report`` (the scene's HTML report folder, ``OUT/NAME/report``), ``seconds`` (wall time of reconstruct +
+        evaluate, including the stage times an interrupted earlier run recorded; the report's time is not counted).
+    """
+    import torch
+
+    from vid2sim.pipeline.evaluate import evaluate, write_report
+    from vid2sim.pipeline.reconstruct import reconstruct
+    from vid2sim.report import write_report as write_html_report
+
+    out = Path(task.out)
+    asset = out / "asset"
+    record: dict[str, Any] = {"name": task.name, "scene": task.scene, "asset": None, "status": "failed",
+                              "error": None, "evaluation": None, "report": None, "seconds": 0.0}
+    threads = torch.get_num_threads()
+    start = time.perf_counter()
+    earlier = _interrupted_stage_seconds(asset)
+    try:
+        if task.config.threads is not None:
+            torch.set_num_threads(task.config.threads)
+        out.mkdir(parents=True, exist_ok=True)
+        t0 = time.perf_counter()
+        if not (asset / "asset.json").is_file():  # save_asset moves a complete folder into place
+            reconstruct(task.scene, asset, task.config.reconstruct_config(), progress=progress)
+        else:
+            earlier = _finished_asset_seconds(asset)
+        record["asset"] = str(asset)
+        t1 = time.perf_counter()
+        report, renders = evaluate(asset, task.scene, fovvdp=task.config.fovvdp, progress=progress,
+                                   return_renders=True)
+        t2 = time.perf_counter()
+        seconds = earlier + (t2 - start)
+        _write_json_atomic(out / RUN_JSON, {"seconds": seconds, "reconstruct_seconds": earlier + (t1 - t0),
+                                            "evaluate_seconds": t2 - t1})
+        write_html_report(out / REPORT_DIR, asset, scene=task.scene, evaluation=report, renders=renders,
+                          progress=progress)
+        write_report(report, out / EVALUATION_JSON)  # last: its presence marks the scene finished
+        (out / ERROR_TXT).unlink(missing_ok=True)
+        record.update(status="ok", evaluation=report, seconds=seconds, report=str(out / REPORT_DIR))
+    except Exception as exc:
+        record.update(error=f"{type(exc).__name__}: {exc}", seconds=earlier + time.perf_counter() - start)
+        if (asset / "asset.json").is_file():
+            record["asset"] = str(asset)
+        try:
+            out.mkdir(parents=True, exist_ok=True)
+            (out / ERROR_TXT).write_text(traceback.format_exc())
+        except OSError:
+            pass
+    finally:
+        torch.set_num_threads(threads)
+    return record
+
+
+def _interrupted_stage_seconds(asset: Path) -> float:
+    """Seconds of the stages an interrupted reconstruction of ``asset`` finished (its work folder's
+    timings.json), 0 when there is none."""
+    work = asset.parent / f".{asset.name}.work"
+    try:
+        timings = json.loads((work / "timings.json").read_text())
+        return float(sum(v for k, v in timings.items() if (work / f"{k}.done").is_file()))
+    except (OSError, ValueError, TypeError, AttributeError):
+        return 0.0
+
+
+def _finished_asset_seconds(asset: Path) -> float:
+    """Seconds the stages of a finished asset took (its log.json), 0 when unknown."""
+    try:
+        return float(sum(json.loads((asset / "log.json").read_text())["timings_seconds"].values()))
+    except (OSError, ValueError, TypeError, KeyError, AttributeError):
+        return 0.0
+
+
+def _finished_record(task: SceneTask) -> dict[str, Any] | None:
+    """The record of a scene finished by an earlier run (its evaluation.json exists), else None."""
+    out = Path(task.out)
+    try:
+        evaluation = json.loads((out / EVALUATION_JSON).read_text())
+    except FileNotFoundError:
+        return None
+    except ValueError as exc:
+        raise ValueError(f"{out / EVALUATION_JSON} is not valid JSON ({exc}); delete it to rerun the scene") from None
+    try:
+        seconds = float(json.loads((out / RUN_JSON).read_text())["seconds"])
+    except (OSError, ValueError, KeyError, TypeError):
+        seconds = _finished_asset_seconds(out / "asset") + float(evaluation.get("timing", {}).get("seconds", 0.0))
+    report = out / REPORT_DIR
+    return {"name": task.name, "scene": task.scene, "asset": str(out / "asset"), "status": "ok", "error": None,
+            "evaluation": evaluation, "report": str(report) if (report / "index.html").is_file() else None,
+            "seconds": seconds}
+
+
+def read_index(suite_dir: str | Path) -> list[str]:
+    """The scene names of a finished ``make-benchmark`` suite (its ``index.json``), in order.
+
+    Raises:
+        FileNotFoundError: no ``index.json``. ValueError: not a benchmark index, an unfinished suite, or a
+            listed scene folder that is missing.
+    """
+    root = Path(suite_dir)
+    path = root / "index.json"
+    if not path.is_file():
+        raise FileNotFoundError(f"{path} not found: SUITE must be a folder written by vid2sim make-benchmark")
+    try:
+        index = json.loads(path.read_text())
+        names = [str(s["name"]) for s in index["scenes"]]
+    except (ValueError, KeyError, TypeError) as exc:
+        raise ValueError(f"{path} is not a make-benchmark index (expected 'scenes': [{{'name': ...}}, ...]): "
+                         f"{exc!r}") from None
+    n = index.get("n", len(names))
+    if not index.get("complete", True) or len(names) != n:
+        raise ValueError(f"{path} lists {len(names)} of its {n} scenes: make-benchmark did not finish; run it "
+                         "again with the same settings to complete the suite")
+    missing = [name for name in names if not (root / name).is_dir()]
+    if missing:
+        raise ValueError(f"{path} lists scenes whose folders are missing: {', '.join(missing)}")
+    return names
+
+
+def run_suite(suite_dir: str | Path, out_dir: str | Path, config: SuiteConfig | None = None,
+              progress: bool = True, ray_address: str | None = None) -> dict[str, Any]:
+    """Reconstruct and evaluate every scene of the suite at ``suite_dir`` into ``out_dir`` (module docstring).
+
+    Args:
+        suite_dir: a finished ``make-benchmark`` folder (``index.json`` + scene folders).
+        out_dir: the results folder (created; resumed when it holds a ``suite_config.json``).
+        config: the settings (default :class:`SuiteConfig`).
+        progress: a progress bar over the scenes.
+        ray_address: run every unfinished scene as a Ray task there ("local", "auto", "HOST:PORT", …;
+            :mod:`vid2sim.bench.ray_runner`) instead of one after the other here.
+    Returns:
+        the content of ``out_dir/suite.json``: ``{"suite": path, "preset": str, "scenes": [record, ...],
+        "means": {key: float | None}, "failed": int}`` with the scene records of :func:`run_scene` in the
+        order of ``index.json`` and the means (keys :data:`METRICS`) over the scenes with status "ok"
+        (None when no finished scene has that metric).
+    Raises:
+        FileNotFoundError / ValueError: not a finished suite; ``out_dir`` is a foreign non-empty folder or
+            holds a run made with other settings.
+        vid2sim.bench.ray_runner.RayUnavailable: ``ray_address`` given but Ray missing or unreachable.
+    """
+    from tqdm.auto import tqdm
+
+    config = config or SuiteConfig()
+    if ray_address is not None:  # fail before writing anything
+        from vid2sim.bench.ray_runner import check_ray
+
+        check_ray(ray_address)
+    suite = Path(suite_dir).resolve()
+    out = Path(out_dir).resolve()
+    names = read_index(suite)
+    settings = {"suite": str(suite), **config.to_dict()}
+    _prepare_out(out, settings)
+    tasks = [SceneTask(name, str(suite / name), str(out / name), config) for name in names]
+    records: list[dict[str, Any] | None] = [_finished_record(t) for t in tasks]
+    todo = [i for i, r in enumerate(records) if r is None]
+    bar = tqdm(total=len(tasks), initial=len(tasks) - len(todo), desc="suite", unit="scene", disable=not progress)
+    failed: list[str] = []
+
+    def done(i: int, record: dict[str, Any]) -> None:
+        records[i] = record
+        if record["status"] != "ok":
+            failed.append(record["name"])
+            if progress:  # quiet runs list the failures in the table
+                bar.write(f"[suite] {record['name']} failed: {record['error']}")
+        bar.set_postfix_str(f"{record['name']} done" + (f", {len(failed)} failed" if failed else ""))
+        bar.update(1)
+
+    try:
+        if ray_address is None:
+            for i in todo:
+                bar.set_postfix_str(f"{names[i]} running" + (f", {len(failed)} failed" if failed else ""))
+                done(i, run_scene(tasks[i]))
+        else:
+            from vid2sim.bench.ray_runner import ray_map
+
+            def gathered(i: int, result: Any) -> None:
+                if isinstance(result, BaseException):  # the worker or its node died: the task never returned
+                    t = tasks[i]
+                    result = {"name": t.name, "scene": t.scene, "asset": None, "status": "failed",
+                              "error": f"{type(result).__name__}: {result}", "evaluation": None,
+                              "report": None, "seconds": 0.0}
+                done(i, result)
+
+            threads = config.threads or 1  # a task reserves this many CPUs and uses as many torch threads
+            calls = [((dataclasses.replace(tasks[i], config=dataclasses.replace(config, threads=threads)),), {})
+                     for i in todo]
+            ray_map(run_scene, calls, ray_address, num_cpus=threads,
+                    on_done=lambda k, result: gathered(todo[k], result))
+    finally:
+        bar.close()
+    result = suite_summary(str(suite), config.preset_name, [r for r in records if r is not None])
+    _write_json_atomic(out / SUITE_JSON, result)
+    from vid2sim.report import write_suite_report
+
+    write_suite_report(out / REPORT_DIR, result)
+    return result
+
+
+def _prepare_out(out: Path, settings: dict[str, Any]) -> None:
+    """Create ``out`` and its suite_config.json, or check that an earlier run there used ``settings``."""
+    path = out / SUITE_CONFIG_JSON
+    if out.exists() and not out.is_dir():
+        raise FileExistsError(f"{out} exists and is not a folder")
+    if path.is_file():
+        previous = json.loads(path.read_text())
+        keys = ("suite", "preset", "iterations", "fovvdp", "reconstruct")  # threads may change between runs
+        differ = [k for k in keys if previous.get(k) != settings.get(k)]
+        if differ:
+            raise ValueError(f"{out} holds a suite run with other settings ({', '.join(differ)} differ; see "
+                             f"{path}): resume it with the same settings, or write to another folder")
+    elif out.exists() and any(out.iterdir()):
+        raise FileExistsError(f"{out} is not empty and holds no {SUITE_CONFIG_JSON}: refusing to write a suite "
+                              "there")
+    out.mkdir(parents=True, exist_ok=True)
+    _write_json_atomic(path, settings)
+
+
+def _metric(record: dict[str, Any], key: str) -> float | None:
+    """The value of ``key`` (a :data:`METRICS` key) in a scene record, or None."""
+    if key == "seconds":
+        return record.get("seconds")
+    value: Any = record.get("evaluation")
+    for part in METRICS[key]:
+        if not isinstance(value, dict):
+            return None
+        value = value.get(part)
+    return float(value) if isinstance(value, (int, float)) and not isinstance(value, bool) else None
+
+
+def suite_summary(suite: str, preset: str, records: list[dict[str, Any]]) -> dict[str, Any]:
+    """The suite.json dict of these scene records: the means over the "ok" ones (None where none has the
+    metric) and the number of failed scenes."""
+    ok = [r for r in records if r["status"] == "ok"]
+    means: dict[str, float | None] = {}
+    for key in METRICS:
+        values = [v for v in (_metric(r, key) for r in ok) if v is not None and math.isfinite(v)]
+        means[key] = sum(values) / len(values) if values else None
+    return {"suite": suite, "preset": preset, "scenes": records, "means": means,
+            "failed": sum(r["status"] != "ok" for r in records)}
+
+
+# the table: (group label, row label, suite key, scale, decimals)
+TABLE_ROWS: list[tuple[str, str, str, float, int]] = [
+    ("PSNR (dB)", "dynamic", "dynamic_psnr", 1.0, 2),
+    ("", "future", "future_psnr", 1.0, 2),
+    ("", "novel views", "novel_psnr", 1.0, 2),
+    ("SSIM", "dynamic", "dynamic_ssim", 1.0, 3),
+    ("", "future", "future_ssim", 1.0, 3),
+    ("", "novel views", "novel_ssim", 1.0, 3),
+    ("|d log10 E|", "", "abs_error_log10_E", 1.0, 3),
+    ("|d nu|", "", "abs_error_nu", 1.0, 3),
+    ("Chamfer (cm)", "observed", "chamfer_observed", 100.0, 2),
+    ("", "future", "chamfer_future", 100.0, 2),
+    ("time (s)", "", "seconds", 1.0, 0),
+]
+
+
+def short_name(name: str) -> str:
+    """A scene's column title: ``scene_007`` → ``007`` (other names unchanged)."""
+    return name[len("scene_"):] if name.startswith("scene_") and len(name) > len("scene_") else name
+
+
+def format_table(result: dict[str, Any]) -> str:
+    """The suite as aligned text in the paper's Table 1 layout: rows = metric × subset, columns = the
+    scenes (short names) then the mean over the finished scenes; a failed scene's column reads "failed",
+    a metric a scene does not have "-". Failed scenes and their errors are listed below the table."""
+    records = result["scenes"]
+    head = [short_name(r["name"]) for r in records] + ["mean"]
+    rows: list[list[str]] = []
+    for group, sub, key, scale, decimals in TABLE_ROWS:
+        cells = []
+        for r in records:
+            value = _metric(r, key) if r["status"] == "ok" else None
+            cells.append("failed" if r["status"] != "ok" else _fmt(value, scale, decimals))
+        cells.append(_fmt(result["means"].get(key), scale, decimals))
+        rows.append([group, sub] + cells)
+    w0 = max(len(r[0]) for r in rows)
+    w1 = max(len(r[1]) for r in rows)
+    widths = [max(len(h), 6, *(len(row[2 + j]) for row in rows)) for j, h in enumerate(head)]
+    lines = [" " * (w0 + 2 + w1) + "".join(f"  {h:>{w}}" for h, w in zip(head, widths))]
+    lines.append("-" * len(lines[0]))
+    for row in rows:
+        lines.append(f"{row[0]:<{w0}}  {row[1]:<{w1}}" + "".join(f"  {c:>{w}}" for c, w in zip(row[2:], widths)))
+    ok = len(records) - result["failed"]
+    lines.append(f"{len(records)} scene{'s' if len(records) != 1 else ''}, mean over the {ok} finished; "
+                 f"preset {result['preset']}; suite {result['suite']}")
+    for r in records:
+        if r["status"] != "ok":
+            lines.append(f"FAILED {r['name']}: {r['error']}")
+    return "\n".join(lines)
+
+
+def _fmt(value: float | None, scale: float, decimals: int) -> str:
+    if value is None or not math.isfinite(value):
+        return "-"
+    return f"{value * scale:.{decimals}f}"
+
+
+def _write_json_atomic(path: Path, obj: Any) -> None:
+    """Write JSON beside ``path`` and rename it into place (a reader never sees half a file)."""
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    tmp.write_text(json.dumps(obj, indent=2) + "\n")
+    os.replace(tmp, path)
