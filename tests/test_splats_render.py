@@ -287,3 +287,15 @@ def test_torch_backend_on_cuda_matches_cpu():
     gpu = render(means.cuda(), ops.cuda(), cols.cuda(), [c.to("cuda") for c in cams],
                  quats=quats.cuda(), scales=scales.cuda(), backend="torch")
     assert torch.allclose(gpu.rgb.cpu(), cpu.rgb, atol=1e-5)
+
+
+def test_gaussians_out_of_every_view_render_the_background():
+    """When no Gaussian reaches any tile of any camera (the object left the views) the image is the background."""
+    n = 20
+    g = Gaussians(means=(torch.randn(n, 3) * 0.1 + torch.tensor([0.0, 0.0, -50.0])).requires_grad_(),
+                  log_scales=torch.full((n, 3), -3.0), quats=torch.tensor([[1.0, 0, 0, 0]]).repeat(n, 1),
+                  opacity_logits=torch.zeros(n), sh=torch.rand(n, 1, 3))
+    out = render_gaussians(g, camera_ring(2, 2.0, 20.0, 32, 32), background=0.25)
+    assert out.rgb.shape == (2, 32, 32, 3) and bool((out.rgb == 0.25).all())
+    out.rgb.sum().backward()
+    assert bool((g.means.grad == 0).all())

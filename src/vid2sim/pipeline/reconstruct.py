@@ -382,6 +382,7 @@ def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConf
                   extra={"canonical_frame": {"centre": obj.centre.tolist(), "scale": obj.scale,
                                              "maps": "X -> (X - centre) / scale"},
                          "scene": str(scene.root), "observed_views": list(V), "observed_frames": len(T),
+                         "scene_frames": int(scene.images.shape[1]),
                          "volume_m3": obj.volume, "gaussians": gaussians.num,
                          "initial_velocity_estimate": velocity, "validation_loss": result["validation_loss"]})
     log = {"timings_seconds": work.timings, "coarse_search": result["coarse"], "iterations": result["log"]}

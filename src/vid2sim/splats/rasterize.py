@@ -239,7 +239,7 @@ class _Slots:
         ncoef[..., 0] = neg_const * validf + (validf - 1.0) * _PAD_SIGMA
         self.ncoef = ncoef  # (B, K, 6)
         self.mxy = mxy  # (B, K, 2)
-        self.feat = table[:, 6:].reshape(B, K, -1).contiguous()  # (B, K, C1)
+        self.feat = table[:, 6:].reshape(B, K, feat1.shape[1]).contiguous()  # (B, K, C1); B may be 0
         self.n_blocks = B
 
 
