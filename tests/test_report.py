@@ -192,6 +192,25 @@ def test_report_without_a_scene_renders_the_asset_in_a_ring(tiny_asset, tmp_path
     assert np.abs(video[0] - video[-1]).mean() > 0.005
 
 
+def test_simulations_of_the_asset_get_a_new_situations_section(tiny_asset, tmp_path):
+    from vid2sim.pipeline.scenario import ObstacleSpec, Scenario
+    from vid2sim.pipeline.simulate import simulate
+    from vid2sim.report import ReportConfig, write_report
+
+    scenario = Scenario(frames=3)
+    scenario.cameras.type, scenario.cameras.views, scenario.resolution = "ring", 2, 24
+    scenario.obstacles.append(ObstacleSpec(center=(0.0, 0.0, -2.0), radius=0.3))
+    sim = simulate(tiny_asset, scenario, tmp_path / "sim", progress=False, ply=False)
+    cfg = ReportConfig(ring_views=2, ring_resolution=32, ring_frames=3, panel_size=64)
+    out = write_report(tmp_path / "report", tiny_asset, progress=False, config=cfg, simulations=[sim])
+    html = (out / "index.html").read_text()
+    assert 'id="simulations"' in html and "sphere obstacle at" in html
+    gifs = sorted(p.name for p in (out / "media").glob("simulation0_*.gif"))
+    assert len(gifs) == 2 and all(f'src="media/{g}"' in html for g in gifs)
+    shown = json.loads((out / "report.json").read_text())["simulations"][0]
+    assert shown["summary"] == json.loads((sim / "summary.json").read_text())
+
+
 def test_webp_fallback_and_media_helpers(tmp_path):
     from vid2sim.report import media as M
 

@@ -92,7 +92,8 @@ def _ring_cameras(frames: Sequence[Any], config: ReportConfig) -> tuple[list[Any
 # ---------------------------------------------------------------------------------------------------------
 
 def write_report(out_dir: str | Path, asset: str | Path, scene: Any = None, evaluation: Mapping[str, Any] | None = None,
-                 renders: Tensor | None = None, progress: bool = True, config: ReportConfig | None = None) -> Path:
+                 renders: Tensor | None = None, progress: bool = True, config: ReportConfig | None = None,
+                 simulations: Sequence[str | Path] = ()) -> Path:
     """Write the HTML report of an asset into ``out_dir`` (atomically; a previous report there is replaced).
 
     Args:
@@ -107,6 +108,8 @@ def write_report(out_dir: str | Path, asset: str | Path, scene: Any = None, eval
             ``evaluate(..., return_renders=True)``); None renders them (one simulation). Only with a scene.
         progress: tqdm progress bars.
         config: :class:`ReportConfig` (sizes, colour map, video format); None for the defaults.
+        simulations: ``vid2sim simulate`` output folders of this asset, shown in a "New situations" section
+            (each one's scenario, summary figures and its cameras' animated GIFs).
 
     Returns:
         ``out_dir`` as a Path.
@@ -180,6 +183,8 @@ def write_report(out_dir: str | Path, asset: str | Path, scene: Any = None, eval
             builder.scene_media(scene_obj, scene_path, renders.detach().float().cpu())
         else:
             builder.ring_media()
+        for folder in simulations:
+            builder.simulation_media(Path(folder))
         builder.timings.update(timings)
         builder.finish(time.perf_counter() - t_start)
         move_into_place(tmp, out)
@@ -540,6 +545,50 @@ class _Builder:
             "Wall-clock seconds of the reconstruction's stages (log.json), of the evaluation, and of writing this "
             "report.")))
 
+    def simulation_media(self, folder: Path) -> None:
+        """A "New situations" entry for one ``vid2sim simulate`` output folder (its GIFs copied into media/)."""
+        summary = _read_json(folder / "summary.json", required=True)
+        gifs = sorted((folder / "videos").glob("*.gif"))
+        if not gifs:
+            raise ReportInputError(f"{folder / 'videos'}: no .gif (was the simulation written with --no-video?)")
+        k = sum(1 for a, _, _ in self.sections if a == "simulations")
+        images = []
+        for gif in gifs:
+            name = f"simulation{k}_{gif.name}"
+            shutil.copyfile(gif, self.media / name)
+            images.append(f'<figure><img src="media/{H.esc(name)}" alt="{H.esc(gif.stem)}">'
+                          f"<figcaption>{H.esc(gif.stem)}</figcaption></figure>")
+        sc = summary.get("scenario", {})
+        mat = summary.get("material", {})
+        plastic = mat.get("plasticity") or {}
+        lines = [f"material: {mat.get('preset', '?')} ({mat.get('model', '?')}), E = {H.fmt_sci(mat.get('E'))} Pa, "
+                 f"ν = {H.fmt(mat.get('nu'), 3)}" + (f", plasticity {plastic}" if plastic else "")]
+        floor = sc.get("floor", {})
+        if floor.get("enabled", True):
+            moving = [f"{k} {floor[k]:g}" for k in ("velocity", "amplitude", "frequency", "tilt_deg", "tilt_rate_deg")
+                      if _isnum(floor.get(k)) and floor[k] != 0]
+            lines.append(f"floor at {H.fmt(floor.get('height'), 3)} m" + (f" ({', '.join(moving)})" if moving else ""))
+        else:
+            lines.append("no floor")
+        for o in sc.get("obstacles", []):
+            lines.append(f"sphere obstacle at {[round(c, 3) for c in o.get('center', [])]} m, radius "
+                         f"{H.fmt(o.get('radius'), 3)} m")
+        init = sc.get("initial", {})
+        if init.get("euler_deg") or init.get("axis_angle") or any(init.get("translation") or []):
+            lines.append(f"new pose: rotation {init.get('euler_deg') or init.get('axis_angle')}, translation "
+                         f"{init.get('translation')} m")
+        lines.append(f"{summary.get('frames', '?')} frames of {H.fmt(summary.get('dt'), 3)} s, "
+                     f"{sc.get('cameras', {}).get('type', '?')} cameras; simulated in "
+                     f"{H.fmt((summary.get('timings_seconds') or {}).get('simulate'), 1)} s")
+        body = ("<ul>" + "".join(f"<li>{H.esc(line)}</li>" for line in lines) + "</ul>"
+                + f'<div class="gifs">{"".join(images)}</div>'
+                + f'<p class="note">From <code>{H.esc(folder)}</code> (scenario.yaml, frames, mp4, per-frame PLY)'
+                "</p>")
+        self.data.setdefault("simulations", []).append({"folder": str(folder), "summary": summary})
+        self.sections.append(("simulations", "New situations", H.section(
+            "simulations" if k == 0 else f"simulations{k}", "New situations" if k == 0 else f"New situation {k + 1}",
+            body, "The reconstructed asset simulated where it was never seen (vid2sim simulate).")))
+
     def finish(self, elapsed: float) -> None:
         from vid2sim import __version__
 
@@ -557,7 +606,8 @@ class _Builder:
             f"<p class=\"note\">Reproduce: <code>{H.esc(command)}</code></p>")))
         date = _dt.datetime.now().astimezone().strftime("%Y-%m-%d %H:%M %Z")
         self.data.update({"date": date, "vid2sim_version": __version__})
-        order = ["summary", "material", "metrics", "videos", "keyframes", "psnr", "optimisation", "timings", "files"]
+        order = ["summary", "material", "metrics", "videos", "keyframes", "psnr", "simulations", "optimisation",
+                 "timings", "files"]
         secs = sorted(self.sections, key=lambda s: order.index(s[0]))
         subtitle = (f"asset <b>{H.esc(self.asset_dir.name)}</b> <span title=\"{H.esc(self.asset_dir)}\">"
                     f"({H.esc(self.asset_dir)})</span>")
