@@ -102,7 +102,8 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     scenario.validate()  # field errors before the asset is even loaded
     try:
         path = simulate(args.asset, scenario, out, progress=not args.quiet, video=not args.no_video,
-                        ply=not args.no_ply, overwrite=args.overwrite)
+                        ply=not args.no_ply, overwrite=args.overwrite,
+                        scenery=not args.no_scenery)
     except SimulationError as exc:
         raise UserError(f"the simulation failed ({exc}); nothing was written to {out}") from exc
     import json
@@ -195,6 +196,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     g = p.add_argument_group("output")
     g.add_argument("--no-video", action="store_true", help="skip the mp4 and gif videos")
     g.add_argument("--no-ply", action="store_true", help="skip the per-frame PLY files")
+    g.add_argument("--no-scenery", action="store_true", help="draw the object alone (by default the floor and the "
+                   "sphere obstacles are drawn in the frames and videos)")
     g.add_argument("--overwrite", action="store_true", help="replace an earlier output folder")
     add_threads_option(g)
     g.add_argument("--quiet", action="store_true", help="no progress output")

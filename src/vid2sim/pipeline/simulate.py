@@ -193,9 +193,12 @@ def _check_out(out: Path, overwrite: bool) -> None:
 
 
 def simulate(asset: "Asset | str | Path", scenario: Scenario | None, out: str | Path, progress: bool = True, *,
-             video: bool = True, ply: bool = True, overwrite: bool = False) -> Path:
+             video: bool = True, ply: bool = True, overwrite: bool = False, scenery: bool = True) -> Path:
     """Simulate ``asset`` (an :class:`~vid2sim.pipeline.asset.Asset` or its folder) in ``scenario`` (None: the
     captured drop) and write the output folder ``out`` (module docstring); returns ``out``.
+
+    ``scenery`` draws the floor and the sphere obstacles in the frames and videos
+    (:mod:`vid2sim.pipeline.scenery`); the PLY files hold the object alone.
 
     Everything about the scenario is checked before any simulation (:class:`ScenarioError`); an existing
     ``out`` is replaced only with ``overwrite`` and only if it is an earlier output.
@@ -204,6 +207,7 @@ def simulate(asset: "Asset | str | Path", scenario: Scenario | None, out: str | 
 
     from vid2sim.pipeline.asset import load_asset
     from vid2sim.pipeline.joint import GaussianRig
+    from vid2sim.pipeline.scenery import concatenate, scenery_gaussians
     from vid2sim.scene.folder import move_into_place
     from vid2sim.scene.video import write_video
     from vid2sim.splats.ply import save_ply
@@ -220,10 +224,14 @@ def simulate(asset: "Asset | str | Path", scenario: Scenario | None, out: str | 
 
     run = run_scenario(asset, resolved, progress=progress)
     timings["simulate"] = run.seconds
+    cloud = _motion_cloud(asset, run)
     if resolved.auto_framing:  # automatic ring/orbit cameras follow the whole motion, not only t = 0
         t0 = time.perf_counter()
-        reframe(resolved, _motion_cloud(asset, run))
+        reframe(resolved, cloud)
         timings["frame_cameras"] = time.perf_counter() - t0
+    lo, hi = cloud.min(0).values, cloud.max(0).values
+    patch_centre = (0.5 * (lo + hi))[:2].tolist()
+    patch_half = 1.5 * float((hi - lo)[:2].max()) + 0.5 * float((hi - lo).norm())  # the floor drawn around the motion
 
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
@@ -248,11 +256,16 @@ def simulate(asset: "Asset | str | Path", scenario: Scenario | None, out: str | 
                                            leave=False)):
                 t0 = time.perf_counter()
                 d = rig.deformed(state.z, basis)
+                shown = d
+                if scenery:
+                    extra = scenery_gaussians(resolved.externals, float(state.t), patch_centre, patch_half,
+                                              sh_bases=d.sh.shape[1], dtype=d.means.dtype)
+                    shown = d if extra is None else concatenate([d, extra])
                 images: dict[int, np.ndarray] = {}
                 if fixed:
-                    images.update(zip(fixed, _render(d, [tracks[k].at(t) for k in fixed], bg)))
+                    images.update(zip(fixed, _render(shown, [tracks[k].at(t) for k in fixed], bg)))
                 for k in moving:
-                    images[k] = _render(d, [tracks[k].at(t)], bg)[0]
+                    images[k] = _render(shown, [tracks[k].at(t)], bg)[0]
                 for k, tr in enumerate(tracks):
                     if not _in_view(d.means, tr.at(t)):
                         out_of_view[tr.name].append(t)
