@@ -1,4 +1,6 @@
-"""Shared pytest setup: tests marked ``cuda`` skip cleanly on machines without a CUDA GPU.
+"""Shared pytest setup: tests marked ``cuda`` skip cleanly on machines without a CUDA GPU; tests marked
+``slow`` (end to end: reconstruction, suites, the demo, scene generation — and every test using the shared
+tiny scene or asset) are left out by the quick check ``python -m pytest -m "not slow"``.
 
 On a GPU machine, ``python -m pytest -m cuda`` runs exactly the GPU checks.
 """
@@ -8,6 +10,9 @@ import torch
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    for item in items:  # end-to-end tests on the shared reconstructed scene are slow (`-m "not slow"` skips them)
+        if {"tiny_scene", "tiny_asset"} & set(getattr(item, "fixturenames", ())):
+            item.add_marker(pytest.mark.slow)
     if torch.cuda.is_available():
         return
     skip = pytest.mark.skip(reason="needs a CUDA GPU (on one, `python -m pytest -m cuda` runs these)")

@@ -11,6 +11,8 @@ import torch
 from vid2sim.bench import identify
 from vid2sim.cli import main
 
+pytestmark = pytest.mark.slow  # end to end: scene generation, reconstruction, suites
+
 TINY = dict(scenes=1, frames=10, observed_frames=6, points=400, skinning_iterations=40, cubature=120,
             fit_iterations=1, sweep_points=3, handles=4)
 

@@ -20,6 +20,8 @@ from vid2sim.bench.suite import (EVALUATION_JSON, METRICS, SUITE_CONFIG_JSON, SU
 from vid2sim.cli import main
 from vid2sim.synthetic.scenes import SyntheticSceneConfig, benchmark_parameters, make_benchmark
 
+pytestmark = pytest.mark.slow  # end to end: scene generation, reconstruction, suites
+
 TINY = {"resolution": 40, "frames": 6, "observed_frames": 5, "views": 4, "held_out_views": 1, "substeps": 4}
 TINY_FLAGS = ["--preset", "small", "--seed", "0", "--resolution", "40", "--frames", "6", "--observed-frames", "5",
               "--views", "4", "--held-out-views", "1", "--substeps", "4", "--quiet"]

@@ -43,6 +43,7 @@ def test_bench_argument_errors_are_one_line(capsys, argv, message):
     assert message in err and "Traceback" not in err
 
 
+@pytest.mark.slow
 def test_bench_fem_times_both_hessian_strategies_on_one_mesh(capsys):
     """Eight frames of the small preset's seed-0 drop (it reaches the floor): both Newton strategies
     solve every step to the tolerance, so they give the same trajectory."""

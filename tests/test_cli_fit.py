@@ -18,6 +18,8 @@ from vid2sim.splats.losses import psnr
 from vid2sim.splats.preview import LABEL_HEIGHT
 from vid2sim.splats.render import render, render_gaussians
 
+pytestmark = pytest.mark.slow  # fits Gaussians / generates synthetic scenes
+
 
 @pytest.fixture(scope="module")
 def blob_scene_folder(tmp_path_factory) -> Path:

@@ -27,6 +27,8 @@ from scipy.spatial.transform import Rotation
 from vid2sim.pipeline.initial_state import InitialVelocity, estimate_initial_velocity, propagate_rotations
 from vid2sim.splats.cameras import camera_ring
 
+pytestmark = pytest.mark.slow  # fits Gaussians / generates synthetic scenes
+
 DT = 0.05
 GRAVITY = np.array([0.0, 0.0, -9.8])
 # the analytic object in its rest frame: (centre, semi-axes) of two overlapping ellipsoids

@@ -205,6 +205,7 @@ def test_asset_errors_name_the_file_and_field(tmp_path):
         load_asset(tmp_path / "nothing")
 
 
+@pytest.mark.slow
 def test_bench_speed_joint_section_times_one_iteration():
     from vid2sim.bench.joint_speed import run
 

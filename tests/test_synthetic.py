@@ -30,6 +30,8 @@ from vid2sim.synthetic.scenes import (
     make_scene,
 )
 
+pytestmark = pytest.mark.slow  # end to end: scene generation, reconstruction, suites
+
 RES = 48
 FLOOR = -0.7
 
