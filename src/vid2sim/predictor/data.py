@@ -1,0 +1,655 @@
+"""Stage I training data: dropped objects simulated by the reduced simulator and seen from the front camera.
+
+One **object** (procedural, or a user mesh) gives one **shard** of ``draws_per_object`` **samples**
+(:func:`make_object_shard`):
+
+1. The object. A procedural object comes from ``make_procedural_object(object_seed)``; a user mesh from
+   :func:`~vid2sim.synthetic.meshes.load_user_mesh`.
+2. Its pose. It is turned by a uniformly random rotation and re-normalised to the canonical frame (centred
+   bounding box, half-diagonal 0.5). The rest shape IS this posed object, as in the synthetic scenes: the
+   shape Stage II sees at frame 0.
+3. Its samples (:mod:`vid2sim.predictor.solid`): interior points, volume, and surface contact points with
+   their areas.
+4. Its label. The skinning field's last layer is fitted with the template's hidden layers frozen
+   (:func:`vid2sim.predictor.template.fit_last_layer`; 650 numbers in the canonical gauge).
+5. Its cubature points: 500, farthest-point sampled, weights volume / 500.
+6. Per draw:
+
+   - The material: E log-uniform in ``E_range``, ν uniform in ``nu_range``, damping ratio 0.05.
+   - The drop: a clearance above the floor, a linear and an angular velocity
+     (:meth:`vid2sim.synthetic.fem.InitialPose.random`, the synthetic scenes' ranges). The object is
+     lifted so that its lowest vertex has that clearance.
+   - The simulation: the reduced :class:`~vid2sim.physics.Simulator` (BDF2, automatic substeps,
+     converged in time) with gravity and the floor as a contact pressure on the surface points
+     (``AREA_CONTACT_STIFFNESS``, as ``reconstruct`` does), for ``frames − 1`` frames of ``dt``.
+   - The video: the mesh vertices skinned at every frame (frame 0 is the initial pose), rendered with
+     the textured-mesh renderer from the front camera (:mod:`vid2sim.predictor.front_view`) on white.
+
+Seeds. Procedural object i of a dataset with seed s is ``make_procedural_object(10**9 * (s + 1) + i)``.
+These seeds are disjoint from the synthetic benchmark's scenes (small seeds) and from the template's shapes
+(10⁶ + k), so no test object is in the training data. The rotation, materials and drops come from numpy
+generators keyed by (s, kind, index).
+
+Storage (:func:`make_training_data`): one ``.npz`` per object, written atomically with fixed zip
+timestamps, so equal inputs give byte-identical files. An ``index.json`` holds the config, the shards, the
+counts, the dataset statistics and the timings. docs/training-data.md gives the format.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import math
+import os
+import time
+import uuid
+import zipfile
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+import torch
+
+from vid2sim.predictor.front_view import FrontCamera
+
+FORMAT = "vid2sim-training-data/1"
+INDEX = "index.json"
+#: procedural object i of a dataset with seed s is make_procedural_object(OBJECT_SEED_STRIDE * (s + 1) + i)
+OBJECT_SEED_STRIDE = 10**9
+_KIND_KEY = {"procedural": 0, "mesh": 1}
+#: index.json is rewritten at most this often while shards are being made (and always at the end)
+INDEX_EVERY_SECONDS = 10.0
+
+
+@dataclass
+class TrainingDataConfig:
+    """Settings of a Stage I training dataset (written into ``index.json``; the defaults are the issue's).
+
+    Attributes:
+        seed: the dataset's seed (objects, poses, materials, drops, fits).
+        objects: procedural objects (one shard each).
+        meshes: user mesh files (OBJ/GLB/GLTF/PLY), one more object (shard) each.
+        draws_per_object: samples per object (material and drop draws).
+        frames: video frames (frame 0 is the initial pose; the simulator runs ``frames − 1``).
+        resolution: video side in pixels (224 for VideoMAE; 64 on a CPU).
+        dt: seconds between frames (the synthetic scenes' 0.05).
+        E_range: Young's modulus range (Pa), drawn log-uniformly.
+        nu_range: Poisson's ratio range, drawn uniformly (0.49: ν → 0.5 is incompressible).
+        density: kg/m³.
+        damping_ratio: Kelvin–Voigt damping ratio ζ (the simulator's and the FEM's default).
+        drop_height: range of the clearance (m) between the lowest vertex and the floor at frame 0.
+        max_horizontal_speed, max_downward_speed, max_angular_speed: bounds of the random rigid velocity
+            (m/s, m/s, rad/s; the synthetic scenes').
+        floor_height: the floor plane z (m).
+        camera: the front camera (:class:`~vid2sim.predictor.front_view.FrontCamera`).
+        supersample: anti-aliasing samples per pixel side of the mesh renderer.
+        points: interior points per object (skinning fit and cubature choose among them).
+        cubature_points: cubature points of the simulator (the paper's 500).
+        contact_points: at most this many surface contact points.
+        fit_iterations, fit_lr: Adam iterations (and rate) of the last-layer fit after its closed-form start.
+        template: the template skinning network file, or None for the shipped one.
+        max_retries: a draw whose simulation fails (inverted state) is replaced by a fresh draw at most this
+            many times (recorded per sample).
+    """
+
+    seed: int = 0
+    objects: int = 100
+    meshes: tuple[str, ...] = ()
+    draws_per_object: int = 4
+    frames: int = 16
+    resolution: int = 224
+    dt: float = 0.05
+    E_range: tuple[float, float] = (1e4, 1e6)
+    nu_range: tuple[float, float] = (0.2, 0.49)
+    density: float = 1000.0
+    damping_ratio: float = 0.05
+    drop_height: tuple[float, float] = (0.05, 0.3)
+    max_horizontal_speed: float = 0.2
+    max_downward_speed: float = 1.0
+    max_angular_speed: float = 2.0
+    floor_height: float = -0.7
+    camera: FrontCamera = field(default_factory=FrontCamera)
+    supersample: int = 2
+    points: int = 20000
+    cubature_points: int = 500
+    contact_points: int = 1000
+    fit_iterations: int = 0
+    fit_lr: float = 3e-5
+    template: str | None = None
+    max_retries: int = 3
+
+    def __post_init__(self) -> None:
+        def bad(name: str, expected: str) -> ValueError:
+            return ValueError(f"TrainingDataConfig.{name} must be {expected}, got {getattr(self, name)!r}")
+
+        if isinstance(self.camera, dict):
+            self.camera = FrontCamera(**self.camera)
+        if not isinstance(self.camera, FrontCamera):
+            raise bad("camera", "a FrontCamera")
+        self.meshes = tuple(str(m) for m in self.meshes)
+        for name, lo in (("seed", 0), ("objects", 0), ("draws_per_object", 1), ("frames", 2), ("resolution", 8),
+                         ("supersample", 1), ("points", 100), ("cubature_points", 10), ("contact_points", 1),
+                         ("fit_iterations", 0), ("max_retries", 0)):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < lo:
+                raise bad(name, f"an integer >= {lo}")
+        if self.objects >= OBJECT_SEED_STRIDE:
+            raise bad("objects", f"below {OBJECT_SEED_STRIDE}")
+        if self.objects + len(self.meshes) == 0:
+            raise ValueError("TrainingDataConfig.objects must be >= 1 when no meshes are given, got 0")
+        if self.cubature_points > self.points:
+            raise bad("cubature_points", f"at most points ({self.points})")
+        for name in ("dt", "density", "max_horizontal_speed", "max_downward_speed", "max_angular_speed",
+                     "floor_height", "damping_ratio", "fit_lr"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+                raise bad(name, "a finite number")
+        for name in ("dt", "density", "fit_lr"):
+            if not getattr(self, name) > 0:
+                raise bad(name, "positive")
+        for name in ("max_horizontal_speed", "max_downward_speed", "max_angular_speed", "damping_ratio"):
+            if getattr(self, name) < 0:
+                raise bad(name, ">= 0")
+        for name, lo, hi in (("E_range", 0.0, math.inf), ("nu_range", -1.0, 0.5), ("drop_height", 0.0, math.inf)):
+            v = tuple(float(x) for x in getattr(self, name))
+            ok = len(v) == 2 and all(math.isfinite(x) for x in v) and v[0] <= v[1]
+            ok = ok and (v[0] > lo if name != "drop_height" else v[0] >= lo) and v[1] < hi
+            if not ok:
+                raise bad(name, f"a range (low, high) with {lo} {'<' if name != 'drop_height' else '<='} low <= high"
+                                f" < {hi}")
+            setattr(self, name, v)
+        if self.template is not None:
+            self.template = str(self.template)
+
+    @property
+    def total_objects(self) -> int:
+        """Procedural objects + user meshes."""
+        return self.objects + len(self.meshes)
+
+    def to_dict(self) -> dict[str, Any]:
+        """A JSON-able dict (tuples as lists) that :meth:`from_dict` reads back."""
+        return json.loads(json.dumps(asdict(self)))
+
+    @classmethod
+    def from_dict(cls, values: dict[str, Any]) -> "TrainingDataConfig":
+        unknown = sorted(set(values) - {f.name for f in fields(cls)})
+        if unknown:
+            raise ValueError(f"unknown TrainingDataConfig fields {unknown}")
+        return cls(**values)
+
+
+@dataclass(frozen=True)
+class ObjectSpec:
+    """One object of a dataset: ``kind`` "procedural" (``source`` = its shape seed) or "mesh" (``source`` = the
+    file); ``index`` among objects of its kind; ``name`` the shard's file name."""
+
+    kind: str
+    index: int
+    source: int | str
+    name: str
+
+
+def object_specs(config: TrainingDataConfig) -> list[ObjectSpec]:
+    """The dataset's objects in shard order: procedural ``object_000000`` …, then ``mesh_000`` … ."""
+    specs = [ObjectSpec("procedural", i, OBJECT_SEED_STRIDE * (config.seed + 1) + i, f"object_{i:06d}.npz")
+             for i in range(config.objects)]
+    specs += [ObjectSpec("mesh", k, path, f"mesh_{k:03d}.npz") for k, path in enumerate(config.meshes)]
+    return specs
+
+
+def _rng(config: TrainingDataConfig, spec: ObjectSpec, stream: int) -> np.random.Generator:
+    return np.random.default_rng([config.seed, _KIND_KEY[spec.kind], spec.index, stream])
+
+
+def file_sha256(path: str | Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def template_path(config: TrainingDataConfig) -> Path:
+    from vid2sim.predictor.template import TEMPLATE_PATH
+
+    return Path(config.template) if config.template is not None else TEMPLATE_PATH
+
+
+# ---- one object -----------------------------------------------------------------------------------------
+
+@dataclass
+class Draw:
+    """One sample's random parameters (E in Pa, ν, clearance in m, velocities in m/s and rad/s)."""
+
+    youngs_modulus: float
+    poisson_ratio: float
+    drop_height: float
+    linear_velocity: tuple[float, float, float]
+    angular_velocity: tuple[float, float, float]
+
+
+def _draw(config: TrainingDataConfig, rng: np.random.Generator) -> Draw:
+    from vid2sim.synthetic.fem import InitialPose
+
+    lo, hi = (math.log10(x) for x in config.E_range)
+    log_e = rng.uniform(lo, hi)
+    nu = rng.uniform(*config.nu_range)
+    pose = InitialPose.random(int(rng.integers(2**62)), drop_height=config.drop_height,
+                              max_horizontal_speed=config.max_horizontal_speed,
+                              max_downward_speed=config.max_downward_speed,
+                              max_angular_speed=config.max_angular_speed)
+    return Draw(float(10.0**log_e), float(nu), pose.drop_height, tuple(pose.linear_velocity),
+                tuple(pose.angular_velocity))
+
+
+def _load_object(spec: ObjectSpec):
+    from vid2sim.synthetic.meshes import load_user_mesh
+    from vid2sim.synthetic.shapes import make_procedural_object
+
+    return make_procedural_object(int(spec.source)) if spec.kind == "procedural" else load_user_mesh(spec.source)
+
+
+@dataclass
+class SimulatedDraw:
+    """A draw's simulation: the mesh vertices at every frame and per-frame diagnostics."""
+
+    vertices: torch.Tensor  # (T, Nv, 3)
+    max_strain: float
+    converged: bool
+    substeps: int
+
+
+def simulate_draw(field_, vertices: torch.Tensor, cubature: torch.Tensor, cubature_weights: torch.Tensor,
+                  contact: torch.Tensor, contact_areas: torch.Tensor, centre_of_mass: torch.Tensor, draw: Draw,
+                  config: TrainingDataConfig) -> SimulatedDraw:
+    """Drop the posed object (canonical-frame rest shape ``vertices: (Nv, 3)``) as ``draw`` says.
+
+    The rest shape is lifted by t = (0, 0, floor + clearance − min z); the field is evaluated at X − t (its
+    input frame, scale 1: the canonical frame has diagonal 1). Returns the skinned vertices at frames
+    0 … frames − 1 and the largest Green strain ‖½(FᵀF − I)‖_F over cubature points and frames.
+    """
+    from vid2sim.physics import Floor, Gravity, Material, SimConfig, Simulator
+    from vid2sim.physics.external import AREA_CONTACT_STIFFNESS
+    from vid2sim.physics.skinning import deform, deformation_gradient, gradient_basis
+
+    dtype = torch.float64  # in float32 Newton cannot meet the simulator's tolerance (and is no faster)
+    field_ = field_.to(dtype)
+    vertices, cubature, cubature_weights = vertices.to(dtype), cubature.to(dtype), cubature_weights.to(dtype)
+    contact, contact_areas, centre_of_mass = contact.to(dtype), contact_areas.to(dtype), centre_of_mass.to(dtype)
+    lift = config.floor_height + draw.drop_height - float(vertices[:, 2].min())
+    t = torch.tensor([0.0, 0.0, lift], dtype=dtype)
+    field_.set_input_frame(t, 1.0)
+    material = Material(draw.youngs_modulus, draw.poisson_ratio, config.density, damping_ratio=config.damping_ratio)
+    sim = Simulator(field_, cubature + t, cubature_weights, material,
+                    [Gravity(), Floor(height=config.floor_height, stiffness=AREA_CONTACT_STIFFNESS)],
+                    SimConfig(dt=config.dt), length_scale=1.0, contact_points=contact + t,
+                    contact_weights=contact_areas)
+    state = sim.rigid_velocity_state(draw.linear_velocity, draw.angular_velocity, about=centre_of_mass + t)
+    with torch.no_grad():
+        states = sim.rollout(state, config.frames - 1)
+        X = vertices + t
+        w = field_(X)
+        frames = [X] + [deform(X, w, s.z) for s in states]
+        wc, dwc = field_.weights_and_gradients(sim.X)
+        F = deformation_gradient(gradient_basis(sim.X, wc, dwc), torch.stack([s.z for s in states]))  # (T-1, K, 3, 3)
+        green = 0.5 * (F.transpose(-1, -2) @ F - torch.eye(3, dtype=dtype))
+        strain = float(green.flatten(-2).norm(dim=-1).max())
+    return SimulatedDraw(torch.stack(frames).float(), strain, all(s.converged for s in states), sim.substeps())
+
+
+def make_object_shard(config: TrainingDataConfig, spec: ObjectSpec,
+                      template=None) -> tuple[dict[str, np.ndarray], dict]:
+    """All samples of one object (module docstring) as the shard's arrays, and its timings.
+
+    Args:
+        config: the dataset's settings; spec: the object (:func:`object_specs`).
+        template: the template :class:`~vid2sim.physics.SkinningField` (default: loaded from
+            ``config.template`` or the shipped file).
+    Returns:
+        (arrays of the shard (docs/training-data.md), {"object", "fit", "simulate", "render", "total"} seconds;
+        "simulate" and "render" summed over draws).
+    Raises:
+        vid2sim.physics.SimulationError: every retry of a draw failed.
+    """
+    from vid2sim.physics import SimulationError
+    from vid2sim.physics.cubature import sample_cubature
+    from vid2sim.predictor.solid import sample_solid
+    from vid2sim.predictor.template import fit_last_layer, field_from_last_layer, load_template
+    from vid2sim.synthetic.mesh_render import render_textured_mesh
+    from vid2sim.synthetic.meshes import normalize_to_canonical
+    from vid2sim.synthetic.shapes import random_rotation
+
+    timings = {"object": 0.0, "fit": 0.0, "simulate": 0.0, "render": 0.0}
+    t_all = time.perf_counter()
+    t0 = t_all
+    if template is None:
+        template = load_template(template_path(config))
+    mesh = _load_object(spec)
+    rotation = random_rotation(_rng(config, spec, 0))
+    posed, _ = normalize_to_canonical(mesh.vertices.double() @ torch.from_numpy(rotation).T)
+    posed = posed.float()
+    solid = sample_solid(posed, mesh.faces, num_points=config.points, max_contact_points=config.contact_points,
+                         seed=spec.index, name=mesh.name)
+    com = solid.points.mean(0)
+    idx, cub_w = sample_cubature(solid.points, config.cubature_points, volume=solid.volume, seed=spec.index)
+    cubature = solid.points[idx]
+    timings["object"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    last_layer = fit_last_layer(template, solid.points, config.fit_iterations, lr=config.fit_lr, seed=spec.index,
+                                volume=solid.volume)
+    field_ = field_from_last_layer(template, last_layer).to(torch.float64)
+    timings["fit"] = time.perf_counter() - t0
+
+    camera = config.camera.camera(config.resolution)
+    rng = _rng(config, spec, 1)
+    D, T, R = config.draws_per_object, config.frames, config.resolution
+    video = np.empty((D, T, R, R, 3), dtype=np.uint8)
+    rows: dict[str, list] = {k: [] for k in ("log10_E", "nu", "drop_height", "linear_velocity", "angular_velocity",
+                                             "max_strain", "converged", "substeps", "retries", "border_frames")}
+    for d in range(D):
+        t0 = time.perf_counter()
+        for attempt in range(config.max_retries + 1):
+            draw = _draw(config, rng)
+            try:
+                sim = simulate_draw(field_, posed, cubature, cub_w, solid.contact_points, solid.contact_areas, com,
+                                    draw, config)
+                break
+            except SimulationError:
+                if attempt == config.max_retries:
+                    raise
+        timings["simulate"] += time.perf_counter() - t0
+        t0 = time.perf_counter()
+        rgb, alpha = render_textured_mesh(mesh, [camera], vertices=sim.vertices, supersample=config.supersample)
+        video[d] = (rgb[0].clamp(0, 1) * 255.0).round().to(torch.uint8).numpy()
+        a = alpha[0]
+        border = torch.cat([a[:, 0, :], a[:, -1, :], a[:, :, 0], a[:, :, -1]], dim=1)  # (T, 4R)
+        timings["render"] += time.perf_counter() - t0
+        rows["log10_E"].append(math.log10(draw.youngs_modulus))
+        rows["nu"].append(draw.poisson_ratio)
+        rows["drop_height"].append(draw.drop_height)
+        rows["linear_velocity"].append(draw.linear_velocity)
+        rows["angular_velocity"].append(draw.angular_velocity)
+        rows["max_strain"].append(sim.max_strain)
+        rows["converged"].append(sim.converged)
+        rows["substeps"].append(sim.substeps)
+        rows["retries"].append(attempt)
+        rows["border_frames"].append(float((border.amax(dim=1) > 0).float().mean()))
+    arrays = {
+        "video": video,
+        "log10_E": np.asarray(rows["log10_E"], dtype=np.float32),
+        "nu": np.asarray(rows["nu"], dtype=np.float32),
+        "last_layer": last_layer.numpy().astype(np.float32),
+        "object_seed": np.asarray(spec.source if spec.kind == "procedural" else -1, dtype=np.int64),
+        "rotation": rotation.astype(np.float32),
+        "volume": np.asarray(solid.volume, dtype=np.float32),
+        "drop_height": np.asarray(rows["drop_height"], dtype=np.float32),
+        "linear_velocity": np.asarray(rows["linear_velocity"], dtype=np.float32),
+        "angular_velocity": np.asarray(rows["angular_velocity"], dtype=np.float32),
+        "max_strain": np.asarray(rows["max_strain"], dtype=np.float32),
+        "converged": np.asarray(rows["converged"], dtype=bool),
+        "substeps": np.asarray(rows["substeps"], dtype=np.int32),
+        "retries": np.asarray(rows["retries"], dtype=np.int32),
+        "border_frames": np.asarray(rows["border_frames"], dtype=np.float32),
+    }
+    timings["total"] = time.perf_counter() - t_all
+    return arrays, timings
+
+
+# ---- files ----------------------------------------------------------------------------------------------
+
+def write_npz(path: str | Path, arrays: dict[str, np.ndarray], compress: bool = True) -> Path:
+    """Write ``arrays`` as an ``.npz`` that ``numpy.load`` reads, atomically (temp file + rename) and
+    byte-reproducibly (fixed member order, timestamps and compression level)."""
+    path = Path(path)
+    tmp = path.parent / f".{path.name}.{uuid.uuid4().hex[:12]}.tmp"
+    try:
+        with zipfile.ZipFile(tmp, "w") as zf:
+            for key in arrays:
+                info = zipfile.ZipInfo(f"{key}.npy", date_time=(1980, 1, 1, 0, 0, 0))
+                info.compress_type = zipfile.ZIP_DEFLATED if compress else zipfile.ZIP_STORED
+                info.external_attr = 0o644 << 16
+                buf = io.BytesIO()
+                np.lib.format.write_array(buf, np.asarray(arrays[key]), allow_pickle=False)  # 0-d stays 0-d
+                zf.writestr(info, buf.getvalue(), compresslevel=6 if compress else None)
+        _apply_umask_file(tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return path
+
+
+def _apply_umask_file(path: Path) -> None:
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(path, 0o666 & ~umask)
+
+
+def _write_json_atomic(path: Path, obj: Any) -> None:
+    tmp = path.parent / f".{path.name}.{uuid.uuid4().hex[:12]}.tmp"
+    tmp.write_text(json.dumps(obj, indent=2) + "\n")
+    _apply_umask_file(tmp)
+    os.replace(tmp, path)
+
+
+def shard_task(config_dict: dict, spec_fields: tuple, out_dir: str, threads: int | None) -> dict:
+    """Make and write one shard (a module-level function: the unit of work of process pools and Ray tasks).
+
+    Returns:
+        {"name", "timings", "draws", "summary"} for ``index.json``.
+    """
+    if threads is not None:
+        torch.set_num_threads(threads)
+    config = TrainingDataConfig.from_dict(config_dict)
+    spec = ObjectSpec(*spec_fields)
+    arrays, timings = make_object_shard(config, spec)
+    write_npz(Path(out_dir) / spec.name, arrays)
+    return {"name": spec.name, "timings": timings, "summary": shard_summary(arrays)}
+
+
+def shard_summary(arrays: dict[str, np.ndarray]) -> dict[str, Any]:
+    """The small per-shard figures ``index.json`` keeps (labels and diagnostics, no video)."""
+    return {k: np.asarray(arrays[k]).tolist() for k in ("log10_E", "nu", "max_strain", "border_frames", "converged",
+                                                        "substeps", "retries")}
+
+
+def _read_summary(path: Path) -> dict[str, Any]:
+    with np.load(path, allow_pickle=False) as z:
+        return shard_summary({k: z[k] for k in ("log10_E", "nu", "max_strain", "border_frames", "converged",
+                                                "substeps", "retries")})
+
+
+def _stats(shards: list[dict]) -> dict[str, Any]:
+    if not shards:
+        return {}
+    cat = {k: np.concatenate([np.asarray(s["summary"][k], dtype=np.float64) for s in shards])
+           for k in ("log10_E", "nu", "max_strain", "border_frames", "converged", "substeps", "retries")}
+
+    def summary(x: np.ndarray) -> dict[str, float]:
+        return {"min": float(x.min()), "max": float(x.max()), "mean": float(x.mean()), "std": float(x.std())}
+
+    return {"log10_E": summary(cat["log10_E"]), "nu": summary(cat["nu"]), "max_strain": summary(cat["max_strain"]),
+            "substeps": summary(cat["substeps"]), "border_frames_mean": float(cat["border_frames"].mean()),
+            "samples_touching_border": float((cat["border_frames"] > 0).mean()),
+            "converged_fraction": float(cat["converged"].mean()), "retries_total": int(cat["retries"].sum())}
+
+
+# ---- the dataset ----------------------------------------------------------------------------------------
+
+def make_training_data(config: TrainingDataConfig, out_dir: str | Path, workers: int | None = None,
+                       threads: int | None = 1, ray_address: str | None = None, progress: bool = True,
+                       on_shard: Callable[[str], None] | None = None) -> dict[str, Any]:
+    """Write (or resume) a training dataset: one shard per object and ``index.json``.
+
+    Resumable: shards are written atomically, so every ``.npz`` present is complete and is kept (after
+    checking that ``index.json``'s config, if any, equals ``config``); only missing shards are made.
+    ``index.json`` is rewritten every ``INDEX_EVERY_SECONDS`` while shards are made and at the end
+    (``complete`` once all are there); shards it does not list yet are read back on resume. Deterministic: a shard
+    depends only on ``config`` and its object (and the thread count of the process making it), not on how
+    many workers run or in which order.
+
+    Args:
+        config: the dataset's settings.
+        out_dir: the folder (created).
+        workers: processes side by side (default: all local cores; 1 = in this process). With
+            ``ray_address``: Ray tasks run side by side as the cluster has room, each reserving ``threads``
+            CPUs.
+        threads: torch threads per worker (None: torch's default).
+        ray_address: ``"local"`` or a Ray cluster address (:mod:`vid2sim.bench.ray_runner`); every node must
+            see ``out_dir`` at the same path.
+        progress: a tqdm bar.
+        on_shard: called with each shard's name when it is written (tests, logs).
+    Returns:
+        the ``index.json`` content.
+    Raises:
+        FileExistsError: ``out_dir`` is a file or a non-empty folder that is not such a dataset.
+        ValueError: ``index.json`` was written with another config.
+        FileNotFoundError: a user mesh or the template file is missing.
+        vid2sim.bench.ray_runner.RayUnavailable: ``ray_address`` given but Ray is missing or unreachable.
+    """
+    from tqdm.auto import tqdm
+
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise FileExistsError(f"{out} exists and is not a folder")
+    index_path = out / INDEX
+    if out.exists() and any(out.iterdir()) and not index_path.is_file():
+        raise FileExistsError(f"{out} is not empty and holds no {INDEX}: refusing to write a training dataset there")
+    for m in config.meshes:
+        if not Path(m).is_file():
+            raise FileNotFoundError(f"mesh file {m} does not exist")
+    if ray_address is not None:
+        from vid2sim.bench.ray_runner import import_ray
+
+        import_ray()  # RayUnavailable before anything is written
+    tpath = template_path(config)
+    if not tpath.is_file():
+        raise FileNotFoundError(f"template skinning network {tpath} does not exist")
+    header = {"format": FORMAT, "config": config.to_dict(), "template_sha256": file_sha256(tpath)}
+    previous: dict[str, Any] = {}
+    if index_path.is_file():
+        previous = json.loads(index_path.read_text())
+        differ = sorted(k for k in ("format", "config", "template_sha256") if previous.get(k) != header[k])
+        if differ:
+            diff = {k: v for k, v in _config_diff(previous.get("config", {}), header["config"]).items()}
+            raise ValueError(f"{index_path} was written with other settings ({', '.join(differ)}"
+                             + (f": {diff}" if diff else "") + "); resume with the same settings or use another folder")
+    out.mkdir(parents=True, exist_ok=True)
+    specs = object_specs(config)
+    old = {s["file"]: s for s in previous.get("shards", [])}
+    entries: dict[str, dict] = {}
+    todo = []
+    for spec in specs:
+        path = out / spec.name
+        if path.is_file():
+            entry = old.get(spec.name) or {"file": spec.name, "kind": spec.kind, "source": spec.source,
+                                            "seconds": None, "summary": _read_summary(path)}
+            entries[spec.name] = entry
+        else:
+            todo.append(spec)
+    if workers is None:
+        workers = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    if workers < 1:
+        raise ValueError(f"workers must be >= 1, got {workers}")
+    t_start = time.perf_counter()
+    made: list[dict] = []
+
+    def write_index() -> dict[str, Any]:
+        shards = [entries[s.name] for s in specs if s.name in entries]
+        wall = time.perf_counter() - t_start
+        made_samples = len(made) * config.draws_per_object
+        split = {k: float(sum(m["seconds"][k] for m in made)) for k in ("object", "fit", "simulate", "render", "total")}
+        index = {**header, "complete": len(shards) == len(specs), "objects": len(specs), "shards_written": len(shards),
+                 "samples": len(shards) * config.draws_per_object,
+                 "label_layout": {"log10_E": "()", "nu": "()", "last_layer": "(650,): skinning last layer, weights "
+                                  "row-major (10, 64) then 10 biases, canonical gauge"},
+                 "video_layout": f"(draws, {config.frames}, {config.resolution}, {config.resolution}, 3) uint8 RGB "
+                                 "on white",
+                 "stats": _stats(shards),
+                 "last_run": {"workers": workers if ray_address is None else None, "threads": threads,
+                              "ray_address": ray_address, "shards_made": len(made), "wall_seconds": wall,
+                              "samples_per_second": made_samples / wall if made and wall > 0 else None,
+                              "seconds_split": split,
+                              "seconds_per_sample": {k: v / made_samples for k, v in split.items()} if made else None},
+                 "shards": shards}
+        _write_json_atomic(index_path, index)
+        return index
+
+    by_name = {s.name: s for s in specs}
+    last_write = [time.perf_counter()]
+
+    def finished(result: dict) -> None:
+        spec = by_name[result["name"]]
+        entry = {"file": spec.name, "kind": spec.kind, "source": spec.source, "seconds": result["timings"],
+                 "summary": result["summary"]}
+        entries[spec.name] = entry
+        made.append(entry)
+        if time.perf_counter() - last_write[0] >= INDEX_EVERY_SECONDS:  # O(N) each: not after every shard at scale
+            write_index()
+            last_write[0] = time.perf_counter()
+        bar.update(1)
+        bar.set_postfix(samples_per_s=f"{len(made) * config.draws_per_object / (time.perf_counter() - t_start):.3g}")
+        if on_shard is not None:
+            on_shard(spec.name)
+
+    cfg_dict = config.to_dict()
+    calls = [(cfg_dict, (s.kind, s.index, s.source, s.name), str(out), threads) for s in todo]
+    bar = tqdm(total=len(specs), initial=len(specs) - len(todo), desc="training data", unit="object",
+               disable=not progress)
+    index = write_index()
+    errors: list[BaseException] = []
+    try:
+        if ray_address is not None:
+            from vid2sim.bench.ray_runner import ray_map
+
+            def gathered(i: int, result: Any) -> None:
+                if isinstance(result, BaseException):
+                    errors.append(result)
+                else:
+                    finished(result)
+
+            ray_map(shard_task, [(c, {}) for c in calls], ray_address, num_cpus=max(1, threads or 1),
+                    on_done=gathered)
+        elif workers == 1 or len(calls) <= 1:
+            if threads is not None:
+                old_threads = torch.get_num_threads()
+                torch.set_num_threads(threads)
+            try:
+                for c in calls:
+                    finished(shard_task(*c[:3], None))
+            finally:
+                if threads is not None:
+                    torch.set_num_threads(old_threads)
+        else:
+            import multiprocessing as mp
+            from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+
+            ctx = mp.get_context("spawn")  # a fresh interpreter: no inherited torch / OpenMP thread state
+            with ProcessPoolExecutor(max_workers=min(workers, len(calls)), mp_context=ctx) as pool:
+                pending = {pool.submit(shard_task, *c) for c in calls}
+                try:
+                    while pending:
+                        done, pending = wait(pending, return_when=FIRST_COMPLETED)
+                        for fut in done:
+                            exc = fut.exception()
+                            if exc is not None:
+                                errors.append(exc)
+                            else:
+                                finished(fut.result())
+                except KeyboardInterrupt:
+                    for fut in pending:
+                        fut.cancel()
+                    raise
+        index = write_index()
+    finally:
+        bar.close()
+    if errors:
+        raise errors[0]
+    return index
+
+
+def _config_diff(old: dict, new: dict) -> dict[str, Any]:
+    return {k: (old.get(k), new.get(k)) for k in sorted(set(old) | set(new)) if old.get(k) != new.get(k)}

@@ -1,0 +1,138 @@
+"""Reading a Stage I training dataset (``vid2sim make-training-data``) as a torch ``Dataset``.
+
+``TrainingData(folder, split)`` indexes every (shard, draw) pair of the shards listed in ``index.json``
+and returns ``(video, targets)``:
+
+- ``video``: float32 (T, 3, R, R), the uint8 frames / 255, then normalised per channel by ImageNet's mean
+  (0.485, 0.456, 0.406) and standard deviation (0.229, 0.224, 0.225), the statistics VideoMAE was
+  pre-trained with (``normalize="imagenet"``, default), or left in [0, 1] (``normalize="unit"``).
+  The white background becomes (2.25, 2.43, 2.64).
+- ``targets``: {"log10_E": float32 (), "nu": float32 (), "last_layer": float32 (650,)} — the issue's labels,
+  unscaled (:meth:`TrainingData.label_statistics` gives the training split's means and standard deviations
+  for standardising them).
+
+The split is by object, so every draw of one object is on the same side. It is deterministic and stable
+when the dataset grows: a shard goes to validation when the first 8 bytes of SHA-256("<seed>:<file>"),
+read as a fraction of 2⁶⁴, fall below ``val_fraction``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch.utils.data import Dataset
+
+from vid2sim.predictor.data import FORMAT, INDEX
+
+IMAGENET_MEAN = (0.485, 0.456, 0.406)
+IMAGENET_STD = (0.229, 0.224, 0.225)
+SPLITS = ("train", "val", "all")
+
+
+def validation_fraction_of(name: str, seed: int) -> float:
+    """The shard's position in [0, 1) that decides its split (SHA-256 of ``"<seed>:<name>"``)."""
+    digest = hashlib.sha256(f"{seed}:{name}".encode()).digest()
+    return int.from_bytes(digest[:8], "big") / 2.0**64
+
+
+class TrainingData(Dataset):
+    """The samples of a training-data folder (module docstring).
+
+    Args:
+        folder: the dataset folder (``index.json`` + shards).
+        split: "train", "val" or "all".
+        val_fraction: share of objects held out for validation.
+        split_seed: changes which objects are held out.
+        normalize: "imagenet" (default) or "unit".
+        cache_shards: decoded shards kept in memory (consecutive indices read one shard once).
+    Raises:
+        FileNotFoundError: no ``index.json``. ValueError: not a training-data folder, bad arguments, or a
+        listed shard is missing.
+    """
+
+    def __init__(self, folder: str | Path, split: str = "train", val_fraction: float = 0.05, split_seed: int = 0,
+                 normalize: str = "imagenet", cache_shards: int = 2) -> None:
+        self.folder = Path(folder)
+        index_path = self.folder / INDEX
+        if not index_path.is_file():
+            raise FileNotFoundError(f"{self.folder} has no {INDEX}; it is not a training-data folder "
+                                    "(make one with `vid2sim make-training-data`)")
+        self.index: dict[str, Any] = json.loads(index_path.read_text())
+        if self.index.get("format") != FORMAT:
+            raise ValueError(f"{index_path}: format {self.index.get('format')!r}, expected {FORMAT!r}")
+        if split not in SPLITS:
+            raise ValueError(f"split must be one of {SPLITS}, got {split!r}")
+        if not 0.0 <= val_fraction < 1.0:
+            raise ValueError(f"val_fraction must lie in [0, 1), got {val_fraction}")
+        if normalize not in ("imagenet", "unit"):
+            raise ValueError(f"normalize must be 'imagenet' or 'unit', got {normalize!r}")
+        self.split, self.normalize = split, normalize
+        self.draws = int(self.index["config"]["draws_per_object"])
+        names = [s["file"] for s in self.index["shards"]]
+        for n in names:
+            if not (self.folder / n).is_file():
+                raise ValueError(f"{self.folder}: shard {n} is listed in {INDEX} but missing")
+
+        def keep(name: str) -> bool:
+            if split == "all":
+                return True
+            val = validation_fraction_of(name, split_seed) < val_fraction
+            return val if split == "val" else not val
+
+        self.shards = [n for n in names if keep(n)]
+        self._cache: dict[str, dict[str, np.ndarray]] = {}
+        self._cache_size = max(0, int(cache_shards))
+
+    def __len__(self) -> int:
+        return len(self.shards) * self.draws
+
+    def _shard(self, name: str) -> dict[str, np.ndarray]:
+        if name in self._cache:
+            return self._cache[name]
+        with np.load(self.folder / name, allow_pickle=False) as z:
+            arrays = {k: z[k] for k in ("video", "log10_E", "nu", "last_layer")}
+        if self._cache_size:
+            while len(self._cache) >= self._cache_size:
+                self._cache.pop(next(iter(self._cache)))
+            self._cache[name] = arrays
+        return arrays
+
+    def sample_id(self, i: int) -> tuple[str, int]:
+        """(shard file, draw) of sample ``i``."""
+        if not -len(self) <= i < len(self):
+            raise IndexError(f"sample {i} out of range for {len(self)} samples")
+        i %= len(self)
+        return self.shards[i // self.draws], i % self.draws
+
+    def __getitem__(self, i: int) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        name, d = self.sample_id(i)
+        z = self._shard(name)
+        video = torch.from_numpy(np.ascontiguousarray(z["video"][d])).permute(0, 3, 1, 2).float() / 255.0
+        if self.normalize == "imagenet":
+            mean = torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1)
+            std = torch.tensor(IMAGENET_STD).view(1, 3, 1, 1)
+            video = (video - mean) / std
+        targets = {"log10_E": torch.tensor(float(z["log10_E"][d])), "nu": torch.tensor(float(z["nu"][d])),
+                   "last_layer": torch.from_numpy(z["last_layer"].astype(np.float32))}
+        return video, targets
+
+    def label_statistics(self) -> dict[str, dict[str, torch.Tensor]]:
+        """Mean and standard deviation of each label over this split's samples (last_layer per component):
+        {"log10_E": {"mean", "std"}, "nu": {...}, "last_layer": {"mean": (650,), "std": (650,)}}."""
+        logs, nus, layers = [], [], []
+        for name in self.shards:
+            with np.load(self.folder / name, allow_pickle=False) as z:
+                logs.append(z["log10_E"])
+                nus.append(z["nu"])
+                layers.append(np.repeat(z["last_layer"][None], len(z["log10_E"]), axis=0))
+        out = {}
+        for key, arr in (("log10_E", np.concatenate(logs)), ("nu", np.concatenate(nus)),
+                         ("last_layer", np.concatenate(layers))):
+            a = torch.from_numpy(arr.astype(np.float64))
+            out[key] = {"mean": a.mean(0).float(), "std": a.std(0, unbiased=False).float()}
+        return out
