@@ -29,6 +29,9 @@ def test_version_and_help(capsys):
         (["bench", "speed", "--device", "cuda:7"], "CUDA is not available"),
         (["bench", "speed", "--device", "banana"], "--device 'banana' is not a torch device"),
         (["bench", "speed", "--device", "meta"], "vid2sim runs on cpu or cuda"),
+        (["fit-gaussians", "no-scene", "no-out", "--iterations", "0"], "--iterations must be >= 1"),
+        (["make-benchmark", "no-out", "--n", "0"], "--n must be >= 1"),
+        (["reconstruct", "no-scene", "no-out", "--threads", "0"], "--threads must be >= 1"),
         (["bench", "fem", "--frames", "1"], "SyntheticSceneConfig.frames must be an integer >= 2"),
     ],
 )

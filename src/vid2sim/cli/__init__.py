@@ -174,6 +174,8 @@ def _cmd_make_benchmark(args: argparse.Namespace) -> int:
     from vid2sim.synthetic.scenes import make_benchmark
 
     set_threads(args.threads)
+    if args.n < 1:
+        raise UserError(f"--n must be >= 1 (the number of scenes), got {args.n}")
     try:
         path = make_benchmark(args.n, args.out, preset=args.preset, seed=args.seed, progress=not args.quiet,
                               workers=args.workers, ray_address=args.ray_address, **_scene_overrides(args))
@@ -212,7 +214,13 @@ def _cmd_fit_gaussians(args: argparse.Namespace) -> int:
     if out.exists() and not (out / "gaussians.ply").exists() and any(out.iterdir()):
         raise UserError(f"{out} is a non-empty folder without gaussians.ply; refusing to replace it")
     given = {"iterations": args.iterations, "sh_degree": args.sh_degree, "views_per_step": args.views_per_step}
-    config = FitConfig(seed=args.seed, **{k: v for k, v in given.items() if v is not None})
+    try:
+        config = FitConfig(seed=args.seed, **{k: v for k, v in given.items() if v is not None})
+    except ValueError as exc:  # name the flag typed, not the config field
+        message = str(exc)
+        for name in given:
+            message = message.replace(f"FitConfig.{name} ", f"--{name.replace('_', '-')} ")
+        raise UserError(message) from exc
     device = resolve_device(args.device)
     try:
         scene = load_scene(args.scene, progress=not args.quiet)
