@@ -12,7 +12,6 @@ from vid2sim.pipeline import reconstruct as reconstruct_module
 from vid2sim.pipeline.asset import load_asset
 from vid2sim.pipeline.reconstruct import ReconstructConfig, ReconstructionError, reconstruct
 from vid2sim.scene.folder import load_scene, write_scene
-from vid2sim.synthetic.scenes import SyntheticSceneConfig, make_scene
 
 
 def test_reconstruct_writes_a_complete_asset(tiny_asset, tiny_scene):
@@ -129,3 +128,99 @@ def test_a_drop_that_meets_the_floor_by_frame_1_still_reconstructs(tiny_scene, t
     extra = json.loads((out / "asset.json").read_text())["extra"]
     assert extra["initial_velocity_estimate"]["contact_before_frame_1"] is True
     assert extra["initial_velocity_estimate"]["frames_used"] == 2
+
+
+# ---- Stage I in reconstruct -----------------------------------------------------------------------------
+
+def _tiny_predictor(path):
+    """A tiny untrained predictor checkpoint (16x16, 4 frames) with label statistics that put its answers in range."""
+    from vid2sim.predictor.model import PhysicsPredictor, PredictorConfig
+    from vid2sim.predictor.train import save_predictor
+
+    m = PhysicsPredictor(PredictorConfig(image_size=16, num_frames=4, patch_size=8, hidden_size=48, num_layers=1,
+                                         num_heads=2, intermediate_size=96))
+    m.set_label_statistics({"log10_E": {"mean": torch.tensor(5.3), "std": torch.tensor(0.01)},
+                            "nu": {"mean": torch.tensor(0.35), "std": torch.tensor(0.001)},
+                            "last_layer": {"mean": torch.zeros(650), "std": torch.full((650,), 0.01)}})
+    return save_predictor(m, path, data_config={"dt": 0.05}), m
+
+
+def test_stage1_sets_the_prior_the_coarse_grid_and_the_skinning_start(tiny_scene, tmp_path, monkeypatch, tiny_config):
+    pytest.importorskip("transformers")
+    from vid2sim.physics import skinning_training
+    from vid2sim.predictor.predict import front_video
+    from vid2sim.predictor.template import load_template
+
+    ckpt, model = _tiny_predictor(tmp_path / "p.pt")
+    starts, real = [], skinning_training.train_skinning
+
+    def spy(field, *args, **kwargs):
+        starts.append(field.get_last_layer().clone())
+        return real(field, *args, **kwargs)
+
+    monkeypatch.setattr(skinning_training, "train_skinning", spy)
+    cfg = tiny_config()
+    cfg.handles, cfg.predictor, cfg.stage1 = 10, str(ckpt), True  # Stage I needs the template's 10 handles
+    out = reconstruct(tiny_scene, tmp_path / "asset", cfg, progress=False)
+    s1 = json.loads((out / "log.json").read_text())["stage1"]
+    assert s1["ran"] and s1["checkpoint"] == str(ckpt) and s1["seconds"] > 0
+    scene = load_scene(tiny_scene)
+    V, T = scene.config.observed_views, scene.config.observed_frames
+    assert s1["scene_view"] == V[s1["view"]]
+    # the numbers are the predictor's on the chosen view's first frames (4 at 0.05 s; the scene has 5)
+    video, view, padded = front_video(scene.images[V][:, T].float(), [scene.cameras[v] for v in V],
+                                      scene.config.dt, 16, 4)
+    pred = model.eval().predict(video)
+    assert view == s1["view"] and padded == s1["padded_frames"] == 0
+    assert s1["log10_E"] == pytest.approx(float(pred["log10_E"]), abs=1e-5)
+    assert s1["E"] == pytest.approx(10 ** s1["log10_E"]) and s1["nu"] == pytest.approx(float(pred["nu"]), abs=1e-5)
+    # the coarse search is centred on the prediction (grid (4.5, 5.0) shifted), the skinning starts from
+    # the template's hidden layers and the predicted last layer
+    log = json.loads((out / "log.json").read_text())
+    grid = [r["log10_E"] for r in log["coarse_search"]]
+    assert grid == pytest.approx([s1["log10_E"] - 0.25, s1["log10_E"] + 0.25], abs=1e-5)
+    torch.testing.assert_close(starts[0], pred["last_layer"].to(starts[0].dtype), atol=1e-5, rtol=0)
+    template = load_template()
+    field = load_asset(out).field
+    torch.testing.assert_close(field.layers[0].weight, template.layers[0].weight.to(field.layers[0].weight.dtype),
+                               atol=0.05, rtol=0)  # 10 iterations from the template stay close to it
+
+
+def test_stage1_is_skipped_with_a_recorded_reason(tiny_asset, tmp_path):
+    from vid2sim.pipeline.reconstruct import run_stage1
+
+    s1 = json.loads((tiny_asset / "log.json").read_text())["stage1"]
+    assert s1["ran"] is False and s1["reason"]  # tiny config: 3 handles (or no shipped checkpoint)
+    cfg = ReconstructConfig(stage1=False)
+    assert "w/o Stage I" in run_stage1(cfg, None, [], 0.05, [0, 0, 0])["reason"]
+    assert "w/o Stage I" in run_stage1(ReconstructConfig(), None, [], 0.05, [0, 0, 0])["reason"]  # off by default
+    missing = run_stage1(ReconstructConfig(stage1=True, predictor=str(tmp_path / "none.pt")), None, [], 0.05,
+                         [0, 0, 0])
+    assert not missing["ran"] and "none.pt" in missing["reason"]
+    ckpt, _ = _tiny_predictor(tmp_path / "p.pt")
+    few = run_stage1(ReconstructConfig(stage1=True, predictor=str(ckpt), handles=3), None, [], 0.05, [0, 0, 0])
+    assert not few["ran"] and "handles" in few["reason"]
+
+
+def test_cli_no_stage1_and_predictor_flags(tiny_scene, tmp_path, monkeypatch):
+    seen = []
+
+    def fake(scene, out, config, progress=True, restart=False):
+        seen.append(config)
+        raise SystemExit(0)
+
+    monkeypatch.setattr(reconstruct_module, "reconstruct", fake)
+    with pytest.raises(SystemExit):
+        main(["reconstruct", str(tiny_scene), str(tmp_path / "a"), "--no-stage1", "--quiet"])
+    assert seen[-1].stage1 is False and seen[-1].predictor is None
+    with pytest.raises(SystemExit):
+        main(["reconstruct", str(tiny_scene), str(tmp_path / "a"), "--quiet"])
+    assert seen[-1].stage1 is False  # off by default while the shipped predictor misses its targets
+    with pytest.raises(SystemExit):
+        main(["reconstruct", str(tiny_scene), str(tmp_path / "a"), "--stage1", "--quiet"])
+    assert seen[-1].stage1 is True and seen[-1].predictor is None
+    (tmp_path / "p.pt").write_bytes(b"x")
+    with pytest.raises(SystemExit):
+        main(["reconstruct", str(tiny_scene), str(tmp_path / "a"), "--predictor", str(tmp_path / "p.pt"), "--quiet"])
+    assert seen[-1].stage1 is True and seen[-1].predictor == str((tmp_path / "p.pt").resolve())
+    assert main(["reconstruct", str(tiny_scene), str(tmp_path / "a"), "--predictor", str(tmp_path / "no.pt")]) == 2

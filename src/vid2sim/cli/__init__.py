@@ -287,6 +287,14 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
         overrides["jacobian"] = args.jacobian
     if args.seed is not None:
         overrides["seed"] = args.seed
+    if args.stage1 is not None:
+        overrides["stage1"] = args.stage1
+    if args.predictor is not None:
+        if not Path(args.predictor).is_file():
+            raise UserError(f"--predictor {args.predictor}: no such checkpoint file (train one with "
+                            "`vid2sim train-predictor`)")
+        overrides["predictor"] = str(Path(args.predictor).resolve())
+        overrides.setdefault("stage1", True)  # a checkpoint given is a checkpoint to use
     config = ReconstructConfig.preset(args.preset, **overrides)
     if args.iterations is not None:
         if args.iterations < 0:
@@ -500,6 +508,13 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--jacobian", choices=["closed_form", "neural"], default=None,
                      help="dF/dz: exact closed form (default, faster on a CPU) or the paper's Neural Jacobian")
     rec.add_argument("--seed", type=int, default=None, help="seed (default 0)")
+    rec.add_argument("--stage1", action=argparse.BooleanOptionalAction, default=None,
+                     help="run the Stage I predictor first (its prediction becomes the prior material, the centre of "
+                     "the coarse E search and the skinning field's start). Off by default until the shipped "
+                     "predictor meets its accuracy targets (docs/predictor.md); --no-stage1 is the paper's "
+                     "'w/o Stage I' ablation")
+    rec.add_argument("--predictor", metavar="PATH", default=None,
+                     help="Stage I checkpoint (default: the one shipped with vid2sim; vid2sim train-predictor)")
     rec.add_argument("--restart", action="store_true", help="discard an interrupted run's finished stages")
     rec.add_argument("--overwrite", action="store_true", help="replace an existing asset folder")
     rec.add_argument("--no-report", action="store_true", help="do not write the HTML report (OUT/report/index.html: "

@@ -15,7 +15,18 @@ stage; the asset folder itself appears only when everything is done):
 5. ``networks`` — the skinning field trained data-free on the canonical points (and the Neural Jacobian when
    ``jacobian="neural"``), then moved to the metric frame by its input frame.
 6. ``joint`` — the joint optimisation (:func:`vid2sim.pipeline.joint.joint_optimisation`) from the prior
-   material (Stage I's predictor fills this slot when it exists).
+   material.
+
+**Stage I** (``ReconstructConfig.stage1``, ``--stage1``; off by default while the shipped predictor misses its
+accuracy targets — docs/predictor.md; before ``networks``): the feed-forward predictor
+(:mod:`vid2sim.predictor.predict`; the shipped ``predictor_small.pt`` unless ``predictor`` names another
+checkpoint) sees 16 frames of the observed view closest to the front camera and predicts log10 E, ν and the
+skinning field's last layer. They become the prior material, the centre of the joint stage's coarse search
+over log10 E (its grid shifted, spacing kept), and the skinning field's starting point (the template's hidden
+layers with the predicted last layer) for the data-free skinning training. It is skipped — and the reason is
+written to ``log.json`` ``stage1`` — when switched off (``--no-stage1``, the paper's "w/o Stage I"), when the
+checkpoint is missing or transformers is not installed, or when ``handles`` differs from the template's (10): the prior then is
+``prior_E``/``prior_nu`` and the field a seeded initialisation.
 
 Physics runs in the scene's metric frame: E in Pa is the real material if the scene's scale is metric and the
 density right. A drop only identifies E/ρ; the density comes from ``scene.json`` ``metadata.density`` when
@@ -57,7 +68,11 @@ class ReconstructConfig:
         jacobian_iterations: data-free Neural Jacobian iterations when ``jacobian="neural"``.
         velocity_frames: at most this many pre-contact frames estimate the initial velocity.
         appearance_iterations: Gaussian refinement steps on the ballistic frames (0: skip).
-        prior_E, prior_nu, prior_damping: the starting material (Stage II from the prior).
+        prior_E, prior_nu, prior_damping: the starting material when Stage I does not run (Stage I replaces the
+            first two).
+        stage1: run the Stage I predictor (module docstring); False (the default until the shipped predictor
+            meets its targets) is the paper's "w/o Stage I" ablation.
+        predictor: its checkpoint (None: the one shipped with vid2sim).
         density: kg/m³ when the scene does not give one.
         sim: the simulator's settings (time-converged BDF2 substeps by default).
         joint: the joint optimisation.
@@ -80,6 +95,8 @@ class ReconstructConfig:
     sim: SimConfig = field(default_factory=SimConfig)
     joint: JointConfig = field(default_factory=JointConfig)
     seed: int = 0
+    stage1: bool = False
+    predictor: str | None = None
 
     def __post_init__(self) -> None:
         if self.jacobian not in ("closed_form", "neural"):
@@ -222,6 +239,56 @@ def _stage(progress: bool, text: str) -> None:
         tqdm.write(text)
 
 
+def run_stage1(cfg: ReconstructConfig, images: torch.Tensor, cameras: list, dt: float, centre: list[float],
+               progress: bool = False) -> dict[str, Any]:
+    """Stage I on the observed video (module docstring).
+
+    Args:
+        images: (V, T, H, W, 3) observed frames; cameras: the V observed cameras; dt: seconds between frames;
+        centre: the object's centre at frame 0 (the front view is chosen by the angle seen from it).
+    Returns:
+        the record written to ``log.json`` ``stage1``: {"ran": False, "reason"} or {"ran": True, "E", "log10_E",
+        "nu", "seconds", "view" (index into the observed views), "padded_frames", "checkpoint",
+        "coarse_log10_E"} plus "last_layer" (650,) (a tensor, not written to the log).
+    """
+    from vid2sim.predictor.predict import DEFAULT_PREDICTOR
+
+    if not cfg.stage1:
+        return {"ran": False, "reason": "disabled (stage1=False / --no-stage1: the 'w/o Stage I' ablation)"}
+    path = Path(cfg.predictor) if cfg.predictor is not None else DEFAULT_PREDICTOR
+    if not path.is_file():
+        reason = f"no predictor checkpoint at {path}"
+        _stage(progress, f"      Stage I skipped: {reason}")
+        return {"ran": False, "reason": reason, "checkpoint": str(path)}
+    from vid2sim.predictor.predict import centred_grid, front_video, predict_video
+    from vid2sim.predictor.template import load_template
+
+    template = load_template()
+    if cfg.handles != template.num_handles:
+        reason = (f"ReconstructConfig.handles is {cfg.handles}, the predicted last layer is for the template's "
+                  f"{template.num_handles} handles")
+        _stage(progress, f"      Stage I skipped: {reason}")
+        return {"ran": False, "reason": reason, "checkpoint": str(path)}
+    from vid2sim.predictor.train import load_predictor
+
+    _stage(progress, "[Stage I] predicting the material and skinning field from the front view")
+    t0 = time.perf_counter()
+    try:
+        model = load_predictor(path)
+    except ImportError as exc:  # transformers is not installed
+        reason = f"the predictor cannot be loaded: {exc}"
+        _stage(progress, f"      Stage I skipped: {reason}")
+        return {"ran": False, "reason": reason, "checkpoint": str(path)}
+    target_dt = float((model.data_config or {}).get("dt", 0.05))
+    video, view, padded = front_video(images, cameras, dt, model.image_size, model.num_frames, target_dt, centre)
+    pred = predict_video(model, video)
+    return {"ran": True, "E": pred["E"], "log10_E": pred["log10_E"], "nu": pred["nu"],
+            "seconds": time.perf_counter() - t0, "inference_seconds": pred["seconds"], "view": view,
+            "padded_frames": padded, "checkpoint": str(path),
+            "coarse_log10_E": list(centred_grid(cfg.joint.coarse_log10_E, pred["log10_E"])),
+            "last_layer": pred["last_layer"]}
+
+
 def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConfig | None = None,
                 progress: bool = True, restart: bool = False) -> Path:
     """Reconstruct the scene folder ``scene_path`` into the asset folder ``out`` (see the module docstring).
@@ -319,9 +386,28 @@ def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConf
         work.finish("appearance", time.perf_counter() - t0)
     gaussians = load_ply(app_ply)
 
+    # Stage I ---------------------------------------------------------------------------------------------
+    s1_path = work.dir / "stage1.json"
+    if not s1_path.is_file():
+        s1 = run_stage1(cfg, images, cameras, float(scene.config.dt), obj.centre.tolist(), progress)
+        if s1["ran"]:
+            s1["scene_view"] = int(V[s1["view"]])
+        torch.save(s1.pop("last_layer", None), work.dir / "stage1_last_layer.pt")
+        s1_path.write_text(json.dumps(s1))
+    stage1 = json.loads(s1_path.read_text())
+    prior_E, prior_nu, joint_cfg = cfg.prior_E, cfg.prior_nu, cfg.joint
+    if stage1["ran"]:
+        prior_E, prior_nu = stage1["E"], stage1["nu"]
+        joint_cfg = dataclasses.replace(cfg.joint, coarse_log10_E=tuple(stage1["coarse_log10_E"]))
+
     # 5. networks ----------------------------------------------------------------------------------------
     field_path, jac_path = work.dir / "skinning.pt", work.dir / "jacobian.pt"
     field = SkinningField(cfg.handles, seed=cfg.seed)
+    if stage1["ran"]:
+        from vid2sim.predictor.template import field_from_last_layer, load_template
+
+        field = field_from_last_layer(load_template(), torch.load(work.dir / "stage1_last_layer.pt",
+                                                                  weights_only=True))
     jacobian = NeuralJacobian(num_handles_total=cfg.handles + 1, seed=cfg.seed) if cfg.jacobian == "neural" else None
     if not work.done("networks"):
         _stage(progress, "[5/6] training the skinning field data-free" +
@@ -349,7 +435,7 @@ def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConf
     externals = [Gravity(list(scene.config.gravity))]
     if scene.config.floor_height is not None:
         externals.append(Floor(height=scene.config.floor_height, stiffness=AREA_CONTACT_STIFFNESS))
-    material = Material(cfg.prior_E, cfg.prior_nu, density, damping_ratio=cfg.prior_damping)
+    material = Material(prior_E, prior_nu, density, damping_ratio=cfg.prior_damping)
     sim = Simulator(field, obj.points[idx], weights, material, externals, cfg.sim, jacobian=jacobian,
                     use_neural_jacobian=jacobian is not None, length_scale=obj.scale,
                     contact_points=obj.contact_points, contact_weights=obj.contact_areas)
@@ -358,7 +444,7 @@ def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConf
         _stage(progress, "[6/6] joint optimisation of the material, initial velocity and networks")
         t0 = time.perf_counter()
         result = joint_optimisation(sim, gaussians, Observations(images, cameras), velocity["linear"],
-                                    velocity["angular"], velocity["centre"], cfg.joint, progress=progress)
+                                    velocity["angular"], velocity["centre"], joint_cfg, progress=progress)
         torch.save(field.state_dict(), work.dir / "skinning_joint.pt")
         if jacobian is not None:
             torch.save(jacobian.state_dict(), work.dir / "jacobian_joint.pt")
@@ -385,7 +471,8 @@ def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConf
                          "scene_frames": int(scene.images.shape[1]),
                          "volume_m3": obj.volume, "gaussians": gaussians.num,
                          "initial_velocity_estimate": velocity, "validation_loss": result["validation_loss"]})
-    log = {"timings_seconds": work.timings, "coarse_search": result["coarse"], "iterations": result["log"]}
+    log = {"timings_seconds": work.timings, "stage1": stage1, "coarse_search": result["coarse"],
+           "iterations": result["log"]}
     save_asset(asset, out, config=cfg.to_dict(), log=log)
     shutil.rmtree(work.dir, ignore_errors=True)
     return out

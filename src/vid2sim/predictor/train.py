@@ -1,0 +1,381 @@
+"""Training the Stage I predictor (``vid2sim train-predictor``) and its checkpoint format.
+
+:func:`train_predictor` reads a ``vid2sim make-training-data`` folder through
+:class:`~vid2sim.predictor.dataset.TrainingData` (split by object, ``val_fraction`` held out), standardises
+the labels with the training split's statistics (stored in the model), and trains with Adam on the loss of
+:func:`~vid2sim.predictor.model.predictor_loss`.
+
+- The whole split is decoded once into memory as uint8 frames (1 200 samples of 16 × 64² take 236 MB).
+- Deterministic for a seed and thread count: the heads and backbone are seeded, and epoch k visits the training
+  samples in the permutation drawn from ``seed + k``.
+- Every ``eval_every`` steps (and at the end) it evaluates on the validation split, writes ``OUT/last.pt``
+  (model, optimiser, step, log) and, when the validation loss is the lowest so far, ``OUT/best.pt``. Rerunning
+  with the same OUT resumes from ``last.pt`` and continues the same sequence of batches.
+- ``max_minutes`` stops early at a step boundary (after a final evaluation); rerun to continue.
+- At the end ``OUT/predictor.pt`` is the best checkpoint in the shippable form (weights in float16, no
+  optimiser) and ``OUT/train_log.json`` the record: the loss curve, the validation curve (MAE of log10 E and
+  ν in label units, MSE of the standardised last layer) and the constant-mean baselines on the same split.
+
+Checkpoint (``torch.save`` dict, format ``vid2sim-predictor/1``): {"format", "config" (PredictorConfig),
+"backbone_config" (VideoMAEConfig dict), "state_dict" (includes the position table and label statistics),
+"label_stats", "data_config" (the dataset's index config), "train_config", "metrics"}; ``last.pt`` adds
+"optimizer", "step", "log". :func:`load_predictor` reads any of them.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import tempfile
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from vid2sim.predictor.dataset import IMAGENET_MEAN, IMAGENET_STD, TrainingData
+from vid2sim.predictor.model import LossWeights, PhysicsPredictor, PredictorConfig, predictor_loss
+
+CHECKPOINT_FORMAT = "vid2sim-predictor/1"
+
+
+@dataclass
+class TrainConfig:
+    """Settings of :func:`train_predictor`.
+
+    Attributes:
+        model: the architecture (:class:`PredictorConfig`).
+        steps: optimiser steps in all.
+        batch_size: samples per step.
+        lr: Adam's learning rate (cosine decay to ``lr · final_lr_fraction`` after ``warmup`` linear steps).
+            DESIGN.md gives 1e-5 for fine-tuning a pre-trained backbone; a small backbone from scratch needs more.
+        final_lr_fraction, warmup: the schedule.
+        weight_decay: Adam's L2 term.
+        loss: the loss weights (the issue's 1, 100, 1).
+        val_fraction, split_seed: the validation split (by object).
+        eval_every: steps between validations and checkpoints.
+        max_minutes: stop at the first step boundary after this wall time (None: run all steps); rerun resumes.
+        seed: model initialisation and batch order.
+    """
+
+    model: PredictorConfig = field(default_factory=PredictorConfig)
+    steps: int = 4000
+    batch_size: int = 8
+    lr: float = 3e-4
+    final_lr_fraction: float = 0.02
+    warmup: int = 100
+    weight_decay: float = 0.0
+    loss: LossWeights = field(default_factory=LossWeights)
+    val_fraction: float = 0.1
+    split_seed: int = 0
+    eval_every: int = 200
+    max_minutes: float | None = None
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        for name in ("steps", "batch_size", "eval_every"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise ValueError(f"TrainConfig.{name} must be a positive integer, got {v!r}")
+        if not (self.lr > 0 and 0 < self.final_lr_fraction <= 1 and self.warmup >= 0 and self.weight_decay >= 0):
+            raise ValueError("TrainConfig needs lr > 0, 0 < final_lr_fraction <= 1, warmup >= 0, weight_decay >= 0")
+        if self.max_minutes is not None and not self.max_minutes > 0:
+            raise ValueError(f"TrainConfig.max_minutes must be positive, got {self.max_minutes}")
+
+
+# ---- data -----------------------------------------------------------------------------------------------
+
+class _Split:
+    """One split decoded into memory: uint8 videos (N, T, 3, S, S) and labels (frames resized to side ``size`` by
+    area averaging when it differs from the data's)."""
+
+    def __init__(self, data: TrainingData, size: int | None = None) -> None:
+        from vid2sim.predictor.predict import to_model_input
+
+        n = len(data)
+        mean = torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1)
+        std = torch.tensor(IMAGENET_STD).view(1, 3, 1, 1)
+        videos, logE, nu, layers = [], [], [], []
+        for i in range(n):  # in order: each shard is decoded once
+            v, t = data[i]
+            u = v * std + mean if data.normalize == "imagenet" else v
+            if size is not None and u.shape[-1] != size:
+                u = to_model_input(u.permute(0, 2, 3, 1), size) * std + mean
+            videos.append((u * 255.0).round().clamp(0, 255).to(torch.uint8))
+            logE.append(t["log10_E"])
+            nu.append(t["nu"])
+            layers.append(t["last_layer"])
+        self.videos = torch.stack(videos) if n else torch.zeros(0, dtype=torch.uint8)
+        self.targets = {"log10_E": torch.stack(logE) if n else torch.zeros(0),
+                        "nu": torch.stack(nu) if n else torch.zeros(0),
+                        "last_layer": torch.stack(layers) if n else torch.zeros(0, 650)}
+
+    def __len__(self) -> int:
+        return int(self.videos.shape[0])
+
+    def batch(self, idx: torch.Tensor) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        return normalise_video(self.videos[idx]), {k: v[idx] for k, v in self.targets.items()}
+
+
+def normalise_video(frames: torch.Tensor) -> torch.Tensor:
+    """uint8 (…, T, 3, R, R) frames → float32 ImageNet-normalised (what :class:`TrainingData` gives)."""
+    mean = torch.tensor(IMAGENET_MEAN).view(3, 1, 1)
+    std = torch.tensor(IMAGENET_STD).view(3, 1, 1)
+    return (frames.float() / 255.0 - mean) / std
+
+
+# ---- evaluation -----------------------------------------------------------------------------------------
+
+@torch.no_grad()
+def evaluate(model: PhysicsPredictor, split: _Split, weights: LossWeights, batch_size: int = 16) -> dict[str, float]:
+    """Validation figures of ``model`` on ``split``: loss, MAE of log10 E and ν (label units), MSE of the
+    standardised last layer."""
+    model.eval()
+    n = len(split)
+    if n == 0:
+        return {}
+    preds: dict[str, list[torch.Tensor]] = {"log10_E": [], "nu": [], "last_layer": []}
+    zs: list[torch.Tensor] = []
+    for s in range(0, n, batch_size):
+        idx = torch.arange(s, min(n, s + batch_size))
+        video, _ = split.batch(idx)
+        z = model(video)
+        y = model.unstandardise(z)
+        for k in preds:
+            preds[k].append(y[k])
+        zs.append(z["last_layer"])
+    y = {k: torch.cat(v) for k, v in preds.items()}
+    t = split.targets
+    z = {"log10_E": model.standardise({"log10_E": y["log10_E"]})["log10_E"],
+         "nu": model.standardise({"nu": y["nu"]})["nu"], "last_layer": torch.cat(zs)}
+    loss, parts = predictor_loss(model, z, t, weights)
+    return {"loss": float(loss), "mae_log10_E": float((y["log10_E"] - t["log10_E"]).abs().mean()),
+            "mae_nu": float((y["nu"] - t["nu"]).abs().mean()), "mse_last_layer_std": parts["last_layer"],
+            "samples": n}
+
+
+def constant_baselines(stats: dict[str, dict[str, torch.Tensor]], split: _Split) -> dict[str, float]:
+    """MAE on ``split`` of the constant predictor that always answers the training split's mean (label units),
+    and the standardised last layer's MSE for the mean last layer."""
+    t = split.targets
+    z = (t["last_layer"] - stats["last_layer"]["mean"]) / torch.where(
+        stats["last_layer"]["std"] > 1e-8, stats["last_layer"]["std"], torch.ones_like(stats["last_layer"]["std"]))
+    return {"mae_log10_E": float((t["log10_E"] - stats["log10_E"]["mean"]).abs().mean()),
+            "mae_nu": float((t["nu"] - stats["nu"]["mean"]).abs().mean()),
+            "mse_last_layer_std": float((z ** 2).mean())}
+
+
+# ---- checkpoints ----------------------------------------------------------------------------------------
+
+def _atomic_save(payload: dict, path: Path) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    os.close(fd)
+    try:
+        torch.save(payload, tmp)
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def checkpoint_payload(model: PhysicsPredictor, *, half: bool = False, label_stats: dict | None = None,
+                       data_config: dict | None = None, train_config: dict | None = None,
+                       metrics: dict | None = None) -> dict[str, Any]:
+    """The checkpoint dict of ``model`` (module docstring); ``half`` stores floating weights as float16."""
+    sd = {k: (v.detach().half() if half and v.is_floating_point() and "label_" not in k else v.detach().clone())
+          for k, v in model.state_dict().items()}
+    return {"format": CHECKPOINT_FORMAT, "config": model.config.to_dict(),
+            "backbone_config": model.backbone.config.to_dict(), "state_dict": sd,
+            "label_stats": _plain(label_stats), "data_config": data_config, "train_config": train_config,
+            "metrics": metrics}
+
+
+def save_predictor(model: PhysicsPredictor, path: str | Path, half: bool = False, **info: Any) -> Path:
+    """Write ``model`` as a checkpoint at ``path`` atomically (``info``: label_stats, data_config, train_config,
+    metrics)."""
+    path = Path(path)
+    _atomic_save(checkpoint_payload(model, half=half, **info), path)
+    return path
+
+
+def read_checkpoint(path: str | Path) -> dict[str, Any]:
+    """The checkpoint dict at ``path``. Raises FileNotFoundError / ValueError naming the file."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"predictor checkpoint {path} does not exist")
+    payload = torch.load(path, map_location="cpu", weights_only=True)
+    if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
+        raise ValueError(f"{path} is not a vid2sim predictor checkpoint (format {CHECKPOINT_FORMAT})")
+    return payload
+
+
+def load_predictor(path: str | Path) -> PhysicsPredictor:
+    """The :class:`PhysicsPredictor` stored at ``path`` (float32, CPU, eval mode), with the checkpoint's
+    ``metrics`` and ``data_config`` as attributes of the same names."""
+    payload = read_checkpoint(path)
+    cfg = dict(payload["config"])
+    model = PhysicsPredictor(PredictorConfig(**cfg), backbone_config=payload["backbone_config"])
+    model.load_state_dict({k: v.float() if v.is_floating_point() else v for k, v in payload["state_dict"].items()})
+    model.eval()
+    model.metrics = payload.get("metrics")
+    model.data_config = payload.get("data_config")
+    return model
+
+
+def _plain(x: Any) -> Any:
+    if isinstance(x, dict):
+        return {k: _plain(v) for k, v in x.items()}
+    if isinstance(x, torch.Tensor):
+        return x.tolist()
+    return x
+
+
+# ---- training -------------------------------------------------------------------------------------------
+
+def _lr_factor(step: int, cfg: TrainConfig) -> float:
+    if cfg.warmup and step < cfg.warmup:
+        return (step + 1) / cfg.warmup
+    frac = min(1.0, (step - cfg.warmup) / max(1, cfg.steps - cfg.warmup))
+    lo = cfg.final_lr_fraction
+    return lo + (1 - lo) * 0.5 * (1 + math.cos(math.pi * frac))
+
+
+def _config_dict(cfg: TrainConfig) -> dict[str, Any]:
+    d = asdict(cfg)
+    d.pop("max_minutes")
+    return d
+
+
+def train_predictor(data_folder: str | Path, out: str | Path, config: TrainConfig | None = None,
+                    progress: bool = True, stop_at_step: int | None = None) -> dict[str, Any]:
+    """Train (or resume training) the predictor on ``data_folder`` into the folder ``out`` (module docstring).
+
+    ``stop_at_step`` ends this call once that many steps are done in all (a checkpoint is written; rerun to
+    continue), like ``max_minutes`` but in steps.
+
+    Returns:
+        the training log (also ``OUT/train_log.json``): {"config", "data", "baselines", "train_curve",
+        "val_curve", "best", "final", "seconds", "steps_done", "complete", "threads", ...}.
+    Raises:
+        ValueError: the data folder has too few samples, or ``OUT/last.pt`` was made with other settings.
+    """
+    from tqdm.auto import tqdm
+
+    cfg = config or TrainConfig()
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    t_start = time.perf_counter()
+    train_data = TrainingData(data_folder, "train", cfg.val_fraction, cfg.split_seed)
+    val_data = TrainingData(data_folder, "val", cfg.val_fraction, cfg.split_seed)
+    if len(train_data) < cfg.batch_size:
+        raise ValueError(f"{data_folder}: {len(train_data)} training samples, fewer than one batch "
+                         f"({cfg.batch_size})")
+    data_cfg = train_data.index.get("config")
+    if int(data_cfg["frames"]) != cfg.model.num_frames:
+        raise ValueError(f"{data_folder}: videos of {data_cfg['frames']} frames, the model takes "
+                         f"{cfg.model.num_frames}")
+    stats = train_data.label_statistics()
+    train, val = _Split(train_data, cfg.model.image_size), _Split(val_data, cfg.model.image_size)
+    t_data = time.perf_counter() - t_start
+
+    model = PhysicsPredictor(cfg.model)
+    model.set_label_statistics(stats)
+    opt = torch.optim.Adam(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    last_path, best_path = out / "last.pt", out / "best.pt"
+    cfg_dict = _config_dict(cfg)
+    log: dict[str, Any] = {"train_curve": [], "val_curve": [], "best": None, "seconds_training": 0.0}
+    step = 0
+    if last_path.is_file():
+        ck = read_checkpoint(last_path)
+        if ck.get("train_config") != json.loads(json.dumps(cfg_dict)) and ck.get("train_config") != cfg_dict:
+            raise ValueError(f"{last_path} was written with other training settings; use another output folder or "
+                             "the same settings to resume")
+        model.load_state_dict(ck["state_dict"])
+        opt.load_state_dict(ck["optimizer"])
+        step, log = int(ck["step"]), ck["log"]
+    baselines = constant_baselines(stats, val)
+    steps_per_epoch = max(1, len(train) // cfg.batch_size)
+    info = {"label_stats": stats, "data_config": data_cfg, "train_config": cfg_dict}
+
+    def checkpoint(metrics: dict) -> None:
+        log["seconds_training"] = log.get("seconds_training", 0.0) + (time.perf_counter() - t_mark[0])
+        t_mark[0] = time.perf_counter()
+        if metrics and (log["best"] is None or metrics["loss"] < log["best"]["loss"]):
+            log["best"] = dict(metrics, step=step)
+            save_predictor(model, best_path, metrics=dict(metrics, step=step), **info)
+        payload = checkpoint_payload(model, metrics=metrics, **info)
+        payload.update(optimizer=opt.state_dict(), step=step, log=log)
+        _atomic_save(payload, last_path)
+
+    t_mark = [time.perf_counter()]
+    deadline = None if cfg.max_minutes is None else time.perf_counter() + 60.0 * cfg.max_minutes
+    bar = tqdm(total=cfg.steps, initial=step, desc="train-predictor", unit="step", disable=not progress)
+    window: list[float] = []
+    stopped_early = False
+    perm, perm_epoch = None, -1
+    while step < cfg.steps:
+        if (deadline is not None and time.perf_counter() > deadline) or (
+                stop_at_step is not None and step >= stop_at_step):
+            stopped_early = True
+            break
+        epoch, pos = divmod(step, steps_per_epoch)
+        if epoch != perm_epoch:
+            perm = torch.randperm(len(train), generator=torch.Generator().manual_seed(cfg.seed + 1000 * epoch))
+            perm_epoch = epoch
+        idx = perm[pos * cfg.batch_size:(pos + 1) * cfg.batch_size]
+        model.train()
+        for g in opt.param_groups:
+            g["lr"] = cfg.lr * _lr_factor(step, cfg)
+        video, targets = train.batch(idx)
+        loss, _ = predictor_loss(model, model(video), targets, cfg.loss)
+        if not torch.isfinite(loss):
+            raise FloatingPointError(f"train-predictor: the loss became {float(loss)} at step {step}")
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        step += 1
+        window.append(float(loss.detach()))
+        bar.update(1)
+        if step % cfg.eval_every == 0 or step == cfg.steps:
+            log["train_curve"].append({"step": step, "loss": float(np.mean(window))})
+            window = []
+            metrics = evaluate(model, val, cfg.loss)
+            if metrics:
+                log["val_curve"].append(dict(metrics, step=step))
+                bar.set_postfix(val_mae_logE=f"{metrics['mae_log10_E']:.3f}", val_mae_nu=f"{metrics['mae_nu']:.4f}")
+            checkpoint(metrics)
+    bar.close()
+    if stopped_early and (not log["val_curve"] or log["val_curve"][-1]["step"] != step):
+        if window:
+            log["train_curve"].append({"step": step, "loss": float(np.mean(window))})
+        metrics = evaluate(model, val, cfg.loss)
+        if metrics:
+            log["val_curve"].append(dict(metrics, step=step))
+        checkpoint(metrics)
+    complete = step >= cfg.steps
+    final = log["val_curve"][-1] if log["val_curve"] else None
+    best_metrics = log["best"]
+    if best_path.is_file():
+        best_model = load_predictor(best_path)
+        shipped = dict(best_metrics or {}, **{f"baseline_{k}": v for k, v in baselines.items()},
+                       val_samples=len(val), train_samples=len(train))
+        save_predictor(best_model, out / "predictor.pt", half=True, metrics=shipped, **info)
+    record = {"config": cfg_dict, "data": {"folder": str(data_folder), "train_samples": len(train),
+                                           "val_samples": len(val), "train_objects": len(train_data.shards),
+                                           "val_objects": len(val_data.shards), "data_config": data_cfg,
+                                           "seconds_loading": t_data},
+              "label_stats": _plain({k: {"mean": v["mean"], "std": v["std"]} for k, v in stats.items()
+                                     if k != "last_layer"}),
+              "baselines_constant_mean": baselines, "train_curve": log["train_curve"], "val_curve": log["val_curve"],
+              "best": best_metrics, "final": final, "steps_done": step, "complete": complete,
+              "seconds_training": log.get("seconds_training", 0.0), "threads": torch.get_num_threads(),
+              "torch": str(torch.__version__)}
+    (out / "train_log.json").write_text(json.dumps(record, indent=1))
+    return record

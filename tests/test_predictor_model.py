@@ -1,0 +1,233 @@
+"""The Stage I predictor: the VideoMAE network and its heads, the loss, position-table interpolation for a
+user's checkpoint of another size, checkpoints (save/load/resume), training on a tiny generated dataset,
+inference time, the shipped checkpoint, and the scene-side helpers (front view, frame resampling)."""
+
+from __future__ import annotations
+
+import json
+import time
+
+import pytest
+import torch
+from torch import nn
+
+pytest.importorskip("transformers")
+
+from vid2sim.predictor.data import TrainingDataConfig, make_training_data  # noqa: E402
+from vid2sim.predictor.model import (LossWeights, PhysicsPredictor, PredictorConfig, head_widths,  # noqa: E402
+                                     interpolate_position_table, predictor_loss, sinusoid_table)
+from vid2sim.predictor.predict import (DEFAULT_PREDICTOR, centred_grid, front_video, predict_video,  # noqa: E402
+                                       resample_frames)
+from vid2sim.predictor.train import (TrainConfig, load_predictor, read_checkpoint, save_predictor,  # noqa: E402
+                                     train_predictor)
+
+TINY_MODEL = dict(image_size=16, num_frames=4, patch_size=8, tubelet_size=2, hidden_size=48, num_layers=1,
+                  num_heads=2, intermediate_size=96)
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    old = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(old)
+
+
+@pytest.fixture(scope="module")
+def tiny_data(tmp_path_factory):
+    """A real make-training-data folder: 5 objects x 2 draws, 4 frames of 16x16."""
+    out = tmp_path_factory.mktemp("s1data") / "data"
+    cfg = TrainingDataConfig(objects=5, draws_per_object=2, resolution=16, frames=4, points=600, cubature_points=60,
+                             contact_points=100)
+    make_training_data(cfg, out, workers=1, threads=1, progress=False)
+    return out
+
+
+def _linears(seq: nn.Sequential) -> list[int]:
+    lin = [m for m in seq if isinstance(m, nn.Linear)]
+    return [lin[0].in_features] + [m.out_features for m in lin]
+
+
+def test_heads_follow_the_design_widths_and_use_gelu():
+    assert head_widths(768) == [768, 512, 256, 128, 1]  # DESIGN.md's heads at VideoMAE-base width
+    m = PhysicsPredictor(PredictorConfig(**TINY_MODEL))
+    assert _linears(m.head_E) == head_widths(48) == [48, 32, 16, 8, 1]
+    assert _linears(m.head_nu) == [48, 32, 16, 8, 1]
+    assert _linears(m.hyper) == [48, 650, 650, 650, 650]
+    assert sum(isinstance(x, nn.GELU) for x in m.hyper) == 3 and not isinstance(m.hyper[-1], nn.GELU)
+
+
+def test_forward_shapes_mean_pooling_and_label_units():
+    m = PhysicsPredictor(PredictorConfig(**TINY_MODEL)).eval()
+    x = torch.randn(3, 4, 3, 16, 16)
+    z = m(x)
+    assert z["log10_E"].shape == (3,) and z["nu"].shape == (3,) and z["last_layer"].shape == (3, 650)
+    tokens = m.backbone(pixel_values=x).last_hidden_state
+    assert tokens.shape == (3, 2 * 2 * 2, 48)  # (4/2) x (16/8)^2 tokens
+    torch.testing.assert_close(m.features(x), tokens.mean(1))
+    stats = {"log10_E": {"mean": torch.tensor(5.0), "std": torch.tensor(0.5)},
+             "nu": {"mean": torch.tensor(0.3), "std": torch.tensor(0.1)},
+             "last_layer": {"mean": torch.full((650,), 0.01), "std": torch.full((650,), 0.002)}}
+    m.set_label_statistics(stats)
+    y = m.predict(x[0])
+    torch.testing.assert_close(y["log10_E"], 5.0 + 0.5 * m(x[:1])["log10_E"][0])
+    torch.testing.assert_close(y["last_layer"], 0.01 + 0.002 * m(x[:1])["last_layer"][0])
+    with pytest.raises(ValueError, match="frames of 16x16"):
+        m(torch.randn(1, 4, 3, 32, 32))
+
+
+def test_loss_is_the_issue_formula():
+    m = PhysicsPredictor(PredictorConfig(**TINY_MODEL))
+    m.set_label_statistics({"log10_E": {"mean": torch.tensor(5.0), "std": torch.tensor(2.0)},
+                            "nu": {"mean": torch.tensor(0.3), "std": torch.tensor(0.1)},
+                            "last_layer": {"mean": torch.zeros(650), "std": torch.full((650,), 0.5)}})
+    z = {"log10_E": torch.tensor([0.5, -1.0]), "nu": torch.tensor([1.0, 0.0]), "last_layer": torch.ones(2, 650)}
+    t = {"log10_E": torch.tensor([6.0, 3.0]), "nu": torch.tensor([0.35, 0.3]), "last_layer": torch.zeros(2, 650)}
+    loss, parts = predictor_loss(m, z, t)
+    # predictions in label units: log10 E = 6, 3 (exact), nu = 0.4, 0.3; last layer standardised: 1 vs 0
+    assert parts["log10_E"] == pytest.approx(0.0)
+    assert parts["nu"] == pytest.approx(0.5 * 0.05 ** 2)
+    assert parts["last_layer"] == pytest.approx(1.0)
+    assert float(loss) == pytest.approx(0.0 + 100 * 0.5 * 0.05 ** 2 + 1.0)
+    loss2, _ = predictor_loss(m, z, t, LossWeights(log10_E=1, nu=0, last_layer=2))
+    assert float(loss2) == pytest.approx(2.0)
+
+
+def test_position_table_matches_transformers_and_interpolates():
+    from transformers.models.videomae.modeling_videomae import get_sinusoid_encoding_table
+
+    torch.testing.assert_close(sinusoid_table(40, 24)[None], get_sinusoid_encoding_table(40, 24))
+    table = torch.randn(2 * 3 * 3, 5)
+    assert torch.equal(interpolate_position_table(table, (2, 3, 3), (2, 3, 3))[0], table)
+    up = interpolate_position_table(table, (2, 3, 3), (4, 6, 6))
+    assert up.shape == (1, 4 * 6 * 6, 5)
+    # a table linear in (t, row, col) stays linear: trilinear resampling of a linear field at the new centres
+    g = torch.stack(torch.meshgrid(torch.arange(2.0), torch.arange(3.0), torch.arange(3.0), indexing="ij"), -1)
+    lin = (g @ torch.tensor([1.0, 10.0, 100.0])).reshape(-1, 1)
+    out = interpolate_position_table(lin, (2, 3, 3), (2, 3, 3 * 2)).reshape(2, 3, 6)
+    # along columns, new centre j maps to old coordinate (j + 0.5)/2 - 0.5, clamped to [0, 2]
+    cols = ((torch.arange(6.0) + 0.5) / 2 - 0.5).clamp(0, 2)
+    torch.testing.assert_close(out[1, 2], 1 + 20 + 100 * cols)
+    with pytest.raises(ValueError, match="rows"):
+        interpolate_position_table(table, (2, 3, 4), (2, 3, 3))
+
+
+def test_user_checkpoint_of_another_size_is_loaded_locally_with_interpolated_positions(tmp_path):
+    from transformers import VideoMAEConfig, VideoMAEModel
+
+    torch.manual_seed(3)
+    src = VideoMAEModel(VideoMAEConfig(image_size=32, num_frames=4, patch_size=8, tubelet_size=2, hidden_size=48,
+                                       num_hidden_layers=1, num_attention_heads=2, intermediate_size=96))
+    src.save_pretrained(tmp_path / "videomae")
+    cfg = PredictorConfig(image_size=16, num_frames=8, pretrained=str(tmp_path / "videomae"))
+    m = PhysicsPredictor(cfg)
+    assert m.width == 48 and m.image_size == 16 and m.num_frames == 8
+    # the pre-trained weights are there (the patch projection does not depend on the input size)
+    torch.testing.assert_close(m.backbone.embeddings.patch_embeddings.projection.weight,
+                               src.embeddings.patch_embeddings.projection.weight)
+    torch.testing.assert_close(m.backbone.encoder.layer[0].attention.attention.query.weight,
+                               src.encoder.layer[0].attention.attention.query.weight)
+    # the position table: the checkpoint's (2, 4, 4) grid resampled to (4, 2, 2)
+    expected = interpolate_position_table(src.embeddings.position_embeddings[0], (2, 4, 4), (4, 2, 2))
+    torch.testing.assert_close(m.position_table, expected)
+    assert m(torch.randn(2, 8, 3, 16, 16))["last_layer"].shape == (2, 650)
+    # the same size: the table is the checkpoint's own
+    same = PhysicsPredictor(PredictorConfig(image_size=32, num_frames=4, pretrained=str(tmp_path / "videomae")))
+    torch.testing.assert_close(same.position_table, src.embeddings.position_embeddings)
+    # local only: a model id absent from the cache is an error, not a download
+    with pytest.raises(OSError):
+        PhysicsPredictor(PredictorConfig(pretrained="vid2sim-test/no-such-videomae"))
+    # and a checkpoint of it reloads without the original folder, table included
+    save_predictor(m, tmp_path / "p.pt")
+    (tmp_path / "videomae" / "config.json").unlink()
+    back = load_predictor(tmp_path / "p.pt")
+    torch.testing.assert_close(back.position_table, expected)
+    x = torch.randn(1, 8, 3, 16, 16)
+    torch.testing.assert_close(back(x)["nu"], m.eval()(x)["nu"])
+
+
+def test_checkpoint_round_trip_and_fp16(tmp_path):
+    m = PhysicsPredictor(PredictorConfig(**TINY_MODEL)).eval()
+    m.label_mean_log10_E.fill_(5.0)
+    x = torch.randn(2, 4, 3, 16, 16)
+    save_predictor(m, tmp_path / "a.pt", metrics={"mae_log10_E": 0.1})
+    back = load_predictor(tmp_path / "a.pt")
+    for k, v in m.state_dict().items():
+        assert torch.equal(back.state_dict()[k], v), k
+    assert back.metrics == {"mae_log10_E": 0.1}
+    save_predictor(m, tmp_path / "h.pt", half=True)
+    payload = read_checkpoint(tmp_path / "h.pt")
+    assert payload["state_dict"]["hyper.0.weight"].dtype == torch.float16
+    assert payload["state_dict"]["label_mean_log10_E"].dtype == torch.float32  # statistics stay exact
+    half = load_predictor(tmp_path / "h.pt")
+    torch.testing.assert_close(half(x)["log10_E"], m(x)["log10_E"], atol=2e-2, rtol=0)
+    (tmp_path / "bad.pt").write_bytes(b"nope")
+    with pytest.raises(Exception):
+        load_predictor(tmp_path / "bad.pt")
+    with pytest.raises(FileNotFoundError, match="missing.pt"):
+        load_predictor(tmp_path / "missing.pt")
+
+
+def test_training_decreases_the_loss_resumes_exactly_and_logs_baselines(tiny_data, tmp_path):
+    model = PredictorConfig(**TINY_MODEL)
+    cfg = TrainConfig(model=model, steps=40, batch_size=4, lr=1e-3, warmup=2, eval_every=20, val_fraction=0.2,
+                      split_seed=4)  # seed 4 holds out one of the five objects
+    rec = train_predictor(tiny_data, tmp_path / "a", cfg, progress=False)
+    curve = [r["loss"] for r in rec["train_curve"]]
+    assert rec["complete"] and rec["steps_done"] == 40 and len(curve) == 2
+    assert curve[-1] < curve[0]
+    log = json.loads((tmp_path / "a" / "train_log.json").read_text())
+    assert log["data"]["val_samples"] + log["data"]["train_samples"] == 10 and log["data"]["val_samples"] > 0
+    base = log["baselines_constant_mean"]
+    assert base["mae_log10_E"] > 0 and base["mae_nu"] > 0
+    assert {"mae_log10_E", "mae_nu", "mse_last_layer_std", "loss"} <= set(log["val_curve"][-1])
+    for name in ("best.pt", "last.pt", "predictor.pt"):
+        assert (tmp_path / "a" / name).is_file()
+    assert read_checkpoint(tmp_path / "a" / "predictor.pt")["state_dict"]["hyper.0.weight"].dtype == torch.float16
+    # resume: 20 steps in one call, 20 more in a second = 40 at once, bit for bit
+    first = train_predictor(tiny_data, tmp_path / "b", cfg, progress=False, stop_at_step=20)
+    assert first["steps_done"] == 20 and not first["complete"]
+    second = train_predictor(tiny_data, tmp_path / "b", cfg, progress=False)
+    assert second["steps_done"] == 40 and second["complete"]
+    a = read_checkpoint(tmp_path / "a" / "last.pt")["state_dict"]
+    b = read_checkpoint(tmp_path / "b" / "last.pt")["state_dict"]
+    for k in a:
+        assert torch.equal(a[k], b[k]), k
+    assert second["val_curve"][-1]["mae_log10_E"] == pytest.approx(rec["val_curve"][-1]["mae_log10_E"])
+    with pytest.raises(ValueError, match="other training settings"):
+        train_predictor(tiny_data, tmp_path / "b", TrainConfig(**{**cfg.__dict__, "lr": 5e-4}), progress=False)
+
+
+def test_inference_on_one_video_is_fast():
+    m = PhysicsPredictor(PredictorConfig()).eval()  # the default (shipped) architecture
+    x = torch.randn(16, 3, 64, 64)
+    predict_video(m, x)
+    t0 = time.perf_counter()
+    out = predict_video(m, x)
+    assert time.perf_counter() - t0 < 2.0  # the issue's bound for one video on the CPU (one thread here)
+    assert out["last_layer"].shape == (650,) and 0.0 <= out["nu"] <= 0.49
+    assert out["E"] == pytest.approx(10 ** out["log10_E"])
+
+
+@pytest.mark.skipif(not DEFAULT_PREDICTOR.is_file(), reason="no shipped predictor checkpoint")
+def test_shipped_checkpoint_is_small_and_beats_the_constant_baseline():
+    assert DEFAULT_PREDICTOR.stat().st_size <= 20 * 2 ** 20
+    m = load_predictor(DEFAULT_PREDICTOR)
+    assert m.image_size == 64 and m.num_frames == 16
+    met = m.metrics
+    assert met["mae_log10_E"] < met["baseline_mae_log10_E"] and met["mae_nu"] < met["baseline_mae_nu"]
+
+
+def test_scene_side_helpers():
+    from vid2sim.splats.cameras import camera_ring
+
+    imgs = torch.arange(5.0).view(5, 1, 1, 1).expand(5, 4, 4, 3)
+    frames, padded = resample_frames(imgs, 0.025, 0.05, 4)  # a scene at twice the frame rate
+    assert frames[:, 0, 0, 0].tolist() == [0, 2, 4, 4] and padded == 1
+    frames, padded = resample_frames(imgs, 0.05, 0.05, 3)
+    assert frames[:, 0, 0, 0].tolist() == [0, 1, 2] and padded == 0
+    cams = camera_ring(4, 2.4, 20.0, 32, 32, target=(0.0, 0.0, -0.4), azimuth_offset_deg=90.0)  # 90, 180, 270, 0
+    video = torch.rand(4, 6, 32, 32, 3)
+    x, view, padded = front_video(video, cams, 0.05, 16, num_frames=4)
+    assert view == 3 and padded == 0 and x.shape == (4, 3, 16, 16)
+    assert centred_grid((4.0, 4.5, 5.0, 5.5, 6.0), 5.8) == pytest.approx((4.8, 5.3, 5.8, 6.3, 6.8))
