@@ -14,6 +14,8 @@ import numpy as np
 import pytest
 import torch
 
+from vid2sim.report.config import FUTURE_COLOUR
+
 VOID = {"area", "base", "br", "col", "embed", "hr", "img", "input", "link", "meta", "source", "track", "wbr"}
 
 
@@ -354,20 +356,34 @@ def test_chromium_loads_and_paints_videos_and_plots(scene_report, tmp_path):
     layout = json.loads(dom.stdout[start + 13:dom.stdout.index('"', start + 13)].replace("&quot;", '"'))
     sizes = json.loads(dom.stdout[dom.stdout.index("data-video-sizes=") + 18:].split('"', 1)[0].replace("&quot;", '"'))
     assert all(w > 0 and w % 3 == 0 for w, _ in sizes)
-    shot = tmp_path / "shot.png"
     future = json.loads((out / "report.json").read_text())["held_out_frames"][0]
-    res = _chromium([size, "--virtual-time-budget=5000", f"--screenshot={shot}"], f"{url}#frame={future}",
-                    tmp_path / "p2")  # opens paused on the first future frame
-    assert res.returncode == 0 and shot.is_file(), res.stderr[-2000:]
-    rgb = np.asarray(Image.open(shot).convert("RGB"))
-    img = rgb.astype(np.float32) / 255
 
     def colours(a: np.ndarray) -> int:  # distinct RGB colours
         a = a.reshape(-1, 3).astype(np.uint32)
         return len(np.unique((a[:, 0] << 16) | (a[:, 1] << 8) | a[:, 2]))
 
-    assert img.std() > 0.1 and colours(rgb) > 1000
+    def future_tag(img: np.ndarray) -> float:
+        """Share of the video's bottom-right corner (where the frame's tag sits) painted in the tag's orange
+        at full brightness (the timeline's cells are drawn at 75 %, so they do not count)."""
+        x, y, w, h = boxes["video:0"]
+        corner = img[y + h // 2:y + h, x + w - w // 4:x + w]
+        tag = np.array([int(FUTURE_COLOUR[i:i + 2], 16) for i in (1, 3, 5)], np.float32) / 255
+        return float((np.abs(corner - tag).max(-1) < 0.08).mean())
+
     boxes = {name: (x, y, w, h) for name, x, y, w, h in layout}
+    # Headless Chromium takes the screenshot after a virtual-time budget; on a loaded machine the seek to the
+    # future frame may not have been decoded yet, so a longer budget is tried before judging the paint.
+    for attempt, budget in enumerate((5000, 15000, 40000)):
+        shot = tmp_path / f"shot{attempt}.png"
+        res = _chromium([size, f"--virtual-time-budget={budget}", f"--screenshot={shot}"], f"{url}#frame={future}",
+                        tmp_path / f"p2-{attempt}")  # opens paused on the first future frame
+        assert res.returncode == 0 and shot.is_file(), res.stderr[-2000:]
+        rgb = np.asarray(Image.open(shot).convert("RGB"))
+        img = rgb.astype(np.float32) / 255
+        if future_tag(img) > 0.02:
+            break
+    assert future_tag(img) > 0.02, f"no orange FUTURE tag painted on frame {future}; see {shot}"
+    assert img.std() > 0.1 and colours(rgb) > 1000
     x, y, w, h = boxes["video:0"]
     assert w > 300 and h > 100 and y + h <= img.shape[0]
     video = img[y + 5:y + h - 5, x + 5:x + w - 5]
@@ -375,8 +391,6 @@ def test_chromium_loads_and_paints_videos_and_plots(scene_report, tmp_path):
     assert video.std() > 0.1
     assert (video[:, :third] > 0.95).all(-1).mean() > 0.2  # the ground truth's white background was painted
     assert (video[:, 2 * third:] < 0.1).all(-1).mean() > 0.2  # the heat map's black (no error) was painted
-    r, g, b = video[-40:, -160:].reshape(-1, 3).T  # the frame's tag, bottom right: orange "FUTURE · predicted"
-    assert ((r > 0.7) & (g > 0.25) & (g < 0.55) & (b < 0.3)).mean() > 0.1
     for plot in ("plot:psnr", "plot:optimisation"):
         x, y, w, h = boxes[plot]
         region = img[y:y + h, x:x + w]
