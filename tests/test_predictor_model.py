@@ -16,10 +16,11 @@ pytest.importorskip("transformers")
 from vid2sim.predictor.data import TrainingDataConfig, make_training_data  # noqa: E402
 from vid2sim.predictor.model import (LossWeights, PhysicsPredictor, PredictorConfig, head_widths,  # noqa: E402
                                      interpolate_position_table, predictor_loss, sinusoid_table)
-from vid2sim.predictor.predict import (DEFAULT_PREDICTOR, centred_grid, front_video, predict_video,  # noqa: E402
-                                       resample_frames)
-from vid2sim.predictor.train import (TrainConfig, load_predictor, read_checkpoint, save_predictor,  # noqa: E402
-                                     train_predictor)
+from vid2sim.predictor.predict import (DEFAULT_PREDICTOR, centred_grid, frame_for_model,  # noqa: E402
+                                       front_video, object_box, object_crop, predict_video, resample_frames)
+from vid2sim.cli import main  # noqa: E402
+from vid2sim.predictor.train import (TrainConfig, evaluate_predictor, load_predictor, read_checkpoint,  # noqa: E402
+                                     save_predictor, train_predictor)
 
 TINY_MODEL = dict(image_size=16, num_frames=4, patch_size=8, tubelet_size=2, hidden_size=48, num_layers=1,
                   num_heads=2, intermediate_size=96)
@@ -168,7 +169,7 @@ def test_checkpoint_round_trip_and_fp16(tmp_path):
         load_predictor(tmp_path / "missing.pt")
 
 
-def test_training_decreases_the_loss_resumes_exactly_and_logs_baselines(tiny_data, tmp_path):
+def test_training_decreases_the_loss_resumes_exactly_and_logs_baselines(tiny_data, tmp_path, capsys):
     model = PredictorConfig(**TINY_MODEL)
     cfg = TrainConfig(model=model, steps=40, batch_size=4, lr=1e-3, warmup=2, eval_every=20, val_fraction=0.2,
                       split_seed=4)  # seed 4 holds out one of the five objects
@@ -184,6 +185,19 @@ def test_training_decreases_the_loss_resumes_exactly_and_logs_baselines(tiny_dat
     for name in ("best.pt", "last.pt", "predictor.pt"):
         assert (tmp_path / "a" / name).is_file()
     assert read_checkpoint(tmp_path / "a" / "predictor.pt")["state_dict"]["hyper.0.weight"].dtype == torch.float16
+    # scoring the shipped-format checkpoint on the held-out objects gives the log's best figures and baselines
+    held_out = evaluate_predictor(tmp_path / "a" / "predictor.pt", tiny_data, "val", val_fraction=0.2, split_seed=4)
+    assert held_out["samples"] == log["data"]["val_samples"]
+    assert held_out["mae_log10_E"] == pytest.approx(rec["best"]["mae_log10_E"], rel=0.02, abs=1e-3)
+    for k in ("mae_log10_E", "mae_nu", "mse_last_layer_std"):
+        assert held_out[f"baseline_{k}"] == pytest.approx(base[k], rel=1e-4), k
+    assert main(["eval-predictor", str(tmp_path / "a" / "predictor.pt"), str(tiny_data), "--json",
+                 str(tmp_path / "e.json"), "--threads", "1"]) == 0
+    assert json.loads((tmp_path / "e.json").read_text())["samples"] == 10
+    for bad, message in (([str(tmp_path / "none.pt"), str(tiny_data)], "no such predictor checkpoint"),
+                         ([str(tmp_path / "a" / "predictor.pt"), str(tmp_path)], "no index.json")):
+        assert main(["eval-predictor", *bad]) == 2
+        assert message in capsys.readouterr().err
     # resume: 20 steps in one call, 20 more in a second = 40 at once, bit for bit
     first = train_predictor(tiny_data, tmp_path / "b", cfg, progress=False, stop_at_step=20)
     assert first["steps_done"] == 20 and not first["complete"]
@@ -231,3 +245,46 @@ def test_scene_side_helpers():
     x, view, padded = front_video(video, cams, 0.05, 16, num_frames=4)
     assert view == 3 and padded == 0 and x.shape == (4, 3, 16, 16)
     assert centred_grid((4.0, 4.5, 5.0, 5.5, 6.0), 5.8) == pytest.approx((4.8, 5.3, 5.8, 6.3, 6.8))
+
+
+def _moving_square(side: int, scale: float, offset: tuple[int, int], frames: int = 6) -> torch.Tensor:
+    """White (T, side, side, 3) frames with a dark square falling and widening, drawn at ``scale`` and moved by
+    ``offset``: the same motion seen by a closer or farther camera."""
+    video = torch.ones(frames, side, side, 3)
+    for t in range(frames):
+        y0, x0, h, w = 4 + 3 * t, 10, 8, 8 + t  # pixels at scale 1
+        r0, c0 = offset[0] + round(scale * y0), offset[1] + round(scale * x0)
+        video[t, r0:r0 + round(scale * h), c0:c0 + round(scale * w)] = torch.tensor([0.2, 0.3, 0.6])
+    return video
+
+
+def test_object_framing_crops_the_motion_and_undoes_the_camera_distance():
+    near = _moving_square(96, 2.0, (2, 4))
+    far = _moving_square(96, 1.0, (40, 50))  # half the size elsewhere in the frame
+    top, left, side = object_box(far)
+    # the motion covers rows 44..66 and columns 60..72 of the far view: a 23-pixel square widened by 10 % a side
+    assert side == round(23 * 1.2) and top == (44 + 67 - side) // 2 and left == (60 + 73 - side) // 2
+    crop = object_crop(far)
+    assert crop.shape == (6, side, side, 3)
+    assert torch.equal(crop[:, 1:-1, 1:-1], far[:, top + 1:top + side - 1, left + 1:left + side - 1])
+    a, b = frame_for_model(near, 32), frame_for_model(far, 32)
+    full = (frame_for_model(near, 32, "full") - frame_for_model(far, 32, "full")).abs().mean()
+    assert (a - b).abs().mean() < 0.35 * full  # what is left is the far view's pixel rounding
+    edge = object_crop(_moving_square(40, 1.0, (-2, 26)))  # the motion touches the image's top and right edges
+    assert edge.shape[1] == edge.shape[2] and (edge[:, 0] == 1).all() and (edge[:, :, -1] == 1).all()
+    with pytest.raises(ValueError, match="no object"):
+        object_box(torch.ones(3, 8, 8, 3))
+    with pytest.raises(ValueError, match="framing"):
+        frame_for_model(near, 32, "zoom")
+    with pytest.raises(ValueError, match="framing"):
+        PredictorConfig(framing="zoom")
+
+
+def test_checkpoints_without_framing_load_as_full_frame(tmp_path):
+    model = PhysicsPredictor(PredictorConfig(**TINY_MODEL, framing="full"))
+    path = save_predictor(model, tmp_path / "old.pt")
+    payload = torch.load(path, weights_only=True)
+    payload["config"].pop("framing")  # as written before framing existed
+    torch.save(payload, path)
+    assert load_predictor(path).config.framing == "full"
+    assert PredictorConfig().framing == "object"

@@ -24,7 +24,7 @@ def _cmd_train_predictor(args: argparse.Namespace) -> int:
         model = PredictorConfig(image_size=args.image_size, patch_size=args.patch_size, tubelet_size=args.tubelet_size,
                                 hidden_size=args.width, num_layers=args.layers,
                                 num_heads=args.heads, intermediate_size=4 * args.width, pretrained=args.pretrained,
-                                seed=args.seed)
+                                framing=args.framing, seed=args.seed)
         cfg = TrainConfig(model=model, steps=args.steps, batch_size=args.batch_size, lr=args.lr,
                           val_fraction=args.val_fraction, eval_every=args.eval_every, max_minutes=args.max_minutes,
                           seed=args.seed)
@@ -57,6 +57,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--eval-every", type=int, default=200, help="steps between validations/checkpoints (default 200)")
     p.add_argument("--max-minutes", type=float, default=None, help="stop after this wall time (rerun resumes)")
     p.add_argument("--image-size", type=int, default=64, help="model input side (default 64; the data's is resized)")
+    p.add_argument("--framing", choices=("object", "full"), default="object",
+                   help="what of each frame the model sees: a square around the object's motion (default) or the "
+                        "whole frame")
     p.add_argument("--patch-size", type=int, default=16, help="patch side in pixels (default 16)")
     p.add_argument("--tubelet-size", type=int, default=2, help="frames per token (default 2)")
     p.add_argument("--width", type=int, default=192, help="transformer width (default 192; MLP 4x)")
@@ -69,3 +72,41 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_threads_option(p)
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_train_predictor)
+
+    q = sub.add_parser("eval-predictor", help="score a Stage I checkpoint on a training-data folder (a held-out "
+                       "test set) against the constant-mean baseline",
+                       description="Score the predictor CHECKPOINT on the videos of DATA (make a test set with "
+                       "`vid2sim make-training-data` and another --seed): MAE of log10 E and nu and the last "
+                       "layer's standardised MSE, beside the constant guess of the checkpoint's training means.")
+    q.add_argument("checkpoint", help="predictor checkpoint (train-predictor's predictor.pt)")
+    q.add_argument("data", help="training-data folder to score on")
+    q.add_argument("--split", choices=("all", "val", "train"), default="all",
+                   help="which objects of DATA (default all: a separate test set)")
+    q.add_argument("--json", metavar="FILE", default=None, help="also write the figures to FILE")
+    add_threads_option(q)
+    q.set_defaults(func=_cmd_eval_predictor)
+
+
+def _cmd_eval_predictor(args: argparse.Namespace) -> int:
+    import json
+    from pathlib import Path
+
+    if not Path(args.checkpoint).is_file():
+        raise UserError(f"{args.checkpoint}: no such predictor checkpoint")
+    if not (Path(args.data) / "index.json").is_file():
+        raise UserError(f"{args.data}: no index.json; expected a training-data folder (vid2sim make-training-data)")
+    set_threads(args.threads)
+    from vid2sim.predictor.train import evaluate_predictor
+
+    try:
+        r = evaluate_predictor(args.checkpoint, args.data, args.split)
+    except ValueError as exc:
+        raise UserError(str(exc)) from exc
+    print(f"{r['samples']} videos of {args.data} ({args.split}), framing {r['framing']}:")
+    print(f"  MAE log10 E  {r['mae_log10_E']:.3f}   (constant mean {r['baseline_mae_log10_E']:.3f})")
+    print(f"  MAE nu       {r['mae_nu']:.4f}  (constant mean {r['baseline_mae_nu']:.4f})")
+    print(f"  last layer   {r['mse_last_layer_std']:.3f}   (constant mean {r['baseline_mse_last_layer_std']:.3f}; "
+          "standardised MSE)")
+    if args.json:
+        Path(args.json).write_text(json.dumps(r, indent=2) + "\n")
+    return 0

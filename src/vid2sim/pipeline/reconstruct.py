@@ -280,7 +280,8 @@ def run_stage1(cfg: ReconstructConfig, images: torch.Tensor, cameras: list, dt: 
         _stage(progress, f"      Stage I skipped: {reason}")
         return {"ran": False, "reason": reason, "checkpoint": str(path)}
     target_dt = float((model.data_config or {}).get("dt", 0.05))
-    video, view, padded = front_video(images, cameras, dt, model.image_size, model.num_frames, target_dt, centre)
+    video, view, padded = front_video(images, cameras, dt, model.image_size, model.num_frames, target_dt, centre,
+                                      framing=model.config.framing)
     pred = predict_video(model, video)
     return {"ran": True, "E": pred["E"], "log10_E": pred["log10_E"], "nu": pred["nu"],
             "seconds": time.perf_counter() - t0, "inference_seconds": pred["seconds"], "view": view,

@@ -48,6 +48,8 @@ class PredictorConfig:
         pretrained: a local VideoMAE checkpoint (folder, or a model id in the local Hugging Face cache) to start
             from instead of a from-scratch backbone (None: from scratch). Its patch and tubelet sizes are kept.
         last_layer_size: outputs of the hypernetwork (650 for the shipped template).
+        framing: what of each frame the model sees: "object" (a square around the object's whole motion,
+            :func:`vid2sim.predictor.predict.object_crop`) or "full" (the whole frame).
         seed: initialises the heads (and a from-scratch backbone).
     """
 
@@ -61,6 +63,7 @@ class PredictorConfig:
     intermediate_size: int = 768
     pretrained: str | None = None
     last_layer_size: int = LAST_LAYER_SIZE
+    framing: str = "object"
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -69,6 +72,8 @@ class PredictorConfig:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise ValueError(f"PredictorConfig.{name} must be a positive integer, got {v!r}")
+        if self.framing not in ("object", "full"):
+            raise ValueError(f"PredictorConfig.framing must be 'object' or 'full', got {self.framing!r}")
         if self.pretrained is None:
             if self.image_size % self.patch_size or self.num_frames % self.tubelet_size:
                 raise ValueError(f"PredictorConfig: image_size {self.image_size} must be a multiple of patch_size "

@@ -89,11 +89,11 @@ class TrainConfig:
 # ---- data -----------------------------------------------------------------------------------------------
 
 class _Split:
-    """One split decoded into memory: uint8 videos (N, T, 3, S, S) and labels (frames resized to side ``size`` by
-    area averaging when it differs from the data's)."""
+    """One split decoded into memory: uint8 videos (N, T, 3, S, S) and labels (frames framed as the model's
+    ``framing`` says and resized to side ``size`` by area averaging, as :func:`frame_for_model` does)."""
 
-    def __init__(self, data: TrainingData, size: int | None = None) -> None:
-        from vid2sim.predictor.predict import to_model_input
+    def __init__(self, data: TrainingData, size: int | None = None, framing: str = "full") -> None:
+        from vid2sim.predictor.predict import frame_for_model
 
         n = len(data)
         mean = torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1)
@@ -102,8 +102,8 @@ class _Split:
         for i in range(n):  # in order: each shard is decoded once
             v, t = data[i]
             u = v * std + mean if data.normalize == "imagenet" else v
-            if size is not None and u.shape[-1] != size:
-                u = to_model_input(u.permute(0, 2, 3, 1), size) * std + mean
+            if framing != "full" or (size is not None and u.shape[-1] != size):
+                u = frame_for_model(u.permute(0, 2, 3, 1), size or u.shape[-1], framing) * std + mean
             videos.append((u * 255.0).round().clamp(0, 255).to(torch.uint8))
             logE.append(t["log10_E"])
             nu.append(t["nu"])
@@ -168,6 +168,40 @@ def constant_baselines(stats: dict[str, dict[str, torch.Tensor]], split: _Split)
             "mse_last_layer_std": float((z ** 2).mean())}
 
 
+def evaluate_predictor(path: str | Path, data_folder: str | Path, split: str = "all", val_fraction: float = 0.1,
+                       split_seed: int = 0) -> dict[str, Any]:
+    """Figures of the checkpoint at ``path`` on a training-data folder — typically a test set generated with
+    another ``--seed``, whose objects and draws the training never saw.
+
+    The videos are framed and resized as the checkpoint's model expects. The constant baselines answer the
+    checkpoint's own training-split label means (what the model knows without looking at the video).
+
+    Returns:
+        {"checkpoint", "data", "split", "samples", "mae_log10_E", "mae_nu", "mse_last_layer_std", "loss",
+        "baseline_mae_log10_E", "baseline_mae_nu", "baseline_mse_last_layer_std", "framing", "seconds"}.
+    Raises:
+        FileNotFoundError / ValueError: no checkpoint or not a training-data folder; videos of another frame
+        count than the model's.
+    """
+    t0 = time.perf_counter()
+    model = load_predictor(path)
+    data = TrainingData(data_folder, split, val_fraction, split_seed)
+    frames = int(data.index["config"]["frames"])
+    if frames != model.num_frames:
+        raise ValueError(f"{data_folder}: videos of {frames} frames, the predictor takes {model.num_frames}")
+    if len(data) == 0:
+        raise ValueError(f"{data_folder}: the {split!r} split has no samples")
+    part = _Split(data, model.image_size, model.config.framing)
+    with torch.no_grad():
+        figures = evaluate(model, part, LossWeights())
+    stats = {k: {"mean": getattr(model, f"label_mean_{k}"), "std": getattr(model, f"label_std_{k}")}
+             for k in ("log10_E", "nu", "last_layer")}
+    stats["log10_E"]["mean"], stats["nu"]["mean"] = stats["log10_E"]["mean"][0], stats["nu"]["mean"][0]
+    base = constant_baselines(stats, part)
+    return {"checkpoint": str(path), "data": str(data_folder), "split": split, "framing": model.config.framing,
+            **figures, **{f"baseline_{k}": v for k, v in base.items()}, "seconds": time.perf_counter() - t0}
+
+
 # ---- checkpoints ----------------------------------------------------------------------------------------
 
 def _atomic_save(payload: dict, path: Path) -> None:
@@ -221,6 +255,7 @@ def load_predictor(path: str | Path) -> PhysicsPredictor:
     ``metrics`` and ``data_config`` as attributes of the same names."""
     payload = read_checkpoint(path)
     cfg = dict(payload["config"])
+    cfg.setdefault("framing", "full")  # checkpoints made before the object framing existed
     model = PhysicsPredictor(PredictorConfig(**cfg), backbone_config=payload["backbone_config"])
     model.load_state_dict({k: v.float() if v.is_floating_point() else v for k, v in payload["state_dict"].items()})
     model.eval()
@@ -282,7 +317,8 @@ def train_predictor(data_folder: str | Path, out: str | Path, config: TrainConfi
         raise ValueError(f"{data_folder}: videos of {data_cfg['frames']} frames, the model takes "
                          f"{cfg.model.num_frames}")
     stats = train_data.label_statistics()
-    train, val = _Split(train_data, cfg.model.image_size), _Split(val_data, cfg.model.image_size)
+    train = _Split(train_data, cfg.model.image_size, cfg.model.framing)
+    val = _Split(val_data, cfg.model.image_size, cfg.model.framing)
     t_data = time.perf_counter() - t_start
 
     model = PhysicsPredictor(cfg.model)
