@@ -322,8 +322,9 @@ def run_suite(suite_dir: str | Path, out_dir: str | Path, config: SuiteConfig | 
     return result
 
 
-def _prepare_out(out: Path, settings: dict[str, Any]) -> None:
-    """Create ``out`` and its suite_config.json, or check that an earlier run there used ``settings``."""
+def check_out(out: Path, settings: dict[str, Any]) -> None:
+    """Raise unless ``out`` can take a run with ``settings`` (``{"suite": path, **SuiteConfig.to_dict()}``):
+    absent, empty, or resumable (its suite_config.json has the same settings). Writes nothing."""
     path = out / SUITE_CONFIG_JSON
     if out.exists() and not out.is_dir():
         raise FileExistsError(f"{out} exists and is not a folder")
@@ -337,8 +338,13 @@ def _prepare_out(out: Path, settings: dict[str, Any]) -> None:
     elif out.exists() and any(out.iterdir()):
         raise FileExistsError(f"{out} is not empty and holds no {SUITE_CONFIG_JSON}: refusing to write a suite "
                               "there")
+
+
+def _prepare_out(out: Path, settings: dict[str, Any]) -> None:
+    """Create ``out`` and its suite_config.json, or check that an earlier run there used ``settings``."""
+    check_out(out, settings)
     out.mkdir(parents=True, exist_ok=True)
-    _write_json_atomic(path, settings)
+    _write_json_atomic(out / SUITE_CONFIG_JSON, settings)
 
 
 def _metric(record: dict[str, Any], key: str) -> float | None:
