@@ -94,6 +94,21 @@ def test_loss_is_the_issue_formula():
     assert float(loss2) == pytest.approx(2.0)
 
 
+def test_last_layer_mask_drops_mirrored_samples_from_the_last_layer_term():
+    model = PhysicsPredictor(PredictorConfig(**TINY_MODEL))
+    torch.manual_seed(0)
+    z = {"log10_E": torch.randn(4), "nu": torch.randn(4), "last_layer": torch.randn(4, 650)}
+    t = {"log10_E": torch.randn(4), "nu": torch.rand(4), "last_layer": torch.randn(4, 650)}
+    _, full = predictor_loss(model, z, t)
+    keep = torch.tensor([True, False, True, False])
+    _, part = predictor_loss(model, z, t, last_layer_mask=keep)
+    sub = {k: v[keep] for k, v in z.items()}, {k: v[keep] for k, v in t.items()}
+    _, ref = predictor_loss(model, *sub)
+    assert part["last_layer"] == pytest.approx(ref["last_layer"]) and part["log10_E"] == pytest.approx(full["log10_E"])
+    loss, none = predictor_loss(model, z, t, last_layer_mask=torch.zeros(4, dtype=torch.bool))
+    assert none["last_layer"] == 0.0 and loss.item() == pytest.approx(none["log10_E"] + 100 * none["nu"], rel=1e-5)
+
+
 def test_position_table_matches_transformers_and_interpolates():
     from transformers.models.videomae.modeling_videomae import get_sinusoid_encoding_table
 

@@ -27,7 +27,7 @@ def _cmd_train_predictor(args: argparse.Namespace) -> int:
                                 framing=args.framing, seed=args.seed)
         cfg = TrainConfig(model=model, steps=args.steps, batch_size=args.batch_size, lr=args.lr,
                           val_fraction=args.val_fraction, eval_every=args.eval_every, max_minutes=args.max_minutes,
-                          seed=args.seed)
+                          seed=args.seed, mirror=not args.no_mirror)
     except ValueError as exc:
         raise UserError(str(exc)) from exc
     record = train_predictor(args.data, args.out, cfg, progress=not args.quiet)
@@ -60,6 +60,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--framing", choices=("object", "full"), default="object",
                    help="what of each frame the model sees: a square around the object's motion (default) or the "
                         "whole frame")
+    p.add_argument("--no-mirror", action="store_true",
+                   help="no left-right mirroring of training videos (default: each mirrored with probability 1/2; "
+                        "E and nu keep their labels)")
     p.add_argument("--patch-size", type=int, default=16, help="patch side in pixels (default 16)")
     p.add_argument("--tubelet-size", type=int, default=2, help="frames per token (default 2)")
     p.add_argument("--width", type=int, default=192, help="transformer width (default 192; MLP 4x)")

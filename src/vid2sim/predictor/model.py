@@ -261,8 +261,13 @@ class LossWeights:
 
 
 def predictor_loss(model: PhysicsPredictor, z: dict[str, Tensor], targets: dict[str, Tensor],
-                   weights: LossWeights | None = None) -> tuple[Tensor, dict[str, float]]:
+                   weights: LossWeights | None = None,
+                   last_layer_mask: Tensor | None = None) -> tuple[Tensor, dict[str, float]]:
     """The training loss of standardised outputs ``z`` against label-unit ``targets`` (:class:`LossWeights`).
+
+    ``last_layer_mask`` (B,) bool, when given, keeps only those samples in the last-layer term (a mirrored
+    video's label would be the mirrored skinning field's, which is not the stored one); with no sample kept
+    the term is 0.
 
     Returns:
         (the scalar loss, its parts {"log10_E", "nu", "last_layer"} as floats, unweighted MSEs).
@@ -270,9 +275,14 @@ def predictor_loss(model: PhysicsPredictor, z: dict[str, Tensor], targets: dict[
     w = weights or LossWeights()
     y = model.unstandardise({"log10_E": z["log10_E"], "nu": z["nu"]})
     zl = model.standardise({"last_layer": targets["last_layer"]})["last_layer"]
+    if last_layer_mask is None:
+        layer = Fn.mse_loss(z["last_layer"], zl)
+    elif bool(last_layer_mask.any()):
+        layer = Fn.mse_loss(z["last_layer"][last_layer_mask], zl[last_layer_mask])
+    else:
+        layer = z["last_layer"].sum() * 0.0
     parts = {"log10_E": Fn.mse_loss(y["log10_E"], targets["log10_E"]),
-             "nu": Fn.mse_loss(y["nu"], targets["nu"]),
-             "last_layer": Fn.mse_loss(z["last_layer"], zl)}
+             "nu": Fn.mse_loss(y["nu"], targets["nu"]), "last_layer": layer}
     loss = w.log10_E * parts["log10_E"] + w.nu * parts["nu"] + w.last_layer * parts["last_layer"]
     return loss, {k: float(v.detach()) for k, v in parts.items()}
 

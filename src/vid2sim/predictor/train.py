@@ -59,6 +59,10 @@ class TrainConfig:
         eval_every: steps between validations and checkpoints.
         max_minutes: stop at the first step boundary after this wall time (None: run all steps); rerun resumes.
         seed: model initialisation and batch order.
+        mirror: augment by mirroring each training video left-right with probability 1/2 (drawn from ``seed``
+            and the step). The front view's world is symmetric about the camera's vertical plane (gravity, floor,
+            an isotropic material), so log10 E and ν keep their labels; the last layer's label would be the
+            mirrored field's, so mirrored samples leave the last-layer term.
     """
 
     model: PredictorConfig = field(default_factory=PredictorConfig)
@@ -74,6 +78,7 @@ class TrainConfig:
     eval_every: int = 200
     max_minutes: float | None = None
     seed: int = 0
+    mirror: bool = True
 
     def __post_init__(self) -> None:
         for name in ("steps", "batch_size", "eval_every"):
@@ -370,7 +375,12 @@ def train_predictor(data_folder: str | Path, out: str | Path, config: TrainConfi
         for g in opt.param_groups:
             g["lr"] = cfg.lr * _lr_factor(step, cfg)
         video, targets = train.batch(idx)
-        loss, _ = predictor_loss(model, model(video), targets, cfg.loss)
+        mask = None
+        if cfg.mirror:
+            flip = torch.rand(len(idx), generator=torch.Generator().manual_seed(cfg.seed * 1_000_003 + step)) < 0.5
+            video = torch.where(flip.view(-1, 1, 1, 1, 1), video.flip(-1), video)
+            mask = ~flip
+        loss, _ = predictor_loss(model, model(video), targets, cfg.loss, last_layer_mask=mask)
         if not torch.isfinite(loss):
             raise FloatingPointError(f"train-predictor: the loss became {float(loss)} at step {step}")
         opt.zero_grad(set_to_none=True)
