@@ -19,8 +19,8 @@ from vid2sim.predictor.model import (LossWeights, PhysicsPredictor, PredictorCon
 from vid2sim.predictor.predict import (DEFAULT_PREDICTOR, centred_grid, frame_for_model,  # noqa: E402
                                        front_video, object_box, object_crop, predict_video, resample_frames)
 from vid2sim.cli import main  # noqa: E402
-from vid2sim.predictor.train import (TrainConfig, evaluate_predictor, load_predictor, read_checkpoint,  # noqa: E402
-                                     save_predictor, train_predictor)
+from vid2sim.predictor.train import (TrainConfig, errors_by_range, evaluate_predictor, load_predictor,  # noqa: E402
+                                     read_checkpoint, save_predictor, train_predictor)
 
 TINY_MODEL = dict(image_size=16, num_frames=4, patch_size=8, tubelet_size=2, hidden_size=48, num_layers=1,
                   num_heads=2, intermediate_size=96)
@@ -92,6 +92,15 @@ def test_loss_is_the_issue_formula():
     assert float(loss) == pytest.approx(0.0 + 100 * 0.5 * 0.05 ** 2 + 1.0)
     loss2, _ = predictor_loss(m, z, t, LossWeights(log10_E=1, nu=0, last_layer=2))
     assert float(loss2) == pytest.approx(2.0)
+
+
+def test_errors_by_range_bins_the_true_value():
+    true = torch.tensor([4.1, 4.2, 4.6, 5.9, 6.0])
+    pred = torch.tensor([4.3, 4.2, 4.5, 5.4, 6.0])
+    bins = errors_by_range(pred, true)
+    assert [(b["lo"], b["n"]) for b in bins] == [(4.0, 2), (4.5, 1), (5.75, 1), (6.0, 1)]
+    assert bins[0]["mae"] == pytest.approx(0.1, abs=1e-6) and bins[0]["bias"] == pytest.approx(0.1, abs=1e-6)
+    assert bins[2]["bias"] == pytest.approx(-0.5, abs=1e-6) and errors_by_range(torch.zeros(0), torch.zeros(0)) == []
 
 
 def test_last_layer_mask_drops_mirrored_samples_from_the_last_layer_term():
@@ -208,7 +217,8 @@ def test_training_decreases_the_loss_resumes_exactly_and_logs_baselines(tiny_dat
         assert held_out[f"baseline_{k}"] == pytest.approx(base[k], rel=1e-4), k
     assert main(["eval-predictor", str(tmp_path / "a" / "predictor.pt"), str(tiny_data), "--json",
                  str(tmp_path / "e.json"), "--threads", "1"]) == 0
-    assert json.loads((tmp_path / "e.json").read_text())["samples"] == 10
+    scored = json.loads((tmp_path / "e.json").read_text())
+    assert scored["samples"] == 10 and sum(b["n"] for b in scored["by_log10_E"]) == 10
     for bad, message in (([str(tmp_path / "none.pt"), str(tiny_data)], "no such predictor checkpoint"),
                          ([str(tmp_path / "a" / "predictor.pt"), str(tmp_path)], "no index.json")):
         assert main(["eval-predictor", *bad]) == 2
@@ -242,7 +252,7 @@ def test_inference_on_one_video_is_fast():
 def test_shipped_checkpoint_is_small_and_beats_the_constant_baseline():
     assert DEFAULT_PREDICTOR.stat().st_size <= 20 * 2 ** 20
     m = load_predictor(DEFAULT_PREDICTOR)
-    assert m.image_size == 64 and m.num_frames == 16
+    assert m.image_size == 64 and m.num_frames == 16 and m.config.framing == "object"
     met = m.metrics
     assert met["mae_log10_E"] < met["baseline_mae_log10_E"] and met["mae_nu"] < met["baseline_mae_nu"]
 

@@ -110,6 +110,8 @@ def _cmd_eval_predictor(args: argparse.Namespace) -> int:
     print(f"  MAE nu       {r['mae_nu']:.4f}  (constant mean {r['baseline_mae_nu']:.4f})")
     print(f"  last layer   {r['mse_last_layer_std']:.3f}   (constant mean {r['baseline_mse_last_layer_std']:.3f}; "
           "standardised MSE)")
+    print("  log10 E by true value:  " + "  ".join(f"[{b['lo']:.2f},{b['hi']:.2f}) {b['mae']:.2f}{b['bias']:+.2f}"
+                                                   for b in r["by_log10_E"]) + "  (MAE, bias)")
     if args.json:
         Path(args.json).write_text(json.dumps(r, indent=2) + "\n")
     return 0

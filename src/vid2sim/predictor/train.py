@@ -159,7 +159,25 @@ def evaluate(model: PhysicsPredictor, split: _Split, weights: LossWeights, batch
     loss, parts = predictor_loss(model, z, t, weights)
     return {"loss": float(loss), "mae_log10_E": float((y["log10_E"] - t["log10_E"]).abs().mean()),
             "mae_nu": float((y["nu"] - t["nu"]).abs().mean()), "mse_last_layer_std": parts["last_layer"],
-            "samples": n}
+            "samples": n, "by_log10_E": errors_by_range(y["log10_E"], t["log10_E"])}
+
+
+def errors_by_range(pred: torch.Tensor, true: torch.Tensor, width: float = 0.25) -> list[dict[str, float]]:
+    """Errors of log10 E predictions ``pred`` (N,) against ``true`` (N,) per bin of the true value ``width``
+    decades wide: [{"lo", "hi", "n", "mae", "bias"}] for the non-empty bins (bias = mean of pred − true)."""
+    pred, true = pred.flatten().double(), true.flatten().double()
+    if true.numel() == 0:
+        return []
+    out = []
+    lo = math.floor(float(true.min()) / width) * width
+    while lo <= float(true.max()):
+        k = (true >= lo) & (true < lo + width)
+        if bool(k.any()):
+            d = pred[k] - true[k]
+            out.append({"lo": round(lo, 6), "hi": round(lo + width, 6), "n": int(k.sum()),
+                        "mae": float(d.abs().mean()), "bias": float(d.mean())})
+        lo += width
+    return out
 
 
 def constant_baselines(stats: dict[str, dict[str, torch.Tensor]], split: _Split) -> dict[str, float]:
