@@ -175,7 +175,9 @@ def test_mesher_failure_status_becomes_clean_error(tmp_path, monkeypatch):
 def test_ctrl_c_in_the_mesher_is_an_interrupt_not_a_meshing_failure(tmp_path, monkeypatch):
     """Ctrl-C reaches the whole process group; a mesher that died of it must not be reported as fTetWild failing."""
     fake = tmp_path / "interrupted_python"
-    fake.write_text("#!/bin/sh\nkill -INT $$\n")
+    # SIGINT back to its default first: a test run started in the background inherits it ignored
+    fake.write_text(f"#!{sys.executable}\nimport os, signal\nsignal.signal(signal.SIGINT, signal.SIG_DFL)\n"
+                    "os.kill(os.getpid(), signal.SIGINT)\n")
     fake.chmod(fake.stat().st_mode | stat.S_IEXEC)
     monkeypatch.setattr(sys, "executable", str(fake))
     ico = trimesh.creation.icosphere(subdivisions=1)

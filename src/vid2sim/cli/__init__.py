@@ -421,6 +421,16 @@ def _add_scene_options(p: argparse.ArgumentParser, material_options: bool) -> No
     p.add_argument("--quiet", action="store_true", help="no progress output")
 
 
+def _add_suite_run_options(p: argparse.ArgumentParser) -> None:
+    """--ray-address, --threads and --quiet of the commands that run a benchmark suite."""
+    p.add_argument("--ray-address", default=None, metavar="ADDR",
+                   help="run each scene as a Ray task: 'local' starts Ray on this machine, or a cluster address "
+                        "(auto, HOST:6379); OUT must be a path every node sees (needs pip install \"vid2sim[ray]\")")
+    p.add_argument("--threads", type=int, default=None,
+                   help="torch threads per scene, and CPUs each Ray task reserves (default: torch's; 1 per Ray task)")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of the ``vid2sim`` command (one subparser per subcommand)."""
     parser = argparse.ArgumentParser(
@@ -481,14 +491,7 @@ def build_parser() -> argparse.ArgumentParser:
                         help="reconstruct preset: small (CPU minutes per scene) or full; default small")
     bsuite.add_argument("--iterations", type=int, default=None,
                         help="joint-optimisation iterations (default: the preset's)")
-    bsuite.add_argument("--ray-address", default=None, metavar="ADDR",
-                        help="run each scene as a Ray task: 'local' starts Ray on this machine, or a cluster "
-                             "address (auto, HOST:6379); OUT must be a path every node sees (needs "
-                             "pip install \"vid2sim[ray]\")")
-    bsuite.add_argument("--threads", type=int, default=None,
-                        help="torch threads per scene, and CPUs each Ray task reserves (default: torch's; "
-                             "1 per Ray task)")
-    bsuite.add_argument("--quiet", action="store_true", help="no progress bar")
+    _add_suite_run_options(bsuite)
     bsuite.set_defaults(func=_cmd_bench_suite)
     babl = bench_sub.add_parser("ablation", help="the paper's Stage I ablation on a make-benchmark suite: Stage I "
                                 "alone, Stage I + II, Stage II from the prior; one table row each, ablation.json "
@@ -502,14 +505,7 @@ def build_parser() -> argparse.ArgumentParser:
                       help="joint-optimisation iterations of the Stage II variants (default: the preset's)")
     babl.add_argument("--predictor", metavar="PATH", default=None,
                       help="Stage I checkpoint (default: the one shipped with vid2sim; vid2sim train-predictor)")
-    babl.add_argument("--ray-address", default=None, metavar="ADDR",
-                      help="run each scene as a Ray task: 'local' starts Ray on this machine, or a cluster "
-                           "address (auto, HOST:6379); OUT must be a path every node sees (needs "
-                           "pip install \"vid2sim[ray]\")")
-    babl.add_argument("--threads", type=int, default=None,
-                      help="torch threads per scene, and CPUs each Ray task reserves (default: torch's; "
-                           "1 per Ray task)")
-    babl.add_argument("--quiet", action="store_true", help="no progress bars")
+    _add_suite_run_options(babl)
     babl.set_defaults(func=_cmd_bench_ablation)
 
     scene = sub.add_parser("make-scene", help="simulate (FEM) and render one synthetic scene folder")
