@@ -99,7 +99,7 @@ def object_crop(frames: Tensor, margin: float = OBJECT_MARGIN) -> Tensor:
     white where the square leaves the image. Returns (T, side, side, 3)."""
     top, left, side = object_box(frames, margin)
     T, H, W, C = frames.shape
-    out = torch.ones(T, side, side, C, dtype=frames.dtype)
+    out = torch.ones(T, side, side, C, dtype=frames.dtype, device=frames.device)
     r0, c0 = max(top, 0), max(left, 0)
     r1, c1 = min(top + side, H), min(left + side, W)
     out[:, r0 - top:r1 - top, c0 - left:c1 - left] = frames[:, r0:r1, c0:c1]
