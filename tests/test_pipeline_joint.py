@@ -122,6 +122,29 @@ def test_joint_optimisation_recovers_E_from_images_of_the_same_model():
     assert float(sim.log10_E) == pytest.approx(result.log10_E)  # the simulator holds the best state
 
 
+def test_networks_that_are_not_optimised_stay_out_of_the_graph():
+    """lr_skinning = 0: the field is frozen during the loop (no gradient reaches it, so the adjoint does not
+    differentiate the skinning basis) and its requires_grad flags are restored afterwards."""
+    sim, gaussians, cams = _scene_setup()
+    for p in sim.field.parameters():
+        p.requires_grad_(True)  # a freshly built field, as reconstruct hands it over
+    seen = []
+    original = sim.reduced_basis
+
+    def spy():
+        basis = original()
+        seen.append(basis.b.requires_grad)
+        return basis
+
+    sim.reduced_basis = spy
+    images = torch.ones(2, 6, 32, 32, 3)
+    cfg = JointConfig(iterations=2, coarse_log10_E=(), validate_every=2, lr_skinning=0.0)
+    joint_optimisation(sim, gaussians, Observations(images, cams), [0.0, 0.0, -1.0], [0.0, 0.0, 0.0],
+                       [0.0, 0.0, 0.0], cfg, progress=False)
+    assert seen and not any(seen)
+    assert all(p.requires_grad and p.grad is None for p in sim.field.parameters())
+
+
 def test_joint_optimisation_gradient_reaches_E_and_the_initial_velocity():
     """One window's image loss: d/d log10 E and d/d v0 by the adjoint + renderer agree with central differences."""
     sim, gaussians, cams = _scene_setup()

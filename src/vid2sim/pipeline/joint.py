@@ -303,9 +303,17 @@ def joint_optimisation(
     if cfg.fit_damping:
         groups.append({"params": [sim.damping_ratio], "lr": cfg.lr_damping})
     trainable = [p for g in groups for p in g["params"]]
-    was = [p.requires_grad for p in trainable]
+    # networks that are not optimised are frozen for the loop: otherwise every rollout's skinning basis would
+    # carry a graph and each step's adjoint would differentiate it for nothing
+    chosen = {id(p) for p in trainable}
+    frozen = [p for p in net_params + (list(sim.jacobian.parameters()) if sim.jacobian is not None else [])
+              if id(p) not in chosen]
+    toggled = trainable + frozen
+    was = [p.requires_grad for p in toggled]
     for p in trainable:
         p.requires_grad_(True)
+    for p in frozen:
+        p.requires_grad_(False)
     opt = torch.optim.Adam(groups)
 
     def snapshot() -> dict:
@@ -369,7 +377,7 @@ def joint_optimisation(
                 on_iteration(entry)
             bar.set_postfix(loss=f"{entry['loss']:.2e}", log10_E=f"{entry['log10_E']:.3f}", nu=f"{entry['nu']:.3f}")
     finally:
-        for p, flag in zip(trainable, was):
+        for p, flag in zip(toggled, was):
             p.requires_grad_(flag)
     with torch.no_grad():
         sim.log10_E.fill_(best["log10_E"])
