@@ -205,7 +205,7 @@ def test_stage1_is_skipped_with_a_recorded_reason(tiny_asset, tmp_path):
 def test_cli_no_stage1_and_predictor_flags(tiny_scene, tmp_path, monkeypatch):
     seen = []
 
-    def fake(scene, out, config, progress=True, restart=False):
+    def fake(scene, out, config, progress=True, restart=False, device=None):
         seen.append(config)
         raise SystemExit(0)
 
@@ -224,3 +224,20 @@ def test_cli_no_stage1_and_predictor_flags(tiny_scene, tmp_path, monkeypatch):
         main(["reconstruct", str(tiny_scene), str(tmp_path / "a"), "--predictor", str(tmp_path / "p.pt"), "--quiet"])
     assert seen[-1].stage1 is True and seen[-1].predictor == str((tmp_path / "p.pt").resolve())
     assert main(["reconstruct", str(tiny_scene), str(tmp_path / "a"), "--predictor", str(tmp_path / "no.pt")]) == 2
+
+
+def test_cli_bad_device_fails_before_any_work(tiny_scene, tmp_path, capsys):
+    out = tmp_path / "a"
+    assert main(["reconstruct", str(tiny_scene), str(out), "--device", "banana", "--quiet"]) == 2
+    assert "--device 'banana'" in capsys.readouterr().err
+    assert not out.exists() and not (tmp_path / ".a.work").exists()
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_reconstruct_on_cuda_writes_the_same_asset_format(tiny_scene, tiny_asset, tmp_path, tiny_config):
+    out = reconstruct(tiny_scene, tmp_path / "asset", tiny_config(), progress=False, device="cuda")
+    asset, reference = load_asset(out), load_asset(tiny_asset)
+    assert asset.gaussians.means.device.type == "cpu"
+    assert abs(asset.material["log10_E"] - reference.material["log10_E"]) < 0.1
+    sim = asset.simulator()
+    assert all(torch.isfinite(s.z).all() for s in sim.rollout(asset.initial_state(sim), 2))

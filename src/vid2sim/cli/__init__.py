@@ -310,9 +310,11 @@ def _cmd_fit_gaussians(args: argparse.Namespace) -> int:
 def _cmd_reconstruct(args: argparse.Namespace) -> int:
     from pathlib import Path
 
+    from vid2sim.bench.timing import resolve_device
     from vid2sim.pipeline.reconstruct import ReconstructConfig, reconstruct
 
     set_threads(args.threads)
+    device = resolve_device(args.device)  # a bad --device fails before any work
     out = Path(args.out)
     if out.exists() and not args.overwrite:
         raise UserError(f"{out} exists; pass --overwrite to replace it")
@@ -334,7 +336,7 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
         if args.iterations < 0:
             raise UserError(f"--iterations must be >= 0, got {args.iterations}")
         config.joint.iterations = args.iterations
-    path = reconstruct(args.scene, out, config, progress=not args.quiet, restart=args.restart)
+    path = reconstruct(args.scene, out, config, progress=not args.quiet, restart=args.restart, device=device)
     material = json.loads((path / "material.json").read_text())
     print(f"wrote {path}: E = {material['E']:.4g} Pa (log10 E = {material['log10_E']:.3f}), nu = {material['nu']:.3f}")
     if not args.no_report:
@@ -566,6 +568,8 @@ def build_parser() -> argparse.ArgumentParser:
                      "'w/o Stage I' ablation")
     rec.add_argument("--predictor", metavar="PATH", default=None,
                      help="Stage I checkpoint (default: the one shipped with vid2sim; vid2sim train-predictor)")
+    rec.add_argument("--device", default=None, help="torch device of the Gaussian fits, networks and joint "
+                     "optimisation (default: cuda if available, else cpu; the asset is the same format either way)")
     rec.add_argument("--restart", action="store_true", help="discard an interrupted run's finished stages")
     rec.add_argument("--overwrite", action="store_true", help="replace an existing asset folder")
     rec.add_argument("--no-report", action="store_true", help="do not write the HTML report (OUT/report/index.html: "

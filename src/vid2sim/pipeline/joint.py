@@ -259,8 +259,9 @@ def joint_optimisation(
     dtype = sim.X.dtype
     gen = torch.Generator().manual_seed(cfg.seed)
     rig = GaussianRig(sim, gaussians)
-    v_lin = torch.as_tensor(linear_velocity, dtype=dtype).clone().requires_grad_(True)
-    v_ang = torch.as_tensor(angular_velocity, dtype=dtype).clone().requires_grad_(True)
+    device = sim.X.device
+    v_lin = torch.as_tensor(linear_velocity, dtype=dtype, device=device).clone().requires_grad_(True)
+    v_ang = torch.as_tensor(angular_velocity, dtype=dtype, device=device).clone().requires_grad_(True)
     c = [float(x) for x in centre]
 
     def initial_state() -> SimState:

@@ -166,11 +166,12 @@ def virtual_views(images: torch.Tensor, masks: torch.Tensor, cameras: list, rota
     from vid2sim.splats.cameras import Camera
 
     V, K = images.shape[:2]
-    R = torch.as_tensor(rotations, dtype=torch.float32)
-    T = torch.as_tensor(translations, dtype=torch.float32)
+    dev = cameras[0].world_to_camera.device
+    R = torch.as_tensor(rotations, dtype=torch.float32, device=dev)
+    T = torch.as_tensor(translations, dtype=torch.float32, device=dev)
     cams = []
     for t in range(K):
-        M = torch.eye(4)
+        M = torch.eye(4, device=dev)
         M[:3, :3], M[:3, 3] = R[t], T[t]
         cams += [Camera(c.world_to_camera @ M, c.K, c.width, c.height) for c in cameras]
     return (images.transpose(0, 1).reshape(K * V, *images.shape[2:]),
@@ -232,6 +233,11 @@ class _Work:
         (self.dir / f"{stage}.done").write_text("")
 
 
+def _cpu_state(module: torch.nn.Module) -> dict[str, torch.Tensor]:
+    """The module's state dict with CPU tensors (work files and assets load on any device)."""
+    return {k: v.detach().cpu() for k, v in module.state_dict().items()}
+
+
 def _stage(progress: bool, text: str) -> None:
     if progress:
         from tqdm.auto import tqdm
@@ -291,8 +297,13 @@ def run_stage1(cfg: ReconstructConfig, images: torch.Tensor, cameras: list, dt: 
 
 
 def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConfig | None = None,
-                progress: bool = True, restart: bool = False) -> Path:
+                progress: bool = True, restart: bool = False, device: str | torch.device | None = None) -> Path:
     """Reconstruct the scene folder ``scene_path`` into the asset folder ``out`` (see the module docstring).
+
+    ``device`` (None: CUDA when available, else the CPU) runs the Gaussian fits, the networks' training and
+    the joint optimisation; the cheap geometric stages (points, initial velocity) and Stage I run on the CPU.
+    The device is not part of the configuration: a run interrupted on one device resumes on another, and the
+    asset is written with CPU tensors.
 
     Returns:
         the asset folder (readable with :func:`vid2sim.pipeline.asset.load_asset`).
@@ -313,15 +324,20 @@ def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConf
     from vid2sim.splats.fitting import fit_gaussians
     from vid2sim.splats.ply import load_ply, save_ply
 
+    from vid2sim.bench.timing import resolve_device
+
     cfg = config or ReconstructConfig()
+    dev = device if isinstance(device, torch.device) else resolve_device(device)
     out = Path(out)
     scene = load_scene(scene_path)
     check_scene(scene)
     work = _Work(out, cfg, scene.root, restart)
     V, T = scene.config.observed_views, scene.config.observed_frames
-    images = scene.images[V][:, T].float()
-    masks = scene.masks[V][:, T].float()
-    cameras = [scene.cameras[v] for v in V]
+    images_cpu = scene.images[V][:, T].float()
+    masks_cpu = scene.masks[V][:, T].float()
+    cameras_cpu = [scene.cameras[v] for v in V]
+    images, masks = images_cpu.to(dev), masks_cpu.to(dev)
+    cameras = [c.to(dev) for c in cameras_cpu]
     torch.manual_seed(cfg.seed)
 
     # 1. Gaussians ---------------------------------------------------------------------------------------
@@ -332,16 +348,18 @@ def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConf
         g = fit_gaussians(images[:, 0], masks[:, 0], cameras, cfg.gaussians, progress=progress)
         save_ply(g, ply)
         work.finish("gaussians", time.perf_counter() - t0)
-    gaussians = load_ply(ply)
+    gaussians = load_ply(ply, device=dev)
 
     # 2. points ------------------------------------------------------------------------------------------
     pts_path = work.dir / "points.pt"
     if not work.done("points"):
         _stage(progress, "[2/6] filling the object with simulation points")
         t0 = time.perf_counter()
-        torch.save(asdict(object_points(masks[:, 0], cameras, gaussians, cfg.points)), pts_path)
+        torch.save(asdict(object_points(masks_cpu[:, 0], cameras_cpu, gaussians.to("cpu"), cfg.points)), pts_path)
         work.finish("points", time.perf_counter() - t0)
-    obj = ObjectPoints(**torch.load(pts_path))
+    obj_cpu = ObjectPoints(**torch.load(pts_path))
+    obj = dataclasses.replace(obj_cpu, **{k: getattr(obj_cpu, k).to(dev) for k in
+                                          ("points", "contact_points", "contact_areas", "centre")})
 
     # 3. initial velocity --------------------------------------------------------------------------------
     vel_path = work.dir / "velocity.json"
@@ -351,13 +369,13 @@ def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConf
         gravity = torch.tensor(scene.config.gravity, dtype=torch.float32)
         contact_before_frame_1 = False
         try:
-            est = estimate_initial_velocity(obj.points, masks, cameras, scene.config.dt, gravity,
+            est = estimate_initial_velocity(obj_cpu.points, masks_cpu, cameras_cpu, scene.config.dt, gravity,
                                             scene.config.floor_height, max_frames=cfg.velocity_frames)
         except TooFewBallisticFrames as exc:
             # the object meets the floor by frame 1: frames 0 and 1 still give the velocity to first order
             # (the floor test off); the joint optimisation refines it, and the asset records what happened
             _stage(progress, f"      {exc}; estimating from frames 0 and 1 regardless of the floor")
-            est = estimate_initial_velocity(obj.points, masks, cameras, scene.config.dt, gravity, None,
+            est = estimate_initial_velocity(obj_cpu.points, masks_cpu, cameras_cpu, scene.config.dt, gravity, None,
                                             max_frames=2)
             contact_before_frame_1 = True
         vel_path.write_text(json.dumps({"contact_before_frame_1": contact_before_frame_1,
@@ -385,12 +403,12 @@ def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConf
             g = gaussians
         save_ply(g, app_ply)
         work.finish("appearance", time.perf_counter() - t0)
-    gaussians = load_ply(app_ply)
+    gaussians = load_ply(app_ply, device=dev)
 
     # Stage I ---------------------------------------------------------------------------------------------
     s1_path = work.dir / "stage1.json"
     if not s1_path.is_file():
-        s1 = run_stage1(cfg, images, cameras, float(scene.config.dt), obj.centre.tolist(), progress)
+        s1 = run_stage1(cfg, images_cpu, cameras_cpu, float(scene.config.dt), obj_cpu.centre.tolist(), progress)
         if s1["ran"]:
             s1["scene_view"] = int(V[s1["view"]])
         torch.save(s1.pop("last_layer", None), work.dir / "stage1_last_layer.pt")
@@ -409,7 +427,9 @@ def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConf
 
         field = field_from_last_layer(load_template(), torch.load(work.dir / "stage1_last_layer.pt",
                                                                   weights_only=True))
-    jacobian = NeuralJacobian(num_handles_total=cfg.handles + 1, seed=cfg.seed) if cfg.jacobian == "neural" else None
+    field = field.to(dev)
+    jacobian = (NeuralJacobian(num_handles_total=cfg.handles + 1, seed=cfg.seed).to(dev) if cfg.jacobian == "neural"
+                else None)
     if not work.done("networks"):
         _stage(progress, "[5/6] training the skinning field data-free" +
                (" and the Neural Jacobian" if jacobian is not None else ""))
@@ -418,14 +438,14 @@ def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConf
         train_skinning(field, canonical, SkinningTrainingConfig(iterations=cfg.skinning_iterations, seed=cfg.seed),
                        progress=progress, volume=obj.volume / obj.scale ** 3)
         field.set_input_frame(obj.centre, obj.scale)
-        torch.save(field.state_dict(), field_path)
+        torch.save(_cpu_state(field), field_path)
         if jacobian is not None:
             jacobian.set_input_frame(obj.centre, obj.scale)
             train_neural_jacobian(jacobian, field, obj.points, NeuralJacobianTrainingConfig(
                 iterations=cfg.jacobian_iterations, seed=cfg.seed), progress=progress)
-            torch.save(jacobian.state_dict(), jac_path)
+            torch.save(_cpu_state(jacobian), jac_path)
         work.finish("networks", time.perf_counter() - t0)
-    field.load_state_dict(torch.load(field_path, weights_only=True))
+    field.load_state_dict(torch.load(field_path, weights_only=True))  # copied onto the field's device
     if jacobian is not None:
         jacobian.load_state_dict(torch.load(jac_path, weights_only=True))
 
@@ -446,9 +466,9 @@ def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConf
         t0 = time.perf_counter()
         result = joint_optimisation(sim, gaussians, Observations(images, cameras), velocity["linear"],
                                     velocity["angular"], velocity["centre"], joint_cfg, progress=progress)
-        torch.save(field.state_dict(), work.dir / "skinning_joint.pt")
+        torch.save(_cpu_state(field), work.dir / "skinning_joint.pt")
         if jacobian is not None:
-            torch.save(jacobian.state_dict(), work.dir / "jacobian_joint.pt")
+            torch.save(_cpu_state(jacobian), work.dir / "jacobian_joint.pt")
         joint_path.write_text(json.dumps(asdict(result)))
         work.finish("joint", time.perf_counter() - t0)
     result = json.loads(joint_path.read_text())
@@ -458,15 +478,17 @@ def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConf
 
     material_json = {"model": "neo-hookean", "E": float(10.0 ** result["log10_E"]), "log10_E": result["log10_E"],
                      "nu": result["nu"], "density": density, "damping_ratio": result["damping_ratio"]}
-    asset = Asset(gaussians=gaussians, field=field, jacobian=jacobian, material=material_json,
-                  cubature_points=obj.points[idx], cubature_weights=weights, contact_points=obj.contact_points,
-                  contact_areas=obj.contact_areas, points=obj.points, volume=obj.volume, sim_config=cfg.sim,
+    field, jacobian = field.to("cpu"), (jacobian.to("cpu") if jacobian is not None else None)
+    asset = Asset(gaussians=gaussians.to("cpu"), field=field, jacobian=jacobian, material=material_json,
+                  cubature_points=obj_cpu.points[idx.cpu()], cubature_weights=weights.cpu(),
+                  contact_points=obj_cpu.contact_points, contact_areas=obj_cpu.contact_areas, points=obj_cpu.points,
+                  volume=obj.volume, sim_config=cfg.sim,
                   gravity=list(scene.config.gravity), floor_height=scene.config.floor_height,
                   floor_stiffness=AREA_CONTACT_STIFFNESS, length_scale=obj.scale,
                   initial_velocity={"linear": result["linear_velocity"], "angular": result["angular_velocity"],
                                     "centre": velocity["centre"]},
                   dt=float(scene.config.dt),
-                  extra={"canonical_frame": {"centre": obj.centre.tolist(), "scale": obj.scale,
+                  extra={"canonical_frame": {"centre": obj_cpu.centre.tolist(), "scale": obj.scale,
                                              "maps": "X -> (X - centre) / scale"},
                          "scene": str(scene.root), "observed_views": list(V), "observed_frames": len(T),
                          "scene_frames": int(scene.images.shape[1]),
