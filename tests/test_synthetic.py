@@ -182,6 +182,7 @@ def test_user_mesh_scene(tmp_path):
     (["--resolution", "0"], "--resolution"),  # the flag typed, not the config field
     (["--frames", "10", "--observed-frames", "12"], "--observed-frames (12)"),
     (["--views", "2", "--held-out-views", "2"], "--held-out-views"),
+    (["--views", "0"], "--views must be an integer >= 1"),  # the flag that is wrong, not its consequence
     (["--resolution", "100000"], "--resolution must be at most 4096"),  # before the FEM runs
     (["--resolution", "4000"], "GiB of images"),
 ])

@@ -171,9 +171,6 @@ class SyntheticSceneConfig:
         if self.drop_height is not None and not (isinstance(self.drop_height, (int, float))
                                                  and math.isfinite(self.drop_height) and self.drop_height >= 0):
             raise bad("drop_height", "a finite number >= 0 or None")
-        if isinstance(self.held_out_views, bool) or not isinstance(self.held_out_views, int) or not (
-                0 <= self.held_out_views < self.views):
-            raise bad("held_out_views", f"an integer in [0, views={self.views}) (at least one view stays observed)")
         for name, lo in (("views", 1), ("resolution", 8), ("frames", 2), ("observed_frames", 1), ("substeps", 1),
                          ("supersample", 1)):
             value = getattr(self, name)
@@ -181,6 +178,9 @@ class SyntheticSceneConfig:
                 continue
             if isinstance(value, bool) or not isinstance(value, int) or value < lo:
                 raise bad(name, f"an integer >= {lo}")
+        if isinstance(self.held_out_views, bool) or not isinstance(self.held_out_views, int) or not (
+                0 <= self.held_out_views < self.views):
+            raise bad("held_out_views", f"an integer in [0, views={self.views}) (at least one view stays observed)")
         if self.resolution > MAX_RESOLUTION:
             raise bad("resolution", f"at most {MAX_RESOLUTION} pixels (the image side)")
         need = self.image_bytes()
