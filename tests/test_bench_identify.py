@@ -54,8 +54,15 @@ def test_report_has_per_scene_figures_and_means(report):
     assert row["fit_history"][0]["log10_E"] == pytest.approx(math.log10(config.prior_E))
     assert len(row["e_valley"]["loss"]) == config.sweep_points
     assert row["reduced_time_convergence_at_truth"]["refined_substeps"] == 4 * row["reduced_time_convergence_at_truth"]["substeps"]
+    freq = row["frequencies"]
+    assert len(freq["quadratic_tets_hz"]) == 6 and all(f > 0 for f in freq["quadratic_tets_hz"])
+    assert freq["quadratic_tets_hz"] == sorted(freq["quadratic_tets_hz"])
+    for key in ("fem_over_quadratic", "reduced_over_quadratic", "reduced_over_fem"):
+        assert len(freq[key]) == 6 and all(0.5 < r < 5 for r in freq[key]), (key, freq[key])
+    assert freq["reduced_over_fem"][0] == pytest.approx(freq["reduced_over_quadratic"][0] / freq["fem_over_quadratic"][0])
     summary = result["summary"]
     assert summary["mean_abs_error_log10_E"] == pytest.approx(row["abs_error"]["log10_E"])
+    assert summary["mean_lowest_frequency_fem_over_quadratic"] == pytest.approx(freq["fem_over_quadratic"][0])
     json.dumps(result)  # JSON-ready
 
 

@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from vid2sim.physics.cubature import farthest_point_sampling, sample_cubature
+from vid2sim.physics.cubature import farthest_point_sampling, sample_cubature, voronoi_weights
 
 
 def _cloud(n: int, seed: int = 0) -> torch.Tensor:
@@ -77,6 +77,24 @@ def test_sample_cubature_weights():
     assert float((w * big[idx, 0]).sum()) == pytest.approx(1.0, abs=0.03)
 
 
+def test_voronoi_weights_are_cell_volumes_and_integrate_better_than_equal_weights():
+    pts = torch.tensor([[0.0, 0, 0], [0.1, 0, 0], [0.2, 0, 0], [1.0, 0, 0], [1.1, 0, 0]], dtype=torch.float64)
+    # cells of points 0 and 3: {0, 0.1, 0.2} and {1.0, 1.1}
+    assert torch.equal(voronoi_weights(pts, torch.tensor([0, 3]), 5.0), torch.tensor([3.0, 2.0], dtype=torch.float64))
+    big = _cloud(20000, seed=8)
+    idx, w = sample_cubature(big, 200, volume=1.0, seed=0, weights="voronoi")
+    assert bool((w > 0).all()) and float(w.sum()) == pytest.approx(1.0, rel=1e-12)
+    assert torch.equal(idx, farthest_point_sampling(big, 200, seed=0))
+    assert torch.equal(voronoi_weights(big, idx, 1.0, chunk=777), w)
+    # ∫ x² dV over [0,2]×[0,1]×[0,0.5] = 4/3 and ∫ x² y² z² dV = 8/3 · 1/3 · 1/24: FPS puts proportionally more
+    # points on the boundary, which equal weights over-count
+    for f, exact in ((lambda p: p[:, 0] ** 2, 4 / 3), (lambda p: (p[:, 0] * p[:, 1] * p[:, 2]) ** 2, 8 / 3 / 3 / 24)):
+        _, we = sample_cubature(big, 200, volume=1.0, seed=0)
+        err_equal = abs(float((we * f(big[idx])).sum()) - exact)
+        err_voronoi = abs(float((w * f(big[idx])).sum()) - exact)
+        assert err_voronoi < 0.5 * err_equal, (err_voronoi, err_equal)
+
+
 def test_bad_inputs():
     pts = _cloud(10)
     with pytest.raises(ValueError, match="k must be"):
@@ -93,3 +111,5 @@ def test_bad_inputs():
         farthest_point_sampling(bad, 2)
     with pytest.raises(ValueError, match="volume"):
         sample_cubature(pts, 5, volume=0.0)
+    with pytest.raises(ValueError, match="weights must be one of"):
+        sample_cubature(pts, 5, weights="gauss")

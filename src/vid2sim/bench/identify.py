@@ -16,7 +16,10 @@ For every scene of a suite (procedural objects, E log-uniform in [1e4, 1e6], ν 
 4. the fit — log10 E, ν and the damping ratio ζ from the prior (E = 1e5, ν = 0.3, ζ = 0.05) by
    L-BFGS on the adjoint gradients of the mean squared point distance over the observed frames 1–15;
 5. the E valley — the same loss swept over log10 E around the fitted value (ν, ζ fitted), and its depth
-   at ±0.5 decade.
+   at ±0.5 decade;
+6. the stiffness of both models — the six lowest elastic frequencies of the FEM's linear tets and of the
+   reduced model's subspace, as ratios to quadratic tets on the same mesh (spatially converged to < 1 %).
+   At a fixed ν, a ratio r acts on the motion like an E that is r² too large.
 
 Trajectory errors are :func:`vid2sim.metrics.trajectory_distance` (mean point distance, percent of the
 object's size). Everything expensive is cached in a work folder, so a rerun only fits.
@@ -47,7 +50,9 @@ class IdentifyConfig:
         points: sample points for the loss and the errors.
         handles: learned skinning handles (+ 1 rigid).
         skinning_iterations: data-free skinning training iterations.
+        skinning_objective: "random_z" or "modal" (:class:`~vid2sim.physics.SkinningTrainingConfig`).
         cubature: cubature points.
+        cubature_weights: "equal" or "voronoi" (:func:`~vid2sim.physics.cubature.sample_cubature`).
         prior_E, prior_nu, prior_damping: the fit's start.
         fit_iterations: L-BFGS iterations (each takes a few loss evaluations).
         sweep_decades, sweep_points: the log10 E sweep around the fit.
@@ -65,7 +70,9 @@ class IdentifyConfig:
     points: int = 3000
     handles: int = 10
     skinning_iterations: int = 2000
+    skinning_objective: str = "random_z"
     cubature: int = 500
+    cubature_weights: str = "equal"
     prior_E: float = 1e5
     prior_nu: float = 0.3
     prior_damping: float = 0.05
@@ -85,6 +92,13 @@ class IdentifyConfig:
             raise ValueError(f"IdentifyConfig.observed_frames ({self.observed_frames}) must be < frames ({self.frames})")
         if self.truth not in ("fem", "reduced"):
             raise ValueError(f"IdentifyConfig.truth must be 'fem' or 'reduced', got {self.truth!r}")
+        from vid2sim.physics.cubature import CUBATURE_WEIGHTS
+        from vid2sim.physics.skinning_training import OBJECTIVES
+
+        if self.skinning_objective not in OBJECTIVES:
+            raise ValueError(f"IdentifyConfig.skinning_objective must be one of {OBJECTIVES}, got {self.skinning_objective!r}")
+        if self.cubature_weights not in CUBATURE_WEIGHTS:
+            raise ValueError(f"IdentifyConfig.cubature_weights must be one of {CUBATURE_WEIGHTS}, got {self.cubature_weights!r}")
         if self.preset not in ("small", "full"):
             raise ValueError(f"IdentifyConfig.preset must be 'small' or 'full', got {self.preset!r}")
 
@@ -166,16 +180,18 @@ def prepare_scene(index: int, params: dict, config: IdentifyConfig, workdir: Pat
     truth = apply_embedding(fem.trajectory, tet_index, bary, T)  # (T, P, 3)
 
     field = SkinningField(num_handles=config.handles, seed=0).double()
-    field_path = folder / f"skinning_{config.handles}h_{config.skinning_iterations}it_{config.points}p_v2.pt"
+    suffix = "_v2" if config.skinning_objective == "random_z" else f"_{config.skinning_objective}"
+    field_path = folder / f"skinning_{config.handles}h_{config.skinning_iterations}it_{config.points}p{suffix}.pt"
     if field_path.is_file():
         field.load_state_dict(torch.load(field_path))
     else:
-        train_skinning(field, points, SkinningTrainingConfig(iterations=config.skinning_iterations, seed=index),
+        train_skinning(field, points, SkinningTrainingConfig(iterations=config.skinning_iterations, seed=index,
+                                                             objective=config.skinning_objective),
                        progress=progress, volume=volume)
         torch.save(field.state_dict(), field_path)
     for p in field.parameters():
         p.requires_grad_(False)
-    idx, weights = sample_cubature(points, config.cubature, volume=volume, seed=0)
+    idx, weights = sample_cubature(points, config.cubature, volume=volume, seed=0, weights=config.cubature_weights)
     areas = surface_vertex_areas(X, T)
     surface = areas > 0
     fc = fem.config
@@ -196,9 +212,28 @@ def prepare_scene(index: int, params: dict, config: IdentifyConfig, workdir: Pat
     lbs = lbs_rows(points, w)
     info = {"object": f"procedural-{scene_cfg.seed}", "tets": int(len(T)), "fem_substeps": fc.substeps,
             "fem_time_convergence_percent": (fem.time_convergence or {}).get("mean_percent"),
-            "fem_seconds": (fem.time_convergence or {}).get("wall_time_all_runs", fem.wall_time)}
+            "fem_seconds": (fem.time_convergence or {}).get("wall_time_all_runs", fem.wall_time),
+            "frequencies": lowest_frequencies(X, T, field, points[idx], weights, fc)}
     truth_material = {"E": fc.youngs_modulus, "nu": fc.poisson_ratio, "damping_ratio": fc.damping_ratio}
     return PerfectGeometry(sim, start, points, lbs, truth, size, truth_material, info)
+
+
+def lowest_frequencies(X: torch.Tensor, T: torch.Tensor, field, cubature: torch.Tensor, volumes: torch.Tensor,
+                       fc) -> dict:
+    """The six lowest elastic frequencies at the true material: quadratic tets on the FEM's mesh (the converged
+    reference, :mod:`vid2sim.synthetic.modes`), and as ratios to them, the FEM's own discretisation (linear
+    tets, lumped mass) and the reduced model's subspace on its cubature (:mod:`vid2sim.physics.modes`)."""
+    from vid2sim.physics.modes import subspace_frequencies
+    from vid2sim.synthetic.modes import tet_frequencies
+
+    E, nu, rho = fc.youngs_modulus, fc.poisson_ratio, fc.density
+    reference = tet_frequencies(X, T, E, nu, rho, k=6, order=2)
+    fem = tet_frequencies(X, T, E, nu, rho, k=6, order=1, lumped=True)
+    reduced = subspace_frequencies(field, cubature, volumes, E, nu, rho, k=6)
+    return {"quadratic_tets_hz": (reference / (2 * math.pi)).tolist(),
+            "fem_over_quadratic": (fem / reference).tolist(),
+            "reduced_over_quadratic": (reduced / reference).tolist(),
+            "reduced_over_fem": (reduced / fem).tolist()}
 
 
 def fem_length(fem, size: float) -> float:
@@ -366,5 +401,9 @@ def run(config: IdentifyConfig, workdir: str | Path, progress: bool = True) -> d
         "mean_valley_depth_at_half_decade": mean(lambda r: min(r["e_valley"]["depth_at_minus"], r["e_valley"]["depth_at_plus"])),
         "max_reduced_time_convergence_percent": max(r["reduced_time_convergence_at_truth"]["mean_percent"] for r in rows),
         "mean_fit_seconds": mean(lambda r: r["fit"]["seconds"]),
+        # lowest elastic frequency as a ratio to quadratic tets: the FEM truth's and the reduced model's stiffening
+        "mean_lowest_frequency_fem_over_quadratic": mean(lambda r: r["frequencies"]["fem_over_quadratic"][0]),
+        "mean_lowest_frequency_reduced_over_quadratic": mean(lambda r: r["frequencies"]["reduced_over_quadratic"][0]),
+        "mean_lowest_frequency_reduced_over_fem": mean(lambda r: r["frequencies"]["reduced_over_fem"][0]),
     }
     return {"config": asdict(config), "summary": summary, "scenes": rows, "threads": torch.get_num_threads()}

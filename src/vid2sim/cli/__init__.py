@@ -63,7 +63,8 @@ def _cmd_bench_identify(args: argparse.Namespace) -> int:
     set_threads(args.threads)
     given = {"scenes": args.n, "seed": args.seed, "preset": args.preset, "handles": args.handles,
              "skinning_iterations": args.skinning_iterations, "fit_iterations": args.fit_iterations,
-             "points": args.points, "truth": args.truth}
+             "points": args.points, "truth": args.truth, "skinning_objective": args.skinning_objective,
+             "cubature_weights": args.cubature_weights}
     flags = {"scenes": "--n", "seed": "--seed", "preset": "--preset", "handles": "--handles",
              "skinning_iterations": "--skinning-iterations", "fit_iterations": "--fit-iterations", "points": "--points"}
     try:
@@ -474,6 +475,11 @@ def build_parser() -> argparse.ArgumentParser:
     ident.add_argument("--skinning-iterations", type=int, default=None, help="data-free skinning iterations (default 2000)")
     ident.add_argument("--fit-iterations", type=int, default=None, help="L-BFGS iterations (default 12)")
     ident.add_argument("--points", type=int, default=None, help="sample points (default 3000)")
+    ident.add_argument("--skinning-objective", choices=["random_z", "modal"], default=None,
+                       help="skinning training objective: the paper's random handle transforms (default) or the "
+                            "subspace's lowest modes")
+    ident.add_argument("--cubature-weights", choices=["equal", "voronoi"], default=None,
+                       help="cubature integration weights: the paper's equal weights (default) or Voronoi cell volumes")
     ident.add_argument("--truth", choices=["fem", "reduced"], default=None,
                        help="fit the FEM's motion (default) or the reduced model's own motion at the true "
                             "parameters (identifiability without model error)")
