@@ -149,17 +149,20 @@ def embed_points(
 
 
 def apply_embedding(tet_vertices_deformed: Tensor, tet_index: Tensor, bary: Tensor, tets: Tensor) -> Tensor:
-    """Carry embedded points along with deformed tet vertices.
+    """Carry embedded points along with deformed tet vertices (or the nodes of quadratic tets).
 
     Args:
-        tet_vertices_deformed: (Nv, 3) or (T, Nv, 3) deformed tet-mesh vertex positions.
+        tet_vertices_deformed: (N, 3) or (T, N, 3) deformed node positions.
         tet_index: (P,) long, from :func:`embed_points`.
         bary: (P, 4) weights, from :func:`embed_points`.
-        tets: (Nt, 4) the tet mesh's vertex indices (the same array given to ``embed_points``).
+        tets: (Nt, 4) the tet mesh's vertex indices (the same array given to ``embed_points``), or (Nt, 10)
+            quadratic tets whose first four columns are those (:attr:`FEMResult.embedding_elements`).
 
     Returns:
-        (P, 3) or (T, P, 3) positions ``Σ_k bary[:, k] · X[tets[tet_index, k]]`` in the dtype and on
-        the device of ``tet_vertices_deformed`` (differentiable with respect to it).
+        (P, 3) or (T, P, 3) positions ``Σ_k N_k(bary) · X[tets[tet_index, k]]`` in the dtype and on the
+        device of ``tet_vertices_deformed`` (differentiable with respect to it). N_k are the barycentric
+        weights themselves for linear tets; for quadratic tets L_a(2L_a − 1) at the vertices and 4 L_a L_b at
+        the edge midpoints.
     """
     x = torch.as_tensor(tet_vertices_deformed)
     if x.ndim not in (2, 3) or x.shape[-1] != 3:
@@ -167,8 +170,8 @@ def apply_embedding(tet_vertices_deformed: Tensor, tet_index: Tensor, bary: Tens
     tets = torch.as_tensor(tets, device=x.device).long()
     tet_index = torch.as_tensor(tet_index, device=x.device).long()
     bary = torch.as_tensor(bary, device=x.device).to(x.dtype)
-    if tets.ndim != 2 or tets.shape[1] != 4:
-        raise ValueError(f"tets must have shape (Nt, 4), got {tuple(tets.shape)}")
+    if tets.ndim != 2 or tets.shape[1] not in (4, 10):
+        raise ValueError(f"tets must have shape (Nt, 4) or (Nt, 10), got {tuple(tets.shape)}")
     if tet_index.ndim != 1 or bary.shape != (tet_index.shape[0], 4):
         raise ValueError(
             f"tet_index (P,) and bary (P, 4) must agree, got {tuple(tet_index.shape)} and {tuple(bary.shape)}"
@@ -179,5 +182,9 @@ def apply_embedding(tet_vertices_deformed: Tensor, tet_index: Tensor, bary: Tens
         )
     if len(tets) and int(tets.max()) >= x.shape[-2]:
         raise ValueError(f"tets index vertex {int(tets.max())} but tet_vertices_deformed has {x.shape[-2]} vertices")
-    idx = tets[tet_index]  # (P, 4)
+    idx = tets[tet_index]  # (P, 4) or (P, 10)
+    if tets.shape[1] == 10:
+        from vid2sim.synthetic.modes import TET_EDGES
+
+        bary = torch.cat([bary * (2 * bary - 1)] + [4 * bary[:, a:a + 1] * bary[:, b:b + 1] for a, b in TET_EDGES], dim=1)
     return (x[..., idx, :] * bary[..., None]).sum(dim=-2)

@@ -116,6 +116,11 @@ class FEMConfig:
         cg_rtol: relative residual at which CG stops (the Newton convergence test is on the step, so
             this only needs to make the step accurate to well below ``newton_tol``).
         cg_max_iters: CG iterations before the direct solver takes over.
+        element_order: 1 — linear tets (one quadrature point each); 2 — quadratic 10-node tets on the same
+            mesh (a node on every edge midpoint, 4 quadrature points per tet, HRZ-lumped masses and contact
+            areas). Linear tets are stiff in bending: on the ``bench identify`` shapes at the small preset's
+            mesh their lowest frequency is 3–20 % above the converged one, while quadratic tets are within
+            0.6 % (:mod:`vid2sim.synthetic.modes`). Positions are then given for all nodes, vertices first.
         hessian_projection: "on_demand" — Newton uses the exact Hessian while it gives a descent
             direction (CG converges and gᵀp < 0, or the direct factorisation shows it positive definite)
             and the Hessian with every element tangent projected to PSD otherwise; "always" — the
@@ -147,9 +152,13 @@ class FEMConfig:
     cg_rtol: float = 1e-6
     cg_max_iters: int = 1000
     hessian_projection: str = "on_demand"
+    element_order: int = 1
 
     def __post_init__(self) -> None:
         lame_parameters(self.youngs_modulus, self.poisson_ratio)  # validates E and ν
+        if self.element_order not in (1, 2) or isinstance(self.element_order, bool):
+            raise ValueError(f"FEMConfig.element_order must be 1 (linear tets) or 2 (quadratic tets), "
+                             f"got {self.element_order!r}")
         if self.hessian_projection not in ("always", "on_demand"):
             raise ValueError(
                 f"FEMConfig.hessian_projection must be 'always' or 'on_demand', got {self.hessian_projection!r}")
@@ -313,8 +322,48 @@ class NewtonStats:
     factorizations: int = 0
 
 
+def _quadratic_gradients(gradL: np.ndarray) -> np.ndarray:
+    """(Nt, 4, 10, 3) gradients of the 10-node shape functions at the 4 quadrature points of the degree-2
+    rule, from the barycentric gradients gradL (Nt, 4, 3): ∇N_a = (4L_a − 1)∇L_a at the vertices and
+    ∇N_ab = 4(L_a ∇L_b + L_b ∇L_a) at the midpoints of :data:`vid2sim.synthetic.modes.TET_EDGES`."""
+    from vid2sim.synthetic.modes import TET_EDGES, quadrature_points
+
+    out = np.empty((gradL.shape[0], 4, 10, 3))
+    for q, L in enumerate(quadrature_points()):
+        for a in range(4):
+            out[:, q, a] = (4 * L[a] - 1) * gradL[:, a]
+        for e, (a, b) in enumerate(TET_EDGES):
+            out[:, q, 4 + e] = 4 * (L[a] * gradL[:, b] + L[b] * gradL[:, a])
+    return out
+
+
+def _contact_areas(X: np.ndarray, tets: np.ndarray, elements: np.ndarray, num_nodes: int) -> np.ndarray:
+    """(N,) lumped rest boundary area per node: a third of each boundary triangle's area to each vertex
+    (linear tets), or for quadratic tets HRZ on the 6-node triangle: A/19 per vertex and 16A/57 per edge
+    midpoint."""
+    from vid2sim.synthetic.tetra import boundary_faces, surface_vertex_areas
+
+    if elements.shape[1] == 4:
+        return surface_vertex_areas(torch.from_numpy(X), torch.from_numpy(tets)).numpy()
+    from vid2sim.synthetic.modes import TET_EDGES
+
+    faces = boundary_faces(torch.from_numpy(tets)).numpy()
+    area = 0.5 * np.linalg.norm(np.cross(X[faces[:, 1]] - X[faces[:, 0]], X[faces[:, 2]] - X[faces[:, 0]]), axis=1)
+    nv = len(X)
+    midpoint = {}
+    for e, (a, b) in enumerate(TET_EDGES):
+        keys = np.minimum(tets[:, a], tets[:, b]) * nv + np.maximum(tets[:, a], tets[:, b])
+        midpoint.update(zip(keys.tolist(), elements[:, 4 + e].tolist()))
+    out = np.zeros(num_nodes)
+    np.add.at(out, faces.ravel(), np.repeat(area / 19.0, 3))
+    for a, b in ((0, 1), (1, 2), (0, 2)):
+        keys = np.minimum(faces[:, a], faces[:, b]) * nv + np.maximum(faces[:, a], faces[:, b])
+        np.add.at(out, np.array([midpoint[k] for k in keys.tolist()]), area * 16.0 / 57.0)
+    return out
+
+
 class TetFEM:
-    """Linear-tetrahedron FEM model: rest geometry, lumped masses, energies, gradients, sparse Hessians,
+    """Tet-mesh FEM model (linear or quadratic tets): rest geometry, lumped masses, energies, gradients, sparse Hessians,
     and the Newton minimiser shared by :func:`simulate_fem` and :func:`static_solve`.
 
     Args:
@@ -333,9 +382,17 @@ class TetFEM:
         if T.min() < 0 or T.max() >= X.shape[0]:
             raise ValueError(f"tet indices must lie in [0, {X.shape[0] - 1}], got [{T.min()}, {T.max()}]")
         self.config = config
-        self.rest = X
         self.tets = T.astype(np.int64)
-        self.num_vertices = X.shape[0]
+        self.order = config.element_order
+        if self.order == 2:
+            from vid2sim.synthetic.modes import quadratic_tet_nodes
+
+            nodes, self.elements = quadratic_tet_nodes(X, self.tets)
+        else:
+            nodes, self.elements = X, self.tets
+        #: (N, 3) rest positions of all nodes: the vertices, then (order 2) the edge midpoints
+        self.rest = nodes
+        self.num_vertices = nodes.shape[0]
         self.mu, self.lam = (float(c) for c in config.lame)
         self._psi, self._pk1, self._tangent = elastic_model(config.material)
 
@@ -346,25 +403,31 @@ class TetFEM:
             bad = int(np.sum(det <= 1e-14 * diag ** 3))
             raise ValueError(f"{bad} of {len(det)} tets have non-positive or zero rest volume; "
                              "reorient/clean the mesh with vid2sim.synthetic.tetra.clean_tet_mesh")
-        self.volumes = det / 6.0
-        Dm_inv = np.linalg.inv(Dm)
-        # shape-function gradients G[e, a, j] = ∂N_a/∂X_j; F_ij = Σ_a x_{a,i} G_aj
-        self.G = np.concatenate([-Dm_inv.sum(axis=1, keepdims=True), Dm_inv], axis=1)  # (Nt, 4, 3)
-        # B = ∂vec(F)/∂x_e, (Nt, 9, 12): B[e, 3i + j, 3a + k] = δ_ik G[e, a, j] (row-major vec, vertex-major x_e)
-        B = np.zeros((len(T), 3, 3, 4, 3))
+        tet_volume = det / 6.0
+        # barycentric gradients ∇L_a (Nt, 4, 3); F_ij = Σ_a x_{a,i} ∂_j N_a at every quadrature point
+        gradL = np.concatenate([-np.linalg.inv(Dm).sum(axis=1, keepdims=True), np.linalg.inv(Dm)], axis=1)
+        self.quad_per_element = 1 if self.order == 1 else 4
+        #: (Nq, n, 3) shape-function gradients at the quadrature points (n = 4 or 10 nodes per element)
+        self.dN = gradL if self.order == 1 else _quadratic_gradients(gradL).reshape(-1, 10, 3)
+        #: (Nq,) quadrature weights (volumes): the elastic energy is Σ_q volumes_q Ψ(F_q)
+        self.volumes = np.repeat(tet_volume / self.quad_per_element, self.quad_per_element)
+        n = self.elements.shape[1]
+        # B = ∂vec(F)/∂x_e, (Nq, 9, 3n): B[q, 3i + j, 3a + k] = δ_ik dN[q, a, j] (row-major vec, node-major x_e)
+        B = np.zeros((len(self.volumes), 3, 3, n, 3))
         for i in range(3):
-            B[:, i, :, :, i] = self.G.transpose(0, 2, 1)
-        self.B = B.reshape(len(T), 9, 12)
+            B[:, i, :, :, i] = self.dN.transpose(0, 2, 1)
+        self.B = B.reshape(len(self.volumes), 9, 3 * n)
         self.bbox_diagonal = diag
         m = np.zeros(self.num_vertices)
-        np.add.at(m, self.tets.ravel(), np.repeat(config.density * self.volumes / 4.0, 4))
+        # lumped masses: V/4 per vertex (order 1); HRZ (diagonal of the consistent mass, rescaled to the total):
+        # V/36 per vertex and 4V/27 per edge midpoint (order 2)
+        share = np.full(4, 0.25) if self.order == 1 else np.array([1 / 36] * 4 + [4 / 27] * 6)
+        np.add.at(m, self.elements.ravel(), (config.density * tet_volume[:, None] * share[None, :]).ravel())
         if np.any(m <= 0):
             raise ValueError(f"{int(np.sum(m <= 0))} vertices belong to no tet; drop unreferenced vertices first")
         self.masses = m
-        from vid2sim.synthetic.tetra import surface_vertex_areas
-
-        #: (Nv,) lumped rest surface area per vertex (0 inside): the floor penalty's weights
-        self.contact_areas = surface_vertex_areas(torch.from_numpy(X), torch.from_numpy(self.tets)).numpy()
+        #: (N,) lumped rest surface area per node (0 inside): the floor penalty's weights
+        self.contact_areas = _contact_areas(X, self.tets, self.elements, self.num_vertices)
         self.gravity = np.asarray(config.gravity, dtype=np.float64)
         #: damping length L (m) and Kelvin–Voigt retardation time τ (s); τ = 0 when undamped
         self.damping_length = float(config.damping_length) if config.damping_length is not None else diag
@@ -375,16 +438,18 @@ class TetFEM:
     # -- sparse pattern: CSR structure of the 3Nv × 3Nv Hessian and where each element entry lands --
     def _build_pattern(self) -> None:
         # D (9Nt × 3Nv) with F[e, i, j] = Σ_a x[tets[e, a], i] G[e, a, j]: row 9e + 3i + j, column 3 tets[e, a] + i
-        nt = len(self.tets)
-        e, a, i, j = np.meshgrid(np.arange(nt), np.arange(4), np.arange(3), np.arange(3), indexing="ij")
+        nq, ne = self.dN.shape[:2]
+        node = np.repeat(self.elements, self.quad_per_element, axis=0)  # (Nq, ne) nodes of each point's element
+        q, a, i, j = np.meshgrid(np.arange(nq), np.arange(ne), np.arange(3), np.arange(3), indexing="ij")
         self._F_operator = sp.csr_matrix(
-            (self.G[e, a, j].ravel(), ((9 * e + 3 * i + j).ravel(), (3 * self.tets[e, a] + i).ravel())),
-            shape=(9 * nt, 3 * self.num_vertices))
+            (self.dN[q, a, j].ravel(), ((9 * q + 3 * i + j).ravel(), (3 * node[q, a] + i).ravel())),
+            shape=(9 * nq, 3 * self.num_vertices))
         self._F_operator_t = self._F_operator.T.tocsr()
         n = 3 * self.num_vertices
-        edofs = (3 * self.tets[:, :, None] + np.arange(3)[None, None, :]).reshape(-1, 12)
-        rows = np.broadcast_to(edofs[:, :, None], (len(edofs), 12, 12)).ravel()
-        cols = np.broadcast_to(edofs[:, None, :], (len(edofs), 12, 12)).ravel()
+        k = 3 * ne
+        edofs = (3 * self.elements[:, :, None] + np.arange(3)[None, None, :]).reshape(-1, k)
+        rows = np.broadcast_to(edofs[:, :, None], (len(edofs), k, k)).ravel()
+        cols = np.broadcast_to(edofs[:, None, :], (len(edofs), k, k)).ravel()
         keys, inverse = np.unique(rows * n + cols, return_inverse=True)
         self._scatter = inverse.ravel()
         self._indices = (keys % n).astype(np.int32)
@@ -480,8 +545,10 @@ class TetFEM:
             C = 0.5 * (C + C.transpose(1, 2))
         if viscous is not None:
             C = C + viscous.weight * viscous_tangent(F, viscous.c_ref, self.mu, self.lam, psd=project)
-        # element Hessians V Bᵀ C B (Nt, 12, 12)
+        # element Hessians Σ_q V_q B_qᵀ C_q B_q (Nt, 3n, 3n)
         Ke = self.volumes[:, None, None] * np.matmul(self.B.transpose(0, 2, 1), np.matmul(C.numpy(), self.B))
+        if self.quad_per_element > 1:
+            Ke = Ke.reshape(-1, self.quad_per_element, *Ke.shape[1:]).sum(axis=1)
         data = np.bincount(self._scatter, weights=Ke.ravel(), minlength=self._nnz)
         diag = np.zeros((self.num_vertices, 3))
         if self.config.floor_height is not None:
@@ -797,9 +864,10 @@ class FEMResult:
     """A simulated FEM trajectory.
 
     Attributes:
-        rest_vertices: (Nv, 3) rest positions.
-        tets: (Nt, 4) tets.
-        trajectory: (T, Nv, 3) positions at the video frames; frame 0 is the initial pose.
+        rest_vertices: (N, 3) rest positions of the nodes: the mesh's Nv vertices, then (quadratic tets) one
+            node per edge midpoint.
+        tets: (Nt, 4) tets (vertex indices).
+        trajectory: (T, N, 3) node positions at the video frames; frame 0 is the initial pose.
         velocities: (T, Nv, 3) vertex velocities at the frames.
         times: (T,) seconds.
         energies: name → (T,) total mechanical energy parts: 'kinetic', 'elastic', 'gravity' (−Σ m g·x),
@@ -816,6 +884,8 @@ class FEMResult:
             compared, the trajectory difference between them (percent of the size, mean over frames 1 … T−1
             and the largest frame), the tolerance, every comparison made and the wall time of all runs;
             None for a single run.
+        elements: (Nt, 10) node indices of the quadratic tets (:func:`vid2sim.synthetic.modes.quadratic_tet_nodes`
+            order), or None for linear tets.
     """
 
     rest_vertices: Tensor
@@ -833,6 +903,20 @@ class FEMResult:
     fixed: Tensor
     wall_time: float = 0.0
     time_convergence: dict | None = None
+    elements: Tensor | None = None
+
+    @property
+    def embedding_elements(self) -> Tensor:
+        """The elements that interpolate positions inside the mesh: ``elements`` (Nt, 10) for quadratic
+        tets, else ``tets`` (Nt, 4); for :func:`vid2sim.synthetic.embedding.apply_embedding`."""
+        return self.tets if self.elements is None else self.elements
+
+    def contact_areas(self) -> Tensor:
+        """(N,) the lumped rest boundary area per node that the floor penalty used (0 inside)."""
+        X = self.rest_vertices.numpy()[: int(self.tets.max()) + 1]
+        T = self.tets.numpy().astype(np.int64)
+        elements = T if self.elements is None else self.elements.numpy().astype(np.int64)
+        return torch.from_numpy(_contact_areas(X, T, elements, self.rest_vertices.shape[0]))
 
     @property
     def max_penetration(self) -> float:
@@ -848,6 +932,8 @@ class FEMResult:
                   ("rest_vertices", "tets", "trajectory", "velocities", "times", "min_det", "newton_iterations",
                    "line_search_halvings", "inverted_rejections", "fixed")}
         arrays.update({f"energy_{k}": v.numpy() for k, v in self.energies.items()})
+        if self.elements is not None:
+            arrays["elements"] = self.elements.numpy()
         np.savez_compressed(path, config=json.dumps(asdict(self.config)), pose=json.dumps(asdict(self.pose)),
                             wall_time=self.wall_time, time_convergence=json.dumps(self.time_convergence), **arrays)
         return path if path.suffix == ".npz" else path.with_name(path.name + ".npz")
@@ -872,7 +958,8 @@ class FEMResult:
                        line_search_halvings=t("line_search_halvings"), inverted_rejections=t("inverted_rejections"),
                        config=FEMConfig(**cfg), pose=InitialPose(**json.loads(str(z["pose"]))),
                        fixed=t("fixed"), wall_time=float(z["wall_time"]),
-                       time_convergence=json.loads(str(z["time_convergence"])) if "time_convergence" in z.files else None)
+                       time_convergence=json.loads(str(z["time_convergence"])) if "time_convergence" in z.files else None,
+                       elements=t("elements") if "elements" in z.files else None)
 
 
 def _fixed_mask(fixed, num_vertices: int) -> np.ndarray:
@@ -995,7 +1082,8 @@ def _simulate(vertices, tets, config: FEMConfig, pose, frames: int, fixed, initi
         energies={k: torch.tensor(val, dtype=torch.float64) for k, val in energies.items()},
         min_det=torch.tensor(dets, dtype=torch.float64), newton_iterations=torch.from_numpy(iters),
         line_search_halvings=torch.from_numpy(halvings), inverted_rejections=torch.from_numpy(rejections),
-        config=config, pose=pose_used, fixed=torch.from_numpy(fixed_np), wall_time=wall)
+        config=config, pose=pose_used, fixed=torch.from_numpy(fixed_np), wall_time=wall,
+        elements=None if model.order == 1 else torch.from_numpy(model.elements))
 
 
 def simulate_fem_converged(vertices: Tensor | np.ndarray, tets: Tensor | np.ndarray, config: FEMConfig | None = None,

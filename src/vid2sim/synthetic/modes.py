@@ -33,6 +33,11 @@ TET_EDGES = ((0, 1), (1, 2), (0, 2), (0, 3), (1, 3), (2, 3))
 _QUAD_A, _QUAD_B = 0.5854101966249685, 0.1381966011250105  # 4-point degree-2 rule (barycentric)
 
 
+def quadrature_points() -> list[np.ndarray]:
+    """The 4-point degree-2 rule on a tet: barycentric coordinates (4,) of each point; weights V/4."""
+    return [np.where(np.arange(4) == q, _QUAD_A, _QUAD_B) for q in range(4)]
+
+
 def _as_numpy(vertices: Tensor | np.ndarray, tets: Tensor | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     X = np.asarray(vertices.detach().cpu() if isinstance(vertices, Tensor) else vertices, dtype=np.float64)
     T = np.asarray(tets.detach().cpu() if isinstance(tets, Tensor) else tets)
@@ -116,7 +121,7 @@ def tet_stiffness_and_mass(vertices: Tensor | np.ndarray, tets: Tensor | np.ndar
     C = _isotropic_tangent(youngs_modulus, poisson_ratio)
     nt = len(T)
     Ke = np.zeros((nt, 3 * n, 3 * n))
-    rule = [np.full(4, 0.25)] if order == 1 else [np.where(np.arange(4) == q, _QUAD_A, _QUAD_B) for q in range(4)]
+    rule = [np.full(4, 0.25)] if order == 1 else quadrature_points()
     for L in rule:
         if order == 1:
             dN = gradL
