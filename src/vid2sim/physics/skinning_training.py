@@ -13,12 +13,13 @@ points (the constant rigid column is excluded).
 
 **The modal objective** (``objective="modal"``, our addition). The random-z objective spreads its effort
 over every handle direction, including the stiff ones, and leaves the subspace's lowest vibration modes
-12–57 % above the FEM's (measured on the ``bench identify`` shapes). Those modes are what a drop excites and
-what identifies E. The modal objective asks instead for the subspace whose lowest Rayleigh–Ritz eigenvalues
-λ_i of (K, M) are smallest. K is the linear-elastic stiffness and M the mass of the LBS subspace, both at rest
+9–102 % above the converged ones (quadratic tets; the ``bench identify`` shapes, 500 cubature points).
+Those modes are what a drop excites and what identifies E. The modal objective asks instead for the
+subspace whose lowest Rayleigh–Ritz eigenvalues λ_i of (K, M) are smallest. K is the linear-elastic stiffness and M the mass of the LBS subspace, both at rest
 with E = ρ = 1 and the batch's points as quadrature:
 
-    loss = −Σ_i α / (λ_i + α) + orthogonality_weight · MSE(WᵀW, I),     α = modal_shift / size²
+    loss = −Σ_i α / (λ_i + α) + modal_trace_weight · Σ_i λ_i / (α n)
+           + modal_orthogonality_weight · MSE(WᵀW, I),     α = modal_shift / size², n = 12H
 
 The first term is −α·tr((K + αM)⁻¹M): one Cholesky solve and no eigendecomposition, so it stays smooth
 where eigenvalues cross. Eigenvalues far below α count ≈ −1 each, and those far above it ≈ 0, so the
