@@ -13,8 +13,9 @@ from vid2sim.cli import main
 
 pytestmark = pytest.mark.slow  # end to end: scene generation, reconstruction, suites
 
-TINY = dict(scenes=1, frames=10, observed_frames=6, points=400, skinning_iterations=40, cubature=120,
-            fit_iterations=1, sweep_points=3, handles=4, fem_element_order=1)
+TINY = dict(scenes=1, frames=10, observed_frames=6, points=400, skinning_points=2000, skinning_iterations=40,
+            cubature=120, fit_iterations=1, sweep_points=3, handles=4, fem_element_order=1,
+            coarse_log10_E=(5.5, 4.0, 5.0))
 
 
 @pytest.fixture(scope="module")
@@ -48,10 +49,18 @@ def test_report_has_per_scene_figures_and_means(report):
         assert key in row, key
     assert row["abs_error"]["log10_E"] == pytest.approx(abs(row["fitted"]["log10_E"] - row["true"]["log10_E"]))
     assert 0 < row["fitted"]["nu"] < 0.5 and row["fitted"]["damping_ratio"] >= 0
-    # the fit starts at the prior and never ends worse than it started
+    # the fit starts at the coarse search's minimum (grid sorted, at the prior ν and ζ) and never ends worse
+    from vid2sim.pipeline.joint import coarse_minimum
+
+    grid = [c["log10_E"] for c in row["fit_coarse"]]
+    assert grid == [4.0, 5.0, 5.5] == list(config.coarse_log10_E)
     losses = [h["loss"] for h in row["fit_history"] if "loss" in h]
     assert row["fit"]["loss"] == min(losses) <= losses[0]
-    assert row["fit_history"][0]["log10_E"] == pytest.approx(math.log10(config.prior_E))
+    start = coarse_minimum(grid, [c["loss"] for c in row["fit_coarse"]])
+    assert row["fit_history"][0]["log10_E"] == pytest.approx(start)
+    assert row["fit_history"][0]["nu"] == pytest.approx(config.prior_nu)
+    if start in grid:  # the first L-BFGS evaluation repeats the grid's
+        assert losses[0] == pytest.approx(row["fit_coarse"][grid.index(start)]["loss"], rel=1e-9)
     assert len(row["e_valley"]["loss"]) == config.sweep_points
     assert row["reduced_time_convergence_at_truth"]["refined_substeps"] == 4 * row["reduced_time_convergence_at_truth"]["substeps"]
     freq = row["frequencies"]

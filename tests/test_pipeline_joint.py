@@ -99,6 +99,16 @@ def test_rig_at_rest_renders_the_gaussians_and_moves_rigidly():
     assert torch.allclose(rig.deformed(z, basis).means, gaussians.means + torch.tensor([0, 0, 0.1]), atol=1e-6)
 
 
+def test_coarse_minimum_is_the_parabola_vertex_between_the_best_samples_neighbours():
+    from vid2sim.pipeline.joint import coarse_minimum
+
+    grid = [4.0, 4.5, 5.0, 5.5, 6.0]
+    assert coarse_minimum(grid, [(x - 4.8) ** 2 + 1 for x in grid]) == pytest.approx(4.8)  # exact on a parabola
+    assert coarse_minimum(grid, [abs(x - 4.6) for x in grid]) == pytest.approx(4.5625)  # a kink: the parabola's vertex
+    assert coarse_minimum(grid, [6 - x for x in grid]) == 6.0  # at the end of the grid: the sample itself
+    assert coarse_minimum([5.0], [1.0]) == 5.0
+
+
 def test_joint_optimisation_recovers_E_from_images_of_the_same_model():
     """Images rendered from the model at log10 E = 4.5 → the coarse search and Adam find it from the prior 5."""
     sim, gaussians, cams = _scene_setup()

@@ -105,6 +105,8 @@ def test_presets_and_config_errors():
     assert full.joint.lr_log10_E == 5e-3 and full.joint.lr_nu == 1e-3 and full.joint.window == 4
     with pytest.raises(ValueError, match="jacobian"):
         ReconstructConfig(jacobian="finite_differences")
+    with pytest.raises(ValueError, match="skinning_objective must be one of"):
+        ReconstructConfig(skinning_objective="eigen")
     with pytest.raises(ValueError, match="preset"):
         ReconstructConfig.preset("huge")
     assert reconstruct_module.STAGES == ("gaussians", "points", "velocity", "appearance", "networks", "joint")
@@ -223,6 +225,10 @@ def test_cli_no_stage1_and_predictor_flags(tiny_scene, tmp_path, monkeypatch):
     with pytest.raises(SystemExit):
         main(["reconstruct", str(tiny_scene), str(tmp_path / "a"), "--predictor", str(tmp_path / "p.pt"), "--quiet"])
     assert seen[-1].stage1 is True and seen[-1].predictor == str((tmp_path / "p.pt").resolve())
+    assert seen[-1].skinning_objective == ReconstructConfig().skinning_objective
+    with pytest.raises(SystemExit):
+        main(["reconstruct", str(tiny_scene), str(tmp_path / "a"), "--skinning-objective", "modal", "--quiet"])
+    assert seen[-1].skinning_objective == "modal"
     assert main(["reconstruct", str(tiny_scene), str(tmp_path / "a"), "--predictor", str(tmp_path / "no.pt")]) == 2
 
 

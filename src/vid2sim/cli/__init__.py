@@ -63,10 +63,12 @@ def _cmd_bench_identify(args: argparse.Namespace) -> int:
     set_threads(args.threads)
     given = {"scenes": args.n, "seed": args.seed, "preset": args.preset, "handles": args.handles,
              "skinning_iterations": args.skinning_iterations, "fit_iterations": args.fit_iterations,
-             "points": args.points, "truth": args.truth, "skinning_objective": args.skinning_objective,
+             "points": args.points, "skinning_points": args.skinning_points, "truth": args.truth,
+             "skinning_objective": args.skinning_objective,
              "cubature_weights": args.cubature_weights, "fem_element_order": args.fem_element_order}
     flags = {"scenes": "--n", "seed": "--seed", "preset": "--preset", "handles": "--handles",
-             "skinning_iterations": "--skinning-iterations", "fit_iterations": "--fit-iterations", "points": "--points"}
+             "skinning_iterations": "--skinning-iterations", "fit_iterations": "--fit-iterations", "points": "--points",
+             "skinning_points": "--skinning-points"}
     try:
         config = identify.IdentifyConfig(**{k: v for k, v in given.items() if v is not None})
     except ValueError as exc:
@@ -324,6 +326,8 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
         overrides["jacobian"] = args.jacobian
     if args.seed is not None:
         overrides["seed"] = args.seed
+    if args.skinning_objective is not None:
+        overrides["skinning_objective"] = args.skinning_objective
     if args.stage1 is not None:
         overrides["stage1"] = args.stage1
     if args.predictor is not None:
@@ -477,9 +481,11 @@ def build_parser() -> argparse.ArgumentParser:
     ident.add_argument("--skinning-iterations", type=int, default=None, help="data-free skinning iterations (default 2000)")
     ident.add_argument("--fit-iterations", type=int, default=None, help="L-BFGS iterations (default 12)")
     ident.add_argument("--points", type=int, default=None, help="sample points (default 3000)")
+    ident.add_argument("--skinning-points", type=int, default=None,
+                       help="points the skinning field is trained on (default 30000)")
     ident.add_argument("--skinning-objective", choices=["random_z", "modal"], default=None,
-                       help="skinning training objective: the paper's random handle transforms (default) or the "
-                            "subspace's lowest modes")
+                       help="skinning training objective: the subspace's lowest modes (default) or the paper's "
+                            "random handle transforms")
     ident.add_argument("--cubature-weights", choices=["equal", "voronoi"], default=None,
                        help="cubature integration weights: the paper's equal weights (default) or Voronoi cell volumes")
     ident.add_argument("--fem-element-order", type=int, choices=[1, 2], default=None,
@@ -572,6 +578,9 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--jacobian", choices=["closed_form", "neural"], default=None,
                      help="dF/dz: exact closed form (default, faster on a CPU) or the paper's Neural Jacobian")
     rec.add_argument("--seed", type=int, default=None, help="seed (default 0)")
+    rec.add_argument("--skinning-objective", choices=["random_z", "modal"], default=None,
+                     help="data-free skinning objective: the paper's random handle transforms (default) or the "
+                          "subspace's lowest vibration modes (docs/architecture.md, 'Subspace stiffness')")
     rec.add_argument("--stage1", action=argparse.BooleanOptionalAction, default=None,
                      help="run the Stage I predictor first (its prediction becomes the prior material, the centre of "
                      "the coarse E search and the skinning field's start). Off by default until the shipped "

@@ -180,6 +180,22 @@ class GaussianRig:
         return deform_gaussians(g, x.to(g.means.dtype), F.to(g.means.dtype))
 
 
+
+def coarse_minimum(values: Sequence[float], losses: Sequence[float]) -> float:
+    """The minimum of a loss sampled on an ascending grid: the vertex of the parabola through the best sample
+    and its two neighbours (kept between them), or the best sample itself at an end of the grid or where the
+    parabola is not convex."""
+    i = min(range(len(losses)), key=lambda j: losses[j])
+    value = float(values[i])
+    if 0 < i < len(values) - 1:
+        (x0, y0), (x1, y1), (x2, y2) = [(values[j], losses[j]) for j in (i - 1, i, i + 1)]
+        denom = (x0 - x1) * (x0 - x2) * (x1 - x2)
+        a = (x2 * (y1 - y0) + x1 * (y0 - y2) + x0 * (y2 - y1)) / denom
+        b = (x2 ** 2 * (y0 - y1) + x1 ** 2 * (y2 - y0) + x0 ** 2 * (y1 - y2)) / denom
+        if a > 0:
+            value = min(max(-b / (2 * a), x0), x2)
+    return value
+
 def _detached(state: SimState) -> SimState:
     d = (lambda t: None if t is None else t.detach())
     return SimState(d(state.z), d(state.zdot), state.t, d(state.Fp_inv), z_prev=d(state.z_prev),
@@ -280,16 +296,7 @@ def joint_optimisation(
             loss, _ = clip_loss(sim, rig, _detached(initial_state()), coarse_obs)
             coarse.append({"log10_E": value, "loss": loss})
             bar.set_postfix(log10_E=value, loss=f"{loss:.2e}")
-        best = min(coarse, key=lambda r: r["loss"])
-        i = coarse.index(best)
-        value = best["log10_E"]
-        if 0 < i < len(coarse) - 1:  # vertex of the parabola through the best and its neighbours
-            (x0, y0), (x1, y1), (x2, y2) = [(coarse[j]["log10_E"], coarse[j]["loss"]) for j in (i - 1, i, i + 1)]
-            denom = (x0 - x1) * (x0 - x2) * (x1 - x2)
-            a = (x2 * (y1 - y0) + x1 * (y0 - y2) + x0 * (y2 - y1)) / denom
-            b = (x2 ** 2 * (y0 - y1) + x1 ** 2 * (y2 - y0) + x0 ** 2 * (y1 - y2)) / denom
-            if a > 0:
-                value = min(max(-b / (2 * a), x0), x2)
+        value = coarse_minimum([r["log10_E"] for r in coarse], [r["loss"] for r in coarse])
         with torch.no_grad():
             sim.log10_E.fill_(value)
 

@@ -63,6 +63,8 @@ class ReconstructConfig:
         points: interior points.
         handles: learned skinning handles (+1 rigid).
         skinning_iterations: data-free skinning iterations (paper: 10 000; 17 ms each on 2 CPU cores).
+        skinning_objective: "random_z" (the paper's) or "modal" (the subspace's lowest vibration modes,
+            :class:`~vid2sim.physics.SkinningTrainingConfig`), trained on the ``points.num_points`` samples.
         num_cubature: cubature points (paper: 500).
         jacobian: "closed_form" (exact dF/dz from the field; faster on a CPU) or "neural" (paper's Neural Jacobian).
         jacobian_iterations: data-free Neural Jacobian iterations when ``jacobian="neural"``.
@@ -83,6 +85,7 @@ class ReconstructConfig:
     points: PointsConfig = field(default_factory=PointsConfig)
     handles: int = 10
     skinning_iterations: int = 2000
+    skinning_objective: str = "random_z"
     num_cubature: int = 500
     jacobian: str = "closed_form"
     jacobian_iterations: int = 2000
@@ -101,6 +104,11 @@ class ReconstructConfig:
     def __post_init__(self) -> None:
         if self.jacobian not in ("closed_form", "neural"):
             raise ValueError(f"ReconstructConfig.jacobian must be 'closed_form' or 'neural', got {self.jacobian!r}")
+        from vid2sim.physics.skinning_training import OBJECTIVES
+
+        if self.skinning_objective not in OBJECTIVES:
+            raise ValueError(f"ReconstructConfig.skinning_objective must be one of {OBJECTIVES}, "
+                             f"got {self.skinning_objective!r}")
         for name in ("handles", "skinning_iterations", "num_cubature", "velocity_frames"):
             if getattr(self, name) < 1:
                 raise ValueError(f"ReconstructConfig.{name} must be >= 1, got {getattr(self, name)}")
@@ -435,7 +443,8 @@ def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConf
                (" and the Neural Jacobian" if jacobian is not None else ""))
         t0 = time.perf_counter()
         canonical = obj.canonical(obj.points)
-        train_skinning(field, canonical, SkinningTrainingConfig(iterations=cfg.skinning_iterations, seed=cfg.seed),
+        train_skinning(field, canonical, SkinningTrainingConfig(iterations=cfg.skinning_iterations, seed=cfg.seed,
+                                                                objective=cfg.skinning_objective),
                        progress=progress, volume=obj.volume / obj.scale ** 3)
         field.set_input_frame(obj.centre, obj.scale)
         torch.save(_cpu_state(field), field_path)
