@@ -579,8 +579,8 @@ def build_parser() -> argparse.ArgumentParser:
                      help="dF/dz: exact closed form (default, faster on a CPU) or the paper's Neural Jacobian")
     rec.add_argument("--seed", type=int, default=None, help="seed (default 0)")
     rec.add_argument("--skinning-objective", choices=["random_z", "modal"], default=None,
-                     help="data-free skinning objective: the paper's random handle transforms (default) or the "
-                          "subspace's lowest vibration modes (docs/architecture.md, 'Subspace stiffness')")
+                     help="data-free skinning objective: the subspace's lowest vibration modes (default) or the "
+                          "paper's random handle transforms (docs/architecture.md, 'Subspace stiffness')")
     rec.add_argument("--stage1", action=argparse.BooleanOptionalAction, default=None,
                      help="run the Stage I predictor first (its prediction becomes the prior material, the centre of "
                      "the coarse E search and the skinning field's start). Off by default until the shipped "
