@@ -99,8 +99,8 @@ class IdentifyConfig:
     truth: str = "fem"
 
     def __post_init__(self) -> None:
-        for name in ("scenes", "frames", "observed_frames", "points", "skinning_points", "handles", "cubature", "fit_iterations",
-                     "sweep_points"):
+        for name in ("scenes", "frames", "observed_frames", "points", "skinning_points", "handles", "cubature",
+                     "fit_iterations", "sweep_points"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"IdentifyConfig.{name} must be an integer >= 1, got {value!r}")
