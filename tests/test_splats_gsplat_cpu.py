@@ -65,7 +65,7 @@ def _rasterize_to_pixels(means2d, conics, colors, opacities, image_width, image_
                          isect_offsets, flatten_ids, backgrounds=None, masks=None, packed=False, absgrad=False):
     """Front-to-back compositing per 16×16 tile over the depth-sorted Gaussians the tile lists."""
     assert not packed and masks is None
-    I, N = means2d.shape[-3], means2d.shape[-2]
+    I, N = means2d.shape[:-2].numel(), means2d.shape[-2]  # images over all batch dims
     D = colors.shape[-1]
     m, con = means2d.reshape(I * N, 2), conics.reshape(I * N, 3)
     col, op = colors.reshape(I * N, D), opacities.reshape(I * N)
@@ -197,3 +197,27 @@ def test_screen_space_gradients_for_densification_match(gsplat_on_cpu):
     seen = (ref.radii > 0).all(-1) & (radii > 0).all(-1)
     assert float(ref.means2d.grad[seen].norm()) > 0
     assert torch.allclose(means2d.grad[seen], ref.means2d.grad[seen], rtol=1e-6, atol=1e-12)
+
+
+def test_per_view_gaussians_go_to_gsplat_as_a_batch(gsplat_on_cpu):
+    """Means (V, N, 3) and covariances (V, N, 3, 3) become gsplat's batch of V one-camera scenes: the same
+    images and gradients as the torch backend's per-view render."""
+    scene = _scene(60, seed=5, sh_degree=1, deformed=True)
+    cams = camera_ring(2, 2.2, 25.0, 40, 32, fov_x_deg=45.0)
+    shift = torch.tensor([[0.0, 0.0, 0.0], [0.06, -0.04, 0.05]], dtype=torch.float64)
+    means = (scene["means"].detach()[None] + shift[:, None]).requires_grad_()
+    covars = torch.stack([scene["covars"].detach(), 1.2 * scene["covars"].detach()]).requires_grad_()
+    ref = render(means, scene["opacities"], scene["colors"], cams, covars=covars, sh_degree=1, backend="torch")
+    viewmats, Ks, width, height = stack_cameras(cams)
+    rgb, alpha, _, means2d, radii = render_gsplat(
+        means, None, None, covars, scene["opacities"], scene["colors"], 1, viewmats.double(), Ks.double(),
+        width, height, torch.ones(2, 3, dtype=torch.float64))
+    assert rgb.shape == ref.rgb.shape == (2, 32, 40, 3) and means2d.shape == radii.shape == (2, 60, 2)
+    with torch.no_grad():
+        assert float((rgb - ref.rgb).abs().max()) < 1e-6 and float((alpha - ref.alpha).abs().max()) < 1e-6
+    w = torch.randn(rgb.shape, generator=torch.Generator().manual_seed(4), dtype=torch.float64)
+    a = torch.autograd.grad((ref.rgb * w).sum(), [means, covars])
+    b = torch.autograd.grad((rgb * w).sum(), [means, covars])
+    for name, x, y in zip(("means", "covars"), a, b):
+        assert float(x.norm()) > 0, name
+        assert torch.allclose(y, x, rtol=1e-5, atol=1e-8 * float(x.abs().max())), name

@@ -299,3 +299,43 @@ def test_gaussians_out_of_every_view_render_the_background():
     assert out.rgb.shape == (2, 32, 32, 3) and bool((out.rgb == 0.25).all())
     out.rgb.sum().backward()
     assert bool((g.means.grad == 0).all())
+
+
+def test_per_view_gaussians_render_like_one_call_per_view():
+    """Means (V, N, 3) and covariances (V, N, 3, 3): view v shows set v — images and gradients equal V
+    separate renders (this is how the joint optimisation composites a window's frames in one call)."""
+    means, scales, quats, ops, _ = _scene(30, 8, opacity=(0.5, 0.95))
+    g = torch.Generator().manual_seed(2)
+    sh = (0.3 * torch.randn(30, 4, 3, generator=g, dtype=F64)).requires_grad_()
+    cov = covariances_from_scales_quats(scales, quats)
+    shift = torch.tensor([[0.0, 0.0, 0.0], [0.1, -0.05, 0.02], [-0.08, 0.03, 0.1]], dtype=F64)
+    per_means = (means[None] + shift[:, None]).requires_grad_()
+    A = torch.eye(3, dtype=F64) + 0.1 * torch.randn(3, 30, 3, 3, generator=g, dtype=F64)
+    per_cov = (A @ cov @ A.transpose(-1, -2)).requires_grad_()
+    cams = camera_ring(3, 2.3, 20.0, 24, 20, fov_x_deg=45.0)
+    w = torch.randn(3, 20, 24, 3, generator=g, dtype=F64)
+    out = render(per_means, ops, sh, cams, covars=per_cov, sh_degree=1, background=0.3)
+    assert out.rgb.shape == (3, 20, 24, 3) and out.means2d.shape == (3, 30, 2)
+    grads = torch.autograd.grad((out.rgb * w).sum(), [per_means, per_cov, sh])
+    loss = 0.0
+    for v, cam in enumerate(cams):
+        one = render(per_means[v], ops, sh, [cam], covars=per_cov[v], sh_degree=1, background=0.3)
+        assert torch.allclose(out.rgb[v], one.rgb[0], atol=1e-13)
+        assert torch.allclose(out.means2d[v], one.means2d[0], atol=1e-13)
+        loss = loss + (one.rgb[0] * w[v]).sum()
+    ref = torch.autograd.grad(loss, [per_means, per_cov, sh])
+    for name, a, b in zip(("means", "covars", "sh"), grads, ref):
+        assert float(b.abs().max()) > 0, name
+        assert torch.allclose(a, b, rtol=1e-10, atol=1e-12 * float(b.abs().max())), name
+
+
+def test_per_view_gaussians_need_one_set_per_camera_and_covariances():
+    means, scales, quats, ops, cols = _scene(5, 1)
+    cov = covariances_from_scales_quats(scales, quats)
+    cams = camera_ring(2, 2.3, 20.0, 8, 8)
+    with pytest.raises(ValueError, match="one set per camera"):
+        render(means[None].expand(3, 5, 3), ops, cols, cams, covars=cov[None].expand(3, 5, 3, 3))
+    with pytest.raises(ValueError, match="covars must have shape"):
+        render(means[None].expand(2, 5, 3), ops, cols, cams, covars=cov)
+    with pytest.raises(ValueError, match="per-view covars"):
+        render(means[None].expand(2, 5, 3), ops, cols, cams, quats=quats, scales=scales)

@@ -48,6 +48,8 @@ def render_gsplat(
     Args:
         means: (N, 3); quats: (N, 4) and scales: (N, 3), or covars: (N, 3, 3); opacities: (N,);
         colors: (N, D) or SH (N, K, 3); viewmats: (V, 4, 4); Ks: (V, 3, 3); backgrounds: (V, D).
+        Per-view Gaussians: means (V, N, 3) and covars (V, N, 3, 3), rendered as gsplat's batch of V
+        one-camera scenes (opacities and colours shared).
 
     Returns:
         rgb (V, H, W, D), alpha (V, H, W, 1), depth (V, H, W, 1), means2d (V, N, 2), radii (V, N, 2).
@@ -63,6 +65,12 @@ def render_gsplat(
         covars = 0.5 * (covars + covars.transpose(-1, -2))
     else:
         quats_arg, scales_arg = quats, scales
+    per_view = means.ndim == 3
+    if per_view:  # gsplat's leading batch dimension: V scenes of one camera each
+        V = means.shape[0]
+        viewmats, Ks, backgrounds = viewmats[:, None], Ks[:, None], backgrounds[:, None]
+        opacities = opacities.expand(V, *opacities.shape)
+        colors = colors.expand(V, *colors.shape)
     rendered, alphas, meta = rasterization(
         means=means,
         quats=quats_arg,
@@ -83,9 +91,11 @@ def render_gsplat(
         rasterize_mode="classic",
         covars=covars,
     )
+    means2d, radii = meta["means2d"], meta["radii"]
+    if per_view:
+        rendered, alphas, means2d, radii = rendered[:, 0], alphas[:, 0], means2d[:, 0], radii[:, 0]
     rgb = rendered[..., :-1]
     depth = rendered[..., -1:]
-    radii = meta["radii"]
     if radii.ndim == 2:  # older layouts return one radius per Gaussian
         radii = radii[..., None].expand(*radii.shape, 2)
-    return rgb, alphas, depth, meta["means2d"], radii
+    return rgb, alphas, depth, means2d, radii

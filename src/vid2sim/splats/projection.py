@@ -64,8 +64,9 @@ def project_gaussians(
     """Project Gaussians into V pinhole views (differentiable w.r.t. means and covars).
 
     Args:
-        means: (N, 3) world centres.
-        covars: (N, 3, 3) world covariances (symmetrised here, so gradients come out symmetric).
+        means: (N, 3) world centres, or (V, N, 3) one set per view.
+        covars: (N, 3, 3) world covariances (symmetrised here, so gradients come out symmetric), or
+            (V, N, 3, 3) with per-view means.
         opacities: (N,) opacities in [0, 1], used only for culling and box sizes.
         viewmats: (V, 4, 4) world-to-camera transforms (OpenCV axes).
         Ks: (V, 3, 3) intrinsics.
@@ -86,12 +87,12 @@ def project_gaussians(
     v = y * rz
     mean2d = torch.stack([fx * u + cx, fy * v + cy], dim=-1)  # (V, N, 2)
 
-    sym = 0.5 * (covars + covars.transpose(1, 2))
+    sym = 0.5 * (covars + covars.transpose(-1, -2))
     # the six entries (il) of R Σ Rᵀ are linear in Σ: Σ_jk R_ij R_lk Σ_jk, one small GEMM per view
     rows = torch.tensor([0, 0, 0, 1, 1, 2], device=R.device)
     cols = torch.tensor([0, 1, 2, 1, 2, 2], device=R.device)
     kron = (R[:, rows, :, None] * R[:, cols, None, :]).reshape(-1, 6, 9)  # (V, 6, 9)
-    cov_c = torch.matmul(sym.reshape(1, -1, 9), kron.transpose(1, 2))  # (V, N, 6)
+    cov_c = torch.matmul(sym.reshape(*sym.shape[:-2], 9), kron.transpose(1, 2))  # (V, N, 6)
     c00, c01, c02, c11, c12, c22 = cov_c.unbind(-1)
 
     tan_x, tan_y = 0.5 * width / fx, 0.5 * height / fy

@@ -121,20 +121,28 @@ def _check_inputs(
     scales: Tensor | None,
     covars: Tensor | None,
     sh_degree: int | None,
+    n_views: int,
 ) -> None:
-    if not isinstance(means, Tensor) or means.ndim != 2 or means.shape[1] != 3:
-        raise ValueError(f"means must be a tensor of shape (N, 3), got {getattr(means, 'shape', type(means))}")
+    if not isinstance(means, Tensor) or means.ndim not in (2, 3) or means.shape[-1] != 3:
+        raise ValueError(f"means must be a tensor of shape (N, 3) or (V, N, 3), got "
+                         f"{getattr(means, 'shape', type(means))}")
     if not means.is_floating_point():
         raise ValueError(f"means must be a floating tensor, got {means.dtype}")
-    n = means.shape[0]
+    if means.ndim == 3 and means.shape[0] != n_views:
+        raise ValueError(f"per-view means (V, N, 3) need one set per camera: got V={means.shape[0]} for "
+                         f"{n_views} cameras")
+    n = means.shape[-2]
     if opacities.shape != (n,):
         raise ValueError(f"opacities must have shape (N={n},), got {tuple(opacities.shape)}")
     if covars is not None:
         if quats is not None or scales is not None:
             raise ValueError("pass either covars or (quats and scales), not both")
-        if covars.shape != (n, 3, 3):
-            raise ValueError(f"covars must have shape (N={n}, 3, 3), got {tuple(covars.shape)}")
+        if covars.shape != means.shape[:-1] + (3, 3):
+            raise ValueError(f"covars must have shape {tuple(means.shape[:-1]) + (3, 3)} (like means), "
+                             f"got {tuple(covars.shape)}")
     else:
+        if means.ndim == 3:
+            raise ValueError("per-view means (V, N, 3) need per-view covars (V, N, 3, 3), not quats and scales")
         if quats is None or scales is None:
             raise ValueError("pass covars (N, 3, 3), or both quats (N, 4) and scales (N, 3)")
         if quats.shape != (n, 4):
@@ -189,14 +197,16 @@ def render(
     """Render N Gaussians into V cameras (all of one image size), differentiably.
 
     Args:
-        means: (N, 3) world centres.
+        means: (N, 3) world centres, or (V, N, 3) one set per camera (e.g. the frames of a simulation, each
+            seen by its own cameras: one call composites them all, which costs less than one call per frame).
         opacities: (N,) opacities in [0, 1] (activated, not logits).
         colors: (N, D) colours/features when ``sh_degree`` is None, else (N, K, 3) SH coefficients
             with K ≥ (sh_degree + 1)² (evaluated per view, 3DGS convention).
         cameras: one :class:`Camera` or a sequence of V cameras sharing width and height.
         quats: (N, 4) rotations (w, x, y, z), need not be normalised; with ``scales``.
         scales: (N, 3) standard deviations (activated, not log); with ``quats``.
-        covars: (N, 3, 3) world covariances, instead of quats/scales (e.g. the deformed F Σ Fᵀ).
+        covars: (N, 3, 3) world covariances, instead of quats/scales (e.g. the deformed F Σ Fᵀ); (V, N, 3, 3)
+            with per-camera means.
         sh_degree: SH degree to evaluate, or None for plain colours.
         background: scalar, (D,) or (V, D) background colour; white (1.0) by default; None = black.
         backend: "auto", "torch" or "gsplat" (see module docstring).
@@ -209,8 +219,8 @@ def render(
         Gradients flow to means, opacities, colors and quats/scales or covars (and to a tensor
         background).
     """
-    _check_inputs(means, opacities, colors, quats, scales, covars, sh_degree)
     viewmats, Ks, width, height = stack_cameras(cameras)
+    _check_inputs(means, opacities, colors, quats, scales, covars, sh_degree, viewmats.shape[0])
     viewmats = viewmats.to(device=means.device, dtype=means.dtype)
     Ks = Ks.to(device=means.device, dtype=means.dtype)
     n_views = viewmats.shape[0]
@@ -231,7 +241,7 @@ def render(
         covars = covariances_from_scales_quats(scales, quats)  # type: ignore[arg-type]
     proj = project_gaussians(means, covars, opacities, viewmats, Ks, width, height, eps2d, near_plane, far_plane)
     flat = torch.nonzero(proj.visible.reshape(-1)).squeeze(1)  # visible (view, Gaussian) entries
-    n = means.shape[0]
+    n = means.shape[-2]
     v_idx = torch.div(flat, n, rounding_mode="floor")
     g_idx = flat - v_idx * n
     if sh_degree is None:
@@ -255,11 +265,12 @@ def render(
 
 
 def _sh_colors(sh: Tensor, degree: int, means: Tensor, viewmats: Tensor) -> Tensor:
-    """(V, N, 3) colours of SH coefficients ``sh: (N, K, 3)`` seen from each camera centre."""
+    """(V, N, 3) colours of SH coefficients ``sh: (N, K, 3)`` at ``means`` (N, 3) or (V, N, 3) seen from
+    each camera centre."""
     if degree == 0:
-        return eval_sh(0, sh, means).expand(viewmats.shape[0], -1, -1)
+        return eval_sh(0, sh, means.reshape(-1, means.shape[-2], 3)[0]).expand(viewmats.shape[0], -1, -1)
     campos = -(viewmats[:, :3, :3].transpose(1, 2) @ viewmats[:, :3, 3:]).squeeze(-1)  # (V, 3)
-    dirs = means[None] - campos[:, None]  # (V, N, 3)
+    dirs = (means if means.ndim == 3 else means[None]) - campos[:, None]  # (V, N, 3)
     dirs = dirs / dirs.norm(dim=-1, keepdim=True).clamp_min(1e-12)
     k = num_sh_bases(degree)
     basis = sh_basis(degree, dirs)  # (V, N, k)
