@@ -62,6 +62,11 @@ def test_report_has_per_scene_figures_and_means(report):
     if start in grid:  # the first L-BFGS evaluation repeats the grid's
         assert losses[0] == pytest.approx(row["fit_coarse"][grid.index(start)]["loss"], rel=1e-9)
     assert len(row["e_valley"]["loss"]) == config.sweep_points
+    at_truth = row["model_error_at_truth_percent"]
+    # a rigid alignment per frame can only shrink the distance; deformations are non-negative
+    assert 0 <= at_truth["observed_nonrigid_percent"] <= at_truth["observed_percent"] + 1e-9
+    assert 0 <= at_truth["future_nonrigid_percent"] <= at_truth["future_percent"] + 1e-9
+    assert at_truth["peak_deformation_percent"]["truth"] > 0 and at_truth["peak_deformation_percent"]["reduced"] > 0
     assert row["reduced_time_convergence_at_truth"]["refined_substeps"] == 4 * row["reduced_time_convergence_at_truth"]["substeps"]
     freq = row["frequencies"]
     assert len(freq["quadratic_tets_hz"]) == 6 and all(f > 0 for f in freq["quadratic_tets_hz"])

@@ -286,14 +286,24 @@ def trajectory_loss(scene: PerfectGeometry, frames: int, grad: bool = False) -> 
 
 
 def model_errors(scene: PerfectGeometry, config: IdentifyConfig) -> dict:
-    """Trajectory errors (percent of the size) on the observed frames 1–15 and the future 16–23."""
-    from vid2sim.metrics import trajectory_distance
+    """Trajectory errors (percent of the size) on the observed frames 1–15 and the future 16–23; the same
+    after aligning each frame rigidly onto the truth (``*_nonrigid_percent``: the shape error, without the
+    pose error); and the largest deformation over the frames (distance from the best rigid motion of the
+    rest shape) of the truth and of the reduced model."""
+    from vid2sim.metrics import deformation, nonrigid_distance, trajectory_distance
 
     traj = scene.trajectory(config.frames)
-    obs = trajectory_distance(traj, scene.truth, scene.size, frames=slice(1, config.observed_frames))
-    fut = trajectory_distance(traj, scene.truth, scene.size, frames=slice(config.observed_frames, config.frames))
-    return {"observed_percent": obs.mean, "future_percent": fut.mean, "all_percent":
-            trajectory_distance(traj, scene.truth, scene.size).mean}
+    observed, future = slice(1, config.observed_frames), slice(config.observed_frames, config.frames)
+    return {
+        "observed_percent": trajectory_distance(traj, scene.truth, scene.size, frames=observed).mean,
+        "future_percent": trajectory_distance(traj, scene.truth, scene.size, frames=future).mean,
+        "all_percent": trajectory_distance(traj, scene.truth, scene.size).mean,
+        "observed_nonrigid_percent": nonrigid_distance(traj, scene.truth, scene.size, frames=observed).mean,
+        "future_nonrigid_percent": nonrigid_distance(traj, scene.truth, scene.size, frames=future).mean,
+        "peak_deformation_percent": {"truth": max(deformation(scene.truth[: config.frames], scene.rest_points,
+                                                               scene.size)),
+                                     "reduced": max(deformation(traj, scene.rest_points, scene.size))},
+    }
 
 
 def fit(scene: PerfectGeometry, config: IdentifyConfig, progress: bool = False) -> dict:
@@ -437,6 +447,10 @@ def run(config: IdentifyConfig, workdir: str | Path, progress: bool = True) -> d
         "mean_abs_error_damping_ratio": mean(lambda r: r["abs_error"]["damping_ratio"]),
         "mean_model_error_observed_percent": mean(lambda r: r["model_error_at_truth_percent"]["observed_percent"]),
         "mean_model_error_future_percent": mean(lambda r: r["model_error_at_truth_percent"]["future_percent"]),
+        "mean_model_error_observed_nonrigid_percent":
+            mean(lambda r: r["model_error_at_truth_percent"]["observed_nonrigid_percent"]),
+        "mean_model_error_future_nonrigid_percent":
+            mean(lambda r: r["model_error_at_truth_percent"]["future_nonrigid_percent"]),
         "mean_fitted_error_observed_percent": mean(lambda r: r["trajectory_error_fitted_percent"]["observed_percent"]),
         "mean_fitted_error_future_percent": mean(lambda r: r["trajectory_error_fitted_percent"]["future_percent"]),
         "mean_valley_depth_at_half_decade": mean(lambda r: min(r["e_valley"]["depth_at_minus"], r["e_valley"]["depth_at_plus"])),

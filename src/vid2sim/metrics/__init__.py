@@ -15,19 +15,28 @@ from vid2sim.metrics.geometry import (
     surface_chamfer,
 )
 from vid2sim.metrics.images import gaussian_window, image_metrics, psnr, ssim, ssim_map
-from vid2sim.metrics.trajectory import TrajectoryDistance, trajectory_distance
+from vid2sim.metrics.trajectory import (
+    TrajectoryDistance,
+    deformation,
+    nonrigid_distance,
+    rigidly_aligned,
+    trajectory_distance,
+)
 
 __all__ = [
     "ChamferDistance",
     "TrajectoryDistance",
     "chamfer",
     "chamfer_distance",
+    "deformation",
     "fovvdp",
     "gaussian_window",
     "image_metrics",
     "material_errors",
     "nearest_neighbours",
+    "nonrigid_distance",
     "psnr",
+    "rigidly_aligned",
     "sample_surface",
     "ssim",
     "ssim_map",

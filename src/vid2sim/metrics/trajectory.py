@@ -59,3 +59,38 @@ def trajectory_distance(a: Tensor | np.ndarray, b: Tensor | np.ndarray, size: fl
         raise ValueError(f"no frames to compare among {T}")
     sel = per[idx]
     return TrajectoryDistance(float(sel.mean()), float(sel.max()), [float(v) for v in per], idx)
+
+
+def rigidly_aligned(source: Tensor, target: Tensor) -> Tensor:
+    """``source`` moved per frame by the rigid motion (rotation + translation, no reflection) that best
+    maps it onto ``target`` in the least-squares sense (Kabsch), both (T, N, 3) or (N, 3)."""
+    A, B = source.to(torch.float64), target.to(torch.float64)
+    ca, cb = A.mean(-2, keepdim=True), B.mean(-2, keepdim=True)
+    U, _, Vh = torch.linalg.svd((A - ca).transpose(-1, -2) @ (B - cb))  # H = Σ a bᵀ = U S Vh
+    d = torch.sign(torch.linalg.det(Vh.transpose(-1, -2) @ U.transpose(-1, -2)))
+    D = torch.ones(*d.shape, 3, dtype=A.dtype, device=A.device)
+    D[..., 2] = d
+    R = (Vh.transpose(-1, -2) * D[..., None, :]) @ U.transpose(-1, -2)  # R = V diag(1, 1, d) Uᵀ
+    return (A - ca) @ R.transpose(-1, -2) + cb
+
+
+def nonrigid_distance(a: Tensor | np.ndarray, b: Tensor | np.ndarray, size: float,
+                      frames: slice | list[int] | None = None) -> TrajectoryDistance:
+    """:func:`trajectory_distance` after aligning each frame of ``a`` rigidly onto ``b``: the part of the
+    difference that no rigid motion explains — a shape (deformation) error, as opposed to a pose error."""
+    A = torch.as_tensor(np.asarray(a) if not isinstance(a, Tensor) else a).detach().to(torch.float64)
+    B = torch.as_tensor(np.asarray(b) if not isinstance(b, Tensor) else b).detach().to(torch.float64)
+    if A.shape != B.shape or A.ndim != 3 or A.shape[-1] != 3:
+        raise ValueError(f"trajectories must both have shape (T, N, 3), got {tuple(A.shape)} and {tuple(B.shape)}")
+    return trajectory_distance(rigidly_aligned(A, B), B, size, frames)
+
+
+def deformation(trajectory: Tensor | np.ndarray, rest: Tensor | np.ndarray, size: float) -> list[float]:
+    """Per frame, how far the points of ``trajectory`` (T, N, 3) are from a rigid motion of their ``rest``
+    positions (N, 3): the mean distance to the best rigidly moved rest shape, in percent of ``size``, (T,)."""
+    X = torch.as_tensor(np.asarray(trajectory) if not isinstance(trajectory, Tensor) else trajectory).detach()
+    R = torch.as_tensor(np.asarray(rest) if not isinstance(rest, Tensor) else rest).detach()
+    if X.ndim != 3 or X.shape[1:] != R.shape or R.shape[-1] != 3:
+        raise ValueError(f"trajectory must be (T, N, 3) and rest (N, 3) with the same N, got {tuple(X.shape)}, "
+                         f"{tuple(R.shape)}")
+    return trajectory_distance(rigidly_aligned(R.expand_as(X), X), X, size, frames=list(range(len(X)))).per_frame
