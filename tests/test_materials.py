@@ -267,3 +267,33 @@ def test_fused_neo_hookean_viscous_tangent_equals_the_separate_tangents():
     fd = (viscous_pk1(F + eps * d, C_ref, mu, lam) - viscous_pk1(F - eps * d, C_ref, mu, lam)) / (2 * eps)
     lin = (stvk_tangent(F, mu, lam, C_ref) @ d.reshape(40, 9, 1)).reshape(40, 3, 3)
     assert torch.allclose(lin, fd, atol=1e-6)
+
+
+def test_fused_neo_hookean_viscous_energy_and_stress_equal_the_separate_models():
+    """The damped step's fused energy and stress equal k_e (Ψ, P)_NH + k_v (ψ, P)_StVK(C_ref), values and
+    gradients (to F, μ, λ, k_v and C_ref: the adjoint differentiates them)."""
+    from vid2sim.physics.materials import (
+        neo_hookean_energy_and_pk1,
+        neo_hookean_viscous_energy_and_pk1,
+        stvk_energy_and_pk1,
+    )
+
+    gen = torch.Generator().manual_seed(5)
+    F = random_F(30, 4).requires_grad_()
+    C_ref = torch.eye(3, dtype=DT) + 0.1 * torch.randn(len(F), 3, 3, generator=gen, dtype=DT)
+    C_ref = (0.5 * (C_ref + C_ref.transpose(1, 2))).requires_grad_()
+    mu, lam, k_v = (torch.tensor(v, dtype=DT, requires_grad=True) for v in (3.0, 5.0, 0.3))
+    psi, P, J = neo_hookean_viscous_energy_and_pk1(F, mu, lam, 0.7, k_v, C_ref)
+    psi_e, P_e, J_e = neo_hookean_energy_and_pk1(F, mu, lam)
+    psi_v, P_v = stvk_energy_and_pk1(F, mu, lam, C_ref)
+    ref_psi, ref_P = 0.7 * psi_e + k_v * psi_v, 0.7 * P_e + k_v * P_v
+    assert torch.allclose(psi, ref_psi, rtol=1e-12, atol=1e-12) and torch.allclose(P, ref_P, rtol=1e-12, atol=1e-12)
+    assert torch.equal(J, J_e)
+    none, P_only, _ = neo_hookean_viscous_energy_and_pk1(F, mu, lam, 0.7, k_v, C_ref, energy=False)
+    assert none is None and torch.equal(P_only, P)
+    w = torch.randn(P.shape, generator=gen, dtype=DT)
+    leaves = [F, C_ref, mu, lam, k_v]
+    got = torch.autograd.grad((P * w).sum() + psi.sum(), leaves)
+    want = torch.autograd.grad((ref_P * w).sum() + ref_psi.sum(), leaves)
+    for name, a, b in zip(("F", "C_ref", "mu", "lam", "k_v"), got, want):
+        assert torch.allclose(a, b, rtol=1e-10, atol=1e-10), name

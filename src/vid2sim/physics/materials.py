@@ -99,6 +99,33 @@ def stvk_energy_and_pk1(F: Tensor, mu: Scalar, lam: Scalar, C_ref: Tensor | None
     return psi, P
 
 
+def neo_hookean_viscous_energy_and_pk1(F: Tensor, mu: Scalar, lam: Scalar, k_elastic: Scalar, k_viscous: Scalar,
+                                       C_ref: Tensor, energy: bool = True) -> tuple[Tensor | None, Tensor, Tensor]:
+    """k_e Ψ_NH + k_v ψ and k_e P_NH + k_v P_v in one pass: ((N,) or None, (N, 3, 3), J (N,)).
+
+    ψ is the StVK energy measured from C_ref (the Kelvin–Voigt term of :mod:`vid2sim.physics.damping`). With
+    C = FᵀF, G = ½ (C − C_ref) and c = λ ln J − μ the stress is F (k_e μ I + k_v (2μ G + λ tr G I)) + k_e c F⁻ᵀ,
+    so the two models share F's cofactors, C and one product with F: the same values as
+    :func:`neo_hookean_energy_and_pk1` and :func:`stvk_energy_and_pk1` in fewer (eager) operations. The energy
+    is skipped (None) when ``energy`` is False. Where J ≤ 0 the values are not finite; callers check J."""
+    _check_F(F)
+    cof = torch.linalg.cross(F.roll(-1, dims=1), F.roll(-2, dims=1))  # rows: cross(F_{i+1}, F_{i+2}) = J F⁻ᵀ
+    J = (F[:, 0] * cof[:, 0]).sum(-1)
+    logj = torch.log(J)
+    C = F.transpose(1, 2) @ F
+    G = C.sub(C_ref).mul_(0.5)
+    tr_g = G.diagonal(dim1=1, dim2=2).sum(-1)
+    S = G * (2.0 * k_viscous * mu)
+    S.diagonal(dim1=1, dim2=2).add_((k_viscous * lam * tr_g + k_elastic * mu)[:, None])
+    P = torch.baddbmm((k_elastic * (lam * logj - mu) / J)[:, None, None] * cof, F, S)
+    if not energy:
+        return None, P, J
+    tr_c = C.diagonal(dim1=1, dim2=2).sum(-1)
+    psi = k_elastic * (0.5 * mu * (tr_c - 3.0) - mu * logj + 0.5 * lam * logj * logj) \
+        + k_viscous * (mu * (G * G).sum(dim=(1, 2)) + 0.5 * lam * tr_g * tr_g)
+    return psi, P, J
+
+
 def energy_and_pk1(model: str, F: Tensor, mu: Scalar, lam: Scalar) -> tuple[Tensor, Tensor, Tensor]:
     """(Ψ (N,), P (N, 3, 3), J (N,)) of the named elastic model in one pass."""
     if model == "neo_hookean":

@@ -34,6 +34,7 @@ from vid2sim.physics.materials import (
     det3,
     elastic_model,
     energy_and_pk1,
+    neo_hookean_viscous_energy_and_pk1,
     neo_hookean_viscous_tangent,
     stvk_energy_and_pk1,
 )
@@ -281,23 +282,25 @@ class StepProblem:
         when a cubature point is inverted (det F ≤ 0). With ``energy=False`` Φ is not computed (0).
         A differentiable expression of every input (the adjoint differentiates ∇Φ)."""
         F = self.basis.deformation_gradient(y)
-        psi, P, J = energy_and_pk1(self.model, F, self.mu, self.lam)
+        k_e = self.step.energy_scale
+        if self.tau is not None and self.model == "neo_hookean":  # the common case, fused
+            psi, stress, J = neo_hookean_viscous_energy_and_pk1(F, self.mu, self.lam, k_e,
+                                                                self.step.damping_scale(self.tau), self.c_ref, energy)
+        else:
+            psi, P, J = energy_and_pk1(self.model, F, self.mu, self.lam)
+            stress, psi = k_e * P, k_e * psi
+            if self.tau is not None:
+                k_d = self.step.damping_scale(self.tau)
+                psi_d, P_d = stvk_energy_and_pk1(F, self.mu, self.lam, self.c_ref)
+                stress, psi = stress + k_d * P_d, psi + k_d * psi_d
         if not bool((J > 0).all()):
             return y.new_full((), float("inf")), None, False
-        k_e = self.step.energy_scale
         dy = y - self.y_pred
         m_dy = self.mass_times(dy)
         e_ext, f_ext = self._external_energy_and_force(y, energy)
-        stress = k_e * P
         phi = y.new_zeros(())
         if energy:
-            phi = 0.5 * (dy @ m_dy) + k_e * ((self.vol * psi).sum() + e_ext)
-        if self.tau is not None:
-            k_d = self.step.damping_scale(self.tau)
-            psi_d, P_d = stvk_energy_and_pk1(F, self.mu, self.lam, self.c_ref)
-            stress = stress + k_d * P_d
-            if energy:
-                phi = phi + k_d * (self.vol * psi_d).sum()
+            phi = 0.5 * (dy @ m_dy) + self.vol @ psi + k_e * e_ext
         g = m_dy + self.basis.force(self.vol[:, None, None] * stress) + k_e * f_ext
         return phi, g, True
 
