@@ -536,3 +536,38 @@ def test_a_material_with_an_unknown_plasticity_is_refused_when_made():
     with pytest.raises(ValueError, match="Material.plasticity must be None, VonMises"):
         Material(plasticity="x")
     assert Material(plasticity={"type": "von_mises", "yield_stress": 300.0}).plasticity.yield_stress == 300.0
+
+
+def test_newton_cache_fits_the_rotation_from_its_kept_moments():
+    """The kept factor's rotation fit uses Σ m x aᵀ = Xa + Y Ba (no per-point work): for cubature points
+    moved rigidly by R (exactly representable through the rigid handle's columns [X, 1]), it recovers R."""
+    from types import SimpleNamespace
+
+    from scipy.spatial.transform import Rotation
+
+    from vid2sim.physics.solver import NewtonCache
+
+    g = torch.Generator().manual_seed(0)
+    K, H = 40, 3
+    X = torch.rand(K, 3, generator=g, dtype=torch.float64) - 0.5
+    w = torch.rand(K, H - 1, generator=g, dtype=torch.float64)
+    b = torch.cat([(w[:, :, None] * torch.cat([X, torch.ones(K, 1, dtype=torch.float64)], 1)[:, None]).reshape(K, -1),
+                   X, torch.ones(K, 1, dtype=torch.float64)], 1)  # (K, 4H); the last handle is rigid
+    m = 0.5 + torch.rand(K, generator=g, dtype=torch.float64)
+    problem = SimpleNamespace(X=X, b=b, mass=m, positions=lambda y: X + b @ y.reshape(3, -1).T)
+    Y0 = 0.05 * torch.randn(3, 4 * H, generator=g, dtype=torch.float64)
+    R = torch.tensor(Rotation.from_rotvec([0.3, -1.2, 0.7]).as_matrix(), dtype=torch.float64)
+    t = torch.tensor([0.2, -0.1, 0.4], dtype=torch.float64)
+    Y1 = R @ Y0
+    Y1[:, -4:-1] += R - torch.eye(3, dtype=torch.float64)
+    Y1[:, -1] += t
+    y0, y1 = Y0.reshape(-1), Y1.reshape(-1)
+    assert torch.allclose(problem.positions(y1), problem.positions(y0) @ R.T + t, atol=1e-12)
+    cache = NewtonCache()
+    cache.keep(torch.eye(12 * H, dtype=torch.float64), problem, y0)
+    assert torch.equal(cache.rotation, torch.eye(3, dtype=torch.float64)) and not cache.stale
+    grad = torch.randn(12 * H, generator=g, dtype=torch.float64)
+    d = cache.direction(problem, y1, grad)
+    assert torch.allclose(cache.rotation, R, atol=1e-12)
+    # with the identity factor the chord step is −(R ⊗ I)(R ⊗ I)ᵀ g = −g
+    assert torch.allclose(d, -grad, atol=1e-12)

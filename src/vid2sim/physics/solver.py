@@ -28,7 +28,7 @@ from torch import Tensor
 
 from vid2sim.physics.damping import DEFAULT_DAMPING_RATIO, check_damping_ratio, retardation_time
 from vid2sim.physics.integrators import INTEGRATORS, BDFStep, auto_substeps, bdf_step
-from vid2sim.physics.materials import ELASTIC_MODELS, lame_parameters
+from vid2sim.physics.materials import ELASTIC_MODELS, det3, lame_parameters
 from vid2sim.physics.reduced import (
     ElasticBasis,
     StepProblem,
@@ -222,40 +222,49 @@ class NewtonCache:
     kept factor stays useful while the object tumbles: each solve turns the gradient back by the rotation
     fitted (weighted Kabsch) between the cubature points now and when the factor was made.
 
+    The fit needs Σ_p m_p x_p(y) a_pᵀ for the cubature points x_p = X_p + Y b_p and their centred positions
+    a_p when the factor was made. As Σ m_p a_p = 0, that is Xa + Y Ba with the constants Xa = Σ m X aᵀ (3, 3)
+    and Ba = Σ m b aᵀ (L, 3), kept with the factor: a (3 × L)(L × 3) product per fit instead of moving the
+    K points.
+
     Attributes:
         factor: Cholesky factor (D, D) of the last Hessian, or None.
-        points: (K, 3) cubature positions where it was made (centred), for the rotation fit.
+        moments: (Xa (3, 3), Ba (L, 3)) of the cubature positions where it was made, for the rotation fit.
         stale: refactorise at the next iteration.
     """
 
     factor: Tensor | None = None
-    points: Tensor | None = None
+    moments: tuple[Tensor, Tensor] | None = None
     stale: bool = True
     rotation: Tensor | None = None
+
+    def keep(self, factor: Tensor, problem: StepProblem, y: Tensor) -> None:
+        """Store a fresh factor made at the state y: (D,) of ``problem``."""
+        x = problem.positions(y)
+        m = problem.mass
+        a = m[:, None] * (x - (m[:, None] * x).sum(0) / m.sum())  # m_p a_p, (K, 3)
+        self.factor, self.moments = factor, (problem.X.T @ a, problem.b.T @ a)
+        self.stale = False
+        self.rotation = torch.eye(3, dtype=y.dtype, device=y.device)
 
     def direction(self, problem: StepProblem, y: Tensor, g: Tensor, refit: bool = True) -> Tensor:
         """The chord step −(R ⊗ I) H₀⁻¹ (R ⊗ I)ᵀ g (D,) with the factorised H₀ and the rotation R fitted now
         (``refit``) or at the last fit (within one short step the object turns by a negligible angle)."""
         if refit or self.rotation is None:
-            self.rotation = _fitted_rotation(self.points, problem.positions(y), problem.mass)
+            Xa, Ba = self.moments
+            self.rotation = _rotation_of(Xa + y.reshape(3, -1) @ Ba)
         R = self.rotation
         gy = (R.T @ g.reshape(3, -1)).reshape(-1)
         d = torch.cholesky_solve(gy[:, None], self.factor)[:, 0]
         return -(R @ d.reshape(3, -1)).reshape(-1)
 
 
-def _centred(x: Tensor, m: Tensor) -> Tensor:
-    return x - (m[:, None] * x).sum(0) / m.sum()
-
-
-def _fitted_rotation(reference: Tensor, x: Tensor, m: Tensor) -> Tensor:
-    """The rotation R (3, 3) minimising Σ m_p ‖R a_p − b_p‖² for centred reference points a and the centred
-    points b of x: (K, 3) (Kabsch, with the reflection removed)."""
-    b = _centred(x, m)
-    cov = (b * m[:, None]).T @ reference  # Σ m b aᵀ
+def _rotation_of(cov: Tensor) -> Tensor:
+    """The rotation R (3, 3) minimising Σ m_p ‖R a_p − b_p‖² given cov = Σ m_p b_p a_pᵀ (3, 3) of centred
+    reference points a and points b (Kabsch, with the reflection removed)."""
     U, _, Vh = torch.linalg.svd(cov)
-    D = torch.ones(3, dtype=x.dtype, device=x.device)
-    D[2] = torch.sign(torch.linalg.det(U @ Vh))
+    D = torch.ones(3, dtype=cov.dtype, device=cov.device)
+    D[2] = torch.sign(det3((U @ Vh)[None])[0])
     return (U * D) @ Vh
 
 
@@ -318,10 +327,7 @@ def newton_solve(problem: StepProblem, config: SimConfig, length_scale: float,
     for it in range(config.newton_max_iters):
         fresh = cache.factor is None or cache.stale or not config.reuse_hessian
         if fresh:
-            cache.factor = _newton_factor(problem, y, config)
-            cache.points = _centred(problem.positions(y), problem.mass)
-            cache.stale = False
-            cache.rotation = torch.eye(3, dtype=y.dtype, device=y.device)
+            cache.keep(_newton_factor(problem, y, config), problem, y)
             stats.hessians += 1
             d = -torch.cholesky_solve(g[:, None], cache.factor)[:, 0]
         else:
