@@ -428,7 +428,8 @@ class _ImplicitStep(torch.autograd.Function):
         it_saved = iter(saved)
         inputs = [next(it_saved) if p else None for p in ctx.present]
         H = spec.problem(*inputs).hessian(y, project=False)
-        adj = _cholesky_solve(H, grad_y) if torch.linalg.cholesky_ex(H)[1] == 0 else torch.linalg.solve(H, grad_y)
+        factor = _factorize(H)  # the exact Hessian may be indefinite (e.g. under compression): then LU
+        adj = torch.cholesky_solve(grad_y[:, None], factor)[:, 0] if factor is not None else torch.linalg.solve(H, grad_y)
         needs = [n and t is not None for n, t in zip(ctx.needs_input_grad[1:], inputs)]
         with torch.enable_grad():
             req = [t.detach().requires_grad_(n) if t is not None else None for t, n in zip(inputs, needs)]
