@@ -207,8 +207,8 @@ def render_frames(rig: GaussianRig, states: Sequence[SimState], obs: Observation
     """(len(states), len(views), H, W, 3) renders of the states in the given views of ``obs``.
 
     All frames go to the renderer in one call (per-view Gaussians: frame t's Gaussians for frame t's
-    cameras), which composites them together: at the small preset's 4 frames × 4 views, 1.3× faster than
-    one call per frame, with the same images."""
+    cameras), which composites them together; with gsplat that is one batched launch. On the CPU it saves
+    6 % at the small preset's 4 frames × 4 views (forward + backward 390 → 368 ms, 1 thread)."""
     from vid2sim.splats.render import render
 
     basis = rig.basis() if basis is None else basis
