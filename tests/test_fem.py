@@ -437,6 +437,32 @@ def test_newton_from_a_compressed_state_converges_with_either_solver(solver):
     assert np.abs(g).max() < 1e-4 * weight
 
 
+
+def test_a_kept_factorisation_whose_full_step_fails_is_refactorised_not_searched_along():
+    """A kept factorisation made at another state (here: one whose steps are 100× too long, as a factorisation
+    made with another floor-contact set can be for the vertices that crossed the floor) is not line-searched
+    along: its rejected full step makes Newton refactorise at the current state. Halving along such steps
+    cycled forever with the fresh step of the other contact set in a quadratic-tet drop (Newton stagnated
+    at 1.5× its tolerance). The result is the plain-Newton state."""
+    from vid2sim.synthetic.fem import FactorCache
+
+    V, T = _small_box()
+    model = TetFEM(V, T, FEMConfig(youngs_modulus=1e4, floor_height=-0.09))
+    x = model.rest.copy()
+    v = np.zeros_like(x)
+    v[:, 2] = -1.0
+    h = 0.01
+    x_plain, _, plain = model.step(x, v, h)  # no kept factorisation: factorises at every iteration
+    assert plain.converged and plain.factorizations == plain.iterations
+    H = model._hessian(x, 1.0 / h**2, torch.from_numpy(model.deformation_gradients(x)), True) * 0.01
+    bad = FactorCache()
+    bad.set(H, model._factorize(H, plain.__class__(), exact=False), model._centred(x, None))
+    x_kept, _, kept = model.step(x, v, h, factor=bad)
+    assert kept.converged
+    assert kept.line_search_halvings == 0  # the bad factor's step was rejected, not halved
+    assert kept.factorizations >= 1 and kept.iterations > kept.factorizations  # then the fresh one was kept
+    np.testing.assert_allclose(x_kept, x_plain, atol=model.config.newton_tol * model.bbox_diagonal)  # both converged
+
 def test_initial_pose_apply_and_random():
     V, T = _small_box()
     masses = torch.from_numpy(TetFEM(V, T, FEMConfig()).masses)

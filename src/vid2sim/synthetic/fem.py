@@ -26,7 +26,9 @@ Model
   (:attr:`FEMConfig.linear_solver`). Time steps keep the factorisation, turned with the object, while
   Newton contracts fast (:attr:`FEMConfig.reuse_factorization`). Backtracking line search from the full
   Newton step; a trial state with any det F ≤ 0, a non-finite energy or no
-  sufficient decrease is rejected. Converged when the Newton step's largest vertex move is below
+  sufficient decrease is rejected. A kept factorisation whose full step is rejected is refactorised at the
+  current state rather than searched along: the floor penalty's Hessian jumps where a vertex crosses the
+  floor, and halved steps of a factorisation made with the other contact set can cycle forever. Converged when the Newton step's largest vertex move is below
   ``newton_tol`` × the rest bounding-box diagonal. :func:`simulate_fem_converged` doubles the substeps
   until the trajectory no longer changes by more than a tolerance (the benchmark's ground truth).
 * Fixed (Dirichlet) vertices: a boolean mask; those vertices keep their initial position.
@@ -650,16 +652,23 @@ class TetFEM:
                 raise FEMSolverError(f"Newton direction is not a descent direction (gᵀp = {gp:.3g}) at iteration {it}")
             alpha = 1.0
             halvings = 0
+            accepted = False
             for _ in range(cfg.line_search_max_halvings):
                 x_try = x + alpha * step
                 phi_try, g_try, F_try, slack_try = self._evaluate(x_try, x_tilde, inertia, x_start, viscous)
                 if phi_try <= phi + cfg.armijo * alpha * gp + slack:  # changes of Φ below its round-off pass
+                    accepted = True
                     break
                 stats.inverted_rejections += int(math.isinf(phi_try))
+                if not fresh:
+                    # A reused factorisation whose full step fails is not searched along: it was formed with
+                    # another floor-contact set (the penalty's Hessian jumps where a vertex crosses the floor),
+                    # and its halved steps can cycle with the fresh step of that other set. Refactorise here.
+                    break
                 alpha *= 0.5
                 halvings += 1
-            else:
-                if not fresh:  # the reused factorisation led nowhere: retry from here with a fresh one
+            if not accepted:
+                if not fresh:
                     factor.stale = True
                     continue
                 raise FEMSolverError(
