@@ -85,3 +85,41 @@ def test_cli_rejects_bad_options_with_the_flag_name(tmp_path, capsys):
     assert main(["bench", "identify", "--n", "0", "--workdir", str(tmp_path / "w"), "--quiet"]) == 2
     err = capsys.readouterr().err
     assert "--n must be an integer >= 1" in err
+
+
+def test_shape_and_centre_loss_is_blind_to_orientation_and_sees_centre_and_shape():
+    """The default fit loss: a trajectory turned per frame about its centre costs nothing; a shifted one
+    costs the squared shift; a deformed one costs its shape error. Its autograd gradient matches finite
+    differences through the per-frame rigid alignment."""
+    from types import SimpleNamespace
+
+    g = torch.Generator().manual_seed(0)
+    truth = torch.rand(5, 40, 3, generator=g, dtype=torch.float64)
+    angles = torch.linspace(0.0, 2.5, 5, dtype=torch.float64)
+    c, s = torch.cos(angles), torch.sin(angles)
+    R = torch.zeros(5, 3, 3, dtype=torch.float64)
+    R[:, 0, 0], R[:, 0, 1], R[:, 1, 0], R[:, 1, 1], R[:, 2, 2] = c, -s, s, c, 1.0
+    centre = truth.mean(1, keepdim=True)
+    turned = (truth - centre) @ R.transpose(1, 2) + centre
+
+    def scene(traj):
+        return SimpleNamespace(trajectory=lambda frames, grad=False: traj[:frames], truth=truth, size=2.0)
+
+    loss = identify.trajectory_loss
+    assert float(loss(scene(turned), 5, kind="shape_and_centre")) == pytest.approx(0.0, abs=1e-20)
+    assert float(loss(scene(turned), 5, kind="positions")) > 1e-3
+    shift = torch.tensor([0.03, -0.04, 0.0], dtype=torch.float64)
+    assert float(loss(scene(turned + shift), 5, kind="shape_and_centre")) == pytest.approx(0.05**2 / 4, rel=1e-9)
+    stretched = truth.clone()
+    stretched[..., 2] = centre[..., 2] + 1.1 * (truth[..., 2] - centre[..., 2])
+    assert float(loss(scene(stretched), 5, kind="shape_and_centre")) > 1e-5
+    x = (turned + 0.01 * torch.randn(turned.shape, generator=g, dtype=torch.float64)).requires_grad_()
+    loss(scene(x), 5, kind="shape_and_centre").backward()
+    direction = torch.randn(x.shape, generator=g, dtype=torch.float64)
+    eps = 1e-6
+    with torch.no_grad():
+        fd = (loss(scene(x + eps * direction), 5, kind="shape_and_centre")
+              - loss(scene(x - eps * direction), 5, kind="shape_and_centre")) / (2 * eps)
+    assert float((x.grad * direction).sum()) == pytest.approx(float(fd), rel=1e-5)
+    with pytest.raises(ValueError, match="loss must be one of"):
+        identify.IdentifyConfig(loss="pose")

@@ -65,7 +65,8 @@ def _cmd_bench_identify(args: argparse.Namespace) -> int:
              "skinning_iterations": args.skinning_iterations, "fit_iterations": args.fit_iterations,
              "points": args.points, "skinning_points": args.skinning_points, "truth": args.truth,
              "skinning_objective": args.skinning_objective,
-             "cubature_weights": args.cubature_weights, "fem_element_order": args.fem_element_order}
+             "cubature_weights": args.cubature_weights, "fem_element_order": args.fem_element_order,
+             "loss": args.loss}
     flags = {"scenes": "--n", "seed": "--seed", "preset": "--preset", "handles": "--handles",
              "skinning_iterations": "--skinning-iterations", "fit_iterations": "--fit-iterations", "points": "--points",
              "skinning_points": "--skinning-points"}
@@ -494,6 +495,9 @@ def build_parser() -> argparse.ArgumentParser:
     ident.add_argument("--truth", choices=["fem", "reduced"], default=None,
                        help="fit the FEM's motion (default) or the reduced model's own motion at the true "
                             "parameters (identifiability without model error)")
+    ident.add_argument("--loss", choices=["shape_and_centre", "positions"], default=None,
+                       help="the fit's 3-D loss: centre of mass + shape after a rigid alignment per frame "
+                            "(default; blind to the chaotic rocking of the orientation) or the plain point distance")
     ident.add_argument("--workdir", default="vid2sim-identify", help="cache of FEM runs and skinning fields "
                        "(default ./vid2sim-identify)")
     ident.add_argument("--out", default=None, help="write the full JSON report here")
