@@ -109,6 +109,33 @@ def test_coarse_minimum_is_the_parabola_vertex_between_the_best_samples_neighbou
     assert coarse_minimum([5.0], [1.0]) == 5.0
 
 
+def test_clip_loss_weights_its_frames():
+    """Whole-clip losses weight frames 1 … T−1 equally (the paper) or by exp(−(t − 1)/τ), normalised; the
+    weighted loss is the weighted sum of the per-frame image errors."""
+    import math
+
+    from vid2sim.pipeline.joint import clip_loss, frame_weights
+
+    assert frame_weights(5, None) == pytest.approx([0.25] * 4)
+    w = frame_weights(5, 2.0)
+    assert sum(w) == pytest.approx(1.0)
+    assert [b / a for a, b in zip(w, w[1:])] == pytest.approx([math.exp(-0.5)] * 3)
+    for bad in (0.0, -1.0, math.inf, "4"):
+        with pytest.raises(ValueError, match="frame_decay"):
+            JointConfig(frame_decay=bad)
+    sim, gaussians, cams = _scene_setup()
+    rig = GaussianRig(sim, gaussians)
+    start = sim.rigid_velocity_state([0.1, 0.0, -1.0], [0.0, 1.0, 0.0], [0.0, 0.0, 0.0])
+    target = torch.rand(2, 5, 32, 32, 3, generator=torch.Generator().manual_seed(0))
+    obs = Observations(target, cams)
+    equal, states = clip_loss(sim, rig, start, obs)
+    decayed, _ = clip_loss(sim, rig, start, obs, decay=2.0)
+    with torch.no_grad():
+        per_frame = [float(((render_frames(rig, [states[t]], obs, [0, 1])[0] - target[:, t]) ** 2).mean())
+                     for t in range(1, 5)]
+    assert equal == pytest.approx(sum(per_frame) / 4, rel=1e-6)
+    assert decayed == pytest.approx(sum(a * b for a, b in zip(w, per_frame)), rel=1e-6)
+
 def test_joint_optimisation_recovers_E_from_images_of_the_same_model():
     """Images rendered from the model at log10 E = 4.5 → the coarse search and Adam find it from the prior 5."""
     sim, gaussians, cams = _scene_setup()
