@@ -94,12 +94,21 @@ def test_new_pose_and_velocity_are_a_rigid_unstressed_start(asset):
     w = torch.tensor([0.0, 0.0, 2.0], dtype=torch.float64)
     torch.testing.assert_close(v0, torch.tensor([1.0, 0.0, 0.5], dtype=torch.float64) + torch.cross(
         w.expand_as(expected), expected - com, dim=1), rtol=0, atol=1e-5)
-    # no floor: a rotated rest shape is unstressed, so it flies ballistically without deforming (but for the
-    # slight stretch of spinning at 2 rad/s)
+    # no floor: a rotated rest shape is unstressed, so it flies ballistically without deforming (the tiny
+    # asset's barely trained 3-handle field drifts by ~3e-4 L even without spin); spinning at 2 rad/s adds a
+    # stretch below the centrifugal scale ρ ω² L³ / E, so the bound follows the asset's fitted E
     g = torch.tensor(asset.gravity, dtype=torch.float64)
+    still = Scenario(frames=4)
+    still.floor.enabled = False
+    still.initial.axis_angle, still.initial.translation = s.initial.axis_angle, s.initial.translation
+    still.initial.linear_velocity = s.initial.linear_velocity
+    _, still_stats = _physics(asset, still)
+    m = asset.material
+    centrifugal = m["density"] * 2.0**2 * asset.length_scale**3 / m["E"]
     assert stats["per_frame"]["deformation_rms"][0] < 1e-6
     for k, t in enumerate(stats["per_frame"]["time"]):
-        assert stats["per_frame"]["deformation_rms"][k] < 1e-3 * asset.length_scale
+        assert still_stats["per_frame"]["deformation_rms"][k] < 1e-3 * asset.length_scale
+        assert stats["per_frame"]["deformation_rms"][k] < still_stats["per_frame"]["deformation_rms"][k] + 0.05 * centrifugal
         ballistic = com + torch.tensor([1.0, 0.0, 0.5], dtype=torch.float64) * t + 0.5 * g * t * t
         assert torch.allclose(torch.tensor(stats["per_frame"]["centre_of_mass"][k], dtype=torch.float64), ballistic,
                               atol=5e-3)
