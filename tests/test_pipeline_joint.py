@@ -120,7 +120,8 @@ def test_clip_loss_weights_its_frames():
     w = frame_weights(5, 2.0)
     assert sum(w) == pytest.approx(1.0)
     assert [b / a for a, b in zip(w, w[1:])] == pytest.approx([math.exp(-0.5)] * 3)
-    for bad in (0.0, -1.0, math.inf, "4"):
+    assert frame_weights(1, 2.0) == []
+    for bad in (0.0, -1.0, math.inf, "4", True):
         with pytest.raises(ValueError, match="frame_decay"):
             JointConfig(frame_decay=bad)
     sim, gaussians, cams = _scene_setup()

@@ -94,8 +94,9 @@ class JointConfig:
             raise ValueError(f"JointConfig.views_per_iteration must be >= 1 or None, got {self.views_per_iteration}")
         if self.refresh_every < 1 or self.validate_every < 1:
             raise ValueError("JointConfig.refresh_every and validate_every must be >= 1")
-        if self.frame_decay is not None and not (isinstance(self.frame_decay, (int, float))
-                                                 and 0 < float(self.frame_decay) < math.inf):
+        if self.frame_decay is not None and (isinstance(self.frame_decay, bool)
+                                             or not isinstance(self.frame_decay, (int, float))
+                                             or not 0 < float(self.frame_decay) < math.inf):
             raise ValueError(f"JointConfig.frame_decay must be a finite number > 0 or None, got {self.frame_decay!r}")
         lo, hi = self.nu_bounds
         if not 0 <= lo < hi < 0.5:
@@ -244,7 +245,7 @@ def frame_weights(frames: int, decay: float | None) -> list[float]:
     when ``decay`` is None."""
     raw = [1.0 if decay is None else math.exp(-(t - 1) / decay) for t in range(1, frames)]
     total = sum(raw)
-    return [w / total for w in raw]
+    return [w / total for w in raw]  # empty for a one-frame clip
 
 
 def clip_loss(sim: Simulator, rig: GaussianRig, start: SimState, obs: Observations,
