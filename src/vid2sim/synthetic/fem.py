@@ -28,9 +28,10 @@ Model
   Newton step; a trial state with any det F ≤ 0, a non-finite energy or no
   sufficient decrease is rejected. A kept factorisation whose full step is rejected is refactorised at the
   current state rather than searched along: the floor penalty's Hessian jumps where a vertex crosses the
-  floor, and halved steps of a factorisation made with the other contact set can cycle forever. Converged when the Newton step's largest vertex move is below
-  ``newton_tol`` × the rest bounding-box diagonal. :func:`simulate_fem_converged` doubles the substeps
-  until the trajectory no longer changes by more than a tolerance (the benchmark's ground truth).
+  floor, and halved steps of a factorisation made with the other contact set can cycle forever. Converged
+  when the Newton step's largest vertex move is below ``newton_tol`` × the rest bounding-box diagonal.
+  :func:`simulate_fem_converged` doubles the substeps until the trajectory no longer changes by more than a
+  tolerance (the benchmark's ground truth).
 * Fixed (Dirichlet) vertices: a boolean mask; those vertices keep their initial position.
 
 Everything runs in float64 on the CPU with numpy/scipy (the per-element stress and tangent come from
@@ -661,9 +662,10 @@ class TetFEM:
                     break
                 stats.inverted_rejections += int(math.isinf(phi_try))
                 if not fresh:
-                    # A reused factorisation whose full step fails is not searched along: it was formed with
-                    # another floor-contact set (the penalty's Hessian jumps where a vertex crosses the floor),
-                    # and its halved steps can cycle with the fresh step of that other set. Refactorise here.
+                    # A reused factorisation whose full step fails is not searched along: it was formed at
+                    # another state, possibly with another floor-contact set (the penalty's Hessian jumps where
+                    # a vertex crosses the floor), and its halved steps can cycle with the fresh step of that
+                    # other set. Refactorise here instead.
                     break
                 alpha *= 0.5
                 halvings += 1
