@@ -39,6 +39,25 @@ def test_perfect_geometry_starts_exactly_where_the_fem_starts(report):
     identify.set_material(scene.simulator, math.log10(truth["E"]), truth["nu"], truth["damping_ratio"])
     traj = scene.trajectory(2)
     assert float((traj[1] - scene.truth[1]).norm(dim=1).mean()) < 0.01 * scene.size
+    assert scene.simulator.stiffness_scale == scene.info["stiffness_scale"] == 1.0
+    # --calibrate-stiffness: the subspace's lowest mode at the prior ν is brought to the quadratic tets'
+    from dataclasses import replace
+
+    from vid2sim.physics.modes import subspace_frequencies
+
+    calibrated = identify.prepare_scene(0, benchmark_parameters(1, 0)[0], replace(config, calibrate_stiffness=True),
+                                        workdir)
+    sim = calibrated.simulator
+    s = sim.stiffness_scale
+    assert s == calibrated.info["stiffness_scale"] and 0.3 < s < 1.0  # the subspace is stiffer than the tets
+    from vid2sim.physics.tet_modes import tet_frequencies
+    from vid2sim.synthetic.fem import FEMResult
+
+    fem = FEMResult.load(workdir / "scene_000" / "fem_result.npz")
+    X = fem.rest_vertices[: int(fem.tets.max()) + 1]
+    tets = tet_frequencies(X, fem.tets, 2e5, config.prior_nu, 900.0, k=1, order=2)[0]
+    omega = subspace_frequencies(sim.field, sim.X, sim.vol, 2e5 * s, config.prior_nu, 900.0, k=1)[0]
+    assert omega == pytest.approx(tets, rel=1e-6)
 
 
 def test_report_has_per_scene_figures_and_means(report):

@@ -1,5 +1,5 @@
 """Quadratic (10-node) tets in the FEM ground truth: against scikit-fem, Euler–Bernoulli, finite differences,
-closed forms, and the modal reference of :mod:`vid2sim.synthetic.modes`."""
+closed forms, and the modal reference of :mod:`vid2sim.physics.tet_modes`."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ import torch
 
 from vid2sim.synthetic.embedding import apply_embedding, embed_points
 from vid2sim.synthetic.fem import FEMConfig, FEMResult, InitialPose, TetFEM, simulate_fem, static_solve
-from vid2sim.synthetic.modes import quadratic_tet_nodes, tet_frequencies, tet_stiffness_and_mass
+from vid2sim.physics.tet_modes import quadratic_tet_nodes, tet_frequencies, tet_stiffness_and_mass
 from vid2sim.synthetic.tetra import box_tet_mesh
 
 skfem = pytest.importorskip("skfem")
@@ -55,7 +55,7 @@ def test_nodes_masses_and_contact_areas():
 
 def test_hessian_at_rest_is_scikit_fems_quadratic_stiffness():
     """At rest Neo-Hookean is linear elasticity: our Hessian equals the P2 stiffness of
-    :mod:`vid2sim.synthetic.modes`, and that has the eigenvalues of scikit-fem's ElementTetP2 stiffness."""
+    :mod:`vid2sim.physics.tet_modes`, and that has the eigenvalues of scikit-fem's ElementTetP2 stiffness."""
     X, T = _box()
     nu = 0.3
     model = TetFEM(X, T, _config(poisson_ratio=nu))

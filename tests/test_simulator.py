@@ -571,3 +571,26 @@ def test_newton_cache_fits_the_rotation_from_its_kept_moments():
     assert torch.allclose(cache.rotation, R, atol=1e-12)
     # with the identity factor the chord step is −(R ⊗ I)(R ⊗ I)ᵀ g = −g
     assert torch.allclose(d, -grad, atol=1e-12)
+
+
+def test_stiffness_scale_is_a_modulus_factor_and_keeps_the_materials_gradient(trained_field):
+    """A simulator at E with stiffness_scale s moves exactly as one at E·s (energy, damping and substeps),
+    and d(loss)/d(log10 E) is the same: scaling E by a constant leaves its logarithm's derivative."""
+    field, pts = trained_field
+    s = 0.6
+    runs = []
+    for E, scale in ((2e5, s), (2e5 * s, 1.0)):
+        idx, w = sample_cubature(pts, 120, volume=1.0, seed=0)
+        sim = Simulator(field, pts[idx], w, Material(E, 0.3, damping_ratio=0.1), [Gravity(), Floor(height=-0.5)],
+                        SimConfig(**TIGHT), stiffness_scale=scale)
+        sim.log10_E.requires_grad_(True)
+        loss = _window_loss(sim, pts, steps=4)
+        (grad,) = torch.autograd.grad(loss, sim.log10_E)
+        runs.append((sim.substeps(), float(loss), float(grad)))
+    assert runs[0][0] == runs[1][0]
+    assert runs[0][1] == pytest.approx(runs[1][1], rel=1e-12)
+    assert runs[0][2] == pytest.approx(runs[1][2], rel=1e-8)
+    idx, w = sample_cubature(pts, 120, volume=1.0, seed=0)
+    for bad in (0.0, -1.0, math.inf, True):
+        with pytest.raises(ValueError, match="stiffness_scale"):
+            Simulator(field, pts[idx], w, Material(1e5, 0.3), stiffness_scale=bad)

@@ -145,3 +145,23 @@ def test_subspace_frequencies_are_the_scaled_ritz_values_of_the_simulators_quadr
     assert not np.allclose(subspace_frequencies(field, X, uneven, 4.0, 0.3, 1.0, k=6), omega, rtol=1e-3)
     with pytest.raises(ValueError, match="k = 200"):
         subspace_frequencies(field, X, volumes, 4.0, 0.3, 1.0, k=200)
+
+
+def test_stiffness_calibration_brings_the_subspaces_lowest_mode_to_the_tets():
+    """The modal subspace of a free bar lies above quadratic tets (Rayleigh–Ritz); the calibration factor s is
+    (ω_tets / ω_subspace)² < 1, and at E·s the subspace's lowest frequency is the tets' at E, for any E, ρ."""
+    from vid2sim.physics.modes import stiffness_calibration
+    from vid2sim.physics.tet_modes import tet_frequencies
+    from vid2sim.synthetic.tetra import box_tet_mesh
+
+    mesh = box_tet_mesh(BAR, (10, 2, 2))
+    field = SkinningField(num_handles=4, seed=0).double()
+    train_skinning(field, _bar(20000, 0), SkinningTrainingConfig(iterations=200, points_per_step=500,
+                                                                 objective="modal"), progress=False, volume=BAR_VOLUME)
+    cubature = _bar(4000, 2)
+    volumes = torch.full((4000,), BAR_VOLUME / 4000, dtype=cubature.dtype)
+    s = stiffness_calibration(field, cubature, volumes, mesh.vertices, mesh.tets, 0.3)
+    assert 0.5 < s < 1.0
+    for E, rho in ((1.0, 1.0), (3e5, 800.0)):
+        tets = tet_frequencies(mesh.vertices, mesh.tets, E, 0.3, rho, k=1, order=2)[0]
+        assert subspace_frequencies(field, cubature, volumes, E * s, 0.3, rho, k=1)[0] == pytest.approx(tets, rel=1e-8)

@@ -82,6 +82,10 @@ class IdentifyConfig:
             (the plain point distance). The orientation of a stiff object rocking on the frictionless floor
             drifts chaotically from the truth's after its first bounce; the plain distance is dominated by
             that drift and pulls E to whatever value matches the rocking phase.
+        calibrate_stiffness: scale the reduced model's elastic energy so that its subspace's lowest
+            frequency on its cubature equals that of quadratic tets on the rest mesh, both at the prior ν
+            (:func:`vid2sim.physics.modes.stiffness_calibration`; ``Simulator.stiffness_scale``). The fitted E is then the
+            material's, not the stiffer subspace's.
     """
 
     scenes: int = 6
@@ -107,6 +111,7 @@ class IdentifyConfig:
     fem_element_order: int = 2
     truth: str = "fem"
     loss: str = "shape_and_centre"
+    calibrate_stiffness: bool = False
 
     def __post_init__(self) -> None:
         for name in ("scenes", "frames", "observed_frames", "points", "skinning_points", "handles", "cubature",
@@ -187,6 +192,7 @@ def prepare_scene(index: int, params: dict, config: IdentifyConfig, workdir: Pat
     from vid2sim.synthetic.scenes import SyntheticSceneConfig
     from vid2sim.synthetic.tetra import sample_points_in_tets, tet_volumes, tetrahedralize
     from vid2sim.physics import Floor, Gravity, Material, SimConfig, SimState, Simulator, SkinningField
+    from vid2sim.physics.modes import stiffness_calibration
     from vid2sim.physics.cubature import sample_cubature
     from vid2sim.physics.skinning_training import SkinningTrainingConfig, train_skinning
 
@@ -236,9 +242,12 @@ def prepare_scene(index: int, params: dict, config: IdentifyConfig, workdir: Pat
     surface = areas > 0
     fc = fem.config
     material = Material(config.prior_E, config.prior_nu, fc.density, damping_ratio=config.prior_damping)
+    scale = (stiffness_calibration(field, points[idx], weights, X, T, config.prior_nu)
+             if config.calibrate_stiffness else 1.0)
     sim = Simulator(field, points[idx], weights, material,
                     [Gravity(fc.gravity), Floor(height=fc.floor_height, stiffness=fc.floor_stiffness)], SimConfig(),
-                    length_scale=fem_length(fem, size), contact_points=nodes[surface], contact_weights=areas[surface])
+                    length_scale=fem_length(fem, size), contact_points=nodes[surface], contact_weights=areas[surface],
+                    stiffness_scale=scale)
     H = field.num_handles_total
     Z0 = np.zeros((H, 3, 4))
     Z0[-1] = _rigid_affine(nodes.numpy(), fem.trajectory[0].numpy()) - np.hstack([np.eye(3), np.zeros((3, 1))])
@@ -254,7 +263,7 @@ def prepare_scene(index: int, params: dict, config: IdentifyConfig, workdir: Pat
             "fem_substeps": fc.substeps,
             "fem_time_convergence_percent": (fem.time_convergence or {}).get("mean_percent"),
             "fem_seconds": (fem.time_convergence or {}).get("wall_time_all_runs", fem.wall_time),
-            "frequencies": lowest_frequencies(X, T, field, points[idx], weights, fc)}
+            "frequencies": lowest_frequencies(X, T, field, points[idx], weights, fc), "stiffness_scale": scale}
     truth_material = {"E": fc.youngs_modulus, "nu": fc.poisson_ratio, "damping_ratio": fc.damping_ratio}
     return PerfectGeometry(sim, start, points, lbs, truth, size, truth_material, info)
 
@@ -262,11 +271,11 @@ def prepare_scene(index: int, params: dict, config: IdentifyConfig, workdir: Pat
 def lowest_frequencies(X: torch.Tensor, T: torch.Tensor, field, cubature: torch.Tensor, volumes: torch.Tensor,
                        fc) -> dict:
     """The six lowest elastic frequencies at the true material: quadratic tets on the FEM's mesh (the converged
-    reference, :mod:`vid2sim.synthetic.modes`), and as ratios to them, linear tets with lumped mass on that
+    reference, :mod:`vid2sim.physics.tet_modes`), and as ratios to them, linear tets with lumped mass on that
     mesh (the FEM truth when ``fem_element_order`` is 1) and the reduced model's subspace on its cubature
     (:mod:`vid2sim.physics.modes`)."""
     from vid2sim.physics.modes import subspace_frequencies
-    from vid2sim.synthetic.modes import tet_frequencies
+    from vid2sim.physics.tet_modes import tet_frequencies
 
     E, nu, rho = fc.youngs_modulus, fc.poisson_ratio, fc.density
     reference = tet_frequencies(X, T, E, nu, rho, k=6, order=2)
@@ -426,6 +435,37 @@ def time_convergence(scene: PerfectGeometry, config: IdentifyConfig) -> dict:
     return {"substeps": n, "refined_substeps": 4 * n, "mean_percent": d.mean, "max_percent": d.max}
 
 
+def run_scene(index: int, params: dict, config: IdentifyConfig, workdir: Path, progress: bool = False) -> dict:
+    """Prepare (or load) scene ``index`` of the suite, measure its model error and fit it; its JSON row."""
+    t0 = time.perf_counter()
+    scene = prepare_scene(index, params, config, workdir, progress=False)
+    truth = scene.material
+    set_material(scene.simulator, math.log10(truth["E"]), truth["nu"], truth["damping_ratio"])
+    if config.truth == "reduced":
+        scene.truth = scene.trajectory(config.frames)
+    at_truth = model_errors(scene, config)
+    converged = time_convergence(scene, config)
+    result = fit(scene, config, progress=progress)
+    fitted_errors = model_errors(scene, config)
+    valley = sweep(scene, config, result["log10_E"])
+    return {
+        "scene": index, **scene.info,
+        "true": {"log10_E": math.log10(truth["E"]), "nu": truth["nu"], "damping_ratio": truth["damping_ratio"]},
+        "fitted": {k: result[k] for k in ("log10_E", "nu", "damping_ratio")},
+        "abs_error": {"log10_E": abs(result["log10_E"] - math.log10(truth["E"])),
+                      "nu": abs(result["nu"] - truth["nu"]),
+                      "damping_ratio": abs(result["damping_ratio"] - truth["damping_ratio"])},
+        "model_error_at_truth_percent": at_truth,
+        "trajectory_error_fitted_percent": fitted_errors,
+        "reduced_time_convergence_at_truth": converged,
+        "fit": {k: result[k] for k in ("loss", "evaluations", "seconds")},
+        "fit_coarse": result["coarse"],
+        "fit_history": result["history"],
+        "e_valley": valley,
+        "seconds": time.perf_counter() - t0,
+    }
+
+
 def run(config: IdentifyConfig, workdir: str | Path, progress: bool = True) -> dict:
     """Run the benchmark; returns the JSON-ready report (per scene and means)."""
     from tqdm.auto import tqdm
@@ -434,36 +474,10 @@ def run(config: IdentifyConfig, workdir: str | Path, progress: bool = True) -> d
 
     workdir = Path(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
-    rows = []
-    for i, params in enumerate(tqdm(benchmark_parameters(config.scenes, config.seed), desc="identify scenes",
-                                    unit="scene", disable=not progress)):
-        t0 = time.perf_counter()
-        scene = prepare_scene(i, params, config, workdir, progress=False)
-        truth = scene.material
-        set_material(scene.simulator, math.log10(truth["E"]), truth["nu"], truth["damping_ratio"])
-        if config.truth == "reduced":
-            scene.truth = scene.trajectory(config.frames)
-        at_truth = model_errors(scene, config)
-        converged = time_convergence(scene, config)
-        result = fit(scene, config, progress=progress)
-        fitted_errors = model_errors(scene, config)
-        valley = sweep(scene, config, result["log10_E"])
-        rows.append({
-            "scene": i, **scene.info,
-            "true": {"log10_E": math.log10(truth["E"]), "nu": truth["nu"], "damping_ratio": truth["damping_ratio"]},
-            "fitted": {k: result[k] for k in ("log10_E", "nu", "damping_ratio")},
-            "abs_error": {"log10_E": abs(result["log10_E"] - math.log10(truth["E"])),
-                          "nu": abs(result["nu"] - truth["nu"]),
-                          "damping_ratio": abs(result["damping_ratio"] - truth["damping_ratio"])},
-            "model_error_at_truth_percent": at_truth,
-            "trajectory_error_fitted_percent": fitted_errors,
-            "reduced_time_convergence_at_truth": converged,
-            "fit": {k: result[k] for k in ("loss", "evaluations", "seconds")},
-            "fit_coarse": result["coarse"],
-            "fit_history": result["history"],
-            "e_valley": valley,
-            "seconds": time.perf_counter() - t0,
-        })
+    rows = [run_scene(i, params, config, workdir, progress=progress)
+            for i, params in enumerate(tqdm(benchmark_parameters(config.scenes, config.seed), desc="identify scenes",
+                                            unit="scene", disable=not progress))]
+
     def mean(get):
         return float(np.mean([get(r) for r in rows]))
 

@@ -66,7 +66,7 @@ def _cmd_bench_identify(args: argparse.Namespace) -> int:
              "points": args.points, "skinning_points": args.skinning_points, "truth": args.truth,
              "skinning_objective": args.skinning_objective,
              "cubature_weights": args.cubature_weights, "fem_element_order": args.fem_element_order,
-             "loss": args.loss}
+             "loss": args.loss, "calibrate_stiffness": True if args.calibrate_stiffness else None}
     flags = {"scenes": "--n", "seed": "--seed", "preset": "--preset", "handles": "--handles",
              "skinning_iterations": "--skinning-iterations", "fit_iterations": "--fit-iterations", "points": "--points",
              "skinning_points": "--skinning-points"}
@@ -498,6 +498,10 @@ def build_parser() -> argparse.ArgumentParser:
     ident.add_argument("--loss", choices=["shape_and_centre", "positions"], default=None,
                        help="the fit's 3-D loss: centre of mass + shape after a rigid alignment per frame "
                             "(default; blind to the chaotic rocking of the orientation) or the plain point distance")
+    ident.add_argument("--calibrate-stiffness", action="store_true",
+                       help="scale the reduced model's elastic energy so that its lowest mode vibrates at the "
+                            "frequency of quadratic tets on the rest mesh (at the prior nu): the subspace is stiffer "
+                            "than the continuum, and the fit's E then is the material's")
     ident.add_argument("--workdir", default="vid2sim-identify", help="cache of FEM runs and skinning fields "
                        "(default ./vid2sim-identify)")
     ident.add_argument("--out", default=None, help="write the full JSON report here")

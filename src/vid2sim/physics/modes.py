@@ -3,7 +3,7 @@
 A drop excites the lowest elastic modes, and at a fixed ν their frequencies scale as √(E/ρ), so a subspace
 whose lowest Rayleigh–Ritz frequencies sit x % above the continuum's behaves as if E were (1 + x/100)² too
 large. :func:`subspace_frequencies` gives those frequencies for a simulator's cubature; compare them with
-:func:`vid2sim.synthetic.modes.tet_frequencies` (quadratic tets) on the same shape. The modal training
+:func:`vid2sim.physics.tet_modes.tet_frequencies` (quadratic tets) on the same shape. The modal training
 objective of :mod:`vid2sim.physics.skinning_training` lowers them.
 """
 
@@ -74,3 +74,29 @@ def subspace_frequencies(field, points: Tensor, volumes: Tensor, youngs_modulus:
     if len(lam) < k + 6:
         raise ValueError(f"the subspace has {len(lam)} degrees of freedom; k = {k} needs at least {k + 6}")
     return np.sqrt(np.clip(lam[6:6 + k], 0.0, None) * youngs_modulus / density)
+
+
+def stiffness_calibration(field, points: Tensor, volumes: Tensor, vertices: Tensor | np.ndarray,
+                          tets: Tensor | np.ndarray, poisson_ratio: float) -> float:
+    """(ω_tets / ω_subspace)² of the lowest elastic mode: the factor ``Simulator(stiffness_scale=...)`` that makes
+    the skinning subspace vibrate at the continuum's lowest frequency.
+
+    A Rayleigh–Ritz subspace is stiffer than the continuum (its frequencies lie above), and a material fitted
+    with it comes out soft by that factor. The continuum's frequency comes from quadratic tets
+    (:func:`vid2sim.physics.tet_modes.tet_frequencies`) on a tet mesh of the same solid (``bench identify``: the
+    FEM's rest mesh).
+
+    Args:
+        field: the skinning field; points: (K, 3) the simulator's cubature points (``sim.X``); volumes: (K,)
+            their weights (``sim.vol``); vertices: (Nv, 3), tets: (Nt, 4) positively oriented, in the frame and
+            units of ``points``.
+    Returns:
+        s ∈ (0, ∞); it does not depend on E or ρ; s < 1 when the subspace is stiffer than the tets.
+    """
+    from vid2sim.physics.tet_modes import tet_frequencies
+
+    reference = tet_frequencies(vertices, tets, 1.0, poisson_ratio, 1.0, k=1, order=2)[0]
+    reduced = subspace_frequencies(field, points, volumes, 1.0, poisson_ratio, 1.0, k=1)[0]
+    if not (reference > 0 and reduced > 0):
+        raise ValueError(f"the lowest elastic frequencies must be positive, got tets {reference}, subspace {reduced}")
+    return float((reference / reduced) ** 2)

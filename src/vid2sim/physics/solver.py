@@ -461,6 +461,11 @@ class Simulator:
             samples of the object's surface; default the cubature points (the paper).
         contact_weights: (Nc,) their barrier weights (default 1 each: the paper's per-point penalty; area
             weights in m² make the barrier stiffness a contact pressure per metre of penetration).
+        stiffness_scale: s > 0; the elastic energy (and the damping and substep count, which follow the
+            frequencies) use E·s instead of E. A Rayleigh–Ritz subspace is stiffer than the continuum; with
+            s = (ω_continuum / ω_subspace)² of the lowest mode
+            the subspace vibrates at the material's frequency, and ``log10_E`` stays the material's (``bench identify
+            --calibrate-stiffness``).
     """
 
     def __init__(
@@ -476,7 +481,12 @@ class Simulator:
         length_scale: float | None = None,
         contact_points: Tensor | None = None,
         contact_weights: Tensor | None = None,
+        stiffness_scale: float = 1.0,
     ) -> None:
+        if isinstance(stiffness_scale, bool) or not isinstance(stiffness_scale, (int, float)) \
+                or not (0 < float(stiffness_scale) < math.inf):
+            raise ValueError(f"stiffness_scale must be a finite positive number, got {stiffness_scale!r}")
+        self.stiffness_scale = float(stiffness_scale)
         if cubature_points.ndim != 2 or cubature_points.shape[1] != 3 or cubature_points.shape[0] == 0:
             raise ValueError(f"cubature_points must have shape (K, 3) with K >= 1, got {tuple(cubature_points.shape)}")
         if cubature_weights.shape != cubature_points.shape[:1]:
@@ -533,7 +543,11 @@ class Simulator:
             raise ValueError(
                 f"material parameters must be finite, got log10_E={float(self.log10_E.detach())}, nu={float(self.nu.detach())}"
             )
-        return lame_parameters(10.0**self.log10_E, self.nu)  # type: ignore[return-value]
+        return lame_parameters(self.effective_youngs_modulus(), self.nu)  # type: ignore[return-value]
+
+    def effective_youngs_modulus(self) -> Tensor:
+        """0-d E·s: the modulus the elastic energy uses (``stiffness_scale`` s; E itself when s = 1)."""
+        return 10.0**self.log10_E * self.stiffness_scale
 
     def retardation_time(self) -> Tensor | None:
         """Kelvin–Voigt τ = 2 ζ L √(ρ/E) (s) from the current ``damping_ratio``, ``log10_E`` and ``density``;
@@ -543,14 +557,14 @@ class Simulator:
             raise ValueError(f"damping_ratio must be a finite number >= 0, got {float(zeta.detach())}")
         if float(zeta.detach()) == 0.0 and not zeta.requires_grad:
             return None
-        return retardation_time(zeta, 10.0**self.log10_E, self.density, self.length_scale)
+        return retardation_time(zeta, self.effective_youngs_modulus(), self.density, self.length_scale)
 
     def substeps(self) -> int:
         """Implicit steps per frame: ``config.substeps``, or the automatic count for the current E, density
         and length scale (:func:`~vid2sim.physics.integrators.auto_substeps`)."""
         if self.config.substeps is not None:
             return self.config.substeps
-        return auto_substeps(self.config.dt, 10.0 ** float(self.log10_E.detach()), float(self.density.detach()),
+        return auto_substeps(self.config.dt, float(self.effective_youngs_modulus().detach()), float(self.density.detach()),
                              self.length_scale)
 
     def masses(self) -> Tensor:

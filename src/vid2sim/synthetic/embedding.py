@@ -184,7 +184,7 @@ def apply_embedding(tet_vertices_deformed: Tensor, tet_index: Tensor, bary: Tens
         raise ValueError(f"tets index vertex {int(tets.max())} but tet_vertices_deformed has {x.shape[-2]} vertices")
     idx = tets[tet_index]  # (P, 4) or (P, 10)
     if tets.shape[1] == 10:
-        from vid2sim.synthetic.modes import TET_EDGES
+        from vid2sim.physics.tet_modes import TET_EDGES
 
         bary = torch.cat([bary * (2 * bary - 1)] + [4 * bary[:, a:a + 1] * bary[:, b:b + 1] for a, b in TET_EDGES], dim=1)
     return (x[..., idx, :] * bary[..., None]).sum(dim=-2)

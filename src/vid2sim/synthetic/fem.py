@@ -123,7 +123,7 @@ class FEMConfig:
             mesh (a node on every edge midpoint, 4 quadrature points per tet, HRZ-lumped masses and contact
             areas). Linear tets are stiff in bending: on the ``bench identify`` shapes at the small preset's
             mesh their lowest frequency is 3–20 % above the converged one, while quadratic tets are within
-            0.6 % (:mod:`vid2sim.synthetic.modes`). Positions are then given for all nodes, vertices first.
+            0.6 % (:mod:`vid2sim.physics.tet_modes`). Positions are then given for all nodes, vertices first.
         hessian_projection: "on_demand" — Newton uses the exact Hessian while it gives a descent
             direction (CG converges and gᵀp < 0, or the direct factorisation shows it positive definite)
             and the Hessian with every element tangent projected to PSD otherwise; "always" — the
@@ -328,8 +328,8 @@ class NewtonStats:
 def _quadratic_gradients(gradL: np.ndarray) -> np.ndarray:
     """(Nt, 4, 10, 3) gradients of the 10-node shape functions at the 4 quadrature points of the degree-2
     rule, from the barycentric gradients gradL (Nt, 4, 3): ∇N_a = (4L_a − 1)∇L_a at the vertices and
-    ∇N_ab = 4(L_a ∇L_b + L_b ∇L_a) at the midpoints of :data:`vid2sim.synthetic.modes.TET_EDGES`."""
-    from vid2sim.synthetic.modes import TET_EDGES, quadrature_points
+    ∇N_ab = 4(L_a ∇L_b + L_b ∇L_a) at the midpoints of :data:`vid2sim.physics.tet_modes.TET_EDGES`."""
+    from vid2sim.physics.tet_modes import TET_EDGES, quadrature_points
 
     out = np.empty((gradL.shape[0], 4, 10, 3))
     for q, L in enumerate(quadrature_points()):
@@ -348,7 +348,7 @@ def _contact_areas(X: np.ndarray, tets: np.ndarray, elements: np.ndarray, num_no
 
     if elements.shape[1] == 4:
         return surface_vertex_areas(torch.from_numpy(X), torch.from_numpy(tets)).numpy()
-    from vid2sim.synthetic.modes import TET_EDGES
+    from vid2sim.physics.tet_modes import TET_EDGES
 
     faces = boundary_faces(torch.from_numpy(tets)).numpy()
     area = 0.5 * np.linalg.norm(np.cross(X[faces[:, 1]] - X[faces[:, 0]], X[faces[:, 2]] - X[faces[:, 0]]), axis=1)
@@ -388,7 +388,7 @@ class TetFEM:
         self.tets = T.astype(np.int64)
         self.order = config.element_order
         if self.order == 2:
-            from vid2sim.synthetic.modes import quadratic_tet_nodes
+            from vid2sim.physics.tet_modes import quadratic_tet_nodes
 
             nodes, self.elements = quadratic_tet_nodes(X, self.tets)
         else:
@@ -895,7 +895,7 @@ class FEMResult:
             compared, the trajectory difference between them (percent of the size, mean over frames 1 … T−1
             and the largest frame), the tolerance, every comparison made and the wall time of all runs;
             None for a single run.
-        elements: (Nt, 10) node indices of the quadratic tets (:func:`vid2sim.synthetic.modes.quadratic_tet_nodes`
+        elements: (Nt, 10) node indices of the quadratic tets (:func:`vid2sim.physics.tet_modes.quadratic_tet_nodes`
             order), or None for linear tets.
     """
 
