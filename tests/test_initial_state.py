@@ -224,7 +224,7 @@ def small_scene(tmp_path_factory: pytest.TempPathFactory):
 
 def test_matches_ground_truth_of_synthetic_scene(small_scene) -> None:
     """Seed 0 of the small preset: the object reaches the floor between frames 4 and 5."""
-    from vid2sim.synthetic.tetra import sample_points_in_tets
+    from vid2sim.meshing.tetra import sample_points_in_tets
 
     scene, fem = small_scene
     cfg = scene.config

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from vid2sim.physics.tet_modes import quadratic_tet_nodes, reference_mass, tet_frequencies
-from vid2sim.synthetic.tetra import box_tet_mesh
+from vid2sim.meshing.tetra import box_tet_mesh
 
 BAR = (2.0, 0.4, 0.4)  # a free 2 m bar of 0.4 m square section; E = ρ = 1, ν = 0.3
 NU = 0.3

@@ -35,6 +35,13 @@ def test_reconstruct_writes_a_complete_asset(tiny_asset, tiny_scene):
     sim = asset.simulator()
     states = sim.rollout(asset.initial_state(sim), 3)
     assert all(torch.isfinite(s.z).all() for s in states)
+    # the stiffness calibration (on in the tiny config): recorded, used by the asset's simulator, kept under
+    # another material (its accuracy: tests/test_pipeline_stiffness.py; 10 skinning iterations and 60 cubature
+    # points leave this one's subspace anywhere near the tets)
+    s = asset.material["stiffness_scale"]
+    assert 0.05 < s < 5.0 and log["stiffness_calibration"]["stiffness_scale"] == s
+    assert 0.7 < log["stiffness_calibration"]["points_volume_ratio"] < 1.3
+    assert sim.stiffness_scale == s and asset.simulator(youngs_modulus=1e6).stiffness_scale == s
 
 
 def test_evaluate_reports_views_frames_material_and_chamfer(tiny_asset, tiny_scene, tmp_path):

@@ -152,7 +152,7 @@ def test_stiffness_calibration_brings_the_subspaces_lowest_mode_to_the_tets():
     (ω_tets / ω_subspace)² < 1, and at E·s the subspace's lowest frequency is the tets' at E, for any E, ρ."""
     from vid2sim.physics.modes import stiffness_calibration
     from vid2sim.physics.tet_modes import tet_frequencies
-    from vid2sim.synthetic.tetra import box_tet_mesh
+    from vid2sim.meshing.tetra import box_tet_mesh
 
     mesh = box_tet_mesh(BAR, (10, 2, 2))
     field = SkinningField(num_handles=4, seed=0).double()

@@ -12,7 +12,7 @@ import pytest
 import torch
 import trimesh
 
-from vid2sim.synthetic.tetra import (
+from vid2sim.meshing.tetra import (
     TetMesh,
     TetrahedralizationError,
     _surface_volume_and_closed,

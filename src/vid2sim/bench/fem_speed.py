@@ -31,7 +31,7 @@ def run(preset: str = "small", seed: int = 0, frames: int | None = None, progres
     from vid2sim.synthetic.fem import simulate_fem
     from vid2sim.synthetic.shapes import make_procedural_object
     from vid2sim.synthetic.scenes import SyntheticSceneConfig
-    from vid2sim.synthetic.tetra import tetrahedralize
+    from vid2sim.meshing.tetra import tetrahedralize
 
     config = SyntheticSceneConfig.preset(preset, seed=seed)
     if frames is not None:  # the observed/held-out split does not matter to the FEM

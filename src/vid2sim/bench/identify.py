@@ -190,7 +190,7 @@ def prepare_scene(index: int, params: dict, config: IdentifyConfig, workdir: Pat
     from vid2sim.synthetic.fem import FEMResult, simulate_fem_converged
     from vid2sim.synthetic.shapes import make_procedural_object
     from vid2sim.synthetic.scenes import SyntheticSceneConfig
-    from vid2sim.synthetic.tetra import sample_points_in_tets, tet_volumes, tetrahedralize
+    from vid2sim.meshing.tetra import sample_points_in_tets, tet_volumes, tetrahedralize
     from vid2sim.physics import Floor, Gravity, Material, SimConfig, SimState, Simulator, SkinningField
     from vid2sim.physics.modes import stiffness_calibration
     from vid2sim.physics.cubature import sample_cubature
@@ -496,6 +496,7 @@ def run(config: IdentifyConfig, workdir: str | Path, progress: bool = True) -> d
         "mean_valley_depth_at_half_decade": mean(lambda r: min(r["e_valley"]["depth_at_minus"], r["e_valley"]["depth_at_plus"])),
         "max_reduced_time_convergence_percent": max(r["reduced_time_convergence_at_truth"]["mean_percent"] for r in rows),
         "mean_fit_seconds": mean(lambda r: r["fit"]["seconds"]),
+        "mean_stiffness_scale": mean(lambda r: r["stiffness_scale"]),
         # lowest elastic frequency as a ratio to quadratic tets: the FEM truth's and the reduced model's stiffening
         **{f"mean_lowest_frequency_{key}": mean(lambda r, key=key: r["frequencies"][key][0])
            for key in ("linear_tets_over_quadratic", "reduced_over_quadratic", "reduced_over_linear_tets")},

@@ -185,7 +185,7 @@ def _scene_config_error(exc: ValueError) -> UserError:
 
 def _generation_errors() -> tuple[type[Exception], ...]:
     from vid2sim.synthetic.fem import FEMSolverError
-    from vid2sim.synthetic.tetra import TetrahedralizationError
+    from vid2sim.meshing.tetra import TetrahedralizationError
 
     return (FEMSolverError, TetrahedralizationError)
 
@@ -331,6 +331,8 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
         overrides["skinning_objective"] = args.skinning_objective
     if args.stage1 is not None:
         overrides["stage1"] = args.stage1
+    if args.calibrate_stiffness is not None:
+        overrides["calibrate_stiffness"] = args.calibrate_stiffness
     if args.predictor is not None:
         if not Path(args.predictor).is_file():
             raise UserError(f"--predictor {args.predictor}: no such checkpoint file (train one with "
@@ -594,6 +596,11 @@ def build_parser() -> argparse.ArgumentParser:
                      "the coarse E search and the skinning field's start). Off by default until the shipped "
                      "predictor meets its accuracy targets (docs/predictor.md); --no-stage1 is the paper's "
                      "'w/o Stage I' ablation")
+    rec.add_argument("--calibrate-stiffness", action=argparse.BooleanOptionalAction, default=None,
+                     help="scale the simulator's elastic energy so that the skinning subspace's lowest mode vibrates "
+                     "at the frequency of quadratic tets on a surface of the reconstructed solid: the subspace is "
+                     "stiffer than the continuum, and the fitted E is then the material's (off by default until "
+                     "measured on the suite; docs/architecture.md)")
     rec.add_argument("--predictor", metavar="PATH", default=None,
                      help="Stage I checkpoint (default: the one shipped with vid2sim; vid2sim train-predictor)")
     rec.add_argument("--device", default=None, help="torch device of the Gaussian fits, networks and joint "

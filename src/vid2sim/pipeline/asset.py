@@ -50,7 +50,8 @@ class Asset:
         gaussians: the Gaussians at frame 0 (the rest configuration, world frame).
         field: the skinning field (input frame = the object's canonical frame).
         jacobian: the Neural Jacobian, or None (closed-form dF/dz).
-        material: {"model", "E", "log10_E", "nu", "density", "damping_ratio"}.
+        material: {"model", "E", "log10_E", "nu", "density", "damping_ratio", "stiffness_scale" (optional, 1 when
+            absent: the subspace's calibration, ``Simulator(stiffness_scale=)``; kept under material overrides)}.
         cubature_points: (K, 3); cubature_weights: (K,) (m³).
         contact_points: (S, 3); contact_areas: (S,) (m²).
         points: (N, 3) interior samples; volume: m³.
@@ -98,7 +99,8 @@ class Asset:
         return Simulator(self.field, self.cubature_points, self.cubature_weights, Material(**values), externals,
                          self.sim_config, jacobian=self.jacobian, use_neural_jacobian=self.jacobian is not None,
                          length_scale=self.length_scale, contact_points=self.contact_points,
-                         contact_weights=self.contact_areas)
+                         contact_weights=self.contact_areas,
+                         stiffness_scale=float(self.material.get("stiffness_scale", 1.0)))
 
     def initial_state(self, sim: Simulator) -> SimState:
         """The captured initial state: rest shape moving with the recovered rigid velocity."""
@@ -190,6 +192,10 @@ def load_asset(folder: str | Path, device: torch.device | str = "cpu") -> Asset:
         value = material.get(key)
         if not isinstance(value, (int, float)) or not math.isfinite(value):
             raise AssetFormatError(f"{folder / FILES['material']}: {key} must be a finite number, got {value!r}")
+    scale = material.get("stiffness_scale", 1.0)
+    if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not (0 < scale < math.inf):
+        raise AssetFormatError(f"{folder / FILES['material']}: stiffness_scale must be a finite positive number, "
+                               f"got {scale!r}")
     pts_path = folder / FILES["points"]
     if not pts_path.is_file():
         raise AssetFormatError(f"{pts_path}: missing")

@@ -230,35 +230,16 @@ def _surface_samples(points: np.ndarray, n: int, rng: np.random.Generator) -> np
 
     The silhouette of a solid is the projection of its surface, but interior samples stop short of the
     surface by a random, direction-dependent gap (a sparse rim): fitted to silhouettes they leave the pose,
-    above all the rotation, uncertain by a degree or two. So the points are binned on a grid of their mean
-    nearest-neighbour spacing h (at most 160 cells a side), blurred (Gaussian, σ = 1.5 cells, averaging the
-    sampling noise) and the surface is the level set at half the median density at the points (a blurred
-    step is at half its height at the step; marching cubes). Returns None when no surface is found.
+    above all the rotation, uncertain by a degree or two. So the surface is taken from
+    :func:`vid2sim.pipeline.stiffness.solid_surface` (binned on a grid of their mean nearest-neighbour spacing,
+    at most 160 cells a side, blurred, marching cubes at half the density). Returns None when none is found.
     """
-    from scipy.ndimage import gaussian_filter, map_coordinates
-    from scipy.spatial import cKDTree
-    from skimage.measure import marching_cubes
+    from vid2sim.pipeline.stiffness import solid_surface
 
-    Q = points if len(points) <= 50000 else points[rng.choice(len(points), 50000, replace=False)]
-    spacing = float(cKDTree(Q).query(Q, k=2)[0][:, 1].mean())
-    lo, hi = Q.min(0), Q.max(0)
-    h = max(spacing, float((hi - lo).max()) / 160.0, 1e-9)
-    sigma = 1.5
-    pad = math.ceil(4 * sigma) + 2
-    lo = lo - pad * h
-    shape = np.ceil((hi + pad * h - lo) / h).astype(np.int64)
-    counts = np.histogramdd(Q, bins=tuple(shape), range=[(lo[i], lo[i] + shape[i] * h) for i in range(3)])[0]
-    density = gaussian_filter(counts, sigma)
-    level = 0.5 * float(np.median(map_coordinates(density, ((Q - lo) / h - 0.5).T, order=1)))
-    if not 0 < level < float(density.max()):
+    surface = solid_surface(points, cells=160, rng=rng)
+    if surface is None:
         return None
-    try:
-        verts = marching_cubes(density, level=level)[0]
-    except (ValueError, RuntimeError):
-        return None
-    if len(verts) < 4:
-        return None
-    verts = lo + (verts + 0.5) * h
+    verts = surface[0]
     return verts if len(verts) <= n else verts[rng.choice(len(verts), n, replace=False)]
 
 

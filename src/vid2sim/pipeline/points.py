@@ -71,6 +71,8 @@ class ObjectPoints:
         centre: (3,) bounding-box centre; scale: bounding-box diagonal (m) — the canonical frame maps
             X to (X − centre) / scale.
         voxel: voxel edge (m); hull_voxels, kept_voxels: voxel counts before and after the depth carving.
+        occupancy: (A, B, C) bool, the kept voxels; origin: (3,) the grid's corner (voxel (i, j, k) spans
+            origin + [i, i + 1] · voxel, …).
     """
 
     points: Tensor
@@ -82,6 +84,8 @@ class ObjectPoints:
     voxel: float
     hull_voxels: int
     kept_voxels: int
+    occupancy: Tensor
+    origin: Tensor
 
     def canonical(self, X: Tensor) -> Tensor:
         """(N, 3) world points → canonical frame."""
@@ -103,6 +107,14 @@ def _carve_by_depth(centres: Tensor, depth: Tensor, alpha: Tensor, viewmats: Ten
     seen = inside & (alpha.reshape(-1)[flat] > alpha_threshold)
     in_front = seen & (z < d - tolerance)
     return ~in_front.any(dim=0)
+
+
+def sample_in_voxels(occupancy: Tensor, origin: Tensor, voxel: float, n: int, generator: torch.Generator) -> Tensor:
+    """(n, 3) points uniform in the occupied voxels of ``occupancy`` (A, B, C) (a voxel drawn uniformly, then a
+    uniform point in it), in the dtype of ``origin`` (3,)."""
+    idx = torch.nonzero(occupancy).to(origin.dtype)
+    pick = torch.randint(0, idx.shape[0], (n,), generator=generator)
+    return origin + (idx[pick] + torch.rand(n, 3, generator=generator, dtype=origin.dtype)) * voxel
 
 
 def object_points(masks: Tensor, cameras: Sequence[Camera], gaussians: Gaussians | None = None,
@@ -140,9 +152,7 @@ def object_points(masks: Tensor, cameras: Sequence[Camera], gaussians: Gaussians
         raise ValueError(f"only {kept} voxels of the object survive carving at resolution {cfg.resolution} "
                          "(hull {hull}); check the masks and cameras, or raise PointsConfig.resolution")
     gen = torch.Generator().manual_seed(cfg.seed)
-    idx = torch.nonzero(occ).to(dtype)
-    pick = torch.randint(0, idx.shape[0], (cfg.num_points,), generator=gen)
-    points = lo + (idx[pick] + torch.rand(cfg.num_points, 3, generator=gen, dtype=dtype)) * voxel
+    points = sample_in_voxels(occ, lo, voxel, cfg.num_points, gen)
     surface = _surface(occ)
     s_idx = torch.nonzero(surface)
     p = torch.nn.functional.pad(occ.float()[None, None], (1, 1, 1, 1, 1, 1))[0, 0]
@@ -161,4 +171,4 @@ def object_points(masks: Tensor, cameras: Sequence[Camera], gaussians: Gaussians
     box_lo, box_hi = points.min(0).values, points.max(0).values
     return ObjectPoints(points=points, volume=kept * voxel ** 3, contact_points=contact, contact_areas=areas,
                         centre=0.5 * (box_lo + box_hi), scale=float((box_hi - box_lo).norm()), voxel=voxel,
-                        hull_voxels=hull, kept_voxels=kept)
+                        hull_voxels=hull, kept_voxels=kept, occupancy=occ.cpu(), origin=lo.cpu())

@@ -78,6 +78,12 @@ class ReconstructConfig:
             meets its targets) is the paper's "w/o Stage I" ablation.
         predictor: its checkpoint (None: the one shipped with vid2sim).
         density: kg/m³ when the scene does not give one.
+        calibrate_stiffness: scale the simulator's elastic energy by s = (ω_tets / ω_subspace)² of the lowest
+            mode, so that the fitted E is the material's rather than the stiffer subspace's
+            (:mod:`vid2sim.pipeline.stiffness`: quadratic tets on a surface of the kept voxels, at the prior ν).
+            Off by default until it is measured on the benchmark suite.
+        calibration_cells: the surface grid's cells along the longest side for that reference mesh.
+        calibration_points: samples of the kept voxels that grid is made from.
         sim: the simulator's settings (time-converged BDF2 substeps by default).
         joint: the joint optimisation.
         seed: seeds every stage.
@@ -97,6 +103,9 @@ class ReconstructConfig:
     prior_nu: float = 0.3
     prior_damping: float = 0.05
     density: float = 1000.0
+    calibrate_stiffness: bool = False
+    calibration_cells: int = 96
+    calibration_points: int = 200_000
     sim: SimConfig = field(default_factory=SimConfig)
     joint: JointConfig = field(default_factory=JointConfig)
     seed: int = 0
@@ -111,7 +120,8 @@ class ReconstructConfig:
         if self.skinning_objective not in OBJECTIVES:
             raise ValueError(f"ReconstructConfig.skinning_objective must be one of {OBJECTIVES}, "
                              f"got {self.skinning_objective!r}")
-        for name in ("handles", "skinning_iterations", "num_cubature", "velocity_frames"):
+        for name in ("handles", "skinning_iterations", "num_cubature", "velocity_frames", "calibration_cells",
+                     "calibration_points"):
             if getattr(self, name) < 1:
                 raise ValueError(f"ReconstructConfig.{name} must be >= 1, got {getattr(self, name)}")
         if not (self.prior_E > 0 and 0 <= self.prior_nu < 0.5 and self.density > 0):
@@ -464,13 +474,26 @@ def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConf
     density = float(scene.config.metadata.get("density", cfg.density)) if isinstance(
         scene.config.metadata.get("density"), (int, float)) else cfg.density
     idx, weights = sample_cubature(obj.points, cfg.num_cubature, volume=obj.volume, seed=cfg.seed)
+    calibration_path = work.dir / "stiffness.json"
+    if cfg.calibrate_stiffness and not calibration_path.is_file():
+        from vid2sim.pipeline.points import sample_in_voxels
+        from vid2sim.pipeline.stiffness import calibrate_stiffness
+
+        _stage(progress, "      calibrating the subspace's stiffness against quadratic tets")
+        dense = sample_in_voxels(obj_cpu.occupancy, obj_cpu.origin.double(), obj_cpu.voxel, cfg.calibration_points,
+                                 torch.Generator().manual_seed(cfg.seed))
+        calibration = calibrate_stiffness(field, obj.points[idx], weights, dense, prior_nu,
+                                          cells=cfg.calibration_cells, seed=cfg.seed)
+        calibration_path.write_text(json.dumps(calibration))
+    calibration = json.loads(calibration_path.read_text()) if cfg.calibrate_stiffness else {"stiffness_scale": 1.0}
     externals = [Gravity(list(scene.config.gravity))]
     if scene.config.floor_height is not None:
         externals.append(Floor(height=scene.config.floor_height, stiffness=AREA_CONTACT_STIFFNESS))
     material = Material(prior_E, prior_nu, density, damping_ratio=cfg.prior_damping)
     sim = Simulator(field, obj.points[idx], weights, material, externals, cfg.sim, jacobian=jacobian,
                     use_neural_jacobian=jacobian is not None, length_scale=obj.scale,
-                    contact_points=obj.contact_points, contact_weights=obj.contact_areas)
+                    contact_points=obj.contact_points, contact_weights=obj.contact_areas,
+                    stiffness_scale=calibration["stiffness_scale"])
     joint_path = work.dir / "joint.json"
     if not work.done("joint"):
         _stage(progress, "[6/6] joint optimisation of the material, initial velocity and networks")
@@ -488,7 +511,8 @@ def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConf
         jacobian.load_state_dict(torch.load(work.dir / "jacobian_joint.pt", weights_only=True))
 
     material_json = {"model": "neo-hookean", "E": float(10.0 ** result["log10_E"]), "log10_E": result["log10_E"],
-                     "nu": result["nu"], "density": density, "damping_ratio": result["damping_ratio"]}
+                     "nu": result["nu"], "density": density, "damping_ratio": result["damping_ratio"],
+                     "stiffness_scale": calibration["stiffness_scale"]}
     field, jacobian = field.to("cpu"), (jacobian.to("cpu") if jacobian is not None else None)
     asset = Asset(gaussians=gaussians.to("cpu"), field=field, jacobian=jacobian, material=material_json,
                   cubature_points=obj_cpu.points[idx.cpu()], cubature_weights=weights.cpu(),
@@ -505,7 +529,7 @@ def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConf
                          "scene_frames": int(scene.images.shape[1]),
                          "volume_m3": obj.volume, "gaussians": gaussians.num,
                          "initial_velocity_estimate": velocity, "validation_loss": result["validation_loss"]})
-    log = {"timings_seconds": work.timings, "stage1": stage1, "coarse_search": result["coarse"],
+    log = {"timings_seconds": work.timings, "stage1": stage1, "stiffness_calibration": calibration, "coarse_search": result["coarse"],
            "iterations": result["log"]}
     save_asset(asset, out, config=cfg.to_dict(), log=log)
     shutil.rmtree(work.dir, ignore_errors=True)

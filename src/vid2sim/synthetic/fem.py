@@ -9,7 +9,7 @@ Model
 * Mass: lumped, ρ V_e / 4 to each vertex of each tet (the same lumped-mass choice as the reduced
   simulator's ρ V / N per cubature point). Gravity energy −Σ_i m_i g·x_i.
 * Floor: the plane z = h with a penalty on the surface, E_f = κ Σ_i a_i max(0, h − z_i)² over the boundary
-  vertices with their lumped rest areas a_i (:func:`vid2sim.synthetic.tetra.surface_vertex_areas`): a contact
+  vertices with their lumped rest areas a_i (:func:`vid2sim.meshing.tetra.surface_vertex_areas`): a contact
   pressure κ · depth integrated over the surface, so the contact stiffness does not change when the mesh
   is refined (the paper's per-point k Σ max(0, h − z)² would grow with the number of surface vertices).
   κ = :data:`vid2sim.physics.external.AREA_CONTACT_STIFFNESS` by default; the reduced simulator uses
@@ -344,7 +344,7 @@ def _contact_areas(X: np.ndarray, tets: np.ndarray, elements: np.ndarray, num_no
     """(N,) lumped rest boundary area per node: a third of each boundary triangle's area to each vertex
     (linear tets), or for quadratic tets HRZ on the 6-node triangle: A/19 per vertex and 16A/57 per edge
     midpoint."""
-    from vid2sim.synthetic.tetra import boundary_faces, surface_vertex_areas
+    from vid2sim.meshing.tetra import boundary_faces, surface_vertex_areas
 
     if elements.shape[1] == 4:
         return surface_vertex_areas(torch.from_numpy(X), torch.from_numpy(tets)).numpy()
@@ -371,7 +371,7 @@ class TetFEM:
 
     Args:
         vertices: (Nv, 3) rest positions.
-        tets: (Nt, 4) positively oriented tets (see :mod:`vid2sim.synthetic.tetra`).
+        tets: (Nt, 4) positively oriented tets (see :mod:`vid2sim.meshing.tetra`).
         config: material, floor and solver settings.
     """
 
@@ -405,7 +405,7 @@ class TetFEM:
         if np.any(det <= 1e-14 * diag ** 3):
             bad = int(np.sum(det <= 1e-14 * diag ** 3))
             raise ValueError(f"{bad} of {len(det)} tets have non-positive or zero rest volume; "
-                             "reorient/clean the mesh with vid2sim.synthetic.tetra.clean_tet_mesh")
+                             "reorient/clean the mesh with vid2sim.meshing.tetra.clean_tet_mesh")
         tet_volume = det / 6.0
         # barycentric gradients ∇L_a (Nt, 4, 3); F_ij = Σ_a x_{a,i} ∂_j N_a at every quadrature point
         gradL = np.concatenate([-np.linalg.inv(Dm).sum(axis=1, keepdims=True), np.linalg.inv(Dm)], axis=1)

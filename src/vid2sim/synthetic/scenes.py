@@ -7,7 +7,7 @@ here, so vid2sim makes its own:
 1. the object — a seeded procedural union of primitives with a procedural texture
    (:func:`vid2sim.synthetic.shapes.make_procedural_object`) or a user mesh
    (:func:`vid2sim.synthetic.meshes.load_user_mesh`), in the canonical frame (half bounding-box diagonal 0.5);
-2. its tetrahedralization (fTetWild, :func:`vid2sim.synthetic.tetra.tetrahedralize`);
+2. its tetrahedralization (fTetWild, :func:`vid2sim.meshing.tetra.tetrahedralize`);
 3. the FEM drop (:func:`vid2sim.synthetic.fem.simulate_fem`): random rotation, drop height and rigid velocity
    from the seed, Neo-Hookean with the given E, ν, density, the floor of DESIGN.md;
 4. the textured surface carried by the tets (:mod:`vid2sim.synthetic.embedding`) and rendered at every frame
@@ -46,7 +46,7 @@ from vid2sim.physics.external import AREA_CONTACT_STIFFNESS
 
 if TYPE_CHECKING:
     from vid2sim.synthetic.fem import FEMConfig, InitialPose
-    from vid2sim.synthetic.tetra import TetMesh
+    from vid2sim.meshing.tetra import TetMesh
 
 MAX_RESOLUTION = 4096  # the largest image side a synthetic scene renders
 MAX_IMAGE_BYTES = 8 * 2**30  # rendered images of one scene in memory (checked before the FEM runs)
@@ -299,7 +299,7 @@ def load_tet_mesh(path: str | Path) -> "TetMesh":
     Raises:
         FileNotFoundError: no such file. ValueError: not an npz with those arrays, or degenerate tets.
     """
-    from vid2sim.synthetic.tetra import TetMesh, TetrahedralizationError, clean_tet_mesh
+    from vid2sim.meshing.tetra import TetMesh, TetrahedralizationError, clean_tet_mesh
 
     path = Path(path)
     if not path.is_file():
@@ -335,7 +335,7 @@ def make_scene(config: SyntheticSceneConfig, out_dir: str | Path, overwrite: boo
         FileExistsError: ``out_dir`` exists and is not empty, unless ``overwrite`` and it is a scene folder.
         FileNotFoundError / ValueError: a bad mesh or tet-mesh file (not found, unsupported, not
             watertight, surface outside the tet mesh).
-        vid2sim.synthetic.tetra.TetrahedralizationError, vid2sim.synthetic.fem.FEMSolverError: meshing or the
+        vid2sim.meshing.tetra.TetrahedralizationError, vid2sim.synthetic.fem.FEMSolverError: meshing or the
             FEM failed (nothing is written).
     """
     import shutil
@@ -347,7 +347,7 @@ def make_scene(config: SyntheticSceneConfig, out_dir: str | Path, overwrite: boo
     from vid2sim.synthetic.meshes import load_user_mesh
     from vid2sim.scene.folder import Scene, SceneConfig, move_into_place, write_scene
     from vid2sim.synthetic.shapes import make_procedural_object
-    from vid2sim.synthetic.tetra import tetrahedralize
+    from vid2sim.meshing.tetra import tetrahedralize
     from vid2sim.splats.cameras import camera_ring
 
     if not isinstance(config, SyntheticSceneConfig):

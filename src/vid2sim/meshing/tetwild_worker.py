@@ -1,9 +1,9 @@
 """Child-process entry point that runs fTetWild (through pytetwild's compiled extension) on one surface.
 
-Run only by :func:`vid2sim.synthetic.tetra.tetrahedralize`, as
-``python -m vid2sim.synthetic.tetwild_worker IN.npz OUT.npz``, so that a crash inside the C++ mesher (a
+Run only by :func:`vid2sim.meshing.tetra.tetrahedralize`, as
+``python -m vid2sim.meshing.tetwild_worker IN.npz OUT.npz``, so that a crash inside the C++ mesher (a
 segfault, an abort, running out of memory) kills this child rather than the caller, and becomes a
-clean :class:`~vid2sim.synthetic.tetra.TetrahedralizationError` there.
+clean :class:`~vid2sim.meshing.tetra.TetrahedralizationError` there.
 
 The compiled ``PyfTetWildWrapper`` extension is loaded straight from pytetwild's install folder:
 ``import pytetwild`` would import PyVista (a large optional dependency, only used for pytetwild's
@@ -69,5 +69,5 @@ def run(in_path: str, out_path: str) -> None:
 
 if __name__ == "__main__":  # pragma: no cover - exercised through a subprocess
     if len(sys.argv) != 3:
-        sys.exit("usage: python -m vid2sim.synthetic.tetwild_worker IN.npz OUT.npz")
+        sys.exit("usage: python -m vid2sim.meshing.tetwild_worker IN.npz OUT.npz")
     run(sys.argv[1], sys.argv[2])

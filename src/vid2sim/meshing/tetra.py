@@ -8,7 +8,7 @@ outside (the convention of :mod:`vid2sim.synthetic.meshes`).
 
 The mesher is `fTetWild <https://github.com/wildmeshing/fTetWild>`_ through the ``pytetwild`` wheel
 (MPL-2.0; robust on imperfect real assets). pytetwild imports PyVista at package import time, which
-we do not need; the child process (:mod:`vid2sim.synthetic.tetwild_worker`) loads its compiled extension
+we do not need; the child process (:mod:`vid2sim.meshing.tetwild_worker`) loads its compiled extension
 directly instead.
 """
 
@@ -304,7 +304,7 @@ def tetrahedralize(
         env = dict(os.environ)
         env["PYTHONPATH"] = src_root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
         try:
-            proc = subprocess.run([sys.executable, "-m", "vid2sim.synthetic.tetwild_worker", in_path, out_path],
+            proc = subprocess.run([sys.executable, "-m", "vid2sim.meshing.tetwild_worker", in_path, out_path],
                                   capture_output=True, text=True, timeout=timeout, env=env,
                                   cwd=tmp)  # fTetWild writes scratch files into its working directory
         except subprocess.TimeoutExpired:
