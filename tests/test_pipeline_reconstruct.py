@@ -35,13 +35,21 @@ def test_reconstruct_writes_a_complete_asset(tiny_asset, tiny_scene):
     sim = asset.simulator()
     states = sim.rollout(asset.initial_state(sim), 3)
     assert all(torch.isfinite(s.z).all() for s in states)
-    # the stiffness calibration (on in the tiny config): recorded, used by the asset's simulator, kept under
-    # another material (its accuracy: tests/test_pipeline_stiffness.py; 10 skinning iterations and 60 cubature
-    # points leave this one's subspace anywhere near the tets)
+    assert asset.material["stiffness_scale"] == 1.0 == sim.stiffness_scale  # not calibrated by default
+
+
+def test_a_calibrated_reconstruction_records_and_uses_its_stiffness_scale(tiny_scene, tmp_path, tiny_config):
+    """--calibrate-stiffness: the factor is recorded in material.json and the log, used by the asset's simulator
+    and kept under another material (its accuracy: tests/test_pipeline_stiffness.py; 10 skinning iterations
+    and 60 cubature points leave this subspace anywhere near the tets)."""
+    cfg = tiny_config()
+    cfg.calibrate_stiffness, cfg.calibration_cells, cfg.calibration_points = True, 24, 20000
+    asset = load_asset(reconstruct(tiny_scene, tmp_path / "asset", cfg, progress=False))
+    log = json.loads((tmp_path / "asset" / "log.json").read_text())
     s = asset.material["stiffness_scale"]
-    assert 0.05 < s < 5.0 and log["stiffness_calibration"]["stiffness_scale"] == s
+    assert 0.05 < s < 5.0 and s != 1.0 and log["stiffness_calibration"]["stiffness_scale"] == s
     assert 0.7 < log["stiffness_calibration"]["points_volume_ratio"] < 1.3
-    assert sim.stiffness_scale == s and asset.simulator(youngs_modulus=1e6).stiffness_scale == s
+    assert asset.simulator().stiffness_scale == s and asset.simulator(youngs_modulus=1e6).stiffness_scale == s
 
 
 def test_evaluate_reports_views_frames_material_and_chamfer(tiny_asset, tiny_scene, tmp_path):

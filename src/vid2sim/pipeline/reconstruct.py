@@ -81,7 +81,8 @@ class ReconstructConfig:
         calibrate_stiffness: scale the simulator's elastic energy by s = (ω_tets / ω_subspace)² of the lowest
             mode, so that the fitted E is the material's rather than the stiffer subspace's
             (:mod:`vid2sim.pipeline.stiffness`: quadratic tets on a surface of the kept voxels, at the prior ν).
-            Off by default until it is measured on the benchmark suite.
+            Off by default until it is measured on the benchmark suite. fTetWild is not deterministic, so a
+            calibrated reconstruction is not bit-reproducible: s depends on the mesh it makes.
         calibration_cells: the surface grid's cells along the longest side for that reference mesh.
         calibration_points: samples of the kept voxels that grid is made from.
         sim: the simulator's settings (time-converged BDF2 substeps by default).
