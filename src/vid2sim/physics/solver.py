@@ -463,9 +463,8 @@ class Simulator:
             weights in m² make the barrier stiffness a contact pressure per metre of penetration).
         stiffness_scale: s > 0; the elastic energy (and the damping and substep count, which follow the
             frequencies) use E·s instead of E. A Rayleigh–Ritz subspace is stiffer than the continuum; with
-            s = (ω_continuum / ω_subspace)² of the lowest mode
-            the subspace vibrates at the material's frequency, and ``log10_E`` stays the material's (``bench identify
-            --calibrate-stiffness``).
+            s = (ω_continuum / ω_subspace)² of the lowest mode (:func:`vid2sim.physics.modes.stiffness_calibration`)
+            the subspace vibrates at the material's frequency and ``log10_E`` stays the material's.
     """
 
     def __init__(
@@ -564,8 +563,8 @@ class Simulator:
         and length scale (:func:`~vid2sim.physics.integrators.auto_substeps`)."""
         if self.config.substeps is not None:
             return self.config.substeps
-        return auto_substeps(self.config.dt, float(self.effective_youngs_modulus().detach()), float(self.density.detach()),
-                             self.length_scale)
+        return auto_substeps(self.config.dt, float(self.effective_youngs_modulus().detach()),
+                             float(self.density.detach()), self.length_scale)
 
     def masses(self) -> Tensor:
         """(K,) lumped masses ρ·v_p."""
