@@ -21,6 +21,33 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
             item.add_marker(skip)
 
 
+@pytest.fixture
+def one_torch_thread():
+    """Run the test with one torch thread (results of the data and training code are reproducible per thread
+    count), restoring the previous count afterwards."""
+    old = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(old)
+
+
+@pytest.fixture(scope="session")
+def tiny_training_data(tmp_path_factory):
+    """A real ``make-training-data`` folder: 5 objects x 2 draws, 4 frames of 16x16 (a few seconds)."""
+    from vid2sim.predictor.data import TrainingDataConfig, make_training_data
+
+    out = tmp_path_factory.mktemp("s1data") / "data"
+    cfg = TrainingDataConfig(objects=5, draws_per_object=2, resolution=16, frames=4, points=600, cubature_points=60,
+                             contact_points=100)
+    old = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        make_training_data(cfg, out, workers=1, threads=1, progress=False)
+    finally:
+        torch.set_num_threads(old)
+    return out
+
+
 # --- a tiny synthetic scene and its reconstructed asset, shared by the pipeline, simulate, export and report
 # tests (built once per test session: about half a minute on two cores).
 

@@ -36,13 +36,7 @@ from vid2sim.predictor.template import (
 TINY = dict(objects=2, draws_per_object=2, resolution=32, frames=6, points=600, cubature_points=60,
             contact_points=100)
 
-
-@pytest.fixture(autouse=True)
-def _one_thread():
-    old = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(old)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def _sha(path) -> str:

@@ -13,7 +13,6 @@ from torch import nn
 
 pytest.importorskip("transformers")
 
-from vid2sim.predictor.data import TrainingDataConfig, make_training_data  # noqa: E402
 from vid2sim.predictor.model import (LossWeights, PhysicsPredictor, PredictorConfig, head_widths,  # noqa: E402
                                      interpolate_position_table, predictor_loss, sinusoid_table)
 from vid2sim.predictor.predict import (DEFAULT_PREDICTOR, centred_grid, frame_for_model,  # noqa: E402
@@ -25,23 +24,7 @@ from vid2sim.predictor.train import (TrainConfig, errors_by_range, evaluate_pred
 TINY_MODEL = dict(image_size=16, num_frames=4, patch_size=8, tubelet_size=2, hidden_size=48, num_layers=1,
                   num_heads=2, intermediate_size=96)
 
-
-@pytest.fixture(autouse=True)
-def _one_thread():
-    old = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(old)
-
-
-@pytest.fixture(scope="module")
-def tiny_data(tmp_path_factory):
-    """A real make-training-data folder: 5 objects x 2 draws, 4 frames of 16x16."""
-    out = tmp_path_factory.mktemp("s1data") / "data"
-    cfg = TrainingDataConfig(objects=5, draws_per_object=2, resolution=16, frames=4, points=600, cubature_points=60,
-                             contact_points=100)
-    make_training_data(cfg, out, workers=1, threads=1, progress=False)
-    return out
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def _linears(seq: nn.Sequential) -> list[int]:
@@ -193,11 +176,11 @@ def test_checkpoint_round_trip_and_fp16(tmp_path):
         load_predictor(tmp_path / "missing.pt")
 
 
-def test_training_decreases_the_loss_resumes_exactly_and_logs_baselines(tiny_data, tmp_path, capsys):
+def test_training_decreases_the_loss_resumes_exactly_and_logs_baselines(tiny_training_data, tmp_path, capsys):
     model = PredictorConfig(**TINY_MODEL)
     cfg = TrainConfig(model=model, steps=40, batch_size=4, lr=1e-3, warmup=2, eval_every=20, val_fraction=0.2,
                       split_seed=4)  # seed 4 holds out one of the five objects
-    rec = train_predictor(tiny_data, tmp_path / "a", cfg, progress=False)
+    rec = train_predictor(tiny_training_data, tmp_path / "a", cfg, progress=False)
     curve = [r["loss"] for r in rec["train_curve"]]
     assert rec["complete"] and rec["steps_done"] == 40 and len(curve) == 2
     assert curve[-1] < curve[0]
@@ -210,23 +193,23 @@ def test_training_decreases_the_loss_resumes_exactly_and_logs_baselines(tiny_dat
         assert (tmp_path / "a" / name).is_file()
     assert read_checkpoint(tmp_path / "a" / "predictor.pt")["state_dict"]["hyper.0.weight"].dtype == torch.float16
     # scoring the shipped-format checkpoint on the held-out objects gives the log's best figures and baselines
-    held_out = evaluate_predictor(tmp_path / "a" / "predictor.pt", tiny_data, "val", val_fraction=0.2, split_seed=4)
+    held_out = evaluate_predictor(tmp_path / "a" / "predictor.pt", tiny_training_data, "val", val_fraction=0.2, split_seed=4)
     assert held_out["samples"] == log["data"]["val_samples"]
     assert held_out["mae_log10_E"] == pytest.approx(rec["best"]["mae_log10_E"], rel=0.02, abs=1e-3)
     for k in ("mae_log10_E", "mae_nu", "mse_last_layer_std"):
         assert held_out[f"baseline_{k}"] == pytest.approx(base[k], rel=1e-4), k
-    assert main(["eval-predictor", str(tmp_path / "a" / "predictor.pt"), str(tiny_data), "--json",
+    assert main(["eval-predictor", str(tmp_path / "a" / "predictor.pt"), str(tiny_training_data), "--json",
                  str(tmp_path / "e.json"), "--threads", "1"]) == 0
     scored = json.loads((tmp_path / "e.json").read_text())
     assert scored["samples"] == 10 and sum(b["n"] for b in scored["by_log10_E"]) == 10
-    for bad, message in (([str(tmp_path / "none.pt"), str(tiny_data)], "no such predictor checkpoint"),
+    for bad, message in (([str(tmp_path / "none.pt"), str(tiny_training_data)], "no such predictor checkpoint"),
                          ([str(tmp_path / "a" / "predictor.pt"), str(tmp_path)], "no index.json")):
         assert main(["eval-predictor", *bad]) == 2
         assert message in capsys.readouterr().err
     # resume: 20 steps in one call, 20 more in a second = 40 at once, bit for bit
-    first = train_predictor(tiny_data, tmp_path / "b", cfg, progress=False, stop_at_step=20)
+    first = train_predictor(tiny_training_data, tmp_path / "b", cfg, progress=False, stop_at_step=20)
     assert first["steps_done"] == 20 and not first["complete"]
-    second = train_predictor(tiny_data, tmp_path / "b", cfg, progress=False)
+    second = train_predictor(tiny_training_data, tmp_path / "b", cfg, progress=False)
     assert second["steps_done"] == 40 and second["complete"]
     a = read_checkpoint(tmp_path / "a" / "last.pt")["state_dict"]
     b = read_checkpoint(tmp_path / "b" / "last.pt")["state_dict"]
@@ -234,7 +217,7 @@ def test_training_decreases_the_loss_resumes_exactly_and_logs_baselines(tiny_dat
         assert torch.equal(a[k], b[k]), k
     assert second["val_curve"][-1]["mae_log10_E"] == pytest.approx(rec["val_curve"][-1]["mae_log10_E"])
     with pytest.raises(ValueError, match="other training settings"):
-        train_predictor(tiny_data, tmp_path / "b", TrainConfig(**{**cfg.__dict__, "lr": 5e-4}), progress=False)
+        train_predictor(tiny_training_data, tmp_path / "b", TrainConfig(**{**cfg.__dict__, "lr": 5e-4}), progress=False)
 
 
 def test_inference_on_one_video_is_fast():
@@ -315,14 +298,14 @@ def test_checkpoints_without_framing_load_as_full_frame(tmp_path):
     assert PredictorConfig().framing == "object"
 
 
-def test_training_split_holds_each_video_as_the_model_sees_it(tiny_data):
+def test_training_split_holds_each_video_as_the_model_sees_it(tiny_training_data):
     """The in-memory split (filled in place, freed memory trimmed as it loads) holds every sample's frames
     exactly as `frame_for_model` gives them, rounded to uint8, and its labels."""
     from vid2sim.predictor.dataset import IMAGENET_MEAN, IMAGENET_STD, TrainingData
     from vid2sim.predictor.predict import frame_for_model
     from vid2sim.predictor.train import _Split, release_freed_memory
 
-    data = TrainingData(tiny_data, "all")
+    data = TrainingData(tiny_training_data, "all")
     split = _Split(data, 8, "object")
     assert split.videos.shape == (len(data), 4, 3, 8, 8) and split.videos.dtype == torch.uint8
     mean, std = torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1), torch.tensor(IMAGENET_STD).view(1, 3, 1, 1)

@@ -17,20 +17,32 @@ def _cmd_train_predictor(args: argparse.Namespace) -> int:
                         "Hugging Face cache")
     set_threads(args.threads)
 
-    from vid2sim.predictor.model import PredictorConfig
+    import json
+
+    from vid2sim.predictor.model import LossWeights, PredictorConfig
     from vid2sim.predictor.train import TrainConfig, train_predictor
 
     try:
-        model = PredictorConfig(image_size=args.image_size, patch_size=args.patch_size, tubelet_size=args.tubelet_size,
-                                hidden_size=args.width, num_layers=args.layers,
+        frames = int(json.loads((Path(args.data) / "index.json").read_text())["config"]["frames"])
+    except (ValueError, KeyError, TypeError) as exc:
+        raise UserError(f"{args.data}/index.json: no readable config.frames ({exc})") from exc
+    try:
+        model = PredictorConfig(image_size=args.image_size, num_frames=frames, patch_size=args.patch_size,
+                                tubelet_size=args.tubelet_size, hidden_size=args.width, num_layers=args.layers,
                                 num_heads=args.heads, intermediate_size=4 * args.width, pretrained=args.pretrained,
                                 framing=args.framing, seed=args.seed)
         cfg = TrainConfig(model=model, steps=args.steps, batch_size=args.batch_size, lr=args.lr,
                           val_fraction=args.val_fraction, eval_every=args.eval_every, max_minutes=args.max_minutes,
-                          seed=args.seed, mirror=not args.no_mirror)
+                          seed=args.seed, mirror=not args.no_mirror, pretrain_steps=args.pretrain_steps,
+                          pretrain_mask_ratio=args.pretrain_mask_ratio,
+                          pretrain_batch_size=args.pretrain_batch_size,
+                          loss=LossWeights(last_layer=args.last_layer_weight))
     except ValueError as exc:
         raise UserError(str(exc)) from exc
-    record = train_predictor(args.data, args.out, cfg, progress=not args.quiet)
+    try:
+        record = train_predictor(args.data, args.out, cfg, progress=not args.quiet)
+    except ValueError as exc:
+        raise UserError(str(exc)) from exc
     best, base = record["best"] or {}, record["baselines_constant_mean"]
     state = "done" if record["complete"] else f"stopped at step {record['steps_done']} of {args.steps} (rerun to resume)"
     print(f"{state}: {args.out}/predictor.pt; validation ({record['data']['val_samples']} samples) best step "
@@ -71,6 +83,15 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--pretrained", metavar="PATH_OR_ID", default=None,
                    help="start from a local VideoMAE checkpoint (folder or a model id in the Hugging Face cache; "
                    "never downloaded); --width/--layers/--heads are then the checkpoint's")
+    p.add_argument("--pretrain-steps", type=int, default=0,
+                   help="masked-autoencoder pre-training steps of the backbone on the training videos before the "
+                        "supervised steps (VideoMAE's self-supervised objective; default 0: none)")
+    p.add_argument("--pretrain-batch-size", type=int, default=16,
+                   help="videos per pre-training step (default 16)")
+    p.add_argument("--pretrain-mask-ratio", type=float, default=0.9,
+                   help="share of patch positions hidden in pre-training (default 0.9, VideoMAE's)")
+    p.add_argument("--last-layer-weight", type=float, default=1.0,
+                   help="weight of the last layer's term in the loss (default 1, the issue's)")
     p.add_argument("--seed", type=int, default=0, help="seed of the initialisation and batch order (default 0)")
     add_threads_option(p)
     p.add_argument("--quiet", action="store_true", help="no progress bar")

@@ -259,6 +259,12 @@ class LossWeights:
     nu: float = 100.0
     last_layer: float = 1.0
 
+    def __post_init__(self) -> None:
+        for name in ("log10_E", "nu", "last_layer"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 <= v < math.inf:
+                raise ValueError(f"LossWeights.{name} must be a finite number >= 0, got {v!r}")
+
 
 def predictor_loss(model: PhysicsPredictor, z: dict[str, Tensor], targets: dict[str, Tensor],
                    weights: LossWeights | None = None,

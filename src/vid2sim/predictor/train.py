@@ -63,6 +63,11 @@ class TrainConfig:
             and the step). The front view's world is symmetric about the camera's vertical plane (gravity, floor,
             an isotropic material), so log10 E and ν keep their labels; the last layer's label would be the
             mirrored field's, so mirrored samples leave the last-layer term.
+        pretrain_steps: masked-autoencoder steps on the training split's videos before the supervised steps
+            (:mod:`vid2sim.predictor.pretrain`; 0: none).
+        pretrain_batch_size, pretrain_lr, pretrain_mask_ratio, pretrain_decoder_layers: their batch, Adam's
+            learning rate (the same schedule's shape), the share of patch positions hidden (VideoMAE's 0.9) and
+            the decoder's depth.
     """
 
     model: PredictorConfig = field(default_factory=PredictorConfig)
@@ -79,14 +84,25 @@ class TrainConfig:
     max_minutes: float | None = None
     seed: int = 0
     mirror: bool = True
+    pretrain_steps: int = 0
+    pretrain_batch_size: int = 16
+    pretrain_lr: float = 3e-4
+    pretrain_mask_ratio: float = 0.9
+    pretrain_decoder_layers: int = 2
 
     def __post_init__(self) -> None:
-        for name in ("steps", "batch_size", "eval_every"):
+        for name in ("steps", "batch_size", "eval_every", "pretrain_batch_size", "pretrain_decoder_layers"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise ValueError(f"TrainConfig.{name} must be a positive integer, got {v!r}")
         if not (self.lr > 0 and 0 < self.final_lr_fraction <= 1 and self.warmup >= 0 and self.weight_decay >= 0):
             raise ValueError("TrainConfig needs lr > 0, 0 < final_lr_fraction <= 1, warmup >= 0, weight_decay >= 0")
+        if isinstance(self.pretrain_steps, bool) or not isinstance(self.pretrain_steps, int) or self.pretrain_steps < 0:
+            raise ValueError(f"TrainConfig.pretrain_steps must be an integer >= 0, got {self.pretrain_steps!r}")
+        if not self.pretrain_lr > 0:
+            raise ValueError(f"TrainConfig.pretrain_lr must be positive, got {self.pretrain_lr}")
+        if not 0 < self.pretrain_mask_ratio < 1:
+            raise ValueError(f"TrainConfig.pretrain_mask_ratio must lie in (0, 1), got {self.pretrain_mask_ratio}")
         if self.max_minutes is not None and not self.max_minutes > 0:
             raise ValueError(f"TrainConfig.max_minutes must be positive, got {self.max_minutes}")
 
@@ -324,12 +340,24 @@ def _plain(x: Any) -> Any:
 
 # ---- training -------------------------------------------------------------------------------------------
 
-def _lr_factor(step: int, cfg: TrainConfig) -> float:
-    if cfg.warmup and step < cfg.warmup:
-        return (step + 1) / cfg.warmup
-    frac = min(1.0, (step - cfg.warmup) / max(1, cfg.steps - cfg.warmup))
-    lo = cfg.final_lr_fraction
-    return lo + (1 - lo) * 0.5 * (1 + math.cos(math.pi * frac))
+def _lr_factor(step: int, steps: int, warmup: int, final_fraction: float) -> float:
+    """The learning-rate factor at ``step`` of ``steps``: linear warm-up over ``warmup`` steps, then cosine decay
+    from 1 to ``final_fraction``."""
+    if warmup and step < warmup:
+        return (step + 1) / warmup
+    frac = min(1.0, (step - warmup) / max(1, steps - warmup))
+    return final_fraction + (1 - final_fraction) * 0.5 * (1 + math.cos(math.pi * frac))
+
+
+def optimiser_step(opt: torch.optim.Optimizer, loss: torch.Tensor, what: str, step: int) -> float:
+    """One optimiser step on the scalar ``loss``; its value. Raises FloatingPointError (naming ``what`` and
+    ``step``) when the loss is not finite."""
+    if not torch.isfinite(loss):
+        raise FloatingPointError(f"{what}: the loss became {float(loss)} at step {step}")
+    opt.zero_grad(set_to_none=True)
+    loss.backward()
+    opt.step()
+    return float(loss.detach())
 
 
 def _config_dict(cfg: TrainConfig) -> dict[str, Any]:
@@ -387,6 +415,21 @@ def train_predictor(data_folder: str | Path, out: str | Path, config: TrainConfi
         opt.load_state_dict(ck["optimizer"])
         step, log = int(ck["step"]), ck["log"]
     baselines = constant_baselines(stats, val)
+    deadline = None if cfg.max_minutes is None else time.perf_counter() + 60.0 * cfg.max_minutes
+    data_record = {"folder": str(data_folder), "train_samples": len(train), "val_samples": len(val),
+                   "train_objects": len(train_data.shards), "val_objects": len(val_data.shards),
+                   "data_config": data_cfg, "seconds_loading": t_data}
+    if cfg.pretrain_steps and not last_path.is_file():
+        from vid2sim.predictor.pretrain import pretrain_backbone
+
+        log["pretrain"] = pretrain_backbone(model, train, cfg, out, deadline, progress)
+        if not log["pretrain"]["complete"]:
+            record = {"config": cfg_dict, "data": data_record, "baselines_constant_mean": baselines,
+                      "pretrain": log["pretrain"], "train_curve": [], "val_curve": [], "best": None, "final": None,
+                      "steps_done": 0, "complete": False, "seconds_training": 0.0,
+                      "threads": torch.get_num_threads(), "torch": str(torch.__version__)}
+            (out / "train_log.json").write_text(json.dumps(record, indent=1))
+            return record
     steps_per_epoch = max(1, len(train) // cfg.batch_size)
     info = {"label_stats": stats, "data_config": data_cfg, "train_config": cfg_dict}
 
@@ -401,7 +444,6 @@ def train_predictor(data_folder: str | Path, out: str | Path, config: TrainConfi
         _atomic_save(payload, last_path)
 
     t_mark = [time.perf_counter()]
-    deadline = None if cfg.max_minutes is None else time.perf_counter() + 60.0 * cfg.max_minutes
     bar = tqdm(total=cfg.steps, initial=step, desc="train-predictor", unit="step", disable=not progress)
     window: list[float] = []
     stopped_early = False
@@ -418,7 +460,7 @@ def train_predictor(data_folder: str | Path, out: str | Path, config: TrainConfi
         idx = perm[pos * cfg.batch_size:(pos + 1) * cfg.batch_size]
         model.train()
         for g in opt.param_groups:
-            g["lr"] = cfg.lr * _lr_factor(step, cfg)
+            g["lr"] = cfg.lr * _lr_factor(step, cfg.steps, cfg.warmup, cfg.final_lr_fraction)
         video, targets = train.batch(idx)
         mask = None
         if cfg.mirror:
@@ -426,13 +468,8 @@ def train_predictor(data_folder: str | Path, out: str | Path, config: TrainConfi
             video = torch.where(flip.view(-1, 1, 1, 1, 1), video.flip(-1), video)
             mask = ~flip
         loss, _ = predictor_loss(model, model(video), targets, cfg.loss, last_layer_mask=mask)
-        if not torch.isfinite(loss):
-            raise FloatingPointError(f"train-predictor: the loss became {float(loss)} at step {step}")
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
+        window.append(optimiser_step(opt, loss, "train-predictor", step))
         step += 1
-        window.append(float(loss.detach()))
         bar.update(1)
         if step % cfg.eval_every == 0 or step == cfg.steps:
             log["train_curve"].append({"step": step, "loss": float(np.mean(window))})
@@ -458,10 +495,7 @@ def train_predictor(data_folder: str | Path, out: str | Path, config: TrainConfi
         shipped = dict(best_metrics or {}, **{f"baseline_{k}": v for k, v in baselines.items()},
                        val_samples=len(val), train_samples=len(train))
         save_predictor(best_model, out / "predictor.pt", half=True, metrics=shipped, **info)
-    record = {"config": cfg_dict, "data": {"folder": str(data_folder), "train_samples": len(train),
-                                           "val_samples": len(val), "train_objects": len(train_data.shards),
-                                           "val_objects": len(val_data.shards), "data_config": data_cfg,
-                                           "seconds_loading": t_data},
+    record = {"config": cfg_dict, "data": data_record, "pretrain": log.get("pretrain"),
               "label_stats": _plain({k: {"mean": v["mean"], "std": v["std"]} for k, v in stats.items()
                                      if k != "last_layer"}),
               "baselines_constant_mean": baselines, "train_curve": log["train_curve"], "val_curve": log["val_curve"],
