@@ -96,16 +96,18 @@ def test_train_predictor_pretrains_first_and_a_stopped_pretraining_resumes(tiny_
     assert rec["pretrain"]["complete"] and len(rec["pretrain"]["curve"]) == 3
     assert json.loads((tmp_path / "r" / "train_log.json").read_text())["pretrain"]["steps_done"] == 90
     assert read_checkpoint(tmp_path / "r" / "predictor.pt")["train_config"]["pretrain_steps"] == 90
-    # the same through the command line, which also takes the last layer's loss weight
+    # the same through the command line, which also takes the loss weights
     args = ["train-predictor", str(tiny_training_data), str(tmp_path / "c"), "--image-size", "16", "--patch-size", "4",
             "--width", "48", "--layers", "1", "--heads", "2", "--steps", "4", "--batch-size", "4",
-            "--pretrain-steps", "4", "--pretrain-batch-size", "4", "--pretrain-mask-ratio", "0.75", "--last-layer-weight", "0.1",
+            "--pretrain-steps", "4", "--pretrain-batch-size", "4", "--pretrain-mask-ratio", "0.75",
+            "--loss-weights", "1", "10", "0.1",
             "--val-fraction", "0.2", "--threads", "1", "--quiet"]
     assert main(args) == 0  # the model takes the data's frame count (4)
     log = json.loads((tmp_path / "c" / "train_log.json").read_text())
-    assert log["config"]["loss"]["last_layer"] == 0.1 and log["pretrain"]["mask_ratio"] == 0.75
+    assert log["config"]["loss"] == {"log10_E": 1.0, "nu": 10.0, "last_layer": 0.1}
+    assert log["pretrain"]["mask_ratio"] == 0.75
     assert log["config"]["model"]["num_frames"] == 4
-    for bad, message in ((["--last-layer-weight", "-1"], "LossWeights.last_layer"),
+    for bad, message in ((["--loss-weights", "1", "-1", "1"], "LossWeights.nu"),
                          (["--pretrain-mask-ratio", "1.5"], "pretrain_mask_ratio")):
         assert main(args + bad) == 2
         assert message in capsys.readouterr().err

@@ -36,7 +36,7 @@ def _cmd_train_predictor(args: argparse.Namespace) -> int:
                           seed=args.seed, mirror=not args.no_mirror, pretrain_steps=args.pretrain_steps,
                           pretrain_mask_ratio=args.pretrain_mask_ratio,
                           pretrain_batch_size=args.pretrain_batch_size,
-                          loss=LossWeights(last_layer=args.last_layer_weight))
+                          loss=LossWeights(*args.loss_weights))
     except ValueError as exc:
         raise UserError(str(exc)) from exc
     try:
@@ -90,8 +90,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="videos per pre-training step (default 16)")
     p.add_argument("--pretrain-mask-ratio", type=float, default=0.9,
                    help="share of patch positions hidden in pre-training (default 0.9, VideoMAE's)")
-    p.add_argument("--last-layer-weight", type=float, default=1.0,
-                   help="weight of the last layer's term in the loss (default 1, the issue's)")
+    p.add_argument("--loss-weights", type=float, nargs=3, default=(1.0, 100.0, 1.0), metavar=("E", "NU", "LAYER"),
+                   help="weights of MSE(log10 E), MSE(nu) and the last layer's MSE in the loss (default 1 100 1, "
+                        "the paper's)")
     p.add_argument("--seed", type=int, default=0, help="seed of the initialisation and batch order (default 0)")
     add_threads_option(p)
     p.add_argument("--quiet", action="store_true", help="no progress bar")
