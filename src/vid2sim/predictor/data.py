@@ -624,11 +624,11 @@ def make_training_data(config: TrainingDataConfig, out_dir: str | Path, workers:
                 if threads is not None:
                     torch.set_num_threads(old_threads)
         else:
-            import multiprocessing as mp
-            from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+            from concurrent.futures import FIRST_COMPLETED, wait
 
-            ctx = mp.get_context("spawn")  # a fresh interpreter: no inherited torch / OpenMP thread state
-            with ProcessPoolExecutor(max_workers=min(workers, len(calls)), mp_context=ctx) as pool:
+            from vid2sim.workers import process_pool
+
+            with process_pool(min(workers, len(calls))) as pool:
                 pending = {pool.submit(shard_task, *c) for c in calls}
                 try:
                     while pending:

@@ -1173,12 +1173,13 @@ def _simulate_each(vertices: np.ndarray, tets: np.ndarray, configs: list[FEMConf
             return [simulate_fem(vertices, tets, c, pose, frames, progress=False, on_frame=lambda: bar.update())
                     for c in configs]
     import multiprocessing as mp
-    from concurrent.futures import ProcessPoolExecutor, wait
+    from concurrent.futures import wait
 
-    ctx = mp.get_context("spawn")  # a fresh interpreter: no inherited torch/OpenMP thread state
-    with ctx.Manager() as manager:
+    from vid2sim.workers import process_pool
+
+    with mp.get_context("spawn").Manager() as manager:
         queue = manager.Queue()
-        with ProcessPoolExecutor(max_workers=min(workers, len(configs)), mp_context=ctx) as pool, \
+        with process_pool(min(workers, len(configs))) as pool, \
                 tqdm(total=len(configs) * (frames - 1), desc=label, disable=not progress) as bar:
             futures = [pool.submit(_simulate_in_worker, vertices, tets, c, pose, frames, queue) for c in configs]
             pending = set(futures)
