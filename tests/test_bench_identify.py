@@ -45,11 +45,13 @@ def test_perfect_geometry_starts_exactly_where_the_fem_starts(report):
 
     from vid2sim.physics.modes import subspace_frequencies
 
-    calibrated = identify.prepare_scene(0, benchmark_parameters(1, 0)[0], replace(config, calibrate_stiffness=True),
-                                        workdir)
+    calibrated = identify.prepare_scene(0, benchmark_parameters(1, 0)[0],
+                                        replace(config, calibrate_stiffness=True, calibration_nu="prior"), workdir)
     sim = calibrated.simulator
     s = sim.stiffness_scale
     assert s == calibrated.info["stiffness_scale"] and 0.3 < s < 1.0  # the subspace is stiffer than the tets
+    assert calibrated.info["stiffness_curve"] is None
+    from vid2sim.physics.stiffness_curve import StiffnessCurve
     from vid2sim.physics.tet_modes import tet_frequencies
     from vid2sim.synthetic.fem import FEMResult
 
@@ -57,6 +59,16 @@ def test_perfect_geometry_starts_exactly_where_the_fem_starts(report):
     X = fem.rest_vertices[: int(fem.tets.max()) + 1]
     tets = tet_frequencies(X, fem.tets, 2e5, config.prior_nu, 900.0, k=1, order=2)[0]
     omega = subspace_frequencies(sim.field, sim.X, sim.vol, 2e5 * s, config.prior_nu, 900.0, k=1)[0]
+    assert omega == pytest.approx(tets, rel=1e-6)
+    # the curve (the default): s(ν) brings the lowest mode to the tets' at every ν of its grid
+    curved = identify.prepare_scene(0, benchmark_parameters(1, 0)[0],
+                                    replace(config, calibrate_stiffness=True, calibration_nus=(0.3, 0.45)), workdir)
+    curve = curved.simulator.stiffness_scale
+    assert isinstance(curve, StiffnessCurve) and curve.nu == (0.3, 0.45)
+    assert curve.at(0.3) == pytest.approx(s, rel=1e-9) == curved.info["stiffness_scale"]
+    assert curved.info["stiffness_curve"] == curve.to_dict()
+    tets = tet_frequencies(X, fem.tets, 2e5, 0.45, 900.0, k=1, order=2)[0]
+    omega = subspace_frequencies(sim.field, sim.X, sim.vol, 2e5 * curve.at(0.45), 0.45, 900.0, k=1)[0]
     assert omega == pytest.approx(tets, rel=1e-6)
 
 

@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from vid2sim.physics.tet_modes import quadratic_tet_nodes, reference_mass, tet_frequencies
+from vid2sim.physics.tet_modes import quadratic_tet_nodes, reference_mass, tet_frequencies, tet_frequency_curve
 from vid2sim.meshing.tetra import box_tet_mesh
 
 BAR = (2.0, 0.4, 0.4)  # a free 2 m bar of 0.4 m square section; E = ρ = 1, ν = 0.3
@@ -69,6 +69,24 @@ def test_quadratic_tets_converge_where_linear_tets_lock():
     # lumping the mass lowers linear tets' frequencies, but far from enough to undo the locking
     lumped = tet_frequencies(*coarse, 1.0, NU, 1.0, k=6, order=1, lumped=True)
     assert np.all(lumped < p1) and np.all(lumped[:2] / p2_fine[:2] > 1.1)
+
+
+def test_the_frequency_curve_over_nu_matches_direct_solves():
+    """Rayleigh–Ritz on the modes of three solved ν: within 1e-4 of a direct solve at every ν of the grid,
+    exact at the solved ones, and never below (upper bounds)."""
+    nus = (0.0, 0.2, 0.3, 0.4, 0.45, 0.49)
+    X, T = _bar((10, 2, 2))
+    curve = tet_frequency_curve(X, T, nus, k=3)
+    assert curve.shape == (6, 3)
+    for nu, row in zip(nus, curve):
+        direct = tet_frequencies(X, T, 1.0, nu, 1.0, k=3, order=2)
+        assert np.all(row >= direct * (1 - 1e-9)) and np.all(row <= direct * (1 + 1e-4)), (nu, row, direct)
+        if nu in (0.0, 0.49):
+            assert np.allclose(row, direct, rtol=1e-9)
+    with pytest.raises(ValueError, match="poisson_ratios"):
+        tet_frequency_curve(X, T, (0.3, 0.5))
+    with pytest.raises(ValueError, match="anchors"):
+        tet_frequency_curve(X, T, (0.3,), anchors=1)
 
 
 def test_bad_inputs():

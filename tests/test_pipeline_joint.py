@@ -266,6 +266,33 @@ def test_asset_errors_name_the_file_and_field(tmp_path):
         load_asset(tmp_path / "nothing")
 
 
+def test_an_asset_keeps_its_stiffness_curve_and_the_rig_uses_it_at_its_nu(tmp_path):
+    """material.json's stiffness_curve (reconstruct --calibrate-stiffness) comes back as the simulator's s(ν),
+    also under another ν; the exported rig's Lamé parameters use s at the asset's ν; a bad curve is named."""
+    from vid2sim.export.rig import export_rig, load_rig
+    from vid2sim.physics.stiffness_curve import StiffnessCurve
+
+    sim, gaussians, _ = _scene_setup()
+    asset = _asset(sim, gaussians)
+    curve = StiffnessCurve((0.2, 0.3, 0.4, 0.49), (0.9, 0.85, 0.75, 0.5))
+    asset.material.update(stiffness_curve=curve.to_dict(), stiffness_scale=curve.at(float(asset.material["nu"])))
+    folder = save_asset(asset, tmp_path / "asset")
+    back = load_asset(folder)
+    assert back.stiffness() == curve and back.simulator().stiffness_scale == curve
+    softer = back.simulator(poisson_ratio=0.45)
+    assert float(softer.effective_youngs_modulus()) == pytest.approx(float(back.material["E"]) * curve.at(0.45),
+                                                                     rel=1e-6)
+    doc, _ = load_rig(export_rig(back, tmp_path / "rig"))
+    nu = float(back.material["nu"])
+    e = float(back.material["E"]) * curve.at(nu)
+    assert doc["material"]["lame_mu"] == pytest.approx(e / (2 * (1 + nu)), rel=1e-12)
+    material = json.loads((folder / "material.json").read_text())
+    (folder / "material.json").write_text(json.dumps({**material, "stiffness_curve": {"nu": [0.3, 0.2],
+                                                                                      "scale": [1.0, 1.0]}}))
+    with pytest.raises(AssetFormatError, match="material.json: stiffness_curve: .*increase strictly"):
+        load_asset(folder)
+
+
 @pytest.mark.slow
 def test_bench_speed_joint_section_times_one_iteration():
     from vid2sim.bench.joint_speed import run

@@ -46,10 +46,19 @@ def test_a_calibrated_reconstruction_records_and_uses_its_stiffness_scale(tiny_s
     cfg.calibrate_stiffness, cfg.calibration_cells, cfg.calibration_points = True, 24, 20000
     asset = load_asset(reconstruct(tiny_scene, tmp_path / "asset", cfg, progress=False))
     log = json.loads((tmp_path / "asset" / "log.json").read_text())
+    # the default calibration is the curve s(ν): stored with the asset, used at whatever ν it simulates
+    from vid2sim.physics.stiffness_curve import StiffnessCurve
+
+    curve, calibration = asset.stiffness(), log["stiffness_calibration"]
+    assert isinstance(curve, StiffnessCurve)
+    assert curve.to_dict() == calibration["stiffness_curve"] == asset.material["stiffness_curve"]
+    assert curve.at(cfg.prior_nu) == pytest.approx(calibration["stiffness_scale"], rel=1e-12)
     s = asset.material["stiffness_scale"]
-    assert 0.05 < s < 5.0 and s != 1.0 and log["stiffness_calibration"]["stiffness_scale"] == s
-    assert 0.7 < log["stiffness_calibration"]["points_volume_ratio"] < 1.3
-    assert asset.simulator().stiffness_scale == s and asset.simulator(youngs_modulus=1e6).stiffness_scale == s
+    assert 0.05 < s < 5.0 and s != 1.0 and s == pytest.approx(curve.at(asset.material["nu"]), rel=1e-12)
+    assert 0.7 < calibration["points_volume_ratio"] < 1.3
+    assert asset.simulator().stiffness_scale == curve
+    other = asset.simulator(youngs_modulus=1e6, poisson_ratio=0.45)
+    assert float(other.effective_youngs_modulus()) == pytest.approx(1e6 * curve.at(0.45), rel=1e-6)  # float32
 
 
 def test_evaluate_reports_views_frames_material_and_chamfer(tiny_asset, tiny_scene, tmp_path):

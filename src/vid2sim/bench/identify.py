@@ -41,8 +41,12 @@ from typing import Any
 import numpy as np
 import torch
 
+from vid2sim.physics.modes import CURVE_NUS
+
 
 LOSSES = ("shape_and_centre", "positions")
+#: how ``calibrate_stiffness`` treats ν: a curve s(ν) over a grid, or one factor at the prior ν
+CALIBRATIONS = ("curve", "prior")
 
 
 @dataclass
@@ -86,6 +90,10 @@ class IdentifyConfig:
             frequency on its cubature equals that of quadratic tets on the rest mesh, both at the prior ν
             (:func:`vid2sim.physics.modes.stiffness_calibration`; ``Simulator.stiffness_scale``). The fitted E is then the
             material's, not the stiffer subspace's.
+        calibration_nu: with ``calibrate_stiffness``, "curve" measures s at a grid of ν and the simulator
+            uses s(ν) at its current ν (:func:`vid2sim.physics.modes.stiffness_calibration_curve`: the
+            subspace's locking grows with ν); "prior" uses the one factor measured at the prior ν.
+        calibration_nus: the grid of that curve.
     """
 
     scenes: int = 6
@@ -112,6 +120,8 @@ class IdentifyConfig:
     truth: str = "fem"
     loss: str = "shape_and_centre"
     calibrate_stiffness: bool = False
+    calibration_nu: str = "curve"
+    calibration_nus: tuple[float, ...] = CURVE_NUS
 
     def __post_init__(self) -> None:
         for name in ("scenes", "frames", "observed_frames", "points", "skinning_points", "handles", "cubature",
@@ -134,6 +144,12 @@ class IdentifyConfig:
             raise ValueError(f"IdentifyConfig.cubature_weights must be one of {CUBATURE_WEIGHTS}, got {self.cubature_weights!r}")
         if self.fem_element_order not in (1, 2):
             raise ValueError(f"IdentifyConfig.fem_element_order must be 1 or 2, got {self.fem_element_order!r}")
+        if self.calibration_nu not in CALIBRATIONS:
+            raise ValueError(f"IdentifyConfig.calibration_nu must be one of {CALIBRATIONS}, got {self.calibration_nu!r}")
+        self.calibration_nus = tuple(float(v) for v in self.calibration_nus)
+        nus = self.calibration_nus
+        if len(nus) < 2 or not all(0 <= v < 0.5 for v in nus) or any(b <= a for a, b in zip(nus, nus[1:])):
+            raise ValueError(f"IdentifyConfig.calibration_nus must be >= 2 increasing values in [0, 0.5), got {nus!r}")
         if self.preset not in ("small", "full"):
             raise ValueError(f"IdentifyConfig.preset must be 'small' or 'full', got {self.preset!r}")
         self.coarse_log10_E = tuple(sorted(float(v) for v in self.coarse_log10_E))
@@ -192,7 +208,7 @@ def prepare_scene(index: int, params: dict, config: IdentifyConfig, workdir: Pat
     from vid2sim.synthetic.scenes import SyntheticSceneConfig
     from vid2sim.meshing.tetra import sample_points_in_tets, tet_volumes, tetrahedralize
     from vid2sim.physics import Floor, Gravity, Material, SimConfig, SimState, Simulator, SkinningField
-    from vid2sim.physics.modes import stiffness_calibration
+    from vid2sim.physics.modes import stiffness_calibration, stiffness_calibration_curve
     from vid2sim.physics.cubature import sample_cubature
     from vid2sim.physics.skinning_training import SkinningTrainingConfig, train_skinning
 
@@ -242,8 +258,10 @@ def prepare_scene(index: int, params: dict, config: IdentifyConfig, workdir: Pat
     surface = areas > 0
     fc = fem.config
     material = Material(config.prior_E, config.prior_nu, fc.density, damping_ratio=config.prior_damping)
-    scale = (stiffness_calibration(field, points[idx], weights, X, T, config.prior_nu)
-             if config.calibrate_stiffness else 1.0)
+    scale = 1.0
+    if config.calibrate_stiffness:
+        scale = (stiffness_calibration_curve(field, points[idx], weights, X, T, config.calibration_nus) if config.calibration_nu == "curve"
+                 else stiffness_calibration(field, points[idx], weights, X, T, config.prior_nu))
     sim = Simulator(field, points[idx], weights, material,
                     [Gravity(fc.gravity), Floor(height=fc.floor_height, stiffness=fc.floor_stiffness)], SimConfig(),
                     length_scale=fem_length(fem, size), contact_points=nodes[surface], contact_weights=areas[surface],
@@ -263,7 +281,9 @@ def prepare_scene(index: int, params: dict, config: IdentifyConfig, workdir: Pat
             "fem_substeps": fc.substeps,
             "fem_time_convergence_percent": (fem.time_convergence or {}).get("mean_percent"),
             "fem_seconds": (fem.time_convergence or {}).get("wall_time_all_runs", fem.wall_time),
-            "frequencies": lowest_frequencies(X, T, field, points[idx], weights, fc), "stiffness_scale": scale}
+            "frequencies": lowest_frequencies(X, T, field, points[idx], weights, fc),
+            "stiffness_scale": scale if isinstance(scale, float) else scale.at(config.prior_nu),
+            "stiffness_curve": None if isinstance(scale, float) else scale.to_dict()}
     truth_material = {"E": fc.youngs_modulus, "nu": fc.poisson_ratio, "damping_ratio": fc.damping_ratio}
     return PerfectGeometry(sim, start, points, lbs, truth, size, truth_material, info)
 

@@ -66,7 +66,8 @@ def _cmd_bench_identify(args: argparse.Namespace) -> int:
              "points": args.points, "skinning_points": args.skinning_points, "truth": args.truth,
              "skinning_objective": args.skinning_objective,
              "cubature_weights": args.cubature_weights, "fem_element_order": args.fem_element_order,
-             "loss": args.loss, "calibrate_stiffness": True if args.calibrate_stiffness else None}
+             "loss": args.loss, "calibrate_stiffness": True if args.calibrate_stiffness else None,
+             "calibration_nu": args.calibration_nu}
     flags = {"scenes": "--n", "seed": "--seed", "preset": "--preset", "handles": "--handles",
              "skinning_iterations": "--skinning-iterations", "fit_iterations": "--fit-iterations", "points": "--points",
              "skinning_points": "--skinning-points"}
@@ -333,6 +334,8 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
         overrides["stage1"] = args.stage1
     if args.calibrate_stiffness is not None:
         overrides["calibrate_stiffness"] = args.calibrate_stiffness
+    if args.calibration_nu is not None:
+        overrides["calibration_nu"] = args.calibration_nu
     if args.predictor is not None:
         if not Path(args.predictor).is_file():
             raise UserError(f"--predictor {args.predictor}: no such checkpoint file (train one with "
@@ -504,6 +507,10 @@ def build_parser() -> argparse.ArgumentParser:
                        help="scale the reduced model's elastic energy so that its lowest mode vibrates at the "
                             "frequency of quadratic tets on the rest mesh (at the prior nu): the subspace is stiffer "
                             "than the continuum, and the fit's E then is the material's")
+    ident.add_argument("--calibration-nu", choices=["curve", "prior"], default=None,
+                       help="with --calibrate-stiffness: measure the factor at a grid of nu and use s(nu) at the "
+                            "fit's current nu (default; the subspace's locking grows with nu), or one factor at "
+                            "the prior nu")
     ident.add_argument("--workdir", default="vid2sim-identify", help="cache of FEM runs and skinning fields "
                        "(default ./vid2sim-identify)")
     ident.add_argument("--out", default=None, help="write the full JSON report here")
@@ -601,6 +608,10 @@ def build_parser() -> argparse.ArgumentParser:
                      "at the frequency of quadratic tets on a surface of the reconstructed solid: the subspace is "
                      "stiffer than the continuum, and the fitted E is then the material's (off by default until "
                      "measured on the suite; docs/architecture.md)")
+    rec.add_argument("--calibration-nu", choices=["curve", "prior"], default=None,
+                     help="with --calibrate-stiffness: measure the factor over a grid of nu and use s(nu) at the "
+                          "fit's current nu (default; the subspace's locking grows with nu), or one factor at the "
+                          "prior nu")
     rec.add_argument("--predictor", metavar="PATH", default=None,
                      help="Stage I checkpoint (default: the one shipped with vid2sim; vid2sim train-predictor)")
     rec.add_argument("--device", default=None, help="torch device of the Gaussian fits, networks and joint "

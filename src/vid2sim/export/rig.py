@@ -84,8 +84,10 @@ def rig_document(asset, tensors: dict[str, np.ndarray]) -> dict[str, Any]:
                        "in": layer.in_features, "out": layer.out_features,
                        "activation": "elu" if i < n_layers - 1 else None})
     mat = dict(asset.material)
-    # the Lamé parameters the simulation uses: E times the subspace's stiffness calibration (1 when absent)
-    e, nu = float(mat["E"]) * float(mat.get("stiffness_scale", 1.0)), float(mat["nu"])
+    # the Lamé parameters the simulation uses: E times the subspace's stiffness calibration at ν (1 when absent)
+    stiffness = asset.stiffness()
+    nu = float(mat["nu"])
+    e = float(mat["E"]) * (stiffness if isinstance(stiffness, float) else stiffness.at(nu))
     mat["lame_mu"] = e / (2 * (1 + nu))
     mat["lame_lambda"] = e * nu / ((1 + nu) * (1 - 2 * nu))
     mat["energy"] = {"neo-hookean": "Psi = mu/2 (tr(F^T F) - 3) - mu ln J + lambda/2 (ln J)^2, J = det F",

@@ -16,6 +16,7 @@ from torch import Tensor
 from vid2sim.physics.materials import lame_parameters
 from vid2sim.physics.reduced import lbs_rows
 from vid2sim.physics.skinning import gradient_basis
+from vid2sim.physics.stiffness_curve import StiffnessCurve
 
 
 def subspace_stiffness_and_mass(X: Tensor, w: Tensor, dw: Tensor, volume: float, poisson_ratio: float,
@@ -100,3 +101,33 @@ def stiffness_calibration(field, points: Tensor, volumes: Tensor, vertices: Tens
     if not (reference > 0 and reduced > 0):
         raise ValueError(f"the lowest elastic frequencies must be positive, got tets {reference}, subspace {reduced}")
     return float((reference / reduced) ** 2)
+
+
+#: ν grid of :func:`stiffness_calibration_curve`: denser towards ½, where the subspace's locking grows fastest
+CURVE_NUS = (0.0, 0.1, 0.2, 0.3, 0.35, 0.4, 0.43, 0.46, 0.48, 0.49)
+
+
+def stiffness_calibration_curve(field, points: Tensor, volumes: Tensor, vertices: Tensor | np.ndarray,
+                                tets: Tensor | np.ndarray, nus: tuple[float, ...] = CURVE_NUS
+                                ) -> StiffnessCurve:
+    """:func:`stiffness_calibration` at every ν of ``nus``: the factor s(ν) that makes the subspace's lowest
+    frequency equal the continuum's at each ν (``Simulator(stiffness_scale=curve)``).
+
+    The tets' frequencies come from :func:`vid2sim.physics.tet_modes.tet_frequency_curve` (three sparse
+    eigensolves for the whole grid, within 1e-4 of a direct solve per ν).
+
+    Args: as :func:`stiffness_calibration`; ``nus`` the grid (strictly increasing, in [0, 0.5)).
+    Returns:
+        a :class:`~vid2sim.physics.stiffness_curve.StiffnessCurve` (s interpolated between the grid's ν).
+    """
+    from vid2sim.physics.tet_modes import tet_frequency_curve
+
+    reference = tet_frequency_curve(vertices, tets, nus, k=1, order=2)[:, 0]
+    scales = []
+    for nu, ref in zip(nus, reference):
+        reduced = subspace_frequencies(field, points, volumes, 1.0, float(nu), 1.0, k=1)[0]
+        if not (ref > 0 and reduced > 0):
+            raise ValueError(f"the lowest elastic frequencies must be positive at nu = {nu}, got tets {ref}, "
+                             f"subspace {reduced}")
+        scales.append(float((ref / reduced) ** 2))
+    return StiffnessCurve(tuple(nus), tuple(scales))

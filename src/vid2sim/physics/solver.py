@@ -37,6 +37,7 @@ from vid2sim.physics.reduced import (
     y_to_z_index,
     z_to_y_index,
 )
+from vid2sim.physics.stiffness_curve import StiffnessCurve
 
 
 class SimulationError(RuntimeError):
@@ -464,7 +465,10 @@ class Simulator:
         stiffness_scale: s > 0; the elastic energy (and the damping and substep count, which follow the
             frequencies) use E·s instead of E. A Rayleigh–Ritz subspace is stiffer than the continuum; with
             s = (ω_continuum / ω_subspace)² of the lowest mode (:func:`vid2sim.physics.modes.stiffness_calibration`)
-            the subspace vibrates at the material's frequency and ``log10_E`` stays the material's.
+            the subspace vibrates at the material's frequency and ``log10_E`` stays the material's. A
+            :class:`~vid2sim.physics.stiffness_curve.StiffnessCurve` gives s as a function of the current ν
+            (:func:`vid2sim.physics.modes.stiffness_calibration_curve`), differentiable in ν: the subspace's
+            volumetric locking grows with ν, so one factor is right at one ν only.
     """
 
     def __init__(
@@ -480,12 +484,15 @@ class Simulator:
         length_scale: float | None = None,
         contact_points: Tensor | None = None,
         contact_weights: Tensor | None = None,
-        stiffness_scale: float = 1.0,
+        stiffness_scale: "float | StiffnessCurve" = 1.0,
     ) -> None:
-        if isinstance(stiffness_scale, bool) or not isinstance(stiffness_scale, (int, float)) \
-                or not (0 < float(stiffness_scale) < math.inf):
-            raise ValueError(f"stiffness_scale must be a finite positive number, got {stiffness_scale!r}")
-        self.stiffness_scale = float(stiffness_scale)
+        if not isinstance(stiffness_scale, StiffnessCurve):
+            if isinstance(stiffness_scale, bool) or not isinstance(stiffness_scale, (int, float)) \
+                    or not (0 < float(stiffness_scale) < math.inf):
+                raise ValueError("stiffness_scale must be a finite positive number or a StiffnessCurve, "
+                                 f"got {stiffness_scale!r}")
+            stiffness_scale = float(stiffness_scale)
+        self.stiffness_scale: float | StiffnessCurve = stiffness_scale
         if cubature_points.ndim != 2 or cubature_points.shape[1] != 3 or cubature_points.shape[0] == 0:
             raise ValueError(f"cubature_points must have shape (K, 3) with K >= 1, got {tuple(cubature_points.shape)}")
         if cubature_weights.shape != cubature_points.shape[:1]:
@@ -545,8 +552,10 @@ class Simulator:
         return lame_parameters(self.effective_youngs_modulus(), self.nu)  # type: ignore[return-value]
 
     def effective_youngs_modulus(self) -> Tensor:
-        """0-d E·s: the modulus the elastic energy uses (``stiffness_scale`` s; E itself when s = 1)."""
-        return 10.0**self.log10_E * self.stiffness_scale
+        """0-d E·s: the modulus the elastic energy uses (``stiffness_scale`` s, or s(ν) of a
+        :class:`~vid2sim.physics.stiffness_curve.StiffnessCurve` at the current ``nu``; E itself when s = 1)."""
+        scale = self.stiffness_scale
+        return 10.0**self.log10_E * (scale(self.nu) if isinstance(scale, StiffnessCurve) else scale)
 
     def retardation_time(self) -> Tensor | None:
         """Kelvin–Voigt τ = 2 ζ L √(ρ/E) (s) from the current ``damping_ratio``, ``log10_E`` and ``density``;

@@ -30,6 +30,7 @@ import torch
 from torch import Tensor
 
 from vid2sim.physics.solver import SimConfig, SimState, Simulator
+from vid2sim.physics.stiffness_curve import StiffnessCurve
 from vid2sim.splats.gaussians import Gaussians
 
 ASSET_FORMAT = "vid2sim-asset"
@@ -51,7 +52,9 @@ class Asset:
         field: the skinning field (input frame = the object's canonical frame).
         jacobian: the Neural Jacobian, or None (closed-form dF/dz).
         material: {"model", "E", "log10_E", "nu", "density", "damping_ratio", "stiffness_scale" (optional, 1 when
-            absent: the subspace's calibration, ``Simulator(stiffness_scale=)``; kept under material overrides)}.
+            absent: the subspace's calibration, ``Simulator(stiffness_scale=)``; kept under material overrides),
+            "stiffness_curve" (optional: the calibration as a function of ν, {"nu": [...], "scale": [...]}; when
+            present the simulator uses it at its ν and "stiffness_scale" is its value at "nu")}.
         cubature_points: (K, 3); cubature_weights: (K,) (m³).
         contact_points: (S, 3); contact_areas: (S,) (m²).
         points: (N, 3) interior samples; volume: m³.
@@ -100,7 +103,12 @@ class Asset:
                          self.sim_config, jacobian=self.jacobian, use_neural_jacobian=self.jacobian is not None,
                          length_scale=self.length_scale, contact_points=self.contact_points,
                          contact_weights=self.contact_areas,
-                         stiffness_scale=float(self.material.get("stiffness_scale", 1.0)))
+                         stiffness_scale=self.stiffness())
+
+    def stiffness(self) -> float | StiffnessCurve:
+        """The subspace's stiffness calibration: the curve s(ν) when the asset has one, else the number s."""
+        curve = self.material.get("stiffness_curve")
+        return StiffnessCurve.from_dict(curve) if curve else float(self.material.get("stiffness_scale", 1.0))
 
     def initial_state(self, sim: Simulator) -> SimState:
         """The captured initial state: rest shape moving with the recovered rigid velocity."""
@@ -196,6 +204,11 @@ def load_asset(folder: str | Path, device: torch.device | str = "cpu") -> Asset:
     if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not (0 < scale < math.inf):
         raise AssetFormatError(f"{folder / FILES['material']}: stiffness_scale must be a finite positive number, "
                                f"got {scale!r}")
+    if material.get("stiffness_curve") is not None:
+        try:
+            StiffnessCurve.from_dict(material["stiffness_curve"])
+        except (TypeError, ValueError) as exc:
+            raise AssetFormatError(f"{folder / FILES['material']}: stiffness_curve: {exc}") from None
     pts_path = folder / FILES["points"]
     if not pts_path.is_file():
         raise AssetFormatError(f"{pts_path}: missing")

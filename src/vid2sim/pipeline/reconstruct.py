@@ -83,6 +83,9 @@ class ReconstructConfig:
             (:mod:`vid2sim.pipeline.stiffness`: quadratic tets on a surface of the kept voxels, at the prior ν).
             Off by default until it is measured on the benchmark suite. fTetWild is not deterministic, so a
             calibrated reconstruction is not bit-reproducible: s depends on the mesh it makes.
+        calibration_nu: with ``calibrate_stiffness``, "curve" (the default) measures s over a grid of ν and
+            the simulator uses s(ν) at its current ν (the subspace's locking grows with ν); "prior" measures
+            one factor at the prior ν.
         calibration_cells: the surface grid's cells along the longest side for that reference mesh.
         calibration_points: samples of the kept voxels that grid is made from.
         sim: the simulator's settings (time-converged BDF2 substeps by default).
@@ -105,6 +108,7 @@ class ReconstructConfig:
     prior_damping: float = 0.05
     density: float = 1000.0
     calibrate_stiffness: bool = False
+    calibration_nu: str = "curve"
     calibration_cells: int = 96
     calibration_points: int = 200_000
     sim: SimConfig = field(default_factory=SimConfig)
@@ -121,6 +125,8 @@ class ReconstructConfig:
         if self.skinning_objective not in OBJECTIVES:
             raise ValueError(f"ReconstructConfig.skinning_objective must be one of {OBJECTIVES}, "
                              f"got {self.skinning_objective!r}")
+        if self.calibration_nu not in ("curve", "prior"):
+            raise ValueError(f"ReconstructConfig.calibration_nu must be 'curve' or 'prior', got {self.calibration_nu!r}")
         for name in ("handles", "skinning_iterations", "num_cubature", "velocity_frames", "calibration_cells",
                      "calibration_points"):
             if getattr(self, name) < 1:
@@ -335,8 +341,10 @@ def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConf
     from vid2sim.physics import Floor, Gravity, Material, SkinningField, Simulator
     from vid2sim.physics.cubature import sample_cubature
     from vid2sim.physics.external import AREA_CONTACT_STIFFNESS
+    from vid2sim.physics.modes import CURVE_NUS
     from vid2sim.physics.neural_jacobian import NeuralJacobian, NeuralJacobianTrainingConfig, train_neural_jacobian
     from vid2sim.physics.skinning_training import SkinningTrainingConfig, train_skinning
+    from vid2sim.physics.stiffness_curve import StiffnessCurve
     from vid2sim.pipeline.asset import Asset, save_asset
     from vid2sim.pipeline.initial_state import TooFewBallisticFrames, estimate_initial_velocity
     from vid2sim.pipeline.joint import Observations, joint_optimisation
@@ -476,7 +484,9 @@ def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConf
         scene.config.metadata.get("density"), (int, float)) else cfg.density
     idx, weights = sample_cubature(obj.points, cfg.num_cubature, volume=obj.volume, seed=cfg.seed)
     calibration_path = work.dir / "stiffness.json"
-    if cfg.calibrate_stiffness and not calibration_path.is_file():
+    want_curve = cfg.calibration_nu == "curve"
+    if cfg.calibrate_stiffness and (not calibration_path.is_file() or want_curve != bool(
+            json.loads(calibration_path.read_text()).get("stiffness_curve"))):  # made with the other calibration_nu
         from vid2sim.pipeline.points import sample_in_voxels
         from vid2sim.pipeline.stiffness import calibrate_stiffness
 
@@ -484,9 +494,13 @@ def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConf
         dense = sample_in_voxels(obj_cpu.occupancy, obj_cpu.origin.double(), obj_cpu.voxel, cfg.calibration_points,
                                  torch.Generator().manual_seed(cfg.seed))
         calibration = calibrate_stiffness(field, obj.points[idx], weights, dense, prior_nu,
-                                          cells=cfg.calibration_cells, seed=cfg.seed)
+                                          cells=cfg.calibration_cells, seed=cfg.seed,
+                                          nus=CURVE_NUS if want_curve else None)
         calibration_path.write_text(json.dumps(calibration))
-    calibration = json.loads(calibration_path.read_text()) if cfg.calibrate_stiffness else {"stiffness_scale": 1.0}
+    calibration = (json.loads(calibration_path.read_text()) if cfg.calibrate_stiffness
+                   else {"stiffness_scale": 1.0, "stiffness_curve": None})
+    stiffness = (StiffnessCurve.from_dict(calibration["stiffness_curve"]) if calibration.get("stiffness_curve")
+                 else calibration["stiffness_scale"])
     externals = [Gravity(list(scene.config.gravity))]
     if scene.config.floor_height is not None:
         externals.append(Floor(height=scene.config.floor_height, stiffness=AREA_CONTACT_STIFFNESS))
@@ -494,7 +508,7 @@ def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConf
     sim = Simulator(field, obj.points[idx], weights, material, externals, cfg.sim, jacobian=jacobian,
                     use_neural_jacobian=jacobian is not None, length_scale=obj.scale,
                     contact_points=obj.contact_points, contact_weights=obj.contact_areas,
-                    stiffness_scale=calibration["stiffness_scale"])
+                    stiffness_scale=stiffness)
     joint_path = work.dir / "joint.json"
     if not work.done("joint"):
         _stage(progress, "[6/6] joint optimisation of the material, initial velocity and networks")
@@ -513,7 +527,10 @@ def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConf
 
     material_json = {"model": "neo-hookean", "E": float(10.0 ** result["log10_E"]), "log10_E": result["log10_E"],
                      "nu": result["nu"], "density": density, "damping_ratio": result["damping_ratio"],
-                     "stiffness_scale": calibration["stiffness_scale"]}
+                     "stiffness_scale": (stiffness.at(result["nu"]) if isinstance(stiffness, StiffnessCurve)
+                                         else stiffness)}
+    if isinstance(stiffness, StiffnessCurve):
+        material_json["stiffness_curve"] = stiffness.to_dict()
     field, jacobian = field.to("cpu"), (jacobian.to("cpu") if jacobian is not None else None)
     asset = Asset(gaussians=gaussians.to("cpu"), field=field, jacobian=jacobian, material=material_json,
                   cubature_points=obj_cpu.points[idx.cpu()], cubature_weights=weights.cpu(),

@@ -9,7 +9,9 @@ tets on a mesh of the same solid. A reconstruction has no such mesh; it has inte
    σ = 1.5 cells) and the surface is the level set at half the median density at the points (marching cubes;
    a blurred step is at half its height at the step). The grid is padded, so the surface is closed.
 2. fTetWild tetrahedralizes it (:func:`vid2sim.meshing.tetra.tetrahedralize`).
-3. :func:`vid2sim.physics.modes.stiffness_calibration` compares the two lowest frequencies.
+3. :func:`vid2sim.physics.modes.stiffness_calibration_curve` compares the two lowest frequencies at a grid
+   of ν (or :func:`~vid2sim.physics.modes.stiffness_calibration` at one ν): the subspace's volumetric locking
+   grows with ν, so the factor is a curve s(ν) (:mod:`vid2sim.physics.stiffness_curve`).
 """
 
 from __future__ import annotations
@@ -65,7 +67,8 @@ def solid_surface(points: np.ndarray, cells: int = 64, rng: np.random.Generator 
 
 
 def calibrate_stiffness(field, cubature: Tensor, weights: Tensor, points: Tensor, poisson_ratio: float,
-                        edge_length: float = 0.08, cells: int = 64, seed: int = 0) -> dict:
+                        edge_length: float = 0.08, cells: int = 64, seed: int = 0,
+                        nus: tuple[float, ...] | None = None) -> dict:
     """The stiffness factor s of a reconstruction (``Simulator(stiffness_scale=s)``).
 
     Args:
@@ -73,17 +76,19 @@ def calibrate_stiffness(field, cubature: Tensor, weights: Tensor, points: Tensor
         cubature: (K, 3) the simulator's cubature points; weights: (K,) their volumes.
         points: (N, 3) the interior samples the subspace was trained on (world frame, m).
         poisson_ratio: ν at which both frequencies are compared (the prior's).
+        nus: a grid of ν: also measure the curve s(ν) there (None: only at ``poisson_ratio``).
         edge_length: fTetWild's target edge length relative to the bounding-box diagonal (the small preset's
             FEM uses 0.08).
         cells: the surface grid's cells along the longest side.
     Returns:
-        {"stiffness_scale": s, "tets": mesh size, "mesh_volume_m3", "points_volume_ratio" (the mesh's volume
-        over the weights' sum), "seconds"}.
+        {"stiffness_scale": s at ``poisson_ratio``, "stiffness_curve": the curve's ``to_dict()`` or None,
+        "tets": mesh size, "mesh_volume_m3", "points_volume_ratio" (the mesh's volume over the weights' sum),
+        "seconds"}.
     Raises:
         ValueError: no closed surface could be made from the points.
     """
     from vid2sim.meshing.tetra import tet_volumes, tetrahedralize
-    from vid2sim.physics.modes import stiffness_calibration
+    from vid2sim.physics.modes import stiffness_calibration, stiffness_calibration_curve
 
     t0 = time.perf_counter()
     P = points.detach().double().cpu().numpy()
@@ -93,7 +98,10 @@ def calibrate_stiffness(field, cubature: Tensor, weights: Tensor, points: Tensor
                          "calibration; set ReconstructConfig.calibrate_stiffness=False")
     mesh = tetrahedralize(surface[0], surface[1], edge_length_fac=edge_length, epsilon=5e-3, name="reconstructed solid")
     X, T = mesh.vertices.double(), mesh.tets
-    s = stiffness_calibration(field, cubature, weights, X, T, poisson_ratio)
+    curve = stiffness_calibration_curve(field, cubature, weights, X, T, nus) if nus is not None else None
+    s = curve.at(poisson_ratio) if curve is not None else stiffness_calibration(field, cubature, weights, X, T,
+                                                                                 poisson_ratio)
     volume = float(tet_volumes(X, T).abs().sum())
-    return {"stiffness_scale": s, "tets": int(len(T)), "mesh_volume_m3": volume,
+    return {"stiffness_scale": s, "stiffness_curve": curve.to_dict() if curve is not None else None,
+            "tets": int(len(T)), "mesh_volume_m3": volume,
             "points_volume_ratio": volume / float(weights.sum()), "seconds": time.perf_counter() - t0}
