@@ -72,6 +72,29 @@ def test_perfect_geometry_starts_exactly_where_the_fem_starts(report):
     assert omega == pytest.approx(tets, rel=1e-6)
 
 
+def test_fixed_damping_and_a_contact_layer_reach_the_fit(report):
+    """--fixed-damping keeps ζ at the prior through the fit; --contact-layer gives the simulator a layer of
+    that fraction of the size, which changes the motion once the object touches the floor."""
+    from dataclasses import replace
+
+    from vid2sim.synthetic.scenes import benchmark_parameters
+
+    _, config, workdir = report
+    params = benchmark_parameters(1, 0)[0]
+    fixed = replace(config, fit_damping=False)
+    scene = identify.prepare_scene(0, params, fixed, workdir)
+    out = identify.fit(scene, fixed)
+    assert all(h["damping_ratio"] == pytest.approx(config.prior_damping, rel=1e-12)
+               for h in out["history"] if "loss" in h)
+    layered = identify.prepare_scene(0, params, replace(config, contact_layer=0.1), workdir)
+    assert layered.simulator.contact_layer == pytest.approx(0.1 * layered.size)
+    plain = identify.prepare_scene(0, params, config, workdir)
+    a, b = layered.trajectory(config.frames), plain.trajectory(config.frames)
+    assert float((a - b).abs().max()) > 1e-4 * plain.size
+    with pytest.raises(ValueError, match="contact_layer"):
+        identify.IdentifyConfig(contact_layer=-0.1)
+
+
 def test_report_has_per_scene_figures_and_means(report):
     result, config, _ = report
     (row,) = result["scenes"]

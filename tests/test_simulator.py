@@ -389,15 +389,18 @@ def test_adjoint_gradients_wrt_the_initial_state_match_finite_differences(traine
             assert abs(g - float(fd)) <= 1e-3 * abs(float(fd)) + 1e-9, (which, i, g, float(fd))
 
 
-def test_adjoint_matches_unrolled_autograd(trained_field):
+@pytest.mark.parametrize("layer", [0.0, 0.5])
+def test_adjoint_matches_unrolled_autograd(trained_field, layer):
     """The per-step adjoint equals backpropagation through many plain Newton iterations: BDF2 with
-    damping, 2 substeps per frame, over a floor impact."""
+    damping, 2 substeps per frame, over a floor impact; also with a contact layer (``contact_layer``, which
+    makes the floor's effective stiffness depend on E and ν: here it halves it)."""
     from vid2sim.physics.integrators import bdf_step
     from vid2sim.physics.reduced import ElasticBasis, StepProblem, lbs_rows
 
     field, pts = trained_field
     sim = _sim(field, pts, material=Material(5e4, 0.3, damping_ratio=0.1), externals=[Gravity(), Floor(height=-0.3)],
                k=60, config=SimConfig(substeps=2, **TIGHT))
+    sim.contact_layer = layer
     for name in ("log10_E", "nu", "damping_ratio"):
         getattr(sim, name).requires_grad_(True)
     wrt = [sim.log10_E, sim.nu, sim.damping_ratio]
@@ -420,7 +423,7 @@ def test_adjoint_matches_unrolled_autograd(trained_field):
         step = bdf_step("bdf2", h, h if y2 is not None else None)
         prob = StepProblem(sim.X, sim.vol, sim.masses(), b, basis, mu, lam, "neo_hookean", sim.externals, t,
                            step, y, ydot, y2 if step.needs_history else None, ydot2 if step.needs_history else None,
-                           tau)
+                           tau, contact_layer_stiffness=sim.contact_layer_stiffness())
         yk = y.detach().clone() + 0 * mu  # start at the previous state, keep the graph
         for _ in range(12):
             yk = yk - torch.linalg.solve(prob.hessian(yk, project=False), prob.gradient(yk))
@@ -430,6 +433,13 @@ def test_adjoint_matches_unrolled_autograd(trained_field):
     assert torch.allclose(y[inv].detach(), states[-1].z.detach(), atol=1e-8)
     for ga, gr in zip(g_adj, g_ref):
         assert abs(float(ga) - float(gr)) <= 2e-5 * abs(float(gr)) + 1e-12
+    if layer:
+        k_b = float(sim.contact_layer_stiffness())
+        assert k_b == pytest.approx(5e4 / ((1 - 0.09) * layer)) and 0.3 < 1 / (1 + 1e5 / k_b) < 0.7
+        sim.contact_layer = 0.0
+        with torch.no_grad():
+            stiff = sim.rollout(state, 3)[-1].z
+        assert float((stiff - states[-1].z.detach()).abs().max()) > 1e-3  # the layer is in contact and matters
 
 
 def test_neural_jacobian_switch_uses_the_given_basis(trained_field):

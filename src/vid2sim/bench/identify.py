@@ -69,6 +69,8 @@ class IdentifyConfig:
         cubature: cubature points.
         cubature_weights: "equal" or "voronoi" (:func:`~vid2sim.physics.cubature.sample_cubature`).
         prior_E, prior_nu, prior_damping: the fit's start.
+        fit_damping: also fit ζ (the default); False keeps it at ``prior_damping``, as ``reconstruct`` does by
+            default (``JointConfig.fit_damping``). ζ and ν trade off: a fitted ζ lets ν drift.
         coarse_log10_E: the grid searched over log10 E (at the prior ν and ζ) before L-BFGS, as the video
             pipeline does (:class:`~vid2sim.pipeline.joint.JointConfig`); empty: start at ``prior_E``. The loss
             is not convex in E: with a subspace close to the truth's stiffness, two of the six scenes stopped in
@@ -94,6 +96,9 @@ class IdentifyConfig:
             uses s(ν) at its current ν (:func:`vid2sim.physics.modes.stiffness_calibration_curve`: the
             subspace's locking grows with ν); "prior" uses the one factor measured at the prior ν.
         calibration_nus: the grid of that curve.
+        contact_layer: the reduced model's contact layer h as a fraction of the object's size
+            (``Simulator(contact_layer=)``; 0: none). An experiment: no single value suits every object
+            (docs/architecture.md, "The calibration as a function of ν").
     """
 
     scenes: int = 6
@@ -111,6 +116,7 @@ class IdentifyConfig:
     prior_E: float = 1e5
     prior_nu: float = 0.3
     prior_damping: float = 0.05
+    fit_damping: bool = True
     coarse_log10_E: tuple[float, ...] = (4.0, 4.25, 4.5, 4.75, 5.0, 5.25, 5.5, 5.75, 6.0)
     fit_iterations: int = 12
     sweep_decades: float = 0.5
@@ -122,6 +128,7 @@ class IdentifyConfig:
     calibrate_stiffness: bool = False
     calibration_nu: str = "curve"
     calibration_nus: tuple[float, ...] = CURVE_NUS
+    contact_layer: float = 0.0
 
     def __post_init__(self) -> None:
         for name in ("scenes", "frames", "observed_frames", "points", "skinning_points", "handles", "cubature",
@@ -150,6 +157,9 @@ class IdentifyConfig:
         nus = self.calibration_nus
         if len(nus) < 2 or not all(0 <= v < 0.5 for v in nus) or any(b <= a for a, b in zip(nus, nus[1:])):
             raise ValueError(f"IdentifyConfig.calibration_nus must be >= 2 increasing values in [0, 0.5), got {nus!r}")
+        if isinstance(self.contact_layer, bool) or not isinstance(self.contact_layer, (int, float)) \
+                or not 0 <= self.contact_layer < math.inf:
+            raise ValueError(f"IdentifyConfig.contact_layer must be a finite number >= 0, got {self.contact_layer!r}")
         if self.preset not in ("small", "full"):
             raise ValueError(f"IdentifyConfig.preset must be 'small' or 'full', got {self.preset!r}")
         self.coarse_log10_E = tuple(sorted(float(v) for v in self.coarse_log10_E))
@@ -265,7 +275,7 @@ def prepare_scene(index: int, params: dict, config: IdentifyConfig, workdir: Pat
     sim = Simulator(field, points[idx], weights, material,
                     [Gravity(fc.gravity), Floor(height=fc.floor_height, stiffness=fc.floor_stiffness)], SimConfig(),
                     length_scale=fem_length(fem, size), contact_points=nodes[surface], contact_weights=areas[surface],
-                    stiffness_scale=scale)
+                    stiffness_scale=scale, contact_layer=config.contact_layer * size)
     H = field.num_handles_total
     Z0 = np.zeros((H, 3, 4))
     Z0[-1] = _rigid_affine(nodes.numpy(), fem.trajectory[0].numpy()) - np.hstack([np.eye(3), np.zeros((3, 1))])
@@ -382,7 +392,7 @@ def fit(scene: PerfectGeometry, config: IdentifyConfig, progress: bool = False) 
         start_log10_E = coarse_minimum([c["log10_E"] for c in coarse], [c["loss"] for c in coarse])
     logE = torch.tensor(start_log10_E, dtype=torch.float64, requires_grad=True)
     u = torch.tensor(math.log(config.prior_nu / (0.5 - config.prior_nu)), dtype=torch.float64, requires_grad=True)
-    v = torch.tensor(math.log(math.expm1(config.prior_damping)), dtype=torch.float64, requires_grad=True)
+    v = torch.tensor(math.log(math.expm1(config.prior_damping)), dtype=torch.float64, requires_grad=config.fit_damping)
     history = []
 
     def assign():
@@ -390,7 +400,7 @@ def fit(scene: PerfectGeometry, config: IdentifyConfig, progress: bool = False) 
         sim.nu = 0.5 * torch.sigmoid(u)
         sim.damping_ratio = torch.nn.functional.softplus(v)
 
-    optimizer = torch.optim.LBFGS([logE, u, v], lr=1.0, max_iter=4, history_size=10,
+    optimizer = torch.optim.LBFGS([logE, u, v] if config.fit_damping else [logE, u], lr=1.0, max_iter=4, history_size=10,
                                   line_search_fn="strong_wolfe", tolerance_grad=1e-12, tolerance_change=1e-12)
 
     def closure():

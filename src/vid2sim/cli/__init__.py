@@ -67,7 +67,8 @@ def _cmd_bench_identify(args: argparse.Namespace) -> int:
              "skinning_objective": args.skinning_objective,
              "cubature_weights": args.cubature_weights, "fem_element_order": args.fem_element_order,
              "loss": args.loss, "calibrate_stiffness": True if args.calibrate_stiffness else None,
-             "calibration_nu": args.calibration_nu}
+             "calibration_nu": args.calibration_nu, "contact_layer": args.contact_layer,
+             "fit_damping": False if args.fixed_damping else None}
     flags = {"scenes": "--n", "seed": "--seed", "preset": "--preset", "handles": "--handles",
              "skinning_iterations": "--skinning-iterations", "fit_iterations": "--fit-iterations", "points": "--points",
              "skinning_points": "--skinning-points"}
@@ -511,6 +512,12 @@ def build_parser() -> argparse.ArgumentParser:
                        help="with --calibrate-stiffness: measure the factor at a grid of nu and use s(nu) at the "
                             "fit's current nu (default; the subspace's locking grows with nu), or one factor at "
                             "the prior nu")
+    ident.add_argument("--fixed-damping", action="store_true",
+                       help="keep the damping ratio at the prior (0.05) instead of fitting it, as reconstruct does "
+                            "by default")
+    ident.add_argument("--contact-layer", type=float, default=None,
+                       help="experimental: the reduced model's barriers act through a layer of the body in series, "
+                            "this fraction of the object's size deep (default 0: none)")
     ident.add_argument("--workdir", default="vid2sim-identify", help="cache of FEM runs and skinning fields "
                        "(default ./vid2sim-identify)")
     ident.add_argument("--out", default=None, help="write the full JSON report here")

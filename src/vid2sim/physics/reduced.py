@@ -145,6 +145,8 @@ class StepProblem:
     External energies of kind "body" (gravity) act on the cubature points with their masses; those of
     kind "contact" (barriers) on the contact points (``contact_X``, LBS rows ``contact_b``) with the
     weights ``contact_w`` — by default the cubature points with weight 1 (the paper's floor formula).
+    With ``contact_layer_stiffness`` k_b, a barrier of stiffness k acts through a layer of the body in series:
+    its weights are scaled by 1 / (1 + k / k_b) (:meth:`vid2sim.physics.solver.Simulator.contact_layer_stiffness`).
     """
 
     X: Tensor  # (K, 3) cubature rest positions
@@ -166,6 +168,7 @@ class StepProblem:
     contact_X: Tensor | None = None  # (Nc, 3) contact points' rest positions (None: the cubature points)
     contact_b: Tensor | None = None  # (Nc, L) their LBS rows
     contact_w: Tensor | None = None  # (Nc,) their barrier weights
+    contact_layer_stiffness: Tensor | None = None  # k_b (0-d, Pa/m): the body's contact layer in series
 
     # ---- pieces ------------------------------------------------------------------------------
     @property
@@ -219,6 +222,11 @@ class StepProblem:
         contact = [e for e in self.externals if getattr(e, "kind", "body") == "contact"]
         return body, contact
 
+    def _barrier_weights(self, ext, weights: Tensor) -> Tensor:
+        """The contact weights a barrier ``ext`` acts with: through the contact layer in series, if any."""
+        k_b = self.contact_layer_stiffness
+        return weights if k_b is None else weights / (1.0 + ext.stiffness / k_b)
+
     def _contact_positions(self, y: Tensor) -> Tensor:
         X, b, _ = self._contact
         return X + b @ y.reshape(3, -1).T
@@ -253,7 +261,8 @@ class StepProblem:
                 x = self._contact_positions(y)
             g = torch.zeros_like(x)
             for ext in energies:
-                e_i, g_i = energy_and_gradient(ext, x, weights, self.t)
+                w_ext = weights if points is None else self._barrier_weights(ext, weights)
+                e_i, g_i = energy_and_gradient(ext, x, w_ext, self.t)
                 e = e + e_i
                 g = g + g_i
             f = f + (g.T @ b).reshape(-1)
@@ -273,7 +282,7 @@ class StepProblem:
             xc, w = self._contact_positions(y), self._contact[2]
             hx = xc.new_zeros(xc.shape[0], 3, 3)
             for ext in contact:
-                hx = hx + ext.hessian(xc, w, self.t, project=project)
+                hx = hx + ext.hessian(xc, self._barrier_weights(ext, w), self.t, project=project)
             H = H + _reduced_point_hessian(hx, self._contact[1])
         return H
 

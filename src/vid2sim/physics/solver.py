@@ -398,18 +398,20 @@ class _StepSpec:
     cache: NewtonCache | None = None
     stats: StepStats | None = None
 
-    def problem(self, y_prev, ydot_prev, y_prev2, ydot_prev2, mu, lam, tau, mass, b, basis_t, contact_b) -> StepProblem:
+    def problem(self, y_prev, ydot_prev, y_prev2, ydot_prev2, mu, lam, tau, mass, b, basis_t, contact_b,
+                layer_k) -> StepProblem:
         basis = ElasticBasis(self.A, basis_t, None) if self.structured else ElasticBasis(self.A, None, basis_t)
         return StepProblem(self.X, self.vol, mass, b, basis, mu, lam, self.model, self.externals,
                            self.t, self.step, y_prev, ydot_prev, y_prev2, ydot_prev2, tau,
-                           self.contact_X, contact_b, self.contact_w)
+                           self.contact_X, contact_b, self.contact_w, layer_k)
 
 
 class _ImplicitStep(torch.autograd.Function):
     """y_next = argmin Φ(y; inputs); backward by the adjoint of the converged step.
 
     Inputs after ``spec``: y_prev, ydot_prev, y_prev2, ydot_prev2 (None unless BDF2 has history), μ, λ,
-    τ (None when undamped), masses, LBS rows b, F-basis, contact points' LBS rows (None: the cubature points).
+    τ (None when undamped), masses, LBS rows b, F-basis, contact points' LBS rows (None: the cubature points),
+    the contact layer's stiffness (None: no layer).
     """
 
     @staticmethod
@@ -469,6 +471,11 @@ class Simulator:
             :class:`~vid2sim.physics.stiffness_curve.StiffnessCurve` gives s as a function of the current ν
             (:func:`vid2sim.physics.modes.stiffness_calibration_curve`), differentiable in ν: the subspace's
             volumetric locking grows with ν, so one factor is right at one ν only.
+        contact_layer: h ≥ 0 (m). The skinning subspace cannot represent the local indentation where the object
+            touches something, so its contact is too stiff. With h > 0 every barrier (floor, spheres) acts
+            through a layer of the body in series, of stiffness k_b = E·s / ((1 − ν²) h) per unit area (the
+            elastic half-space's indentation modulus over a depth h): a barrier of stiffness k acts as
+            k / (1 + k / k_b). Differentiable in E and ν. 0 (the default): no layer.
     """
 
     def __init__(
@@ -485,6 +492,7 @@ class Simulator:
         contact_points: Tensor | None = None,
         contact_weights: Tensor | None = None,
         stiffness_scale: "float | StiffnessCurve" = 1.0,
+        contact_layer: float = 0.0,
     ) -> None:
         if not isinstance(stiffness_scale, StiffnessCurve):
             if isinstance(stiffness_scale, bool) or not isinstance(stiffness_scale, (int, float)) \
@@ -493,6 +501,10 @@ class Simulator:
                                  f"got {stiffness_scale!r}")
             stiffness_scale = float(stiffness_scale)
         self.stiffness_scale: float | StiffnessCurve = stiffness_scale
+        if isinstance(contact_layer, bool) or not isinstance(contact_layer, (int, float)) \
+                or not (0 <= float(contact_layer) < math.inf):
+            raise ValueError(f"contact_layer must be a finite number of metres >= 0, got {contact_layer!r}")
+        self.contact_layer = float(contact_layer)
         if cubature_points.ndim != 2 or cubature_points.shape[1] != 3 or cubature_points.shape[0] == 0:
             raise ValueError(f"cubature_points must have shape (K, 3) with K >= 1, got {tuple(cubature_points.shape)}")
         if cubature_weights.shape != cubature_points.shape[:1]:
@@ -556,6 +568,12 @@ class Simulator:
         :class:`~vid2sim.physics.stiffness_curve.StiffnessCurve` at the current ``nu``; E itself when s = 1)."""
         scale = self.stiffness_scale
         return 10.0**self.log10_E * (scale(self.nu) if isinstance(scale, StiffnessCurve) else scale)
+
+    def contact_layer_stiffness(self) -> Tensor | None:
+        """0-d k_b = E·s / ((1 − ν²) h) (Pa/m) of the contact layer (``contact_layer`` h), None when h = 0."""
+        if self.contact_layer == 0.0:
+            return None
+        return self.effective_youngs_modulus() / ((1.0 - self.nu * self.nu) * self.contact_layer)
 
     def retardation_time(self) -> Tensor | None:
         """Kelvin–Voigt τ = 2 ζ L √(ρ/E) (s) from the current ``damping_ratio``, ``log10_E`` and ``density``;
@@ -638,6 +656,7 @@ class Simulator:
         mu, lam = lame if lame is not None else self.lame()
         tau = self.retardation_time() if isinstance(tau, str) else tau
         mu, lam = torch.as_tensor(mu), torch.as_tensor(lam)
+        layer_k = self.contact_layer_stiffness()
         cfg = self.config
         cache = cache if cache is not None else NewtonCache()
         n = substeps if substeps is not None else self.substeps()
@@ -662,7 +681,7 @@ class Simulator:
                              self.contact_points, self.contact_weights, self.length_scale, cache)
             y_new = _ImplicitStep.apply(spec, y, ydot, y2 if bdf.needs_history else None,
                                         ydot2 if bdf.needs_history else None, mu, lam, tau, self.masses(), b,
-                                        step_basis, basis.contact_b)
+                                        step_basis, basis.contact_b, layer_k)
             ydot_new = bdf.velocity(y_new, y, y2 if bdf.needs_history else None)
             iterations += spec.stats.iterations
             converged = converged and spec.stats.converged
