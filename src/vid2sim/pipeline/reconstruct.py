@@ -80,7 +80,8 @@ class ReconstructConfig:
         density: kg/m³ when the scene does not give one.
         calibrate_stiffness: scale the simulator's elastic energy by s = (ω_tets / ω_subspace)² of the lowest
             mode, so that the fitted E is the material's rather than the stiffer subspace's
-            (:mod:`vid2sim.pipeline.stiffness`: quadratic tets on a surface of the kept voxels, at the prior ν).
+            (:mod:`vid2sim.pipeline.stiffness`: quadratic tets on a surface of the kept voxels; see
+            ``calibration_nu``).
             Off by default until it is measured on the benchmark suite. fTetWild is not deterministic, so a
             calibrated reconstruction is not bit-reproducible: s depends on the mesh it makes.
         calibration_nu: with ``calibrate_stiffness``, "curve" (the default) measures s over a grid of ν and
