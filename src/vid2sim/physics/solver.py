@@ -399,7 +399,7 @@ class _StepSpec:
     stats: StepStats | None = None
 
     def problem(self, y_prev, ydot_prev, y_prev2, ydot_prev2, mu, lam, tau, mass, b, basis_t, contact_b,
-                layer_k) -> StepProblem:
+                layer_k=None) -> StepProblem:
         basis = ElasticBasis(self.A, basis_t, None) if self.structured else ElasticBasis(self.A, None, basis_t)
         return StepProblem(self.X, self.vol, mass, b, basis, mu, lam, self.model, self.externals,
                            self.t, self.step, y_prev, ydot_prev, y_prev2, ydot_prev2, tau,
