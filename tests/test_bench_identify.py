@@ -93,6 +93,17 @@ def test_fixed_damping_and_a_contact_layer_reach_the_fit(report):
     assert float((a - b).abs().max()) > 1e-4 * plain.size
     with pytest.raises(ValueError, match="contact_layer"):
         identify.IdentifyConfig(contact_layer=-0.1)
+    # --calibrate-contact: the layer that gives the subspace the tets' compliance under its own floor loads
+    calibrated = replace(config, calibrate_contact=True, contact_iterations=2)
+    scene = identify.prepare_scene(0, params, calibrated, workdir)
+    rounds = identify.calibrate_contact(scene, calibrated, 5.0, 0.3)
+    assert len(rounds) == 2 and scene.simulator.contact_layer == rounds[-1]["layer"] >= 0
+    assert all(r["tet_compliance"] > 0 and r["subspace_compliance"] > 0 and math.isfinite(r["raw_layer"])
+               for r in rounds)
+    # four handles are far stiffer than the tets under a floor load: the layer is real
+    assert rounds[0]["compliance_ratio"] > 1 and rounds[0]["layer"] > 0
+    with pytest.raises(ValueError, match="contact_iterations"):
+        identify.IdentifyConfig(contact_iterations=0)
 
 
 def test_report_has_per_scene_figures_and_means(report):

@@ -99,6 +99,12 @@ class IdentifyConfig:
         contact_layer: the reduced model's contact layer h as a fraction of the object's size
             (``Simulator(contact_layer=)``; 0: none). An experiment: no single value suits every object
             (docs/architecture.md, "The calibration as a function of ν").
+        calibrate_contact: set the contact layer from the object's continuum instead: after the coarse search,
+            the layer that gives the subspace the quadratic tets' compliance under the floor loads of its own
+            simulation at the coarse minimum and the prior ν, iterated ``contact_iterations`` times so that the
+            patches are those of the layer (:func:`vid2sim.physics.contact_compliance.contact_layer_from_simulation`).
+            Overrides ``contact_layer``. Experimental (docs/architecture.md, "The contact layer").
+        contact_iterations: the fixed-point iterations of that calibration.
     """
 
     scenes: int = 6
@@ -129,10 +135,12 @@ class IdentifyConfig:
     calibration_nu: str = "curve"
     calibration_nus: tuple[float, ...] = CURVE_NUS
     contact_layer: float = 0.0
+    calibrate_contact: bool = False
+    contact_iterations: int = 3
 
     def __post_init__(self) -> None:
         for name in ("scenes", "frames", "observed_frames", "points", "skinning_points", "handles", "cubature",
-                     "fit_iterations", "sweep_points"):
+                     "fit_iterations", "sweep_points", "contact_iterations"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"IdentifyConfig.{name} must be an integer >= 1, got {value!r}")
@@ -179,6 +187,8 @@ class PerfectGeometry:
         size: the object's rest bounding-box diagonal (m).
         material: {"E", "nu", "damping_ratio"} of the ground truth.
         info: facts about the scene (tets, substeps, time convergence, wall times).
+        tet_vertices: (Nv, 3) and tets: (Nt, 4) the rest mesh; contact_nodes: (Nc,) the quadratic-tet node of
+            each of the simulator's contact points.
     """
 
     simulator: Any
@@ -189,6 +199,9 @@ class PerfectGeometry:
     size: float
     material: dict
     info: dict
+    tet_vertices: torch.Tensor | None = None
+    tets: torch.Tensor | None = None
+    contact_nodes: np.ndarray | None = None
 
     def positions(self, z: torch.Tensor) -> torch.Tensor:
         """(P, 3) sample-point positions for the reduced state z: (12H,)."""
@@ -295,7 +308,8 @@ def prepare_scene(index: int, params: dict, config: IdentifyConfig, workdir: Pat
             "stiffness_scale": scale if isinstance(scale, float) else scale.at(config.prior_nu),
             "stiffness_curve": None if isinstance(scale, float) else scale.to_dict()}
     truth_material = {"E": fc.youngs_modulus, "nu": fc.poisson_ratio, "damping_ratio": fc.damping_ratio}
-    return PerfectGeometry(sim, start, points, lbs, truth, size, truth_material, info)
+    return PerfectGeometry(sim, start, points, lbs, truth, size, truth_material, info, X, T,
+                           np.flatnonzero(surface.numpy()))
 
 
 def lowest_frequencies(X: torch.Tensor, T: torch.Tensor, field, cubature: torch.Tensor, volumes: torch.Tensor,
@@ -371,6 +385,27 @@ def model_errors(scene: PerfectGeometry, config: IdentifyConfig) -> dict:
     }
 
 
+def calibrate_contact(scene: PerfectGeometry, config: IdentifyConfig, log10_E: float, nu: float) -> list[dict]:
+    """Set the simulator's contact layer from the continuum at (log10 E, ν) and the prior ζ (see
+    ``IdentifyConfig.calibrate_contact``); returns each iteration's :class:`ContactCalibration` as a dict."""
+    from vid2sim.physics.contact_compliance import TetCompliance, contact_layer_from_simulation
+
+    sim = scene.simulator
+    set_material(sim, log10_E, nu, config.prior_damping)
+    tet = TetCompliance(scene.tet_vertices, scene.tets, nu)
+    scale = sim.stiffness_scale
+    s = float(scale.at(nu)) if not isinstance(scale, float) else scale
+    sim.contact_layer = 0.0
+    rounds = []
+    for _ in range(config.contact_iterations):
+        with torch.no_grad():
+            states = sim.rollout(scene.start, config.observed_frames - 1)
+        calibration = contact_layer_from_simulation(sim, states, tet, scene.contact_nodes, nu, s)
+        sim.contact_layer = calibration.layer
+        rounds.append({**calibration.to_dict(), "layer_over_size": calibration.layer / scene.size})
+    return rounds
+
+
 def fit(scene: PerfectGeometry, config: IdentifyConfig, progress: bool = False) -> dict:
     """Fit log10 E, ν and ζ: a coarse search over log10 E at the prior ν and ζ, then L-BFGS from its minimum
     on the adjoint gradients of the observed-frame loss.
@@ -390,6 +425,7 @@ def fit(scene: PerfectGeometry, config: IdentifyConfig, progress: bool = False) 
         coarse.append({"log10_E": value, "loss": float(trajectory_loss(scene, config.observed_frames, kind=config.loss))})
     if coarse:
         start_log10_E = coarse_minimum([c["log10_E"] for c in coarse], [c["loss"] for c in coarse])
+    contact = calibrate_contact(scene, config, start_log10_E, config.prior_nu) if config.calibrate_contact else None
     logE = torch.tensor(start_log10_E, dtype=torch.float64, requires_grad=True)
     u = torch.tensor(math.log(config.prior_nu / (0.5 - config.prior_nu)), dtype=torch.float64, requires_grad=True)
     v = torch.tensor(math.log(math.expm1(config.prior_damping)), dtype=torch.float64, requires_grad=config.fit_damping)
@@ -429,7 +465,7 @@ def fit(scene: PerfectGeometry, config: IdentifyConfig, progress: bool = False) 
     sim.damping_ratio = torch.tensor(best["damping_ratio"], dtype=torch.float64)
     return {"log10_E": best["log10_E"], "nu": best["nu"], "damping_ratio": best["damping_ratio"],
             "loss": best["loss"], "evaluations": len([h for h in history if "loss" in h]), "seconds": seconds,
-            "coarse": coarse, "history": history}
+            "coarse": coarse, "history": history, "contact_calibration": contact}
 
 
 def sweep(scene: PerfectGeometry, config: IdentifyConfig, centre: float) -> dict:
@@ -490,6 +526,7 @@ def run_scene(index: int, params: dict, config: IdentifyConfig, workdir: Path, p
         "reduced_time_convergence_at_truth": converged,
         "fit": {k: result[k] for k in ("loss", "evaluations", "seconds")},
         "fit_coarse": result["coarse"],
+        "contact_calibration": result["contact_calibration"],
         "fit_history": result["history"],
         "e_valley": valley,
         "seconds": time.perf_counter() - t0,

@@ -68,6 +68,7 @@ def _cmd_bench_identify(args: argparse.Namespace) -> int:
              "cubature_weights": args.cubature_weights, "fem_element_order": args.fem_element_order,
              "loss": args.loss, "calibrate_stiffness": True if args.calibrate_stiffness else None,
              "calibration_nu": args.calibration_nu, "contact_layer": args.contact_layer,
+             "calibrate_contact": True if args.calibrate_contact else None,
              "fit_damping": False if args.fixed_damping else None}
     flags = {"scenes": "--n", "seed": "--seed", "preset": "--preset", "handles": "--handles",
              "skinning_iterations": "--skinning-iterations", "fit_iterations": "--fit-iterations", "points": "--points",
@@ -518,6 +519,9 @@ def build_parser() -> argparse.ArgumentParser:
     ident.add_argument("--contact-layer", type=float, default=None,
                        help="experimental: the reduced model's barriers act through a layer of the body in series, "
                             "this fraction of the object's size deep (default 0: none)")
+    ident.add_argument("--calibrate-contact", action="store_true",
+                       help="experimental: set that layer from the object's quadratic tets instead, so that the "
+                            "subspace has their compliance under the floor loads of its own simulation")
     ident.add_argument("--workdir", default="vid2sim-identify", help="cache of FEM runs and skinning fields "
                        "(default ./vid2sim-identify)")
     ident.add_argument("--out", default=None, help="write the full JSON report here")
