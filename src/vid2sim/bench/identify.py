@@ -103,7 +103,8 @@ class IdentifyConfig:
             the layer that gives the subspace the quadratic tets' compliance under the floor loads of its own
             simulation at the coarse minimum and the prior ν, iterated ``contact_iterations`` times so that the
             patches are those of the layer (:func:`vid2sim.physics.contact_compliance.contact_layer_from_simulation`).
-            Overrides ``contact_layer``. Experimental (docs/architecture.md, "The contact layer").
+            Overrides ``contact_layer``. Experimental: on two scenes it made the contact too soft and
+            the fit worse (docs/architecture.md, "The layer measured per object does not work").
         contact_iterations: the fixed-point iterations of that calibration.
     """
 

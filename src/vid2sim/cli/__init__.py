@@ -521,7 +521,8 @@ def build_parser() -> argparse.ArgumentParser:
                             "this fraction of the object's size deep (default 0: none)")
     ident.add_argument("--calibrate-contact", action="store_true",
                        help="experimental: set that layer from the object's quadratic tets instead, so that the "
-                            "subspace has their compliance under the floor loads of its own simulation")
+                            "subspace has their compliance under the floor loads of its own simulation (measured: "
+                            "it makes the contact too soft and the fits worse; docs/architecture.md)")
     ident.add_argument("--workdir", default="vid2sim-identify", help="cache of FEM runs and skinning fields "
                        "(default ./vid2sim-identify)")
     ident.add_argument("--out", default=None, help="write the full JSON report here")

@@ -17,6 +17,10 @@ in series with a layer of stiffness 2 k_b per unit area, k_b = E·s / ((1 − ν
 already the softer one under that load) is reported and the layer clamped to 0.
 :func:`contact_layer_from_simulation` sums this over the floor loads of a simulation's states; the patches
 depend on the layer, so it is iterated to a fixed point (``vid2sim bench identify --calibrate-contact``).
+
+Measured on two ``bench identify`` scenes, the layer this gives makes the contact too soft: both fits got worse
+(loss 2.4× and 9× higher; docs/architecture.md, "The layer measured per object does not work"). The static
+compliance is mostly smooth deformation that the subspace already has and a short impact does not excite.
 """
 
 from __future__ import annotations
