@@ -146,10 +146,40 @@ def test_report_has_per_scene_figures_and_means(report):
     json.dumps(result)  # JSON-ready
 
 
+def _without_times(row: dict) -> dict:
+    """A report row without its wall times (they differ between runs) and its diagnostic frequencies (sparse
+    eigensolves in another process agree to ~1e-14, not bit for bit: compared separately)."""
+    row = json.loads(json.dumps(row))
+    row.pop("seconds")
+    row.pop("fem_seconds")
+    row.pop("frequencies")
+    row["fit"].pop("seconds")
+    return row
+
+
+def test_workers_give_the_rows_of_one_process(report, one_torch_thread):
+    _, _, workdir = report
+    config = identify.IdentifyConfig(**{**TINY, "scenes": 2})
+    one = identify.run(config, workdir, progress=False)  # scene 0 from the fixture's cache, scene 1 made here
+    two = identify.run(config, workdir, progress=False, workers=2, threads_per_worker=1)
+    assert two["workers"] == 2 and two["threads"] == 1 and one["workers"] == 1
+    assert [r["scene"] for r in two["scenes"]] == [0, 1]
+    assert [_without_times(r) for r in two["scenes"]] == [_without_times(r) for r in one["scenes"]]
+    for a, b in zip(one["scenes"], two["scenes"]):
+        for key, values in a["frequencies"].items():
+            assert b["frequencies"][key] == pytest.approx(values, rel=1e-9)
+    assert two["summary"]["median_abs_error_nu"] == pytest.approx(
+        sorted(r["abs_error"]["nu"] for r in one["scenes"])[0] / 2 + sorted(r["abs_error"]["nu"] for r in one["scenes"])[1] / 2)
+    with pytest.raises(ValueError, match="workers"):
+        identify.run(config, workdir, progress=False, workers=0)
+
+
 def test_cli_rejects_bad_options_with_the_flag_name(tmp_path, capsys):
     assert main(["bench", "identify", "--n", "0", "--workdir", str(tmp_path / "w"), "--quiet"]) == 2
     err = capsys.readouterr().err
     assert "--n must be an integer >= 1" in err
+    assert main(["bench", "identify", "--workers", "0", "--workdir", str(tmp_path / "w"), "--quiet"]) == 2
+    assert "--workers must be >= 1" in capsys.readouterr().err
 
 
 def test_shape_and_centre_loss_is_blind_to_orientation_and_sees_centre_and_shape():

@@ -61,6 +61,8 @@ def _cmd_bench_identify(args: argparse.Namespace) -> int:
     from vid2sim.bench import identify
 
     set_threads(args.threads)
+    if args.workers < 1:
+        raise UserError(f"--workers must be >= 1, got {args.workers}")
     given = {"scenes": args.n, "seed": args.seed, "preset": args.preset, "handles": args.handles,
              "skinning_iterations": args.skinning_iterations, "fit_iterations": args.fit_iterations,
              "points": args.points, "skinning_points": args.skinning_points, "truth": args.truth,
@@ -81,7 +83,8 @@ def _cmd_bench_identify(args: argparse.Namespace) -> int:
             message = message.replace(f"IdentifyConfig.{field} ", f"{flag} ")
         raise UserError(message) from exc
     try:
-        report = identify.run(config, args.workdir, progress=not args.quiet)
+        report = identify.run(config, args.workdir, progress=not args.quiet, workers=args.workers,
+                              threads_per_worker=args.threads or 1)
     except _generation_errors() as exc:
         raise UserError(f"{exc} (finished scenes are cached in {args.workdir}; run again to resume)") from exc
     text = json.dumps(report, indent=2)
@@ -526,6 +529,9 @@ def build_parser() -> argparse.ArgumentParser:
     ident.add_argument("--workdir", default="vid2sim-identify", help="cache of FEM runs and skinning fields "
                        "(default ./vid2sim-identify)")
     ident.add_argument("--out", default=None, help="write the full JSON report here")
+    ident.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1),
+                       help="scenes run at once in separate processes, each with --threads torch threads (default 1 "
+                            "each); default: min(2, CPU count)")
     add_threads_option(ident)
     ident.add_argument("--quiet", action="store_true", help="no progress bars")
     ident.set_defaults(func=_cmd_bench_identify)
