@@ -560,7 +560,8 @@ def run(config: IdentifyConfig, workdir: str | Path, progress: bool = True, work
     workdir = Path(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
     suite = benchmark_parameters(config.scenes, config.seed)
-    if workers == 1 or len(suite) == 1:
+    workers = min(workers, len(suite))
+    if workers == 1:
         rows = [run_scene(i, params, config, workdir, progress=progress)
                 for i, params in enumerate(tqdm(suite, desc="identify scenes", unit="scene", disable=not progress))]
     else:
@@ -568,15 +569,20 @@ def run(config: IdentifyConfig, workdir: str | Path, progress: bool = True, work
 
         from vid2sim.workers import process_pool
 
-        with process_pool(min(workers, len(suite))) as pool, \
+        with process_pool(workers) as pool, \
                 tqdm(total=len(suite), desc=f"identify scenes ({workers} workers)", unit="scene",
                      disable=not progress) as bar:
             futures = {pool.submit(_scene_in_worker, i, params, config, workdir, threads_per_worker): i
                        for i, params in enumerate(suite)}
             done = {}
-            for future in as_completed(futures):
-                done[futures[future]] = future.result()
-                bar.update()
+            try:
+                for future in as_completed(futures):
+                    done[futures[future]] = future.result()
+                    bar.update()
+            except BaseException:
+                # report a failed scene now: drop the queued scenes (the running ones finish into the cache)
+                pool.shutdown(wait=False, cancel_futures=True)
+                raise
         rows = [done[i] for i in range(len(suite))]
     return {"config": asdict(config), **summarise(rows),
             "threads": torch.get_num_threads() if workers == 1 else threads_per_worker, "workers": workers}
