@@ -6,6 +6,7 @@ import json
 import math
 import statistics
 
+import numpy as np
 import pytest
 import torch
 
@@ -61,9 +62,10 @@ def test_perfect_geometry_starts_exactly_where_the_fem_starts(report):
     tets = tet_frequencies(X, fem.tets, 2e5, config.prior_nu, 900.0, k=1, order=2)[0]
     omega = subspace_frequencies(sim.field, sim.X, sim.vol, 2e5 * s, config.prior_nu, 900.0, k=1)[0]
     assert omega == pytest.approx(tets, rel=1e-6)
-    # the curve (the default): s(ν) brings the lowest mode to the tets' at every ν of its grid
+    # one factor as a curve: s(ν) brings the lowest mode to the tets' at every ν of its grid
     curved = identify.prepare_scene(0, benchmark_parameters(1, 0)[0],
-                                    replace(config, calibrate_stiffness=True, calibration_nus=(0.3, 0.45)), workdir)
+                                    replace(config, calibrate_stiffness=True, calibration_nu="curve",
+                                            calibration_nus=(0.3, 0.45)), workdir)
     curve = curved.simulator.stiffness_scale
     assert isinstance(curve, StiffnessCurve) and curve.nu == (0.3, 0.45)
     assert curve.at(0.3) == pytest.approx(s, rel=1e-9) == curved.info["stiffness_scale"]
@@ -71,6 +73,24 @@ def test_perfect_geometry_starts_exactly_where_the_fem_starts(report):
     tets = tet_frequencies(X, fem.tets, 2e5, 0.45, 900.0, k=1, order=2)[0]
     omega = subspace_frequencies(sim.field, sim.X, sim.vol, 2e5 * curve.at(0.45), 0.45, 900.0, k=1)[0]
     assert omega == pytest.approx(tets, rel=1e-6)
+    # two factors (the default): μ by s(ν), λ by s_λ(ν); the lowest mode still on the tets' (weighted fit)
+    two = identify.prepare_scene(0, benchmark_parameters(1, 0)[0],
+                                 replace(config, calibrate_stiffness=True, calibration_nu="two_factor",
+                                         calibration_nus=(0.3, 0.45)), workdir)
+    curve2 = two.simulator.stiffness_scale
+    assert curve2.lam_scale is not None and two.info["stiffness_curve"]["lam_scale"] == list(curve2.lam_scale)
+    from vid2sim.physics.materials import lame_parameters
+    from vid2sim.physics.modes import subspace_stiffness_parts
+    from scipy.linalg import eigh
+
+    with torch.no_grad():
+        w, dw = sim.field.weights_and_gradients(sim.X)
+        K_mu, K_lam, M = (m.numpy() for m in subspace_stiffness_parts(sim.X, w, dw, 1.0, sim.vol))
+    for nu in (0.3, 0.45):
+        mu, lam = lame_parameters(1.0, nu)
+        K = curve2.at(nu) * mu * K_mu + curve2.lam_at(nu) * lam * K_lam
+        omega = math.sqrt(eigh(K, M + 1e-14 * M.trace() / len(M) * np.eye(len(M)), eigvals_only=True)[6])
+        assert omega == pytest.approx(tet_frequencies(X, fem.tets, 1.0, nu, 1.0, k=1, order=2)[0], rel=5e-3)
 
 
 def test_fixed_damping_and_a_contact_layer_reach_the_fit(report):

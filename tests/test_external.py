@@ -335,3 +335,25 @@ def test_cuda_matches_cpu():
     gpu = total_external(parts, x.cuda(), mass.cuda(), 0.37)
     for a, b in zip(cpu, gpu):
         assert b.device.type == "cuda" and torch.allclose(a, b.cpu(), rtol=1e-10, atol=1e-8)
+
+
+@pytest.mark.parametrize("name", ["floor", "moving_floor", "sphere"])
+@pytest.mark.parametrize("t", TIMES)
+def test_distance_derivatives_are_those_of_the_signed_distance(name, t):
+    """(s, ∂s/∂x, ∂²s/∂x²) of every barrier (the contact dashpot's geometry) against autograd of
+    ``signed_distance``."""
+    barrier = ENERGIES[name]
+    x, _ = points(40, seed=5)
+    s, ds, curvature = barrier.distance_derivatives(x, t)
+    assert torch.allclose(s, barrier.signed_distance(x, t), atol=1e-14)
+    xg = x.clone().requires_grad_(True)
+    (grad,) = torch.autograd.grad(barrier.signed_distance(xg, t).sum(), xg, create_graph=True)
+    assert torch.allclose(ds, grad, atol=1e-12)
+    if grad.requires_grad:
+        hess = torch.stack([torch.autograd.grad(grad[:, c].sum(), xg, retain_graph=True)[0] for c in range(3)], dim=1)
+    else:  # a plane: the gradient is a constant of x
+        hess = torch.zeros(x.shape[0], 3, 3, dtype=x.dtype)
+    if curvature is None:
+        assert float(hess.abs().max()) == 0.0
+    else:
+        assert torch.allclose(curvature, hess, atol=1e-10) and float(hess.abs().max()) > 0

@@ -9,7 +9,7 @@ import torch
 
 from vid2sim.physics.cubature import sample_cubature
 from vid2sim.physics.external import Floor, Gravity, SphereObstacle
-from vid2sim.physics.materials import neo_hookean_indefinite
+from vid2sim.physics.materials import energy_and_pk1, neo_hookean_indefinite
 from vid2sim.physics.reduced import y_to_z_index, z_to_y_index
 from vid2sim.physics.skinning import SkinningField, dF_dz, gradient_basis
 from vid2sim.physics.skinning_training import SkinningTrainingConfig, train_skinning
@@ -389,11 +389,12 @@ def test_adjoint_gradients_wrt_the_initial_state_match_finite_differences(traine
             assert abs(g - float(fd)) <= 1e-3 * abs(float(fd)) + 1e-9, (which, i, g, float(fd))
 
 
-@pytest.mark.parametrize("layer", [0.0, 0.5])
-def test_adjoint_matches_unrolled_autograd(trained_field, layer):
+@pytest.mark.parametrize("layer, beta", [(0.0, 0.0), (0.5, 0.0), (0.0, 1.0)])
+def test_adjoint_matches_unrolled_autograd(trained_field, layer, beta):
     """The per-step adjoint equals backpropagation through many plain Newton iterations: BDF2 with
     damping, 2 substeps per frame, over a floor impact; also with a contact layer (``contact_layer``, which
-    makes the floor's effective stiffness depend on E and ν: here it halves it)."""
+    makes the floor's effective stiffness depend on E and ν: here it halves it) and with a contact dashpot
+    (``contact_damping``, gradient to β as well)."""
     from vid2sim.physics.integrators import bdf_step
     from vid2sim.physics.reduced import ElasticBasis, StepProblem, lbs_rows
 
@@ -401,9 +402,11 @@ def test_adjoint_matches_unrolled_autograd(trained_field, layer):
     sim = _sim(field, pts, material=Material(5e4, 0.3, damping_ratio=0.1), externals=[Gravity(), Floor(height=-0.3)],
                k=60, config=SimConfig(substeps=2, **TIGHT))
     sim.contact_layer = layer
-    for name in ("log10_E", "nu", "damping_ratio"):
+    sim.contact_damping.fill_(beta)
+    names = ("log10_E", "nu", "damping_ratio") + (("contact_damping",) if beta else ())
+    for name in names:
         getattr(sim, name).requires_grad_(True)
-    wrt = [sim.log10_E, sim.nu, sim.damping_ratio]
+    wrt = [getattr(sim, name) for name in names]
     state = sim.rigid_velocity_state([0.0, 0.0, -3.0], [1.0, 0.0, 0.0])
     states = sim.rollout(state, 3)
     loss = (states[-1].z * torch.linspace(0.5, 1.5, states[-1].z.numel(), dtype=torch.float64)).sum()
@@ -423,7 +426,8 @@ def test_adjoint_matches_unrolled_autograd(trained_field, layer):
         step = bdf_step("bdf2", h, h if y2 is not None else None)
         prob = StepProblem(sim.X, sim.vol, sim.masses(), b, basis, mu, lam, "neo_hookean", sim.externals, t,
                            step, y, ydot, y2 if step.needs_history else None, ydot2 if step.needs_history else None,
-                           tau, contact_layer_stiffness=sim.contact_layer_stiffness())
+                           tau, contact_layer_stiffness=sim.contact_layer_stiffness(),
+                           contact_damping=sim.contact_dashpot())
         yk = y.detach().clone() + 0 * mu  # start at the previous state, keep the graph
         for _ in range(12):
             yk = yk - torch.linalg.solve(prob.hessian(yk, project=False), prob.gradient(yk))
@@ -440,6 +444,44 @@ def test_adjoint_matches_unrolled_autograd(trained_field, layer):
         with torch.no_grad():
             stiff = sim.rollout(state, 3)[-1].z
         assert float((stiff - states[-1].z.detach()).abs().max()) > 1e-3  # the layer is in contact and matters
+    if beta:
+        with torch.no_grad():
+            sim.contact_damping = torch.tensor(0.0, dtype=torch.float64)
+            undamped = sim.rollout(state, 3)[-1].z
+        assert float((undamped - states[-1].z.detach()).abs().max()) > 1e-3  # the dashpot acted
+
+
+def test_contact_dashpot_takes_the_bounce_and_only_dissipates(trained_field):
+    """A drop on the floor with the contact dashpot β: the rebound falls as β grows, the mechanical energy
+    after the bounce falls with it, and before the first contact nothing changes (the dashpot acts only on
+    points in contact). β < 0 is a named error."""
+    field, pts = trained_field
+    results = []
+    for beta in (0.0, 0.3, 3.0):
+        sim = _sim(field, pts, material=Material(1e5, 0.3, damping_ratio=0.0), externals=[Gravity(), Floor(height=-0.6)],
+                   config=SimConfig(substeps=8), k=80)
+        sim.contact_damping.fill_(beta)
+        with torch.no_grad():
+            states = sim.rollout(sim.rigid_velocity_state([0.0, 0.0, -2.0]), 12)
+            centre = [float(sim.positions(pts[::5], s.z)[:, 2].mean()) for s in states]
+            last = states[-1]
+            x = sim.positions(sim.X, last.z)
+            v = sim.positions(sim.X, last.z + last.zdot) - x  # LBS is linear in z: the velocity field
+            m = sim.masses()
+            kinetic = 0.5 * float((m[:, None] * v * v).sum())
+            potential = float((m * G * x[:, 2]).sum()) + float(sim.externals[1].energy(x, torch.ones_like(m)))
+            psi = energy_and_pk1("neo_hookean", sim.deformation_gradients_at_cubature(last.z), *sim.lame())[0]
+            elastic = float(sim.vol @ psi)
+        results.append((centre, kinetic + potential + elastic))
+    (c0, e0), (c1, e1), (c2, e2) = results
+    for f in (0, 1):  # no contact before frame 3
+        assert c0[f] == pytest.approx(c1[f], abs=1e-12) and c0[f] == pytest.approx(c2[f], abs=1e-12)
+    rebound = [max(c[3:]) for c in (c0, c1, c2)]
+    assert rebound[0] > rebound[1] > rebound[2]
+    assert e0 > e1 > e2  # kinetic + gravity + floor + elastic energy at frame 10
+    with pytest.raises(ValueError, match="contact_damping must be"):
+        _sim(field, pts).__class__(field, pts[:10], torch.ones(10, dtype=torch.float64), Material(), [],
+                                   contact_damping=-1.0)
 
 
 def test_neural_jacobian_switch_uses_the_given_basis(trained_field):

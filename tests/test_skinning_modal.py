@@ -165,3 +165,57 @@ def test_stiffness_calibration_brings_the_subspaces_lowest_mode_to_the_tets():
     for E, rho in ((1.0, 1.0), (3e5, 800.0)):
         tets = tet_frequencies(mesh.vertices, mesh.tets, E, 0.3, rho, k=1, order=2)[0]
         assert subspace_frequencies(field, cubature, volumes, E * s, 0.3, rho, k=1)[0] == pytest.approx(tets, rel=1e-8)
+
+
+def test_two_factor_curve_matches_six_modes_better_than_one_factor_and_the_simulator_uses_it():
+    """Two factors (μ by s, λ by s_λ) per ν: the lowest mode stays on the tets' (weighted), the six lowest
+    modes agree better than with one factor on the whole energy, the locking shows as s_λ < s at high ν, and
+    ``Simulator.lame()`` applies the two factors, differentiably in ν."""
+    from vid2sim.meshing.tetra import box_tet_mesh
+    from vid2sim.physics import Material, SimConfig, Simulator
+    from vid2sim.physics.modes import stiffness_calibration_curve, subspace_stiffness_parts
+    from vid2sim.physics.tet_modes import tet_frequency_curve
+
+    mesh = box_tet_mesh(BAR, (10, 2, 2))
+    field = SkinningField(num_handles=4, seed=0).double()
+    train_skinning(field, _bar(20000, 0), SkinningTrainingConfig(iterations=150, points_per_step=500,
+                                                                 objective="modal"), progress=False, volume=BAR_VOLUME)
+    cubature = _bar(1500, 2)
+    volumes = torch.full((1500,), BAR_VOLUME / 1500, dtype=cubature.dtype)
+    nus = (0.2, 0.35, 0.45)
+    one = stiffness_calibration_curve(field, cubature, volumes, mesh.vertices, mesh.tets, nus)
+    two = stiffness_calibration_curve(field, cubature, volumes, mesh.vertices, mesh.tets, nus, factors=2)
+    assert one.lam_scale is None and two.lam_scale is not None
+    with torch.no_grad():
+        w, dw = field.weights_and_gradients(cubature)
+        K_mu, K_lam, M = subspace_stiffness_parts(cubature, w, dw, 1.0, volumes)
+    K, M1 = subspace_stiffness_and_mass(cubature, w, dw, 1.0, 0.3, weights=volumes)
+    mu3, lam3 = lame_parameters(1.0, 0.3)
+    assert torch.allclose(mu3 * K_mu + lam3 * K_lam, K) and torch.equal(M, M1)
+    reference = tet_frequency_curve(mesh.vertices, mesh.tets, nus, k=6, order=2)  # what the calibration matches
+    for nu, ref in zip(nus, reference):
+        mu, lam = lame_parameters(1.0, nu)
+        errors = {}
+        for name, s_mu, s_lam in (("one", one.at(nu), one.at(nu)), ("two", two.at(nu), two.lam_at(nu))):
+            omega = np.sqrt(_ritz(s_mu * mu * K_mu + s_lam * lam * K_lam, M)[6:12])
+            errors[name] = np.log(omega / ref)
+        assert abs(errors["one"][0]) < 1e-6 and abs(errors["two"][0]) < 5e-3
+        assert np.sqrt((errors["two"] ** 2).mean()) <= np.sqrt((errors["one"] ** 2).mean()) + 1e-9
+    assert two.lam_at(0.45) < two.at(0.45)  # λ carries the locking
+    sim = Simulator(field, cubature, volumes, Material(2e5, 0.35), [], SimConfig(), stiffness_scale=two)
+    mu, lam = sim.lame()
+    mu0, lam0 = lame_parameters(2e5, 0.35)
+    assert float(mu) == pytest.approx(two.at(0.35) * mu0, rel=1e-10)
+    assert float(lam) == pytest.approx(two.lam_at(0.35) * lam0, rel=1e-10)
+    sim.nu = torch.tensor(0.4, dtype=torch.float64, requires_grad=True)  # between grid values (C¹ there)
+    (g,) = torch.autograd.grad(sim.lame()[1], sim.nu)
+    h = 1e-6
+
+    def lam_at(nu: float) -> float:
+        with torch.no_grad():
+            sim.nu = torch.tensor(nu, dtype=torch.float64)
+            return float(sim.lame()[1])
+
+    assert float(g) == pytest.approx((lam_at(0.4 + h) - lam_at(0.4 - h)) / (2 * h), rel=1e-6)
+    with pytest.raises(ValueError, match="factors must be 1"):
+        stiffness_calibration_curve(field, cubature, volumes, mesh.vertices, mesh.tets, nus, factors=3)

@@ -58,3 +58,20 @@ def test_round_trip_and_clear_errors():
         StiffnessCurve((0.2,), (1.0,))
     with pytest.raises(ValueError, match="stiffness curve must be"):
         StiffnessCurve.from_dict({"nu": [0.2, 0.3]})
+
+
+def test_two_factor_curve_round_trip_and_lambda_factor():
+    lam = tuple(0.5 * s for s in SCALES)
+    curve = StiffnessCurve(NUS, SCALES, lam)
+    assert StiffnessCurve.from_dict(curve.to_dict()) == curve and "lam_scale" in curve.to_dict()
+    assert "lam_scale" not in StiffnessCurve(NUS, SCALES).to_dict()
+    for nu in (0.1, 0.33, 0.47):
+        assert curve.lam_at(nu) == pytest.approx(0.5 * curve.at(nu), rel=1e-12)
+        x = torch.tensor(nu, dtype=torch.float64)
+        assert float(StiffnessCurve(NUS, SCALES).lam_factor(x)) == 1.0
+    with pytest.raises(ValueError, match="lam_scale must hold"):
+        StiffnessCurve(NUS, SCALES, lam[:-1])
+    with pytest.raises(ValueError, match="lam_scale must hold"):
+        StiffnessCurve((0.2, 0.3), (1.0, 1.0), (1.0, 0.0))
+    with pytest.raises(ValueError, match="stiffness curve must be"):
+        StiffnessCurve.from_dict({"nu": [0.2, 0.3], "scale": [1, 1], "other": [1, 1]})

@@ -45,8 +45,9 @@ from vid2sim.physics.modes import CURVE_NUS
 
 
 LOSSES = ("shape_and_centre", "positions")
-#: how ``calibrate_stiffness`` treats ν: a curve s(ν) over a grid, or one factor at the prior ν
-CALIBRATIONS = ("curve", "prior")
+#: how ``calibrate_stiffness`` treats ν: a curve s(ν) over a grid, a curve of two factors (on μ and on λ),
+#: or one factor at the prior ν
+CALIBRATIONS = ("curve", "two_factor", "prior")
 
 
 @dataclass
@@ -92,9 +93,12 @@ class IdentifyConfig:
             frequency on its cubature equals that of quadratic tets on the rest mesh, both at the prior ν
             (:func:`vid2sim.physics.modes.stiffness_calibration`; ``Simulator.stiffness_scale``). The fitted E is then the
             material's, not the stiffer subspace's.
-        calibration_nu: with ``calibrate_stiffness``, "curve" measures s at a grid of ν and the simulator
-            uses s(ν) at its current ν (:func:`vid2sim.physics.modes.stiffness_calibration_curve`: the
-            subspace's locking grows with ν); "prior" uses the one factor measured at the prior ν.
+        calibration_nu: with ``calibrate_stiffness``, "two_factor" (the default) measures a factor on μ and
+            one on λ at each ν of a grid, matched to the six lowest modes, and the simulator uses them at its
+            current ν (:func:`vid2sim.physics.modes.stiffness_calibration_curve` with ``factors=2``: the
+            subspace's locking grows with ν and sits in λ; this also gives the impact's squash the
+            continuum's size); "curve" one factor on E at each ν of the grid; "prior" one factor measured at
+            the prior ν.
         calibration_nus: the grid of that curve.
         contact_layer: the reduced model's contact layer h as a fraction of the object's size
             (``Simulator(contact_layer=)``; 0: none). An experiment: no single value suits every object
@@ -133,7 +137,7 @@ class IdentifyConfig:
     truth: str = "fem"
     loss: str = "shape_and_centre"
     calibrate_stiffness: bool = False
-    calibration_nu: str = "curve"
+    calibration_nu: str = "two_factor"
     calibration_nus: tuple[float, ...] = CURVE_NUS
     contact_layer: float = 0.0
     calibrate_contact: bool = False
@@ -284,8 +288,11 @@ def prepare_scene(index: int, params: dict, config: IdentifyConfig, workdir: Pat
     material = Material(config.prior_E, config.prior_nu, fc.density, damping_ratio=config.prior_damping)
     scale = 1.0
     if config.calibrate_stiffness:
-        scale = (stiffness_calibration_curve(field, points[idx], weights, X, T, config.calibration_nus) if config.calibration_nu == "curve"
-                 else stiffness_calibration(field, points[idx], weights, X, T, config.prior_nu))
+        if config.calibration_nu == "prior":
+            scale = stiffness_calibration(field, points[idx], weights, X, T, config.prior_nu)
+        else:
+            scale = stiffness_calibration_curve(field, points[idx], weights, X, T, config.calibration_nus,
+                                                factors=2 if config.calibration_nu == "two_factor" else 1)
     sim = Simulator(field, points[idx], weights, material,
                     [Gravity(fc.gravity), Floor(height=fc.floor_height, stiffness=fc.floor_stiffness)], SimConfig(),
                     length_scale=fem_length(fem, size), contact_points=nodes[surface], contact_weights=areas[surface],

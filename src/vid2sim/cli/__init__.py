@@ -512,10 +512,11 @@ def build_parser() -> argparse.ArgumentParser:
                        help="scale the reduced model's elastic energy so that its lowest mode vibrates at the "
                             "frequency of quadratic tets on the rest mesh (at the prior nu): the subspace is stiffer "
                             "than the continuum, and the fit's E then is the material's")
-    ident.add_argument("--calibration-nu", choices=["curve", "prior"], default=None,
-                       help="with --calibrate-stiffness: measure the factor at a grid of nu and use s(nu) at the "
-                            "fit's current nu (default; the subspace's locking grows with nu), or one factor at "
-                            "the prior nu")
+    ident.add_argument("--calibration-nu", choices=["curve", "two_factor", "prior"], default=None,
+                       help="with --calibrate-stiffness: two factors (on mu and on lambda) at a grid of nu, matched "
+                            "to the six lowest modes and used at the fit's current nu (two_factor, the default: the "
+                            "subspace's locking grows with nu and sits in lambda), one factor on E at that grid "
+                            "(curve), or one factor at the prior nu")
     ident.add_argument("--fixed-damping", action="store_true",
                        help="keep the damping ratio at the prior (0.05) instead of fitting it, as reconstruct does "
                             "by default")
@@ -626,10 +627,10 @@ def build_parser() -> argparse.ArgumentParser:
                      "at the frequency of quadratic tets on a surface of the reconstructed solid: the subspace is "
                      "stiffer than the continuum, and the fitted E is then the material's (off by default until "
                      "measured on the suite; docs/architecture.md)")
-    rec.add_argument("--calibration-nu", choices=["curve", "prior"], default=None,
+    rec.add_argument("--calibration-nu", choices=["curve", "two_factor", "prior"], default=None,
                      help="with --calibrate-stiffness: measure the factor over a grid of nu and use s(nu) at the "
-                          "fit's current nu (default; the subspace's locking grows with nu), or one factor at the "
-                          "prior nu")
+                          "fit's current nu (default; the subspace's locking grows with nu), two factors (on mu and "
+                          "on lambda) per nu matched to the six lowest modes, or one factor at the prior nu")
     rec.add_argument("--predictor", metavar="PATH", default=None,
                      help="Stage I checkpoint (default: the one shipped with vid2sim; vid2sim train-predictor)")
     rec.add_argument("--device", default=None, help="torch device of the Gaussian fits, networks and joint "

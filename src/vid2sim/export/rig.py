@@ -88,8 +88,9 @@ def rig_document(asset, tensors: dict[str, np.ndarray]) -> dict[str, Any]:
     stiffness = asset.stiffness()
     nu = float(mat["nu"])
     e = float(mat["E"]) * (stiffness if isinstance(stiffness, float) else stiffness.at(nu))
+    e_lam = float(mat["E"]) * (stiffness if isinstance(stiffness, float) else stiffness.lam_at(nu))  # two factors
     mat["lame_mu"] = e / (2 * (1 + nu))
-    mat["lame_lambda"] = e * nu / ((1 + nu) * (1 - 2 * nu))
+    mat["lame_lambda"] = e_lam * nu / ((1 + nu) * (1 - 2 * nu))
     mat["energy"] = {"neo-hookean": "Psi = mu/2 (tr(F^T F) - 3) - mu ln J + lambda/2 (ln J)^2, J = det F",
                      "neo_hookean": "Psi = mu/2 (tr(F^T F) - 3) - mu ln J + lambda/2 (ln J)^2, J = det F",
                      "stvk": "Psi = mu tr(G^2) + lambda/2 tr(G)^2, G = (F^T F - I)/2"}.get(str(mat.get("model")), None)

@@ -227,6 +227,12 @@ class Floor:
         """z_i − h, (N,) (negative below the floor)."""
         return x[:, 2] - self.height
 
+    def distance_derivatives(self, x: Tensor, t: float = 0.0) -> tuple[Tensor, Tensor, Tensor | None]:
+        """(s (N,), ∂s/∂x (N, 3), ∂²s/∂x² (N, 3, 3) or None when it is zero) of :meth:`signed_distance`."""
+        n = x.new_zeros(x.shape[0], 3)
+        n[:, 2] = 1.0
+        return x[:, 2] - self.height, n, None
+
     def energy(self, x: Tensor, mass: Tensor, t: float = 0.0) -> Tensor:
         """E: () = k Σ w_i max(0, h − z_i)² (``mass`` holds the weights w)."""
         _check_inputs(x, mass, t)
@@ -340,6 +346,11 @@ class MovingFloor:
         n, p = self._plane(x, t)
         return (x - p) @ n
 
+    def distance_derivatives(self, x: Tensor, t: float) -> tuple[Tensor, Tensor, Tensor | None]:
+        """(s (N,), ∂s/∂x = n(t) (N, 3), None: the plane has no curvature)."""
+        n, p = self._plane(x, t)
+        return (x - p) @ n, n.expand(x.shape[0], 3), None
+
     def energy(self, x: Tensor, mass: Tensor, t: float) -> Tensor:
         """E: () = k Σ w_i max(0, −s(x_i, t))² (``mass`` holds the weights w)."""
         t = _check_inputs(x, mass, t)
@@ -417,6 +428,14 @@ class SphereObstacle:
     def signed_distance(self, x: Tensor, t: float = 0.0) -> Tensor:
         """‖x_i − c‖ − r, (N,) (negative inside the ball)."""
         return self._geometry(x)[0] - self.radius
+
+    def distance_derivatives(self, x: Tensor, t: float = 0.0) -> tuple[Tensor, Tensor, Tensor | None]:
+        """(s (N,), ∂s/∂x = n̂ (N, 3), ∂²s/∂x² = (I − n̂n̂ᵀ)/d (N, 3, 3); zero at the centre itself)."""
+        d, nhat, at_centre = self._geometry(x)
+        eye = torch.eye(3, dtype=x.dtype, device=x.device)
+        inv_d = torch.where(at_centre, torch.zeros_like(d), 1.0 / torch.where(at_centre, torch.ones_like(d), d))
+        curvature = inv_d[:, None, None] * (eye - nhat[:, :, None] * nhat[:, None, :])
+        return d - self.radius, nhat, curvature
 
     def energy(self, x: Tensor, mass: Tensor, t: float = 0.0) -> Tensor:
         """E: () = k Σ w_i max(0, r − ‖x_i − c‖)² (``mass`` holds the weights w)."""

@@ -147,6 +147,16 @@ class StepProblem:
     weights ``contact_w`` — by default the cubature points with weight 1 (the paper's floor formula).
     With ``contact_layer_stiffness`` k_b, a barrier of stiffness k acts through a layer of the body in series:
     its weights are scaled by 1 / (1 + k / k_b) (:meth:`vid2sim.physics.solver.Simulator.contact_layer_stiffness`).
+
+    With ``contact_damping`` c (a normal dashpot in every barrier's contact, N·s/m per unit contact weight:
+    with area weights a pressure per normal velocity) the step adds the dissipation potential
+
+        D(y) = (h / a₀) c Σ_i w_i φ_i ½ (s_i(y) − s_ref,i)²,    s_ref = (a₁ s_i(x_n, t_n) + a₂ s_i(x_{n−1}, t_{n−1})) / a₀,
+
+    whose gradient is k_E times the dashpot force −c w_i φ_i ṡ_i ∇s_i with the BDF rate ṡ of the signed
+    distance s to the barrier (the barrier's own motion included). φ_i = 1 for the points that were in contact
+    (s < 0) at the start of the step, else 0: the activation lags by one step (an O(h) error that the step
+    count controls, like the rest of the step) and keeps D quadratic, so Newton and the adjoint stay exact.
     """
 
     X: Tensor  # (K, 3) cubature rest positions
@@ -169,6 +179,7 @@ class StepProblem:
     contact_b: Tensor | None = None  # (Nc, L) their LBS rows
     contact_w: Tensor | None = None  # (Nc,) their barrier weights
     contact_layer_stiffness: Tensor | None = None  # k_b (0-d, Pa/m): the body's contact layer in series
+    contact_damping: Tensor | None = None  # c (0-d, N·s/m per unit contact weight): the contact dashpot
 
     # ---- pieces ------------------------------------------------------------------------------
     @property
@@ -230,6 +241,59 @@ class StepProblem:
     def _contact_positions(self, y: Tensor) -> Tensor:
         X, b, _ = self._contact
         return X + b @ y.reshape(3, -1).T
+
+    @functools.cached_property
+    def _dashpot_reference(self) -> list[tuple[object, Tensor, Tensor]]:
+        """[(barrier, s_ref (Nc,), k (Nc,))] of the contact dashpot: the reference distance of the BDF rate and
+        the coefficient (h / a₀) c w φ per contact point (φ: in contact at the start of the step); empty
+        without ``contact_damping``."""
+        if self.contact_damping is None:
+            return []
+        a0, a1, a2 = self.step.coefficients
+        _, _, w = self._contact
+        t_prev = self.t - self.step.h
+        x_prev = self._contact_positions(self.y_prev)
+        out = []
+        for ext in self._externals_by_kind[1]:
+            s_prev = ext.signed_distance(x_prev, t_prev)
+            s_ref = (a1 / a0) * s_prev
+            if self.step.needs_history:
+                s_ref = s_ref + (a2 / a0) * ext.signed_distance(self._contact_positions(self.y_prev2),
+                                                                t_prev - self.step.h_prev)
+            active = (s_prev.detach() < 0).to(s_prev.dtype)
+            out.append((ext, s_ref, (self.step.h / a0) * self.contact_damping * w * active))
+        return out
+
+    def _dashpot_energy_and_force(self, y: Tensor) -> tuple[Tensor, Tensor]:
+        """(D(y) (), ∂D/∂y (D,)) of the contact dashpot (zeros without one)."""
+        e, f = y.new_zeros(()), y.new_zeros(y.shape)
+        if not self._dashpot_reference:
+            return e, f
+        x = self._contact_positions(y)
+        g = torch.zeros_like(x)
+        for ext, s_ref, k in self._dashpot_reference:
+            s, ds, _ = ext.distance_derivatives(x, self.t)
+            r = s - s_ref
+            e = e + 0.5 * (k * r * r).sum()
+            g = g + (k * r)[:, None] * ds
+        return e, f + (g.T @ self._contact[1]).reshape(-1)
+
+    def _dashpot_hessian(self, y: Tensor, project: bool) -> Tensor | None:
+        """∂²D/∂y² (D, D) of the contact dashpot, or None without one. Per point k (∇s∇sᵀ + r ∇²s); ``project``
+        keeps the curvature term only where it is positive semi-definite (r ≥ 0 for a convex barrier)."""
+        if not self._dashpot_reference:
+            return None
+        x = self._contact_positions(y)
+        hx = x.new_zeros(x.shape[0], 3, 3)
+        for ext, s_ref, k in self._dashpot_reference:
+            s, ds, curvature = ext.distance_derivatives(x, self.t)
+            hx = hx + k[:, None, None] * (ds[:, :, None] * ds[:, None, :])
+            if curvature is not None:
+                r = s - s_ref
+                if project:
+                    r = r.clamp_min(0.0)
+                hx = hx + (k * r)[:, None, None] * curvature
+        return _reduced_point_hessian(hx, self._contact[1])
 
     @functools.cached_property
     def _gravity(self) -> tuple[Tensor, Tensor] | None:
@@ -311,6 +375,9 @@ class StepProblem:
         if energy:
             phi = 0.5 * (dy @ m_dy) + self.vol @ psi + k_e * e_ext
         g = m_dy + self.basis.force(self.vol[:, None, None] * stress) + k_e * f_ext
+        if self.contact_damping is not None:
+            e_d, f_d = self._dashpot_energy_and_force(y)
+            phi, g = phi + e_d if energy else phi, g + f_d
         return phi, g, True
 
     @property
@@ -363,6 +430,9 @@ class StepProblem:
                 C = C + k_d * viscous_tangent(F, self.c_ref, self.mu, self.lam, psd=project)
         H = self.mass_matrix + self.basis.hessian(self.vol[:, None, None] * C) \
             + self.step.energy_scale * self._external_hessian(y, project)
+        H_d = self._dashpot_hessian(y, project)
+        if H_d is not None:
+            H = H + H_d
         return 0.5 * (H + H.T)
 
 

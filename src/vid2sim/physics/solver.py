@@ -399,11 +399,11 @@ class _StepSpec:
     stats: StepStats | None = None
 
     def problem(self, y_prev, ydot_prev, y_prev2, ydot_prev2, mu, lam, tau, mass, b, basis_t, contact_b,
-                layer_k=None) -> StepProblem:
+                layer_k=None, dashpot=None) -> StepProblem:
         basis = ElasticBasis(self.A, basis_t, None) if self.structured else ElasticBasis(self.A, None, basis_t)
         return StepProblem(self.X, self.vol, mass, b, basis, mu, lam, self.model, self.externals,
                            self.t, self.step, y_prev, ydot_prev, y_prev2, ydot_prev2, tau,
-                           self.contact_X, contact_b, self.contact_w, layer_k)
+                           self.contact_X, contact_b, self.contact_w, layer_k, dashpot)
 
 
 class _ImplicitStep(torch.autograd.Function):
@@ -411,7 +411,7 @@ class _ImplicitStep(torch.autograd.Function):
 
     Inputs after ``spec``: y_prev, ydot_prev, y_prev2, ydot_prev2 (None unless BDF2 has history), μ, λ,
     τ (None when undamped), masses, LBS rows b, F-basis, contact points' LBS rows (None: the cubature points),
-    the contact layer's stiffness (None: no layer).
+    the contact layer's stiffness (None: no layer), the contact dashpot's coefficient (None: none).
     """
 
     @staticmethod
@@ -470,12 +470,18 @@ class Simulator:
             the subspace vibrates at the material's frequency and ``log10_E`` stays the material's. A
             :class:`~vid2sim.physics.stiffness_curve.StiffnessCurve` gives s as a function of the current ν
             (:func:`vid2sim.physics.modes.stiffness_calibration_curve`), differentiable in ν: the subspace's
-            volumetric locking grows with ν, so one factor is right at one ν only.
+            volumetric locking grows with ν, so one factor is right at one ν only. A curve with ``lam_scale``
+            scales λ by its own factor s_λ(ν) (μ by s(ν)), which also corrects the impact's squash.
         contact_layer: h ≥ 0 (m). The skinning subspace cannot represent the local indentation where the object
             touches something, so its contact is too stiff. With h > 0 every barrier (floor, spheres) acts
             through a layer of the body in series, of stiffness k_b = E·s / ((1 − ν²) h) per unit area (the
             elastic half-space's indentation modulus over a depth h): a barrier of stiffness k acts as
             k / (1 + k / k_b). Differentiable in E and ν. 0 (the default): no layer.
+        contact_damping: β ≥ 0, a normal dashpot in every barrier contact of coefficient c = β √(E·s ρ) per unit
+            contact weight (:meth:`contact_dashpot`, :class:`~vid2sim.physics.reduced.StepProblem`): the
+            subspace lacks the fast, damped modes into which the continuum loses an impact's energy, so it
+            rebounds too high; the dashpot takes that energy at the contact. Becomes the differentiable tensor
+            ``contact_damping``. 0 (the default): none.
     """
 
     def __init__(
@@ -493,6 +499,7 @@ class Simulator:
         contact_weights: Tensor | None = None,
         stiffness_scale: "float | StiffnessCurve" = 1.0,
         contact_layer: float = 0.0,
+        contact_damping: float = 0.0,
     ) -> None:
         if not isinstance(stiffness_scale, StiffnessCurve):
             if isinstance(stiffness_scale, bool) or not isinstance(stiffness_scale, (int, float)) \
@@ -505,6 +512,9 @@ class Simulator:
                 or not (0 <= float(contact_layer) < math.inf):
             raise ValueError(f"contact_layer must be a finite number of metres >= 0, got {contact_layer!r}")
         self.contact_layer = float(contact_layer)
+        if isinstance(contact_damping, bool) or not isinstance(contact_damping, (int, float)) \
+                or not (0 <= float(contact_damping) < math.inf):
+            raise ValueError(f"contact_damping must be a finite number >= 0 (0 = no contact dashpot), got {contact_damping!r}")
         if cubature_points.ndim != 2 or cubature_points.shape[1] != 3 or cubature_points.shape[0] == 0:
             raise ValueError(f"cubature_points must have shape (K, 3) with K >= 1, got {tuple(cubature_points.shape)}")
         if cubature_weights.shape != cubature_points.shape[:1]:
@@ -528,6 +538,7 @@ class Simulator:
         self.nu = torch.tensor(material.poisson_ratio, dtype=dtype, device=device)
         self.density = torch.tensor(material.density, dtype=dtype, device=device)
         self.damping_ratio = torch.tensor(material.damping_ratio, dtype=dtype, device=device)
+        self.contact_damping = torch.tensor(float(contact_damping), dtype=dtype, device=device)
         if length_scale is None:
             extent = cubature_points.detach().amax(0) - cubature_points.detach().amin(0)
             length_scale = float(extent.norm())
@@ -561,7 +572,10 @@ class Simulator:
             raise ValueError(
                 f"material parameters must be finite, got log10_E={float(self.log10_E.detach())}, nu={float(self.nu.detach())}"
             )
-        return lame_parameters(self.effective_youngs_modulus(), self.nu)  # type: ignore[return-value]
+        mu, lam = lame_parameters(self.effective_youngs_modulus(), self.nu)
+        if isinstance(self.stiffness_scale, StiffnessCurve) and self.stiffness_scale.lam_scale is not None:
+            lam = lam * self.stiffness_scale.lam_factor(self.nu)  # a two-factor curve: λ by s_λ(ν) alone
+        return mu, lam  # type: ignore[return-value]
 
     def effective_youngs_modulus(self) -> Tensor:
         """0-d E·s: the modulus the elastic energy uses (``stiffness_scale`` s, or s(ν) of a
@@ -574,6 +588,19 @@ class Simulator:
         if self.contact_layer == 0.0:
             return None
         return self.effective_youngs_modulus() / ((1.0 - self.nu * self.nu) * self.contact_layer)
+
+    def contact_dashpot(self) -> Tensor | None:
+        """0-d c = β √(E·s ρ) (N·s/m per unit contact weight; with area weights Pa·s/m) of the contact dashpot
+        from the current ``contact_damping`` β; None when β = 0 and it is not being optimised.
+
+        √(Eρ) is the material's impedance to a compression wave (a boundary with c = √(Eρ) absorbs a bar wave
+        that reaches it), so β is dimensionless and means the same for every stiffness."""
+        beta = self.contact_damping
+        if not bool(torch.isfinite(beta)) or float(beta.detach()) < 0:
+            raise ValueError(f"contact_damping must be a finite number >= 0, got {float(beta.detach())}")
+        if float(beta.detach()) == 0.0 and not beta.requires_grad:
+            return None
+        return beta * torch.sqrt(self.effective_youngs_modulus() * self.density)
 
     def retardation_time(self) -> Tensor | None:
         """Kelvin–Voigt τ = 2 ζ L √(ρ/E) (s) from the current ``damping_ratio``, ``log10_E`` and ``density``;
@@ -657,6 +684,7 @@ class Simulator:
         tau = self.retardation_time() if isinstance(tau, str) else tau
         mu, lam = torch.as_tensor(mu), torch.as_tensor(lam)
         layer_k = self.contact_layer_stiffness()
+        dashpot = self.contact_dashpot()
         cfg = self.config
         cache = cache if cache is not None else NewtonCache()
         n = substeps if substeps is not None else self.substeps()
@@ -681,7 +709,7 @@ class Simulator:
                              self.contact_points, self.contact_weights, self.length_scale, cache)
             y_new = _ImplicitStep.apply(spec, y, ydot, y2 if bdf.needs_history else None,
                                         ydot2 if bdf.needs_history else None, mu, lam, tau, self.masses(), b,
-                                        step_basis, basis.contact_b, layer_k)
+                                        step_basis, basis.contact_b, layer_k, dashpot)
             ydot_new = bdf.velocity(y_new, y, y2 if bdf.needs_history else None)
             iterations += spec.stats.iterations
             converged = converged and spec.stats.converged

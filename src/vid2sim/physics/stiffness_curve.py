@@ -11,6 +11,12 @@ does not have and is pushed towards small ν.
 measures it) and interpolates log s with a monotone cubic (Fritsch–Carlson), so that s(ν) and ds/dν are
 continuous and the simulator's adjoint carries the gradient to ν through it
 (``Simulator(stiffness_scale=curve)``). Outside the grid s is held at the end values.
+
+The locking is volumetric, so one factor on the whole energy corrects the lowest mode only: it leaves the
+squash of an impact too stiff (measured: a soft ``bench identify`` object squashed 6.8 % of its size where the
+continuum squashes 8.6 %) and the next modes off by up to 8 %. A curve with ``lam_scale`` scales the two Lamé
+parameters separately, μ by s(ν) and λ by s_λ(ν) (:func:`~vid2sim.physics.modes.stiffness_calibration_curve`
+with ``factors=2`` fits both to the six lowest modes).
 """
 
 from __future__ import annotations
@@ -53,11 +59,14 @@ class StiffnessCurve:
 
     Attributes:
         nu: (n,) strictly increasing grid of Poisson's ratios in [0, 0.5), n ≥ 2.
-        scale: (n,) s at those ν, finite and positive.
+        scale: (n,) s at those ν, finite and positive: the factor on E (on μ, and on λ too unless
+            ``lam_scale`` is given).
+        lam_scale: None, or (n,) the factor s_λ on λ alone at those ν, finite and positive.
     """
 
     nu: tuple[float, ...]
     scale: tuple[float, ...]
+    lam_scale: tuple[float, ...] | None = None
 
     def __post_init__(self) -> None:
         nu = tuple(float(v) for v in self.nu)
@@ -70,15 +79,30 @@ class StiffnessCurve:
             raise ValueError(f"StiffnessCurve.scale must be finite and positive, got {scale}")
         object.__setattr__(self, "nu", nu)
         object.__setattr__(self, "scale", scale)
+        if self.lam_scale is not None:
+            lam_scale = tuple(float(v) for v in self.lam_scale)
+            if len(lam_scale) != len(nu) or not all(math.isfinite(s) and s > 0 for s in lam_scale):
+                raise ValueError(f"StiffnessCurve.lam_scale must hold {len(nu)} finite positive values, got {lam_scale}")
+            object.__setattr__(self, "lam_scale", lam_scale)
 
-    def _tables(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _tables(self, values: tuple[float, ...] | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         x = np.asarray(self.nu)
-        y = np.log(np.asarray(self.scale))
+        y = np.log(np.asarray(self.scale if values is None else values))
         return x, y, _pchip_slopes(x, y)
 
     def __call__(self, nu: Tensor) -> Tensor:
         """s at ``nu`` (0-d tensor), differentiable in ``nu``; the end values outside the grid."""
-        x, y, d = (torch.as_tensor(a, dtype=nu.dtype, device=nu.device) for a in self._tables())
+        return self._interpolate(nu, self.scale)
+
+    def lam_factor(self, nu: Tensor) -> Tensor:
+        """The factor on λ alone at ``nu`` relative to :meth:`__call__`'s factor on E: s_λ(ν)/s(ν) (1 without
+        ``lam_scale``), differentiable in ``nu``; so λ = s_λ λ(E, ν) = λ(E s, ν) · lam_factor."""
+        if self.lam_scale is None:
+            return torch.ones_like(nu)
+        return self._interpolate(nu, self.lam_scale) / self._interpolate(nu, self.scale)
+
+    def _interpolate(self, nu: Tensor, values: tuple[float, ...]) -> Tensor:
+        x, y, d = (torch.as_tensor(a, dtype=nu.dtype, device=nu.device) for a in self._tables(values))
         inside = nu.clamp(x[0], x[-1])
         k = torch.searchsorted(x, inside.detach().reshape(1), right=True).clamp(1, len(x) - 1)[0] - 1
         h = x[k + 1] - x[k]
@@ -92,13 +116,22 @@ class StiffnessCurve:
         """s at the number ``nu``."""
         return float(self(torch.tensor(float(nu), dtype=torch.float64)))
 
+    def lam_at(self, nu: float) -> float:
+        """s_λ at the number ``nu`` (the factor on λ; equals :meth:`at` without ``lam_scale``)."""
+        return self.at(nu) * float(self.lam_factor(torch.tensor(float(nu), dtype=torch.float64)))
+
     def to_dict(self) -> dict[str, Any]:
-        """{"nu": [...], "scale": [...]} (JSON-ready)."""
-        return {"nu": list(self.nu), "scale": list(self.scale)}
+        """{"nu": [...], "scale": [...]} and, with two factors, "lam_scale": [...] (JSON-ready)."""
+        out: dict[str, Any] = {"nu": list(self.nu), "scale": list(self.scale)}
+        if self.lam_scale is not None:
+            out["lam_scale"] = list(self.lam_scale)
+        return out
 
     @classmethod
     def from_dict(cls, values: dict[str, Any]) -> "StiffnessCurve":
         """The inverse of :meth:`to_dict`; a clear ``ValueError`` for anything else."""
-        if not isinstance(values, dict) or set(values) != {"nu", "scale"}:
-            raise ValueError(f"a stiffness curve must be {{'nu': [...], 'scale': [...]}}, got {values!r}")
-        return cls(tuple(values["nu"]), tuple(values["scale"]))
+        if not isinstance(values, dict) or not {"nu", "scale"} <= set(values) <= {"nu", "scale", "lam_scale"}:
+            raise ValueError("a stiffness curve must be {'nu': [...], 'scale': [...]} with an optional "
+                             f"'lam_scale': [...], got {values!r}")
+        lam = values.get("lam_scale")
+        return cls(tuple(values["nu"]), tuple(values["scale"]), None if lam is None else tuple(lam))

@@ -53,8 +53,9 @@ class Asset:
         jacobian: the Neural Jacobian, or None (closed-form dF/dz).
         material: {"model", "E", "log10_E", "nu", "density", "damping_ratio", "stiffness_scale" (optional, 1 when
             absent: the subspace's calibration, ``Simulator(stiffness_scale=)``; kept under material overrides),
-            "stiffness_curve" (optional: the calibration as a function of ν, {"nu": [...], "scale": [...]}; when
-            present the simulator uses it at its ν and "stiffness_scale" is its value at "nu")}.
+            "stiffness_curve" (optional: the calibration as a function of ν, {"nu": [...], "scale": [...]} and,
+            for a two-factor calibration, "lam_scale": [...], the factor on λ alone; when present the simulator
+            uses it at its ν and "stiffness_scale" is its value at "nu")}.
         cubature_points: (K, 3); cubature_weights: (K,) (m³).
         contact_points: (S, 3); contact_areas: (S,) (m²).
         points: (N, 3) interior samples; volume: m³.

@@ -85,7 +85,9 @@ class ReconstructConfig:
             Off by default until it is measured on the benchmark suite. fTetWild is not deterministic, so a
             calibrated reconstruction is not bit-reproducible: s depends on the mesh it makes.
         calibration_nu: with ``calibrate_stiffness``, "curve" (the default) measures s over a grid of ν and
-            the simulator uses s(ν) at its current ν (the subspace's locking grows with ν); "prior" measures
+            the simulator uses s(ν) at its current ν (the subspace's locking grows with ν); "two_factor" a
+            factor on μ and one on λ over that grid, matched to the six lowest modes
+            (:func:`vid2sim.physics.modes.stiffness_calibration_curve` with ``factors=2``); "prior" measures
             one factor at the prior ν.
         calibration_cells: the surface grid's cells along the longest side for that reference mesh.
         calibration_points: samples of the kept voxels that grid is made from.
@@ -126,8 +128,9 @@ class ReconstructConfig:
         if self.skinning_objective not in OBJECTIVES:
             raise ValueError(f"ReconstructConfig.skinning_objective must be one of {OBJECTIVES}, "
                              f"got {self.skinning_objective!r}")
-        if self.calibration_nu not in ("curve", "prior"):
-            raise ValueError(f"ReconstructConfig.calibration_nu must be 'curve' or 'prior', got {self.calibration_nu!r}")
+        if self.calibration_nu not in ("curve", "two_factor", "prior"):
+            raise ValueError("ReconstructConfig.calibration_nu must be 'curve', 'two_factor' or 'prior', "
+                             f"got {self.calibration_nu!r}")
         for name in ("handles", "skinning_iterations", "num_cubature", "velocity_frames", "calibration_cells",
                      "calibration_points"):
             if getattr(self, name) < 1:
@@ -485,9 +488,15 @@ def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConf
         scene.config.metadata.get("density"), (int, float)) else cfg.density
     idx, weights = sample_cubature(obj.points, cfg.num_cubature, volume=obj.volume, seed=cfg.seed)
     calibration_path = work.dir / "stiffness.json"
-    want_curve = cfg.calibration_nu == "curve"
-    if cfg.calibrate_stiffness and (not calibration_path.is_file() or want_curve != bool(
-            json.loads(calibration_path.read_text()).get("stiffness_curve"))):  # made with the other calibration_nu
+    want_curve = cfg.calibration_nu != "prior"
+    want_two = cfg.calibration_nu == "two_factor"
+
+    def _kind(stored: dict) -> tuple[bool, bool]:
+        curve = stored.get("stiffness_curve")
+        return bool(curve), bool(curve and curve.get("lam_scale"))
+
+    if cfg.calibrate_stiffness and (not calibration_path.is_file() or (want_curve, want_two) != _kind(
+            json.loads(calibration_path.read_text()))):  # made with another calibration_nu
         from vid2sim.pipeline.points import sample_in_voxels
         from vid2sim.pipeline.stiffness import calibrate_stiffness
 
@@ -496,7 +505,7 @@ def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConf
                                  torch.Generator().manual_seed(cfg.seed))
         calibration = calibrate_stiffness(field, obj.points[idx], weights, dense, prior_nu,
                                           cells=cfg.calibration_cells, seed=cfg.seed,
-                                          nus=CURVE_NUS if want_curve else None)
+                                          nus=CURVE_NUS if want_curve else None, factors=2 if want_two else 1)
         calibration_path.write_text(json.dumps(calibration))
     calibration = (json.loads(calibration_path.read_text()) if cfg.calibrate_stiffness
                    else {"stiffness_scale": 1.0, "stiffness_curve": None})

@@ -68,7 +68,7 @@ def solid_surface(points: np.ndarray, cells: int = 64, rng: np.random.Generator 
 
 def calibrate_stiffness(field, cubature: Tensor, weights: Tensor, points: Tensor, poisson_ratio: float,
                         edge_length: float = 0.08, cells: int = 64, seed: int = 0,
-                        nus: tuple[float, ...] | None = None) -> dict:
+                        nus: tuple[float, ...] | None = None, factors: int = 1) -> dict:
     """The stiffness factor s of a reconstruction (``Simulator(stiffness_scale=s)``).
 
     Args:
@@ -77,6 +77,8 @@ def calibrate_stiffness(field, cubature: Tensor, weights: Tensor, points: Tensor
         points: (N, 3) the interior samples the subspace was trained on (world frame, m).
         poisson_ratio: ν at which both frequencies are compared (the prior's).
         nus: a grid of ν: also measure the curve s(ν) there (None: only at ``poisson_ratio``).
+        factors: with ``nus``, 1 (one factor on E) or 2 (a factor on μ and one on λ, matched to the six lowest
+            modes; :func:`vid2sim.physics.modes.stiffness_calibration_curve`).
         edge_length: fTetWild's target edge length relative to the bounding-box diagonal (the small preset's
             FEM uses 0.08).
         cells: the surface grid's cells along the longest side.
@@ -98,7 +100,7 @@ def calibrate_stiffness(field, cubature: Tensor, weights: Tensor, points: Tensor
                          "calibration; set ReconstructConfig.calibrate_stiffness=False")
     mesh = tetrahedralize(surface[0], surface[1], edge_length_fac=edge_length, epsilon=5e-3, name="reconstructed solid")
     X, T = mesh.vertices.double(), mesh.tets
-    curve = stiffness_calibration_curve(field, cubature, weights, X, T, nus) if nus is not None else None
+    curve = stiffness_calibration_curve(field, cubature, weights, X, T, nus, factors=factors) if nus is not None else None
     s = curve.at(poisson_ratio) if curve is not None else stiffness_calibration(field, cubature, weights, X, T,
                                                                                  poisson_ratio)
     volume = float(tet_volumes(X, T).abs().sum())
