@@ -114,6 +114,14 @@ def test_fixed_damping_and_a_contact_layer_reach_the_fit(report):
     assert float((a - b).abs().max()) > 1e-4 * plain.size
     with pytest.raises(ValueError, match="contact_layer"):
         identify.IdentifyConfig(contact_layer=-0.1)
+    # --fit-contact-layer: h is a fitted parameter beside E and ν, left on the simulator as a number
+    fitted = replace(config, fit_contact_layer=True, fit_damping=False)
+    scene = identify.prepare_scene(0, params, fitted, workdir)
+    out = identify.fit(scene, fitted)
+    steps = [h for h in out["history"] if "loss" in h]
+    assert all(h["contact_layer"] > 0 for h in steps) and steps[0]["contact_layer"] == pytest.approx(0.005)
+    assert out["contact_layer"] > 0 and isinstance(scene.simulator.contact_layer, float)
+    assert scene.simulator.contact_layer == pytest.approx(out["contact_layer"] * scene.size)
     # --calibrate-contact: the layer that gives the subspace the tets' compliance under its own floor loads
     calibrated = replace(config, calibrate_contact=True, contact_iterations=2)
     scene = identify.prepare_scene(0, params, calibrated, workdir)

@@ -401,12 +401,13 @@ def test_adjoint_matches_unrolled_autograd(trained_field, layer, beta):
     field, pts = trained_field
     sim = _sim(field, pts, material=Material(5e4, 0.3, damping_ratio=0.1), externals=[Gravity(), Floor(height=-0.3)],
                k=60, config=SimConfig(substeps=2, **TIGHT))
-    sim.contact_layer = layer
+    sim.contact_layer = torch.tensor(layer, dtype=torch.float64, requires_grad=True) if layer else 0.0
     sim.contact_damping.fill_(beta)
-    names = ("log10_E", "nu", "damping_ratio") + (("contact_damping",) if beta else ())
+    names = ("log10_E", "nu", "damping_ratio") + (("contact_damping",) if beta else ()) \
+        + (("contact_layer",) if layer else ())
     for name in names:
         getattr(sim, name).requires_grad_(True)
-    wrt = [getattr(sim, name) for name in names]
+    wrt = [getattr(sim, name) for name in names]  # a tensor layer h: the gradient to h too (bench identify fits it)
     state = sim.rigid_velocity_state([0.0, 0.0, -3.0], [1.0, 0.0, 0.0])
     states = sim.rollout(state, 3)
     loss = (states[-1].z * torch.linspace(0.5, 1.5, states[-1].z.numel(), dtype=torch.float64)).sum()

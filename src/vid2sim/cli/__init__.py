@@ -71,6 +71,7 @@ def _cmd_bench_identify(args: argparse.Namespace) -> int:
              "loss": args.loss, "calibrate_stiffness": True if args.calibrate_stiffness else None,
              "calibration_nu": args.calibration_nu, "contact_layer": args.contact_layer,
              "calibrate_contact": True if args.calibrate_contact else None,
+             "fit_contact_layer": True if args.fit_contact_layer else None,
              "fit_damping": False if args.fixed_damping else None}
     flags = {"scenes": "--n", "seed": "--seed", "preset": "--preset", "handles": "--handles",
              "skinning_iterations": "--skinning-iterations", "fit_iterations": "--fit-iterations", "points": "--points",
@@ -517,6 +518,8 @@ def build_parser() -> argparse.ArgumentParser:
                             "to the six lowest modes and used at the fit's current nu (two_factor, the default: the "
                             "subspace's locking grows with nu and sits in lambda), one factor on E at that grid "
                             "(curve), or one factor at the prior nu")
+    ident.add_argument("--fit-contact-layer", action="store_true",
+                       help="also fit the contact layer (a fraction of the size) with E and nu; experimental")
     ident.add_argument("--fixed-damping", action="store_true",
                        help="keep the damping ratio at the prior (0.05) instead of fitting it, as reconstruct does "
                             "by default")
