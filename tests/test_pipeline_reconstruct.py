@@ -131,6 +131,9 @@ def test_presets_and_config_errors():
         ReconstructConfig(jacobian="finite_differences")
     with pytest.raises(ValueError, match="skinning_objective must be one of"):
         ReconstructConfig(skinning_objective="eigen")
+    assert ReconstructConfig(calibration_nu="two_factor").calibration_nu == "two_factor"
+    with pytest.raises(ValueError, match="calibration_nu must be 'curve', 'two_factor' or 'prior'"):
+        ReconstructConfig(calibration_nu="three")
     with pytest.raises(ValueError, match="preset"):
         ReconstructConfig.preset("huge")
     assert reconstruct_module.STAGES == ("gaussians", "points", "velocity", "appearance", "networks", "joint")

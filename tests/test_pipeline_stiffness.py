@@ -43,5 +43,10 @@ def test_calibration_from_samples_matches_the_one_from_a_mesh_of_the_solid():
     assert 0.3 < exact < 1.0
     assert out["stiffness_scale"] == pytest.approx(exact, rel=0.05)
     assert out["points_volume_ratio"] == pytest.approx(1.0, abs=0.03)
+    # two factors over a grid of ν (ReconstructConfig.calibration_nu = "two_factor"): the curve keeps λ's own factor
+    two = calibrate_stiffness(field, cubature, weights, _bar(200000, 3), 0.3, cells=48, nus=(0.3, 0.45), factors=2)
+    curve = two["stiffness_curve"]
+    assert curve["nu"] == [0.3, 0.45] and len(curve["lam_scale"]) == 2 and all(v > 0 for v in curve["lam_scale"])
+    assert two["stiffness_scale"] == pytest.approx(curve["scale"][0], rel=1e-9)
     with pytest.raises(ValueError, match="no closed surface"):
         calibrate_stiffness(field, cubature, weights, _bar(3, 4), 0.3)
