@@ -189,7 +189,12 @@ def _two_factor_curve(field, points: Tensor, volumes: Tensor, vertices, tets, nu
             K = math.exp(log_s[0]) * mu * K_mu + math.exp(log_s[1]) * lam * K_lam
             return np.sqrt(np.clip(eigh(K, M, eigvals_only=True, subset_by_index=[6, 6 + k - 1]), 1e-300, None))
 
-        start = 2.0 * math.log(ref[0] / frequencies(np.zeros(2))[0])
+        lowest = frequencies(np.zeros(2))[0]
+        if not (ref[0] / 20 < lowest < 20 * ref[0]):  # e.g. a (near) zero-energy deformation mode
+            raise ValueError(f"the subspace's lowest elastic frequency is {lowest:.3g} at nu = {nu}, against the "
+                             f"tets' {ref[0]:.3g}: a factor of {(ref[0] / lowest) ** 2:.3g} would be needed, so the "
+                             "subspace (or the tet mesh) is degenerate and its stiffness cannot be calibrated")
+        start = 2.0 * math.log(ref[0] / lowest)
         fit = least_squares(lambda p: weights * (np.log(frequencies(p)) - np.log(ref)), [start, start],
                             bounds=([-12.0, -12.0], [12.0, 12.0]))
         scales.append(math.exp(fit.x[0]))
