@@ -217,6 +217,20 @@ def test_two_runs_give_identical_shards_and_resume_remakes_only_what_is_missing(
     assert _sha(other / "object_000001.npz") == reference
     with pytest.raises(ValueError, match="draws_per_object"):  # resuming with other settings is refused
         make_training_data(TrainingDataConfig(**{**TINY, "draws_per_object": 3}), other, workers=1, progress=False)
+    with pytest.raises(ValueError, match="objects"):  # a dataset grows but never shrinks
+        make_training_data(TrainingDataConfig(**{**TINY, "objects": TINY["objects"] - 1}), other, workers=1,
+                           progress=False)
+    # growing keeps every shard made and adds only the new object, identical to a dataset made at that size
+    made.clear()
+    grown = make_training_data(TrainingDataConfig(**{**TINY, "objects": TINY["objects"] + 1}), other, workers=1,
+                               threads=1, progress=False, on_shard=made.append)
+    assert made == [f"object_{TINY['objects']:06d}.npz"] and grown["complete"]
+    assert grown["config"]["objects"] == TINY["objects"] + 1
+    assert (other / "object_000000.npz").stat().st_mtime_ns == kept
+    fresh = tmp_path / "c"
+    make_training_data(TrainingDataConfig(**{**TINY, "objects": TINY["objects"] + 1}), fresh, workers=1,
+                       threads=1, progress=False)
+    assert _sha(fresh / made[0]) == _sha(other / made[0])
 
 
 def test_ray_local_instance_gives_identical_shards(dataset, tmp_path):

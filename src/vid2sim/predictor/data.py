@@ -532,9 +532,16 @@ def make_training_data(config: TrainingDataConfig, out_dir: str | Path, workers:
     previous: dict[str, Any] = {}
     if index_path.is_file():
         previous = json.loads(index_path.read_text())
-        differ = sorted(k for k in ("format", "config", "template_sha256") if previous.get(k) != header[k])
+        # A dataset grows: every object's shape and draws depend on (seed, its index) only, so a rerun with a
+        # larger ``objects`` keeps the shards already made and adds the new ones. Shrinking is refused.
+        prev_config = dict(previous.get("config", {}))
+        grown = (isinstance(prev_config.get("objects"), int) and config.objects >= prev_config["objects"])
+        if grown:
+            prev_config["objects"] = config.objects
+        differ = sorted(k for k in ("format", "config", "template_sha256")
+                        if (prev_config if k == "config" else previous.get(k)) != header[k])
         if differ:
-            diff = {k: v for k, v in _config_diff(previous.get("config", {}), header["config"]).items()}
+            diff = _config_diff(previous.get("config", {}), header["config"])
             raise ValueError(f"{index_path} was written with other settings ({', '.join(differ)}"
                              + (f": {diff}" if diff else "") + "); resume with the same settings or use another folder")
     out.mkdir(parents=True, exist_ok=True)
