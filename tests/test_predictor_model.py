@@ -220,6 +220,32 @@ def test_training_decreases_the_loss_resumes_exactly_and_logs_baselines(tiny_tra
         train_predictor(tiny_training_data, tmp_path / "b", TrainConfig(**{**cfg.__dict__, "lr": 5e-4}), progress=False)
 
 
+def test_colour_permutation_keeps_labels_and_is_deterministic(tiny_training_data, tmp_path):
+    from vid2sim.predictor.train import _Split, normalise_video, random_channel_orders
+
+    orders = random_channel_orders(600, torch.Generator().manual_seed(0))
+    assert (orders.sort(dim=1).values == torch.arange(3)).all()  # every row a permutation
+    assert len({tuple(o) for o in orders.tolist()}) == 6  # all six orders drawn
+    split = _Split.__new__(_Split)
+    split.videos = torch.randint(0, 256, (3, 2, 3, 4, 4), dtype=torch.uint8)
+    split.targets = {"log10_E": torch.arange(3.0), "nu": torch.arange(3.0), "last_layer": torch.zeros(3, 650)}
+    idx = torch.tensor([2, 0])
+    order = torch.tensor([[2, 0, 1], [0, 1, 2]])
+    permuted, targets = split.batch(idx, order)
+    plain, same = split.batch(idx)
+    torch.testing.assert_close(permuted[1], plain[1])
+    torch.testing.assert_close(permuted[0], normalise_video(split.videos[2][:, [2, 0, 1]]))
+    assert all(torch.equal(targets[k], same[k]) for k in targets)  # labels unchanged
+    cfg = TrainConfig(model=PredictorConfig(**TINY_MODEL), steps=4, batch_size=4, lr=1e-3, warmup=1, eval_every=4,
+                      val_fraction=0.2, split_seed=4, colour_permute=True)
+    a = train_predictor(tiny_training_data, tmp_path / "a", cfg, progress=False)
+    b = train_predictor(tiny_training_data, tmp_path / "b", cfg, progress=False)
+    c = train_predictor(tiny_training_data, tmp_path / "c", TrainConfig(**{**cfg.__dict__, "colour_permute": False}),
+                        progress=False)
+    assert a["train_curve"] == b["train_curve"] and a["train_curve"] != c["train_curve"]
+    assert a["config"]["colour_permute"] is True
+
+
 def test_inference_on_one_video_is_fast():
     m = PhysicsPredictor(PredictorConfig()).eval()  # the default (shipped) architecture
     x = torch.randn(16, 3, 64, 64)

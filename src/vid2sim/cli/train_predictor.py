@@ -33,7 +33,8 @@ def _cmd_train_predictor(args: argparse.Namespace) -> int:
                                 framing=args.framing, seed=args.seed)
         cfg = TrainConfig(model=model, steps=args.steps, batch_size=args.batch_size, lr=args.lr,
                           val_fraction=args.val_fraction, eval_every=args.eval_every, max_minutes=args.max_minutes,
-                          seed=args.seed, mirror=not args.no_mirror, pretrain_steps=args.pretrain_steps,
+                          seed=args.seed, mirror=not args.no_mirror, colour_permute=args.colour_permute,
+                          pretrain_steps=args.pretrain_steps,
                           pretrain_mask_ratio=args.pretrain_mask_ratio,
                           pretrain_batch_size=args.pretrain_batch_size,
                           loss=LossWeights(*args.loss_weights))
@@ -72,6 +73,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--framing", choices=("object", "full"), default="object",
                    help="what of each frame the model sees: a square around the object's motion (default) or the "
                         "whole frame")
+    p.add_argument("--colour-permute", action="store_true",
+                   help="permute each training video's RGB channels at random (the light is white: every label is "
+                        "kept; default off)")
     p.add_argument("--no-mirror", action="store_true",
                    help="no left-right mirroring of training videos (default: each mirrored with probability 1/2; "
                         "E and nu keep their labels)")

@@ -63,6 +63,10 @@ class TrainConfig:
             and the step). The front view's world is symmetric about the camera's vertical plane (gravity, floor,
             an isotropic material), so log10 E and ν keep their labels; the last layer's label would be the
             mirrored field's, so mirrored samples leave the last-layer term.
+        colour_permute: augment by permuting each training video's RGB channels (one of the 6 orders, uniformly,
+            drawn from ``seed`` and the step). The renderer's light is white and the textures are arbitrary,
+            so a permuted video is the render of the same drop with a recoloured texture: every label (log10 E,
+            ν and the last layer, which depends on the shape only) is kept.
         pretrain_steps: masked-autoencoder steps on the training split's videos before the supervised steps
             (:mod:`vid2sim.predictor.pretrain`; 0: none).
         pretrain_batch_size, pretrain_lr, pretrain_mask_ratio, pretrain_decoder_layers: their batch, Adam's
@@ -84,6 +88,7 @@ class TrainConfig:
     max_minutes: float | None = None
     seed: int = 0
     mirror: bool = True
+    colour_permute: bool = False
     pretrain_steps: int = 0
     pretrain_batch_size: int = 16
     pretrain_lr: float = 3e-4
@@ -164,8 +169,20 @@ class _Split:
     def __len__(self) -> int:
         return int(self.videos.shape[0])
 
-    def batch(self, idx: torch.Tensor) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-        return normalise_video(self.videos[idx]), {k: v[idx] for k, v in self.targets.items()}
+    def batch(self, idx: torch.Tensor, channel_orders: torch.Tensor | None = None
+              ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """Normalised videos (B, T, 3, R, R) and targets of the samples ``idx`` (B,); ``channel_orders`` (B, 3)
+        permutes each video's RGB channels first."""
+        frames = self.videos[idx]
+        if channel_orders is not None:
+            frames = torch.stack([f[:, order] for f, order in zip(frames, channel_orders)])
+        return normalise_video(frames), {k: v[idx] for k, v in self.targets.items()}
+
+
+def random_channel_orders(n: int, generator: torch.Generator) -> torch.Tensor:
+    """(n, 3) independent uniform permutations of (0, 1, 2)."""
+    return torch.stack([torch.randperm(3, generator=generator) for _ in range(n)]) if n else torch.zeros(0, 3,
+                                                                                                          dtype=torch.long)
 
 
 def normalise_video(frames: torch.Tensor) -> torch.Tensor:
@@ -461,7 +478,10 @@ def train_predictor(data_folder: str | Path, out: str | Path, config: TrainConfi
         model.train()
         for g in opt.param_groups:
             g["lr"] = cfg.lr * _lr_factor(step, cfg.steps, cfg.warmup, cfg.final_lr_fraction)
-        video, targets = train.batch(idx)
+        orders = None
+        if cfg.colour_permute:
+            orders = random_channel_orders(len(idx), torch.Generator().manual_seed(cfg.seed * 1_000_003 + step + 7919))
+        video, targets = train.batch(idx, orders)
         mask = None
         if cfg.mirror:
             flip = torch.rand(len(idx), generator=torch.Generator().manual_seed(cfg.seed * 1_000_003 + step)) < 0.5
