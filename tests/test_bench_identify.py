@@ -137,6 +137,32 @@ def test_fixed_damping_and_a_contact_layer_reach_the_fit(report):
         identify.IdentifyConfig(contact_iterations=0)
 
 
+def test_nu_sensitivity_measures_how_far_nu_moves_the_truth(report):
+    """--nu-sensitivity: the FEM rerun at ν − Δν (same mesh, pose, steps) is cached; the distance it moves the
+    truth grows about linearly with Δν, and the ν worth of the model error follows from it."""
+    from dataclasses import replace
+
+    from vid2sim.synthetic.scenes import benchmark_parameters
+
+    _, config, workdir = report
+    params = benchmark_parameters(1, 0)[0]
+    scene = identify.prepare_scene(0, params, config, workdir)
+    rows = {}
+    for dnu in (0.04, 0.08):
+        cfg = replace(config, nu_sensitivity=dnu)
+        rows[dnu] = identify.nu_sensitivity(0, params, scene, cfg, workdir, model_error_observed_percent=2.0)
+        assert rows[dnu]["dnu"] == pytest.approx(-dnu) and rows[dnu]["observed_percent"] > 0
+        assert rows[dnu]["observed_percent_per_0_05"] == pytest.approx(rows[dnu]["observed_percent"] * 0.05 / dnu)
+        assert rows[dnu]["nu_equivalent_of_model_error"] == pytest.approx(dnu * 2.0 / rows[dnu]["observed_percent"])
+    ratio = rows[0.08]["observed_percent"] / rows[0.04]["observed_percent"]
+    assert 1.6 < ratio < 2.4, ratio  # smooth in ν: about linear over a small change
+    again = identify.nu_sensitivity(0, params, scene, replace(config, nu_sensitivity=0.04), workdir, 2.0)
+    assert again["seconds"] == 0.0 and again["observed_percent"] == rows[0.04]["observed_percent"]  # cached
+    assert (workdir / "scene_000" / "fem_result_nu-0.0400.npz").is_file()
+    with pytest.raises(ValueError, match="nu_sensitivity"):
+        identify.IdentifyConfig(nu_sensitivity=0.6)
+
+
 def test_report_has_per_scene_figures_and_means(report):
     result, config, _ = report
     (row,) = result["scenes"]

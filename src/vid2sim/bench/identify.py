@@ -114,6 +114,11 @@ class IdentifyConfig:
             Overrides ``contact_layer``. Experimental: on two scenes it made the contact too soft and
             the fit worse (docs/architecture.md, "The layer measured per object does not work").
         contact_iterations: the fixed-point iterations of that calibration.
+        nu_sensitivity: Δν > 0 measures how much ν moves the ground truth (0: off). A second FEM run at
+            ν_true − Δν (ν_true + Δν when that would go below 0), with the same mesh, pose, element order and
+            time steps as the truth, is compared with the truth on the loss's sample points
+            (:func:`nu_sensitivity`). Its ratio to the model error at the true material says how finely the
+            observed frames can pin ν down with this reduced model. The run is cached in the work folder.
     """
 
     scenes: int = 6
@@ -147,6 +152,7 @@ class IdentifyConfig:
     fit_contact_layer: bool = False
     calibrate_contact: bool = False
     contact_iterations: int = 3
+    nu_sensitivity: float = 0.0
 
     def __post_init__(self) -> None:
         for name in ("scenes", "frames", "observed_frames", "points", "skinning_points", "handles", "cubature",
@@ -178,6 +184,9 @@ class IdentifyConfig:
         if isinstance(self.contact_layer, bool) or not isinstance(self.contact_layer, (int, float)) \
                 or not 0 <= self.contact_layer < math.inf:
             raise ValueError(f"IdentifyConfig.contact_layer must be a finite number >= 0, got {self.contact_layer!r}")
+        if isinstance(self.nu_sensitivity, bool) or not isinstance(self.nu_sensitivity, (int, float)) \
+                or not 0 <= self.nu_sensitivity < 0.5:
+            raise ValueError(f"IdentifyConfig.nu_sensitivity must be a number in [0, 0.5), got {self.nu_sensitivity!r}")
         if self.preset not in ("small", "full"):
             raise ValueError(f"IdentifyConfig.preset must be 'small' or 'full', got {self.preset!r}")
         self.coarse_log10_E = tuple(sorted(float(v) for v in self.coarse_log10_E))
@@ -225,6 +234,20 @@ class PerfectGeometry:
             return torch.stack([self.positions(self.start.z)] + [self.positions(s.z) for s in states])
 
 
+def _fem_key(params: dict, config: IdentifyConfig) -> dict:
+    """What the cached ground truth of a scene depends on."""
+    key = {"params": params, "preset": config.preset, "frames": config.frames, "fem_tolerance": config.fem_tolerance}
+    if config.fem_element_order != 1:
+        key["element_order"] = config.fem_element_order
+    return key
+
+
+def _fem_paths(folder: Path, config: IdentifyConfig, tag: str = "") -> tuple[Path, Path]:
+    """The cached FEM result and its key file in a scene's folder (``tag`` names a variant run)."""
+    suffix = ("" if config.fem_element_order == 1 else f"_p{config.fem_element_order}") + tag
+    return folder / f"fem_result{suffix}.npz", folder / f"fem_key{suffix}.json"
+
+
 def _rigid_affine(rest: np.ndarray, posed: np.ndarray) -> np.ndarray:
     """(3, 4) affine A with posed ≈ A [rest; 1] (least squares; exact for a rigid pose or velocity field)."""
     Xh = np.concatenate([rest, np.ones((len(rest), 1))], axis=1)
@@ -249,11 +272,8 @@ def prepare_scene(index: int, params: dict, config: IdentifyConfig, workdir: Pat
     folder.mkdir(parents=True, exist_ok=True)
     scene_cfg = SyntheticSceneConfig.preset(config.preset, frames=config.frames,
                                             observed_frames=config.observed_frames, **params)
-    key = {"params": params, "preset": config.preset, "frames": config.frames, "fem_tolerance": config.fem_tolerance}
-    if config.fem_element_order != 1:
-        key["element_order"] = config.fem_element_order
-    suffix = "" if config.fem_element_order == 1 else f"_p{config.fem_element_order}"
-    fem_path, key_path = folder / f"fem_result{suffix}.npz", folder / f"fem_key{suffix}.json"
+    key = _fem_key(params, config)
+    fem_path, key_path = _fem_paths(folder, config)
     if fem_path.is_file() and key_path.is_file() and json.loads(key_path.read_text()) == key:
         fem = FEMResult.load(fem_path)
     else:
@@ -525,6 +545,67 @@ def time_convergence(scene: PerfectGeometry, config: IdentifyConfig) -> dict:
     return {"substeps": n, "refined_substeps": 4 * n, "mean_percent": d.mean, "max_percent": d.max}
 
 
+def nu_sensitivity(index: int, params: dict, scene: PerfectGeometry, config: IdentifyConfig, workdir: Path,
+                   model_error_observed_percent: float) -> dict:
+    """How much the ground truth moves when ν changes by ``config.nu_sensitivity``, against the model error.
+
+    Runs the FEM again at ν_true − Δν (+ Δν if that is below 0) with everything else the truth's (mesh, pose,
+    element order, substeps: no time-convergence search, the truth's converged step is kept), cached in the
+    scene's folder, and embeds the loss's sample points in it.
+
+    Returns:
+        {"dnu": the signed change, "observed_percent", "future_percent": the distance between the two FEM
+        trajectories (percent of the size, frames 1 … observed − 1 and observed … frames − 1),
+        "observed_percent_per_0_05": the observed distance scaled to |Δν| = 0.05 (the target's size),
+        "nu_equivalent_of_model_error": |Δν| · model error / observed distance — the change of ν that moves the
+        truth as far as the reduced model at the true material is from it; where this exceeds the target,
+        the observed frames cannot pin ν down to the target with this model unless its error happens to be
+        orthogonal to ν's effect, "seconds": the extra FEM run (0 when cached)}.
+    """
+    from dataclasses import replace
+
+    from vid2sim.meshing.tetra import sample_points_in_tets
+    from vid2sim.metrics import trajectory_distance
+    from vid2sim.synthetic.embedding import apply_embedding
+    from vid2sim.synthetic.fem import FEMResult, simulate_fem
+
+    folder = workdir / f"scene_{index:03d}"
+    dnu = float(config.nu_sensitivity)
+    nu = scene.material["nu"]
+    signed = -dnu if nu - dnu >= 0 else dnu
+    base_path, _ = _fem_paths(folder, config)
+    path, key_path = _fem_paths(folder, config, tag=f"_nu{signed:+.4f}")
+    key = {**_fem_key(params, config), "dnu": signed}
+    seconds = 0.0
+    if path.is_file() and key_path.is_file() and json.loads(key_path.read_text()) == key:
+        other = FEMResult.load(path)
+    else:
+        base = FEMResult.load(base_path)
+        fc = replace(base.config, poisson_ratio=nu + signed)
+        t0 = time.perf_counter()
+        other = simulate_fem(scene.tet_vertices, scene.tets, fc, base.pose, frames=int(base.trajectory.shape[0]),
+                             progress=False)
+        seconds = time.perf_counter() - t0
+        other.save(path)
+        key_path.write_text(json.dumps(key))
+    _, tet_index, bary = sample_points_in_tets(scene.tet_vertices, scene.tets, config.points, seed=index)
+    moved = apply_embedding(other.trajectory, tet_index, bary, other.embedding_elements).to(scene.truth.dtype)
+    if config.truth == "reduced":  # the truth is the model's own motion: compare FEM with FEM
+        base = FEMResult.load(base_path)
+        reference = apply_embedding(base.trajectory, tet_index, bary, base.embedding_elements).to(moved.dtype)
+    else:
+        reference = scene.truth
+    frames = min(config.frames, len(moved), len(reference))
+    observed = trajectory_distance(moved[:frames], reference[:frames], scene.size,
+                                   frames=slice(1, config.observed_frames)).mean
+    future = trajectory_distance(moved[:frames], reference[:frames], scene.size,
+                                 frames=slice(config.observed_frames, frames)).mean
+    return {"dnu": signed, "observed_percent": observed, "future_percent": future,
+            "observed_percent_per_0_05": observed * 0.05 / dnu,
+            "nu_equivalent_of_model_error": dnu * model_error_observed_percent / observed if observed > 0 else math.inf,
+            "seconds": seconds}
+
+
 def run_scene(index: int, params: dict, config: IdentifyConfig, workdir: Path, progress: bool = False) -> dict:
     """Prepare (or load) scene ``index`` of the suite, measure its model error and fit it; its JSON row."""
     t0 = time.perf_counter()
@@ -534,6 +615,8 @@ def run_scene(index: int, params: dict, config: IdentifyConfig, workdir: Path, p
     if config.truth == "reduced":
         scene.truth = scene.trajectory(config.frames)
     at_truth = model_errors(scene, config)
+    sensitivity = (nu_sensitivity(index, params, scene, config, workdir, at_truth["observed_percent"])
+                   if config.nu_sensitivity > 0 else None)
     converged = time_convergence(scene, config)
     result = fit(scene, config, progress=progress)
     fitted_errors = model_errors(scene, config)
@@ -547,6 +630,7 @@ def run_scene(index: int, params: dict, config: IdentifyConfig, workdir: Path, p
                       "nu": abs(result["nu"] - truth["nu"]),
                       "damping_ratio": abs(result["damping_ratio"] - truth["damping_ratio"])},
         "model_error_at_truth_percent": at_truth,
+        "nu_sensitivity": sensitivity,
         "trajectory_error_fitted_percent": fitted_errors,
         "reduced_time_convergence_at_truth": converged,
         "fit": {k: result[k] for k in ("loss", "evaluations", "seconds")},
@@ -637,6 +721,12 @@ def summarise(rows: list[dict]) -> dict:
         "max_reduced_time_convergence_percent": max(r["reduced_time_convergence_at_truth"]["mean_percent"] for r in rows),
         "mean_fit_seconds": mean(lambda r: r["fit"]["seconds"]),
         "mean_stiffness_scale": mean(lambda r: r["stiffness_scale"]),
+        # how much ν moves the truth on the observed frames, and the ν change worth the model error
+        **({"mean_nu_sensitivity_observed_percent_per_0_05":
+            mean(lambda r: r["nu_sensitivity"]["observed_percent_per_0_05"]),
+            "median_nu_equivalent_of_model_error":
+            float(np.median([r["nu_sensitivity"]["nu_equivalent_of_model_error"] for r in rows]))}
+           if rows and all(r.get("nu_sensitivity") for r in rows) else {}),
         # lowest elastic frequency as a ratio to quadratic tets: the FEM truth's and the reduced model's stiffening
         **{f"mean_lowest_frequency_{key}": mean(lambda r, key=key: r["frequencies"][key][0])
            for key in ("linear_tets_over_quadratic", "reduced_over_quadratic", "reduced_over_linear_tets")},

@@ -72,10 +72,10 @@ def _cmd_bench_identify(args: argparse.Namespace) -> int:
              "calibration_nu": args.calibration_nu, "contact_layer": args.contact_layer,
              "calibrate_contact": True if args.calibrate_contact else None,
              "fit_contact_layer": True if args.fit_contact_layer else None,
-             "fit_damping": False if args.fixed_damping else None}
+             "fit_damping": False if args.fixed_damping else None, "nu_sensitivity": args.nu_sensitivity}
     flags = {"scenes": "--n", "seed": "--seed", "preset": "--preset", "handles": "--handles",
              "skinning_iterations": "--skinning-iterations", "fit_iterations": "--fit-iterations", "points": "--points",
-             "skinning_points": "--skinning-points"}
+             "skinning_points": "--skinning-points", "nu_sensitivity": "--nu-sensitivity"}
     try:
         config = identify.IdentifyConfig(**{k: v for k, v in given.items() if v is not None})
     except ValueError as exc:
@@ -103,6 +103,12 @@ def _cmd_bench_identify(args: argparse.Namespace) -> int:
                     f"{t['nu']:.3f} / {f['nu']:.3f}   {t['damping_ratio']:.3f} / {f['damping_ratio']:.3f}   "
                     f"{m['observed_percent']:5.2f} / {m['future_percent']:5.2f}       "
                     f"{e['observed_percent']:5.2f} / {e['future_percent']:5.2f}")
+    if any(r.get("nu_sensitivity") for r in report["scenes"]):
+        rows.append("scene  truth moved by dnu obs/fut %   per 0.05 obs %   nu worth the model error")
+        for r in report["scenes"]:
+            n = r["nu_sensitivity"]
+            rows.append(f"{r['scene']:5d}  dnu {n['dnu']:+.3f}: {n['observed_percent']:5.2f} / {n['future_percent']:5.2f}"
+                        f"      {n['observed_percent_per_0_05']:5.2f}            {n['nu_equivalent_of_model_error']:.3f}")
     print("\n".join(rows), file=sys.stderr)
     print(json.dumps(summary, indent=2) if not args.out else f"wrote {args.out}\n" + json.dumps(summary, indent=2))
     return 0
@@ -530,6 +536,9 @@ def build_parser() -> argparse.ArgumentParser:
                        help="experimental: set that layer from the object's quadratic tets instead, so that the "
                             "subspace has their compliance under the floor loads of its own simulation (measured: "
                             "it makes the contact too soft and the fits worse; docs/architecture.md)")
+    ident.add_argument("--nu-sensitivity", type=float, default=None, metavar="DNU",
+                       help="also run the FEM at nu - DNU per scene and report how far that moves the truth "
+                            "against the model error (default off)")
     ident.add_argument("--workdir", default="vid2sim-identify", help="cache of FEM runs and skinning fields "
                        "(default ./vid2sim-identify)")
     ident.add_argument("--out", default=None, help="write the full JSON report here")
