@@ -163,6 +163,28 @@ def test_nu_sensitivity_measures_how_far_nu_moves_the_truth(report):
         identify.IdentifyConfig(nu_sensitivity=0.6)
 
 
+def test_render_psnr_scores_the_models_motion_in_images(report):
+    """--psnr: the textured object carried by the truth and by the model, rendered in the preset's observed
+    cameras; the images see the model error (a wrong material scores lower), and frame 1 (before the floor)
+    is the same rigid motion from the exact start."""
+    from vid2sim.synthetic.scenes import benchmark_parameters
+
+    _, config, workdir = report
+    params = benchmark_parameters(1, 0)[0]
+    scene = identify.prepare_scene(0, params, config, workdir)
+    truth = scene.material
+    identify.set_material(scene.simulator, math.log10(truth["E"]), truth["nu"], truth["damping_ratio"])
+    at_truth = identify.render_psnr(0, params, scene, config, workdir)
+    assert at_truth["resolution"] == 128 and at_truth["views"] == [0, 2, 3, 5]  # small preset: 2 of 6 held out
+    assert len(at_truth["dynamic"]["psnr_per_frame"]) == config.observed_frames - 1
+    assert len(at_truth["future"]["psnr_per_frame"]) == config.frames - config.observed_frames
+    assert at_truth["dynamic"]["psnr_per_frame"][0] > 45  # frame 1: free flight, the same rigid motion
+    identify.set_material(scene.simulator, math.log10(truth["E"]) - 1.0, 0.45, truth["damping_ratio"])
+    wrong = identify.render_psnr(0, params, scene, config, workdir)
+    assert wrong["dynamic"]["psnr"] < at_truth["dynamic"]["psnr"] - 1.0
+    assert 0 < wrong["dynamic"]["ssim"] <= at_truth["dynamic"]["ssim"] <= 1
+
+
 def test_report_has_per_scene_figures_and_means(report):
     result, config, _ = report
     (row,) = result["scenes"]

@@ -119,6 +119,11 @@ class IdentifyConfig:
             time steps as the truth, is compared with the truth on the loss's sample points
             (:func:`nu_sensitivity`). Its ratio to the model error at the true material says how finely the
             observed frames can pin ν down with this reduced model. The run is cached in the work folder.
+        render_psnr: also render the object's textured surface carried by the truth and by the reduced model
+            (at the true material and at the fitted one) in the preset's observed cameras, and score the
+            model's images against the truth's by PSNR and SSIM as ``vid2sim evaluate`` does
+            (:func:`render_psnr`): the images a video pipeline using this reduced model could reach with perfect
+            geometry, appearance and initial state.
     """
 
     scenes: int = 6
@@ -153,6 +158,7 @@ class IdentifyConfig:
     calibrate_contact: bool = False
     contact_iterations: int = 3
     nu_sensitivity: float = 0.0
+    render_psnr: bool = False
 
     def __post_init__(self) -> None:
         for name in ("scenes", "frames", "observed_frames", "points", "skinning_points", "handles", "cubature",
@@ -606,6 +612,57 @@ def nu_sensitivity(index: int, params: dict, scene: PerfectGeometry, config: Ide
             "seconds": seconds}
 
 
+def render_psnr(index: int, params: dict, scene: PerfectGeometry, config: IdentifyConfig, workdir: Path) -> dict:
+    """The reduced model's motion against the truth's in images, at the simulator's current material.
+
+    The object's textured surface mesh (the one ``make-scene`` renders) is embedded in the FEM's rest tets. The
+    truth carries it with the FEM's motion; the model carries it with its skinning (LBS of the vertices) from
+    the exact initial state. Both are rendered in the observed cameras of the preset's camera ring at its
+    resolution and scored like ``vid2sim evaluate``'s ``dynamic`` (frames 1 … observed − 1) and ``future``
+    groups: means of per-image PSNR (dB) and SSIM. Perfect geometry, appearance and initial state: what is
+    lost is the dynamics model's alone.
+
+    Returns:
+        {"views", "resolution", "dynamic": {"psnr", "ssim", "psnr_per_frame"}, "future": {...}}.
+    """
+    from vid2sim.metrics.images import image_metrics
+    from vid2sim.physics.reduced import lbs_rows
+    from vid2sim.splats.cameras import camera_ring
+    from vid2sim.synthetic.embedding import apply_embedding, embed_points
+    from vid2sim.synthetic.fem import FEMResult
+    from vid2sim.synthetic.mesh_render import render_textured_mesh
+    from vid2sim.synthetic.scenes import SyntheticSceneConfig
+    from vid2sim.synthetic.shapes import make_procedural_object
+
+    sc = SyntheticSceneConfig.preset(config.preset, frames=config.frames, observed_frames=config.observed_frames,
+                                     **params)
+    mesh = make_procedural_object(sc.seed)
+    fem = FEMResult.load(_fem_paths(workdir / f"scene_{index:03d}", config)[0])
+    tet_index, bary = embed_points(mesh.vertices.double(), scene.tet_vertices, scene.tets)
+    truth = apply_embedding(fem.trajectory[: config.frames], tet_index, bary, fem.embedding_elements)
+    rest = apply_embedding(fem.rest_vertices[None], tet_index, bary, fem.embedding_elements)[0].to(torch.float64)
+    with torch.no_grad():
+        rows = lbs_rows(rest, scene.simulator.field(rest))
+        states = scene.simulator.rollout(scene.start, config.frames - 1)
+        model = torch.stack([rest + rows @ z.reshape(-1, 3, 4).transpose(0, 1).reshape(3, -1).T
+                             for z in [scene.start.z] + [st.z for st in states]])
+    cameras = camera_ring(sc.views, sc.camera_radius, sc.camera_elevation_deg, sc.resolution, sc.resolution,
+                          fov_x_deg=sc.camera_fov_deg, target=sc.camera_target)
+    observed = [v for v in range(sc.views) if v not in set(sc.held_out_indices)]
+    cameras = [cameras[v] for v in observed]
+    target, _ = render_textured_mesh(mesh, cameras, vertices=truth.float(), supersample=sc.supersample,
+                                     progress=False)
+    image, _ = render_textured_mesh(mesh, cameras, vertices=model.float(), supersample=sc.supersample,
+                                    progress=False)
+
+    def group(frames: range) -> dict:
+        m = image_metrics(image[:, list(frames)], target[:, list(frames)], layout="VT")
+        return {"psnr": m["psnr"], "ssim": m["ssim"], "psnr_per_frame": m["psnr_per_frame"]}
+
+    return {"views": observed, "resolution": sc.resolution, "dynamic": group(range(1, config.observed_frames)),
+            "future": group(range(config.observed_frames, config.frames))}
+
+
 def run_scene(index: int, params: dict, config: IdentifyConfig, workdir: Path, progress: bool = False) -> dict:
     """Prepare (or load) scene ``index`` of the suite, measure its model error and fit it; its JSON row."""
     t0 = time.perf_counter()
@@ -617,9 +674,11 @@ def run_scene(index: int, params: dict, config: IdentifyConfig, workdir: Path, p
     at_truth = model_errors(scene, config)
     sensitivity = (nu_sensitivity(index, params, scene, config, workdir, at_truth["observed_percent"])
                    if config.nu_sensitivity > 0 else None)
+    images_at_truth = render_psnr(index, params, scene, config, workdir) if config.render_psnr else None
     converged = time_convergence(scene, config)
     result = fit(scene, config, progress=progress)
     fitted_errors = model_errors(scene, config)
+    images_fitted = render_psnr(index, params, scene, config, workdir) if config.render_psnr else None
     valley = sweep(scene, config, result["log10_E"])
     return {
         "scene": index, **scene.info,
@@ -631,6 +690,8 @@ def run_scene(index: int, params: dict, config: IdentifyConfig, workdir: Path, p
                       "damping_ratio": abs(result["damping_ratio"] - truth["damping_ratio"])},
         "model_error_at_truth_percent": at_truth,
         "nu_sensitivity": sensitivity,
+        "images_at_truth": images_at_truth,
+        "images_fitted": images_fitted,
         "trajectory_error_fitted_percent": fitted_errors,
         "reduced_time_convergence_at_truth": converged,
         "fit": {k: result[k] for k in ("loss", "evaluations", "seconds")},
@@ -727,6 +788,10 @@ def summarise(rows: list[dict]) -> dict:
             "median_nu_equivalent_of_model_error":
             float(np.median([r["nu_sensitivity"]["nu_equivalent_of_model_error"] for r in rows]))}
            if rows and all(r.get("nu_sensitivity") for r in rows) else {}),
+        # images with perfect geometry, appearance and initial state: the reduced model's own ceiling
+        **({f"mean_{which}_{group}_{metric}": mean(lambda r, w=which, g=group, m=metric: r[f"images_{w}"][g][m])
+            for which in ("at_truth", "fitted") for group in ("dynamic", "future") for metric in ("psnr", "ssim")}
+           if rows and all(r.get("images_at_truth") for r in rows) else {}),
         # lowest elastic frequency as a ratio to quadratic tets: the FEM truth's and the reduced model's stiffening
         **{f"mean_lowest_frequency_{key}": mean(lambda r, key=key: r["frequencies"][key][0])
            for key in ("linear_tets_over_quadratic", "reduced_over_quadratic", "reduced_over_linear_tets")},

@@ -72,7 +72,8 @@ def _cmd_bench_identify(args: argparse.Namespace) -> int:
              "calibration_nu": args.calibration_nu, "contact_layer": args.contact_layer,
              "calibrate_contact": True if args.calibrate_contact else None,
              "fit_contact_layer": True if args.fit_contact_layer else None,
-             "fit_damping": False if args.fixed_damping else None, "nu_sensitivity": args.nu_sensitivity}
+             "fit_damping": False if args.fixed_damping else None, "nu_sensitivity": args.nu_sensitivity,
+             "render_psnr": True if args.psnr else None}
     flags = {"scenes": "--n", "seed": "--seed", "preset": "--preset", "handles": "--handles",
              "skinning_iterations": "--skinning-iterations", "fit_iterations": "--fit-iterations", "points": "--points",
              "skinning_points": "--skinning-points", "nu_sensitivity": "--nu-sensitivity"}
@@ -109,6 +110,12 @@ def _cmd_bench_identify(args: argparse.Namespace) -> int:
             n = r["nu_sensitivity"]
             rows.append(f"{r['scene']:5d}  dnu {n['dnu']:+.3f}: {n['observed_percent']:5.2f} / {n['future_percent']:5.2f}"
                         f"      {n['observed_percent_per_0_05']:5.2f}            {n['nu_equivalent_of_model_error']:.3f}")
+    if any(r.get("images_at_truth") for r in report["scenes"]):
+        rows.append("scene  PSNR dynamic/future at truth   fitted")
+        for r in report["scenes"]:
+            a, f = r["images_at_truth"], r["images_fitted"]
+            rows.append(f"{r['scene']:5d}  {a['dynamic']['psnr']:6.2f} / {a['future']['psnr']:6.2f}"
+                        f"           {f['dynamic']['psnr']:6.2f} / {f['future']['psnr']:6.2f}")
     print("\n".join(rows), file=sys.stderr)
     print(json.dumps(summary, indent=2) if not args.out else f"wrote {args.out}\n" + json.dumps(summary, indent=2))
     return 0
@@ -539,6 +546,9 @@ def build_parser() -> argparse.ArgumentParser:
     ident.add_argument("--nu-sensitivity", type=float, default=None, metavar="DNU",
                        help="also run the FEM at nu - DNU per scene and report how far that moves the truth "
                             "against the model error (default off)")
+    ident.add_argument("--psnr", action="store_true",
+                       help="also render the truth's and the model's motion of the textured object in the preset's "
+                            "observed cameras and report PSNR/SSIM: the model's image ceiling")
     ident.add_argument("--workdir", default="vid2sim-identify", help="cache of FEM runs and skinning fields "
                        "(default ./vid2sim-identify)")
     ident.add_argument("--out", default=None, help="write the full JSON report here")
