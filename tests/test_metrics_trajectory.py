@@ -59,3 +59,33 @@ def test_shapes_are_checked():
         nonrigid_distance(torch.zeros(2, 5, 3), torch.zeros(2, 4, 3), 1.0)
     with pytest.raises(ValueError, match="rest"):
         deformation(torch.zeros(2, 5, 3), torch.zeros(4, 3), 1.0)
+
+
+def test_carry_by_tets_follows_an_affine_motion_exactly_inside_and_outside():
+    """Under an affine motion x -> A x + b of the whole mesh every tet has F = A, so points inside and points
+    just outside the mesh (bound to the tet they are least outside of) move exactly with it."""
+    from vid2sim.metrics import carry_by_tets
+
+    g = torch.Generator().manual_seed(0)
+    cube = torch.tensor([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0], [0, 0, 1], [1, 0, 1], [0, 1, 1], [1, 1, 1]],
+                        dtype=torch.float64)
+    tets = torch.tensor([[0, 1, 3, 7], [0, 3, 2, 7], [0, 2, 6, 7], [0, 6, 4, 7], [0, 4, 5, 7], [0, 5, 1, 7]])
+    frames = [cube]
+    maps = []
+    for _ in range(3):
+        A = torch.eye(3, dtype=torch.float64) + 0.3 * torch.randn(3, 3, generator=g, dtype=torch.float64)
+        b = torch.randn(3, generator=g, dtype=torch.float64)
+        maps.append((A, b))
+        frames.append(cube @ A.T + b)
+    inside = torch.rand(50, 3, generator=g, dtype=torch.float64)
+    outside = torch.tensor([[1.05, 0.5, 0.5], [-0.02, 0.3, 0.9], [0.5, 0.5, 1.1]], dtype=torch.float64)
+    points = torch.cat([inside, outside])
+    x, F = carry_by_tets(points, torch.stack(frames), tets)
+    assert x.shape == (4, 53, 3) and F.shape == (4, 53, 3, 3)
+    torch.testing.assert_close(x[0], points)
+    torch.testing.assert_close(F[0], torch.eye(3, dtype=torch.float64).expand(53, 3, 3))
+    for t, (A, b) in enumerate(maps, start=1):
+        torch.testing.assert_close(x[t], points @ A.T + b)
+        torch.testing.assert_close(F[t], A.expand(53, 3, 3))
+    with pytest.raises(ValueError, match="points"):
+        carry_by_tets(torch.zeros(4, 2), torch.stack(frames), tets)

@@ -79,6 +79,35 @@ def test_evaluate_reports_views_frames_material_and_chamfer(tiny_asset, tiny_sce
     assert len(report["chamfer"]["per_frame"]) == 6 and 0 < report["chamfer"]["observed_mean"] < 0.1
 
 
+def test_evaluate_true_motion_scores_the_gaussians_on_the_ground_truths_motion(tiny_asset, tiny_scene, tmp_path,
+                                                                               capsys):
+    """--true-motion: the asset's Gaussians carried by the FEM's motion; at frame 0 they are the asset's own
+    (the carry is the identity there), and a scene without the ground-truth motion gets a clear error."""
+    from vid2sim.pipeline.evaluate import true_motion_gaussians
+
+    out = tmp_path / "eval.json"
+    assert main(["evaluate", str(tiny_asset), str(tiny_scene), "--out", str(out), "--quiet", "--no-report",
+                 "--true-motion"]) == 0
+    report = json.loads(out.read_text())
+    tm = report["true_motion"]
+    assert tm["dynamic"]["frames"] == report["dynamic"]["frames"] and tm["future"]["frames"] == [5]
+    for key in ("dynamic", "future", "novel_views"):
+        assert 5 < tm[key]["psnr"] < 60 and 0 < tm[key]["ssim"] <= 1
+    assert "on the true motion" in capsys.readouterr().out
+    asset = load_asset(tiny_asset)
+    carried = true_motion_gaussians(asset, load_scene(tiny_scene).extras["tet_trajectory"])
+    assert len(carried) == 6
+    torch.testing.assert_close(carried[0].means, asset.gaussians.means, atol=1e-5, rtol=0)
+    bare = shutil.copytree(tiny_scene, tmp_path / "bare")
+    shutil.rmtree(bare / "extras")
+    meta = json.loads((bare / "scene.json").read_text())
+    meta.pop("extras", None)
+    (bare / "scene.json").write_text(json.dumps(meta))
+    assert main(["evaluate", str(tiny_asset), str(bare), "--out", str(tmp_path / "e2.json"), "--quiet",
+                 "--no-report", "--true-motion"]) == 2
+    assert "tet_trajectory" in capsys.readouterr().err
+
+
 def test_an_interrupted_reconstruction_resumes_after_its_last_finished_stage(tiny_scene, tmp_path, monkeypatch, tiny_config):
     out = tmp_path / "asset"
 

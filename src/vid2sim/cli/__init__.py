@@ -392,13 +392,16 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 
     set_threads(args.threads)
     report, renders = evaluate(args.asset, args.scene, fovvdp=args.fovvdp, progress=not args.quiet,
-                               return_renders=True)
+                               return_renders=True, true_motion=args.true_motion)
     out = Path(args.out) if args.out else Path(args.asset) / "evaluation.json"
     write_report(report, out)
     lines = []
     for key in ("dynamic", "future", "novel_views"):
         if report[key]:
             lines.append(f"{key}: PSNR {report[key]['psnr']:.2f} dB, SSIM {report[key]['ssim']:.4f}")
+    for key, group in report.get("true_motion", {}).items():
+        if isinstance(group, dict) and group:
+            lines.append(f"{key} on the true motion: PSNR {group['psnr']:.2f} dB, SSIM {group['ssim']:.4f}")
     mat = report["material"]
     if "abs_error_log10_E" in mat:
         lines.append(f"|d log10 E| = {mat['abs_error_log10_E']:.3f}, |d nu| = {mat['abs_error_nu']:.3f}")
@@ -672,6 +675,9 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--out", default=None, help="JSON report (default ASSET/evaluation.json)")
     ev.add_argument("--fovvdp", action="store_true", help="also FoVVDP (needs the optional pyfvvdp, CC BY-NC)")
     ev.add_argument("--no-report", action="store_true", help="do not write the HTML report (ASSET/report/index.html)")
+    ev.add_argument("--true-motion", action="store_true",
+                    help="also score the asset's Gaussians moved by the ground truth's motion (needs the "
+                         "tet_trajectory extra): the appearance's share of the image error")
     add_threads_option(ev)
     ev.add_argument("--quiet", action="store_true", help="no progress output")
     ev.set_defaults(func=_cmd_evaluate)

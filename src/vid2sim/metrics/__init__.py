@@ -17,6 +17,7 @@ from vid2sim.metrics.geometry import (
 from vid2sim.metrics.images import gaussian_window, image_metrics, psnr, ssim, ssim_map
 from vid2sim.metrics.trajectory import (
     TrajectoryDistance,
+    carry_by_tets,
     deformation,
     nonrigid_distance,
     rigidly_aligned,
@@ -26,6 +27,7 @@ from vid2sim.metrics.trajectory import (
 __all__ = [
     "ChamferDistance",
     "TrajectoryDistance",
+    "carry_by_tets",
     "chamfer",
     "chamfer_distance",
     "deformation",

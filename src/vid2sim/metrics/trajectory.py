@@ -8,6 +8,7 @@ left out by default).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -94,3 +95,55 @@ def deformation(trajectory: Tensor | np.ndarray, rest: Tensor | np.ndarray, size
         raise ValueError(f"trajectory must be (T, N, 3) and rest (N, 3) with the same N, got {tuple(X.shape)}, "
                          f"{tuple(R.shape)}")
     return trajectory_distance(rigidly_aligned(R.expand_as(X), X), X, size, frames=list(range(len(X)))).per_frame
+
+
+def carry_by_tets(points: Tensor, vertices: Tensor, tets: Tensor, candidates: int = 24) -> tuple[Tensor, Tensor]:
+    """Carry points with a tet mesh's motion: positions and deformation gradients at every frame.
+
+    Each point is bound to one tet of frame 0: the tet that contains it, or, for a point outside the mesh, the
+    one among the ``candidates`` tets with the nearest centroids whose smallest barycentric coordinate is the
+    largest (the tet it is least outside of). It then follows that tet's affine map: x_t = Σ λ_k v_k(t) and
+    F_t = D_t D_0⁻¹ with D the tet's edge matrix.
+
+    Args:
+        points: (N, 3) positions at frame 0.
+        vertices: (T, Nv, 3) the mesh's vertex positions per frame (frame 0 is the binding frame).
+        tets: (Nt, 4) vertex indices, non-degenerate at frame 0.
+        candidates: nearest tets tried per point.
+
+    Returns:
+        x: (T, N, 3) positions; F: (T, N, 3, 3) deformation gradients (identity at frame 0).
+    """
+    from scipy.spatial import cKDTree
+
+    P = torch.as_tensor(points).detach().to(torch.float64)
+    Vt = torch.as_tensor(vertices).detach().to(torch.float64)
+    T = torch.as_tensor(tets).long()
+    if P.ndim != 2 or P.shape[-1] != 3:
+        raise ValueError(f"points must have shape (N, 3), got {tuple(P.shape)}")
+    if Vt.ndim != 3 or Vt.shape[-1] != 3 or T.ndim != 2 or T.shape[-1] != 4 or len(T) == 0:
+        raise ValueError(f"vertices must be (T, Nv, 3) and tets (Nt, 4) with Nt >= 1, got {tuple(Vt.shape)} and "
+                         f"{tuple(T.shape)}")
+    V0 = Vt[0]
+    k = min(candidates, len(T))
+    _, near = cKDTree(V0[T].mean(1).numpy()).query(P.numpy(), k=k)
+    near = torch.as_tensor(near.reshape(len(P), k))
+    best_score = torch.full((len(P),), -math.inf, dtype=torch.float64)
+    best_tet = torch.zeros(len(P), dtype=torch.long)
+    best_bary = torch.zeros(len(P), 4, dtype=torch.float64)
+    for j in range(k):
+        t = T[near[:, j]]
+        a = V0[t[:, 0]]
+        D = torch.stack([V0[t[:, 1]] - a, V0[t[:, 2]] - a, V0[t[:, 3]] - a], -1)
+        lam = torch.linalg.solve(D, (P - a)[..., None])[..., 0]
+        bary = torch.cat([1 - lam.sum(1, keepdim=True), lam], 1)
+        score = bary.min(1).values
+        better = score > best_score
+        best_score = torch.where(better, score, best_score)
+        best_tet = torch.where(better, near[:, j], best_tet)
+        best_bary = torch.where(better[:, None], bary, best_bary)
+    t = T[best_tet]
+    x = (best_bary[None, :, :, None] * Vt[:, t]).sum(2)
+    edges = torch.stack([Vt[:, t[:, q]] - Vt[:, t[:, 0]] for q in (1, 2, 3)], -1)  # (T, N, 3, 3)
+    F = edges @ torch.linalg.inv(edges[0])[None]
+    return x, F
