@@ -58,7 +58,8 @@ def _tiny_reconstruct_config():
     from vid2sim.splats.fitting import FitConfig
 
     return ReconstructConfig(gaussians=FitConfig(iterations=30), points=PointsConfig(resolution=24, num_points=1000),
-                             appearance_iterations=5, handles=3, skinning_iterations=10, num_cubature=60,
+                             appearance_iterations=5, motion_appearance_iterations=5, handles=3,
+                             skinning_iterations=10, num_cubature=60,
                              joint=JointConfig(iterations=2, coarse_log10_E=(4.5, 5.0), validate_every=1, window=2))
 
 

@@ -26,7 +26,8 @@ def test_reconstruct_writes_a_complete_asset(tiny_asset, tiny_scene):
     assert config["joint"]["iterations"] == 2 and config["handles"] == 3
     log = json.loads((tiny_asset / "log.json").read_text())
     assert [r["log10_E"] for r in log["coarse_search"]] == [4.5, 5.0]
-    assert set(log["timings_seconds"]) == {"gaussians", "points", "velocity", "appearance", "networks", "joint"}
+    assert set(log["timings_seconds"]) == {"gaussians", "points", "velocity", "appearance", "networks", "joint",
+                                           "motion_appearance"}
     # the simulator runs in the scene's metric frame: the Gaussians sit where the object is at frame 0
     scene = load_scene(tiny_scene)
     truth = scene.extras["tet_trajectory"]["vertices"][0]
@@ -108,6 +109,35 @@ def test_evaluate_true_motion_scores_the_gaussians_on_the_ground_truths_motion(t
     assert "tet_trajectory" in capsys.readouterr().err
 
 
+def test_motion_appearance_fits_colours_along_the_motion_and_keeps_the_geometry(tiny_asset, tiny_scene):
+    from vid2sim.metrics.images import image_metrics
+    from vid2sim.pipeline.evaluate import render_frames, simulate_gaussians
+    from vid2sim.pipeline.motion_appearance import refine_on_motion
+    from vid2sim.splats.deform import DeformedGaussians
+    from vid2sim.splats.fitting import FitConfig
+
+    asset, scene = load_asset(tiny_asset), load_scene(tiny_scene)
+    frames = simulate_gaussians(asset, 5, progress=False)
+    views, observed = scene.config.observed_views, [0, 1, 2, 3, 4]
+    images = scene.images[views][:, observed].float()
+    cameras = [scene.cameras[v] for v in views]
+    refined, record = refine_on_motion(asset.gaussians, frames, images, cameras, observed, FitConfig(), 60)
+    assert record["iterations"] == 60 and record["loss_last"] < record["loss_first"]
+    for name in ("means", "log_scales", "quats"):  # the geometry stays the simulator's
+        assert torch.equal(getattr(refined, name), getattr(asset.gaussians, name)), name
+    assert not torch.equal(refined.sh, asset.gaussians.sh)
+
+    def score(g):
+        moved = [DeformedGaussians(d.means, d.covars, torch.sigmoid(g.opacity_logits), g.sh) for d in frames]
+        return image_metrics(render_frames(moved, cameras, progress=False), images, layout="VT")["psnr"]
+
+    assert score(refined) > score(asset.gaussians)  # better images along the motion it was fitted on
+    with pytest.raises(ValueError, match="iterations"):
+        refine_on_motion(asset.gaussians, frames, images, cameras, observed, FitConfig(), 0)
+    with pytest.raises(ValueError, match="frame 7"):
+        refine_on_motion(asset.gaussians, frames, images, cameras, [0, 1, 2, 3, 7], FitConfig(), 1)
+
+
 def test_an_interrupted_reconstruction_resumes_after_its_last_finished_stage(tiny_scene, tmp_path, monkeypatch, tiny_config):
     out = tmp_path / "asset"
 
@@ -165,7 +195,8 @@ def test_presets_and_config_errors():
         ReconstructConfig(calibration_nu="three")
     with pytest.raises(ValueError, match="preset"):
         ReconstructConfig.preset("huge")
-    assert reconstruct_module.STAGES == ("gaussians", "points", "velocity", "appearance", "networks", "joint")
+    assert reconstruct_module.STAGES == ("gaussians", "points", "velocity", "appearance", "networks", "joint",
+                                         "motion_appearance")
 
 
 def test_a_drop_that_meets_the_floor_by_frame_1_still_reconstructs(tiny_scene, tmp_path, monkeypatch, tiny_config):

@@ -16,6 +16,9 @@ stage; the asset folder itself appears only when everything is done):
    ``jacobian="neural"``), then moved to the metric frame by its input frame.
 6. ``joint`` — the joint optimisation (:func:`vid2sim.pipeline.joint.joint_optimisation`) from the prior
    material.
+7. ``motion_appearance`` — the Gaussians' colours and opacities refitted on every observed frame along the
+   finished asset's simulated motion (:mod:`vid2sim.pipeline.motion_appearance`): after the bounce the views
+   see sides of the object and a lighting that frame 0 never showed.
 
 **Stage I** (``ReconstructConfig.stage1``, ``--stage1``; off by default while the shipped predictor misses its
 accuracy targets — docs/predictor.md; before ``networks``): the feed-forward predictor
@@ -51,7 +54,7 @@ from vid2sim.physics.solver import SimConfig
 from vid2sim.splats.densify import DensifyConfig
 from vid2sim.splats.fitting import FitConfig
 
-STAGES = ("gaussians", "points", "velocity", "appearance", "networks", "joint")
+STAGES = ("gaussians", "points", "velocity", "appearance", "networks", "joint", "motion_appearance")
 
 
 @dataclass
@@ -72,6 +75,8 @@ class ReconstructConfig:
         jacobian_iterations: data-free Neural Jacobian iterations when ``jacobian="neural"``.
         velocity_frames: at most this many pre-contact frames estimate the initial velocity.
         appearance_iterations: Gaussian refinement steps on the ballistic frames (0: skip).
+        motion_appearance_iterations: steps of the last stage, colours and opacities on all observed frames
+            along the simulated motion (0: skip; the Gaussians of the ballistic frames are kept).
         prior_E, prior_nu, prior_damping: the starting material when Stage I does not run (Stage I replaces the
             first two).
         stage1: run the Stage I predictor (module docstring); False (the default until the shipped predictor
@@ -106,6 +111,7 @@ class ReconstructConfig:
     jacobian_iterations: int = 2000
     velocity_frames: int = 8
     appearance_iterations: int = 300
+    motion_appearance_iterations: int = 300
     prior_E: float = 1e5
     prior_nu: float = 0.3
     prior_damping: float = 0.05
@@ -135,6 +141,9 @@ class ReconstructConfig:
                      "calibration_points"):
             if getattr(self, name) < 1:
                 raise ValueError(f"ReconstructConfig.{name} must be >= 1, got {getattr(self, name)}")
+        for name in ("appearance_iterations", "motion_appearance_iterations"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"ReconstructConfig.{name} must be >= 0, got {getattr(self, name)}")
         if not (self.prior_E > 0 and 0 <= self.prior_nu < 0.5 and self.density > 0):
             raise ValueError("ReconstructConfig needs prior_E > 0, 0 <= prior_nu < 0.5 and density > 0")
 
@@ -376,7 +385,7 @@ def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConf
     # 1. Gaussians ---------------------------------------------------------------------------------------
     ply = work.dir / "gaussians.ply"
     if not work.done("gaussians"):
-        _stage(progress, "[1/6] fitting Gaussians to frame 0")
+        _stage(progress, "[1/7] fitting Gaussians to frame 0")
         t0 = time.perf_counter()
         g = fit_gaussians(images[:, 0], masks[:, 0], cameras, cfg.gaussians, progress=progress)
         save_ply(g, ply)
@@ -386,7 +395,7 @@ def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConf
     # 2. points ------------------------------------------------------------------------------------------
     pts_path = work.dir / "points.pt"
     if not work.done("points"):
-        _stage(progress, "[2/6] filling the object with simulation points")
+        _stage(progress, "[2/7] filling the object with simulation points")
         t0 = time.perf_counter()
         torch.save(asdict(object_points(masks_cpu[:, 0], cameras_cpu, gaussians.to("cpu"), cfg.points)), pts_path)
         work.finish("points", time.perf_counter() - t0)
@@ -397,7 +406,7 @@ def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConf
     # 3. initial velocity --------------------------------------------------------------------------------
     vel_path = work.dir / "velocity.json"
     if not work.done("velocity"):
-        _stage(progress, "[3/6] estimating the initial velocity from the pre-contact frames")
+        _stage(progress, "[3/7] estimating the initial velocity from the pre-contact frames")
         t0 = time.perf_counter()
         gravity = torch.tensor(scene.config.gravity, dtype=torch.float32)
         contact_before_frame_1 = False
@@ -425,7 +434,7 @@ def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConf
         t0 = time.perf_counter()
         K = int(velocity["frames_used"])
         if cfg.appearance_iterations > 0 and K > 1:
-            _stage(progress, f"[4/6] refining the Gaussians on {K} ballistic frames x {len(cameras)} views")
+            _stage(progress, f"[4/7] refining the Gaussians on {K} ballistic frames x {len(cameras)} views")
             views, vmasks, vcams = virtual_views(images[:, :K], masks[:, :K], cameras, velocity["rotations"],
                                                  velocity["translations"])
             refine = dataclasses.replace(cfg.gaussians, iterations=cfg.appearance_iterations, densify_from=0.0,
@@ -464,7 +473,7 @@ def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConf
     jacobian = (NeuralJacobian(num_handles_total=cfg.handles + 1, seed=cfg.seed).to(dev) if cfg.jacobian == "neural"
                 else None)
     if not work.done("networks"):
-        _stage(progress, "[5/6] training the skinning field data-free" +
+        _stage(progress, "[5/7] training the skinning field data-free" +
                (" and the Neural Jacobian" if jacobian is not None else ""))
         t0 = time.perf_counter()
         canonical = obj.canonical(obj.points)
@@ -521,7 +530,7 @@ def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConf
                     stiffness_scale=stiffness)
     joint_path = work.dir / "joint.json"
     if not work.done("joint"):
-        _stage(progress, "[6/6] joint optimisation of the material, initial velocity and networks")
+        _stage(progress, "[6/7] joint optimisation of the material, initial velocity and networks")
         t0 = time.perf_counter()
         result = joint_optimisation(sim, gaussians, Observations(images, cameras), velocity["linear"],
                                     velocity["angular"], velocity["centre"], joint_cfg, progress=progress)
@@ -557,6 +566,25 @@ def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConf
                          "scene_frames": int(scene.images.shape[1]),
                          "volume_m3": obj.volume, "gaussians": gaussians.num,
                          "initial_velocity_estimate": velocity, "validation_loss": result["validation_loss"]})
+    motion_ply = work.dir / "gaussians_motion.ply"
+    if cfg.motion_appearance_iterations > 0:
+        if not work.done("motion_appearance"):
+            from vid2sim.pipeline.evaluate import simulate_gaussians
+            from vid2sim.pipeline.motion_appearance import refine_on_motion
+
+            _stage(progress, f"[7/7] refitting the colours on {len(T)} observed frames along the simulated motion")
+            t0 = time.perf_counter()
+            from vid2sim.splats.deform import DeformedGaussians
+
+            moved = [DeformedGaussians(d.means.to(dev), d.covars.to(dev), d.opacities.to(dev), d.sh.to(dev))
+                     for d in simulate_gaussians(asset, max(T) + 1, progress=False)]
+            refined, record = refine_on_motion(gaussians, moved, images, cameras, list(T), cfg.gaussians,
+                                               cfg.motion_appearance_iterations, seed=cfg.seed, progress=progress)
+            save_ply(refined.to("cpu"), motion_ply)
+            (work.dir / "motion_appearance.json").write_text(json.dumps(record))
+            work.finish("motion_appearance", time.perf_counter() - t0)
+        asset = dataclasses.replace(asset, gaussians=load_ply(motion_ply))
+        asset.extra["motion_appearance"] = json.loads((work.dir / "motion_appearance.json").read_text())
     log = {"timings_seconds": work.timings, "stage1": stage1, "stiffness_calibration": calibration, "coarse_search": result["coarse"],
            "iterations": result["log"]}
     save_asset(asset, out, config=cfg.to_dict(), log=log)
