@@ -259,6 +259,8 @@ def test_cli_rejects_bad_options_with_the_flag_name(tmp_path, capsys):
     assert "--n must be an integer >= 1" in err
     assert main(["bench", "identify", "--workers", "0", "--workdir", str(tmp_path / "w"), "--quiet"]) == 2
     assert "--workers must be >= 1" in capsys.readouterr().err
+    assert main(["bench", "identify", "--nu-sensitivity", "0.7", "--workdir", str(tmp_path / "w"), "--quiet"]) == 2
+    assert "--nu-sensitivity must be a number in [0, 0.5)" in capsys.readouterr().err
 
 
 def test_shape_and_centre_loss_is_blind_to_orientation_and_sees_centre_and_shape():
