@@ -195,6 +195,8 @@ def test_presets_and_config_errors():
         ReconstructConfig(calibration_nu="three")
     with pytest.raises(ValueError, match="preset"):
         ReconstructConfig.preset("huge")
+    with pytest.raises(ValueError, match="motion_appearance_iterations must be >= 0"):
+        ReconstructConfig(motion_appearance_iterations=-1)
     assert reconstruct_module.STAGES == ("gaussians", "points", "velocity", "appearance", "networks", "joint",
                                          "motion_appearance")
 
@@ -212,11 +214,15 @@ def test_a_drop_that_meets_the_floor_by_frame_1_still_reconstructs(tiny_scene, t
         return real(*args, **kwargs)
 
     monkeypatch.setattr(initial_state, "estimate_initial_velocity", early_contact)
-    out = reconstruct(tiny_scene, tmp_path / "asset", tiny_config(), progress=False)
+    config = tiny_config()
+    config.motion_appearance_iterations = 0  # and the last stage switched off
+    out = reconstruct(tiny_scene, tmp_path / "asset", config, progress=False)
     assert calls == [pytest.approx(-0.7), None]  # then frames 0 and 1 without the floor test
     extra = json.loads((out / "asset.json").read_text())["extra"]
     assert extra["initial_velocity_estimate"]["contact_before_frame_1"] is True
     assert extra["initial_velocity_estimate"]["frames_used"] == 2
+    assert "motion_appearance" not in extra
+    assert "motion_appearance" not in json.loads((out / "log.json").read_text())["timings_seconds"]
 
 
 # ---- Stage I in reconstruct -----------------------------------------------------------------------------
