@@ -202,6 +202,11 @@ def test_two_factor_curve_matches_six_modes_better_than_one_factor_and_the_simul
         assert abs(errors["one"][0]) < 1e-6 and abs(errors["two"][0]) < 5e-3
         assert np.sqrt((errors["two"] ** 2).mean()) <= np.sqrt((errors["one"] ** 2).mean()) + 1e-9
     assert two.lam_at(0.45) < two.at(0.45)  # λ carries the locking
+    # on a fine grid towards ν = ½ the fits follow one branch (each starts from the last): the locking grows
+    # smoothly, s rising and s_λ falling
+    fine = stiffness_calibration_curve(field, cubature, volumes, mesh.vertices, mesh.tets,
+                                       (0.3, 0.4, 0.43, 0.46, 0.48, 0.49), factors=2)
+    assert np.all(np.diff(fine.scale) > 0) and np.all(np.diff(fine.lam_scale) < 0)
     sim = Simulator(field, cubature, volumes, Material(2e5, 0.35), [], SimConfig(), stiffness_scale=two)
     mu, lam = sim.lame()
     mu0, lam0 = lame_parameters(2e5, 0.35)
