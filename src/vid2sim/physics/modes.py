@@ -140,12 +140,13 @@ def stiffness_calibration_curve(field, points: Tensor, volumes: Tensor, vertices
     The tets' frequencies come from :func:`vid2sim.physics.tet_modes.tet_frequency_curve` (three sparse
     eigensolves for the whole grid, within 1e-4 of a direct solve per ν).
 
-    With two factors each ν's fit starts from the previous ν's solution (the grid ascends), so the curve
-    follows one branch of the least-squares problem. Started afresh at every ν, a reconstruction's curve
+    With two factors the fits are continued along the grid: a fresh start at the ν nearest 0.3, then each
+    fit starts from its neighbour's solution, up the grid and down it, so the curve follows one branch of
+    the least-squares problem. Started afresh at every ν, a reconstruction's curve
     (small benchmark scene 2) jumped between ν = 0.40 and 0.43 from (s, s_λ) = (0.81, 0.039) to (0.49, 9.75),
-    another local minimum, and back towards (0.53, 1.0) at 0.49; with the continuation it rises smoothly to
-    s = 0.77 and falls to s_λ = 0.035 at 0.49. Below ν ≈ 0.2, λ is small and s_λ is only weakly determined
-    (it can exceed s there); the fits that matter start at ν = 0.3.
+    another local minimum, and back towards (0.53, 1.0) at 0.49; continued from the grid's low end it rose
+    smoothly to s = 0.77 and fell to s_λ = 0.035 at 0.49. Below ν ≈ 0.2, λ is small and s_λ is only weakly determined
+    (it can exceed s there), which is why the continuation starts at 0.3 and not at the grid's low end.
 
     Args: as :func:`stiffness_calibration`; ``nus`` the grid (strictly increasing, in [0, 0.5)); ``factors``
         1 or 2.
@@ -186,9 +187,14 @@ def _two_factor_curve(field, points: Tensor, volumes: Tensor, vertices, tets, nu
     if len(M) < k + 6:
         raise ValueError(f"the subspace has {len(M)} degrees of freedom; the two-factor calibration needs {k + 6}")
     weights = np.array([TWO_FACTOR_LOWEST_WEIGHT] + [1.0] * (k - 1))
-    scales, lam_scales = [], []
-    previous = None  # the last ν's solution: each fit starts from it (continuation along the grid)
-    for nu, ref in zip(nus, reference):
+    n = len(nus)
+    scales, lam_scales = [0.0] * n, [0.0] * n
+    # continuation: a fresh start at the grid's ν nearest 0.3 (where λ's share is well determined), then each
+    # fit starts from its neighbour's solution, up the grid and then down it
+    first = min(range(n), key=lambda i: abs(float(nus[i]) - 0.3))
+    solutions: dict[int, np.ndarray] = {}
+    for i in list(range(first, n)) + list(range(first - 1, -1, -1)):
+        nu, ref = nus[i], reference[i]
         if not (ref > 0).all():
             raise ValueError(f"the tets' lowest elastic frequencies must be positive at nu = {nu}, got {ref}")
         mu, lam = lame_parameters(1.0, float(nu))
@@ -203,10 +209,10 @@ def _two_factor_curve(field, points: Tensor, volumes: Tensor, vertices, tets, nu
                              f"tets' {ref[0]:.3g}: a factor of {(ref[0] / lowest) ** 2:.3g} would be needed, so the "
                              "subspace (or the tet mesh) is degenerate and its stiffness cannot be calibrated")
         start = 2.0 * math.log(ref[0] / lowest)
-        x0 = [start, start] if previous is None else np.clip(previous, -11.9, 11.9)
+        neighbour = solutions.get(i - 1 if i > first else i + 1)
+        x0 = [start, start] if neighbour is None else np.clip(neighbour, -11.9, 11.9)
         fit = least_squares(lambda p: weights * (np.log(frequencies(p)) - np.log(ref)), x0,
                             bounds=([-12.0, -12.0], [12.0, 12.0]))
-        previous = fit.x
-        scales.append(math.exp(fit.x[0]))
-        lam_scales.append(math.exp(fit.x[1]))
+        solutions[i] = fit.x
+        scales[i], lam_scales[i] = math.exp(fit.x[0]), math.exp(fit.x[1])
     return StiffnessCurve(tuple(nus), tuple(scales), tuple(lam_scales))
