@@ -11,9 +11,10 @@ from vid2sim.bench.timing import resolve_device
 
 
 def _sections() -> dict[str, Callable[..., dict[str, Any]]]:
-    from vid2sim.bench import joint_speed, physics_speed, render_speed
+    from vid2sim.bench import joint_speed, modes_speed, physics_speed, render_speed
 
-    return {"physics": physics_speed.run, "render": render_speed.run, "joint": joint_speed.run}
+    return {"physics": physics_speed.run, "render": render_speed.run, "joint": joint_speed.run,
+            "modes": modes_speed.run}
 
 
 def run_speed_benchmark(

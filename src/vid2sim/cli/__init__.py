@@ -484,7 +484,7 @@ def build_parser() -> argparse.ArgumentParser:
     speed.add_argument("--device", default=None, help="torch device (default: cuda if available, else cpu)")
     speed.add_argument(
         "--only", nargs="*", default=None, metavar="SECTION",
-        help="run only these sections (physics, render); default: all",
+        help="run only these sections (physics, render, joint, modes); default: all",
     )
     speed.add_argument("--quick", action="store_true", help="fewer repetitions (for smoke tests)")
     add_threads_option(speed)
