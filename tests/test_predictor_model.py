@@ -341,3 +341,29 @@ def test_training_split_holds_each_video_as_the_model_sees_it(tiny_training_data
         assert torch.equal(split.videos[i], (u * 255).round().clamp(0, 255).to(torch.uint8))
         assert float(split.targets["log10_E"][i]) == float(t["log10_E"])
     release_freed_memory()  # callable any time (a no-op off glibc)
+
+
+def test_decoded_split_is_cached_and_remade_when_its_source_changes(tiny_training_data, tmp_path, monkeypatch):
+    """`_Split.cached` decodes once into a file that later runs read back memory-mapped, equal to a fresh decode;
+    another size (or other shards) decodes again and replaces the file."""
+    from vid2sim.predictor.dataset import TrainingData
+    from vid2sim.predictor.train import _Split
+
+    data = TrainingData(tiny_training_data, "all")
+    path = tmp_path / "split.pt"
+    first = _Split.cached(data, 8, "object", path)
+    assert path.is_file()
+    decodes = []
+    original = _Split.__init__
+    monkeypatch.setattr(_Split, "__init__", lambda self, *a, **k: (decodes.append(a), original(self, *a, **k))[1])
+    again = _Split.cached(data, 8, "object", path)
+    assert decodes == []  # read back, not decoded
+    assert torch.equal(again.videos, first.videos)
+    for k in first.targets:
+        assert torch.equal(again.targets[k], first.targets[k])
+    other = _Split.cached(data, 16, "object", path)
+    assert len(decodes) == 1 and other.videos.shape[-1] == 16
+    assert _Split.cached(TrainingData(tiny_training_data, "train", 0.2, 4), 16, "object", path).videos.shape[0] < len(data)
+    assert len(decodes) == 2
+    path.write_bytes(b"not a torch file")  # torn: decoded again
+    assert torch.equal(_Split.cached(data, 8, "object", path).videos, first.videos) and len(decodes) == 3

@@ -166,6 +166,29 @@ class _Split:
                         "nu": torch.stack(nu) if n else torch.zeros(0),
                         "last_layer": torch.stack(layers) if n else torch.zeros(0, 650)}
 
+    @classmethod
+    def cached(cls, data: TrainingData, size: int | None, framing: str, path: Path) -> "_Split":
+        """The split decoded once and kept in ``path`` (a torch file read memory-mapped on later runs).
+
+        Decoding 20 000 videos takes tens of minutes, and a long training resumes over several sittings. The
+        file records what it was made from (the data folder's shards, the draws, the size and the framing);
+        when any of that differs the split is decoded again and the file replaced.
+        """
+        key = {"shards": list(data.shards), "draws": data.draws, "size": size, "framing": framing,
+               "normalize": data.normalize}
+        if path.is_file():
+            try:
+                stored = torch.load(path, mmap=True, weights_only=True)
+            except (RuntimeError, OSError, ValueError, EOFError):  # torn or foreign: decode again
+                stored = None
+            if stored is not None and stored.get("key") == json.dumps(key):
+                split = cls.__new__(cls)
+                split.videos, split.targets = stored["videos"], stored["targets"]
+                return split
+        split = cls(data, size, framing)
+        _atomic_save({"key": json.dumps(key), "videos": split.videos, "targets": split.targets}, path)
+        return split
+
     def __len__(self) -> int:
         return int(self.videos.shape[0])
 
@@ -412,8 +435,9 @@ def train_predictor(data_folder: str | Path, out: str | Path, config: TrainConfi
         raise ValueError(f"{data_folder}: videos of {data_cfg['frames']} frames, the model takes "
                          f"{cfg.model.num_frames}")
     stats = train_data.label_statistics()
-    train = _Split(train_data, cfg.model.image_size, cfg.model.framing)
-    val = _Split(val_data, cfg.model.image_size, cfg.model.framing)
+    # decoded once into OUT (OUT/split_*.pt, memory-mapped on a resume)
+    train = _Split.cached(train_data, cfg.model.image_size, cfg.model.framing, out / "split_train.pt")
+    val = _Split.cached(val_data, cfg.model.image_size, cfg.model.framing, out / "split_val.pt")
     t_data = time.perf_counter() - t_start
 
     model = PhysicsPredictor(cfg.model)
