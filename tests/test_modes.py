@@ -5,8 +5,9 @@ import math
 import numpy as np
 import pytest
 
-from vid2sim.physics.tet_modes import (lowest_elastic_modes, nested_dissection, quadratic_tet_nodes, reference_mass,
-                                      rigid_modes, tet_frequencies, tet_frequency_curve, tet_stiffness_and_mass)
+from vid2sim.physics.sparse_lu import SymmetricLU, nested_dissection
+from vid2sim.physics.tet_modes import (lowest_elastic_modes, quadratic_tet_nodes, reference_mass, rigid_modes,
+                                      tet_frequencies, tet_frequency_curve, tet_stiffness_and_mass)
 from vid2sim.meshing.tetra import box_tet_mesh
 
 BAR = (2.0, 0.4, 0.4)  # a free 2 m bar of 0.4 m square section; E = ρ = 1, ν = 0.3
@@ -122,13 +123,22 @@ def test_lowest_elastic_modes_match_a_dense_solve():
     assert np.allclose(K @ phi, (M @ phi) * w2, atol=1e-8 * w2.max())
 
 
-def test_nested_dissection_keeps_each_node_s_components_together():
-    K, _, nodes = tet_stiffness_and_mass(*_bar((4, 2, 2)), 1.0, NU, 1.0, order=2)
-    order = nested_dissection(K, len(nodes))
+def test_nested_dissection_keeps_each_node_s_components_together_and_cuts_the_fill():
+    import scipy.sparse.linalg as spla
+
+    K, M, nodes = tet_stiffness_and_mass(*_bar((12, 3, 3)), 1.0, NU, 1.0, order=2)
+    A = (K + M).tocsc()
+    order = nested_dissection(A)
     assert np.array_equal(np.sort(order), np.arange(K.shape[0]))  # a permutation
     assert np.array_equal(order[1::3], order[0::3] + 1) and np.array_equal(order[2::3], order[0::3] + 2)
-    with pytest.raises(ValueError, match="nodes"):
-        nested_dissection(K, len(nodes) + 1)
+    lu = SymmetricLU(A, order)
+    assert lu.positive_definite and not SymmetricLU((K - M).tocsc(), order).positive_definite
+    b = np.random.default_rng(0).standard_normal((A.shape[0], 2))
+    assert np.allclose(A @ lu.solve(b), b, atol=1e-9) and np.allclose(A @ lu.solve(b[:, 0]), b[:, 0], atol=1e-9)
+    natural = spla.splu(A, permc_spec="NATURAL", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+    assert lu.fill < 0.5 * (natural.L.nnz + natural.U.nnz)
+    with pytest.raises(ValueError, match="multiple"):
+        nested_dissection(A[:-1, :-1])
 
 
 def test_bench_speed_modes_section_agrees_with_its_baseline():

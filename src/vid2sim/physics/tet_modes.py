@@ -29,6 +29,8 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from torch import Tensor
 
+from vid2sim.physics.sparse_lu import SymmetricLU, nested_dissection
+
 #: local edges of a tet, in the order of the 10-node element's midpoint nodes 4…9
 TET_EDGES = ((0, 1), (1, 2), (0, 2), (0, 3), (1, 3), (2, 3))
 _QUAD_A, _QUAD_B = 0.5854101966249685, 0.1381966011250105  # 4-point degree-2 rule (barycentric)
@@ -181,32 +183,12 @@ def rigid_modes(nodes: np.ndarray) -> np.ndarray:
     return R
 
 
-def nested_dissection(K: sp.spmatrix, nodes: int) -> np.ndarray:
-    """(3N,) a fill-reducing ordering of K's degrees of freedom: METIS's nested dissection of the node graph.
-
-    The degrees of freedom are node-major (3i, 3i+1, 3i+2), so the node graph is K's pattern on the x
-    components; each node's three components stay together. On a 16 000-tet quadratic mesh (80 000 DOF) a
-    sparse LU in this order factors 15× faster than in SuperLU's own minimum-degree order (docs/benchmarks.md).
-    """
-    import pymetis
-
-    G = sp.csr_matrix(K[0::3, 0::3], copy=True)
-    G.data[:] = 1.0
-    G.setdiag(0.0)
-    G.eliminate_zeros()
-    if G.shape[0] != nodes:
-        raise ValueError(f"K has {G.shape[0]} nodes' x rows, expected {nodes}")
-    order, _ = pymetis.nested_dissection(pymetis.CSRAdjacency(G.indptr, G.indices))
-    order = np.asarray(order, dtype=np.int64)
-    return (3 * order[:, None] + np.arange(3)).ravel()
-
-
 def lowest_elastic_modes(K: sp.spmatrix, M: sp.spmatrix, nodes: np.ndarray, k: int, tol: float = 1e-10,
                          ncv: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The k lowest non-rigid eigenpairs of K φ = ω² M φ for a free body.
 
-    Shift-invert Lanczos (ARPACK) about a small negative shift σ, with one sparse LU of K − σM in
-    nested-dissection order (:func:`nested_dissection`) and the six rigid motions projected out of every
+    Shift-invert Lanczos (ARPACK) about a small negative shift σ, with one sparse LDLᵀ of K − σM in
+    nested-dissection order (:mod:`vid2sim.physics.sparse_lu`) and the six rigid motions projected out of every
     solve (M-orthogonally), so Lanczos spends no vectors on them. Three more pairs than asked are computed,
     so that a degenerate pair of bending modes is not split at the k-th.
 
@@ -229,14 +211,11 @@ def lowest_elastic_modes(K: sp.spmatrix, M: sp.spmatrix, nodes: np.ndarray, k: i
         return x - R @ (G_inv @ (MR.T @ x))
 
     sigma = -1e-3 * float(K.diagonal().mean() / M.diagonal().mean())
-    order = nested_dissection(K, len(nodes))
-    lu = spla.splu(sp.csc_matrix((K - sigma * M)[order][:, order]), permc_spec="NATURAL", diag_pivot_thresh=0.0,
-                   options={"SymmetricMode": True})
+    shifted = K - sigma * M
+    lu = SymmetricLU(shifted, nested_dissection(shifted))
 
     def solve(b: np.ndarray) -> np.ndarray:
-        x = np.empty_like(b, dtype=float)
-        x[order] = lu.solve(np.asarray(b, dtype=float)[order])
-        return deflate(x)
+        return deflate(lu.solve(b))
 
     op = spla.LinearOperator((n, n), matvec=solve, dtype=float)
     start = deflate(np.random.default_rng(0).standard_normal(n))

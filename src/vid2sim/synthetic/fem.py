@@ -51,7 +51,6 @@ from typing import Callable, Sequence
 
 import numpy as np
 import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 import torch
 from torch import Tensor
 from tqdm.auto import tqdm
@@ -73,6 +72,7 @@ from vid2sim.physics.materials import (
     project_tangent_psd,
     stvk_energy_and_pk1,
 )
+from vid2sim.physics.sparse_lu import SymmetricLU, nested_dissection
 
 
 class FEMSolverError(RuntimeError):
@@ -387,6 +387,7 @@ class TetFEM:
         self.config = config
         self.tets = T.astype(np.int64)
         self.order = config.element_order
+        self._orders: dict[int, np.ndarray] = {}  # the Hessian's fill-reducing order per size (_factorize)
         if self.order == 2:
             from vid2sim.physics.tet_modes import quadratic_tet_nodes
 
@@ -727,22 +728,27 @@ class TetFEM:
         return p
 
     def _factorize(self, H: sp.csr_matrix, stats: NewtonStats, exact: bool):
-        """Sparse LU of the symmetric H with a symmetric ordering and diagonal pivoting (an LDLᵀ).
+        """Sparse LDLᵀ of the symmetric H in nested-dissection order (:mod:`vid2sim.physics.sparse_lu`).
 
-        With ``exact`` (H may be indefinite) returns None when H is singular or not positive definite
-        (Sylvester: a pivot ≤ 0); otherwise raises :class:`FEMSolverError` when H is singular.
+        The order depends only on H's pattern, so it is computed once per size (all vertices, or the free
+        ones of a static solve) and reused. With ``exact`` (H may be indefinite) returns None when H is
+        singular or not positive definite (Sylvester: a pivot ≤ 0); otherwise raises :class:`FEMSolverError`
+        when H is singular.
         """
         stats.direct_solves += 1
         # H is symmetric, so its CSR arrays are also its CSC arrays
         Hc = sp.csc_matrix((H.data, H.indices, H.indptr), shape=H.shape)
+        order = self._orders.get(H.shape[0])
+        if order is None:
+            order = self._orders[H.shape[0]] = nested_dissection(Hc)
         try:
-            lu = spla.splu(Hc, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+            lu = SymmetricLU(Hc, order)
         except RuntimeError as err:  # SuperLU: "Factor is exactly singular"
             if exact:
                 return None
             raise FEMSolverError(f"the Newton system is singular ({err}): is part of the mesh unconstrained in "
                                  "a static solve?") from None
-        if exact and not (np.array_equal(lu.perm_r, lu.perm_c) and (lu.U.diagonal() > 0).all()):
+        if exact and not lu.positive_definite:
             return None
         return lu
 
