@@ -138,7 +138,7 @@ def stiffness_calibration_curve(field, points: Tensor, volumes: Tensor, vertices
     term of a few-handle subspace is mostly locking) and the six modes agree to a few percent.
 
     The tets' frequencies come from :func:`vid2sim.physics.tet_modes.tet_frequency_curve` (three sparse
-    eigensolves for the whole grid, within 1e-4 of a direct solve per ν).
+    eigensolves for the whole grid, within 3e-4 of a direct solve per ν).
 
     With two factors the fits are continued along the grid: a fresh start at the ν nearest 0.3, then each
     fit starts from its neighbour's solution, up the grid and down it, so the curve follows one branch of

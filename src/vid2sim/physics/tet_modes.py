@@ -233,7 +233,8 @@ def tet_frequency_curve(vertices: Tensor | np.ndarray, tets: Tensor | np.ndarray
     exactly at ``anchors`` values of ν spread over the range (its ends and middle) and every ν is then solved
     in the span of those modes (a few dozen vectors). The mode shapes change smoothly with ν, so this costs
     ``anchors`` sparse eigensolves instead of one per ν; the frequencies are upper bounds, within 1e-5 of
-    the direct solve on the ``bench identify`` shapes (tested against :func:`tet_frequencies`).
+    the direct solve on the ``bench identify`` shapes (tested against :func:`tet_frequencies`) and within 3e-4
+    on a reconstructed solid's 6 500 tets (six modes, ten ν).
 
     Args:
         poisson_ratios: (n,) values of ν in (−1, 0.5).
@@ -261,8 +262,9 @@ def tet_frequency_curve(vertices: Tensor | np.ndarray, tets: Tensor | np.ndarray
     vectors = [rigid_modes(nodes)]
     for nu in np.unique(np.quantile(nus, np.linspace(0.0, 1.0, anchors))):
         mu, lam = lame(float(nu))
-        # a few more modes than asked: the span then also holds the higher modes that cross below the k-th
-        vectors.append(lowest_elastic_modes((mu * K_mu + lam * K_lam).tocsc(), M, nodes, k + 6)[1])
+        # three more modes than asked: the span then also holds the higher modes that cross below the k-th
+        # (on a reconstructed solid's 6 500 tets: within 2.7e-4 of direct solves at ten ν; 5.3e-3 with none)
+        vectors.append(lowest_elastic_modes((mu * K_mu + lam * K_lam).tocsc(), M, nodes, k + 3)[1])
     u, s, _ = np.linalg.svd(np.concatenate(vectors, axis=1), full_matrices=False)
     Q = u[:, s > 1e-10 * s[0]]  # an orthonormal basis of their span (the rigid modes repeat)
     Km, Kl, Mq = (Q.T @ (A @ Q) for A in (K_mu, K_lam, M))
