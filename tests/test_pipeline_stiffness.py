@@ -50,3 +50,26 @@ def test_calibration_from_samples_matches_the_one_from_a_mesh_of_the_solid():
     assert two["stiffness_scale"] == pytest.approx(curve["scale"][0], rel=1e-9)
     with pytest.raises(ValueError, match="no closed surface"):
         calibrate_stiffness(field, cubature, weights, _bar(3, 4), 0.3)
+
+
+def test_the_tet_reference_runs_in_a_child_process_and_feeds_the_calibration(tmp_path):
+    """TetReferenceJob: the same reference as in this process (fTetWild's meshes differ run to run in their last
+    tets, so to 1 %), written to its file; calibrate_stiffness takes it instead of the points and checks its grid;
+    the child's bad-input error comes back as the same ValueError."""
+    from vid2sim.pipeline.stiffness import TetReferenceJob, tet_reference
+
+    points = _bar(100000, 3).numpy()
+    job = TetReferenceJob(points, tmp_path / "ref.json", nus=(0.3, 0.45), k=6, cells=32)
+    here = tet_reference(points, (0.3, 0.45), 6, cells=32)
+    there = job.result()
+    assert (tmp_path / "ref.json").is_file() and there["nus"] == [0.3, 0.45] and there["k"] == 6
+    assert np.allclose(there["frequencies"], here["frequencies"], rtol=0.01)
+    field = SkinningField(num_handles=4, seed=0).double()
+    cubature = _bar(800, 2)
+    weights = torch.full((800,), float(np.prod(BAR)) / 800, dtype=torch.float64)
+    out = calibrate_stiffness(field, cubature, weights, None, 0.3, nus=(0.3, 0.45), factors=2, reference=there)
+    assert out["tets"] == there["tets"] and out["stiffness_curve"]["nu"] == [0.3, 0.45]
+    with pytest.raises(ValueError, match="computed for nu"):
+        calibrate_stiffness(field, cubature, weights, None, 0.3, nus=(0.3, 0.4), factors=2, reference=there)
+    with pytest.raises(ValueError, match="no closed surface"):
+        TetReferenceJob(np.zeros((3, 3)), tmp_path / "bad.json", nus=(0.3,), k=1).result()

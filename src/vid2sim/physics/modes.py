@@ -122,9 +122,9 @@ TWO_FACTOR_MODES = 6
 TWO_FACTOR_LOWEST_WEIGHT = 10.0
 
 
-def stiffness_calibration_curve(field, points: Tensor, volumes: Tensor, vertices: Tensor | np.ndarray,
-                                tets: Tensor | np.ndarray, nus: tuple[float, ...] = CURVE_NUS, factors: int = 1
-                                ) -> StiffnessCurve:
+def stiffness_calibration_curve(field, points: Tensor, volumes: Tensor, vertices: Tensor | np.ndarray | None,
+                                tets: Tensor | np.ndarray | None, nus: tuple[float, ...] = CURVE_NUS, factors: int = 1,
+                                reference: np.ndarray | None = None) -> StiffnessCurve:
     """The stiffness correction of the subspace at every ν of ``nus`` (``Simulator(stiffness_scale=curve)``).
 
     ``factors=1``: :func:`stiffness_calibration` at each ν, the factor s(ν) on the whole energy that makes the
@@ -149,7 +149,9 @@ def stiffness_calibration_curve(field, points: Tensor, volumes: Tensor, vertices
     (it can exceed s there), which is why the continuation starts at 0.3 and not at the grid's low end.
 
     Args: as :func:`stiffness_calibration`; ``nus`` the grid (strictly increasing, in [0, 0.5)); ``factors``
-        1 or 2.
+        1 or 2; ``reference``: the tets' frequencies at E = ρ = 1 already computed,
+        ``tet_frequency_curve(vertices, tets, nus, k)`` with k = 1 (one factor) or :data:`TWO_FACTOR_MODES`
+        (n, k); the mesh is then not needed.
     Returns:
         a :class:`~vid2sim.physics.stiffness_curve.StiffnessCurve` (s, and s_λ with two factors, interpolated
         between the grid's ν).
@@ -158,9 +160,18 @@ def stiffness_calibration_curve(field, points: Tensor, volumes: Tensor, vertices
 
     if factors not in (1, 2) or isinstance(factors, bool):
         raise ValueError(f"factors must be 1 (one factor on E) or 2 (on mu and lambda), got {factors!r}")
+    k = TWO_FACTOR_MODES if factors == 2 else 1
+    if reference is None:
+        if vertices is None or tets is None:
+            raise ValueError("stiffness_calibration_curve needs the tet mesh (vertices, tets) or its reference frequencies")
+        reference = tet_frequency_curve(vertices, tets, nus, k=k, order=2)
+    reference = np.asarray(reference, dtype=float)
+    if reference.shape != (len(nus), k):
+        raise ValueError(f"the reference frequencies are {reference.shape}; {factors} factor(s) on {len(nus)} values of "
+                         f"nu need ({len(nus)}, {k})")
     if factors == 2:
-        return _two_factor_curve(field, points, volumes, vertices, tets, nus)
-    reference = tet_frequency_curve(vertices, tets, nus, k=1, order=2)[:, 0]
+        return _two_factor_curve(field, points, volumes, reference, nus)
+    reference = reference[:, 0]
     scales = []
     for nu, ref in zip(nus, reference):
         reduced = subspace_frequencies(field, points, volumes, 1.0, float(nu), 1.0, k=1)[0]
@@ -171,15 +182,12 @@ def stiffness_calibration_curve(field, points: Tensor, volumes: Tensor, vertices
     return StiffnessCurve(tuple(nus), tuple(scales))
 
 
-def _two_factor_curve(field, points: Tensor, volumes: Tensor, vertices, tets, nus) -> StiffnessCurve:
-    """:func:`stiffness_calibration_curve` with ``factors=2``."""
+def _two_factor_curve(field, points: Tensor, volumes: Tensor, reference: np.ndarray, nus) -> StiffnessCurve:
+    """:func:`stiffness_calibration_curve` with ``factors=2``; ``reference`` (n, k) the tets' frequencies."""
     from scipy.linalg import eigh
     from scipy.optimize import least_squares
 
-    from vid2sim.physics.tet_modes import tet_frequency_curve
-
     k = TWO_FACTOR_MODES
-    reference = tet_frequency_curve(vertices, tets, nus, k=k, order=2)  # (n, k)
     with torch.no_grad():
         w, dw = field.weights_and_gradients(points)
         K_mu, K_lam, M = (m.double().cpu().numpy() for m in subspace_stiffness_parts(points, w, dw, 1.0, volumes))

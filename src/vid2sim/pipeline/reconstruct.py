@@ -273,6 +273,38 @@ class _Work:
         (self.dir / f"{stage}.done").write_text("")
 
 
+def _calibrated(path: Path, want_curve: bool, want_two: bool) -> bool:
+    """Whether the work folder's stiffness calibration exists and is of the kind asked for."""
+    if not path.is_file():
+        return False
+    curve = json.loads(path.read_text()).get("stiffness_curve")
+    return (bool(curve), bool(curve and curve.get("lam_scale"))) == (want_curve, want_two)
+
+
+def _stored_reference(path: Path, nus: tuple[float, ...], k: int) -> dict | None:
+    """The tet reference a finished :class:`~vid2sim.pipeline.stiffness.TetReferenceJob` left at ``path`` for this
+    grid and k, or None."""
+    if not path.is_file():
+        return None
+    try:
+        stored = json.loads(path.read_text())
+    except json.JSONDecodeError:
+        return None
+    reference = stored.get("reference") if stored.get("ok") else None
+    if reference is None or reference.get("nus") != [float(v) for v in nus] or reference.get("k") != k:
+        return None
+    return reference
+
+
+def _calibration_points(obj, cfg: ReconstructConfig) -> torch.Tensor:
+    """(N, 3) samples of the kept voxels of ``obj`` (:class:`~vid2sim.pipeline.points.ObjectPoints`) that the
+    calibration's reference mesh is made from."""
+    from vid2sim.pipeline.points import sample_in_voxels
+
+    return sample_in_voxels(obj.occupancy, obj.origin.double(), obj.voxel, cfg.calibration_points,
+                            torch.Generator().manual_seed(cfg.seed))
+
+
 def _cpu_state(module: torch.nn.Module) -> dict[str, torch.Tensor]:
     """The module's state dict with CPU tensors (work files and assets load on any device)."""
     return {k: v.detach().cpu() for k, v in module.state_dict().items()}
@@ -354,7 +386,7 @@ def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConf
     from vid2sim.physics import Floor, Gravity, Material, SkinningField, Simulator
     from vid2sim.physics.cubature import sample_cubature
     from vid2sim.physics.external import AREA_CONTACT_STIFFNESS
-    from vid2sim.physics.modes import CURVE_NUS
+    from vid2sim.physics.modes import CURVE_NUS, TWO_FACTOR_MODES
     from vid2sim.physics.neural_jacobian import NeuralJacobian, NeuralJacobianTrainingConfig, train_neural_jacobian
     from vid2sim.physics.skinning_training import SkinningTrainingConfig, train_skinning
     from vid2sim.physics.stiffness_curve import StiffnessCurve
@@ -402,6 +434,21 @@ def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConf
     obj_cpu = ObjectPoints(**torch.load(pts_path))
     obj = dataclasses.replace(obj_cpu, **{k: getattr(obj_cpu, k).to(dev) for k in
                                           ("points", "contact_points", "contact_areas", "centre")})
+
+    # the stiffness calibration's tet reference needs only the interior points: on a ν grid it is computed in a
+    # child process while the velocity, appearance and network stages run, and joined before the joint stage
+    calibration_path = work.dir / "stiffness.json"
+    reference_path = work.dir / "stiffness_reference.json"
+    want_curve = cfg.calibration_nu != "prior"
+    want_two = cfg.calibration_nu == "two_factor"
+    reference_k = TWO_FACTOR_MODES if want_two else 1
+    reference_job = None
+    if cfg.calibrate_stiffness and want_curve and not _calibrated(calibration_path, want_curve, want_two) and \
+            _stored_reference(reference_path, CURVE_NUS, reference_k) is None:
+        from vid2sim.pipeline.stiffness import TetReferenceJob
+
+        reference_job = TetReferenceJob(_calibration_points(obj_cpu, cfg).numpy(), reference_path, nus=CURVE_NUS,
+                                        k=reference_k, cells=cfg.calibration_cells, seed=cfg.seed)
 
     # 3. initial velocity --------------------------------------------------------------------------------
     vel_path = work.dir / "velocity.json"
@@ -496,25 +543,20 @@ def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConf
     density = float(scene.config.metadata.get("density", cfg.density)) if isinstance(
         scene.config.metadata.get("density"), (int, float)) else cfg.density
     idx, weights = sample_cubature(obj.points, cfg.num_cubature, volume=obj.volume, seed=cfg.seed)
-    calibration_path = work.dir / "stiffness.json"
-    want_curve = cfg.calibration_nu != "prior"
-    want_two = cfg.calibration_nu == "two_factor"
-
-    def _kind(stored: dict) -> tuple[bool, bool]:
-        curve = stored.get("stiffness_curve")
-        return bool(curve), bool(curve and curve.get("lam_scale"))
-
-    if cfg.calibrate_stiffness and (not calibration_path.is_file() or (want_curve, want_two) != _kind(
-            json.loads(calibration_path.read_text()))):  # made with another calibration_nu
-        from vid2sim.pipeline.points import sample_in_voxels
+    if cfg.calibrate_stiffness and not _calibrated(calibration_path, want_curve, want_two):
         from vid2sim.pipeline.stiffness import calibrate_stiffness
 
         _stage(progress, "      calibrating the subspace's stiffness against quadratic tets")
-        dense = sample_in_voxels(obj_cpu.occupancy, obj_cpu.origin.double(), obj_cpu.voxel, cfg.calibration_points,
-                                 torch.Generator().manual_seed(cfg.seed))
+        if want_curve:
+            reference = reference_job.result() if reference_job is not None else _stored_reference(
+                reference_path, CURVE_NUS, reference_k)
+            dense = None
+        else:  # one factor at the prior's ν (Stage I may have set it): computed here
+            reference, dense = None, _calibration_points(obj_cpu, cfg)
         calibration = calibrate_stiffness(field, obj.points[idx], weights, dense, prior_nu,
                                           cells=cfg.calibration_cells, seed=cfg.seed,
-                                          nus=CURVE_NUS if want_curve else None, factors=2 if want_two else 1)
+                                          nus=CURVE_NUS if want_curve else None, factors=2 if want_two else 1,
+                                          reference=reference)
         calibration_path.write_text(json.dumps(calibration))
     calibration = (json.loads(calibration_path.read_text()) if cfg.calibrate_stiffness
                    else {"stiffness_scale": 1.0, "stiffness_curve": None})

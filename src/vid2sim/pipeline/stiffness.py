@@ -9,15 +9,19 @@ tets on a mesh of the same solid. A reconstruction has no such mesh; it has inte
    σ = 1.5 cells) and the surface is the level set at half the median density at the points (marching cubes;
    a blurred step is at half its height at the step). The grid is padded, so the surface is closed.
 2. fTetWild tetrahedralizes it (:func:`vid2sim.meshing.tetra.tetrahedralize`).
-3. :func:`vid2sim.physics.modes.stiffness_calibration_curve` compares the two lowest frequencies at a grid
-   of ν (or :func:`~vid2sim.physics.modes.stiffness_calibration` at one ν): the subspace's volumetric locking
-   grows with ν, so the factor is a curve s(ν) (:mod:`vid2sim.physics.stiffness_curve`).
+3. quadratic tets give the continuum's lowest frequencies at a grid of ν (:func:`tet_reference`; in a child
+   process beside the rest of a reconstruction, :class:`TetReferenceJob`);
+4. :func:`vid2sim.physics.modes.stiffness_calibration_curve` compares them with the subspace's (or the lowest
+   one at a single ν): the subspace's volumetric locking grows with ν, so the factor is a curve s(ν)
+   (:mod:`vid2sim.physics.stiffness_curve`).
 """
 
 from __future__ import annotations
 
+import json
 import math
 import time
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -66,15 +70,97 @@ def solid_surface(points: np.ndarray, cells: int = 64, rng: np.random.Generator 
     return verts, faces
 
 
-def calibrate_stiffness(field, cubature: Tensor, weights: Tensor, points: Tensor, poisson_ratio: float,
+def tet_reference(points: np.ndarray, nus: tuple[float, ...], k: int, edge_length: float = 0.08,
+                  cells: int = 64, seed: int = 0) -> dict:
+    """The continuum's side of the calibration: quadratic tets on a mesh of the solid ``points`` fill.
+
+    It needs only the interior samples, not the skinning field, so a reconstruction computes it in a child
+    process while it trains the networks (:class:`TetReferenceJob`).
+
+    Args:
+        points: (N, 3) samples filling the solid (m); nus: the ν grid; k: elastic frequencies per ν.
+        edge_length, cells, seed: as :func:`calibrate_stiffness`.
+    Returns:
+        {"nus": list, "k": k, "frequencies": (len(nus), k) nested list of ω at E = ρ = 1, "tets",
+        "mesh_volume_m3", "seconds"}.
+    Raises:
+        ValueError: no closed surface could be made from the points.
+    """
+    from vid2sim.meshing.tetra import tet_volumes, tetrahedralize
+    from vid2sim.physics.tet_modes import tet_frequency_curve
+
+    t0 = time.perf_counter()
+    P = np.asarray(points, dtype=np.float64)
+    surface = solid_surface(P, cells=cells, rng=np.random.default_rng(seed))
+    if surface is None:
+        raise ValueError(f"no closed surface could be made from the {len(P)} interior points for the stiffness "
+                         "calibration; set ReconstructConfig.calibrate_stiffness=False")
+    mesh = tetrahedralize(surface[0], surface[1], edge_length_fac=edge_length, epsilon=5e-3, name="reconstructed solid")
+    X, T = mesh.vertices.double(), mesh.tets
+    frequencies = tet_frequency_curve(X, T, tuple(float(v) for v in nus), k=k, order=2)
+    return {"nus": [float(v) for v in nus], "k": int(k), "frequencies": frequencies.tolist(), "tets": int(len(T)),
+            "mesh_volume_m3": float(tet_volumes(X, T).abs().sum()), "seconds": time.perf_counter() - t0}
+
+
+def _reference_worker(points: np.ndarray, arguments: dict, path: str) -> None:
+    """Child process of :class:`TetReferenceJob`: :func:`tet_reference` into the JSON file ``path``."""
+    torch.set_num_threads(1)
+    try:
+        out = {"ok": True, "reference": tet_reference(points, **arguments)}
+    except ValueError as exc:  # a bad input (no surface): reported to the parent as the same error
+        out = {"ok": False, "error": str(exc)}
+    tmp = Path(path).with_suffix(".tmp")
+    tmp.write_text(json.dumps(out))
+    tmp.replace(path)
+
+
+class TetReferenceJob:
+    """:func:`tet_reference` running in a child process (spawned, one thread) while the caller goes on.
+
+    The child writes its result to ``path`` (JSON) when it is done, so an interrupted reconstruction that is
+    resumed finds it there. :meth:`result` waits for it.
+
+    Args:
+        points: (N, 3) interior samples; path: where the result is written; arguments: :func:`tet_reference`'s
+            other arguments (nus, k, edge_length, cells, seed).
+    """
+
+    def __init__(self, points: np.ndarray, path: str | Path, **arguments) -> None:
+        import multiprocessing
+
+        self.path = Path(path)
+        self.path.unlink(missing_ok=True)
+        context = multiprocessing.get_context("spawn")
+        self._process = context.Process(target=_reference_worker, daemon=True,
+                                        args=(np.asarray(points, dtype=np.float64), arguments, str(self.path)))
+        self._process.start()
+
+    def result(self) -> dict:
+        """The reference (:func:`tet_reference`'s dict), after waiting for the child.
+
+        Raises:
+            ValueError: the child's (no closed surface). RuntimeError: the child died without a result.
+        """
+        self._process.join()
+        if not self.path.is_file():
+            raise RuntimeError(f"the stiffness calibration's tet reference process ended with code "
+                               f"{self._process.exitcode} and wrote no result to {self.path}")
+        out = json.loads(self.path.read_text())
+        if not out["ok"]:
+            raise ValueError(out["error"])
+        return out["reference"]
+
+
+def calibrate_stiffness(field, cubature: Tensor, weights: Tensor, points: Tensor | None, poisson_ratio: float,
                         edge_length: float = 0.08, cells: int = 64, seed: int = 0,
-                        nus: tuple[float, ...] | None = None, factors: int = 1) -> dict:
+                        nus: tuple[float, ...] | None = None, factors: int = 1, reference: dict | None = None) -> dict:
     """The stiffness factor s of a reconstruction (``Simulator(stiffness_scale=s)``).
 
     Args:
         field: the trained skinning field (its input frame set: it takes world points).
         cubature: (K, 3) the simulator's cubature points; weights: (K,) their volumes.
-        points: (N, 3) the interior samples the subspace was trained on (world frame, m).
+        points: (N, 3) the interior samples the subspace was trained on (world frame, m); unused with
+            ``reference``.
         poisson_ratio: ν at which both frequencies are compared (the prior's).
         nus: a grid of ν: also measure the curve s(ν) there (None: only at ``poisson_ratio``).
         factors: with ``nus``, 1 (one factor on E) or 2 (a factor on μ and one on λ, matched to the six lowest
@@ -82,28 +168,41 @@ def calibrate_stiffness(field, cubature: Tensor, weights: Tensor, points: Tensor
         edge_length: fTetWild's target edge length relative to the bounding-box diagonal (the small preset's
             FEM uses 0.08).
         cells: the surface grid's cells along the longest side.
+        reference: :func:`tet_reference` of the same points already computed, for the grid ``nus`` (or
+            ``(poisson_ratio,)``) and k = :data:`~vid2sim.physics.modes.TWO_FACTOR_MODES` (two factors) or 1.
     Returns:
         {"stiffness_scale": s at ``poisson_ratio``, "stiffness_curve": the curve's ``to_dict()`` or None,
         "tets": mesh size, "mesh_volume_m3", "points_volume_ratio" (the mesh's volume over the weights' sum),
-        "seconds"}.
+        "seconds" (the reference's and the fit's)}.
     Raises:
-        ValueError: no closed surface could be made from the points.
+        ValueError: no closed surface could be made from the points, or ``reference`` is for another grid.
     """
-    from vid2sim.meshing.tetra import tet_volumes, tetrahedralize
-    from vid2sim.physics.modes import stiffness_calibration, stiffness_calibration_curve
+    from vid2sim.physics.modes import TWO_FACTOR_MODES, stiffness_calibration_curve, subspace_frequencies
 
     t0 = time.perf_counter()
-    P = points.detach().double().cpu().numpy()
-    surface = solid_surface(P, cells=cells, rng=np.random.default_rng(seed))
-    if surface is None:
-        raise ValueError(f"no closed surface could be made from the {len(P)} interior points for the stiffness "
-                         "calibration; set ReconstructConfig.calibrate_stiffness=False")
-    mesh = tetrahedralize(surface[0], surface[1], edge_length_fac=edge_length, epsilon=5e-3, name="reconstructed solid")
-    X, T = mesh.vertices.double(), mesh.tets
-    curve = stiffness_calibration_curve(field, cubature, weights, X, T, nus, factors=factors) if nus is not None else None
-    s = curve.at(poisson_ratio) if curve is not None else stiffness_calibration(field, cubature, weights, X, T,
-                                                                                 poisson_ratio)
-    volume = float(tet_volumes(X, T).abs().sum())
+    grid = tuple(float(v) for v in nus) if nus is not None else (float(poisson_ratio),)
+    k = TWO_FACTOR_MODES if nus is not None and factors == 2 else 1
+    if reference is None:
+        if points is None:
+            raise ValueError("calibrate_stiffness needs the interior points or their tet reference")
+        reference = tet_reference(points.detach().double().cpu().numpy(), grid, k, edge_length, cells, seed)
+    if reference["nus"] != list(grid) or reference["k"] != k:
+        raise ValueError(f"the tet reference was computed for nu {reference['nus']} and k = {reference['k']}, "
+                         f"the calibration needs nu {list(grid)} and k = {k}")
+    frequencies = np.asarray(reference["frequencies"], dtype=float)
+    if nus is not None:
+        curve = stiffness_calibration_curve(field, cubature, weights, None, None, grid, factors=factors,
+                                            reference=frequencies)
+        s = curve.at(poisson_ratio)
+    else:
+        curve = None
+        reduced = subspace_frequencies(field, cubature, weights, 1.0, float(poisson_ratio), 1.0, k=1)[0]
+        if not (frequencies[0, 0] > 0 and reduced > 0):
+            raise ValueError(f"the lowest elastic frequencies must be positive, got tets {frequencies[0, 0]}, "
+                             f"subspace {reduced}")
+        s = float((frequencies[0, 0] / reduced) ** 2)
+    volume = reference["mesh_volume_m3"]
     return {"stiffness_scale": s, "stiffness_curve": curve.to_dict() if curve is not None else None,
-            "tets": int(len(T)), "mesh_volume_m3": volume,
-            "points_volume_ratio": volume / float(weights.sum()), "seconds": time.perf_counter() - t0}
+            "tets": reference["tets"], "mesh_volume_m3": volume,
+            "points_volume_ratio": volume / float(weights.sum()),
+            "seconds": reference["seconds"] + time.perf_counter() - t0}
