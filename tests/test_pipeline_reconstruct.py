@@ -36,18 +36,20 @@ def test_reconstruct_writes_a_complete_asset(tiny_asset, tiny_scene):
     sim = asset.simulator()
     states = sim.rollout(asset.initial_state(sim), 3)
     assert all(torch.isfinite(s.z).all() for s in states)
-    assert asset.material["stiffness_scale"] == 1.0 == sim.stiffness_scale  # not calibrated by default
+    assert asset.material["stiffness_scale"] == 1.0 == sim.stiffness_scale  # the tiny config does not calibrate
 
 
 def test_a_calibrated_reconstruction_records_and_uses_its_stiffness_scale(tiny_scene, tmp_path, tiny_config):
     """--calibrate-stiffness: the factor is recorded in material.json and the log, used by the asset's simulator
     and kept under another material (its accuracy: tests/test_pipeline_stiffness.py; 10 skinning iterations
     and 60 cubature points leave this subspace anywhere near the tets)."""
+    assert ReconstructConfig().calibrate_stiffness and ReconstructConfig().calibration_nu == "two_factor"  # defaults
     cfg = tiny_config()
     cfg.calibrate_stiffness, cfg.calibration_cells, cfg.calibration_points = True, 24, 20000
+    cfg.calibration_nu = "curve"
     asset = load_asset(reconstruct(tiny_scene, tmp_path / "asset", cfg, progress=False))
     log = json.loads((tmp_path / "asset" / "log.json").read_text())
-    # the default calibration is the curve s(ν): stored with the asset, used at whatever ν it simulates
+    # the curve s(ν): stored with the asset, used at whatever ν it simulates
     from vid2sim.physics.stiffness_curve import StiffnessCurve
 
     curve, calibration = asset.stiffness(), log["stiffness_calibration"]

@@ -650,12 +650,12 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--calibrate-stiffness", action=argparse.BooleanOptionalAction, default=None,
                      help="scale the simulator's elastic energy so that the skinning subspace's lowest mode vibrates "
                      "at the frequency of quadratic tets on a surface of the reconstructed solid: the subspace is "
-                     "stiffer than the continuum, and the fitted E is then the material's (off by default until "
-                     "measured on the suite; docs/architecture.md)")
+                     "stiffer than the continuum, and the fitted E is then the material's (on by default; "
+                     "--no-calibrate-stiffness turns it off; docs/architecture.md)")
     rec.add_argument("--calibration-nu", choices=["curve", "two_factor", "prior"], default=None,
-                     help="with --calibrate-stiffness: measure the factor over a grid of nu and use s(nu) at the "
-                          "fit's current nu (default; the subspace's locking grows with nu), two factors (on mu and "
-                          "on lambda) per nu matched to the six lowest modes, or one factor at the prior nu")
+                     help="with --calibrate-stiffness: two factors (on mu and on lambda) per nu of a grid, matched to "
+                          "the six lowest modes and used at the fit's current nu (two_factor, the default), one "
+                          "factor s(nu) over that grid (curve), or one factor at the prior nu")
     rec.add_argument("--predictor", metavar="PATH", default=None,
                      help="Stage I checkpoint (default: the one shipped with vid2sim; vid2sim train-predictor)")
     rec.add_argument("--device", default=None, help="torch device of the Gaussian fits, networks and joint "
