@@ -183,6 +183,10 @@ def rigid_modes(nodes: np.ndarray) -> np.ndarray:
     return R
 
 
+#: at most this many degrees of freedom, :func:`lowest_elastic_modes` solves the dense pencil
+DENSE_MODES_LIMIT = 300
+
+
 def lowest_elastic_modes(K: sp.spmatrix, M: sp.spmatrix, nodes: np.ndarray, k: int, tol: float = 1e-10,
                          ncv: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The k lowest non-rigid eigenpairs of K φ = ω² M φ for a free body.
@@ -190,7 +194,8 @@ def lowest_elastic_modes(K: sp.spmatrix, M: sp.spmatrix, nodes: np.ndarray, k: i
     Shift-invert Lanczos (ARPACK) about a small negative shift σ, with one sparse LDLᵀ of K − σM in
     nested-dissection order (:mod:`vid2sim.physics.sparse_lu`) and the six rigid motions projected out of every
     solve (M-orthogonally), so Lanczos spends no vectors on them. Three more pairs than asked are computed,
-    so that a degenerate pair of bending modes is not split at the k-th.
+    so that a degenerate pair of bending modes is not split at the k-th. Meshes of at most
+    :data:`DENSE_MODES_LIMIT` degrees of freedom are solved densely (LAPACK) instead.
 
     Args:
         K, M: (3N, 3N) sparse stiffness and mass, node-major; nodes: (N, 3) node positions.
@@ -203,6 +208,11 @@ def lowest_elastic_modes(K: sp.spmatrix, M: sp.spmatrix, nodes: np.ndarray, k: i
     count = min(k + 3, n - 7)
     if count < k:
         raise ValueError(f"the mesh has {n} degrees of freedom; k = {k} needs at least {k + 7}")
+    if n <= DENSE_MODES_LIMIT:  # a few tets: the dense pencil (Lanczos needs room beyond the rigid modes)
+        from scipy.linalg import eigh
+
+        w2, vectors = eigh(K.toarray(), M.toarray(), subset_by_index=[6, 6 + k - 1])
+        return w2, vectors
     R = rigid_modes(nodes)
     MR = M @ R
     G_inv = np.linalg.inv(R.T @ MR)
