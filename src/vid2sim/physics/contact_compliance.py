@@ -28,25 +28,13 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass
 
 import numpy as np
-import scipy.sparse.linalg as spla
 import torch
 from torch import Tensor
 
 from vid2sim.physics.modes import subspace_stiffness_and_mass
 from vid2sim.physics.reduced import lbs_rows
-from vid2sim.physics.tet_modes import tet_stiffness_and_mass
-
-
-def _rigid_modes(x: np.ndarray) -> np.ndarray:
-    """(3N, 6): the translations and infinitesimal rotations of the points x (N, 3), node-major xyz."""
-    r = x - x.mean(0)
-    modes = np.zeros((3 * len(x), 6))
-    for a in range(3):
-        modes[a::3, a] = 1.0
-        e = np.zeros(3)
-        e[a] = 1.0
-        modes[:, 3 + a] = np.cross(e, r).ravel()
-    return modes
+from vid2sim.physics.sparse_lu import SymmetricLU, nested_dissection
+from vid2sim.physics.tet_modes import rigid_modes, tet_stiffness_and_mass
 
 
 def _relieve(force: np.ndarray, mass: np.ndarray, rigid: np.ndarray) -> np.ndarray:
@@ -72,7 +60,7 @@ class TetCompliance:
     def __init__(self, vertices: Tensor | np.ndarray, tets: Tensor | np.ndarray, poisson_ratio: float) -> None:
         K, self._M, self.nodes = tet_stiffness_and_mass(vertices, tets, 1.0, poisson_ratio, 1.0, order=2)
         nodes = self.nodes
-        self._rigid = _rigid_modes(nodes)
+        self._rigid = rigid_modes(nodes)
         a = int(np.argmin(nodes[:, 0]))
         b = int(np.argmax(np.linalg.norm(nodes - nodes[a], axis=1)))
         ab = nodes[b] - nodes[a]
@@ -81,7 +69,11 @@ class TetCompliance:
         across = np.argsort(np.abs(ab))[:2]  # b moves along ab's main axis only
         fixed = [3 * a, 3 * a + 1, 3 * a + 2, *(3 * b + across), 3 * c + int(np.argmax(np.abs(normal)))]
         self._free = np.setdiff1d(np.arange(3 * len(nodes)), fixed)
-        self._solve = spla.factorized(K[self._free][:, self._free].tocsc())
+        # The full stiffness's nested-dissection order, restricted to the free degrees of freedom.
+        position = np.full(3 * len(nodes), -1)
+        position[self._free] = np.arange(len(self._free))
+        order = position[nested_dissection(K)]
+        self._lu = SymmetricLU(K[self._free][:, self._free], order[order >= 0])
 
     def displacement(self, node_forces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(u, f): the elastic displacement (N, 3) under ``node_forces`` (N, 3) and the relieved load (N, 3)."""
@@ -90,7 +82,7 @@ class TetCompliance:
                              f"got {node_forces.shape}")
         f = _relieve(node_forces.reshape(-1).astype(np.float64), self._M, self._rigid)
         u = np.zeros_like(f)
-        u[self._free] = self._solve(f[self._free])
+        u[self._free] = self._lu.solve(f[self._free])
         return u.reshape(-1, 3), f.reshape(-1, 3)
 
     def compliance(self, node_forces: np.ndarray) -> float:
