@@ -367,3 +367,67 @@ def test_decoded_split_is_cached_and_remade_when_its_source_changes(tiny_trainin
     assert len(decodes) == 2
     path.write_bytes(b"not a torch file")  # torn: decoded again
     assert torch.equal(_Split.cached(data, 8, "object", path).videos, first.videos) and len(decodes) == 3
+
+
+def _tiny_member(seed: int, log_e_mean: float) -> PhysicsPredictor:
+    m = PhysicsPredictor(PredictorConfig(**TINY_MODEL, seed=seed)).eval()
+    m.label_mean_log10_E.fill_(log_e_mean)
+    m.label_std_log10_E.fill_(0.5)
+    return m
+
+
+def test_ensemble_averages_members_and_mirror_images_but_not_the_mirrored_last_layer():
+    from vid2sim.predictor.ensemble import PredictorEnsemble
+
+    a, b = _tiny_member(0, 5.0), _tiny_member(1, 4.5)  # other statistics: the mean is taken in label units
+    x = torch.randn(2, 4, 3, 16, 16)
+    with torch.no_grad():
+        ys = [m.unstandardise(m(v)) for m in (a, b) for v in (x, x.flip(-1))]
+        ens = PredictorEnsemble([a, b], mirror=True)
+        y = ens.unstandardise(ens(x))
+        plain = PredictorEnsemble([a, b], mirror=False)
+        yp = plain.unstandardise(plain(x))
+    for k in ("log10_E", "nu"):
+        torch.testing.assert_close(y[k], sum(v[k] for v in ys) / 4)
+        torch.testing.assert_close(yp[k], (ys[0][k] + ys[2][k]) / 2)
+    torch.testing.assert_close(y["last_layer"], (ys[0]["last_layer"] + ys[2]["last_layer"]) / 2)
+    assert ens.image_size == 16 and ens.num_frames == 4 and ens.label_statistics()["log10_E"]["mean"] == 5.0
+    one = predict_video(ens, x[0])
+    assert one["log10_E"] == pytest.approx(float(y["log10_E"][0]), abs=1e-5) and 0 <= one["nu"] <= 0.49
+    with pytest.raises(ValueError, match="member 1 has frame count 8"):
+        PredictorEnsemble([a, PhysicsPredictor(PredictorConfig(**{**TINY_MODEL, "num_frames": 8}))])
+    with pytest.raises(ValueError, match="at least one"):
+        PredictorEnsemble([])
+
+
+def test_ensemble_checkpoint_round_trip_scores_on_the_members_validation_split(tiny_training_data, tmp_path,
+                                                                                capsys):
+    from vid2sim.predictor.ensemble import ENSEMBLE_FORMAT, PredictorEnsemble
+
+    split = {"val_fraction": 0.2, "split_seed": 4}
+    for i in range(2):
+        save_predictor(_tiny_member(i, 5.0), tmp_path / f"m{i}.pt", half=True, train_config=split)
+    save_predictor(_tiny_member(2, 5.0), tmp_path / "other.pt", train_config={"val_fraction": 0.1, "split_seed": 0})
+    members = [str(tmp_path / f"m{i}.pt") for i in range(2)]
+    assert main(["ensemble-predictors", str(tmp_path / "e.pt"), *members, "--val-data", str(tiny_training_data),
+                 "--threads", "1"]) == 0
+    assert "2 networks, mirroring on" in capsys.readouterr().out
+    payload = read_checkpoint(tmp_path / "e.pt")
+    assert payload["format"] == ENSEMBLE_FORMAT and payload["mirror"] is True and len(payload["members"]) == 2
+    ens = load_predictor(tmp_path / "e.pt")
+    assert isinstance(ens, PredictorEnsemble) and not ens.training
+    direct = PredictorEnsemble([load_predictor(m) for m in members])
+    x = torch.randn(1, 4, 3, 16, 16)
+    torch.testing.assert_close(ens(x)["log10_E"], direct(x)["log10_E"])
+    # the stored figures are the ensemble's on the held-out objects, as eval-predictor scores them
+    scored = evaluate_predictor(tmp_path / "e.pt", tiny_training_data, "val", **split)
+    assert ens.metrics["mae_log10_E"] == pytest.approx(scored["mae_log10_E"])
+    assert ens.metrics["val_samples"] == scored["samples"] > 0
+    assert not list(tmp_path.glob(".*"))  # no temporary file left behind
+    for bad, message in (([str(tmp_path / "x.pt"), members[0], str(tmp_path / "other.pt"), "--val-data",
+                           str(tiny_training_data)], "different (or unrecorded) validation splits"),
+                         ([str(tmp_path / "x.pt"), str(tmp_path / "e.pt")], "already an ensemble"),
+                         ([str(tmp_path / "x.pt"), str(tmp_path / "none.pt")], "no such predictor checkpoint")):
+        assert main(["ensemble-predictors", *bad]) == 2
+        assert message in capsys.readouterr().err
+    assert not (tmp_path / "x.pt").exists()

@@ -179,7 +179,30 @@ def _side(v: Any) -> int:
     return int(v[0]) if isinstance(v, (tuple, list)) else int(v)
 
 
-class PhysicsPredictor(nn.Module):
+class LabelPredictor(nn.Module):
+    """What inference needs of a Stage I model: ``forward`` (standardised outputs), ``unstandardise`` and
+    :meth:`predict` in label units. :class:`PhysicsPredictor` is one network;
+    :class:`~vid2sim.predictor.ensemble.PredictorEnsemble` several."""
+
+    def unstandardise(self, z: dict[str, Tensor]) -> dict[str, Tensor]:
+        raise NotImplementedError
+
+    def label_statistics(self) -> dict[str, dict[str, Tensor]]:
+        """The standardisation in use: {"log10_E" | "nu": {"mean": (), "std": ()}, "last_layer": {"mean": (650,),
+        "std": (650,)}} in label units."""
+        raise NotImplementedError
+
+    @torch.no_grad()
+    def predict(self, video: Tensor) -> dict[str, Tensor]:
+        """Labels of ``video`` (B, T, 3, H, W) or (T, 3, H, W): {"log10_E", "nu", "last_layer"} (batch kept as
+        given), ν clamped to [0, 0.49] (the joint stage's default bounds)."""
+        single = video.ndim == 4
+        out = self.unstandardise(self(video[None] if single else video))
+        out["nu"] = out["nu"].clamp(0.0, 0.49)
+        return {k: v[0] for k, v in out.items()} if single else out
+
+
+class PhysicsPredictor(LabelPredictor):
     """Video → (log10 E, ν, last layer) (module docstring).
 
     Args:
@@ -212,6 +235,13 @@ class PhysicsPredictor(nn.Module):
             getattr(self, f"label_mean_{name}").copy_(mean)
             getattr(self, f"label_std_{name}").copy_(torch.where(std > 1e-8, std, torch.ones_like(std)))
 
+    def label_statistics(self) -> dict[str, dict[str, Tensor]]:
+        stats = {k: {"mean": getattr(self, f"label_mean_{k}"), "std": getattr(self, f"label_std_{k}")}
+                 for k in ("log10_E", "nu", "last_layer")}
+        for k in ("log10_E", "nu"):
+            stats[k] = {"mean": stats[k]["mean"][0], "std": stats[k]["std"][0]}
+        return stats
+
     def features(self, video: Tensor) -> Tensor:
         """(B, width) mean-pooled last hidden states of ``video`` (B, T, 3, H, W), ImageNet-normalised."""
         if video.ndim != 5 or video.shape[2] != 3:
@@ -237,14 +267,6 @@ class PhysicsPredictor(nn.Module):
         """Labels → standardised values (the inverse of :meth:`unstandardise`)."""
         return {k: (y[k] - getattr(self, f"label_mean_{k}")) / getattr(self, f"label_std_{k}") for k in y}
 
-    @torch.no_grad()
-    def predict(self, video: Tensor) -> dict[str, Tensor]:
-        """Labels of ``video`` (B, T, 3, H, W) or (T, 3, H, W): {"log10_E", "nu", "last_layer"} (batch kept as
-        given), ν clamped to [0, 0.49] (the joint stage's default bounds)."""
-        single = video.ndim == 4
-        out = self.unstandardise(self(video[None] if single else video))
-        out["nu"] = out["nu"].clamp(0.0, 0.49)
-        return {k: v[0] for k, v in out.items()} if single else out
 
 
 @dataclass

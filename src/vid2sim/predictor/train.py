@@ -37,7 +37,7 @@ import numpy as np
 import torch
 
 from vid2sim.predictor.dataset import IMAGENET_MEAN, IMAGENET_STD, TrainingData
-from vid2sim.predictor.model import LossWeights, PhysicsPredictor, PredictorConfig, predictor_loss
+from vid2sim.predictor.model import LabelPredictor, LossWeights, PhysicsPredictor, PredictorConfig, predictor_loss
 
 CHECKPOINT_FORMAT = "vid2sim-predictor/1"
 
@@ -218,7 +218,7 @@ def normalise_video(frames: torch.Tensor) -> torch.Tensor:
 # ---- evaluation -----------------------------------------------------------------------------------------
 
 @torch.no_grad()
-def evaluate(model: PhysicsPredictor, split: _Split, weights: LossWeights, batch_size: int = 16) -> dict[str, float]:
+def evaluate(model: LabelPredictor, split: _Split, weights: LossWeights, batch_size: int = 16) -> dict[str, float]:
     """Validation figures of ``model`` on ``split``: loss, MAE of log10 E and ν (label units), MSE of the
     standardised last layer."""
     model.eval()
@@ -300,9 +300,7 @@ def evaluate_predictor(path: str | Path, data_folder: str | Path, split: str = "
     part = _Split(data, model.image_size, model.config.framing)
     with torch.no_grad():
         figures = evaluate(model, part, LossWeights())
-    stats = {k: {"mean": getattr(model, f"label_mean_{k}"), "std": getattr(model, f"label_std_{k}")}
-             for k in ("log10_E", "nu", "last_layer")}
-    stats["log10_E"]["mean"], stats["nu"]["mean"] = stats["log10_E"]["mean"][0], stats["nu"]["mean"][0]
+    stats = model.label_statistics()
     base = constant_baselines(stats, part)
     return {"checkpoint": str(path), "data": str(data_folder), "split": split, "framing": model.config.framing,
             **figures, **{f"baseline_{k}": v for k, v in base.items()}, "seconds": time.perf_counter() - t0}
@@ -350,23 +348,40 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"predictor checkpoint {path} does not exist")
+    from vid2sim.predictor.ensemble import ENSEMBLE_FORMAT
+
     payload = torch.load(path, map_location="cpu", weights_only=True)
-    if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
-        raise ValueError(f"{path} is not a vid2sim predictor checkpoint (format {CHECKPOINT_FORMAT})")
+    if not isinstance(payload, dict) or payload.get("format") not in (CHECKPOINT_FORMAT, ENSEMBLE_FORMAT):
+        raise ValueError(f"{path} is not a vid2sim predictor checkpoint (format {CHECKPOINT_FORMAT} or "
+                         f"{ENSEMBLE_FORMAT})")
     return payload
 
 
-def load_predictor(path: str | Path) -> PhysicsPredictor:
-    """The :class:`PhysicsPredictor` stored at ``path`` (float32, CPU, eval mode), with the checkpoint's
-    ``metrics`` and ``data_config`` as attributes of the same names."""
-    payload = read_checkpoint(path)
+def model_from_payload(payload: dict[str, Any]) -> PhysicsPredictor:
+    """The network of a single-network checkpoint dict (float32, CPU, eval mode)."""
     cfg = dict(payload["config"])
     cfg.setdefault("framing", "full")  # checkpoints made before the object framing existed
     model = PhysicsPredictor(PredictorConfig(**cfg), backbone_config=payload["backbone_config"])
     model.load_state_dict({k: v.float() if v.is_floating_point() else v for k, v in payload["state_dict"].items()})
-    model.eval()
+    return model.eval()
+
+
+def load_predictor(path: str | Path) -> LabelPredictor:
+    """The model stored at ``path`` — a :class:`PhysicsPredictor`, or a
+    :class:`~vid2sim.predictor.ensemble.PredictorEnsemble` for an ensemble checkpoint — (float32, CPU, eval
+    mode), with the checkpoint's ``metrics`` and ``data_config`` (an ensemble's: its first member's) as
+    attributes of the same names."""
+    from vid2sim.predictor.ensemble import ENSEMBLE_FORMAT, PredictorEnsemble
+
+    payload = read_checkpoint(path)
+    if payload["format"] == ENSEMBLE_FORMAT:
+        model: LabelPredictor = PredictorEnsemble([model_from_payload(m) for m in payload["members"]],
+                                                  mirror=payload["mirror"]).eval()
+        data_config = payload["members"][0].get("data_config")
+    else:
+        model, data_config = model_from_payload(payload), payload.get("data_config")
     model.metrics = payload.get("metrics")
-    model.data_config = payload.get("data_config")
+    model.data_config = data_config
     return model
 
 
