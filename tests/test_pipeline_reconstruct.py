@@ -1,6 +1,7 @@
 """`vid2sim reconstruct` and `vid2sim evaluate` end to end on a tiny synthetic scene: the asset folder, resuming
 an interrupted run, clear errors for bad input, and the evaluation report."""
 
+import dataclasses
 import json
 import shutil
 
@@ -111,33 +112,58 @@ def test_evaluate_true_motion_scores_the_gaussians_on_the_ground_truths_motion(t
     assert "tet_trajectory" in capsys.readouterr().err
 
 
-def test_motion_appearance_fits_colours_along_the_motion_and_keeps_the_geometry(tiny_asset, tiny_scene):
+def test_motion_appearance_fits_the_gaussians_through_the_motion(tiny_asset, tiny_scene):
     from vid2sim.metrics.images import image_metrics
     from vid2sim.pipeline.evaluate import render_frames, simulate_gaussians
-    from vid2sim.pipeline.motion_appearance import refine_on_motion
-    from vid2sim.splats.deform import DeformedGaussians
+    from vid2sim.pipeline.motion_appearance import SkinnedMotion, refine_on_motion
     from vid2sim.splats.fitting import FitConfig
 
     asset, scene = load_asset(tiny_asset), load_scene(tiny_scene)
-    frames = simulate_gaussians(asset, 5, progress=False)
+    motion = SkinnedMotion.of_asset(asset, 5)
+    # the motion carries the asset's own Gaussians exactly as the evaluation's simulation does
+    for t, d in enumerate(simulate_gaussians(asset, 5, progress=False)):
+        c = motion.carry(asset.gaussians, t)
+        assert torch.allclose(c.means, d.means, atol=1e-6) and torch.allclose(c.covars, d.covars, atol=1e-9)
     views, observed = scene.config.observed_views, [0, 1, 2, 3, 4]
     images = scene.images[views][:, observed].float()
     cameras = [scene.cameras[v] for v in views]
-    refined, record = refine_on_motion(asset.gaussians, frames, images, cameras, observed, FitConfig(), 60)
-    assert record["iterations"] == 60 and record["loss_last"] < record["loss_first"]
-    for name in ("means", "log_scales", "quats"):  # the geometry stays the simulator's
-        assert torch.equal(getattr(refined, name), getattr(asset.gaussians, name)), name
-    assert not torch.equal(refined.sh, asset.gaussians.sh)
 
     def score(g):
-        moved = [DeformedGaussians(d.means, d.covars, torch.sigmoid(g.opacity_logits), g.sh) for d in frames]
-        return image_metrics(render_frames(moved, cameras, progress=False), images, layout="VT")["psnr"]
+        return image_metrics(render_frames([motion.carry(g, t) for t in observed], cameras, progress=False), images,
+                             layout="VT")["psnr"]
 
-    assert score(refined) > score(asset.gaussians)  # better images along the motion it was fitted on
+    colours, record = refine_on_motion(asset.gaussians, motion, images, cameras, observed, FitConfig(), 60,
+                                       geometry=False)
+    assert record["iterations"] == 60 and not record["geometry"] and record["loss_last"] < record["loss_first"]
+    for name in ("means", "log_scales", "quats"):  # colours only: the geometry stays as it was
+        assert torch.equal(getattr(colours, name), getattr(asset.gaussians, name)), name
+    assert not torch.equal(colours.sh, asset.gaussians.sh)
+    full, record = refine_on_motion(asset.gaussians, motion, images, cameras, observed, FitConfig(), 60)
+    assert record["geometry"] and full.num == asset.gaussians.num
+    for name in ("means", "log_scales", "quats", "sh", "opacity_logits"):
+        assert not torch.equal(getattr(full, name), getattr(asset.gaussians, name)), name
+    assert score(full) > score(asset.gaussians) and score(colours) > score(asset.gaussians)
+    # a centre that moves is carried by the skinning weights at its new place
+    moved = dataclasses.replace(asset.gaussians, means=asset.gaussians.means + 0.01)
+    sim = asset.simulator()
+    X = moved.means.to(motion.states.dtype)
+    from vid2sim.physics.skinning import deform
+
+    assert torch.allclose(motion.carry(moved, 4).means, deform(X, sim.field(X), motion.states[4]).to(X.dtype),
+                          atol=1e-6)
+    # its gradient to the rest-frame centres is the exact dx/dX = F (autograd through the field as reference)
+    probe = torch.randn(X.shape, dtype=X.dtype, generator=torch.Generator().manual_seed(0))
+    Xg = X.clone().requires_grad_(True)
+    (deform(Xg, sim.field(Xg), motion.states[4]) * probe).sum().backward()
+    m = moved.means.clone().requires_grad_(True)
+    (motion.carry(dataclasses.replace(moved, means=m), 4).means * probe.to(m.dtype)).sum().backward()
+    assert torch.allclose(m.grad.to(Xg.dtype), Xg.grad, rtol=1e-4, atol=1e-5)
     with pytest.raises(ValueError, match="iterations"):
-        refine_on_motion(asset.gaussians, frames, images, cameras, observed, FitConfig(), 0)
+        refine_on_motion(asset.gaussians, motion, images, cameras, observed, FitConfig(), 0)
     with pytest.raises(ValueError, match="frame 7"):
-        refine_on_motion(asset.gaussians, frames, images, cameras, [0, 1, 2, 3, 7], FitConfig(), 1)
+        refine_on_motion(asset.gaussians, motion, images, cameras, [0, 1, 2, 3, 7], FitConfig(), 1)
+    with pytest.raises(ValueError, match="frame 5"):
+        motion.carry(asset.gaussians, 5)
 
 
 def test_an_interrupted_reconstruction_resumes_after_its_last_finished_stage(tiny_scene, tmp_path, monkeypatch, tiny_config):

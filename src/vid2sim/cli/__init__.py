@@ -355,6 +355,8 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
         overrides["calibrate_stiffness"] = args.calibrate_stiffness
     if args.calibration_nu is not None:
         overrides["calibration_nu"] = args.calibration_nu
+    if args.motion_geometry is not None:
+        overrides["motion_appearance_geometry"] = args.motion_geometry
     if args.predictor is not None:
         if not Path(args.predictor).is_file():
             raise UserError(f"--predictor {args.predictor}: no such checkpoint file (train one with "
@@ -656,6 +658,10 @@ def build_parser() -> argparse.ArgumentParser:
                      help="with --calibrate-stiffness: two factors (on mu and on lambda) per nu of a grid, matched to "
                           "the six lowest modes and used at the fit's current nu (two_factor, the default), one "
                           "factor s(nu) over that grid (curve), or one factor at the prior nu")
+    rec.add_argument("--motion-geometry", action=argparse.BooleanOptionalAction, default=None,
+                     help="the last stage fits the Gaussians' rest-frame centres, scales and rotations as well as "
+                     "their colours and opacities through the simulated motion (on by default; "
+                     "--no-motion-geometry: colours and opacities only)")
     rec.add_argument("--predictor", metavar="PATH", default=None,
                      help="Stage I checkpoint (default: the one shipped with vid2sim; vid2sim train-predictor)")
     rec.add_argument("--device", default=None, help="torch device of the Gaussian fits, networks and joint "

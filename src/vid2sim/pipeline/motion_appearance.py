@@ -1,4 +1,4 @@
-"""The Gaussians' colours and opacities refitted along the simulated motion (the reconstruction's last stage).
+"""The Gaussians refitted along the simulated motion (the reconstruction's last stage).
 
 The Gaussians are fitted to frame 0 and refined on the ballistic frames, where the object moves rigidly. After
 the first bounce the object turns, and the observed views see it in poses frame 0 never showed:
@@ -10,48 +10,123 @@ the first bounce the object turns, and the observed views see it in poses frame 
 
 Measured on four small benchmark scenes with ``vid2sim evaluate --true-motion``: without this stage, even moved
 by the ground truth's own motion the assets' Gaussians reach only 24.5 dB on the observed frames, so no
-dynamics could do better than that (26.7 dB with it; the simulated motion goes from 22.4 to 24.1 dB, the future
-frames from 18.7 to 20.3, the novel views from 18.5 to 20.7). This stage fixes what it can: with the means and covariances given by
-the simulation of the finished asset (no gradient to the physics), the colours (SH) and opacities are fitted
-to every observed frame and view with 3DGS's photometric loss and learning rates
-(:class:`~vid2sim.splats.fitting.FitConfig`). Positions and shapes stay the simulator's.
+dynamics could do better than that. This stage fixes what it can. The finished asset is simulated once (no
+gradient to the physics: material, velocity and networks stay as the joint optimisation left them), and the
+Gaussians in the rest frame are fitted to every observed frame and view *through* that motion with 3DGS's
+photometric loss and learning rates (:class:`~vid2sim.splats.fitting.FitConfig`): colours (SH) and opacities,
+and by default (``geometry=True``) also their rest-frame centres, scales and rotations. A centre that moves is
+carried by the skinning field at its new place, exactly as the simulator will carry it later
+(:class:`SkinnedMotion`), so the refitted asset renders the motion it was fitted on.
 """
 
 from __future__ import annotations
 
+import copy
+from dataclasses import dataclass, replace
 from typing import Any, Sequence
 
 import torch
 from torch import Tensor
 
 
-def refine_on_motion(gaussians: Any, frames: Sequence[Any], images: Tensor, cameras: Sequence[Any],
-                     frame_ids: Sequence[int], fit: Any, iterations: int, seed: int = 0,
+@dataclass
+class SkinnedMotion:
+    """A simulated motion that can carry any Gaussians: frozen copies of the skinning field (and Neural
+    Jacobian), and the reduced state of every frame.
+
+    Attributes:
+        field: the skinning field, world points (N, 3) → weights (N, H); its parameters do not take gradients.
+        jacobian: the Neural Jacobian (N, 3) → (N, 9, 12H), or None for the closed-form dF/dz.
+        states: (T, 12H) the reduced state z of frames 0 … T−1.
+    """
+
+    field: Any
+    jacobian: Any | None
+    states: Tensor
+
+    @classmethod
+    def of_simulator(cls, sim: Any, states: Sequence[Any]) -> "SkinnedMotion":
+        """From a :class:`~vid2sim.physics.solver.Simulator` and its states (``.z``: (12H,)), one per frame."""
+        field = copy.deepcopy(sim.field).requires_grad_(False)
+        jac = copy.deepcopy(sim.jacobian).requires_grad_(False) if sim.use_neural_jacobian else None
+        return cls(field, jac, torch.stack([s.z.detach() for s in states]))
+
+    @classmethod
+    def of_asset(cls, asset: Any, num_frames: int, device: torch.device | str = "cpu") -> "SkinnedMotion":
+        """The asset's captured drop over ``num_frames`` ≥ 1 frames (frame 0: its initial state), on ``device``."""
+        if num_frames < 1:
+            raise ValueError(f"SkinnedMotion.of_asset: num_frames must be >= 1, got {num_frames}")
+        sim = asset.simulator()
+        with torch.no_grad():
+            start = asset.initial_state(sim)
+            states = [start] + sim.rollout(start, num_frames - 1, progress=False)
+        return cls.of_simulator(sim, states).to(device)
+
+    def to(self, device: torch.device | str) -> "SkinnedMotion":
+        return SkinnedMotion(self.field.to(device), None if self.jacobian is None else self.jacobian.to(device),
+                             self.states.to(device))
+
+    @property
+    def num_frames(self) -> int:
+        return int(self.states.shape[0])
+
+    def carry(self, gaussians: Any, t: int) -> Any:
+        """The rest-frame ``gaussians`` (a :class:`~vid2sim.splats.gaussians.Gaussians`, N of them) at frame t:
+        a :class:`~vid2sim.splats.deform.DeformedGaussians`.
+
+        The centres are carried by the skinning weights at their current place, exactly as the simulator carries
+        them. It is differentiable with respect to the Gaussians' parameters, with one simplification in the
+        gradient only: a centre's move reaches its deformed centre through F = ∂x/∂X (exact), but not its
+        covariance through the change of F along the move (a second-order effect that would cost a
+        differentiation through the field's own gradient at every step).
+        """
+        from vid2sim.physics.skinning import deform, deformation_gradient, gradient_basis
+        from vid2sim.splats.deform import deform_gaussians
+
+        if not 0 <= t < self.num_frames:
+            raise ValueError(f"SkinnedMotion.carry: frame {t} asked, the motion has {self.num_frames} frames")
+        z = self.states[t]
+        X = gaussians.means.to(z.dtype)
+        with torch.no_grad():
+            if self.jacobian is None:
+                w, dw = self.field.weights_and_gradients(X)
+                F = deformation_gradient(gradient_basis(X, w, dw), z)
+            else:
+                w = self.field(X)
+                F = torch.eye(3, dtype=z.dtype, device=z.device) + (self.jacobian(X) @ z).reshape(-1, 3, 3)
+            x = deform(X, w, z)
+        if X.requires_grad:  # value x, gradient Fᵀ ∂L/∂x to the rest-frame centre
+            x = x + (F @ (X - X.detach())[:, :, None])[..., 0]
+        dt = gaussians.means.dtype
+        return deform_gaussians(gaussians, x.to(dt), F.to(dt))
+
+
+def refine_on_motion(gaussians: Any, motion: SkinnedMotion, images: Tensor, cameras: Sequence[Any],
+                     frame_ids: Sequence[int], fit: Any, iterations: int, geometry: bool = True, seed: int = 0,
                      progress: bool = False) -> tuple[Any, dict]:
-    """Fit the colours and opacities of ``gaussians`` to the observed frames along a given motion.
+    """Fit ``gaussians`` to the observed frames along a given motion.
 
     Args:
-        gaussians: the asset's :class:`~vid2sim.splats.gaussians.Gaussians` (N of them).
-        frames: per frame t of the video, the Gaussians as the simulation deforms them
-            (:class:`~vid2sim.splats.deform.DeformedGaussians`, N each; their colours and opacities are ignored).
+        gaussians: the asset's rest-frame :class:`~vid2sim.splats.gaussians.Gaussians` (N of them).
+        motion: the simulated motion (:class:`SkinnedMotion`) that carries them to every frame.
         images: (V, T, H, W, 3) observed images in [0, 1] (views × frames, the frames of ``frame_ids``).
         cameras: the V cameras.
-        frame_ids: the video frame of each of the T image columns (indices into ``frames``).
-        fit: a :class:`~vid2sim.splats.fitting.FitConfig`: its ``lambda_dssim``, ``lr_sh_dc``, ``lr_sh_rest``,
-            ``lr_opacity`` and ``views_per_step`` are used.
+        frame_ids: the video frame of each of the T image columns (indices into the motion's frames).
+        fit: a :class:`~vid2sim.splats.fitting.FitConfig`: its ``lambda_dssim``, learning rates and
+            ``views_per_step`` are used. Centres move at the constant rate ``lr_means`` × the cameras' extent
+            (:func:`~vid2sim.splats.fitting.scene_extent`), 3DGS's initial rate.
         iterations: optimisation steps; each renders one random observed frame in ``views_per_step`` views.
+        geometry: also fit the centres, scales and rotations (default); False fits colours and opacities only.
         seed: the frame and view draws.
         progress: a tqdm bar.
 
     Returns:
-        (the Gaussians with the refitted ``sh`` and ``opacity_logits``, the rest unchanged; {"loss_first",
-        "loss_last": means of the first and last 10 % of the steps' losses, "iterations"}).
+        (the refitted Gaussians, same count N; {"iterations", "geometry", "loss_first", "loss_last": means of the
+        first and last 10 % of the steps' losses}).
     """
-    from dataclasses import replace
-
     from tqdm.auto import tqdm
 
-    from vid2sim.splats.deform import DeformedGaussians
+    from vid2sim.splats.fitting import scene_extent
     from vid2sim.splats.losses import photometric_loss
     from vid2sim.splats.render import render_gaussians
 
@@ -61,24 +136,31 @@ def refine_on_motion(gaussians: Any, frames: Sequence[Any], images: Tensor, came
     if len(frame_ids) != T or len(cameras) != V:
         raise ValueError(f"refine_on_motion: images are {V} views x {T} frames, got {len(cameras)} cameras and "
                          f"{len(frame_ids)} frame ids")
-    if max(frame_ids) >= len(frames):
-        raise ValueError(f"refine_on_motion: frame {max(frame_ids)} asked, the motion has {len(frames)} frames")
-    dc = gaussians.sh[:, :1].detach().clone().requires_grad_(True)
-    rest = gaussians.sh[:, 1:].detach().clone().requires_grad_(True)
-    logits = gaussians.opacity_logits.detach().clone().requires_grad_(True)
-    groups = [{"params": [dc], "lr": fit.lr_sh_dc}, {"params": [logits], "lr": fit.lr_opacity}]
-    if rest.shape[1] > 0:
-        groups.append({"params": [rest], "lr": fit.lr_sh_rest})
-    opt = torch.optim.Adam(groups, eps=1e-15)
+    if max(frame_ids) >= motion.num_frames or min(frame_ids) < 0:
+        bad = max(frame_ids) if max(frame_ids) >= motion.num_frames else min(frame_ids)
+        raise ValueError(f"refine_on_motion: frame {bad} asked, the motion has {motion.num_frames} frames")
+    params = {"sh_dc": gaussians.sh[:, :1], "sh_rest": gaussians.sh[:, 1:], "opacity_logits": gaussians.opacity_logits,
+              "means": gaussians.means, "log_scales": gaussians.log_scales, "quats": gaussians.quats}
+    params = {k: v.detach().clone() for k, v in params.items()}
+    lrs = {"sh_dc": fit.lr_sh_dc, "sh_rest": fit.lr_sh_rest, "opacity_logits": fit.lr_opacity}
+    if geometry:
+        lrs.update(means=fit.lr_means * scene_extent(cameras), log_scales=fit.lr_scales, quats=fit.lr_quats)
+    trained = [k for k in lrs if params[k].numel() > 0]
+    for k in trained:
+        params[k].requires_grad_(True)
+    opt = torch.optim.Adam([{"params": [params[k]], "lr": lrs[k]} for k in trained], eps=1e-15)
+
+    def current() -> Any:
+        return replace(gaussians, means=params["means"], log_scales=params["log_scales"], quats=params["quats"],
+                       opacity_logits=params["opacity_logits"], sh=torch.cat([params["sh_dc"], params["sh_rest"]], 1))
+
     per_step = V if fit.views_per_step is None else min(V, fit.views_per_step)
     g = torch.Generator().manual_seed(seed)
     losses = []
     for _ in tqdm(range(iterations), desc="appearance on the motion", disable=not progress, leave=False):
         t = int(torch.randint(T, (1,), generator=g))
         views = torch.randperm(V, generator=g)[:per_step].tolist() if per_step < V else list(range(V))
-        d = frames[frame_ids[t]]
-        moved = DeformedGaussians(means=d.means.detach(), covars=d.covars.detach(), opacities=torch.sigmoid(logits),
-                                  sh=torch.cat([dc, rest], 1))
+        moved = motion.carry(current(), frame_ids[t])
         out = render_gaussians(moved, [cameras[v] for v in views], background=1.0).rgb
         loss = photometric_loss(out, images[views, t], fit.lambda_dssim)
         opt.zero_grad(set_to_none=True)
@@ -86,5 +168,6 @@ def refine_on_motion(gaussians: Any, frames: Sequence[Any], images: Tensor, came
         opt.step()
         losses.append(float(loss.detach()))
     k = max(1, len(losses) // 10)
-    refined = replace(gaussians, sh=torch.cat([dc, rest], 1).detach(), opacity_logits=logits.detach())
-    return refined, {"iterations": iterations, "loss_first": sum(losses[:k]) / k, "loss_last": sum(losses[-k:]) / k}
+    refined = current().detach()
+    return refined, {"iterations": iterations, "geometry": geometry, "loss_first": sum(losses[:k]) / k,
+                     "loss_last": sum(losses[-k:]) / k}

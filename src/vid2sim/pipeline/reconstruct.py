@@ -16,8 +16,8 @@ stage; the asset folder itself appears only when everything is done):
    ``jacobian="neural"``), then moved to the metric frame by its input frame.
 6. ``joint`` — the joint optimisation (:func:`vid2sim.pipeline.joint.joint_optimisation`) from the prior
    material.
-7. ``motion_appearance`` — the Gaussians' colours and opacities refitted on every observed frame along the
-   finished asset's simulated motion (:mod:`vid2sim.pipeline.motion_appearance`): after the bounce the views
+7. ``motion_appearance`` — the Gaussians (colours, opacities and, by default, rest-frame geometry) refitted on
+   every observed frame through the finished asset's simulated motion (:mod:`vid2sim.pipeline.motion_appearance`): after the bounce the views
    see sides of the object and a lighting that frame 0 never showed.
 
 **Stage I** (``ReconstructConfig.stage1``, ``--stage1``; off by default while the shipped predictor misses its
@@ -75,8 +75,10 @@ class ReconstructConfig:
         jacobian_iterations: data-free Neural Jacobian iterations when ``jacobian="neural"``.
         velocity_frames: at most this many pre-contact frames estimate the initial velocity.
         appearance_iterations: Gaussian refinement steps on the ballistic frames (0: skip).
-        motion_appearance_iterations: steps of the last stage, colours and opacities on all observed frames
-            along the simulated motion (0: skip; the Gaussians of the ballistic frames are kept).
+        motion_appearance_iterations: steps of the last stage, the Gaussians fitted to all observed frames
+            through the simulated motion (0: skip; the Gaussians of the ballistic frames are kept).
+        motion_appearance_geometry: the last stage also fits the Gaussians' rest-frame centres, scales and
+            rotations (default, beyond the paper); False: colours and opacities only.
         prior_E, prior_nu, prior_damping: the starting material when Stage I does not run (Stage I replaces the
             first two).
         stage1: run the Stage I predictor (module docstring); False (the default until the shipped predictor
@@ -113,6 +115,7 @@ class ReconstructConfig:
     velocity_frames: int = 8
     appearance_iterations: int = 300
     motion_appearance_iterations: int = 300
+    motion_appearance_geometry: bool = True
     prior_E: float = 1e5
     prior_nu: float = 0.3
     prior_damping: float = 0.05
@@ -612,17 +615,16 @@ def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConf
     motion_ply = work.dir / "gaussians_motion.ply"
     if cfg.motion_appearance_iterations > 0:
         if not work.done("motion_appearance"):
-            from vid2sim.pipeline.evaluate import simulate_gaussians
-            from vid2sim.pipeline.motion_appearance import refine_on_motion
+            from vid2sim.pipeline.motion_appearance import SkinnedMotion, refine_on_motion
 
-            _stage(progress, f"[7/7] refitting the colours on {len(T)} observed frames along the simulated motion")
+            what = "Gaussians" if cfg.motion_appearance_geometry else "colours"
+            _stage(progress, f"[7/7] refitting the {what} on {len(T)} observed frames along the simulated motion")
             t0 = time.perf_counter()
-            from vid2sim.splats.deform import DeformedGaussians
-
-            moved = [DeformedGaussians(d.means.to(dev), d.covars.to(dev), d.opacities.to(dev), d.sh.to(dev))
-                     for d in simulate_gaussians(asset, max(T) + 1, progress=False)]
-            refined, record = refine_on_motion(gaussians, moved, images, cameras, list(T), cfg.gaussians,
-                                               cfg.motion_appearance_iterations, seed=cfg.seed, progress=progress)
+            motion = SkinnedMotion.of_asset(asset, max(T) + 1, device=dev)
+            refined, record = refine_on_motion(gaussians, motion, images, cameras, list(T), cfg.gaussians,
+                                               cfg.motion_appearance_iterations,
+                                               geometry=cfg.motion_appearance_geometry, seed=cfg.seed,
+                                               progress=progress)
             save_ply(refined.to("cpu"), motion_ply)
             (work.dir / "motion_appearance.json").write_text(json.dumps(record))
             work.finish("motion_appearance", time.perf_counter() - t0)
