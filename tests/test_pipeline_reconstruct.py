@@ -143,6 +143,17 @@ def test_motion_appearance_fits_the_gaussians_through_the_motion(tiny_asset, tin
     for name in ("means", "log_scales", "quats", "sh", "opacity_logits"):
         assert not torch.equal(getattr(full, name), getattr(asset.gaussians, name)), name
     assert score(full) > score(asset.gaussians) and score(colours) > score(asset.gaussians)
+    # the Neural-Jacobian path: a 'network' that returns the exact dF/dz carries them the same way
+    from vid2sim.physics.skinning import dF_dz, gradient_basis
+
+    class ExactJacobian(torch.nn.Module):
+        def forward(self, X):
+            w, dw = motion.field.weights_and_gradients(X)
+            return dF_dz(gradient_basis(X, w, dw))
+
+    neural = SkinnedMotion(motion.field, ExactJacobian(), motion.states)
+    a, b = neural.carry(asset.gaussians, 3), motion.carry(asset.gaussians, 3)
+    assert torch.allclose(a.means, b.means, atol=1e-6) and torch.allclose(a.covars, b.covars, atol=1e-9)
     # a centre that moves is carried by the skinning weights at its new place
     moved = dataclasses.replace(asset.gaussians, means=asset.gaussians.means + 0.01)
     sim = asset.simulator()
