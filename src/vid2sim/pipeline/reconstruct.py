@@ -17,8 +17,9 @@ stage; the asset folder itself appears only when everything is done):
 6. ``joint`` — the joint optimisation (:func:`vid2sim.pipeline.joint.joint_optimisation`) from the prior
    material.
 7. ``motion_appearance`` — the Gaussians (colours, opacities and, by default, rest-frame geometry) refitted on
-   every observed frame through the finished asset's simulated motion (:mod:`vid2sim.pipeline.motion_appearance`): after the bounce the views
-   see sides of the object and a lighting that frame 0 never showed.
+   every observed frame through the finished asset's simulated motion
+   (:mod:`vid2sim.pipeline.motion_appearance`): after the bounce the views see sides of the object and a
+   lighting that frame 0 never showed.
 
 **Stage I** (``ReconstructConfig.stage1``, ``--stage1``; off by default while the shipped predictor misses its
 accuracy targets — docs/predictor.md; before ``networks``): the feed-forward predictor
