@@ -137,6 +137,34 @@ def test_fixed_damping_and_a_contact_layer_reach_the_fit(report):
         identify.IdentifyConfig(contact_iterations=0)
 
 
+def test_the_projected_volumetric_term_reaches_the_simulator_with_a_one_factor_curve(report):
+    """--volumetric projected: the scene's simulator projects the λ term, calibrated by one factor s(ν) (its
+    lowest frequency then equals the tets'); two factors are refused with it, by the config and the CLI flag."""
+    from dataclasses import replace
+
+    from vid2sim.physics.modes import subspace_frequencies
+    from vid2sim.physics.tet_modes import tet_frequencies
+    from vid2sim.synthetic.scenes import benchmark_parameters
+
+    _, config, workdir = report
+    projected = replace(config, volumetric="projected", calibrate_stiffness=True, calibration_nu="curve",
+                        calibration_nus=(0.3, 0.45))
+    scene = identify.prepare_scene(0, benchmark_parameters(1, 0)[0], projected, workdir)
+    sim = scene.simulator
+    assert sim.volumetric == "projected" and sim.stiffness_scale.lam_scale is None
+    nu = 0.45
+    ref = tet_frequencies(scene.tet_vertices, scene.tets, 1.0, nu, 1.0, k=1, order=2)[0]
+    ours = subspace_frequencies(sim.field, sim.X, sim.vol, sim.stiffness_scale.at(nu), nu, 1.0, k=1,
+                                volumetric="projected")[0]
+    assert ours == pytest.approx(ref, rel=1e-6)
+    out = identify.fit(scene, replace(projected, fit_iterations=1, fit_damping=False))
+    assert math.isfinite(out["log10_E"]) and 0 <= out["nu"] < 0.5
+    with pytest.raises(ValueError, match="one factor"):
+        identify.IdentifyConfig(volumetric="projected", calibrate_stiffness=True)
+    with pytest.raises(ValueError, match="volumetric must be"):
+        identify.IdentifyConfig(volumetric="mixed")
+
+
 def test_nu_sensitivity_measures_how_far_nu_moves_the_truth(report):
     """--nu-sensitivity: the FEM rerun at ν − Δν (same mesh, pose, steps) is cached; the distance it moves the
     truth grows about linearly with Δν, and the ν worth of the model error follows from it."""

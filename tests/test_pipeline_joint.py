@@ -291,6 +291,11 @@ def test_an_asset_keeps_its_stiffness_curve_and_the_rig_uses_it_at_its_nu(tmp_pa
                                                                                       "scale": [1.0, 1.0]}}))
     with pytest.raises(AssetFormatError, match="material.json: stiffness_curve: .*increase strictly"):
         load_asset(folder)
+    (folder / "material.json").write_text(json.dumps({**material, "volumetric": "mixed"}))
+    with pytest.raises(AssetFormatError, match="material.json: volumetric must be 'pointwise' or 'projected'"):
+        load_asset(folder)
+    (folder / "material.json").write_text(json.dumps({**material, "volumetric": "projected"}))
+    assert load_asset(folder).simulator().volumetric == "projected"
 
 
 @pytest.mark.slow

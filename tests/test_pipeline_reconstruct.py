@@ -47,8 +47,9 @@ def test_a_calibrated_reconstruction_records_and_uses_its_stiffness_scale(tiny_s
     assert ReconstructConfig().calibrate_stiffness and ReconstructConfig().calibration_nu == "two_factor"  # defaults
     cfg = tiny_config()
     cfg.calibrate_stiffness, cfg.calibration_cells, cfg.calibration_points = True, 24, 20000
-    cfg.calibration_nu = "curve"
+    cfg.calibration_nu, cfg.volumetric = "curve", "projected"  # the projected volumetric term end to end
     asset = load_asset(reconstruct(tiny_scene, tmp_path / "asset", cfg, progress=False))
+    assert asset.material["volumetric"] == "projected" == asset.simulator().volumetric
     log = json.loads((tmp_path / "asset" / "log.json").read_text())
     # the curve s(ν): stored with the asset, used at whatever ν it simulates
     from vid2sim.physics.stiffness_curve import StiffnessCurve
@@ -59,7 +60,7 @@ def test_a_calibrated_reconstruction_records_and_uses_its_stiffness_scale(tiny_s
     assert curve.at(cfg.prior_nu) == pytest.approx(calibration["stiffness_scale"], rel=1e-12)
     s = asset.material["stiffness_scale"]
     assert 0.05 < s < 5.0 and s != 1.0 and s == pytest.approx(curve.at(asset.material["nu"]), rel=1e-12)
-    assert 0.7 < calibration["points_volume_ratio"] < 1.3
+    assert 0.7 < calibration["points_volume_ratio"] < 1.3 and calibration["volumetric"] == "projected"
     assert asset.simulator().stiffness_scale == curve
     other = asset.simulator(youngs_modulus=1e6, poisson_ratio=0.45)
     assert float(other.effective_youngs_modulus()) == pytest.approx(1e6 * curve.at(0.45), rel=1e-6)  # float32
@@ -232,6 +233,10 @@ def test_presets_and_config_errors():
     assert ReconstructConfig(calibration_nu="two_factor").calibration_nu == "two_factor"
     with pytest.raises(ValueError, match="calibration_nu must be 'curve', 'two_factor' or 'prior'"):
         ReconstructConfig(calibration_nu="three")
+    with pytest.raises(ValueError, match="volumetric must be 'pointwise' or 'projected'"):
+        ReconstructConfig(volumetric="mixed")
+    with pytest.raises(ValueError, match="takes one factor"):
+        ReconstructConfig(volumetric="projected", calibration_nu="two_factor")
     with pytest.raises(ValueError, match="preset"):
         ReconstructConfig.preset("huge")
     with pytest.raises(ValueError, match="motion_appearance_iterations must be >= 0"):

@@ -124,6 +124,9 @@ class IdentifyConfig:
             model's images against the truth's by PSNR and SSIM as ``vid2sim evaluate`` does
             (:func:`render_psnr`): the images a video pipeline using this reduced model could reach with perfect
             geometry, appearance and initial state.
+        volumetric: the reduced model's volumetric term, "pointwise" (the default) or "projected" onto the
+            skinning weights' span (``Simulator(volumetric=)``, :mod:`vid2sim.physics.volumetric`), which removes
+            the subspace's volumetric locking; calibrate it with one factor (``calibration_nu`` "curve").
     """
 
     scenes: int = 6
@@ -159,6 +162,7 @@ class IdentifyConfig:
     contact_iterations: int = 3
     nu_sensitivity: float = 0.0
     render_psnr: bool = False
+    volumetric: str = "pointwise"
 
     def __post_init__(self) -> None:
         for name in ("scenes", "frames", "observed_frames", "points", "skinning_points", "handles", "cubature",
@@ -183,6 +187,11 @@ class IdentifyConfig:
             raise ValueError(f"IdentifyConfig.fem_element_order must be 1 or 2, got {self.fem_element_order!r}")
         if self.calibration_nu not in CALIBRATIONS:
             raise ValueError(f"IdentifyConfig.calibration_nu must be one of {CALIBRATIONS}, got {self.calibration_nu!r}")
+        if self.volumetric not in ("pointwise", "projected"):
+            raise ValueError(f"IdentifyConfig.volumetric must be 'pointwise' or 'projected', got {self.volumetric!r}")
+        if self.volumetric == "projected" and self.calibrate_stiffness and self.calibration_nu == "two_factor":
+            raise ValueError("IdentifyConfig: the projected volumetric term does not lock, so it takes one factor "
+                             "(calibration_nu 'curve' or 'prior'), not 'two_factor'")
         self.calibration_nus = tuple(float(v) for v in self.calibration_nus)
         nus = self.calibration_nus
         if len(nus) < 2 or not all(0 <= v < 0.5 for v in nus) or any(b <= a for a, b in zip(nus, nus[1:])):
@@ -320,14 +329,15 @@ def prepare_scene(index: int, params: dict, config: IdentifyConfig, workdir: Pat
     scale = 1.0
     if config.calibrate_stiffness:
         if config.calibration_nu == "prior":
-            scale = stiffness_calibration(field, points[idx], weights, X, T, config.prior_nu)
+            scale = stiffness_calibration(field, points[idx], weights, X, T, config.prior_nu, config.volumetric)
         else:
             scale = stiffness_calibration_curve(field, points[idx], weights, X, T, config.calibration_nus,
-                                                factors=2 if config.calibration_nu == "two_factor" else 1)
+                                                factors=2 if config.calibration_nu == "two_factor" else 1,
+                                                volumetric=config.volumetric)
     sim = Simulator(field, points[idx], weights, material,
                     [Gravity(fc.gravity), Floor(height=fc.floor_height, stiffness=fc.floor_stiffness)], SimConfig(),
                     length_scale=fem_length(fem, size), contact_points=nodes[surface], contact_weights=areas[surface],
-                    stiffness_scale=scale, contact_layer=config.contact_layer * size)
+                    stiffness_scale=scale, contact_layer=config.contact_layer * size, volumetric=config.volumetric)
     H = field.num_handles_total
     Z0 = np.zeros((H, 3, 4))
     Z0[-1] = _rigid_affine(nodes.numpy(), fem.trajectory[0].numpy()) - np.hstack([np.eye(3), np.zeros((3, 1))])
@@ -343,7 +353,7 @@ def prepare_scene(index: int, params: dict, config: IdentifyConfig, workdir: Pat
             "fem_substeps": fc.substeps,
             "fem_time_convergence_percent": (fem.time_convergence or {}).get("mean_percent"),
             "fem_seconds": (fem.time_convergence or {}).get("wall_time_all_runs", fem.wall_time),
-            "frequencies": lowest_frequencies(X, T, field, points[idx], weights, fc),
+            "frequencies": lowest_frequencies(X, T, field, points[idx], weights, fc, config.volumetric),
             "stiffness_scale": scale if isinstance(scale, float) else scale.at(config.prior_nu),
             "stiffness_curve": None if isinstance(scale, float) else scale.to_dict()}
     truth_material = {"E": fc.youngs_modulus, "nu": fc.poisson_ratio, "damping_ratio": fc.damping_ratio}
@@ -352,7 +362,7 @@ def prepare_scene(index: int, params: dict, config: IdentifyConfig, workdir: Pat
 
 
 def lowest_frequencies(X: torch.Tensor, T: torch.Tensor, field, cubature: torch.Tensor, volumes: torch.Tensor,
-                       fc) -> dict:
+                       fc, volumetric: str = "pointwise") -> dict:
     """The six lowest elastic frequencies at the true material: quadratic tets on the FEM's mesh (the converged
     reference, :mod:`vid2sim.physics.tet_modes`), and as ratios to them, linear tets with lumped mass on that
     mesh (the FEM truth when ``fem_element_order`` is 1) and the reduced model's subspace on its cubature
@@ -363,7 +373,7 @@ def lowest_frequencies(X: torch.Tensor, T: torch.Tensor, field, cubature: torch.
     E, nu, rho = fc.youngs_modulus, fc.poisson_ratio, fc.density
     reference = tet_frequencies(X, T, E, nu, rho, k=6, order=2)
     fem = tet_frequencies(X, T, E, nu, rho, k=6, order=1, lumped=True)
-    reduced = subspace_frequencies(field, cubature, volumes, E, nu, rho, k=6)
+    reduced = subspace_frequencies(field, cubature, volumes, E, nu, rho, k=6, volumetric=volumetric)
     return {"quadratic_tets_hz": (reference / (2 * math.pi)).tolist(),
             "linear_tets_over_quadratic": (fem / reference).tolist(),
             "reduced_over_quadratic": (reduced / reference).tolist(),

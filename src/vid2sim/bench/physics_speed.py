@@ -17,7 +17,9 @@ Figures (medians; every baseline is measured in the same run):
   ``sim_step_time_convergence_percent`` is its distance from the 4× refined default;
 - ``sim_window_ms`` — 4 frames at the default accuracy with gradients to log10 E, ν and the skinning
   parameters (forward + backward), ``sim_window_ms_one_step_per_frame`` the same with one implicit-Euler
-  step per frame; ``sim_window_points_ms`` with the loss on all 20 000 points.
+  step per frame; ``sim_window_points_ms`` with the loss on all 20 000 points;
+- ``sim_frame_ms_projected`` and ``sim_window_ms_projected`` — the same frame and window with the projected
+  volumetric term (``Simulator(volumetric="projected")``, :mod:`vid2sim.physics.volumetric`).
 """
 
 from __future__ import annotations
@@ -151,6 +153,11 @@ def run(device: torch.device, quick: bool = False, settings: PhysicsBenchSetting
     window_one_step_ms = window(one_step, ie_states)
     window_points_ms = window(default, states, points=True)
     sim.config = default
+    sim.volumetric = "projected"
+    frame_projected_ms, projected_states = timed_rollout(default)
+    window_projected_ms = window(default, projected_states)
+    sim.volumetric = "pointwise"
+    sim.config = default
     sim.log10_E.requires_grad_(False)
     sim.nu.requires_grad_(False)
 
@@ -174,6 +181,8 @@ def run(device: torch.device, quick: bool = False, settings: PhysicsBenchSetting
         "sim_window_ms": window_ms,
         "sim_window_ms_one_step_per_frame": window_one_step_ms,
         "sim_window_points_ms": window_points_ms,
+        "sim_frame_ms_projected": frame_projected_ms,
+        "sim_window_ms_projected": window_projected_ms,
         "skinning_train_ms_per_iter": skin_ms,
         "jacobian_train_ms_per_iter": nj_ms,
         "physics_settings": asdict(s),

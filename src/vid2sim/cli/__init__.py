@@ -73,7 +73,9 @@ def _cmd_bench_identify(args: argparse.Namespace) -> int:
              "calibrate_contact": True if args.calibrate_contact else None,
              "fit_contact_layer": True if args.fit_contact_layer else None,
              "fit_damping": False if args.fixed_damping else None, "nu_sensitivity": args.nu_sensitivity,
-             "render_psnr": True if args.psnr else None}
+             "render_psnr": True if args.psnr else None, "volumetric": args.volumetric}
+    if args.volumetric == "projected" and args.calibration_nu is None:
+        given["calibration_nu"] = "curve"  # the projected term does not lock: one factor
     flags = {"scenes": "--n", "seed": "--seed", "preset": "--preset", "handles": "--handles",
              "skinning_iterations": "--skinning-iterations", "fit_iterations": "--fit-iterations", "points": "--points",
              "skinning_points": "--skinning-points", "nu_sensitivity": "--nu-sensitivity"}
@@ -355,6 +357,10 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
         overrides["calibrate_stiffness"] = args.calibrate_stiffness
     if args.calibration_nu is not None:
         overrides["calibration_nu"] = args.calibration_nu
+    if args.volumetric is not None:
+        overrides["volumetric"] = args.volumetric
+        if args.volumetric == "projected" and args.calibration_nu is None:
+            overrides["calibration_nu"] = "curve"  # the projected term does not lock: one factor
     if args.motion_geometry is not None:
         overrides["motion_appearance_geometry"] = args.motion_geometry
     if args.predictor is not None:
@@ -536,6 +542,10 @@ def build_parser() -> argparse.ArgumentParser:
                             "to the six lowest modes and used at the fit's current nu (two_factor, the default: the "
                             "subspace's locking grows with nu and sits in lambda), one factor on E at that grid "
                             "(curve), or one factor at the prior nu")
+    ident.add_argument("--volumetric", choices=["pointwise", "projected"], default=None,
+                       help="the reduced model's volumetric term: pointwise (default) or projected onto the skinning "
+                            "weights' span, which removes the subspace's volumetric locking (implies "
+                            "--calibration-nu curve unless that is given)")
     ident.add_argument("--fit-contact-layer", action="store_true",
                        help="also fit the contact layer (a fraction of the size) with E and nu; experimental")
     ident.add_argument("--fixed-damping", action="store_true",
@@ -658,6 +668,9 @@ def build_parser() -> argparse.ArgumentParser:
                      help="with --calibrate-stiffness: two factors (on mu and on lambda) per nu of a grid, matched to "
                           "the six lowest modes and used at the fit's current nu (two_factor, the default), one "
                           "factor s(nu) over that grid (curve), or one factor at the prior nu")
+    rec.add_argument("--volumetric", choices=["pointwise", "projected"], default=None,
+                     help="the simulator's volumetric term: pointwise, or projected onto the skinning weights' span "
+                          "(no volumetric locking; implies --calibration-nu curve unless that is given)")
     rec.add_argument("--motion-geometry", action=argparse.BooleanOptionalAction, default=None,
                      help="the last stage fits the Gaussians' rest-frame centres, scales and rotations as well as "
                      "their colours and opacities through the simulated motion (on by default; "

@@ -100,15 +100,19 @@ def stvk_energy_and_pk1(F: Tensor, mu: Scalar, lam: Scalar, C_ref: Tensor | None
 
 
 def neo_hookean_viscous_energy_and_pk1(F: Tensor, mu: Scalar, lam: Scalar, k_elastic: Scalar, k_viscous: Scalar,
-                                       C_ref: Tensor, energy: bool = True) -> tuple[Tensor | None, Tensor, Tensor]:
+                                       C_ref: Tensor, energy: bool = True, lam_elastic: Scalar | None = None
+                                       ) -> tuple[Tensor | None, Tensor, Tensor]:
     """k_e Ψ_NH + k_v ψ and k_e P_NH + k_v P_v in one pass: ((N,) or None, (N, 3, 3), J (N,)).
 
     ψ is the StVK energy measured from C_ref (the Kelvin–Voigt term of :mod:`vid2sim.physics.damping`). With
     C = FᵀF, G = ½ (C − C_ref) and c = λ ln J − μ the stress is F (k_e μ I + k_v (2μ G + λ tr G I)) + k_e c F⁻ᵀ,
     so the two models share F's cofactors, C and one product with F: the same values as
     :func:`neo_hookean_energy_and_pk1` and :func:`stvk_energy_and_pk1` in fewer (eager) operations. The energy
-    is skipped (None) when ``energy`` is False. Where J ≤ 0 the values are not finite; callers check J."""
+    is skipped (None) when ``energy`` is False. Where J ≤ 0 the values are not finite; callers check J.
+    ``lam_elastic``: the λ of the Neo-Hookean part when it differs from the viscous part's (0 when the
+    volumetric term is projected and added by the caller); None: ``lam``."""
     _check_F(F)
+    lam_e = lam if lam_elastic is None else lam_elastic
     cof = torch.linalg.cross(F.roll(-1, dims=1), F.roll(-2, dims=1))  # rows: cross(F_{i+1}, F_{i+2}) = J F⁻ᵀ
     J = (F[:, 0] * cof[:, 0]).sum(-1)
     logj = torch.log(J)
@@ -117,11 +121,11 @@ def neo_hookean_viscous_energy_and_pk1(F: Tensor, mu: Scalar, lam: Scalar, k_ela
     tr_g = G.diagonal(dim1=1, dim2=2).sum(-1)
     S = G * (2.0 * k_viscous * mu)
     S.diagonal(dim1=1, dim2=2).add_((k_viscous * lam * tr_g + k_elastic * mu)[:, None])
-    P = torch.baddbmm((k_elastic * (lam * logj - mu) / J)[:, None, None] * cof, F, S)
+    P = torch.baddbmm((k_elastic * (lam_e * logj - mu) / J)[:, None, None] * cof, F, S)
     if not energy:
         return None, P, J
     tr_c = C.diagonal(dim1=1, dim2=2).sum(-1)
-    psi = k_elastic * (0.5 * mu * (tr_c - 3.0) - mu * logj + 0.5 * lam * logj * logj) \
+    psi = k_elastic * (0.5 * mu * (tr_c - 3.0) - mu * logj + 0.5 * lam_e * logj * logj) \
         + k_viscous * (mu * (G * G).sum(dim=(1, 2)) + 0.5 * lam * tr_g * tr_g)
     return psi, P, J
 
@@ -205,7 +209,7 @@ def stvk_tangent(F: Tensor, mu: Scalar, lam: Scalar, C_ref: Tensor | None = None
 
 
 def neo_hookean_viscous_tangent(F: Tensor, mu: Scalar, lam: Scalar, k_elastic: Scalar, k_viscous: Scalar,
-                                C_ref: Tensor | None) -> Tensor:
+                                C_ref: Tensor | None, lam_elastic: Scalar | None = None) -> Tensor:
     """k_e ∂P_NH/∂F + k_v ∂P_v/∂F, (N, 9, 9): the exact tangent of a damped Neo-Hookean step in one pass.
 
     P_v is the StVK stress measured from C_ref (the Kelvin–Voigt term of :mod:`vid2sim.physics.damping`;
@@ -213,25 +217,27 @@ def neo_hookean_viscous_tangent(F: Tensor, mu: Scalar, lam: Scalar, k_elastic: S
     product with δ:
       k_e [μ δ_ik δ_jl + c A_il A_kj + λ A_ij A_kl] + k_v [δ_ik S_lj + μ F_il F_kj + μ (FFᵀ)_ik δ_lj + λ F_ij F_kl],
     so it is assembled from two batched outer products instead of the separate 9 × 9 tangents
-    (:func:`neo_hookean_tangent` + :func:`stvk_tangent`, which it equals).
+    (:func:`neo_hookean_tangent` + :func:`stvk_tangent`, which it equals). ``lam_elastic``: as in
+    :func:`neo_hookean_viscous_energy_and_pk1`.
     """
     _check_F(F)
+    lam_e = lam if lam_elastic is None else lam_elastic
     n = F.shape[0]
     cof = torch.stack([torch.linalg.cross(F[:, 1], F[:, 2]), torch.linalg.cross(F[:, 2], F[:, 0]),
                        torch.linalg.cross(F[:, 0], F[:, 1])], dim=1)
     J = (F[:, 0] * cof[:, 0]).sum(-1)
     A = (cof / J[:, None, None]).reshape(n, 9)  # F⁻ᵀ, row-major
-    c = mu - lam * torch.log(J)
+    c = mu - lam_e * torch.log(J)
     eye = torch.eye(3, dtype=F.dtype, device=F.device)
     if C_ref is None:
-        plain = (k_elastic * lam) * A[:, :, None] * A[:, None, :]
+        plain = (k_elastic * lam_e) * A[:, :, None] * A[:, None, :]
         swap = (k_elastic * c)[:, None, None] * A[:, :, None] * A[:, None, :]
         delta_jl = (k_elastic * mu) * eye.expand(n, 3, 3)
         out = plain.reshape(n, 3, 3, 3, 3) + swap.reshape(n, 3, 3, 3, 3).permute(0, 1, 4, 3, 2)
     else:
         f = F.reshape(n, 9)
         V = torch.stack([A, f], dim=2)  # (n, 9, 2)
-        coef = torch.stack([torch.as_tensor(k_elastic * lam, dtype=F.dtype, device=F.device).expand(n),
+        coef = torch.stack([torch.as_tensor(k_elastic * lam_e, dtype=F.dtype, device=F.device).expand(n),
                             torch.as_tensor(k_viscous * lam, dtype=F.dtype, device=F.device).expand(n)], dim=1)
         plain = (V * coef[:, None, :]) @ V.transpose(1, 2)
         coef_s = torch.stack([k_elastic * c, torch.as_tensor(k_viscous * mu, dtype=F.dtype,

@@ -22,7 +22,7 @@ from vid2sim.physics.stiffness_curve import StiffnessCurve
 
 
 def subspace_stiffness_and_mass(X: Tensor, w: Tensor, dw: Tensor, volume: float, poisson_ratio: float,
-                                weights: Tensor | None = None) -> tuple[Tensor, Tensor]:
+                                weights: Tensor | None = None, volumetric: str = "pointwise") -> tuple[Tensor, Tensor]:
     """Linear-elastic stiffness and mass of the LBS subspace at rest, E = 1 and ρ = 1.
 
     The displacement is u(X) = Y b(X) (row-major y layout of :mod:`vid2sim.physics.reduced`) and
@@ -33,18 +33,24 @@ def subspace_stiffness_and_mass(X: Tensor, w: Tensor, dw: Tensor, volume: float,
     Args:
         X: (n, 3) points; w: (n, H) weights; dw: (n, H, 3) their gradients (rigid column included).
         weights: (n,) integration weights (volumes); None: ``volume`` / n each.
+        volumetric: "pointwise", or "projected": tr ε projected onto the weights' span in the λ term, as
+            ``Simulator(volumetric="projected")`` does (:mod:`vid2sim.physics.volumetric`).
     Returns:
         K, M: (3L, 3L) with L = 4H, differentiable in w and dw.
     """
     mu, lam = lame_parameters(1.0, poisson_ratio)
-    K_mu, K_lam, M = subspace_stiffness_parts(X, w, dw, volume, weights)
+    K_mu, K_lam, M = subspace_stiffness_parts(X, w, dw, volume, weights, volumetric)
     return mu * K_mu + lam * K_lam, M
 
 
-def subspace_stiffness_parts(X: Tensor, w: Tensor, dw: Tensor, volume: float, weights: Tensor | None = None
-                             ) -> tuple[Tensor, Tensor, Tensor]:
+def subspace_stiffness_parts(X: Tensor, w: Tensor, dw: Tensor, volume: float, weights: Tensor | None = None,
+                             volumetric: str = "pointwise") -> tuple[Tensor, Tensor, Tensor]:
     """(K_μ, K_λ, M), each (3L, 3L): the subspace's stiffness at rest is μ K_μ + λ K_λ
     (:func:`subspace_stiffness_and_mass`, whose arguments these are)."""
+    from vid2sim.physics.volumetric import projection_basis
+
+    if volumetric not in ("pointwise", "projected"):
+        raise ValueError(f"volumetric must be 'pointwise' or 'projected', got {volumetric!r}")
     n = X.shape[0]
     v = (float(volume) / n) if weights is None else weights[:, None]
     G = gradient_basis(X, w, dw)  # (n, 3, L)
@@ -57,17 +63,22 @@ def subspace_stiffness_parts(X: Tensor, w: Tensor, dw: Tensor, volume: float, we
     K_mu = torch.kron(eye3, S) + T4.permute(2, 1, 0, 3).reshape(3 * L, 3 * L)
     b = lbs_rows(X, w)
     M = torch.kron(eye3, b.T @ (b * v))
+    if volumetric == "projected":  # Σ_pq v_p G_p P_pq G_q with the V-orthogonal projection P onto span(w)
+        vv = v[:, 0] if torch.is_tensor(v) else torch.full((n,), v, dtype=X.dtype, device=X.device)
+        WG = projection_basis(w, vv).T @ (Gf * vv[:, None])  # (H, 3L)
+        return K_mu, WG.T @ WG, M
     return K_mu, Tp, M
 
 
 def subspace_frequencies(field, points: Tensor, volumes: Tensor, youngs_modulus: float, poisson_ratio: float,
-                         density: float, k: int = 6) -> np.ndarray:
+                         density: float, k: int = 6, volumetric: str = "pointwise") -> np.ndarray:
     """The k lowest non-rigid Rayleigh–Ritz angular frequencies ω (rad/s) of the skinning subspace.
 
     Args:
         field: a :class:`~vid2sim.physics.SkinningField`.
         points: (n, 3) quadrature points (a simulator's cubature points ``sim.X``); volumes: (n,) their
             integration weights (``sim.vol``). Masses are ρ·volumes, as the simulator lumps them.
+        volumetric: the simulator's volumetric term, "pointwise" or "projected".
     Returns:
         (k,) ω, ascending; the six rigid modes are dropped.
     """
@@ -79,7 +90,7 @@ def subspace_frequencies(field, points: Tensor, volumes: Tensor, youngs_modulus:
         raise ValueError(f"need E > 0 and density > 0, got {youngs_modulus} and {density}")
     with torch.no_grad():
         w, dw = field.weights_and_gradients(points)
-        K, M = subspace_stiffness_and_mass(points, w, dw, 1.0, poisson_ratio, weights=volumes)
+        K, M = subspace_stiffness_and_mass(points, w, dw, 1.0, poisson_ratio, weights=volumes, volumetric=volumetric)
     Kn, Mn = K.double().cpu().numpy(), M.double().cpu().numpy()
     lam = eigh(Kn, Mn + 1e-14 * np.trace(Mn) / len(Mn) * np.eye(len(Mn)), eigvals_only=True)
     if len(lam) < k + 6:
@@ -88,7 +99,7 @@ def subspace_frequencies(field, points: Tensor, volumes: Tensor, youngs_modulus:
 
 
 def stiffness_calibration(field, points: Tensor, volumes: Tensor, vertices: Tensor | np.ndarray,
-                          tets: Tensor | np.ndarray, poisson_ratio: float) -> float:
+                          tets: Tensor | np.ndarray, poisson_ratio: float, volumetric: str = "pointwise") -> float:
     """(ω_tets / ω_subspace)² of the lowest elastic mode: the factor ``Simulator(stiffness_scale=...)`` that makes
     the skinning subspace vibrate at the continuum's lowest frequency.
 
@@ -100,14 +111,14 @@ def stiffness_calibration(field, points: Tensor, volumes: Tensor, vertices: Tens
     Args:
         field: the skinning field; points: (K, 3) the simulator's cubature points (``sim.X``); volumes: (K,)
             their weights (``sim.vol``); vertices: (Nv, 3), tets: (Nt, 4) positively oriented, in the frame and
-            units of ``points``.
+            units of ``points``; volumetric: the simulator's volumetric term ("pointwise" or "projected").
     Returns:
         s ∈ (0, ∞); it does not depend on E or ρ; s < 1 when the subspace is stiffer than the tets.
     """
     from vid2sim.physics.tet_modes import tet_frequencies
 
     reference = tet_frequencies(vertices, tets, 1.0, poisson_ratio, 1.0, k=1, order=2)[0]
-    reduced = subspace_frequencies(field, points, volumes, 1.0, poisson_ratio, 1.0, k=1)[0]
+    reduced = subspace_frequencies(field, points, volumes, 1.0, poisson_ratio, 1.0, k=1, volumetric=volumetric)[0]
     if not (reference > 0 and reduced > 0):
         raise ValueError(f"the lowest elastic frequencies must be positive, got tets {reference}, subspace {reduced}")
     return float((reference / reduced) ** 2)
@@ -124,7 +135,7 @@ TWO_FACTOR_LOWEST_WEIGHT = 10.0
 
 def stiffness_calibration_curve(field, points: Tensor, volumes: Tensor, vertices: Tensor | np.ndarray | None,
                                 tets: Tensor | np.ndarray | None, nus: tuple[float, ...] = CURVE_NUS, factors: int = 1,
-                                reference: np.ndarray | None = None) -> StiffnessCurve:
+                                reference: np.ndarray | None = None, volumetric: str = "pointwise") -> StiffnessCurve:
     """The stiffness correction of the subspace at every ν of ``nus`` (``Simulator(stiffness_scale=curve)``).
 
     ``factors=1``: :func:`stiffness_calibration` at each ν, the factor s(ν) on the whole energy that makes the
@@ -151,7 +162,9 @@ def stiffness_calibration_curve(field, points: Tensor, volumes: Tensor, vertices
     Args: as :func:`stiffness_calibration`; ``nus`` the grid (strictly increasing, in [0, 0.5)); ``factors``
         1 or 2; ``reference``: the tets' frequencies at E = ρ = 1 already computed,
         ``tet_frequency_curve(vertices, tets, nus, k)`` with k = 1 (one factor) or :data:`TWO_FACTOR_MODES`
-        (n, k); the mesh is then not needed.
+        (n, k); the mesh is then not needed; ``volumetric``: the simulator's volumetric term. With
+        "projected" (:mod:`vid2sim.physics.volumetric`) the subspace does not lock and λ needs no factor of its
+        own: use ``factors=1`` (two factors are refused; s_λ is then not determined by the modes at all).
     Returns:
         a :class:`~vid2sim.physics.stiffness_curve.StiffnessCurve` (s, and s_λ with two factors, interpolated
         between the grid's ν).
@@ -160,6 +173,8 @@ def stiffness_calibration_curve(field, points: Tensor, volumes: Tensor, vertices
 
     if factors not in (1, 2) or isinstance(factors, bool):
         raise ValueError(f"factors must be 1 (one factor on E) or 2 (on mu and lambda), got {factors!r}")
+    if factors == 2 and volumetric == "projected":
+        raise ValueError("the projected volumetric term does not lock: calibrate it with factors=1 (one factor s(nu))")
     k = TWO_FACTOR_MODES if factors == 2 else 1
     if reference is None:
         if vertices is None or tets is None:
@@ -174,7 +189,7 @@ def stiffness_calibration_curve(field, points: Tensor, volumes: Tensor, vertices
     reference = reference[:, 0]
     scales = []
     for nu, ref in zip(nus, reference):
-        reduced = subspace_frequencies(field, points, volumes, 1.0, float(nu), 1.0, k=1)[0]
+        reduced = subspace_frequencies(field, points, volumes, 1.0, float(nu), 1.0, k=1, volumetric=volumetric)[0]
         if not (ref > 0 and reduced > 0):
             raise ValueError(f"the lowest elastic frequencies must be positive at nu = {nu}, got tets {ref}, "
                              f"subspace {reduced}")

@@ -38,6 +38,7 @@ from vid2sim.physics.materials import (
     neo_hookean_viscous_tangent,
     stvk_energy_and_pk1,
 )
+from vid2sim.physics.volumetric import project as project_volumetric, swap_tangent
 
 
 def z_to_y_index(num_handles_total: int, device: torch.device | None = None) -> Tensor:
@@ -97,6 +98,13 @@ class ElasticBasis:
             return (P.transpose(0, 1).reshape(3, 3 * K) @ self.G.reshape(3 * K, L)).reshape(-1)
         K = P.shape[0]
         return torch.einsum("pi,pid->d", P.reshape(K, 9), self.J)
+
+    def point_rows(self, M: Tensor) -> Tensor:
+        """Per point ∂vec(F_p)/∂y ᵀ vec(M_p) for M: (K, 3, 3) → (K, D) (:meth:`force` is their sum)."""
+        K = M.shape[0]
+        if self.G is not None:
+            return (M @ self.G).reshape(K, -1)  # [p, (a, l)] = Σ_c M_p[a, c] G_p[c, l]
+        return torch.einsum("pi,pid->pd", M.reshape(K, 9), self.J)
 
     def hessian(self, C: Tensor) -> Tensor:
         """Σ_p ∂vec(F_p)/∂yᵀ C_p ∂vec(F_p)/∂y for C: (K, 9, 9) (volume-weighted) → (D, D)."""
@@ -180,6 +188,7 @@ class StepProblem:
     contact_w: Tensor | None = None  # (Nc,) their barrier weights
     contact_layer_stiffness: Tensor | None = None  # k_b (0-d, Pa/m): the body's contact layer in series
     contact_damping: Tensor | None = None  # c (0-d, N·s/m per unit contact weight): the contact dashpot
+    volumetric: Tensor | None = None  # (K, H) V-orthonormal weights: the λ term projected (physics.volumetric)
 
     # ---- pieces ------------------------------------------------------------------------------
     @property
@@ -356,11 +365,14 @@ class StepProblem:
         A differentiable expression of every input (the adjoint differentiates ∇Φ)."""
         F = self.basis.deformation_gradient(y)
         k_e = self.step.energy_scale
+        projected = self.volumetric is not None
+        lam_e = self.lam * 0.0 if projected else self.lam  # the projected λ term is added below
         if self.tau is not None and self.model == "neo_hookean":  # the common case, fused
             psi, stress, J = neo_hookean_viscous_energy_and_pk1(F, self.mu, self.lam, k_e,
-                                                                self.step.damping_scale(self.tau), self.c_ref, energy)
+                                                                self.step.damping_scale(self.tau), self.c_ref, energy,
+                                                                lam_elastic=lam_e)
         else:
-            psi, P, J = energy_and_pk1(self.model, F, self.mu, self.lam)
+            psi, P, J = energy_and_pk1(self.model, F, self.mu, lam_e)
             stress, psi = k_e * P, k_e * psi
             if self.tau is not None:
                 k_d = self.step.damping_scale(self.tau)
@@ -368,6 +380,11 @@ class StepProblem:
                 stress, psi = stress + k_d * P_d, psi + k_d * psi_d
         if not bool((J > 0).all()):
             return y.new_full((), float("inf")), None, False
+        if projected:
+            l_bar = project_volumetric(self.volumetric, self.vol, torch.log(J))
+            stress = stress + (k_e * self.lam * l_bar)[:, None, None] * torch.linalg.inv(F).transpose(1, 2)
+            if energy:
+                psi = psi + k_e * 0.5 * self.lam * l_bar * l_bar
         dy = y - self.y_pred
         m_dy = self.mass_times(dy)
         e_ext, f_ext = self._external_energy_and_force(y, energy)
@@ -419,17 +436,44 @@ class StepProblem:
 
         F = self.basis.deformation_gradient(y)
         k_d = self.step.damping_scale(self.tau) if self.tau is not None else 0.0
+        k_e = self.step.energy_scale
+        if self.volumetric is not None:
+            return self._projected_hessian(y, F, k_e, k_d, project)
         if not project and self.model == "neo_hookean":
-            C = neo_hookean_viscous_tangent(F, self.mu, self.lam, self.step.energy_scale, k_d, self.c_ref)
+            C = neo_hookean_viscous_tangent(F, self.mu, self.lam, k_e, k_d, self.c_ref)
         else:
             C = elastic_model(self.model)[2](F, self.mu, self.lam)
             if project:
                 C = project_tangent_psd(self.model, F, C, self.mu, self.lam)
-            C = self.step.energy_scale * C
+            C = k_e * C
             if self.tau is not None:
                 C = C + k_d * viscous_tangent(F, self.c_ref, self.mu, self.lam, psd=project)
+        return self._assemble_hessian(y, C, project)
+
+    def _projected_hessian(self, y: Tensor, F: Tensor, k_e, k_d, project: bool) -> Tensor:
+        """:meth:`hessian` with the projected volumetric term (:mod:`vid2sim.physics.volumetric`): per point
+        the Neo-Hookean tangent without its λ term plus −λ ℓ̄_p ∂F⁻ᵀ/∂F (PSD-projected per point for Newton),
+        and the non-local λ (Woᵀ V B)ᵀ (Woᵀ V B) with B_p = ∂ ln J_p / ∂y."""
+        from vid2sim.physics.materials import neo_hookean_tangent, project_psd
+
+        J = torch.linalg.det(F)
+        l_bar = project_volumetric(self.volumetric, self.vol, torch.log(J))
+        local = neo_hookean_tangent(F, self.mu, self.lam * 0.0) \
+            - (self.lam * l_bar)[:, None, None] * swap_tangent(F)
+        if project:
+            local = project_psd(0.5 * (local + local.transpose(1, 2)))
+        C = k_e * local
+        if self.tau is not None:
+            C = C + k_d * viscous_tangent(F, self.c_ref, self.mu, self.lam, psd=project)
+        B = self.basis.point_rows(torch.linalg.inv(F).transpose(1, 2))  # (K, D): ∂ ln J_p / ∂y
+        WB = self.volumetric.T @ (self.vol[:, None] * B)  # (H, D)
+        return self._assemble_hessian(y, C, project, extra=(k_e * self.lam) * (WB.T @ WB))
+
+    def _assemble_hessian(self, y: Tensor, C: Tensor, project: bool, extra: Tensor | None = None) -> Tensor:
         H = self.mass_matrix + self.basis.hessian(self.vol[:, None, None] * C) \
             + self.step.energy_scale * self._external_hessian(y, project)
+        if extra is not None:
+            H = H + extra
         H_d = self._dashpot_hessian(y, project)
         if H_d is not None:
             H = H + H_d

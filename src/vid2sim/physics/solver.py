@@ -38,6 +38,7 @@ from vid2sim.physics.reduced import (
     z_to_y_index,
 )
 from vid2sim.physics.stiffness_curve import StiffnessCurve
+from vid2sim.physics.volumetric import check_volumetric, projection_basis
 
 
 class SimulationError(RuntimeError):
@@ -195,12 +196,15 @@ class ReducedBasis:
         basis: (K, 3, L) structured F-basis, or (K, 9, 12H) dense (Neural Jacobian) in y layout.
         structured: which of the two ``basis`` is.
         contact_b: (Nc, L) LBS rows of the contact points, or None when they are the cubature points.
+        volumetric: (K, H) V-orthonormal basis of the weights' span when the volumetric term is projected
+            (:func:`vid2sim.physics.volumetric.projection_basis`), else None.
     """
 
     b: Tensor
     basis: Tensor
     structured: bool
     contact_b: Tensor | None = None
+    volumetric: Tensor | None = None
 
 
 @dataclass
@@ -399,11 +403,11 @@ class _StepSpec:
     stats: StepStats | None = None
 
     def problem(self, y_prev, ydot_prev, y_prev2, ydot_prev2, mu, lam, tau, mass, b, basis_t, contact_b,
-                layer_k=None, dashpot=None) -> StepProblem:
+                layer_k=None, dashpot=None, volumetric=None) -> StepProblem:
         basis = ElasticBasis(self.A, basis_t, None) if self.structured else ElasticBasis(self.A, None, basis_t)
         return StepProblem(self.X, self.vol, mass, b, basis, mu, lam, self.model, self.externals,
                            self.t, self.step, y_prev, ydot_prev, y_prev2, ydot_prev2, tau,
-                           self.contact_X, contact_b, self.contact_w, layer_k, dashpot)
+                           self.contact_X, contact_b, self.contact_w, layer_k, dashpot, volumetric)
 
 
 class _ImplicitStep(torch.autograd.Function):
@@ -411,7 +415,8 @@ class _ImplicitStep(torch.autograd.Function):
 
     Inputs after ``spec``: y_prev, ydot_prev, y_prev2, ydot_prev2 (None unless BDF2 has history), μ, λ,
     τ (None when undamped), masses, LBS rows b, F-basis, contact points' LBS rows (None: the cubature points),
-    the contact layer's stiffness (None: no layer), the contact dashpot's coefficient (None: none).
+    the contact layer's stiffness (None: no layer), the contact dashpot's coefficient (None: none), the
+    projected volumetric term's basis (None: pointwise).
     """
 
     @staticmethod
@@ -482,6 +487,9 @@ class Simulator:
             subspace lacks the fast, damped modes into which the continuum loses an impact's energy, so it
             rebounds too high; the dashpot takes that energy at the contact. Becomes the differentiable tensor
             ``contact_damping``. 0 (the default): none.
+        volumetric: "pointwise" (the default): the Neo-Hookean λ/2 (ln J)² at every cubature point;
+            "projected": ln J projected onto the skinning weights' span in that term
+            (:mod:`vid2sim.physics.volumetric`), which removes the subspace's volumetric locking (neo_hookean only).
     """
 
     def __init__(
@@ -500,6 +508,7 @@ class Simulator:
         stiffness_scale: "float | StiffnessCurve" = 1.0,
         contact_layer: float = 0.0,
         contact_damping: float = 0.0,
+        volumetric: str = "pointwise",
     ) -> None:
         if not isinstance(stiffness_scale, StiffnessCurve):
             if isinstance(stiffness_scale, bool) or not isinstance(stiffness_scale, (int, float)) \
@@ -529,6 +538,7 @@ class Simulator:
         self.X = cubature_points
         self.vol = cubature_weights
         self.material = material
+        self.volumetric = check_volumetric(volumetric, material.model)
         self.externals = list(externals)
         self.config = config or SimConfig()
         self.jacobian = jacobian
@@ -633,10 +643,11 @@ class Simulator:
         w, dw = self.field.weights_and_gradients(self.X)
         b = lbs_rows(self.X, w)
         contact_b = None if self.contact_points is None else lbs_rows(self.contact_points, self.field(self.contact_points))
+        volumetric = projection_basis(w, self.vol) if self.volumetric == "projected" else None
         if self.use_neural_jacobian:
             J = self.jacobian(self.X)  # (K, 9, 12H) in z layout
-            return ReducedBasis(b, J[:, :, self._perm], False, contact_b)
-        return ReducedBasis(b, gradient_basis(self.X, w, dw), True, contact_b)
+            return ReducedBasis(b, J[:, :, self._perm], False, contact_b, volumetric)
+        return ReducedBasis(b, gradient_basis(self.X, w, dw), True, contact_b, volumetric)
 
     # ---- states --------------------------------------------------------------------------------
     def rest_state(self, zdot: Tensor | None = None) -> SimState:
@@ -709,7 +720,7 @@ class Simulator:
                              self.contact_points, self.contact_weights, self.length_scale, cache)
             y_new = _ImplicitStep.apply(spec, y, ydot, y2 if bdf.needs_history else None,
                                         ydot2 if bdf.needs_history else None, mu, lam, tau, self.masses(), b,
-                                        step_basis, basis.contact_b, layer_k, dashpot)
+                                        step_basis, basis.contact_b, layer_k, dashpot, basis.volumetric)
             ydot_new = bdf.velocity(y_new, y, y2 if bdf.needs_history else None)
             iterations += spec.stats.iterations
             converged = converged and spec.stats.converged

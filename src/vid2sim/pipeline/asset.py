@@ -55,7 +55,8 @@ class Asset:
             absent: the subspace's calibration, ``Simulator(stiffness_scale=)``; kept under material overrides),
             "stiffness_curve" (optional: the calibration as a function of ν, {"nu": [...], "scale": [...]} and,
             for a two-factor calibration, "lam_scale": [...], the factor on λ alone; when present the simulator
-            uses it at its ν and "stiffness_scale" is its value at "nu")}.
+            uses it at its ν and "stiffness_scale" is its value at "nu"), "volumetric" (optional, "pointwise"
+            when absent, or "projected": ``Simulator(volumetric=)``)}.
         cubature_points: (K, 3); cubature_weights: (K,) (m³).
         contact_points: (S, 3); contact_areas: (S,) (m²).
         points: (N, 3) interior samples; volume: m³.
@@ -104,7 +105,7 @@ class Asset:
                          self.sim_config, jacobian=self.jacobian, use_neural_jacobian=self.jacobian is not None,
                          length_scale=self.length_scale, contact_points=self.contact_points,
                          contact_weights=self.contact_areas,
-                         stiffness_scale=self.stiffness())
+                         stiffness_scale=self.stiffness(), volumetric=self.material.get("volumetric", "pointwise"))
 
     def stiffness(self) -> float | StiffnessCurve:
         """The subspace's stiffness calibration: the curve s(ν) when the asset has one, else the number s."""
@@ -210,6 +211,9 @@ def load_asset(folder: str | Path, device: torch.device | str = "cpu") -> Asset:
             StiffnessCurve.from_dict(material["stiffness_curve"])
         except (TypeError, ValueError) as exc:
             raise AssetFormatError(f"{folder / FILES['material']}: stiffness_curve: {exc}") from None
+    if material.get("volumetric", "pointwise") not in ("pointwise", "projected"):
+        raise AssetFormatError(f"{folder / FILES['material']}: volumetric must be 'pointwise' or 'projected', "
+                               f"got {material['volumetric']!r}")
     pts_path = folder / FILES["points"]
     if not pts_path.is_file():
         raise AssetFormatError(f"{pts_path}: missing")

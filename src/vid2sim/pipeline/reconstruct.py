@@ -100,6 +100,9 @@ class ReconstructConfig:
             "prior" one factor at the prior ν.
         calibration_cells: the surface grid's cells along the longest side for that reference mesh.
         calibration_points: samples of the kept voxels that grid is made from.
+        volumetric: the simulator's volumetric term, "pointwise" or "projected" onto the skinning weights'
+            span (``Simulator(volumetric=)``, :mod:`vid2sim.physics.volumetric`: no volumetric locking, so λ
+            needs no factor of its own; calibrate with ``calibration_nu`` "curve").
         sim: the simulator's settings (time-converged BDF2 substeps by default).
         joint: the joint optimisation.
         seed: seeds every stage.
@@ -125,6 +128,7 @@ class ReconstructConfig:
     calibration_nu: str = "two_factor"
     calibration_cells: int = 96
     calibration_points: int = 200_000
+    volumetric: str = "pointwise"
     sim: SimConfig = field(default_factory=SimConfig)
     joint: JointConfig = field(default_factory=JointConfig)
     seed: int = 0
@@ -142,6 +146,11 @@ class ReconstructConfig:
         if self.calibration_nu not in ("curve", "two_factor", "prior"):
             raise ValueError("ReconstructConfig.calibration_nu must be 'curve', 'two_factor' or 'prior', "
                              f"got {self.calibration_nu!r}")
+        if self.volumetric not in ("pointwise", "projected"):
+            raise ValueError(f"ReconstructConfig.volumetric must be 'pointwise' or 'projected', got {self.volumetric!r}")
+        if self.volumetric == "projected" and self.calibrate_stiffness and self.calibration_nu == "two_factor":
+            raise ValueError("ReconstructConfig: the projected volumetric term does not lock, so its calibration "
+                             "takes one factor (calibration_nu 'curve' or 'prior'), not 'two_factor'")
         for name in ("handles", "skinning_iterations", "num_cubature", "velocity_frames", "calibration_cells",
                      "calibration_points"):
             if getattr(self, name) < 1:
@@ -278,12 +287,14 @@ class _Work:
         (self.dir / f"{stage}.done").write_text("")
 
 
-def _calibrated(path: Path, want_curve: bool, want_two: bool) -> bool:
+def _calibrated(path: Path, want_curve: bool, want_two: bool, volumetric: str) -> bool:
     """Whether the work folder's stiffness calibration exists and is of the kind asked for."""
     if not path.is_file():
         return False
-    curve = json.loads(path.read_text()).get("stiffness_curve")
-    return (bool(curve), bool(curve and curve.get("lam_scale"))) == (want_curve, want_two)
+    stored = json.loads(path.read_text())
+    curve = stored.get("stiffness_curve")
+    return (bool(curve), bool(curve and curve.get("lam_scale")), stored.get("volumetric", "pointwise")) == \
+        (want_curve, want_two, volumetric)
 
 
 def _stored_reference(path: Path, nus: tuple[float, ...], k: int) -> dict | None:
@@ -448,7 +459,8 @@ def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConf
     want_two = cfg.calibration_nu == "two_factor"
     reference_k = TWO_FACTOR_MODES if want_two else 1
     reference_job = None
-    if cfg.calibrate_stiffness and want_curve and not _calibrated(calibration_path, want_curve, want_two) and \
+    if cfg.calibrate_stiffness and want_curve and \
+            not _calibrated(calibration_path, want_curve, want_two, cfg.volumetric) and \
             _stored_reference(reference_path, CURVE_NUS, reference_k) is None:
         from vid2sim.pipeline.stiffness import TetReferenceJob
 
@@ -548,7 +560,7 @@ def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConf
     density = float(scene.config.metadata.get("density", cfg.density)) if isinstance(
         scene.config.metadata.get("density"), (int, float)) else cfg.density
     idx, weights = sample_cubature(obj.points, cfg.num_cubature, volume=obj.volume, seed=cfg.seed)
-    if cfg.calibrate_stiffness and not _calibrated(calibration_path, want_curve, want_two):
+    if cfg.calibrate_stiffness and not _calibrated(calibration_path, want_curve, want_two, cfg.volumetric):
         from vid2sim.pipeline.stiffness import calibrate_stiffness
 
         _stage(progress, "      calibrating the subspace's stiffness against quadratic tets")
@@ -561,7 +573,7 @@ def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConf
         calibration = calibrate_stiffness(field, obj.points[idx], weights, dense, prior_nu,
                                           cells=cfg.calibration_cells, seed=cfg.seed,
                                           nus=CURVE_NUS if want_curve else None, factors=2 if want_two else 1,
-                                          reference=reference)
+                                          reference=reference, volumetric=cfg.volumetric)
         calibration_path.write_text(json.dumps(calibration))
     calibration = (json.loads(calibration_path.read_text()) if cfg.calibrate_stiffness
                    else {"stiffness_scale": 1.0, "stiffness_curve": None})
@@ -574,7 +586,7 @@ def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConf
     sim = Simulator(field, obj.points[idx], weights, material, externals, cfg.sim, jacobian=jacobian,
                     use_neural_jacobian=jacobian is not None, length_scale=obj.scale,
                     contact_points=obj.contact_points, contact_weights=obj.contact_areas,
-                    stiffness_scale=stiffness)
+                    stiffness_scale=stiffness, volumetric=cfg.volumetric)
     joint_path = work.dir / "joint.json"
     if not work.done("joint"):
         _stage(progress, "[6/7] joint optimisation of the material, initial velocity and networks")
@@ -594,7 +606,7 @@ def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConf
     material_json = {"model": "neo-hookean", "E": float(10.0 ** result["log10_E"]), "log10_E": result["log10_E"],
                      "nu": result["nu"], "density": density, "damping_ratio": result["damping_ratio"],
                      "stiffness_scale": (stiffness.at(result["nu"]) if isinstance(stiffness, StiffnessCurve)
-                                         else stiffness)}
+                                         else stiffness), "volumetric": cfg.volumetric}
     if isinstance(stiffness, StiffnessCurve):
         material_json["stiffness_curve"] = stiffness.to_dict()
     field, jacobian = field.to("cpu"), (jacobian.to("cpu") if jacobian is not None else None)

@@ -153,7 +153,8 @@ class TetReferenceJob:
 
 def calibrate_stiffness(field, cubature: Tensor, weights: Tensor, points: Tensor | None, poisson_ratio: float,
                         edge_length: float = 0.08, cells: int = 64, seed: int = 0,
-                        nus: tuple[float, ...] | None = None, factors: int = 1, reference: dict | None = None) -> dict:
+                        nus: tuple[float, ...] | None = None, factors: int = 1, reference: dict | None = None,
+                        volumetric: str = "pointwise") -> dict:
     """The stiffness factor s of a reconstruction (``Simulator(stiffness_scale=s)``).
 
     Args:
@@ -170,6 +171,7 @@ def calibrate_stiffness(field, cubature: Tensor, weights: Tensor, points: Tensor
         cells: the surface grid's cells along the longest side.
         reference: :func:`tet_reference` of the same points already computed, for the grid ``nus`` (or
             ``(poisson_ratio,)``) and k = :data:`~vid2sim.physics.modes.TWO_FACTOR_MODES` (two factors) or 1.
+        volumetric: the simulator's volumetric term ("pointwise" or "projected"), recorded in the result.
     Returns:
         {"stiffness_scale": s at ``poisson_ratio``, "stiffness_curve": the curve's ``to_dict()`` or None,
         "tets": mesh size, "mesh_volume_m3", "points_volume_ratio" (the mesh's volume over the weights' sum),
@@ -192,11 +194,12 @@ def calibrate_stiffness(field, cubature: Tensor, weights: Tensor, points: Tensor
     frequencies = np.asarray(reference["frequencies"], dtype=float)
     if nus is not None:
         curve = stiffness_calibration_curve(field, cubature, weights, None, None, grid, factors=factors,
-                                            reference=frequencies)
+                                            reference=frequencies, volumetric=volumetric)
         s = curve.at(poisson_ratio)
     else:
         curve = None
-        reduced = subspace_frequencies(field, cubature, weights, 1.0, float(poisson_ratio), 1.0, k=1)[0]
+        reduced = subspace_frequencies(field, cubature, weights, 1.0, float(poisson_ratio), 1.0, k=1,
+                                       volumetric=volumetric)[0]
         if not (frequencies[0, 0] > 0 and reduced > 0):
             raise ValueError(f"the lowest elastic frequencies must be positive, got tets {frequencies[0, 0]}, "
                              f"subspace {reduced}")
@@ -204,5 +207,5 @@ def calibrate_stiffness(field, cubature: Tensor, weights: Tensor, points: Tensor
     volume = reference["mesh_volume_m3"]
     return {"stiffness_scale": s, "stiffness_curve": curve.to_dict() if curve is not None else None,
             "tets": reference["tets"], "mesh_volume_m3": volume,
-            "points_volume_ratio": volume / float(weights.sum()),
+            "points_volume_ratio": volume / float(weights.sum()), "volumetric": volumetric,
             "seconds": reference["seconds"] + time.perf_counter() - t0}
