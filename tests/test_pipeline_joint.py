@@ -295,7 +295,10 @@ def test_an_asset_keeps_its_stiffness_curve_and_the_rig_uses_it_at_its_nu(tmp_pa
     with pytest.raises(AssetFormatError, match="material.json: volumetric must be 'pointwise' or 'projected'"):
         load_asset(folder)
     (folder / "material.json").write_text(json.dumps({**material, "volumetric": "projected"}))
-    assert load_asset(folder).simulator().volumetric == "projected"
+    projected = load_asset(folder)
+    assert projected.simulator().volumetric == "projected"
+    doc, _ = load_rig(export_rig(projected, tmp_path / "rig_projected"))
+    assert "P ln J" in doc["material"]["energy"]  # the rig says which λ term the simulation uses
 
 
 @pytest.mark.slow

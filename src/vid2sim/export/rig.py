@@ -94,6 +94,10 @@ def rig_document(asset, tensors: dict[str, np.ndarray]) -> dict[str, Any]:
     mat["energy"] = {"neo-hookean": "Psi = mu/2 (tr(F^T F) - 3) - mu ln J + lambda/2 (ln J)^2, J = det F",
                      "neo_hookean": "Psi = mu/2 (tr(F^T F) - 3) - mu ln J + lambda/2 (ln J)^2, J = det F",
                      "stvk": "Psi = mu tr(G^2) + lambda/2 tr(G)^2, G = (F^T F - I)/2"}.get(str(mat.get("model")), None)
+    if mat.get("volumetric", "pointwise") == "projected" and mat["energy"] is not None:
+        mat["energy"] = ("Psi = mu/2 (tr(F^T F) - 3) - mu ln J + lambda/2 (P ln J)^2, J = det F, where P ln J is the "
+                         "volume-weighted least-squares projection of ln J over the cubature points onto the span "
+                         "of the skinning weights (the constant handle included)")
     mat["damping"] = ("Kelvin-Voigt material damping with ratio zeta = damping_ratio at omega_ref = sqrt(E/density)"
                       " / length_scale (retardation time tau = 2 zeta length_scale sqrt(density/E))")
     jac = None
