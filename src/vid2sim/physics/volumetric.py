@@ -51,13 +51,16 @@ def projection_basis(w: Tensor, vol: Tensor) -> Tensor:
     Raises:
         ValueError: when the weights are linearly dependent at these points (their Gram matrix is singular).
     """
-    gram = w.T @ (w * vol[:, None])
+    wd = w.double()  # the Gram matrix squares the weights' conditioning: float64 whatever the simulator's dtype
+    gram = wd.T @ (wd * vol.double()[:, None])
     chol, info = torch.linalg.cholesky_ex(gram)
-    if int(info) != 0:
+    # a column whose part outside the span of the ones before it is below 1e-5 of its norm counts as dependent
+    # (a factorisation of a singular matrix may succeed in rounding)
+    if int(info) != 0 or bool((chol.diagonal() ** 2 <= 1e-10 * gram.diagonal()).any()):
         raise ValueError(f"the skinning weights are linearly dependent at the {w.shape[0]} cubature points "
                          f"(their {w.shape[1]} x {w.shape[1]} Gram matrix is singular): the projected volumetric "
                          "term needs independent weights")
-    return torch.linalg.solve_triangular(chol, w.T, upper=False).T  # W L⁻ᵀ
+    return torch.linalg.solve_triangular(chol, wd.T, upper=False).T.to(w.dtype)  # W L⁻ᵀ
 
 
 def project(basis: Tensor, vol: Tensor, values: Tensor) -> Tensor:
