@@ -366,6 +366,11 @@ def test_cli_no_stage1_and_predictor_flags(tiny_scene, tmp_path, monkeypatch):
     with pytest.raises(SystemExit):
         main(["reconstruct", str(tiny_scene), str(tmp_path / "a"), "--skinning-objective", "modal", "--quiet"])
     assert seen[-1].skinning_objective == "modal"
+    assert seen[-2].handles == ReconstructConfig().handles == 10
+    with pytest.raises(SystemExit):
+        main(["reconstruct", str(tiny_scene), str(tmp_path / "a"), "--handles", "20", "--quiet"])
+    assert seen[-1].handles == 20
+    assert main(["reconstruct", str(tiny_scene), str(tmp_path / "a"), "--handles", "0", "--quiet"]) == 2
     assert main(["reconstruct", str(tiny_scene), str(tmp_path / "a"), "--predictor", str(tmp_path / "no.pt")]) == 2
 
 

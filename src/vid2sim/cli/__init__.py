@@ -349,6 +349,10 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
         overrides["jacobian"] = args.jacobian
     if args.seed is not None:
         overrides["seed"] = args.seed
+    if args.handles is not None:
+        if args.handles < 1:
+            raise UserError(f"--handles must be >= 1, got {args.handles}")
+        overrides["handles"] = args.handles
     if args.skinning_objective is not None:
         overrides["skinning_objective"] = args.skinning_objective
     if args.stage1 is not None:
@@ -651,6 +655,9 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--jacobian", choices=["closed_form", "neural"], default=None,
                      help="dF/dz: exact closed form (default, faster on a CPU) or the paper's Neural Jacobian")
     rec.add_argument("--seed", type=int, default=None, help="seed (default 0)")
+    rec.add_argument("--handles", type=int, default=None,
+                     help="learned skinning handles (default 10, + 1 rigid); more handles let the subspace squash "
+                          "and bend closer to the continuum at a higher cost per step (Stage I's template has 10)")
     rec.add_argument("--skinning-objective", choices=["random_z", "modal"], default=None,
                      help="data-free skinning objective: the subspace's lowest vibration modes (default) or the "
                           "paper's random handle transforms (docs/architecture.md, 'Subspace stiffness')")
