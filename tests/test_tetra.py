@@ -19,6 +19,7 @@ from vid2sim.meshing.tetra import (
     boundary_faces,
     box_tet_mesh,
     clean_tet_mesh,
+    largest_connected_part,
     tet_volumes,
     tetrahedralize,
 )
@@ -76,6 +77,33 @@ def test_clean_reorients_and_drops_unreferenced():
     assert cv.shape == (5, 3)
     assert bool((tet_volumes(cv, ct) > 0).all())
     np.testing.assert_allclose(tet_volumes(cv, ct).abs().numpy(), tet_volumes(v, tets).abs().numpy())
+
+
+def test_largest_connected_part_drops_floating_and_hinged_pieces():
+    from vid2sim.physics.tet_modes import tet_frequency_curve
+
+    body = box_tet_mesh((1.0, 0.5, 0.5), (4, 2, 2))
+    blob = box_tet_mesh((0.1, 0.1, 0.1), (1, 1, 1), origin=(2.0, 0.0, 0.0))  # floating
+    hinged = box_tet_mesh((0.1, 0.1, 0.1), (1, 1, 1), origin=(1.0, 0.5, 0.5))  # touches the body at one corner
+    parts = [body, blob, hinged]
+    offsets = np.cumsum([0] + [len(p.vertices) for p in parts[:-1]])
+    v = torch.cat([p.vertices for p in parts])
+    t = torch.cat([p.tets + int(o) for p, o in zip(parts, offsets)])
+    # merge the hinge's corner into the body's: one shared vertex, no shared face
+    at_corner = ((v - torch.tensor([1.0, 0.5, 0.5], dtype=v.dtype)).norm(dim=1) < 1e-12).nonzero()[:, 0]
+    assert len(at_corner) == 2
+    t[t == int(at_corner[1])] = int(at_corner[0])
+    v, t, _ = clean_tet_mesh(v, t)  # drops the hinge's own copy of the corner
+    # the whole mesh has the blob's and the hinge's free motions among its lowest modes
+    assert tet_frequency_curve(v, t, (0.3,), k=1, order=1)[0, 0] < 1e-4
+    kv, kt, dropped = largest_connected_part(v, t)
+    assert kt.shape == body.tets.shape and kv.shape == body.vertices.shape
+    np.testing.assert_allclose(float(tet_volumes(kv, kt).sum()), 0.25, rtol=1e-12)
+    np.testing.assert_allclose(dropped, 2e-3 / 0.252, rtol=1e-9)
+    expected = tet_frequency_curve(body.vertices, body.tets, (0.3,), k=1, order=1)
+    np.testing.assert_allclose(tet_frequency_curve(kv, kt, (0.3,), k=1, order=1), expected, rtol=1e-9)
+    same_v, same_t, none = largest_connected_part(body.vertices, body.tets)
+    assert none == 0.0 and torch.equal(same_t, body.tets) and torch.equal(same_v, body.vertices)
 
 
 def test_clean_rejects_bad_meshes():

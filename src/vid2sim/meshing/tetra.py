@@ -178,6 +178,46 @@ def clean_tet_mesh(vertices: Tensor | np.ndarray, tets: Tensor | np.ndarray, nam
     return v[used], remap[t], int(neg.sum())
 
 
+def largest_connected_part(vertices: Tensor | np.ndarray, tets: Tensor | np.ndarray) -> tuple[Tensor, Tensor, float]:
+    """The face-connected part of a tet mesh with the largest volume.
+
+    A mesher given a surface with small floating blobs (a reconstruction's level set) returns them as separate
+    pieces. Each piece adds six rigid motions to the mesh's stiffness, and so do pieces that touch the body
+    only at a vertex or an edge (it can turn about them): a vibration analysis then finds zero frequencies
+    where the solid's lowest elastic mode should be. Tets count as connected when they share a face.
+
+    Args:
+        vertices: (Nv, 3) positions; tets: (Nt, 4) positively oriented vertex indices.
+    Returns:
+        ``(vertices (Mv, 3) float64, tets (Mt, 4) long, dropped)``: the part with its vertices renumbered
+        (unreferenced ones dropped), and the volume fraction of the other parts.
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    v = torch.as_tensor(np.asarray(vertices) if not isinstance(vertices, Tensor) else vertices).to(torch.float64).cpu()
+    t = torch.as_tensor(np.asarray(tets) if not isinstance(tets, Tensor) else tets).to(torch.long).cpu()
+    T = t.numpy()
+    faces = np.sort(T[:, [[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]]].reshape(-1, 3), axis=1)
+    _, face_id = np.unique(faces, axis=0, return_inverse=True)
+    face_id = face_id.reshape(-1)
+    n_tets, n_faces = len(T), int(face_id.max()) + 1
+    owner = np.repeat(np.arange(n_tets), 4)
+    graph = coo_matrix((np.ones(len(owner)), (owner, n_tets + face_id)), shape=(n_tets + n_faces,) * 2)
+    _, label = connected_components(graph, directed=False)
+    label = label[:n_tets]
+    volume = tet_volumes(v, t).abs().numpy()
+    per_part = np.bincount(label, weights=volume)
+    keep = torch.from_numpy(label == int(per_part.argmax()))
+    dropped = 1.0 - float(per_part.max() / per_part.sum())
+    kept = t[keep]
+    used = torch.zeros(v.shape[0], dtype=torch.bool)
+    used[kept.reshape(-1)] = True
+    remap = torch.full((v.shape[0],), -1, dtype=torch.long)
+    remap[used] = torch.arange(int(used.sum()))
+    return v[used], remap[kept], dropped
+
+
 # ---- structured box mesher ------------------------------------------------------------------------
 
 # Kuhn (Freudenthal) split of the unit cube into 6 tets along its main diagonal (0,0,0)-(1,1,1); corners
