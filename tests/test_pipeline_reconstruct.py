@@ -325,7 +325,7 @@ def test_stage1_sets_the_prior_the_coarse_grid_and_the_skinning_start(tiny_scene
                                atol=0.05, rtol=0)  # 10 iterations from the template stay close to it
 
 
-def test_stage1_is_skipped_with_a_recorded_reason(tiny_asset, tmp_path):
+def test_stage1_is_skipped_with_a_recorded_reason(tiny_asset, tiny_scene, tmp_path):
     from vid2sim.pipeline.reconstruct import run_stage1
 
     s1 = json.loads((tiny_asset / "log.json").read_text())["stage1"]
@@ -337,8 +337,16 @@ def test_stage1_is_skipped_with_a_recorded_reason(tiny_asset, tmp_path):
                          [0, 0, 0])
     assert not missing["ran"] and "none.pt" in missing["reason"]
     ckpt, _ = _tiny_predictor(tmp_path / "p.pt")
-    few = run_stage1(ReconstructConfig(stage1=True, predictor=str(ckpt), handles=3), None, [], 0.05, [0, 0, 0])
-    assert not few["ran"] and "handles" in few["reason"]
+
+    # another handle count: the material is predicted, the skinning field keeps its own start
+    scene = load_scene(tiny_scene)
+    V, T = scene.config.observed_views, scene.config.observed_frames
+    images, cameras = scene.images[V][:, T].float(), [scene.cameras[v] for v in V]
+    full = run_stage1(ReconstructConfig(stage1=True, predictor=str(ckpt)), images, cameras, 0.05, [0, 0, 0])
+    few = run_stage1(ReconstructConfig(stage1=True, predictor=str(ckpt), handles=3), images, cameras, 0.05, [0, 0, 0])
+    assert full["ran"] and full["skinning_start"] and full["last_layer"] is not None
+    assert few["ran"] and not few["skinning_start"] and few["last_layer"] is None and "handles" in few["skinning_note"]
+    assert few["log10_E"] == full["log10_E"] and few["nu"] == full["nu"]
 
 
 def test_cli_no_stage1_and_predictor_flags(tiny_scene, tmp_path, monkeypatch):

@@ -29,8 +29,9 @@ skinning field's last layer. They become the prior material, the centre of the j
 over log10 E (its grid shifted, spacing kept), and the skinning field's starting point (the template's hidden
 layers with the predicted last layer) for the data-free skinning training. It is skipped — and the reason is
 written to ``log.json`` ``stage1`` — when switched off (``--no-stage1``, the paper's "w/o Stage I"), when the
-checkpoint is missing or transformers is not installed, or when ``handles`` differs from the template's (10): the prior then is
-``prior_E``/``prior_nu`` and the field a seeded initialisation.
+checkpoint is missing or transformers is not installed: the prior then is ``prior_E``/``prior_nu`` and the field a
+seeded initialisation. With ``handles`` other than the template's (10) it gives the material only (the predicted last
+layer is for 10 handles), and ``log.json`` says so (``skinning_start`` false).
 
 Physics runs in the scene's metric frame: E in Pa is the real material if the scene's scale is metric and the
 density right. A drop only identifies E/ρ; the density comes from ``scene.json`` ``metadata.density`` when
@@ -343,7 +344,10 @@ def run_stage1(cfg: ReconstructConfig, images: torch.Tensor, cameras: list, dt: 
     Returns:
         the record written to ``log.json`` ``stage1``: {"ran": False, "reason"} or {"ran": True, "E", "log10_E",
         "nu", "seconds", "view" (index into the observed views), "padded_frames", "checkpoint",
-        "coarse_log10_E"} plus "last_layer" (650,) (a tensor, not written to the log).
+        "coarse_log10_E", "skinning_start", "skinning_note"} plus "last_layer" (650,) (a tensor, not written to
+        the log). With ``cfg.handles`` other than the template's, the predicted last layer does not fit the
+        field: the material is used, "skinning_start" is False, "skinning_note" says why and "last_layer" is
+        None.
     """
     from vid2sim.predictor.predict import DEFAULT_PREDICTOR
 
@@ -358,11 +362,10 @@ def run_stage1(cfg: ReconstructConfig, images: torch.Tensor, cameras: list, dt: 
     from vid2sim.predictor.template import load_template
 
     template = load_template()
+    skinning_note = None
     if cfg.handles != template.num_handles:
-        reason = (f"ReconstructConfig.handles is {cfg.handles}, the predicted last layer is for the template's "
-                  f"{template.num_handles} handles")
-        _stage(progress, f"      Stage I skipped: {reason}")
-        return {"ran": False, "reason": reason, "checkpoint": str(path)}
+        skinning_note = (f"ReconstructConfig.handles is {cfg.handles}, the predicted last layer is for the template's "
+                         f"{template.num_handles} handles: the skinning field starts from its own initialisation")
     from vid2sim.predictor.train import load_predictor
 
     _stage(progress, "[Stage I] predicting the material and skinning field from the front view")
@@ -377,11 +380,14 @@ def run_stage1(cfg: ReconstructConfig, images: torch.Tensor, cameras: list, dt: 
     video, view, padded = front_video(images, cameras, dt, model.image_size, model.num_frames, target_dt, centre,
                                       framing=model.config.framing)
     pred = predict_video(model, video)
+    if skinning_note is not None:
+        _stage(progress, f"      Stage I gives the material only: {skinning_note}")
     return {"ran": True, "E": pred["E"], "log10_E": pred["log10_E"], "nu": pred["nu"],
             "seconds": time.perf_counter() - t0, "inference_seconds": pred["seconds"], "view": view,
             "padded_frames": padded, "checkpoint": str(path),
             "coarse_log10_E": list(centred_grid(cfg.joint.coarse_log10_E, pred["log10_E"])),
-            "last_layer": pred["last_layer"]}
+            "skinning_start": skinning_note is None, "skinning_note": skinning_note,
+            "last_layer": pred["last_layer"] if skinning_note is None else None}
 
 
 def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConfig | None = None,
@@ -528,7 +534,7 @@ def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConf
     # 5. networks ----------------------------------------------------------------------------------------
     field_path, jac_path = work.dir / "skinning.pt", work.dir / "jacobian.pt"
     field = SkinningField(cfg.handles, seed=cfg.seed)
-    if stage1["ran"]:
+    if stage1["ran"] and stage1.get("skinning_start", True):
         from vid2sim.predictor.template import field_from_last_layer, load_template
 
         field = field_from_last_layer(load_template(), torch.load(work.dir / "stage1_last_layer.pt",
