@@ -5,6 +5,7 @@ import dataclasses
 import json
 import shutil
 
+import numpy as np
 import pytest
 import torch
 
@@ -38,6 +39,17 @@ def test_reconstruct_writes_a_complete_asset(tiny_asset, tiny_scene):
     states = sim.rollout(asset.initial_state(sim), 3)
     assert all(torch.isfinite(s.z).all() for s in states)
     assert asset.material["stiffness_scale"] == 1.0 == sim.stiffness_scale  # the tiny config does not calibrate
+    # a shaded asset: the PLY shows the Gaussians lit as at frame 0, the asset holds albedos and the light
+    from vid2sim.pipeline.evaluate import simulate_gaussians
+    from vid2sim.splats.ply import load_ply
+
+    assert "shading.npz" in names and asset.shading is not None and asset.shading.num == asset.gaussians.num
+    assert log["timings_seconds"]["motion_appearance"] > 0
+    meta = json.loads((tiny_asset / "asset.json").read_text())
+    assert meta["files"]["shading"] == "shading.npz" and meta["extra"]["motion_appearance"]["shading"]["ambient"] > 0
+    ply = load_ply(tiny_asset / "gaussians.ply")
+    assert torch.allclose(ply.sh, asset.shading.shade(asset.gaussians.sh), atol=1e-5)
+    assert torch.allclose(simulate_gaussians(asset, 1, progress=False)[0].sh, ply.sh, atol=1e-5)
 
 
 def test_a_calibrated_reconstruction_records_and_uses_its_stiffness_scale(tiny_scene, tmp_path, tiny_config):
@@ -116,7 +128,7 @@ def test_evaluate_true_motion_scores_the_gaussians_on_the_ground_truths_motion(t
 def test_motion_appearance_fits_the_gaussians_through_the_motion(tiny_asset, tiny_scene):
     from vid2sim.metrics.images import image_metrics
     from vid2sim.pipeline.evaluate import render_frames, simulate_gaussians
-    from vid2sim.pipeline.motion_appearance import SkinnedMotion, refine_on_motion
+    from vid2sim.pipeline.motion_appearance import SkinnedMotion, initial_shading, refine_on_motion
     from vid2sim.splats.fitting import FitConfig
 
     asset, scene = load_asset(tiny_asset), load_scene(tiny_scene)
@@ -133,17 +145,32 @@ def test_motion_appearance_fits_the_gaussians_through_the_motion(tiny_asset, tin
         return image_metrics(render_frames([motion.carry(g, t) for t in observed], cameras, progress=False), images,
                              layout="VT")["psnr"]
 
-    colours, record = refine_on_motion(asset.gaussians, motion, images, cameras, observed, FitConfig(), 60,
-                                       geometry=False)
+    colours, no_shading, record = refine_on_motion(asset.gaussians, motion, images, cameras, observed, FitConfig(),
+                                                   60, geometry=False)
+    assert no_shading is None and "shading" not in record
     assert record["iterations"] == 60 and not record["geometry"] and record["loss_last"] < record["loss_first"]
     for name in ("means", "log_scales", "quats"):  # colours only: the geometry stays as it was
         assert torch.equal(getattr(colours, name), getattr(asset.gaussians, name)), name
     assert not torch.equal(colours.sh, asset.gaussians.sh)
-    full, record = refine_on_motion(asset.gaussians, motion, images, cameras, observed, FitConfig(), 60)
+    full, _, record = refine_on_motion(asset.gaussians, motion, images, cameras, observed, FitConfig(), 60)
     assert record["geometry"] and full.num == asset.gaussians.num
     for name in ("means", "log_scales", "quats", "sh", "opacity_logits"):
         assert not torch.equal(getattr(full, name), getattr(asset.gaussians, name)), name
     assert score(full) > score(asset.gaussians) and score(colours) > score(asset.gaussians)
+    # with a world-fixed light: albedos, normals, the light and the ambient share are fitted together
+    start = initial_shading(asset.gaussians, asset.points, asset.volume, asset.gravity)
+    assert start.light.tolist() == pytest.approx([0.0, 0.0, 1.0]) and float(start.ambient) == pytest.approx(0.5)
+    albedo = dataclasses.replace(asset.gaussians, sh=start.unshade(asset.gaussians.sh))
+    assert torch.allclose(motion.carry(albedo, 0, start).sh, motion.carry(asset.gaussians, 0).sh, atol=1e-5)
+    lit, shading, record = refine_on_motion(albedo, motion, images, cameras, observed, FitConfig(), 60, shading=start)
+    assert shading.num == lit.num and record["shading"]["model"] == "lambert"
+    assert not torch.equal(shading.normals, start.normals) and not torch.equal(shading.light, start.light)
+    assert record["loss_last"] < record["loss_first"]
+    lit_psnr = image_metrics(render_frames([motion.carry(lit, t, shading) for t in observed], cameras,
+                                           progress=False), images, layout="VT")["psnr"]
+    assert lit_psnr > score(asset.gaussians)
+    with pytest.raises(ValueError, match="normals"):
+        refine_on_motion(albedo, motion, images, cameras, observed, FitConfig(), 1, shading=start.select(slice(0, 3)))
     # the Neural-Jacobian path: a 'network' that returns the exact dF/dz carries them the same way
     from vid2sim.physics.skinning import dF_dz, gradient_basis
 
@@ -377,7 +404,10 @@ def test_cli_no_stage1_and_predictor_flags(tiny_scene, tmp_path, monkeypatch):
     assert seen[-2].handles == ReconstructConfig().handles == 10
     with pytest.raises(SystemExit):
         main(["reconstruct", str(tiny_scene), str(tmp_path / "a"), "--handles", "20", "--quiet"])
-    assert seen[-1].handles == 20
+    assert seen[-1].handles == 20 and seen[-1].motion_appearance_shading is True
+    with pytest.raises(SystemExit):
+        main(["reconstruct", str(tiny_scene), str(tmp_path / "a"), "--no-shading", "--quiet"])
+    assert seen[-1].motion_appearance_shading is False
     assert main(["reconstruct", str(tiny_scene), str(tmp_path / "a"), "--handles", "0", "--quiet"]) == 2
     assert main(["reconstruct", str(tiny_scene), str(tmp_path / "a"), "--predictor", str(tmp_path / "no.pt")]) == 2
 
@@ -397,3 +427,21 @@ def test_reconstruct_on_cuda_writes_the_same_asset_format(tiny_scene, tiny_asset
     assert abs(asset.material["log10_E"] - reference.material["log10_E"]) < 0.1
     sim = asset.simulator()
     assert all(torch.isfinite(s.z).all() for s in sim.rollout(asset.initial_state(sim), 2))
+
+
+def test_an_asset_without_shading_and_a_broken_shading_file(tiny_asset, tmp_path):
+    from vid2sim.pipeline.asset import AssetFormatError, save_asset
+    from vid2sim.splats.ply import load_ply
+
+    asset = load_asset(tiny_asset)
+    plain = save_asset(dataclasses.replace(asset, shading=None), tmp_path / "plain")
+    assert not (plain / "shading.npz").exists()
+    back = load_asset(plain)
+    assert back.shading is None and torch.equal(back.gaussians.sh, load_ply(plain / "gaussians.ply").sh)
+    assert back.rest_gaussians() is back.gaussians
+    broken = save_asset(asset, tmp_path / "broken")
+    np.savez(broken / "shading.npz", normals=np.zeros((3, 3)), light=np.ones(3), ambient_logit=np.float64(0.0))
+    with pytest.raises(AssetFormatError, match=r"shading\.npz: 3 normals"):
+        load_asset(broken)
+    with pytest.raises(ValueError, match="normals"):
+        dataclasses.replace(asset, shading=asset.shading.select(slice(0, 2)))

@@ -367,6 +367,8 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
             overrides["calibration_nu"] = "curve"  # the projected term does not lock: one factor
     if args.motion_geometry is not None:
         overrides["motion_appearance_geometry"] = args.motion_geometry
+    if args.shading is not None:
+        overrides["motion_appearance_shading"] = args.shading
     if args.predictor is not None:
         if not Path(args.predictor).is_file():
             raise UserError(f"--predictor {args.predictor}: no such checkpoint file (train one with "
@@ -682,6 +684,10 @@ def build_parser() -> argparse.ArgumentParser:
                      help="the last stage fits the Gaussians' rest-frame centres, scales and rotations as well as "
                      "their colours and opacities through the simulated motion (on by default; "
                      "--no-motion-geometry: colours and opacities only)")
+    rec.add_argument("--shading", action=argparse.BooleanOptionalAction, default=None,
+                     help="the last stage separates the colours' albedo from a light fixed in the world (a "
+                     "direction and an ambient share, fitted), so the asset is lit by its pose as it turns (on by "
+                     "default; --no-shading: the colours keep the light they were fitted under)")
     rec.add_argument("--predictor", metavar="PATH", default=None,
                      help="Stage I checkpoint (default: the one shipped with vid2sim; vid2sim train-predictor)")
     rec.add_argument("--device", default=None, help="torch device of the Gaussian fits, networks and joint "

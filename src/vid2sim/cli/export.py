@@ -105,7 +105,7 @@ def _cmd_export(args: argparse.Namespace) -> int:
             asset = load_asset(source)
         except AssetFormatError as exc:
             raise UserError(str(exc)) from exc
-        gaussians = asset.gaussians
+        gaussians = asset.rest_gaussians()  # as they look at rest (lit, for a shaded asset)
         g = asset.gravity
         if any(g):
             up = tuple(-float(v) for v in g)

@@ -214,7 +214,7 @@ def export_rig(asset, folder: str | Path, *, z_sequence=None) -> Path:
 
         save_file({k: np.array(v, order="C") for k, v in tensors.items()}, str(tmp / RIG_FILES["weights"]),
                   metadata={"format": RIG_FORMAT, "version": str(RIG_VERSION), "description": "see rig.json"})
-        save_ply(asset.gaussians, tmp / RIG_FILES["gaussians"])
+        save_ply(asset.rest_gaussians().detach(), tmp / RIG_FILES["gaussians"])  # lit as at rest
         (tmp / RIG_FILES["rig"]).write_text(json.dumps(doc, indent=2))
         move_into_place(tmp, folder)
     except BaseException:

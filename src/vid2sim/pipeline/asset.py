@@ -5,7 +5,9 @@ A folder (docs/asset-format.md)::
     asset.json          format/version, units, networks' architecture, simulator settings, floor and gravity,
                         initial rigid velocity, the canonical frame, the files below
     material.json       model, E (Pa), log10 E, ν, density (kg/m³), damping ratio
-    gaussians.ply       the Gaussians at frame 0 (standard 3DGS PLY, any splat viewer opens it)
+    gaussians.ply       the Gaussians at frame 0 (standard 3DGS PLY, any splat viewer opens it), lit as at frame 0
+    shading.npz         (only for a shaded asset) the Gaussians' rest-frame normals, the light direction and
+                        ambient share: the colours are then albedos lit by a light fixed in the world
     skinning.pt         the skinning field's weights (its input frame included)
     jacobian.pt         the Neural Jacobian's weights (only when the asset uses it)
     points.npz          cubature points and weights, contact points and areas, interior points, volume
@@ -21,7 +23,7 @@ import json
 import math
 import shutil
 import tempfile
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -32,11 +34,13 @@ from torch import Tensor
 from vid2sim.physics.solver import SimConfig, SimState, Simulator
 from vid2sim.physics.stiffness_curve import StiffnessCurve
 from vid2sim.splats.gaussians import Gaussians
+from vid2sim.splats.shading import Shading
 
 ASSET_FORMAT = "vid2sim-asset"
 ASSET_VERSION = 1
 FILES = {"asset": "asset.json", "material": "material.json", "gaussians": "gaussians.ply", "skinning": "skinning.pt",
-         "jacobian": "jacobian.pt", "points": "points.npz", "config": "config.json", "log": "log.json"}
+         "jacobian": "jacobian.pt", "points": "points.npz", "config": "config.json", "log": "log.json",
+         "shading": "shading.npz"}
 
 
 class AssetFormatError(ValueError):
@@ -66,6 +70,8 @@ class Asset:
         initial_velocity: {"linear": [3], "angular": [3], "centre": [3]} at frame 0.
         dt: the video frame time (s).
         extra: free-form records (canonical frame, source scene, timings).
+        shading: a :class:`~vid2sim.splats.shading.Shading` (normals of the N Gaussians, a world-fixed light), or
+            None. With it, ``gaussians`` hold albedos, and every render lights them by the current pose.
     """
 
     gaussians: Gaussians
@@ -86,6 +92,17 @@ class Asset:
     initial_velocity: dict[str, list[float]]
     dt: float
     extra: dict[str, Any] = field(default_factory=dict)
+    shading: Shading | None = None
+
+    def __post_init__(self) -> None:
+        if self.shading is not None and self.shading.num != self.gaussians.num:
+            raise ValueError(f"Asset: the shading has {self.shading.num} normals for {self.gaussians.num} Gaussians")
+
+    def rest_gaussians(self) -> Gaussians:
+        """The Gaussians as they look at rest (frame 0's pose): lit by the shading when the asset has one."""
+        if self.shading is None:
+            return self.gaussians
+        return replace(self.gaussians, sh=self.shading.shade(self.gaussians.sh))
 
     def simulator(self, externals: list | None = None, **material_overrides: Any) -> Simulator:
         """A ready :class:`Simulator` for this asset (the captured floor and gravity unless ``externals``
@@ -132,7 +149,11 @@ def save_asset(asset: Asset, folder: str | Path, config: dict[str, Any] | None =
     folder.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", dir=folder.parent))
     try:
-        save_ply(asset.gaussians, tmp / FILES["gaussians"])
+        save_ply(asset.rest_gaussians().detach(), tmp / FILES["gaussians"])
+        if asset.shading is not None:
+            sh = asset.shading.detach().to("cpu")
+            np.savez(tmp / FILES["shading"], normals=sh.normals.numpy(), light=sh.light.numpy(),
+                     ambient_logit=sh.ambient_logit.numpy())
         torch.save(asset.field.state_dict(), tmp / FILES["skinning"])
         if asset.jacobian is not None:
             torch.save(asset.jacobian.state_dict(), tmp / FILES["jacobian"])
@@ -238,7 +259,21 @@ def load_asset(folder: str | Path, device: torch.device | str = "cpu") -> Asset:
         sim_config = SimConfig(**meta["sim_config"])
     except (KeyError, TypeError, ValueError) as exc:
         raise AssetFormatError(f"{folder / FILES['asset']}: sim_config is invalid ({exc})") from None
-    return Asset(gaussians=load_ply(folder / FILES["gaussians"], device=device), field=field_, jacobian=jac,
+    gaussians = load_ply(folder / FILES["gaussians"], device=device)
+    shading = None
+    shading_path = folder / FILES["shading"]
+    if shading_path.is_file():
+        try:
+            with np.load(shading_path) as z:
+                shading = Shading(*(torch.from_numpy(np.asarray(z[k])).to(device=device, dtype=gaussians.means.dtype)
+                                    for k in ("normals", "light", "ambient_logit")))
+        except (KeyError, ValueError) as exc:
+            raise AssetFormatError(f"{shading_path}: {exc}") from None
+        if shading.num != gaussians.num:
+            raise AssetFormatError(f"{shading_path}: {shading.num} normals for the {gaussians.num} Gaussians of "
+                                   f"{FILES['gaussians']}")
+        gaussians = replace(gaussians, sh=shading.unshade(gaussians.sh))
+    return Asset(gaussians=gaussians, field=field_, jacobian=jac, shading=shading,
                  material=material, cubature_points=arrays["cubature_points"],
                  cubature_weights=arrays["cubature_weights"], contact_points=arrays["contact_points"],
                  contact_areas=arrays["contact_areas"], points=arrays["points"], volume=volume,

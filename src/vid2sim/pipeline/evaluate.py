@@ -58,7 +58,7 @@ def simulate_gaussians(asset: Any, num_frames: int, progress: bool = True) -> li
     start = asset.initial_state(sim)
     with torch.no_grad():
         states = [start] + sim.rollout(start, num_frames - 1, progress=progress)
-        rig = GaussianRig(sim, asset.gaussians)
+        rig = GaussianRig(sim, asset.gaussians, asset.shading)
         basis = rig.basis()
         return [rig.deformed(s.z, basis) for s in tqdm(states, desc="deform", disable=not progress, leave=False)]
 
@@ -99,7 +99,7 @@ def true_motion_gaussians(asset: Any, tet_trajectory: dict[str, torch.Tensor]) -
     vertices, tets = tet_trajectory["vertices"], tet_trajectory["tets"]
     used = vertices[:, : int(tets.max()) + 1]  # quadratic meshes list edge midpoints after the vertices
     x, F = carry_by_tets(g.means, used, tets)
-    return [deform_gaussians(g, x[t].to(g.means.dtype), F[t].to(g.means.dtype)) for t in range(len(x))]
+    return [deform_gaussians(g, x[t].to(g.means.dtype), F[t].to(g.means.dtype), asset.shading) for t in range(len(x))]
 
 
 def evaluate(asset_path: str | Path, scene_path: str | Path, fovvdp: bool = False,

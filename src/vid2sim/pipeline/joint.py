@@ -28,7 +28,7 @@ import copy
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Callable, Sequence
+from typing import Any, Callable, Sequence
 
 import torch
 from torch import Tensor
@@ -161,11 +161,14 @@ class GaussianRig:
     Args:
         sim: the simulator (its field, and Neural Jacobian when ``sim.use_neural_jacobian``).
         gaussians: the Gaussians fitted to frame 0 (world frame = the rest configuration).
+        shading: a :class:`~vid2sim.splats.shading.Shading` for the Gaussians (their colours are then albedos,
+            lit per frame by its world-fixed light), or None (colours as stored).
     """
 
-    def __init__(self, sim: Simulator, gaussians: Gaussians) -> None:
+    def __init__(self, sim: Simulator, gaussians: Gaussians, shading: Any | None = None) -> None:
         self.sim = sim
         self.gaussians = gaussians
+        self.shading = shading
         self.X = gaussians.means.detach().to(sim.X.dtype)
 
     def basis(self) -> tuple[Tensor, Tensor | None, Tensor | None]:
@@ -190,7 +193,7 @@ class GaussianRig:
         else:
             F = torch.eye(3, dtype=z.dtype, device=z.device) + (J @ z).reshape(-1, 3, 3)
         g = self.gaussians
-        return deform_gaussians(g, x.to(g.means.dtype), F.to(g.means.dtype))
+        return deform_gaussians(g, x.to(g.means.dtype), F.to(g.means.dtype), self.shading)
 
 
 
@@ -228,6 +231,9 @@ def render_frames(rig: GaussianRig, states: Sequence[SimState], obs: Observation
     cams = [obs.cameras[v] for v in views]
     frames = [rig.deformed(s.z, basis) for s in states]
     nv = len(cams)
+    if rig.shading is not None:  # colours differ per frame: one call per frame
+        return torch.stack([render(d.means, d.opacities, d.sh, cams, covars=d.covars, sh_degree=d.sh_degree,
+                                   background=list(obs.background)).rgb for d in frames])
     means = torch.stack([d.means for d in frames]).repeat_interleave(nv, dim=0)  # (T·V, N, 3)
     covars = torch.stack([d.covars for d in frames]).repeat_interleave(nv, dim=0)
     g = frames[0]

@@ -28,6 +28,13 @@ from typing import Any, Sequence
 import torch
 from torch import Tensor
 
+from vid2sim.splats.shading import Shading, outward_normals
+
+SHADING_LR = 0.01
+"""Adam learning rate of the shading's normals (unit vectors)."""
+LIGHT_LR = 0.05
+"""Adam learning rate of the light's direction (a unit vector) and its ambient share's logit."""
+
 
 @dataclass
 class SkinnedMotion:
@@ -70,9 +77,10 @@ class SkinnedMotion:
     def num_frames(self) -> int:
         return int(self.states.shape[0])
 
-    def carry(self, gaussians: Any, t: int) -> Any:
+    def carry(self, gaussians: Any, t: int, shading: Any | None = None) -> Any:
         """The rest-frame ``gaussians`` (a :class:`~vid2sim.splats.gaussians.Gaussians`, N of them) at frame t:
-        a :class:`~vid2sim.splats.deform.DeformedGaussians`.
+        a :class:`~vid2sim.splats.deform.DeformedGaussians`, lit by ``shading`` (a
+        :class:`~vid2sim.splats.shading.Shading`) when given.
 
         The centres are carried by the skinning weights at their current place, exactly as the simulator carries
         them. It is differentiable with respect to the Gaussians' parameters, with one simplification in the
@@ -98,12 +106,34 @@ class SkinnedMotion:
         if X.requires_grad:  # value x, gradient Fᵀ ∂L/∂x to the rest-frame centre
             x = x + (F @ (X - X.detach())[:, :, None])[..., 0]
         dt = gaussians.means.dtype
-        return deform_gaussians(gaussians, x.to(dt), F.to(dt))
+        return deform_gaussians(gaussians, x.to(dt), F.to(dt), shading)
+
+
+INITIAL_AMBIENT = 0.5
+"""The ambient share the fitted light starts from."""
+
+
+def initial_shading(gaussians: Any, interior: Tensor, volume: float, gravity: Sequence[float]) -> Shading:
+    """The shading the last stage starts from: outward normals at the Gaussian centres from the object's interior
+    samples (:func:`~vid2sim.splats.shading.outward_normals`, bandwidth twice the samples' mean spacing
+    (volume / P)^(1/3)), a light straight above (against ``gravity``) and the ambient share
+    :data:`INITIAL_AMBIENT`.
+
+    Args:
+        gaussians: the N rest-frame Gaussians; interior: (P, 3) samples of the object's interior (m);
+        volume: the object's volume (m³); gravity: (3,) m/s² (its direction sets "above").
+    """
+    g = torch.as_tensor(list(gravity), dtype=gaussians.means.dtype, device=gaussians.means.device)
+    if not float(g.norm()) > 0:
+        raise ValueError(f"initial_shading: gravity must be non-zero to say where the light starts, got {list(gravity)}")
+    spacing = (float(volume) / max(1, interior.shape[0])) ** (1.0 / 3.0)
+    normals = outward_normals(gaussians.means.detach(), interior.to(gaussians.means), 2.0 * spacing)
+    return Shading.create(normals, -g / g.norm(), INITIAL_AMBIENT)
 
 
 def refine_on_motion(gaussians: Any, motion: SkinnedMotion, images: Tensor, cameras: Sequence[Any],
                      frame_ids: Sequence[int], fit: Any, iterations: int, geometry: bool = True, seed: int = 0,
-                     progress: bool = False) -> tuple[Any, dict]:
+                     progress: bool = False, shading: Any | None = None) -> tuple[Any, Any | None, dict]:
     """Fit ``gaussians`` to the observed frames along a given motion.
 
     Args:
@@ -119,10 +149,15 @@ def refine_on_motion(gaussians: Any, motion: SkinnedMotion, images: Tensor, came
         geometry: also fit the centres, scales and rotations (default); False fits colours and opacities only.
         seed: the frame and view draws.
         progress: a tqdm bar.
+        shading: a starting :class:`~vid2sim.splats.shading.Shading` (N normals): the colours are then albedos
+            lit by its world-fixed light, and the light's direction, its ambient share and the normals are fitted
+            along with them (Adam at :data:`SHADING_LR` and :data:`LIGHT_LR`).
+            None: colours as stored, lit by nothing.
 
     Returns:
-        (the refitted Gaussians, same count N; {"iterations", "geometry", "loss_first", "loss_last": means of the
-        first and last 10 % of the steps' losses}).
+        (the refitted Gaussians, same count N; the fitted shading or None; {"iterations", "geometry",
+        "loss_first", "loss_last": means of the first and last 10 % of the steps' losses, and "shading": the
+        fitted light, when shaded}).
     """
     from tqdm.auto import tqdm
 
@@ -145,6 +180,12 @@ def refine_on_motion(gaussians: Any, motion: SkinnedMotion, images: Tensor, came
     lrs = {"sh_dc": fit.lr_sh_dc, "sh_rest": fit.lr_sh_rest, "opacity_logits": fit.lr_opacity}
     if geometry:
         lrs.update(means=fit.lr_means * scene_extent(cameras), log_scales=fit.lr_scales, quats=fit.lr_quats)
+    if shading is not None:
+        if shading.num != gaussians.num:
+            raise ValueError(f"refine_on_motion: the shading has {shading.num} normals for {gaussians.num} Gaussians")
+        params.update(normals=shading.normals.detach().clone(), light=shading.light.detach().clone(),
+                      ambient_logit=shading.ambient_logit.detach().clone())
+        lrs.update(normals=SHADING_LR, light=LIGHT_LR, ambient_logit=LIGHT_LR)
     trained = [k for k in lrs if params[k].numel() > 0]
     for k in trained:
         params[k].requires_grad_(True)
@@ -154,13 +195,18 @@ def refine_on_motion(gaussians: Any, motion: SkinnedMotion, images: Tensor, came
         return replace(gaussians, means=params["means"], log_scales=params["log_scales"], quats=params["quats"],
                        opacity_logits=params["opacity_logits"], sh=torch.cat([params["sh_dc"], params["sh_rest"]], 1))
 
+    def current_shading() -> Any:
+        if shading is None:
+            return None
+        return Shading(params["normals"], params["light"], params["ambient_logit"])
+
     per_step = V if fit.views_per_step is None else min(V, fit.views_per_step)
     g = torch.Generator().manual_seed(seed)
     losses = []
     for _ in tqdm(range(iterations), desc="appearance on the motion", disable=not progress, leave=False):
         t = int(torch.randint(T, (1,), generator=g))
         views = torch.randperm(V, generator=g)[:per_step].tolist() if per_step < V else list(range(V))
-        moved = motion.carry(current(), frame_ids[t])
+        moved = motion.carry(current(), frame_ids[t], current_shading())
         out = render_gaussians(moved, [cameras[v] for v in views], background=1.0).rgb
         loss = photometric_loss(out, images[views, t], fit.lambda_dssim)
         opt.zero_grad(set_to_none=True)
@@ -169,5 +215,9 @@ def refine_on_motion(gaussians: Any, motion: SkinnedMotion, images: Tensor, came
         losses.append(float(loss.detach()))
     k = max(1, len(losses) // 10)
     refined = current().detach()
-    return refined, {"iterations": iterations, "geometry": geometry, "loss_first": sum(losses[:k]) / k,
-                     "loss_last": sum(losses[-k:]) / k}
+    lit = None if shading is None else current_shading().detach()
+    record = {"iterations": iterations, "geometry": geometry, "loss_first": sum(losses[:k]) / k,
+              "loss_last": sum(losses[-k:]) / k}
+    if lit is not None:
+        record["shading"] = lit.to_record()
+    return refined, lit, record

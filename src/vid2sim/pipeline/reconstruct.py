@@ -55,6 +55,7 @@ from vid2sim.pipeline.points import PointsConfig
 from vid2sim.physics.solver import SimConfig
 from vid2sim.splats.densify import DensifyConfig
 from vid2sim.splats.fitting import FitConfig
+from vid2sim.splats.shading import Shading
 
 STAGES = ("gaussians", "points", "velocity", "appearance", "networks", "joint", "motion_appearance")
 
@@ -81,6 +82,10 @@ class ReconstructConfig:
             through the simulated motion (0: skip; the Gaussians of the ballistic frames are kept).
         motion_appearance_geometry: the last stage also fits the Gaussians' rest-frame centres, scales and
             rotations (default, beyond the paper); False: colours and opacities only.
+        motion_appearance_shading: the last stage separates albedo from a light fixed in the world
+            (:mod:`vid2sim.splats.shading`: Lambert's law with an ambient share; the normals, the light's
+            direction and the ambient share are fitted along with the colours), so the asset is lit by its pose
+            as it turns (beyond the paper); False: the colours keep the light of the frames they were fitted to.
         prior_E, prior_nu, prior_damping: the starting material when Stage I does not run (Stage I replaces the
             first two).
         stage1: run the Stage I predictor (module docstring); False (the default until the shipped predictor
@@ -121,6 +126,7 @@ class ReconstructConfig:
     appearance_iterations: int = 300
     motion_appearance_iterations: int = 300
     motion_appearance_geometry: bool = True
+    motion_appearance_shading: bool = True
     prior_E: float = 1e5
     prior_nu: float = 0.3
     prior_damping: float = 0.05
@@ -634,20 +640,28 @@ def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConf
     motion_ply = work.dir / "gaussians_motion.ply"
     if cfg.motion_appearance_iterations > 0:
         if not work.done("motion_appearance"):
-            from vid2sim.pipeline.motion_appearance import SkinnedMotion, refine_on_motion
+            from vid2sim.pipeline.motion_appearance import SkinnedMotion, initial_shading, refine_on_motion
 
             what = "Gaussians" if cfg.motion_appearance_geometry else "colours"
             _stage(progress, f"[7/7] refitting the {what} on {len(T)} observed frames along the simulated motion")
             t0 = time.perf_counter()
             motion = SkinnedMotion.of_asset(asset, max(T) + 1, device=dev)
-            refined, record = refine_on_motion(gaussians, motion, images, cameras, list(T), cfg.gaussians,
-                                               cfg.motion_appearance_iterations,
-                                               geometry=cfg.motion_appearance_geometry, seed=cfg.seed,
-                                               progress=progress)
+            start, shading = gaussians, None
+            if cfg.motion_appearance_shading:
+                shading = initial_shading(gaussians, obj_cpu.points.to(dev), obj.volume, scene.config.gravity)
+                start = dataclasses.replace(gaussians, sh=shading.unshade(gaussians.sh))
+            refined, shading, record = refine_on_motion(start, motion, images, cameras, list(T), cfg.gaussians,
+                                                        cfg.motion_appearance_iterations,
+                                                        geometry=cfg.motion_appearance_geometry, seed=cfg.seed,
+                                                        progress=progress, shading=shading)
             save_ply(refined.to("cpu"), motion_ply)
+            if shading is not None:
+                torch.save(shading.to("cpu").__dict__, work.dir / "shading_motion.pt")
             (work.dir / "motion_appearance.json").write_text(json.dumps(record))
             work.finish("motion_appearance", time.perf_counter() - t0)
-        asset = dataclasses.replace(asset, gaussians=load_ply(motion_ply))
+        shading_path = work.dir / "shading_motion.pt"
+        shading = Shading(**torch.load(shading_path, weights_only=True)) if shading_path.is_file() else None
+        asset = dataclasses.replace(asset, gaussians=load_ply(motion_ply), shading=shading)
         asset.extra["motion_appearance"] = json.loads((work.dir / "motion_appearance.json").read_text())
     log = {"timings_seconds": work.timings, "stage1": stage1, "stiffness_calibration": calibration, "coarse_search": result["coarse"],
            "iterations": result["log"]}

@@ -249,7 +249,7 @@ def simulate(asset: "Asset | str | Path", scenario: Scenario | None, out: str | 
         from PIL import Image
 
         with torch.no_grad():
-            rig = GaussianRig(run.sim, asset.gaussians)
+            rig = GaussianRig(run.sim, asset.gaussians, asset.shading)
             basis = rig.basis()
             bg = resolved.background if isinstance(resolved.background, float) else list(resolved.background)
             for t, state in enumerate(tqdm(run.states, desc="render", unit="frame", disable=not progress,

@@ -17,6 +17,7 @@ import torch
 from torch import Tensor
 
 from vid2sim.splats.gaussians import Gaussians, quat_to_rotmat, rotmat_to_quat
+from vid2sim.splats.shading import Shading
 
 
 @dataclass
@@ -79,11 +80,13 @@ def _check(name: str, t: Tensor, shape: tuple[int, ...], like: Tensor) -> None:
         raise ValueError(f"{name} is {t.dtype} on {t.device}; the Gaussians are {like.dtype} on {like.device}")
 
 
-def deform_gaussians(gaussians: Gaussians, x: Tensor, F: Tensor) -> DeformedGaussians:
+def deform_gaussians(gaussians: Gaussians, x: Tensor, F: Tensor, shading: Shading | None = None) -> DeformedGaussians:
     """Move Gaussians to ``x: (N, 3)`` and deform their covariances by ``F: (N, 3, 3)``.
 
     Returns :class:`DeformedGaussians` with means x, covariances F R S Sᵀ Rᵀ Fᵀ and the rest
-    unchanged; differentiable w.r.t. x, F and the Gaussians' own parameters.
+    unchanged; differentiable w.r.t. x, F and the Gaussians' own parameters. With a
+    :class:`~vid2sim.splats.shading.Shading` (N normals), the colours are albedos and come out lit by its
+    world-fixed light, the normals carried by F.
     """
     n = gaussians.num
     _check("x", x, (n, 3), gaussians.means)
@@ -93,5 +96,5 @@ def deform_gaussians(gaussians: Gaussians, x: Tensor, F: Tensor) -> DeformedGaus
         means=x,
         covars=deform_covariances(rs, F),
         opacities=gaussians.opacities,
-        sh=gaussians.sh,
+        sh=gaussians.sh if shading is None else shading.shade(gaussians.sh, F),
     )
