@@ -136,6 +136,21 @@ def test_clip_loss_weights_its_frames():
                      for t in range(1, 5)]
     assert equal == pytest.approx(sum(per_frame) / 4, rel=1e-6)
     assert decayed == pytest.approx(sum(a * b for a, b in zip(w, per_frame)), rel=1e-6)
+    # a shaded rig renders each frame with its own lit colours, exactly as frame by frame
+    from vid2sim.splats.render import render
+    from vid2sim.splats.shading import Shading
+
+    normals = torch.randn(gaussians.num, 3, dtype=gaussians.means.dtype, generator=torch.Generator().manual_seed(1))
+    lit = GaussianRig(sim, gaussians, Shading.create(normals, [0.3, 0.2, 1.0], 0.3))
+    with torch.no_grad():
+        together = render_frames(lit, states[1:4], obs, [0, 1])
+        basis = lit.basis()
+        for t in range(3):
+            d = lit.deformed(states[t + 1].z, basis)
+            alone = render(d.means, d.opacities, d.sh, cams, covars=d.covars, sh_degree=d.sh_degree,
+                           background=list(obs.background)).rgb
+            assert torch.allclose(together[t], alone, atol=1e-6)
+        assert not torch.allclose(together, render_frames(rig, states[1:4], obs, [0, 1]), atol=1e-3)
 
 def test_joint_optimisation_recovers_E_from_images_of_the_same_model():
     """Images rendered from the model at log10 E = 4.5 → the coarse search and Adam find it from the prior 5."""

@@ -380,6 +380,10 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
         if args.iterations < 0:
             raise UserError(f"--iterations must be >= 0, got {args.iterations}")
         config.joint.iterations = args.iterations
+    if args.sh_degree is not None:
+        if not 0 <= args.sh_degree <= 3:
+            raise UserError(f"--sh-degree must be 0, 1, 2 or 3, got {args.sh_degree}")
+        config.gaussians.sh_degree = args.sh_degree
     path = reconstruct(args.scene, out, config, progress=not args.quiet, restart=args.restart, device=device)
     material = json.loads((path / "material.json").read_text())
     print(f"wrote {path}: E = {material['E']:.4g} Pa (log10 E = {material['log10_E']:.3f}), nu = {material['nu']:.3f}")
@@ -684,6 +688,9 @@ def build_parser() -> argparse.ArgumentParser:
                      help="the last stage fits the Gaussians' rest-frame centres, scales and rotations as well as "
                      "their colours and opacities through the simulated motion (on by default; "
                      "--no-motion-geometry: colours and opacities only)")
+    rec.add_argument("--sh-degree", type=int, default=None,
+                     help="the Gaussians' spherical-harmonic degree, 0-3 (default 3, 3DGS's): view-dependent "
+                     "colour; with few views or a matte object a lower degree has less to overfit")
     rec.add_argument("--shading", action=argparse.BooleanOptionalAction, default=None,
                      help="the last stage separates the colours' albedo from a light fixed in the world (a "
                      "direction and an ambient share, fitted), so the asset is lit by its pose as it turns (on by "
