@@ -398,6 +398,27 @@ def test_rig_numpy_reference_matches_torch(tiny_asset, tmp_path):
         np.testing.assert_allclose(ref["positions"], sim.positions(X, z).detach().numpy(), atol=1e-5)
         np.testing.assert_allclose(ref["F"], sim.deformation_gradients(X, z).detach().numpy(), atol=1e-5)
     assert np.abs(ref["positions"] - X.numpy()).max() > 0.05  # the last z really moves the points
+    # the shaded asset's light, as rig.json states it, gives the colours vid2sim renders
+    from vid2sim.splats.deform import deform_gaussians
+    from vid2sim.splats.ply import load_ply
+    from vid2sim.splats.sh import C0
+
+    assert asset.shading is not None and doc["shading"]["model"] == "lambert"
+    np.testing.assert_array_equal(tensors["shading.normals"], asset.shading.normals.numpy())
+
+    def s_of(n):
+        n = n / np.linalg.norm(n, axis=1, keepdims=True)
+        k, light = doc["shading"]["ambient"], np.asarray(doc["shading"]["light"])
+        return k + (1 - k) * np.clip(n @ light, 0, None)
+
+    N = tensors["shading.normals"].astype(np.float64)
+    lit_rest = C0 * load_ply(folder / "gaussians.ply").sh[:, 0].double().numpy() + 0.5
+    albedo = lit_rest / s_of(N)[:, None]
+    cof = np.linalg.det(ref["F"])[:, None, None] * np.linalg.inv(ref["F"]).transpose(0, 2, 1)
+    moved = albedo * s_of(np.einsum("nij,nj->ni", cof, N))[:, None]
+    d = deform_gaussians(asset.gaussians, sim.positions(X, z).detach(), sim.deformation_gradients(X, z).detach(),
+                         asset.shading)
+    np.testing.assert_allclose(moved, C0 * d.sh[:, 0].double().numpy() + 0.5, atol=2e-4)
     with pytest.raises(RigFormatError, match="no Neural Jacobian"):
         neural_jacobian_numpy(folder, X.numpy())
 

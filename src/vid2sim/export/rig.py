@@ -64,6 +64,8 @@ def rig_tensors(asset, z_sequence=None) -> dict[str, np.ndarray]:
     out["points.contact"] = _np(asset.contact_points)
     out["points.contact_areas"] = _np(asset.contact_areas)
     out["points.interior"] = _np(asset.points)
+    if asset.shading is not None:
+        out["shading.normals"] = _np(asset.shading.normals)
     if z_sequence is not None:
         z = np.asarray(z_sequence.detach().cpu().numpy() if hasattr(z_sequence, "detach") else z_sequence)
         h = asset.field.num_handles_total
@@ -158,6 +160,13 @@ def rig_document(asset, tensors: dict[str, np.ndarray]) -> dict[str, Any]:
                                 "F[a, c] = delta_ac + sum_j (w_j Z_j[a, c] + (Z_j [X; 1])_a dw_j/dX_c)",
         "gaussians": "a Gaussian with rest centre p and covariance Sigma = R S S^T R^T moves to x(p) with covariance "
                      "F(p) Sigma F(p)^T; opacity and SH colour are unchanged",
+        "shading": None if asset.shading is None else {
+            **asset.shading.to_record(),
+            "normals": "shading.normals (N, 3): each Gaussian's rest-frame normal N (gaussians.ply order)",
+            "colour": "gaussians.ply holds the colours lit at rest, c0 = a s(N); a moved Gaussian shows "
+                      "a s(n) with n = cof(F) N = det(F) F^-T N normalised and "
+                      "s(n) = ambient + (1 - ambient) max(0, n . light), light fixed in the world",
+        },
         "material": mat,
         "simulation": {
             "dt": asset.dt,
