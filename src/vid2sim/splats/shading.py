@@ -53,7 +53,7 @@ def scale_sh_colour(sh: Tensor, factor: Tensor) -> Tensor:
     return torch.cat([out[:, :1] + ((f - 1.0) * (0.5 / C0))[:, None, :], out[:, 1:]], dim=1)
 
 
-def outward_normals(centres: Tensor, interior: Tensor, bandwidth: float, chunk: int = 4096) -> Tensor:
+def outward_normals(centres: Tensor, interior: Tensor, bandwidth: float, pairs_per_chunk: int = 4_000_000) -> Tensor:
     """Unit outward normals at ``centres: (N, 3)`` from samples of the object's interior ``interior: (P, 3)``.
 
     The normal is minus the gradient of a Gaussian kernel density of the interior samples (bandwidth in metres):
@@ -61,7 +61,8 @@ def outward_normals(centres: Tensor, interior: Tensor, bandwidth: float, chunk: 
     inside it is arbitrary, which does not matter for shading (hidden Gaussians are not seen).
 
     Returns:
-        (N, 3) unit vectors (the +z axis where the density is flat, i.e. far from every sample).
+        (N, 3) unit vectors (the +z axis where the density is flat, i.e. far from every sample). Centres are taken
+        in chunks of at most ``pairs_per_chunk`` centre-sample pairs, which bounds the memory.
     """
     if centres.ndim != 2 or centres.shape[1] != 3 or interior.ndim != 2 or interior.shape[1] != 3:
         raise ValueError(f"outward_normals: centres (N, 3) and interior (P, 3) expected, got "
@@ -69,13 +70,15 @@ def outward_normals(centres: Tensor, interior: Tensor, bandwidth: float, chunk: 
     if interior.shape[0] == 0 or not bandwidth > 0:
         raise ValueError(f"outward_normals: need interior samples and a positive bandwidth, got "
                          f"{interior.shape[0]} samples and bandwidth {bandwidth}")
-    p = interior.to(centres.dtype)
+    origin = interior.to(centres.dtype).mean(0)
+    p = interior.to(centres.dtype) - origin  # centred: the difference below loses less to rounding
+    centres = centres - origin
+    chunk = max(1, pairs_per_chunk // p.shape[0])
     out = []
     for start in range(0, centres.shape[0], chunk):
         x = centres[start:start + chunk]
-        d = x[:, None, :] - p[None, :, :]  # (n, P, 3)
-        k = torch.exp(-(d * d).sum(-1) / (2.0 * bandwidth ** 2))
-        out.append((k[..., None] * d).sum(1))
+        k = torch.exp(-torch.cdist(x, p).square() / (2.0 * bandwidth ** 2))  # (n, P)
+        out.append(x * k.sum(1, keepdim=True) - k @ p)  # Σ_j k_j (x − p_j)
     g = torch.cat(out)
     norm = g.norm(dim=1, keepdim=True)
     up = torch.zeros_like(g)
