@@ -407,10 +407,13 @@ def test_cli_no_stage1_and_predictor_flags(tiny_scene, tmp_path, monkeypatch):
     assert seen[-1].handles == 20 and seen[-1].motion_appearance_shading is True
     with pytest.raises(SystemExit):
         main(["reconstruct", str(tiny_scene), str(tmp_path / "a"), "--no-shading", "--quiet"])
-    assert seen[-1].motion_appearance_shading is False and seen[-1].gaussians.sh_degree == 3
+    assert seen[-1].motion_appearance_shading is False and seen[-1].gaussians.sh_degree == 0  # the small preset's
     with pytest.raises(SystemExit):
         main(["reconstruct", str(tiny_scene), str(tmp_path / "a"), "--sh-degree", "1", "--quiet"])
     assert seen[-1].gaussians.sh_degree == 1
+    with pytest.raises(SystemExit):
+        main(["reconstruct", str(tiny_scene), str(tmp_path / "a"), "--preset", "full", "--quiet"])
+    assert seen[-1].gaussians.sh_degree == 3
     assert main(["reconstruct", str(tiny_scene), str(tmp_path / "a"), "--sh-degree", "4", "--quiet"]) == 2
     assert main(["reconstruct", str(tiny_scene), str(tmp_path / "a"), "--handles", "0", "--quiet"]) == 2
     assert main(["reconstruct", str(tiny_scene), str(tmp_path / "a"), "--predictor", str(tmp_path / "no.pt")]) == 2

@@ -689,8 +689,9 @@ def build_parser() -> argparse.ArgumentParser:
                      "their colours and opacities through the simulated motion (on by default; "
                      "--no-motion-geometry: colours and opacities only)")
     rec.add_argument("--sh-degree", type=int, default=None,
-                     help="the Gaussians' spherical-harmonic degree, 0-3 (default 3, 3DGS's): view-dependent "
-                     "colour; with few views or a matte object a lower degree has less to overfit")
+                     help="the Gaussians' spherical-harmonic degree, 0-3: view-dependent colour (default: the "
+                     "preset's, 0 for small, 3 (3DGS's) for full; with few views or a matte object a lower degree "
+                     "has less to overfit)")
     rec.add_argument("--shading", action=argparse.BooleanOptionalAction, default=None,
                      help="the last stage separates the colours' albedo from a light fixed in the world (a "
                      "direction and an ambient share, fitted), so the asset is lit by its pose as it turns (on by "
