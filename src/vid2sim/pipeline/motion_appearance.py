@@ -152,7 +152,7 @@ def refine_on_motion(gaussians: Any, motion: SkinnedMotion, images: Tensor, came
         shading: a starting :class:`~vid2sim.splats.shading.Shading` (N normals): the colours are then albedos
             lit by its world-fixed light, and the light's direction, its ambient share and the normals are fitted
             along with them (Adam at :data:`SHADING_LR` and :data:`LIGHT_LR`).
-            None: colours as stored, lit by nothing.
+            None: the colours render as stored.
 
     Returns:
         (the refitted Gaussians, same count N; the fitted shading or None; {"iterations", "geometry",
