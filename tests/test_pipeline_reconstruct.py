@@ -60,7 +60,13 @@ def test_a_calibrated_reconstruction_records_and_uses_its_stiffness_scale(tiny_s
     cfg = tiny_config()
     cfg.calibrate_stiffness, cfg.calibration_cells, cfg.calibration_points = True, 24, 20000
     cfg.calibration_nu, cfg.volumetric = "curve", "projected"  # the projected volumetric term end to end
-    asset = load_asset(reconstruct(tiny_scene, tmp_path / "asset", cfg, progress=False))
+    threads = torch.get_num_threads()
+    torch.set_num_threads(2)  # the child's core is taken from these and given back
+    try:
+        asset = load_asset(reconstruct(tiny_scene, tmp_path / "asset", cfg, progress=False))
+        assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(threads)
     assert asset.material["volumetric"] == "projected" == asset.simulator().volumetric
     log = json.loads((tmp_path / "asset" / "log.json").read_text())
     # the curve s(ν): stored with the asset, used at whatever ν it simulates
@@ -76,6 +82,27 @@ def test_a_calibrated_reconstruction_records_and_uses_its_stiffness_scale(tiny_s
     assert asset.simulator().stiffness_scale == curve
     other = asset.simulator(youngs_modulus=1e6, poisson_ratio=0.45)
     assert float(other.effective_youngs_modulus()) == pytest.approx(1e6 * curve.at(0.45), rel=1e-6)  # float32
+
+
+def test_the_calibration_child_gets_one_of_the_callers_threads_while_it_runs():
+    """On 2 cores, 2 torch threads beside the one-thread child oversubscribe them (the appearance stage took 3.6x
+    as long): reconstruct gives the child one of its threads until it ends."""
+    from vid2sim.pipeline.reconstruct import _share_cores
+
+    class Job:
+        def __init__(self, alive: bool) -> None:
+            self.alive = alive
+
+        def running(self) -> bool:
+            return self.alive
+
+    before = torch.get_num_threads()
+    try:
+        for job, threads, expected in ((Job(True), 3, 2), (Job(True), 1, 1), (Job(False), 3, 3), (None, 2, 2)):
+            _share_cores(job, threads)
+            assert torch.get_num_threads() == expected
+    finally:
+        torch.set_num_threads(before)
 
 
 def test_evaluate_reports_views_frames_material_and_chamfer(tiny_asset, tiny_scene, tmp_path):

@@ -62,6 +62,7 @@ def test_the_tet_reference_runs_in_a_child_process_and_feeds_the_calibration(tmp
     job = TetReferenceJob(points, tmp_path / "ref.json", nus=(0.3, 0.45), k=6, cells=32)
     here = tet_reference(points, (0.3, 0.45), 6, cells=32)
     there = job.result()
+    assert not job.running()
     assert (tmp_path / "ref.json").is_file() and there["nus"] == [0.3, 0.45] and there["k"] == 6
     assert np.allclose(there["frequencies"], here["frequencies"], rtol=0.01)
     field = SkinningField(num_handles=4, seed=0).double()

@@ -414,6 +414,27 @@ def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConf
         vid2sim.scene.validation.SceneFormatError: the scene folder is invalid.
         ReconstructionError: the scene cannot be reconstructed as given.
     """
+    threads = torch.get_num_threads()
+    try:
+        return _reconstruct(scene_path, out, config, progress, restart, device, threads)
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _share_cores(job, threads: int) -> None:
+    """Give the calibration's child process one of the caller's ``threads`` while it runs.
+
+    The child computes with one thread. With it running, a caller on all the cores oversubscribes them, and
+    torch's thread pool then slows several-fold (the appearance stage took 3.6× as long with 2 threads as
+    with 1 on a 2-core machine). Called at every stage boundary until the child is joined.
+    """
+    busy = job is not None and job.running()
+    torch.set_num_threads(max(1, threads - 1) if busy else threads)
+
+
+def _reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConfig | None, progress: bool,
+                 restart: bool, device: str | torch.device | None, threads: int) -> Path:
+    """:func:`reconstruct`'s body; ``threads``: the caller's torch thread count (restored by the caller)."""
     from vid2sim.physics import Floor, Gravity, Material, SkinningField, Simulator
     from vid2sim.physics.cubature import sample_cubature
     from vid2sim.physics.external import AREA_CONTACT_STIFFNESS
@@ -481,6 +502,7 @@ def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConf
 
         reference_job = TetReferenceJob(_calibration_points(obj_cpu, cfg).numpy(), reference_path, nus=CURVE_NUS,
                                         k=reference_k, cells=cfg.calibration_cells, seed=cfg.seed)
+    _share_cores(reference_job, threads)
 
     # 3. initial velocity --------------------------------------------------------------------------------
     vel_path = work.dir / "velocity.json"
@@ -508,6 +530,7 @@ def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConf
     velocity = json.loads(vel_path.read_text())
 
     # 4. appearance on the ballistic frames ---------------------------------------------------------------
+    _share_cores(reference_job, threads)
     app_ply = work.dir / "gaussians_refined.ply"
     if not work.done("appearance"):
         t0 = time.perf_counter()
@@ -527,6 +550,7 @@ def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConf
     gaussians = load_ply(app_ply, device=dev)
 
     # Stage I ---------------------------------------------------------------------------------------------
+    _share_cores(reference_job, threads)
     s1_path = work.dir / "stage1.json"
     if not s1_path.is_file():
         s1 = run_stage1(cfg, images_cpu, cameras_cpu, float(scene.config.dt), obj_cpu.centre.tolist(), progress)
@@ -541,6 +565,7 @@ def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConf
         joint_cfg = dataclasses.replace(cfg.joint, coarse_log10_E=tuple(stage1["coarse_log10_E"]))
 
     # 5. networks ----------------------------------------------------------------------------------------
+    _share_cores(reference_job, threads)
     field_path, jac_path = work.dir / "skinning.pt", work.dir / "jacobian.pt"
     field = SkinningField(cfg.handles, seed=cfg.seed)
     if stage1["ran"] and stage1.get("skinning_start", True):
@@ -592,6 +617,7 @@ def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConf
         calibration_path.write_text(json.dumps(calibration))
     calibration = (json.loads(calibration_path.read_text()) if cfg.calibrate_stiffness
                    else {"stiffness_scale": 1.0, "stiffness_curve": None})
+    _share_cores(reference_job, threads)  # joined above, or never started: all the caller's threads
     stiffness = (StiffnessCurve.from_dict(calibration["stiffness_curve"]) if calibration.get("stiffness_curve")
                  else calibration["stiffness_scale"])
     externals = [Gravity(list(scene.config.gravity))]

@@ -139,6 +139,10 @@ class TetReferenceJob:
                                         args=(np.asarray(points, dtype=np.float64), arguments, str(self.path)))
         self._process.start()
 
+    def running(self) -> bool:
+        """Whether the child is still computing."""
+        return self._process.is_alive()
+
     def result(self) -> dict:
         """The reference (:func:`tet_reference`'s dict), after waiting for the child.
 
