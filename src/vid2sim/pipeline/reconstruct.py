@@ -406,7 +406,8 @@ def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConf
     ``device`` (None: CUDA when available, else the CPU) runs the Gaussian fits, the networks' training and
     the joint optimisation; the cheap geometric stages (points, initial velocity) and Stage I run on the CPU.
     The device is not part of the configuration: a run interrupted on one device resumes on another, and the
-    asset is written with CPU tensors.
+    asset is written with CPU tensors. While the stiffness calibration's tet reference runs in its child process
+    (one thread), the stages run on one torch thread fewer than the caller's; the count is restored on return.
 
     Returns:
         the asset folder (readable with :func:`vid2sim.pipeline.asset.load_asset`).
