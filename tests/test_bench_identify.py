@@ -279,6 +279,14 @@ def test_workers_give_the_rows_of_one_process(report, one_torch_thread):
     assert identify.run(identify.IdentifyConfig(**TINY), workdir, progress=False, workers=2)["workers"] == 1  # one scene
     with pytest.raises(ValueError, match="workers"):
         identify.run(config, workdir, progress=False, workers=0)
+    # --only reruns a subset from the same cache: its rows are the full suite's rows of those scenes
+    subset = identify.run(identify.IdentifyConfig(**{**TINY, "scenes": 2, "only": (1,)}), workdir, progress=False)
+    assert [r["scene"] for r in subset["scenes"]] == [1]
+    assert _without_times(subset["scenes"][0]) == _without_times(one["scenes"][1])
+    assert subset["summary"]["mean_abs_error_nu"] == pytest.approx(one["scenes"][1]["abs_error"]["nu"])
+    for bad in ((2,), (1, 1), (-1,)):
+        with pytest.raises(ValueError, match="only"):
+            identify.IdentifyConfig(**{**TINY, "scenes": 2, "only": bad})
 
 
 def test_cli_rejects_bad_options_with_the_flag_name(tmp_path, capsys):
@@ -289,6 +297,8 @@ def test_cli_rejects_bad_options_with_the_flag_name(tmp_path, capsys):
     assert "--workers must be >= 1" in capsys.readouterr().err
     assert main(["bench", "identify", "--nu-sensitivity", "0.7", "--workdir", str(tmp_path / "w"), "--quiet"]) == 2
     assert "--nu-sensitivity must be a number in [0, 0.5)" in capsys.readouterr().err
+    assert main(["bench", "identify", "--only", "6", "--workdir", str(tmp_path / "w"), "--quiet"]) == 2
+    assert "--only must be distinct scene indices in [0, 6)" in capsys.readouterr().err
 
 
 def test_shape_and_centre_loss_is_blind_to_orientation_and_sees_centre_and_shape():

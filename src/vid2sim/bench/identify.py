@@ -56,6 +56,8 @@ class IdentifyConfig:
 
     Attributes:
         scenes: number of scenes (≥ 1; the reported figures use 6).
+        only: run just these scene indices of the suite (each in [0, scenes)); empty: all of them. A subset's
+            means are not the suite's: use it to rerun or study single scenes from the same cache.
         seed: suite seed (scene i: object/pose seed and material of :func:`benchmark_parameters`).
         preset: tet resolution and drop of the synthetic preset ("small" or "full").
         frames, observed_frames: frames simulated and observed (the rest are the future).
@@ -130,6 +132,7 @@ class IdentifyConfig:
     """
 
     scenes: int = 6
+    only: tuple[int, ...] = ()
     seed: int = 0
     preset: str = "small"
     frames: int = 24
@@ -170,6 +173,11 @@ class IdentifyConfig:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"IdentifyConfig.{name} must be an integer >= 1, got {value!r}")
+        only = tuple(self.only)
+        if any(isinstance(i, bool) or not isinstance(i, int) or not 0 <= i < self.scenes for i in only) \
+                or len(set(only)) != len(only):
+            raise ValueError(f"IdentifyConfig.only must be distinct scene indices in [0, {self.scenes}), got {self.only!r}")
+        self.only = tuple(sorted(only))
         if self.observed_frames >= self.frames:
             raise ValueError(f"IdentifyConfig.observed_frames ({self.observed_frames}) must be < frames ({self.frames})")
         if self.truth not in ("fem", "reduced"):
@@ -738,11 +746,13 @@ def run(config: IdentifyConfig, workdir: str | Path, progress: bool = True, work
         raise ValueError(f"threads_per_worker must be an integer >= 1, got {threads_per_worker!r}")
     workdir = Path(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
-    suite = benchmark_parameters(config.scenes, config.seed)
+    suite = list(enumerate(benchmark_parameters(config.scenes, config.seed)))
+    if config.only:
+        suite = [suite[i] for i in config.only]
     workers = min(workers, len(suite))
     if workers == 1:
         rows = [run_scene(i, params, config, workdir, progress=progress)
-                for i, params in enumerate(tqdm(suite, desc="identify scenes", unit="scene", disable=not progress))]
+                for i, params in tqdm(suite, desc="identify scenes", unit="scene", disable=not progress)]
     else:
         from concurrent.futures import as_completed
 
@@ -752,7 +762,7 @@ def run(config: IdentifyConfig, workdir: str | Path, progress: bool = True, work
                 tqdm(total=len(suite), desc=f"identify scenes ({workers} workers)", unit="scene",
                      disable=not progress) as bar:
             futures = {pool.submit(_scene_in_worker, i, params, config, workdir, threads_per_worker): i
-                       for i, params in enumerate(suite)}
+                       for i, params in suite}
             done = {}
             try:
                 for future in as_completed(futures):
@@ -762,7 +772,7 @@ def run(config: IdentifyConfig, workdir: str | Path, progress: bool = True, work
                 # report a failed scene now: drop the queued scenes (the running ones finish into the cache)
                 pool.shutdown(wait=False, cancel_futures=True)
                 raise
-        rows = [done[i] for i in range(len(suite))]
+        rows = [done[i] for i, _ in suite]
     return {"config": asdict(config), **summarise(rows),
             "threads": torch.get_num_threads() if workers == 1 else threads_per_worker, "workers": workers}
 

@@ -55,6 +55,17 @@ def _cmd_bench_fem(args: argparse.Namespace) -> int:
     return 0
 
 
+def _index_list(text: str) -> tuple[int, ...]:
+    """argparse type: comma-separated non-negative integers ("4,5")."""
+    try:
+        values = tuple(int(part) for part in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated scene indices, e.g. 4,5; got {text!r}") from None
+    if any(v < 0 for v in values):
+        raise argparse.ArgumentTypeError(f"scene indices must be >= 0, got {text!r}")
+    return values
+
+
 def _cmd_bench_identify(args: argparse.Namespace) -> int:
     from pathlib import Path
 
@@ -63,7 +74,7 @@ def _cmd_bench_identify(args: argparse.Namespace) -> int:
     set_threads(args.threads)
     if args.workers < 1:
         raise UserError(f"--workers must be >= 1, got {args.workers}")
-    given = {"scenes": args.n, "seed": args.seed, "preset": args.preset, "handles": args.handles,
+    given = {"scenes": args.n, "only": args.only, "seed": args.seed, "preset": args.preset, "handles": args.handles,
              "skinning_iterations": args.skinning_iterations, "fit_iterations": args.fit_iterations,
              "points": args.points, "skinning_points": args.skinning_points, "truth": args.truth,
              "skinning_objective": args.skinning_objective,
@@ -76,7 +87,7 @@ def _cmd_bench_identify(args: argparse.Namespace) -> int:
              "render_psnr": True if args.psnr else None, "volumetric": args.volumetric}
     if args.volumetric == "projected" and args.calibration_nu is None:
         given["calibration_nu"] = "curve"  # the projected term does not lock: one factor
-    flags = {"scenes": "--n", "seed": "--seed", "preset": "--preset", "handles": "--handles",
+    flags = {"scenes": "--n", "only": "--only", "seed": "--seed", "preset": "--preset", "handles": "--handles",
              "skinning_iterations": "--skinning-iterations", "fit_iterations": "--fit-iterations", "points": "--points",
              "skinning_points": "--skinning-points", "nu_sensitivity": "--nu-sensitivity"}
     try:
@@ -521,6 +532,9 @@ def build_parser() -> argparse.ArgumentParser:
     ident = bench_sub.add_parser("identify", help="identify E, nu and damping from perfect-geometry 3-D motion "
                                  "(the upper bound of the video pipeline)")
     ident.add_argument("--n", type=int, default=None, help="scenes (default 6)")
+    ident.add_argument("--only", type=_index_list, default=None, metavar="I,J,...",
+                       help="run just these scenes of the suite (0-based, e.g. 4,5) from the same work folder; "
+                            "the means are then the subset's")
     ident.add_argument("--seed", type=int, default=None, help="suite seed (default 0)")
     ident.add_argument("--preset", choices=["small", "full"], default=None, help="tet resolution (default small)")
     ident.add_argument("--handles", type=int, default=None, help="learned skinning handles (default 10)")
