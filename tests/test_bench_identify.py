@@ -289,6 +289,32 @@ def test_workers_give_the_rows_of_one_process(report, one_torch_thread):
             identify.IdentifyConfig(**{**TINY, "scenes": 2, "only": bad})
 
 
+def test_nu_scan_finds_the_true_nu_of_the_models_own_motion(report):
+    """With the reduced model's own motion as the truth, the ν scan at the true E has its zero at the true ν
+    and rises on both sides; the grid and the CLI's step are validated."""
+    from dataclasses import replace
+
+    from vid2sim.synthetic.scenes import benchmark_parameters
+
+    _, config, workdir = report
+    scene = identify.prepare_scene(0, benchmark_parameters(1, 0)[0], config, workdir)
+    truth = scene.material
+    nu = round(truth["nu"], 6)  # a grid value the scan hits exactly
+    scene.material = {**truth, "nu": nu}
+    identify.set_material(scene.simulator, math.log10(truth["E"]), nu, truth["damping_ratio"])
+    scene.truth = scene.trajectory(config.frames)
+    grid = (nu - 0.2, nu - 0.1, nu, nu + 0.1, nu + 0.15)
+    scan = identify.scan_nu(scene, replace(config, nu_scan=grid))
+    assert scan["nu"] == list(grid) and scan["loss"][2] < 1e-20  # exact up to the rigid alignment's rounding
+    assert scan["loss"][0] > scan["loss"][1] > 0 and 0 < scan["loss"][3] < scan["loss"][4]
+    assert abs(scan["argmin_error"]) < 0.03 and scan["argmin_nu"] - nu == scan["argmin_error"]
+    assert float(scene.simulator.nu) == nu  # left at the true material
+    with pytest.raises(ValueError, match="nu_scan"):
+        identify.IdentifyConfig(nu_scan=(0.3, 0.2))
+    with pytest.raises(ValueError, match="nu_scan"):
+        identify.IdentifyConfig(nu_scan=(0.0, 0.2))
+
+
 def test_cli_rejects_bad_options_with_the_flag_name(tmp_path, capsys):
     assert main(["bench", "identify", "--n", "0", "--workdir", str(tmp_path / "w"), "--quiet"]) == 2
     err = capsys.readouterr().err
@@ -299,6 +325,8 @@ def test_cli_rejects_bad_options_with_the_flag_name(tmp_path, capsys):
     assert "--nu-sensitivity must be a number in [0, 0.5)" in capsys.readouterr().err
     assert main(["bench", "identify", "--only", "6", "--workdir", str(tmp_path / "w"), "--quiet"]) == 2
     assert "--only must be distinct scene indices in [0, 6)" in capsys.readouterr().err
+    assert main(["bench", "identify", "--nu-scan", "0.3", "--workdir", str(tmp_path / "w"), "--quiet"]) == 2
+    assert "--nu-scan must be a step in (0, 0.25)" in capsys.readouterr().err
 
 
 def test_shape_and_centre_loss_is_blind_to_orientation_and_sees_centre_and_shape():

@@ -121,6 +121,10 @@ class IdentifyConfig:
             time steps as the truth, is compared with the truth on the loss's sample points
             (:func:`nu_sensitivity`). Its ratio to the model error at the true material says how finely the
             observed frames can pin ν down with this reduced model. The run is cached in the work folder.
+        nu_scan: ν values at which to evaluate the observed-frame loss at the true E and ζ (empty: off). Its
+            minimum (``nu_scan.argmin_nu``, refined by a parabola through the lowest three) is where the observed
+            frames put ν with this model when E is right: a fit can do no better, so it separates the model's
+            error from the optimiser's (:func:`scan_nu`).
         render_psnr: also render the object's textured surface carried by the truth and by the reduced model
             (at the true material and at the fitted one) in the preset's observed cameras, and score the
             model's images against the truth's by PSNR and SSIM as ``vid2sim evaluate`` does
@@ -164,6 +168,7 @@ class IdentifyConfig:
     calibrate_contact: bool = False
     contact_iterations: int = 3
     nu_sensitivity: float = 0.0
+    nu_scan: tuple[float, ...] = ()
     render_psnr: bool = False
     volumetric: str = "pointwise"
 
@@ -210,6 +215,9 @@ class IdentifyConfig:
         if isinstance(self.nu_sensitivity, bool) or not isinstance(self.nu_sensitivity, (int, float)) \
                 or not 0 <= self.nu_sensitivity < 0.5:
             raise ValueError(f"IdentifyConfig.nu_sensitivity must be a number in [0, 0.5), got {self.nu_sensitivity!r}")
+        self.nu_scan = tuple(float(v) for v in self.nu_scan)
+        if any(not 0 < v < 0.5 for v in self.nu_scan) or any(b <= a for a, b in zip(self.nu_scan, self.nu_scan[1:])):
+            raise ValueError(f"IdentifyConfig.nu_scan must be increasing values in (0, 0.5), got {self.nu_scan!r}")
         if self.preset not in ("small", "full"):
             raise ValueError(f"IdentifyConfig.preset must be 'small' or 'full', got {self.preset!r}")
         self.coarse_log10_E = tuple(sorted(float(v) for v in self.coarse_log10_E))
@@ -569,6 +577,26 @@ def time_convergence(scene: PerfectGeometry, config: IdentifyConfig) -> dict:
     return {"substeps": n, "refined_substeps": 4 * n, "mean_percent": d.mean, "max_percent": d.max}
 
 
+def scan_nu(scene: PerfectGeometry, config: IdentifyConfig) -> dict:
+    """The observed-frame loss (``config.loss``) at the true E and ζ over ``config.nu_scan``; the simulator is left
+    at the true material. ``argmin_nu`` is the grid minimum refined by a parabola through it and its neighbours
+    (the grid value itself at an end of the grid)."""
+    truth = scene.material
+    losses = []
+    for nu in config.nu_scan:
+        set_material(scene.simulator, math.log10(truth["E"]), nu, truth["damping_ratio"])
+        losses.append(float(trajectory_loss(scene, config.observed_frames, kind=config.loss)))
+    set_material(scene.simulator, math.log10(truth["E"]), truth["nu"], truth["damping_ratio"])
+    nus = list(config.nu_scan)
+    k = int(np.argmin(losses))
+    best = nus[k]
+    if 0 < k < len(nus) - 1:
+        a, b, c = np.polyfit(nus[k - 1:k + 2], losses[k - 1:k + 2], 2)
+        if a > 0:
+            best = float(min(max(-b / (2 * a), nus[k - 1]), nus[k + 1]))
+    return {"nu": nus, "loss": losses, "argmin_nu": best, "argmin_error": best - truth["nu"]}
+
+
 def nu_sensitivity(index: int, params: dict, scene: PerfectGeometry, config: IdentifyConfig, workdir: Path,
                    model_error_observed_percent: float) -> dict:
     """How much the ground truth moves when ν changes by ``config.nu_sensitivity``, against the model error.
@@ -693,6 +721,7 @@ def run_scene(index: int, params: dict, config: IdentifyConfig, workdir: Path, p
     sensitivity = (nu_sensitivity(index, params, scene, config, workdir, at_truth["observed_percent"])
                    if config.nu_sensitivity > 0 else None)
     images_at_truth = render_psnr(index, params, scene, config, workdir) if config.render_psnr else None
+    scan = scan_nu(scene, config) if config.nu_scan else None
     converged = time_convergence(scene, config)
     result = fit(scene, config, progress=progress)
     fitted_errors = model_errors(scene, config)
@@ -708,6 +737,7 @@ def run_scene(index: int, params: dict, config: IdentifyConfig, workdir: Path, p
                       "damping_ratio": abs(result["damping_ratio"] - truth["damping_ratio"])},
         "model_error_at_truth_percent": at_truth,
         "nu_sensitivity": sensitivity,
+        "nu_scan": scan,
         "images_at_truth": images_at_truth,
         "images_fitted": images_fitted,
         "trajectory_error_fitted_percent": fitted_errors,
@@ -808,6 +838,9 @@ def summarise(rows: list[dict]) -> dict:
             "median_nu_equivalent_of_model_error":
             float(np.median([r["nu_sensitivity"]["nu_equivalent_of_model_error"] for r in rows]))}
            if rows and all(r.get("nu_sensitivity") for r in rows) else {}),
+        # where the observed frames put ν at the true E: the fit's floor set by the model error
+        **({"mean_abs_nu_scan_argmin_error": mean(lambda r: abs(r["nu_scan"]["argmin_error"]))}
+           if rows and all(r.get("nu_scan") for r in rows) else {}),
         # images with perfect geometry, appearance and initial state: the reduced model's own ceiling
         **({f"mean_{which}_{group}_{metric}": mean(lambda r, w=which, g=group, m=metric: r[f"images_{w}"][g][m])
             for which in ("at_truth", "fitted") for group in ("dynamic", "future") for metric in ("psnr", "ssim")}

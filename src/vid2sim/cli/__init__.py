@@ -66,6 +66,13 @@ def _index_list(text: str) -> tuple[int, ...]:
     return values
 
 
+def _nu_grid(step: float) -> tuple[float, ...]:
+    """The ν grid of ``--nu-scan STEP``: STEP, 2·STEP, … below 0.5."""
+    if not 0 < step < 0.25:
+        raise UserError(f"--nu-scan must be a step in (0, 0.25), got {step}")
+    return tuple(round(k * step, 10) for k in range(1, int(0.5 / step) + 1) if k * step < 0.5 - 1e-9)
+
+
 def _cmd_bench_identify(args: argparse.Namespace) -> int:
     from pathlib import Path
 
@@ -84,12 +91,14 @@ def _cmd_bench_identify(args: argparse.Namespace) -> int:
              "calibrate_contact": True if args.calibrate_contact else None,
              "fit_contact_layer": True if args.fit_contact_layer else None,
              "fit_damping": False if args.fixed_damping else None, "nu_sensitivity": args.nu_sensitivity,
+             "nu_scan": _nu_grid(args.nu_scan) if args.nu_scan else None,
              "render_psnr": True if args.psnr else None, "volumetric": args.volumetric}
     if args.volumetric == "projected" and args.calibration_nu is None:
         given["calibration_nu"] = "curve"  # the projected term does not lock: one factor
     flags = {"scenes": "--n", "only": "--only", "seed": "--seed", "preset": "--preset", "handles": "--handles",
              "skinning_iterations": "--skinning-iterations", "fit_iterations": "--fit-iterations", "points": "--points",
-             "skinning_points": "--skinning-points", "nu_sensitivity": "--nu-sensitivity"}
+             "skinning_points": "--skinning-points", "nu_sensitivity": "--nu-sensitivity",
+             "nu_scan": "--nu-scan"}
     try:
         config = identify.IdentifyConfig(**{k: v for k, v in given.items() if v is not None})
     except ValueError as exc:
@@ -123,6 +132,12 @@ def _cmd_bench_identify(args: argparse.Namespace) -> int:
             n = r["nu_sensitivity"]
             rows.append(f"{r['scene']:5d}  dnu {n['dnu']:+.3f}: {n['observed_percent']:5.2f} / {n['future_percent']:5.2f}"
                         f"      {n['observed_percent_per_0_05']:5.2f}            {n['nu_equivalent_of_model_error']:.3f}")
+    if any(r.get("nu_scan") for r in report["scenes"]):
+        rows.append("scene  nu true   loss minimum over nu at the true E   (error)")
+        for r in report["scenes"]:
+            n = r["nu_scan"]
+            rows.append(f"{r['scene']:5d}  {r['true']['nu']:.3f}     {n['argmin_nu']:.3f}"
+                        f"                                ({n['argmin_error']:+.3f})")
     if any(r.get("images_at_truth") for r in report["scenes"]):
         rows.append("scene  PSNR dynamic/future at truth   fitted")
         for r in report["scenes"]:
@@ -585,6 +600,9 @@ def build_parser() -> argparse.ArgumentParser:
     ident.add_argument("--nu-sensitivity", type=float, default=None, metavar="DNU",
                        help="also run the FEM at nu - DNU per scene and report how far that moves the truth "
                             "against the model error (default off)")
+    ident.add_argument("--nu-scan", type=float, default=None, metavar="STEP",
+                       help="also evaluate the observed-frame loss at the true E over nu = STEP, 2 STEP, ... < 0.5 "
+                            "and report its minimum: where the model puts nu when E is right (default off)")
     ident.add_argument("--psnr", action="store_true",
                        help="also render the truth's and the model's motion of the textured object in the preset's "
                             "observed cameras and report PSNR/SSIM: the model's image ceiling")
