@@ -325,8 +325,9 @@ def test_cli_rejects_bad_options_with_the_flag_name(tmp_path, capsys):
     assert "--nu-sensitivity must be a number in [0, 0.5)" in capsys.readouterr().err
     assert main(["bench", "identify", "--only", "6", "--workdir", str(tmp_path / "w"), "--quiet"]) == 2
     assert "--only must be distinct scene indices in [0, 6)" in capsys.readouterr().err
-    assert main(["bench", "identify", "--nu-scan", "0.3", "--workdir", str(tmp_path / "w"), "--quiet"]) == 2
-    assert "--nu-scan must be a step in (0, 0.25)" in capsys.readouterr().err
+    for step in ("0.3", "0"):
+        assert main(["bench", "identify", "--nu-scan", step, "--workdir", str(tmp_path / "w"), "--quiet"]) == 2
+        assert "--nu-scan must be a step in (0, 0.25)" in capsys.readouterr().err
 
 
 def test_shape_and_centre_loss_is_blind_to_orientation_and_sees_centre_and_shape():

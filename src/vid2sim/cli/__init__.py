@@ -91,7 +91,7 @@ def _cmd_bench_identify(args: argparse.Namespace) -> int:
              "calibrate_contact": True if args.calibrate_contact else None,
              "fit_contact_layer": True if args.fit_contact_layer else None,
              "fit_damping": False if args.fixed_damping else None, "nu_sensitivity": args.nu_sensitivity,
-             "nu_scan": _nu_grid(args.nu_scan) if args.nu_scan else None,
+             "nu_scan": _nu_grid(args.nu_scan) if args.nu_scan is not None else None,
              "render_psnr": True if args.psnr else None, "volumetric": args.volumetric}
     if args.volumetric == "projected" and args.calibration_nu is None:
         given["calibration_nu"] = "curve"  # the projected term does not lock: one factor
