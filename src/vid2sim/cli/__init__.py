@@ -92,7 +92,7 @@ def _cmd_bench_identify(args: argparse.Namespace) -> int:
              "fit_contact_layer": True if args.fit_contact_layer else None,
              "fit_damping": False if args.fixed_damping else None, "nu_sensitivity": args.nu_sensitivity,
              "nu_scan": _nu_grid(args.nu_scan) if args.nu_scan is not None else None,
-             "render_psnr": True if args.psnr else None, "volumetric": args.volumetric}
+             "render_psnr": True if args.psnr else None, "volumetric": args.volumetric, "mass": args.mass}
     if args.volumetric == "projected" and args.calibration_nu is None:
         given["calibration_nu"] = "curve"  # the projected term does not lock: one factor
     flags = {"scenes": "--n", "only": "--only", "seed": "--seed", "preset": "--preset", "handles": "--handles",
@@ -391,6 +391,8 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
         overrides["volumetric"] = args.volumetric
         if args.volumetric == "projected" and args.calibration_nu is None:
             overrides["calibration_nu"] = "curve"  # the projected term does not lock: one factor
+    if args.mass is not None:
+        overrides["mass"] = args.mass
     if args.motion_geometry is not None:
         overrides["motion_appearance_geometry"] = args.motion_geometry
     if args.shading is not None:
@@ -585,6 +587,10 @@ def build_parser() -> argparse.ArgumentParser:
                        help="the reduced model's volumetric term: pointwise (default) or projected onto the skinning "
                             "weights' span, which removes the subspace's volumetric locking (implies "
                             "--calibration-nu curve unless that is given)")
+    ident.add_argument("--mass", choices=["moments", "cubature"], default=None,
+                       help="the reduced model's lumped masses: the cubature volumes corrected to the tet mesh's mass, "
+                            "centre of mass and inertia tensor (moments, the default) or the cubature volumes as they "
+                            "are (cubature)")
     ident.add_argument("--fit-contact-layer", action="store_true",
                        help="also fit the contact layer (a fraction of the size) with E and nu; experimental")
     ident.add_argument("--fixed-damping", action="store_true",
@@ -716,6 +722,9 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--volumetric", choices=["pointwise", "projected"], default=None,
                      help="the simulator's volumetric term: pointwise, or projected onto the skinning weights' span "
                           "(no volumetric locking; implies --calibration-nu curve unless that is given)")
+    rec.add_argument("--mass", choices=["moments", "cubature"], default=None,
+                     help="the simulator's lumped masses: the cubature volumes matched to the kept voxels' mass, "
+                          "centre of mass and inertia tensor (moments, the default) or as sampled (cubature)")
     rec.add_argument("--motion-geometry", action=argparse.BooleanOptionalAction, default=None,
                      help="the last stage fits the Gaussians' rest-frame centres, scales and rotations as well as "
                      "their colours and opacities through the simulated motion (on by default; "

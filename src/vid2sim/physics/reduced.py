@@ -368,7 +368,8 @@ class StepProblem:
         projected = self.volumetric is not None
         lam_e = self.lam * 0.0 if projected else self.lam  # the projected λ term is added below
         if self.tau is not None and self.model == "neo_hookean":  # the common case, fused
-            psi, stress, J = neo_hookean_viscous_energy_and_pk1(F, self.mu, self.lam, k_e,
+            # projected: both λ terms (elastic and viscous) are added below, in the weights' span
+            psi, stress, J = neo_hookean_viscous_energy_and_pk1(F, self.mu, lam_e, k_e,
                                                                 self.step.damping_scale(self.tau), self.c_ref, energy,
                                                                 lam_elastic=lam_e)
         else:
@@ -385,6 +386,12 @@ class StepProblem:
             stress = stress + (k_e * self.lam * l_bar)[:, None, None] * torch.linalg.inv(F).transpose(1, 2)
             if energy:
                 psi = psi + k_e * 0.5 * self.lam * l_bar * l_bar
+            if self.tau is not None:  # the Kelvin–Voigt λ term on the projected strain rate tr G (F-bar alike)
+                k_d = self.step.damping_scale(self.tau)
+                g_bar = project_volumetric(self.volumetric, self.vol, _half_trace_strain(F, self.c_ref))
+                stress = stress + (k_d * self.lam * g_bar)[:, None, None] * F
+                if energy:
+                    psi = psi + k_d * 0.5 * self.lam * g_bar * g_bar
         dy = y - self.y_pred
         m_dy = self.mass_times(dy)
         e_ext, f_ext = self._external_energy_and_force(y, energy)
@@ -463,11 +470,22 @@ class StepProblem:
         if project:
             local = project_psd(0.5 * (local + local.transpose(1, 2)))
         C = k_e * local
-        if self.tau is not None:
-            C = C + k_d * viscous_tangent(F, self.c_ref, self.mu, self.lam, psd=project)
         B = self.basis.point_rows(torch.linalg.inv(F).transpose(1, 2))  # (K, D): ∂ ln J_p / ∂y
         WB = self.volumetric.T @ (self.vol[:, None] * B)  # (H, D)
-        return self._assemble_hessian(y, C, project, extra=(k_e * self.lam) * (WB.T @ WB))
+        extra = (k_e * self.lam) * (WB.T @ WB)
+        if self.tau is not None:
+            # viscous: StVK on the rate without its λ term, + λ ḡ_p I (∂F/∂F) locally and the rank-H λ (Woᵀ V B_g)ᵀ(…)
+            g_bar = project_volumetric(self.volumetric, self.vol, _half_trace_strain(F, self.c_ref))
+            eye = torch.eye(9, dtype=F.dtype, device=F.device)
+            visc = viscous_tangent(F, self.c_ref, self.mu, self.lam * 0.0, psd=project) \
+                + (self.lam * g_bar)[:, None, None] * eye
+            if project:
+                visc = visc + (self.lam * g_bar).clamp(max=0.0).neg()[:, None, None] * eye
+            C = C + k_d * visc
+            Bg = self.basis.point_rows(F)  # (K, D): ∂ tr G_p / ∂y
+            WBg = self.volumetric.T @ (self.vol[:, None] * Bg)
+            extra = extra + (k_d * self.lam) * (WBg.T @ WBg)
+        return self._assemble_hessian(y, C, project, extra=extra)
 
     def _assemble_hessian(self, y: Tensor, C: Tensor, project: bool, extra: Tensor | None = None) -> Tensor:
         H = self.mass_matrix + self.basis.hessian(self.vol[:, None, None] * C) \
@@ -478,6 +496,11 @@ class StepProblem:
         if H_d is not None:
             H = H + H_d
         return 0.5 * (H + H.T)
+
+
+def _half_trace_strain(F: Tensor, C_ref: Tensor) -> Tensor:
+    """tr G = ½ (‖F‖² − tr C_ref), (K,): the trace of the Kelvin–Voigt strain measured from C_ref."""
+    return 0.5 * ((F * F).sum(dim=(1, 2)) - C_ref.diagonal(dim1=1, dim2=2).sum(-1))
 
 
 def _reduced_point_hessian(hx: Tensor, b: Tensor) -> Tensor:

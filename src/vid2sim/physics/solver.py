@@ -490,6 +490,10 @@ class Simulator:
         volumetric: "pointwise" (the default): the Neo-Hookean λ/2 (ln J)² at every cubature point;
             "projected": ln J projected onto the skinning weights' span in that term
             (:mod:`vid2sim.physics.volumetric`), which removes the subspace's volumetric locking (neo_hookean only).
+        mass_volumes: (K,) > 0, the volumes that carry the cubature points' mass (inertia and body forces such
+            as gravity); default ``cubature_weights``. :func:`vid2sim.physics.mass.moment_matched_volumes` gives
+            ones whose centre of mass and inertia tensor are the body's (the elastic energy keeps the cubature
+            weights).
     """
 
     def __init__(
@@ -509,6 +513,7 @@ class Simulator:
         contact_layer: float = 0.0,
         contact_damping: float = 0.0,
         volumetric: str = "pointwise",
+        mass_volumes: Tensor | None = None,
     ) -> None:
         if not isinstance(stiffness_scale, StiffnessCurve):
             if isinstance(stiffness_scale, bool) or not isinstance(stiffness_scale, (int, float)) \
@@ -534,9 +539,15 @@ class Simulator:
             raise ValueError("cubature_points must be finite and cubature_weights positive")
         if use_neural_jacobian and jacobian is None:
             raise ValueError("use_neural_jacobian=True needs a Neural Jacobian network (jacobian=...)")
+        if mass_volumes is not None and (mass_volumes.shape != cubature_weights.shape
+                                         or not bool(torch.isfinite(mass_volumes).all())
+                                         or not bool((mass_volumes > 0).all())):
+            raise ValueError(f"mass_volumes must be finite and positive with shape ({cubature_points.shape[0]},), "
+                             f"got shape {tuple(mass_volumes.shape)}")
         self.field = field
         self.X = cubature_points
         self.vol = cubature_weights
+        self.mass_volumes = cubature_weights if mass_volumes is None else mass_volumes
         self.material = material
         self.volumetric = check_volumetric(volumetric, material.model)
         self.externals = list(externals)
@@ -631,10 +642,10 @@ class Simulator:
                              float(self.density.detach()), self.length_scale)
 
     def masses(self) -> Tensor:
-        """(K,) lumped masses ρ·v_p."""
+        """(K,) lumped masses ρ·v_p (v_p: ``mass_volumes``)."""
         if not float(self.density.detach()) > 0:
             raise ValueError(f"density must be positive, got {float(self.density.detach())}")
-        return self.density * self.vol
+        return self.density * self.mass_volumes
 
     def reduced_basis(self) -> "ReducedBasis":
         """The skinning quantities of the cubature (and contact) points from the field (differentiable)."""

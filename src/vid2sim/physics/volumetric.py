@@ -21,7 +21,13 @@ cannot express (the bending's tension/compression pattern) no longer costs λ.
 
 The stress at point p becomes λ ℓ̄_p F_p⁻ᵀ, and the Hessian gains the non-local, rank-H term
 λ (Woᵀ V B)ᵀ (Woᵀ V B), with B_p = ∂ℓ_p/∂y and Wo the V-orthonormal basis of the span
-(:func:`projection_basis`). The viscous (Kelvin–Voigt) term stays pointwise.
+(:func:`projection_basis`).
+
+The Kelvin–Voigt damping (:mod:`vid2sim.physics.damping`) is τ times the same stiffness, so its λ term is projected
+the same way: the trace of the rate strain G = ½ (FᵀF − C_ref) is replaced by its projection ḡ = P tr G, the
+viscous stress gains τ-scaled λ ḡ_p F_p and the Hessian the rank-H λ (Woᵀ V B_g)ᵀ (Woᵀ V B_g), B_g,p = ∂ tr G_p / ∂y.
+Left pointwise, the spurious volume change of a bending subspace is charged to the viscosity τλ: the impact
+loses more energy than the continuum's and more the higher ν.
 """
 
 from __future__ import annotations

@@ -10,7 +10,8 @@ A folder (docs/asset-format.md)::
                         ambient share: the colours are then albedos lit by a light fixed in the world
     skinning.pt         the skinning field's weights (its input frame included)
     jacobian.pt         the Neural Jacobian's weights (only when the asset uses it)
-    points.npz          cubature points and weights, contact points and areas, interior points, volume
+    points.npz          cubature points and weights, their mass volumes, contact points and areas, interior
+                        points, volume
     config.json         the reconstruction settings used
     log.json            the optimisation log (loss, E, ν per iteration) and stage timings
 
@@ -72,6 +73,8 @@ class Asset:
         extra: free-form records (canonical frame, source scene, timings).
         shading: a :class:`~vid2sim.splats.shading.Shading` (normals of the N Gaussians, a world-fixed light), or
             None. With it, ``gaussians`` hold albedos, and every render lights them by the current pose.
+        mass_volumes: (K,) m³, the volumes the cubature points' mass is lumped on (``Simulator(mass_volumes=)``,
+            :mod:`vid2sim.physics.mass`), or None for the cubature weights (assets written before they existed).
     """
 
     gaussians: Gaussians
@@ -93,6 +96,7 @@ class Asset:
     dt: float
     extra: dict[str, Any] = field(default_factory=dict)
     shading: Shading | None = None
+    mass_volumes: Tensor | None = None
 
     def __post_init__(self) -> None:
         if self.shading is not None and self.shading.num != self.gaussians.num:
@@ -122,7 +126,8 @@ class Asset:
                          self.sim_config, jacobian=self.jacobian, use_neural_jacobian=self.jacobian is not None,
                          length_scale=self.length_scale, contact_points=self.contact_points,
                          contact_weights=self.contact_areas,
-                         stiffness_scale=self.stiffness(), volumetric=self.material.get("volumetric", "pointwise"))
+                         stiffness_scale=self.stiffness(), volumetric=self.material.get("volumetric", "pointwise"),
+                         mass_volumes=self.mass_volumes)
 
     def stiffness(self) -> float | StiffnessCurve:
         """The subspace's stiffness calibration: the curve s(ν) when the asset has one, else the number s."""
@@ -161,7 +166,9 @@ def save_asset(asset: Asset, folder: str | Path, config: dict[str, Any] | None =
                  cubature_weights=asset.cubature_weights.detach().cpu().numpy(),
                  contact_points=asset.contact_points.detach().cpu().numpy(),
                  contact_areas=asset.contact_areas.detach().cpu().numpy(),
-                 points=asset.points.detach().cpu().numpy(), volume=np.float64(asset.volume))
+                 points=asset.points.detach().cpu().numpy(), volume=np.float64(asset.volume),
+                 **({} if asset.mass_volumes is None else
+                    {"mass_volumes": asset.mass_volumes.detach().cpu().numpy()}))
         (tmp / FILES["material"]).write_text(json.dumps(asset.material, indent=2))
         f = asset.field
         networks = {"skinning": {"num_handles": f.num_handles, "width": f.width, "hidden_layers": f.hidden_layers,
@@ -279,4 +286,5 @@ def load_asset(folder: str | Path, device: torch.device | str = "cpu") -> Asset:
                  contact_areas=arrays["contact_areas"], points=arrays["points"], volume=volume,
                  sim_config=sim_config, gravity=list(meta["gravity"]), floor_height=meta.get("floor_height"),
                  floor_stiffness=float(meta["floor_stiffness"]), length_scale=float(meta["length_scale"]),
-                 initial_velocity=meta["initial_velocity"], dt=float(meta["dt"]), extra=meta.get("extra", {}))
+                 initial_velocity=meta["initial_velocity"], dt=float(meta["dt"]), extra=meta.get("extra", {}),
+                 mass_volumes=arrays.get("mass_volumes"))

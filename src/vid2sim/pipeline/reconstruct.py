@@ -109,6 +109,9 @@ class ReconstructConfig:
         volumetric: the simulator's volumetric term, "pointwise" or "projected" onto the skinning weights'
             span (``Simulator(volumetric=)``, :mod:`vid2sim.physics.volumetric`: no volumetric locking, so λ
             needs no factor of its own; calibrate with ``calibration_nu`` "curve").
+        mass: the simulator's lumped masses: "moments" (the default) — the cubature volumes corrected so that the
+            mass, centre of mass and inertia tensor are those of the kept voxels (:mod:`vid2sim.physics.mass`) —
+            or "cubature" (the cubature volumes as sampled: their inertia tensor is a few percent off).
         sim: the simulator's settings (time-converged BDF2 substeps by default).
         joint: the joint optimisation.
         seed: seeds every stage.
@@ -136,6 +139,7 @@ class ReconstructConfig:
     calibration_cells: int = 96
     calibration_points: int = 200_000
     volumetric: str = "pointwise"
+    mass: str = "moments"
     sim: SimConfig = field(default_factory=SimConfig)
     joint: JointConfig = field(default_factory=JointConfig)
     seed: int = 0
@@ -155,6 +159,8 @@ class ReconstructConfig:
                              f"got {self.calibration_nu!r}")
         if self.volumetric not in ("pointwise", "projected"):
             raise ValueError(f"ReconstructConfig.volumetric must be 'pointwise' or 'projected', got {self.volumetric!r}")
+        if self.mass not in ("moments", "cubature"):
+            raise ValueError(f"ReconstructConfig.mass must be 'moments' or 'cubature', got {self.mass!r}")
         if self.volumetric == "projected" and self.calibrate_stiffness and self.calibration_nu == "two_factor":
             raise ValueError("ReconstructConfig: the projected volumetric term does not lock, so its calibration "
                              "takes one factor (calibration_nu 'curve' or 'prior'), not 'two_factor'")
@@ -439,6 +445,7 @@ def _reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructCon
     from vid2sim.physics import Floor, Gravity, Material, SkinningField, Simulator
     from vid2sim.physics.cubature import sample_cubature
     from vid2sim.physics.external import AREA_CONTACT_STIFFNESS
+    from vid2sim.physics.mass import moment_matched_volumes, voxel_moments
     from vid2sim.physics.modes import CURVE_NUS, TWO_FACTOR_MODES
     from vid2sim.physics.neural_jacobian import NeuralJacobian, NeuralJacobianTrainingConfig, train_neural_jacobian
     from vid2sim.physics.skinning_training import SkinningTrainingConfig, train_skinning
@@ -625,10 +632,14 @@ def _reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructCon
     if scene.config.floor_height is not None:
         externals.append(Floor(height=scene.config.floor_height, stiffness=AREA_CONTACT_STIFFNESS))
     material = Material(prior_E, prior_nu, density, damping_ratio=cfg.prior_damping)
+    mass_volumes = None
+    if cfg.mass == "moments":  # the kept voxels' mass, centre of mass and inertia, exactly
+        mass_volumes = moment_matched_volumes(obj.points[idx], weights,
+                                              voxel_moments(obj.occupancy, obj.origin, obj.voxel).to(weights))
     sim = Simulator(field, obj.points[idx], weights, material, externals, cfg.sim, jacobian=jacobian,
                     use_neural_jacobian=jacobian is not None, length_scale=obj.scale,
                     contact_points=obj.contact_points, contact_weights=obj.contact_areas,
-                    stiffness_scale=stiffness, volumetric=cfg.volumetric)
+                    stiffness_scale=stiffness, volumetric=cfg.volumetric, mass_volumes=mass_volumes)
     joint_path = work.dir / "joint.json"
     if not work.done("joint"):
         _stage(progress, "[6/7] joint optimisation of the material, initial velocity and networks")
@@ -656,6 +667,7 @@ def _reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructCon
                   cubature_points=obj_cpu.points[idx.cpu()], cubature_weights=weights.cpu(),
                   contact_points=obj_cpu.contact_points, contact_areas=obj_cpu.contact_areas, points=obj_cpu.points,
                   volume=obj.volume, sim_config=cfg.sim,
+                  mass_volumes=None if mass_volumes is None else mass_volumes.detach().cpu(),
                   gravity=list(scene.config.gravity), floor_height=scene.config.floor_height,
                   floor_stiffness=AREA_CONTACT_STIFFNESS, length_scale=obj.scale,
                   initial_velocity={"linear": result["linear_velocity"], "angular": result["angular_velocity"],
