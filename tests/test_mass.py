@@ -150,3 +150,20 @@ def test_bad_mass_settings_are_refused():
     with pytest.raises(ValueError, match="ReconstructConfig.mass"):
         ReconstructConfig(mass="dense")
     assert IdentifyConfig().mass == ReconstructConfig().mass == "moments"
+
+
+def test_the_stiffness_calibration_uses_the_simulator_s_mass(box_points):
+    """The calibration matches the lowest frequency of the subspace with the mass the simulator lumps: with
+    moment-matched volumes s changes by exactly the square of the frequency ratio."""
+    from vid2sim.physics.modes import stiffness_calibration, subspace_frequencies
+
+    X, T, pts = box_points
+    idx, w = sample_cubature(pts, 150, volume=float(np.prod(BOX)), seed=0)
+    field = SkinningField(num_handles=3, seed=0).double()
+    matched = moment_matched_volumes(pts[idx], w, tet_moments(X, T))
+    plain = subspace_frequencies(field, pts[idx], w, 1.0, 0.3, 1.0, k=2)
+    assert np.allclose(subspace_frequencies(field, pts[idx], w, 1.0, 0.3, 1.0, k=2, mass_volumes=w), plain, rtol=1e-10)
+    moved = subspace_frequencies(field, pts[idx], w, 1.0, 0.3, 1.0, k=2, mass_volumes=matched)
+    s_plain = stiffness_calibration(field, pts[idx], w, X, T, 0.3)
+    s_moved = stiffness_calibration(field, pts[idx], w, X, T, 0.3, mass_volumes=matched)
+    assert s_moved == pytest.approx(s_plain * (plain[0] / moved[0]) ** 2, rel=1e-8)

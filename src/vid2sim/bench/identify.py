@@ -351,19 +351,20 @@ def prepare_scene(index: int, params: dict, config: IdentifyConfig, workdir: Pat
     surface = areas > 0
     fc = fem.config
     material = Material(config.prior_E, config.prior_nu, fc.density, damping_ratio=config.prior_damping)
-    scale = 1.0
-    if config.calibrate_stiffness:
-        if config.calibration_nu == "prior":
-            scale = stiffness_calibration(field, points[idx], weights, X, T, config.prior_nu, config.volumetric)
-        else:
-            scale = stiffness_calibration_curve(field, points[idx], weights, X, T, config.calibration_nus,
-                                                factors=2 if config.calibration_nu == "two_factor" else 1,
-                                                volumetric=config.volumetric)
     mass_volumes = None
     if config.mass == "moments":
         from vid2sim.physics.mass import moment_matched_volumes, tet_moments
 
         mass_volumes = moment_matched_volumes(points[idx], weights, tet_moments(X.to(points.dtype), T))
+    scale = 1.0
+    if config.calibrate_stiffness:
+        if config.calibration_nu == "prior":
+            scale = stiffness_calibration(field, points[idx], weights, X, T, config.prior_nu, config.volumetric,
+                                          mass_volumes=mass_volumes)
+        else:
+            scale = stiffness_calibration_curve(field, points[idx], weights, X, T, config.calibration_nus,
+                                                factors=2 if config.calibration_nu == "two_factor" else 1,
+                                                volumetric=config.volumetric, mass_volumes=mass_volumes)
     sim = Simulator(field, points[idx], weights, material,
                     [Gravity(fc.gravity), Floor(height=fc.floor_height, stiffness=fc.floor_stiffness)], SimConfig(),
                     length_scale=fem_length(fem, size), contact_points=nodes[surface], contact_weights=areas[surface],
@@ -384,7 +385,7 @@ def prepare_scene(index: int, params: dict, config: IdentifyConfig, workdir: Pat
             "fem_substeps": fc.substeps,
             "fem_time_convergence_percent": (fem.time_convergence or {}).get("mean_percent"),
             "fem_seconds": (fem.time_convergence or {}).get("wall_time_all_runs", fem.wall_time),
-            "frequencies": lowest_frequencies(X, T, field, points[idx], weights, fc, config.volumetric),
+            "frequencies": lowest_frequencies(X, T, field, points[idx], weights, fc, config.volumetric, mass_volumes),
             "stiffness_scale": scale if isinstance(scale, float) else scale.at(config.prior_nu),
             "stiffness_curve": None if isinstance(scale, float) else scale.to_dict()}
     truth_material = {"E": fc.youngs_modulus, "nu": fc.poisson_ratio, "damping_ratio": fc.damping_ratio}
@@ -393,7 +394,7 @@ def prepare_scene(index: int, params: dict, config: IdentifyConfig, workdir: Pat
 
 
 def lowest_frequencies(X: torch.Tensor, T: torch.Tensor, field, cubature: torch.Tensor, volumes: torch.Tensor,
-                       fc, volumetric: str = "pointwise") -> dict:
+                       fc, volumetric: str = "pointwise", mass_volumes: torch.Tensor | None = None) -> dict:
     """The six lowest elastic frequencies at the true material: quadratic tets on the FEM's mesh (the converged
     reference, :mod:`vid2sim.physics.tet_modes`), and as ratios to them, linear tets with lumped mass on that
     mesh (the FEM truth when ``fem_element_order`` is 1) and the reduced model's subspace on its cubature
@@ -404,7 +405,8 @@ def lowest_frequencies(X: torch.Tensor, T: torch.Tensor, field, cubature: torch.
     E, nu, rho = fc.youngs_modulus, fc.poisson_ratio, fc.density
     reference = tet_frequencies(X, T, E, nu, rho, k=6, order=2)
     fem = tet_frequencies(X, T, E, nu, rho, k=6, order=1, lumped=True)
-    reduced = subspace_frequencies(field, cubature, volumes, E, nu, rho, k=6, volumetric=volumetric)
+    reduced = subspace_frequencies(field, cubature, volumes, E, nu, rho, k=6, volumetric=volumetric,
+                                   mass_volumes=mass_volumes)
     return {"quadratic_tets_hz": (reference / (2 * math.pi)).tolist(),
             "linear_tets_over_quadratic": (fem / reference).tolist(),
             "reduced_over_quadratic": (reduced / reference).tolist(),

@@ -71,7 +71,8 @@ def subspace_stiffness_parts(X: Tensor, w: Tensor, dw: Tensor, volume: float, we
 
 
 def subspace_frequencies(field, points: Tensor, volumes: Tensor, youngs_modulus: float, poisson_ratio: float,
-                         density: float, k: int = 6, volumetric: str = "pointwise") -> np.ndarray:
+                         density: float, k: int = 6, volumetric: str = "pointwise",
+                         mass_volumes: Tensor | None = None) -> np.ndarray:
     """The k lowest non-rigid Rayleigh–Ritz angular frequencies ω (rad/s) of the skinning subspace.
 
     Args:
@@ -79,6 +80,7 @@ def subspace_frequencies(field, points: Tensor, volumes: Tensor, youngs_modulus:
         points: (n, 3) quadrature points (a simulator's cubature points ``sim.X``); volumes: (n,) their
             integration weights (``sim.vol``). Masses are ρ·volumes, as the simulator lumps them.
         volumetric: the simulator's volumetric term, "pointwise" or "projected".
+        mass_volumes: (n,) the volumes the simulator lumps the mass on (``sim.mass_volumes``); None: ``volumes``.
     Returns:
         (k,) ω, ascending; the six rigid modes are dropped.
     """
@@ -91,6 +93,9 @@ def subspace_frequencies(field, points: Tensor, volumes: Tensor, youngs_modulus:
     with torch.no_grad():
         w, dw = field.weights_and_gradients(points)
         K, M = subspace_stiffness_and_mass(points, w, dw, 1.0, poisson_ratio, weights=volumes, volumetric=volumetric)
+        if mass_volumes is not None:
+            b = lbs_rows(points, w)
+            M = torch.kron(torch.eye(3, dtype=b.dtype, device=b.device), b.T @ (b * mass_volumes[:, None]))
     Kn, Mn = K.double().cpu().numpy(), M.double().cpu().numpy()
     lam = eigh(Kn, Mn + 1e-14 * np.trace(Mn) / len(Mn) * np.eye(len(Mn)), eigvals_only=True)
     if len(lam) < k + 6:
@@ -99,7 +104,8 @@ def subspace_frequencies(field, points: Tensor, volumes: Tensor, youngs_modulus:
 
 
 def stiffness_calibration(field, points: Tensor, volumes: Tensor, vertices: Tensor | np.ndarray,
-                          tets: Tensor | np.ndarray, poisson_ratio: float, volumetric: str = "pointwise") -> float:
+                          tets: Tensor | np.ndarray, poisson_ratio: float, volumetric: str = "pointwise",
+                          mass_volumes: Tensor | None = None) -> float:
     """(ω_tets / ω_subspace)² of the lowest elastic mode: the factor ``Simulator(stiffness_scale=...)`` that makes
     the skinning subspace vibrate at the continuum's lowest frequency.
 
@@ -111,14 +117,16 @@ def stiffness_calibration(field, points: Tensor, volumes: Tensor, vertices: Tens
     Args:
         field: the skinning field; points: (K, 3) the simulator's cubature points (``sim.X``); volumes: (K,)
             their weights (``sim.vol``); vertices: (Nv, 3), tets: (Nt, 4) positively oriented, in the frame and
-            units of ``points``; volumetric: the simulator's volumetric term ("pointwise" or "projected").
+            units of ``points``; volumetric: the simulator's volumetric term ("pointwise" or "projected");
+            mass_volumes: the volumes the simulator lumps its mass on (``sim.mass_volumes``; None: ``volumes``).
     Returns:
         s ∈ (0, ∞); it does not depend on E or ρ; s < 1 when the subspace is stiffer than the tets.
     """
     from vid2sim.physics.tet_modes import tet_frequencies
 
     reference = tet_frequencies(vertices, tets, 1.0, poisson_ratio, 1.0, k=1, order=2)[0]
-    reduced = subspace_frequencies(field, points, volumes, 1.0, poisson_ratio, 1.0, k=1, volumetric=volumetric)[0]
+    reduced = subspace_frequencies(field, points, volumes, 1.0, poisson_ratio, 1.0, k=1, volumetric=volumetric,
+                                   mass_volumes=mass_volumes)[0]
     if not (reference > 0 and reduced > 0):
         raise ValueError(f"the lowest elastic frequencies must be positive, got tets {reference}, subspace {reduced}")
     return float((reference / reduced) ** 2)
@@ -135,7 +143,8 @@ TWO_FACTOR_LOWEST_WEIGHT = 10.0
 
 def stiffness_calibration_curve(field, points: Tensor, volumes: Tensor, vertices: Tensor | np.ndarray | None,
                                 tets: Tensor | np.ndarray | None, nus: tuple[float, ...] = CURVE_NUS, factors: int = 1,
-                                reference: np.ndarray | None = None, volumetric: str = "pointwise") -> StiffnessCurve:
+                                reference: np.ndarray | None = None, volumetric: str = "pointwise",
+                                mass_volumes: Tensor | None = None) -> StiffnessCurve:
     """The stiffness correction of the subspace at every ν of ``nus`` (``Simulator(stiffness_scale=curve)``).
 
     ``factors=1``: :func:`stiffness_calibration` at each ν, the factor s(ν) on the whole energy that makes the
@@ -164,7 +173,8 @@ def stiffness_calibration_curve(field, points: Tensor, volumes: Tensor, vertices
         ``tet_frequency_curve(vertices, tets, nus, k)`` with k = 1 (one factor) or :data:`TWO_FACTOR_MODES`
         (n, k); the mesh is then not needed; ``volumetric``: the simulator's volumetric term. With
         "projected" (:mod:`vid2sim.physics.volumetric`) the subspace does not lock and λ needs no factor of its
-        own: use ``factors=1`` (two factors are refused; s_λ is then not determined by the modes at all).
+        own: use ``factors=1`` (two factors are refused; s_λ is then not determined by the modes at all);
+        ``mass_volumes``: the volumes the simulator lumps its mass on (None: ``volumes``).
     Returns:
         a :class:`~vid2sim.physics.stiffness_curve.StiffnessCurve` (s, and s_λ with two factors, interpolated
         between the grid's ν).
@@ -185,11 +195,12 @@ def stiffness_calibration_curve(field, points: Tensor, volumes: Tensor, vertices
         raise ValueError(f"the reference frequencies are {reference.shape}; {factors} factor(s) on {len(nus)} values of "
                          f"nu need ({len(nus)}, {k})")
     if factors == 2:
-        return _two_factor_curve(field, points, volumes, reference, nus)
+        return _two_factor_curve(field, points, volumes, reference, nus, mass_volumes)
     reference = reference[:, 0]
     scales = []
     for nu, ref in zip(nus, reference):
-        reduced = subspace_frequencies(field, points, volumes, 1.0, float(nu), 1.0, k=1, volumetric=volumetric)[0]
+        reduced = subspace_frequencies(field, points, volumes, 1.0, float(nu), 1.0, k=1, volumetric=volumetric,
+                                       mass_volumes=mass_volumes)[0]
         if not (ref > 0 and reduced > 0):
             raise ValueError(f"the lowest elastic frequencies must be positive at nu = {nu}, got tets {ref}, "
                              f"subspace {reduced}")
@@ -197,7 +208,8 @@ def stiffness_calibration_curve(field, points: Tensor, volumes: Tensor, vertices
     return StiffnessCurve(tuple(nus), tuple(scales))
 
 
-def _two_factor_curve(field, points: Tensor, volumes: Tensor, reference: np.ndarray, nus) -> StiffnessCurve:
+def _two_factor_curve(field, points: Tensor, volumes: Tensor, reference: np.ndarray, nus,
+                      mass_volumes: Tensor | None = None) -> StiffnessCurve:
     """:func:`stiffness_calibration_curve` with ``factors=2``; ``reference`` (n, k) the tets' frequencies."""
     from scipy.linalg import eigh
     from scipy.optimize import least_squares
@@ -206,6 +218,9 @@ def _two_factor_curve(field, points: Tensor, volumes: Tensor, reference: np.ndar
     with torch.no_grad():
         w, dw = field.weights_and_gradients(points)
         K_mu, K_lam, M = (m.double().cpu().numpy() for m in subspace_stiffness_parts(points, w, dw, 1.0, volumes))
+        if mass_volumes is not None:
+            b = lbs_rows(points, w)
+            M = np.kron(np.eye(3), (b.T @ (b * mass_volumes[:, None])).double().cpu().numpy())
     M = M + 1e-14 * np.trace(M) / len(M) * np.eye(len(M))
     if len(M) < k + 6:
         raise ValueError(f"the subspace has {len(M)} degrees of freedom; the two-factor calibration needs {k + 6}")

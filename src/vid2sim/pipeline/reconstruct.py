@@ -303,12 +303,15 @@ class _Work:
         (self.dir / f"{stage}.done").write_text("")
 
 
-def _calibrated(path: Path, want_curve: bool, want_two: bool, volumetric: str) -> bool:
-    """Whether the work folder's stiffness calibration exists and is of the kind asked for."""
+def _calibrated(path: Path, want_curve: bool, want_two: bool, volumetric: str, mass: str | None = None) -> bool:
+    """Whether the work folder's stiffness calibration exists and is of the kind asked for (``mass``: also with
+    that lumping of the mass; None: any)."""
     if not path.is_file():
         return False
     stored = json.loads(path.read_text())
     curve = stored.get("stiffness_curve")
+    if mass is not None and stored.get("mass", "cubature") != mass:
+        return False
     return (bool(curve), bool(curve and curve.get("lam_scale")), stored.get("volumetric", "pointwise")) == \
         (want_curve, want_two, volumetric)
 
@@ -608,7 +611,11 @@ def _reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructCon
     density = float(scene.config.metadata.get("density", cfg.density)) if isinstance(
         scene.config.metadata.get("density"), (int, float)) else cfg.density
     idx, weights = sample_cubature(obj.points, cfg.num_cubature, volume=obj.volume, seed=cfg.seed)
-    if cfg.calibrate_stiffness and not _calibrated(calibration_path, want_curve, want_two, cfg.volumetric):
+    mass_volumes = None
+    if cfg.mass == "moments":  # the kept voxels' mass, centre of mass and inertia, exactly
+        mass_volumes = moment_matched_volumes(obj.points[idx], weights,
+                                              voxel_moments(obj.occupancy, obj.origin, obj.voxel).to(weights))
+    if cfg.calibrate_stiffness and not _calibrated(calibration_path, want_curve, want_two, cfg.volumetric, cfg.mass):
         from vid2sim.pipeline.stiffness import calibrate_stiffness
 
         _stage(progress, "      calibrating the subspace's stiffness against quadratic tets")
@@ -621,7 +628,7 @@ def _reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructCon
         calibration = calibrate_stiffness(field, obj.points[idx], weights, dense, prior_nu,
                                           cells=cfg.calibration_cells, seed=cfg.seed,
                                           nus=CURVE_NUS if want_curve else None, factors=2 if want_two else 1,
-                                          reference=reference, volumetric=cfg.volumetric)
+                                          reference=reference, volumetric=cfg.volumetric, mass_volumes=mass_volumes)
         calibration_path.write_text(json.dumps(calibration))
     calibration = (json.loads(calibration_path.read_text()) if cfg.calibrate_stiffness
                    else {"stiffness_scale": 1.0, "stiffness_curve": None})
@@ -632,10 +639,6 @@ def _reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructCon
     if scene.config.floor_height is not None:
         externals.append(Floor(height=scene.config.floor_height, stiffness=AREA_CONTACT_STIFFNESS))
     material = Material(prior_E, prior_nu, density, damping_ratio=cfg.prior_damping)
-    mass_volumes = None
-    if cfg.mass == "moments":  # the kept voxels' mass, centre of mass and inertia, exactly
-        mass_volumes = moment_matched_volumes(obj.points[idx], weights,
-                                              voxel_moments(obj.occupancy, obj.origin, obj.voxel).to(weights))
     sim = Simulator(field, obj.points[idx], weights, material, externals, cfg.sim, jacobian=jacobian,
                     use_neural_jacobian=jacobian is not None, length_scale=obj.scale,
                     contact_points=obj.contact_points, contact_weights=obj.contact_areas,

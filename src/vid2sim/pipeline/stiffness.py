@@ -162,7 +162,7 @@ class TetReferenceJob:
 def calibrate_stiffness(field, cubature: Tensor, weights: Tensor, points: Tensor | None, poisson_ratio: float,
                         edge_length: float = 0.08, cells: int = 64, seed: int = 0,
                         nus: tuple[float, ...] | None = None, factors: int = 1, reference: dict | None = None,
-                        volumetric: str = "pointwise") -> dict:
+                        volumetric: str = "pointwise", mass_volumes: Tensor | None = None) -> dict:
     """The stiffness factor s of a reconstruction (``Simulator(stiffness_scale=s)``).
 
     Args:
@@ -180,6 +180,8 @@ def calibrate_stiffness(field, cubature: Tensor, weights: Tensor, points: Tensor
         reference: :func:`tet_reference` of the same points already computed, for the grid ``nus`` (or
             ``(poisson_ratio,)``) and k = :data:`~vid2sim.physics.modes.TWO_FACTOR_MODES` (two factors) or 1.
         volumetric: the simulator's volumetric term ("pointwise" or "projected"), recorded in the result.
+        mass_volumes: (K,) the volumes the simulator lumps its mass on (``Simulator(mass_volumes=)``; None:
+            ``weights``): the subspace's frequencies use the simulator's own mass.
     Returns:
         {"stiffness_scale": s at ``poisson_ratio``, "stiffness_curve": the curve's ``to_dict()`` or None,
         "tets": mesh size, "mesh_volume_m3", "points_volume_ratio" (the mesh's volume over the weights' sum),
@@ -202,12 +204,12 @@ def calibrate_stiffness(field, cubature: Tensor, weights: Tensor, points: Tensor
     frequencies = np.asarray(reference["frequencies"], dtype=float)
     if nus is not None:
         curve = stiffness_calibration_curve(field, cubature, weights, None, None, grid, factors=factors,
-                                            reference=frequencies, volumetric=volumetric)
+                                            reference=frequencies, volumetric=volumetric, mass_volumes=mass_volumes)
         s = curve.at(poisson_ratio)
     else:
         curve = None
         reduced = subspace_frequencies(field, cubature, weights, 1.0, float(poisson_ratio), 1.0, k=1,
-                                       volumetric=volumetric)[0]
+                                       volumetric=volumetric, mass_volumes=mass_volumes)[0]
         if not (frequencies[0, 0] > 0 and reduced > 0):
             raise ValueError(f"the lowest elastic frequencies must be positive, got tets {frequencies[0, 0]}, "
                              f"subspace {reduced}")
@@ -217,4 +219,5 @@ def calibrate_stiffness(field, cubature: Tensor, weights: Tensor, points: Tensor
             "tets": reference["tets"], "mesh_volume_m3": volume,
             "dropped_volume_fraction": reference.get("dropped_volume_fraction", 0.0),
             "points_volume_ratio": volume / float(weights.sum()), "volumetric": volumetric,
+            "mass": "cubature" if mass_volumes is None else "moments",
             "seconds": reference["seconds"] + time.perf_counter() - t0}
