@@ -60,7 +60,8 @@ def test_perfect_geometry_starts_exactly_where_the_fem_starts(report):
     fem = FEMResult.load(workdir / "scene_000" / "fem_result.npz")
     X = fem.rest_vertices[: int(fem.tets.max()) + 1]
     tets = tet_frequencies(X, fem.tets, 2e5, config.prior_nu, 900.0, k=1, order=2)[0]
-    omega = subspace_frequencies(sim.field, sim.X, sim.vol, 2e5 * s, config.prior_nu, 900.0, k=1)[0]
+    omega = subspace_frequencies(sim.field, sim.X, sim.vol, 2e5 * s, config.prior_nu, 900.0, k=1,
+                                 mass_volumes=sim.mass_volumes)[0]
     assert omega == pytest.approx(tets, rel=1e-6)
     # one factor as a curve: s(ν) brings the lowest mode to the tets' at every ν of its grid
     curved = identify.prepare_scene(0, benchmark_parameters(1, 0)[0],
@@ -71,7 +72,8 @@ def test_perfect_geometry_starts_exactly_where_the_fem_starts(report):
     assert curve.at(0.3) == pytest.approx(s, rel=1e-9) == curved.info["stiffness_scale"]
     assert curved.info["stiffness_curve"] == curve.to_dict()
     tets = tet_frequencies(X, fem.tets, 2e5, 0.45, 900.0, k=1, order=2)[0]
-    omega = subspace_frequencies(sim.field, sim.X, sim.vol, 2e5 * curve.at(0.45), 0.45, 900.0, k=1)[0]
+    omega = subspace_frequencies(sim.field, sim.X, sim.vol, 2e5 * curve.at(0.45), 0.45, 900.0, k=1,
+                                 mass_volumes=sim.mass_volumes)[0]
     assert omega == pytest.approx(tets, rel=1e-6)
     # two factors (the default): μ by s(ν), λ by s_λ(ν); the lowest mode still on the tets' (weighted fit)
     two = identify.prepare_scene(0, benchmark_parameters(1, 0)[0],
@@ -81,11 +83,14 @@ def test_perfect_geometry_starts_exactly_where_the_fem_starts(report):
     assert curve2.lam_scale is not None and two.info["stiffness_curve"]["lam_scale"] == list(curve2.lam_scale)
     from vid2sim.physics.materials import lame_parameters
     from vid2sim.physics.modes import subspace_stiffness_parts
+    from vid2sim.physics.reduced import lbs_rows
     from scipy.linalg import eigh
 
     with torch.no_grad():
         w, dw = sim.field.weights_and_gradients(sim.X)
-        K_mu, K_lam, M = (m.numpy() for m in subspace_stiffness_parts(sim.X, w, dw, 1.0, sim.vol))
+        K_mu, K_lam, _ = (m.numpy() for m in subspace_stiffness_parts(sim.X, w, dw, 1.0, sim.vol))
+        b = lbs_rows(sim.X, w)
+        M = np.kron(np.eye(3), (b.T @ (b * sim.mass_volumes[:, None])).numpy())  # the simulator's lumped mass
     for nu in (0.3, 0.45):
         mu, lam = lame_parameters(1.0, nu)
         K = curve2.at(nu) * mu * K_mu + curve2.lam_at(nu) * lam * K_lam
@@ -155,7 +160,7 @@ def test_the_projected_volumetric_term_reaches_the_simulator_with_a_one_factor_c
     nu = 0.45
     ref = tet_frequencies(scene.tet_vertices, scene.tets, 1.0, nu, 1.0, k=1, order=2)[0]
     ours = subspace_frequencies(sim.field, sim.X, sim.vol, sim.stiffness_scale.at(nu), nu, 1.0, k=1,
-                                volumetric="projected")[0]
+                                volumetric="projected", mass_volumes=sim.mass_volumes)[0]
     assert ours == pytest.approx(ref, rel=1e-6)
     out = identify.fit(scene, replace(projected, fit_iterations=1, fit_damping=False))
     assert math.isfinite(out["log10_E"]) and 0 <= out["nu"] < 0.5
