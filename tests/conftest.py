@@ -82,8 +82,11 @@ def tiny_scene(tmp_path_factory):
 
 @pytest.fixture(scope="session")
 def tiny_asset(tiny_scene, tmp_path_factory):
-    """The asset folder reconstructed from ``tiny_scene`` with the tiny config."""
+    """The asset folder reconstructed from ``tiny_scene`` with the tiny config (masses matched to the voxels'
+    moments, so that path is exercised too)."""
+    from dataclasses import replace
+
     from vid2sim.pipeline.reconstruct import reconstruct
 
     out = tmp_path_factory.mktemp("asset") / "asset"
-    return reconstruct(tiny_scene, out, _tiny_reconstruct_config(), progress=False)
+    return reconstruct(tiny_scene, out, replace(_tiny_reconstruct_config(), mass="moments"), progress=False)

@@ -36,6 +36,9 @@ def test_reconstruct_writes_a_complete_asset(tiny_asset, tiny_scene):
     centre = asset.gaussians.means.mean(0)
     assert float((centre - truth.mean(0)).norm()) < 0.05
     sim = asset.simulator()
+    # --mass moments: the lumped masses carry the kept voxels' mass, and the asset keeps them
+    assert asset.mass_volumes is not None and torch.equal(sim.mass_volumes, asset.mass_volumes)
+    assert float(asset.mass_volumes.sum()) == pytest.approx(asset.volume, rel=1e-6)
     states = sim.rollout(asset.initial_state(sim), 3)
     assert all(torch.isfinite(s.z).all() for s in states)
     assert asset.material["stiffness_scale"] == 1.0 == sim.stiffness_scale  # the tiny config does not calibrate

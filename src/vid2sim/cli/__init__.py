@@ -723,8 +723,8 @@ def build_parser() -> argparse.ArgumentParser:
                      help="the simulator's volumetric term: pointwise, or projected onto the skinning weights' span "
                           "(no volumetric locking; implies --calibration-nu curve unless that is given)")
     rec.add_argument("--mass", choices=["moments", "cubature"], default=None,
-                     help="the simulator's lumped masses: the cubature volumes matched to the kept voxels' mass, "
-                          "centre of mass and inertia tensor (moments, the default) or as sampled (cubature)")
+                     help="the simulator's lumped masses: the cubature volumes as sampled (cubature, the default) or "
+                          "matched to the kept voxels' mass, centre of mass and inertia tensor (moments)")
     rec.add_argument("--motion-geometry", action=argparse.BooleanOptionalAction, default=None,
                      help="the last stage fits the Gaussians' rest-frame centres, scales and rotations as well as "
                      "their colours and opacities through the simulated motion (on by default; "
