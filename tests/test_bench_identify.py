@@ -17,7 +17,9 @@ pytestmark = pytest.mark.slow  # end to end: scene generation, reconstruction, s
 
 TINY = dict(scenes=1, frames=10, observed_frames=6, points=400, skinning_points=2000, skinning_iterations=40,
             cubature=120, fit_iterations=1, sweep_points=3, handles=4, fem_element_order=1,
-            coarse_log10_E=(5.5, 4.0, 5.0))
+            coarse_log10_E=(5.5, 4.0, 5.0),
+            # the plain model; each test turns on the calibration, the projected term or the fixed ζ it checks
+            calibrate_stiffness=False, volumetric="pointwise", calibration_nu="two_factor", fit_damping=True)
 
 
 @pytest.fixture(scope="module")
@@ -165,7 +167,7 @@ def test_the_projected_volumetric_term_reaches_the_simulator_with_a_one_factor_c
     out = identify.fit(scene, replace(projected, fit_iterations=1, fit_damping=False))
     assert math.isfinite(out["log10_E"]) and 0 <= out["nu"] < 0.5
     with pytest.raises(ValueError, match="one factor"):
-        identify.IdentifyConfig(volumetric="projected", calibrate_stiffness=True)
+        identify.IdentifyConfig(volumetric="projected", calibrate_stiffness=True, calibration_nu="two_factor")
     with pytest.raises(ValueError, match="volumetric must be"):
         identify.IdentifyConfig(volumetric="mixed")
 
@@ -333,6 +335,34 @@ def test_cli_rejects_bad_options_with_the_flag_name(tmp_path, capsys):
     for step in ("0.3", "0"):
         assert main(["bench", "identify", "--nu-scan", step, "--workdir", str(tmp_path / "w"), "--quiet"]) == 2
         assert "--nu-scan must be a step in (0, 0.25)" in capsys.readouterr().err
+
+
+def test_cli_defaults_are_the_configuration_the_readme_reports(tmp_path, monkeypatch):
+    """No flags: 30 handles, the projected term calibrated by one factor per ν, moment-matched masses, ζ fixed
+    (#10's figures). --volumetric pointwise takes two factors unless --calibration-nu is given; the switches
+    turn the calibration off and the damping fit on."""
+
+    class Stop(Exception):
+        pass
+
+    seen = []
+
+    def fake_run(config, *args, **kwargs):
+        seen.append(config)
+        raise Stop
+
+    monkeypatch.setattr(identify, "run", fake_run)
+    cases = [([], dict(handles=30, calibrate_stiffness=True, calibration_nu="curve", volumetric="projected",
+                       mass="moments", fit_damping=False)),
+             (["--volumetric", "pointwise"], dict(volumetric="pointwise", calibration_nu="two_factor")),
+             (["--volumetric", "pointwise", "--calibration-nu", "prior"], dict(calibration_nu="prior")),
+             (["--no-calibrate-stiffness", "--fit-damping", "--handles", "12"],
+              dict(calibrate_stiffness=False, fit_damping=True, handles=12))]
+    for flags, expected in cases:
+        with pytest.raises(Stop):
+            main(["bench", "identify", "--workdir", str(tmp_path / "w"), "--quiet", *flags])
+        assert {k: getattr(seen[-1], k) for k in expected} == expected, flags
+    assert identify.IdentifyConfig() == seen[0]
 
 
 def test_shape_and_centre_loss_is_blind_to_orientation_and_sees_centre_and_shape():

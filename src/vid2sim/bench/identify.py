@@ -54,7 +54,11 @@ MASSES = ("moments", "cubature")
 
 @dataclass
 class IdentifyConfig:
-    """Settings of ``vid2sim bench identify`` (the defaults are the ones reported in docs/architecture.md).
+    """Settings of ``vid2sim bench identify``.
+
+    The defaults are the configuration whose figures the README reports for #10 (30 handles, the stiffness
+    calibrated with one factor per ν, the projected volumetric term, moment-matched masses, ζ held at the
+    prior). Earlier rows of docs/architecture.md name the flags they were measured with.
 
     Attributes:
         scenes: number of scenes (≥ 1; the reported figures use 6).
@@ -74,7 +78,7 @@ class IdentifyConfig:
         cubature: cubature points.
         cubature_weights: "equal" or "voronoi" (:func:`~vid2sim.physics.cubature.sample_cubature`).
         prior_E, prior_nu, prior_damping: the fit's start.
-        fit_damping: also fit ζ (the default); False keeps it at ``prior_damping``, as ``reconstruct`` does by
+        fit_damping: also fit ζ; False (the default) keeps it at ``prior_damping``, as ``reconstruct`` does by
             default (``JointConfig.fit_damping``). ζ and ν trade off: a fitted ζ lets ν drift.
         coarse_log10_E: the grid searched over log10 E (at the prior ν and ζ) before L-BFGS, as the video
             pipeline does (:class:`~vid2sim.pipeline.joint.JointConfig`); empty: start at ``prior_E``. The loss
@@ -93,15 +97,15 @@ class IdentifyConfig:
             (the plain point distance). The orientation of a stiff object rocking on the frictionless floor
             drifts chaotically from the truth's after its first bounce; the plain distance is dominated by
             that drift and pulls E to whatever value matches the rocking phase.
-        calibrate_stiffness: scale the reduced model's elastic energy so that its subspace's lowest
+        calibrate_stiffness: scale the reduced model's elastic energy (the default) so that its subspace's lowest
             frequency on its cubature equals that of quadratic tets on the rest mesh, both at the prior ν
             (:func:`vid2sim.physics.modes.stiffness_calibration`; ``Simulator.stiffness_scale``). The fitted E is then the
             material's, not the stiffer subspace's.
-        calibration_nu: with ``calibrate_stiffness``, "two_factor" (the default) measures a factor on μ and
+        calibration_nu: with ``calibrate_stiffness``, "two_factor" (for the pointwise term) measures a factor on μ and
             one on λ at each ν of a grid, matched to the six lowest modes, and the simulator uses them at its
             current ν (:func:`vid2sim.physics.modes.stiffness_calibration_curve` with ``factors=2``: the
             subspace's locking grows with ν and sits in λ; this also gives the impact's squash the
-            continuum's size); "curve" one factor on E at each ν of the grid; "prior" one factor measured at
+            continuum's size); "curve" (the default, for the projected term) one factor on E at each ν of the grid; "prior" one factor measured at
             the prior ν.
         calibration_nus: the grid of that curve.
         contact_layer: the reduced model's contact layer h as a fraction of the object's size
@@ -132,7 +136,7 @@ class IdentifyConfig:
             model's images against the truth's by PSNR and SSIM as ``vid2sim evaluate`` does
             (:func:`render_psnr`): the images a video pipeline using this reduced model could reach with perfect
             geometry, appearance and initial state.
-        volumetric: the reduced model's volumetric term, "pointwise" (the default) or "projected" onto the
+        volumetric: the reduced model's volumetric term, "pointwise" or "projected" (the default) onto the
             skinning weights' span (``Simulator(volumetric=)``, :mod:`vid2sim.physics.volumetric`), which removes
             the subspace's volumetric locking; calibrate it with one factor (``calibration_nu`` "curve").
         mass: where the reduced model's lumped masses come from: "moments" (the default) — the cubature volumes
@@ -149,7 +153,7 @@ class IdentifyConfig:
     observed_frames: int = 16
     points: int = 3000
     skinning_points: int = 30000
-    handles: int = 10
+    handles: int = 30
     skinning_iterations: int = 2000
     skinning_objective: str = "modal"
     cubature: int = 500
@@ -157,7 +161,7 @@ class IdentifyConfig:
     prior_E: float = 1e5
     prior_nu: float = 0.3
     prior_damping: float = 0.05
-    fit_damping: bool = True
+    fit_damping: bool = False
     coarse_log10_E: tuple[float, ...] = (4.0, 4.25, 4.5, 4.75, 5.0, 5.25, 5.5, 5.75, 6.0)
     fit_iterations: int = 12
     sweep_decades: float = 0.5
@@ -166,8 +170,8 @@ class IdentifyConfig:
     fem_element_order: int = 2
     truth: str = "fem"
     loss: str = "shape_and_centre"
-    calibrate_stiffness: bool = False
-    calibration_nu: str = "two_factor"
+    calibrate_stiffness: bool = True
+    calibration_nu: str = "curve"
     calibration_nus: tuple[float, ...] = CURVE_NUS
     contact_layer: float = 0.0
     fit_contact_layer: bool = False
@@ -176,7 +180,7 @@ class IdentifyConfig:
     nu_sensitivity: float = 0.0
     nu_scan: tuple[float, ...] = ()
     render_psnr: bool = False
-    volumetric: str = "pointwise"
+    volumetric: str = "projected"
     mass: str = "moments"
 
     def __post_init__(self) -> None:

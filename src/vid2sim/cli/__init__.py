@@ -86,15 +86,15 @@ def _cmd_bench_identify(args: argparse.Namespace) -> int:
              "points": args.points, "skinning_points": args.skinning_points, "truth": args.truth,
              "skinning_objective": args.skinning_objective,
              "cubature_weights": args.cubature_weights, "fem_element_order": args.fem_element_order,
-             "loss": args.loss, "calibrate_stiffness": True if args.calibrate_stiffness else None,
+             "loss": args.loss, "calibrate_stiffness": args.calibrate_stiffness,
              "calibration_nu": args.calibration_nu, "contact_layer": args.contact_layer,
              "calibrate_contact": True if args.calibrate_contact else None,
              "fit_contact_layer": True if args.fit_contact_layer else None,
-             "fit_damping": False if args.fixed_damping else None, "nu_sensitivity": args.nu_sensitivity,
+             "fit_damping": args.fit_damping, "nu_sensitivity": args.nu_sensitivity,
              "nu_scan": _nu_grid(args.nu_scan) if args.nu_scan is not None else None,
              "render_psnr": True if args.psnr else None, "volumetric": args.volumetric, "mass": args.mass}
-    if args.volumetric == "projected" and args.calibration_nu is None:
-        given["calibration_nu"] = "curve"  # the projected term does not lock: one factor
+    if args.volumetric == "pointwise" and args.calibration_nu is None:
+        given["calibration_nu"] = "two_factor"  # the pointwise term locks as nu grows: a factor on lambda too
     flags = {"scenes": "--n", "only": "--only", "seed": "--seed", "preset": "--preset", "handles": "--handles",
              "skinning_iterations": "--skinning-iterations", "fit_iterations": "--fit-iterations", "points": "--points",
              "skinning_points": "--skinning-points", "nu_sensitivity": "--nu-sensitivity",
@@ -554,7 +554,7 @@ def build_parser() -> argparse.ArgumentParser:
                             "the means are then the subset's")
     ident.add_argument("--seed", type=int, default=None, help="suite seed (default 0)")
     ident.add_argument("--preset", choices=["small", "full"], default=None, help="tet resolution (default small)")
-    ident.add_argument("--handles", type=int, default=None, help="learned skinning handles (default 10)")
+    ident.add_argument("--handles", type=int, default=None, help="learned skinning handles (default 30)")
     ident.add_argument("--skinning-iterations", type=int, default=None, help="data-free skinning iterations (default 2000)")
     ident.add_argument("--fit-iterations", type=int, default=None, help="L-BFGS iterations (default 12)")
     ident.add_argument("--points", type=int, default=None, help="sample points (default 3000)")
@@ -574,28 +574,31 @@ def build_parser() -> argparse.ArgumentParser:
     ident.add_argument("--loss", choices=["shape_and_centre", "positions"], default=None,
                        help="the fit's 3-D loss: centre of mass + shape after a rigid alignment per frame "
                             "(default; blind to the chaotic rocking of the orientation) or the plain point distance")
-    ident.add_argument("--calibrate-stiffness", action="store_true",
+    ident.add_argument("--calibrate-stiffness", action=argparse.BooleanOptionalAction, default=None,
                        help="scale the reduced model's elastic energy so that its lowest mode vibrates at the "
-                            "frequency of quadratic tets on the rest mesh (at the prior nu): the subspace is stiffer "
-                            "than the continuum, and the fit's E then is the material's")
+                            "frequency of quadratic tets on the rest mesh (default on; --no-calibrate-stiffness "
+                            "turns it off): the subspace is stiffer than the continuum, and the fit's E then is the "
+                            "material's")
     ident.add_argument("--calibration-nu", choices=["curve", "two_factor", "prior"], default=None,
-                       help="with --calibrate-stiffness: two factors (on mu and on lambda) at a grid of nu, matched "
-                            "to the six lowest modes and used at the fit's current nu (two_factor, the default: the "
-                            "subspace's locking grows with nu and sits in lambda), one factor on E at that grid "
-                            "(curve), or one factor at the prior nu")
+                       help="with --calibrate-stiffness: one factor on E at a grid of nu, used at the fit's current "
+                            "nu (curve, the default with the projected volumetric term), two factors (on mu and on "
+                            "lambda) matched to the six lowest modes (two_factor, the default with --volumetric "
+                            "pointwise, whose locking grows with nu and sits in lambda), or one factor at the prior nu")
     ident.add_argument("--volumetric", choices=["pointwise", "projected"], default=None,
-                       help="the reduced model's volumetric term: pointwise (default) or projected onto the skinning "
-                            "weights' span, which removes the subspace's volumetric locking (implies "
-                            "--calibration-nu curve unless that is given)")
+                       help="the reduced model's volumetric term: projected onto the skinning weights' span "
+                            "(default), which removes the subspace's volumetric locking, or pointwise (implies "
+                            "--calibration-nu two_factor unless that is given)")
     ident.add_argument("--mass", choices=["moments", "cubature"], default=None,
                        help="the reduced model's lumped masses: the cubature volumes corrected to the tet mesh's mass, "
                             "centre of mass and inertia tensor (moments, the default) or the cubature volumes as they "
                             "are (cubature)")
     ident.add_argument("--fit-contact-layer", action="store_true",
                        help="also fit the contact layer (a fraction of the size) with E and nu; experimental")
-    ident.add_argument("--fixed-damping", action="store_true",
-                       help="keep the damping ratio at the prior (0.05) instead of fitting it, as reconstruct does "
-                            "by default")
+    damping = ident.add_mutually_exclusive_group()
+    damping.add_argument("--fit-damping", dest="fit_damping", action="store_const", const=True, default=None,
+                         help="also fit the damping ratio (it trades off against nu)")
+    damping.add_argument("--fixed-damping", dest="fit_damping", action="store_const", const=False,
+                         help="keep the damping ratio at the prior (0.05), as reconstruct does (the default)")
     ident.add_argument("--contact-layer", type=float, default=None,
                        help="experimental: the reduced model's barriers act through a layer of the body in series, "
                             "this fraction of the object's size deep (default 0: none)")
