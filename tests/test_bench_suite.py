@@ -83,7 +83,8 @@ def test_suite_json_schema_means_and_table(local_run, suite_dir, tiny_config):
     assert result["suite"] == str(suite_dir.resolve()) and result["preset"] == "custom" and result["failed"] == 0
     assert set(result["means"]) == set(METRICS) == {
         "dynamic_psnr", "dynamic_ssim", "future_psnr", "future_ssim", "novel_psnr", "novel_ssim",
-        "abs_error_log10_E", "abs_error_nu", "chamfer_observed", "chamfer_future", "seconds"}
+        "abs_error_log10_E", "abs_error_nu", "start_abs_error_log10_E", "start_abs_error_nu", "chamfer_observed",
+        "chamfer_future", "seconds"}
     index = json.loads((suite_dir / "index.json").read_text())
     assert [r["name"] for r in result["scenes"]] == [s["name"] for s in index["scenes"]] == ["scene_000", "scene_001"]
     for record, truth in zip(result["scenes"], index["scenes"]):
@@ -103,12 +104,19 @@ def test_suite_json_schema_means_and_table(local_run, suite_dir, tiny_config):
                                                                               abs=1e-6)
         ev = record["evaluation"]
         assert 10 < ev["dynamic"]["psnr"] < 60 and 0 < ev["novel_views"]["ssim"] < 1
+        # the start of Stage II (the prior: Stage I is off) with its own errors, the fit's baseline
+        prior = tiny_config()
+        start = ev["material"]["start"]
+        assert start["source"] == "prior" and start["E"] == prior.prior_E and start["nu"] == prior.prior_nu
+        assert start["abs_error_log10_E"] == pytest.approx(abs(math.log10(prior.prior_E) - math.log10(truth["E"])))
+        assert start["abs_error_nu"] == pytest.approx(abs(prior.prior_nu - truth["nu"]))
     # means: the plain average of the two scenes' evaluation.json values
     evs = [json.loads((out / n / EVALUATION_JSON).read_text()) for n in ("scene_000", "scene_001")]
     expected = {
         "dynamic_psnr": [e["dynamic"]["psnr"] for e in evs], "future_ssim": [e["future"]["ssim"] for e in evs],
         "novel_psnr": [e["novel_views"]["psnr"] for e in evs],
         "abs_error_nu": [e["material"]["abs_error_nu"] for e in evs],
+        "start_abs_error_nu": [e["material"]["start"]["abs_error_nu"] for e in evs],
         "chamfer_future": [e["chamfer"]["future_mean"] for e in evs],
         "seconds": [r["seconds"] for r in result["scenes"]],
     }

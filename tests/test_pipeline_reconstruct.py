@@ -3,6 +3,7 @@ an interrupted run, clear errors for bad input, and the evaluation report."""
 
 import dataclasses
 import json
+import math
 import shutil
 
 import numpy as np
@@ -124,6 +125,30 @@ def test_evaluate_reports_views_frames_material_and_chamfer(tiny_asset, tiny_sce
     assert material["truth"] == {"E": 1e5, "nu": 0.3}
     assert material["abs_error_log10_E"] == pytest.approx(abs(material["fitted"]["log10_E"] - 5.0), abs=1e-6)
     assert len(report["chamfer"]["per_frame"]) == 6 and 0 < report["chamfer"]["observed_mean"] < 0.1
+    # Stage II's start (the tiny config's prior, E 1e5 and ν 0.3: the truth here) with its errors
+    prior = json.loads((asset / "config.json").read_text())
+    assert material["start"] == {"E": prior["prior_E"], "log10_E": pytest.approx(math.log10(prior["prior_E"])),
+                                 "nu": prior["prior_nu"], "source": "prior",
+                                 "abs_error_log10_E": pytest.approx(abs(math.log10(prior["prior_E"]) - 5.0)),
+                                 "abs_error_nu": pytest.approx(abs(prior["prior_nu"] - 0.3))}
+
+
+def test_start_material_reads_the_prior_or_stage1_and_names_a_bad_file(tmp_path):
+    from vid2sim.pipeline.evaluate import start_material
+
+    assert start_material(tmp_path) is None  # not written by reconstruct: no baseline
+    (tmp_path / "config.json").write_text(json.dumps({"prior_E": 2e5, "prior_nu": 0.25}))
+    (tmp_path / "log.json").write_text(json.dumps({"stage1": {"ran": False, "reason": "disabled"}}))
+    assert start_material(tmp_path) == {"E": 2e5, "log10_E": pytest.approx(math.log10(2e5)), "nu": 0.25,
+                                        "source": "prior"}
+    (tmp_path / "log.json").write_text(json.dumps({"stage1": {"ran": True, "E": 3e4, "nu": 0.41}}))
+    assert start_material(tmp_path)["source"] == "stage1" and start_material(tmp_path)["nu"] == 0.41
+    (tmp_path / "log.json").write_text(json.dumps({"stage1": {"ran": True, "E": -1.0, "nu": 0.41}}))
+    with pytest.raises(ValueError, match=r"log\.json: the stage1 material needs E > 0"):
+        start_material(tmp_path)
+    (tmp_path / "log.json").write_text("{broken")
+    with pytest.raises(ValueError, match="cannot read the start material"):
+        start_material(tmp_path)
 
 
 def test_evaluate_true_motion_scores_the_gaussians_on_the_ground_truths_motion(tiny_asset, tiny_scene, tmp_path,

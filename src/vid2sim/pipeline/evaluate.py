@@ -9,7 +9,9 @@ rendered in every camera. Reported (means, and per frame):
 * each as PSNR and SSIM (3DGS-lineage SSIM, window 11, σ = 1.5), and FoVVDP (JOD) when asked and the
   optional ``pyfvvdp`` is installed (its display model is named in the output);
 * with ground truth in the scene: the absolute errors of log10 E and ν, and the Chamfer distance (m) of the
-  simulated Gaussian centres to the ground-truth surface (the ``tet_trajectory`` extra) per frame.
+  simulated Gaussian centres to the ground-truth surface (the ``tet_trajectory`` extra) per frame;
+* the material Stage II started from (the documented prior, or Stage I's prediction) with its own errors
+  (``material.start``, :func:`start_material`): the baseline that says whether the fit improved on its start.
 
 The simulation and the rendering are two reusable steps, :func:`simulate_gaussians` (the asset's captured
 drop as deformed Gaussians per frame) and :func:`render_frames` (those in any cameras); ``evaluate(...,
@@ -102,6 +104,40 @@ def true_motion_gaussians(asset: Any, tet_trajectory: dict[str, torch.Tensor]) -
     return [deform_gaussians(g, x[t].to(g.means.dtype), F[t].to(g.means.dtype), asset.shading) for t in range(len(x))]
 
 
+def start_material(asset_path: str | Path) -> dict[str, Any] | None:
+    """The material ``reconstruct``'s Stage II started from: Stage I's prediction when it ran (``log.json``
+    ``stage1``), else the prior of ``config.json`` (``prior_E``, ``prior_nu``).
+
+    Returns:
+        {"E", "log10_E", "nu", "source": "stage1" | "prior"}, or None for an asset without those records (one
+        not written by ``reconstruct``).
+
+    Raises:
+        ValueError naming the file when a record is there but unreadable or lacks E or ν.
+    """
+    import math
+
+    folder = Path(asset_path)
+    log_path, config_path = folder / "log.json", folder / "config.json"
+    try:
+        stage1 = json.loads(log_path.read_text()).get("stage1") if log_path.is_file() else None
+        if isinstance(stage1, dict) and stage1.get("ran"):
+            E, nu, source, where = stage1.get("E"), stage1.get("nu"), "stage1", log_path
+        elif config_path.is_file():
+            config = json.loads(config_path.read_text())
+            if "prior_E" not in config and "prior_nu" not in config:
+                return None
+            E, nu, source, where = config.get("prior_E"), config.get("prior_nu"), "prior", config_path
+        else:
+            return None
+    except (OSError, json.JSONDecodeError, AttributeError) as exc:
+        raise ValueError(f"{folder}: cannot read the start material from log.json / config.json ({exc})") from exc
+    numbers = all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in (E, nu))
+    if not (numbers and E > 0):
+        raise ValueError(f"{where}: the {source} material needs E > 0 and nu as numbers, got E={E!r}, nu={nu!r}")
+    return {"E": float(E), "log10_E": math.log10(float(E)), "nu": float(nu), "source": source}
+
+
 def evaluate(asset_path: str | Path, scene_path: str | Path, fovvdp: bool = False,
              display: str = "standard_4k", progress: bool = True, return_renders: bool = False,
              true_motion: bool = False) -> Any:
@@ -109,7 +145,8 @@ def evaluate(asset_path: str | Path, scene_path: str | Path, fovvdp: bool = Fals
 
     Returns:
         a JSON-ready dict: ``dynamic``, ``future``, ``novel_views`` (each ``psnr``, ``ssim``, per-frame lists,
-        optionally ``fovvdp``), ``material`` (fitted, truth, errors when known), ``chamfer`` (per frame and
+        optionally ``fovvdp``), ``material`` (fitted, truth, errors when known; ``start``: Stage II's starting
+        material and its errors, :func:`start_material`), ``chamfer`` (per frame and
         means over observed and future frames, when the scene has a ``tet_trajectory``), ``timing``.
         With ``return_renders=True``: the pair (that dict, the renders (V, T, H, W, 3) in [0, 1] it scored,
         every scene camera and frame).
@@ -153,9 +190,14 @@ def evaluate(asset_path: str | Path, scene_path: str | Path, fovvdp: bool = Fals
     fitted = {"E": asset.material["E"], "nu": asset.material["nu"]}
     material: dict[str, Any] = {"fitted": {**fitted, "log10_E": asset.material.get("log10_E"),
                                            "damping_ratio": asset.material.get("damping_ratio")}}
+    start = start_material(asset_path)
+    if start is not None:
+        material["start"] = start
     if isinstance(meta.get("E"), (int, float)) and isinstance(meta.get("nu"), (int, float)):
         material["truth"] = {"E": meta["E"], "nu": meta["nu"]}
         material.update(material_errors(fitted, material["truth"]))
+        if start is not None:
+            start.update(material_errors(start, material["truth"]))
     report["material"] = material
     tet = scene.extras.get("tet_trajectory")
     if tet is not None:
