@@ -248,7 +248,7 @@ def test_suite_report_links_scenes_and_shows_failures(scene_report, tiny_scene, 
              "means": {"dynamic_psnr": evaluation["dynamic"]["psnr"], "dynamic_ssim": evaluation["dynamic"]["ssim"],
                        "future_psnr": None, "future_ssim": None, "novel_psnr": None, "novel_ssim": None,
                        "abs_error_log10_E": evaluation["material"]["abs_error_log10_E"], "abs_error_nu": 0.1,
-                       "seconds": 16.75}}
+                       "start_abs_error_nu": 0.066, "seconds": 16.75}}
     out = write_suite_report(tmp_path / "suite", suite)
     page = _parse(out / "index.html")
     links = [ref for tag, ref in page.refs if tag == "a" and ref.endswith("index.html")]
@@ -257,6 +257,7 @@ def test_suite_report_links_scenes_and_shows_failures(scene_report, tiny_scene, 
     assert len(thumbs) == 2 and all((out / t).stat().st_size > 0 for t in thumbs)
     text = (out / "index.html").read_text()
     assert "Newton &lt;diverged&gt; at frame 3" in text  # the failure's message, escaped
+    assert "|Δ ν| at the start (prior or Stage I)" in text and "0.066" in text  # the baseline's card
     assert float(page.metrics["dynamic_psnr"][0]) == evaluation["dynamic"]["psnr"]
     assert float(page.metrics["found_E"][0]) == evaluation["material"]["fitted"]["E"]
     assert json.loads((out / "suite.json").read_text())["scenes"][1]["status"] == "failed"

@@ -34,6 +34,8 @@ MEAN_LABELS = {
     "novel_psnr": ("PSNR novel views", "dB", 2, 1.0), "dynamic_ssim": ("SSIM observed", "", 4, 1.0),
     "future_ssim": ("SSIM future", "", 4, 1.0), "novel_ssim": ("SSIM novel views", "", 4, 1.0),
     "abs_error_log10_E": ("|Δ log10 E|", "decades", 3, 1.0), "abs_error_nu": ("|Δ ν|", "", 3, 1.0),
+    "start_abs_error_log10_E": ("|Δ log10 E| at the start (prior or Stage I)", "decades", 3, 1.0),
+    "start_abs_error_nu": ("|Δ ν| at the start (prior or Stage I)", "", 3, 1.0),
     "chamfer_observed": ("Chamfer observed", "cm", 2, 100.0), "chamfer_future": ("Chamfer future", "cm", 2, 100.0),
     "seconds": ("time per scene", "s", 0, 1.0),
 }
