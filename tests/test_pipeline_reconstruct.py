@@ -109,10 +109,12 @@ def test_the_calibration_child_gets_one_of_the_callers_threads_while_it_runs():
         torch.set_num_threads(before)
 
 
-def test_evaluate_reports_views_frames_material_and_chamfer(tiny_asset, tiny_scene, tmp_path):
+def test_evaluate_reports_views_frames_material_and_chamfer(tiny_asset, tiny_scene, tmp_path, capsys):
     asset = shutil.copytree(tiny_asset, tmp_path / "asset")  # the HTML report is written into the asset folder
     out = tmp_path / "eval.json"
     assert main(["evaluate", str(asset), str(tiny_scene), "--out", str(out), "--quiet"]) == 0
+    assert "  at the start (prior: E = 1.000e+05 Pa, nu = 0.300): |d log10 E| = 0.000, |d nu| = 0.000" \
+        in capsys.readouterr().out
     report = json.loads(out.read_text())
     shown = json.loads((asset / "report" / "report.json").read_text())  # the report shows the same evaluation
     assert (asset / "report" / "index.html").is_file()

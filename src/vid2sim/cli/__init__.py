@@ -451,6 +451,10 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     mat = report["material"]
     if "abs_error_log10_E" in mat:
         lines.append(f"|d log10 E| = {mat['abs_error_log10_E']:.3f}, |d nu| = {mat['abs_error_nu']:.3f}")
+        start = mat.get("start")
+        if start is not None and "abs_error_nu" in start:
+            lines.append(f"  at the start ({start['source']}: E = {start['E']:.3e} Pa, nu = {start['nu']:.3f}): "
+                         f"|d log10 E| = {start['abs_error_log10_E']:.3f}, |d nu| = {start['abs_error_nu']:.3f}")
     print("\n".join(lines + [f"wrote {out}"]))
     if not args.no_report:
         _write_report(Path(args.asset) / "report", args.asset, args.scene, quiet=args.quiet, evaluation=report,
