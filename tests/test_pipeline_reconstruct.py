@@ -13,6 +13,7 @@ import torch
 from vid2sim.cli import main
 from vid2sim.pipeline import reconstruct as reconstruct_module
 from vid2sim.pipeline.asset import load_asset
+from vid2sim.pipeline.points import PointsConfig
 from vid2sim.pipeline.reconstruct import ReconstructConfig, ReconstructionError, reconstruct
 from vid2sim.scene.folder import load_scene, write_scene
 
@@ -31,6 +32,12 @@ def test_reconstruct_writes_a_complete_asset(tiny_asset, tiny_scene):
     assert [r["log10_E"] for r in log["coarse_search"]] == [4.5, 5.0]
     assert set(log["timings_seconds"]) == {"gaussians", "points", "velocity", "appearance", "networks", "joint",
                                            "motion_appearance"}
+    # the hull was carved with the later frames: the record says which, and the points are the last round's
+    carving = log["carving"]
+    assert len(carving["rounds"]) == config["points"]["frame_rounds"] == 2
+    last = carving["rounds"][-1]
+    assert set(last["chosen"]).isdisjoint(int(t) for t in last["refused"]) and 0 < last["voxels"] <= carving["frame0_voxels"]
+    assert len(last["residuals_px"]) == last["tracked_frames"] == len(load_scene(tiny_scene).config.observed_frames)
     # the simulator runs in the scene's metric frame: the Gaussians sit where the object is at frame 0
     scene = load_scene(tiny_scene)
     truth = scene.extras["tet_trajectory"]["vertices"][0]
@@ -470,7 +477,11 @@ def test_cli_no_stage1_and_predictor_flags(tiny_scene, tmp_path, monkeypatch):
     assert seen[-1].gaussians.sh_degree == 1
     with pytest.raises(SystemExit):
         main(["reconstruct", str(tiny_scene), str(tmp_path / "a"), "--preset", "full", "--quiet"])
-    assert seen[-1].gaussians.sh_degree == 3
+    assert seen[-1].gaussians.sh_degree == 3 and seen[-1].points.frame_rounds == PointsConfig().frame_rounds == 2
+    with pytest.raises(SystemExit):
+        main(["reconstruct", str(tiny_scene), str(tmp_path / "a"), "--frame-rounds", "0", "--quiet"])
+    assert seen[-1].points.frame_rounds == 0
+    assert main(["reconstruct", str(tiny_scene), str(tmp_path / "a"), "--frame-rounds", "-1", "--quiet"]) == 2
     assert main(["reconstruct", str(tiny_scene), str(tmp_path / "a"), "--sh-degree", "4", "--quiet"]) == 2
     assert main(["reconstruct", str(tiny_scene), str(tmp_path / "a"), "--handles", "0", "--quiet"]) == 2
     assert main(["reconstruct", str(tiny_scene), str(tmp_path / "a"), "--predictor", str(tmp_path / "no.pt")]) == 2

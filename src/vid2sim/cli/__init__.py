@@ -412,6 +412,10 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
         if not 0 <= args.sh_degree <= 3:
             raise UserError(f"--sh-degree must be 0, 1, 2 or 3, got {args.sh_degree}")
         config.gaussians.sh_degree = args.sh_degree
+    if args.frame_rounds is not None:
+        if args.frame_rounds < 0:
+            raise UserError(f"--frame-rounds must be >= 0, got {args.frame_rounds}")
+        config.points.frame_rounds = args.frame_rounds
     path = reconstruct(args.scene, out, config, progress=not args.quiet, restart=args.restart, device=device)
     material = json.loads((path / "material.json").read_text())
     print(f"wrote {path}: E = {material['E']:.4g} Pa (log10 E = {material['log10_E']:.3f}), nu = {material['nu']:.3f}")
@@ -732,6 +736,10 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--mass", choices=["moments", "cubature"], default=None,
                      help="the simulator's lumped masses: the cubature volumes as sampled (cubature, the default) or "
                           "matched to the kept voxels' mass, centre of mass and inertia tensor (moments)")
+    rec.add_argument("--frame-rounds", type=int, default=None,
+                     help="rounds of carving the frame-0 hull with the masks of the later frames whose rigid pose the "
+                     "silhouettes explain (default 2; 0: the frame-0 hull only; docs/architecture.md, 'The hull from "
+                     "the later frames')")
     rec.add_argument("--motion-geometry", action=argparse.BooleanOptionalAction, default=None,
                      help="the last stage fits the Gaussians' rest-frame centres, scales and rotations as well as "
                      "their colours and opacities through the simulated motion (on by default; "

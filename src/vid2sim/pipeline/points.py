@@ -15,6 +15,7 @@ recorded for the skinning network's input; physics stays in the scene's metric f
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Sequence
 
@@ -39,6 +40,16 @@ class PointsConfig:
         max_contact_points: the surface voxels are reduced to at most this many contact points (farthest-point
             sampling; each keeps the area of the voxels nearest to it) — the contact's cost grows with them.
         seed: seeds the sampling.
+        frame_rounds: rounds of carving with the later frames' masks (:mod:`vid2sim.pipeline.carving`; 0: the
+            frame-0 hull only).
+        frame_residual_ratio: a frame carves only if its rigid pose fits its silhouettes with a residual at most
+            this many times frame 0's.
+        free_flight_tolerance: a frame carves only if the tracked centroid's acceleration is within this
+            fraction of |g| of gravity (no contact).
+        coverage_tolerance: a frame carves only if that uncovers at most this fraction of every frame-0 mask.
+        track_points: surface samples the tracking fits to the silhouettes.
+        carve_margin_px: a later frame carves a voxel only if its centre projects more than this many pixels
+            outside a mask (the tracked poses are a fraction of a pixel off; 0 carves at the mask's edge).
     """
 
     resolution: int = 64
@@ -48,8 +59,23 @@ class PointsConfig:
     mask_threshold: float = 0.5
     max_contact_points: int = 1000
     seed: int = 0
+    frame_rounds: int = 2
+    frame_residual_ratio: float = 4.0
+    free_flight_tolerance: float = 0.5
+    coverage_tolerance: float = 0.01
+    track_points: int = 5000
+    carve_margin_px: float = 0.25
 
     def __post_init__(self) -> None:
+        if self.frame_rounds < 0 or self.track_points < 4:
+            raise ValueError(f"PointsConfig.frame_rounds must be >= 0 and track_points >= 4, got {self.frame_rounds}, "
+                             f"{self.track_points}")
+        if not (isinstance(self.carve_margin_px, (int, float)) and 0 <= self.carve_margin_px < math.inf):
+            raise ValueError(f"PointsConfig.carve_margin_px must be a finite number >= 0, got {self.carve_margin_px!r}")
+        for name in ("frame_residual_ratio", "free_flight_tolerance", "coverage_tolerance"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise ValueError(f"PointsConfig.{name} must be a finite number > 0, got {value!r}")
         if self.resolution < 8:
             raise ValueError(f"PointsConfig.resolution must be >= 8, got {self.resolution}")
         if self.num_points < 100:
@@ -130,7 +156,7 @@ def object_points(masks: Tensor, cameras: Sequence[Camera], gaussians: Gaussians
         ValueError: empty hull (names the likely cause) or too few kept voxels.
     """
     from vid2sim.splats.render import render_gaussians
-    from vid2sim.splats.visual_hull import _surface, visual_hull
+    from vid2sim.splats.visual_hull import visual_hull
 
     cfg = config or PointsConfig()
     dtype = torch.float32
@@ -147,6 +173,27 @@ def object_points(masks: Tensor, cameras: Sequence[Camera], gaussians: Gaussians
                                cfg.depth_tolerance * voxel, cfg.alpha_threshold)
         occ = torch.zeros_like(occ)
         occ[tuple(idx[keep].T)] = True
+    return points_from_occupancy(occ, lo, voxel, cfg, hull_voxels=hull)
+
+
+def points_from_occupancy(occ: Tensor, origin: Tensor, voxel: float, config: PointsConfig | None = None,
+                          hull_voxels: int | None = None) -> ObjectPoints:
+    """The :class:`ObjectPoints` of a carved voxel grid: interior samples, volume, contact points (step 3 of
+    the module docstring) and the canonical frame.
+
+    Args:
+        occ: (A, B, C) bool, the object's voxels; origin: (3,) the grid's corner; voxel: the voxel edge (m).
+        config: :class:`PointsConfig` (``num_points``, ``max_contact_points``, ``seed``).
+        hull_voxels: the voxel count before the last carving (recorded); None: ``occ``'s own.
+    Raises:
+        ValueError: fewer than 8 voxels.
+    """
+    from vid2sim.splats.visual_hull import _surface
+
+    cfg = config or PointsConfig()
+    dtype = torch.float32
+    lo = origin.to(dtype)
+    hull = int(occ.sum()) if hull_voxels is None else int(hull_voxels)
     kept = int(occ.sum())
     if kept < 8:
         raise ValueError(f"only {kept} voxels of the object survive carving at resolution {cfg.resolution} "

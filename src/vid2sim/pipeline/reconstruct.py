@@ -5,7 +5,10 @@ stage; the asset folder itself appears only when everything is done):
 
 1. ``gaussians`` — 3D Gaussians fitted to frame 0 of the observed views (:func:`vid2sim.splats.fit_gaussians`).
 2. ``points`` — the object's interior at frame 0 (:func:`vid2sim.pipeline.points.object_points`): simulation
-   points, volume, contact points, canonical frame.
+   points, volume, contact points, canonical frame. The frame-0 hull is then carved again with the masks of
+   the later frames that a tracked rigid pose explains (:mod:`vid2sim.pipeline.carving`): the sides that no
+   camera saw in profile at frame 0, where the object meets the floor as it rolls, would otherwise give the
+   bounce the wrong spin.
 3. ``velocity`` — the initial rigid velocity from the ballistic pre-contact frames
    (:func:`vid2sim.pipeline.initial_state.estimate_initial_velocity`).
 4. ``appearance`` — the Gaussians refined on all those ballistic frames at once: the object's fitted rigid pose
@@ -458,7 +461,8 @@ def _reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructCon
     from vid2sim.pipeline.asset import Asset, save_asset
     from vid2sim.pipeline.initial_state import TooFewBallisticFrames, estimate_initial_velocity
     from vid2sim.pipeline.joint import Observations, joint_optimisation
-    from vid2sim.pipeline.points import ObjectPoints, object_points
+    from vid2sim.pipeline.carving import carve_with_frames
+    from vid2sim.pipeline.points import ObjectPoints
     from vid2sim.scene.folder import load_scene
     from vid2sim.splats.fitting import fit_gaussians
     from vid2sim.splats.ply import load_ply, save_ply
@@ -492,11 +496,17 @@ def _reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructCon
     # 2. points ------------------------------------------------------------------------------------------
     pts_path = work.dir / "points.pt"
     if not work.done("points"):
-        _stage(progress, "[2/7] filling the object with simulation points")
+        _stage(progress, "[2/7] filling the object with simulation points" +
+               (f" (the hull carved with the later frames, {cfg.points.frame_rounds} rounds)"
+                if cfg.points.frame_rounds else ""))
         t0 = time.perf_counter()
-        torch.save(asdict(object_points(masks_cpu[:, 0], cameras_cpu, gaussians.to("cpu"), cfg.points)), pts_path)
+        carved, carving = carve_with_frames(masks_cpu, cameras_cpu, float(scene.config.dt), scene.config.gravity,
+                                            gaussians.to("cpu"), cfg.points, progress=progress)
+        torch.save(asdict(carved), pts_path)
+        (work.dir / "carving.json").write_text(json.dumps(carving))
         work.finish("points", time.perf_counter() - t0)
     obj_cpu = ObjectPoints(**torch.load(pts_path))
+    carving = json.loads((work.dir / "carving.json").read_text())
     obj = dataclasses.replace(obj_cpu, **{k: getattr(obj_cpu, k).to(dev) for k in
                                           ("points", "contact_points", "contact_areas", "centre")})
 
@@ -710,7 +720,7 @@ def _reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructCon
         shading = Shading(**torch.load(shading_path, weights_only=True)) if shading_path.is_file() else None
         asset = dataclasses.replace(asset, gaussians=load_ply(motion_ply), shading=shading)
         asset.extra["motion_appearance"] = json.loads((work.dir / "motion_appearance.json").read_text())
-    log = {"timings_seconds": work.timings, "stage1": stage1, "stiffness_calibration": calibration, "coarse_search": result["coarse"],
+    log = {"timings_seconds": work.timings, "stage1": stage1, "carving": carving, "stiffness_calibration": calibration, "coarse_search": result["coarse"],
            "iterations": result["log"]}
     save_asset(asset, out, config=cfg.to_dict(), log=log)
     shutil.rmtree(work.dir, ignore_errors=True)
