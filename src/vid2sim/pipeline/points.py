@@ -49,7 +49,8 @@ class PointsConfig:
         coverage_tolerance: a frame carves only if that uncovers at most this fraction of every frame-0 mask.
         track_points: surface samples the tracking fits to the silhouettes.
         carve_margin_px: a later frame carves a voxel only if its centre projects more than this many pixels
-            outside a mask (the tracked poses are a fraction of a pixel off; 0 carves at the mask's edge).
+            outside a mask, on the mask's sub-pixel signed distance (0: at the mask's 0.5 iso-line; on the small
+            suite 0.25 gave the same images and a worse E, README).
     """
 
     resolution: int = 64
@@ -64,7 +65,7 @@ class PointsConfig:
     free_flight_tolerance: float = 0.5
     coverage_tolerance: float = 0.01
     track_points: int = 5000
-    carve_margin_px: float = 0.25
+    carve_margin_px: float = 0.0
 
     def __post_init__(self) -> None:
         if self.frame_rounds < 0 or self.track_points < 4:
