@@ -54,6 +54,10 @@ def test_gravity_deviation_tells_free_flight_from_contact() -> None:
     bounced[3:, 2] = 2 * bounced[3, 2] - bounced[3:, 2]  # the height reflected from frame 3 on: a bounce
     dev = gravity_deviation(bounced, DT, GRAVITY)
     assert dev[1] < 1e-9 and dev[3] > 1.0
+    with pytest.raises(ValueError, match="gravity must be a finite non-zero"):
+        gravity_deviation(flight, DT, [0.0, 0.0, 0.0])
+    with pytest.raises(ValueError, match="dt must be a positive"):
+        gravity_deviation(flight, 0.0, GRAVITY)
 
 
 def kept_fraction(obj, points: torch.Tensor) -> float:

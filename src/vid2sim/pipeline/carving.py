@@ -124,6 +124,11 @@ def gravity_deviation(centroids: np.ndarray, dt: float, gravity: Sequence[float]
     """Per frame, |a − g| / |g| for the centroid's acceleration a (central difference of the (T, 3)
     ``centroids``, ``dt`` s apart): 0 in free flight, several in contact. None for the first and last frame."""
     g = np.asarray(gravity, dtype=np.float64)
+    if g.shape != (3,) or not np.isfinite(g).all() or not np.linalg.norm(g) > 0:
+        raise ValueError(f"gravity_deviation: gravity must be a finite non-zero (3,) vector to tell free flight from "
+                         f"contact, got {list(np.ravel(g))}")
+    if not (math.isfinite(dt) and dt > 0):
+        raise ValueError(f"gravity_deviation: dt must be a positive number of seconds, got {dt!r}")
     out: list[float | None] = [None] * len(centroids)
     for t in range(1, len(centroids) - 1):
         acc = (centroids[t + 1] - 2 * centroids[t] + centroids[t - 1]) / (dt * dt)
