@@ -25,11 +25,12 @@ The object turns in the later frames, though, and shows those sides in profile. 
      let the track drift on a rounded object: on scene 1 of the small suite the tracked pose is 13° off by
      frame 6 and 40–70° from frame 9 on, with residuals still a fraction of a pixel.
 3. **Carve** the frame-0 voxels (hull and depth carving, :func:`~vid2sim.pipeline.points.object_points`):
-   keep the voxels whose centres, posed by each chosen frame, project inside that frame's masks in every view.
+   keep the voxels whose centres, posed by each chosen frame, project inside that frame's masks in every view
+   (:func:`within_silhouettes`, on the masks' sub-pixel signed distance, with ``carve_margin_px``).
 
 The next round tracks with the carved hull, which fits the silhouettes better, and carves the frame-0 voxels
-again (not the previous round's), so a pose that was wrong in one round leaves no trace. Measured on four small
-suite scenes: docs/architecture.md, "The hull from the later frames".
+again (not the previous round's), so a pose that was wrong in one round leaves no trace. Measurements:
+docs/architecture.md, "The hull from the later frames".
 """
 
 from __future__ import annotations

@@ -46,7 +46,8 @@ class PointsConfig:
             this many times frame 0's.
         free_flight_tolerance: a frame carves only if the tracked centroid's acceleration is within this
             fraction of |g| of gravity (no contact).
-        coverage_tolerance: a frame carves only if that uncovers at most this fraction of every frame-0 mask.
+        coverage_tolerance: a frame carves only if that uncovers at most this fraction of every mask of frame 0
+            and of the frames chosen before it.
         track_points: surface samples the tracking fits to the silhouettes.
         carve_margin_px: a later frame carves a voxel only if its centre projects more than this many pixels
             outside a mask, on the mask's sub-pixel signed distance (0: at the mask's 0.5 iso-line; on the small
