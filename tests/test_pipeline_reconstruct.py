@@ -107,6 +107,9 @@ def test_the_calibration_child_gets_one_of_the_callers_threads_while_it_runs():
         def running(self) -> bool:
             return self.alive
 
+        def check(self) -> None:
+            pass
+
     before = torch.get_num_threads()
     try:
         for job, threads, expected in ((Job(True), 3, 2), (Job(True), 1, 1), (Job(False), 3, 3), (None, 2, 2)):
@@ -114,6 +117,31 @@ def test_the_calibration_child_gets_one_of_the_callers_threads_while_it_runs():
             assert torch.get_num_threads() == expected
     finally:
         torch.set_num_threads(before)
+
+
+def test_a_calibration_child_that_dies_while_starting_is_an_error_not_a_hang(tmp_path):
+    """A script that starts the calibration at import (no main guard): the spawned child imports it again and
+    Python stops it. The parent must go on and then name the cause, not block for ever on the start-up pipe
+    (it did when the points went through it: 480 kB against a 64 kB pipe buffer)."""
+    import subprocess
+    import sys
+    import textwrap
+
+    script = tmp_path / "unguarded.py"
+    script.write_text(textwrap.dedent(f"""
+        import numpy as np
+        from vid2sim.pipeline.stiffness import TetReferenceJob
+        job = TetReferenceJob(np.random.default_rng(0).random((20000, 3)), {str(tmp_path / "ref.json")!r},
+                              nus=(0.3,), k=1, cells=8, seed=0)
+        print("started", flush=True)
+        try:
+            job.result()
+        except RuntimeError as exc:
+            print("error:", exc, flush=True)
+    """))
+    done = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120)
+    assert "started" in done.stdout
+    assert "wrote no result" in done.stdout and "__name__" in done.stdout
 
 
 def test_evaluate_reports_views_frames_material_and_chamfer(tiny_asset, tiny_scene, tmp_path, capsys):

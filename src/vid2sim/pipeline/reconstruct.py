@@ -441,8 +441,12 @@ def _share_cores(job, threads: int) -> None:
 
     The child computes with one thread. With it running, a caller on all the cores oversubscribes them, and
     torch's thread pool then slows several-fold (the appearance stage took 3.6× as long with 2 threads as
-    with 1 on a 2-core machine). Called at every stage boundary until the child is joined.
+    with 1 on a 2-core machine). Called at every stage boundary until the child is joined; a child that has
+    ended without its result is reported there (:meth:`~vid2sim.pipeline.stiffness.TetReferenceJob.check`)
+    rather than after the stages that run beside it.
     """
+    if job is not None:
+        job.check()
     busy = job is not None and job.running()
     torch.set_num_threads(max(1, threads - 1) if busy else threads)
 

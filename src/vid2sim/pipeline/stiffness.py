@@ -106,9 +106,11 @@ def tet_reference(points: np.ndarray, nus: tuple[float, ...], k: int, edge_lengt
             "seconds": time.perf_counter() - t0}
 
 
-def _reference_worker(points: np.ndarray, arguments: dict, path: str) -> None:
-    """Child process of :class:`TetReferenceJob`: :func:`tet_reference` into the JSON file ``path``."""
+def _reference_worker(points_path: str, arguments: dict, path: str) -> None:
+    """Child process of :class:`TetReferenceJob`: :func:`tet_reference` of the points saved at ``points_path``
+    (.npy) into the JSON file ``path``."""
     torch.set_num_threads(1)
+    points = np.load(points_path)
     try:
         out = {"ok": True, "reference": tet_reference(points, **arguments)}
     except ValueError as exc:  # a bad input (no surface): reported to the parent as the same error
@@ -122,7 +124,14 @@ class TetReferenceJob:
     """:func:`tet_reference` running in a child process (spawned, one thread) while the caller goes on.
 
     The child writes its result to ``path`` (JSON) when it is done, so an interrupted reconstruction that is
-    resumed finds it there. :meth:`result` waits for it.
+    resumed finds it there. :meth:`result` waits for it; :meth:`check` raises at once if the child has ended
+    without one.
+
+    The points reach the child through a file beside ``path``, not the start-up pipe: Python's spawn writes the
+    child's arguments into a pipe whose reading end the parent holds until the write ends, so a payload larger
+    than the pipe's buffer (64 KiB) blocks the parent for ever if the child dies while starting. It does when
+    the caller's main module starts the reconstruction at import (a script without an
+    ``if __name__ == "__main__":`` guard): the spawned child imports that module again, and Python stops it.
 
     Args:
         points: (N, 3) interior samples; path: where the result is written; arguments: :func:`tet_reference`'s
@@ -134,14 +143,21 @@ class TetReferenceJob:
 
         self.path = Path(path)
         self.path.unlink(missing_ok=True)
+        points_path = self.path.with_suffix(".points.npy")
+        np.save(points_path, np.asarray(points, dtype=np.float64))
         context = multiprocessing.get_context("spawn")
         self._process = context.Process(target=_reference_worker, daemon=True,
-                                        args=(np.asarray(points, dtype=np.float64), arguments, str(self.path)))
+                                        args=(str(points_path), arguments, str(self.path)))
         self._process.start()
 
     def running(self) -> bool:
         """Whether the child is still computing."""
         return self._process.is_alive()
+
+    def check(self) -> None:
+        """Raise the :meth:`result` error now if the child has ended without writing a result."""
+        if not self._process.is_alive() and not self.path.is_file():
+            self.result()
 
     def result(self) -> dict:
         """The reference (:func:`tet_reference`'s dict), after waiting for the child.
@@ -151,8 +167,13 @@ class TetReferenceJob:
         """
         self._process.join()
         if not self.path.is_file():
-            raise RuntimeError(f"the stiffness calibration's tet reference process ended with code "
-                               f"{self._process.exitcode} and wrote no result to {self.path}")
+            raise RuntimeError(
+                f"the stiffness calibration's tet reference process ended with code {self._process.exitcode} and "
+                f"wrote no result to {self.path}. It is a spawned process: if the reconstruction was started from a "
+                "script, the script's top-level code must be under 'if __name__ == \"__main__\":' (the child imports "
+                "the main module again); otherwise see the child's error above, or set "
+                "ReconstructConfig.calibrate_stiffness=False")
+        self.path.with_suffix(".points.npy").unlink(missing_ok=True)
         out = json.loads(self.path.read_text())
         if not out["ok"]:
             raise ValueError(out["error"])
