@@ -172,7 +172,9 @@ def test_recovers_velocity_of_tumbling_drop(drop: AnalyticDrop) -> None:
     assert dv < 0.02, (est.linear, dv)
     assert dw < 0.15, (est.angular, dw)
     assert est.residual_px < 0.2 and est.model_residual_m < 0.005
-    # the per-frame poses follow the true motion (frame t maps frame-0 points to frame t)
+    # the per-frame poses follow the true motion (frame t maps frame-0 points to frame t; frame 0 is the identity)
+    torch.testing.assert_close(est.rotations[0], torch.eye(3, dtype=est.rotations.dtype))
+    torch.testing.assert_close(est.translations[0], torch.zeros(3, dtype=est.translations.dtype))
     for t in range(8):
         rel = drop.rotations[t] @ drop.rotations[0].T
         angle = np.linalg.norm(Rotation.from_matrix(est.rotations[t].numpy().T @ rel).as_rotvec())
@@ -186,6 +188,25 @@ def test_recovers_velocity_of_tumbling_drop(drop: AnalyticDrop) -> None:
     expected = est.linear + torch.linalg.cross(est.angular.expand_as(x), x - est.centre, dim=-1)
     torch.testing.assert_close(vel, expected)
     assert elapsed < 15.0, f"took {elapsed:.1f} s"
+
+
+def test_poses_are_relative_to_frame_0s_fit(drop: AnalyticDrop) -> None:
+    """Points that the frame-0 silhouettes place turned (here: the object's own points turned by 8° about their
+    centroid, as a loose hull can be) still give the true frame-to-frame motion: each pose is relative to frame
+    0's fit, so the fit's common turn cancels and frame 0 maps to itself."""
+    c = drop.points.mean(0)
+    turn = torch.tensor(Rotation.from_rotvec(np.radians(8.0) * np.array([0.6, 0.0, 0.8])).as_matrix())
+    turned = (drop.points - c) @ turn.T + c
+    est = estimate_initial_velocity(turned, drop.masks, drop.cameras, DT, torch.tensor(GRAVITY), None)
+    torch.testing.assert_close(est.rotations[0], torch.eye(3, dtype=est.rotations.dtype))
+    torch.testing.assert_close(est.translations[0], torch.zeros(3, dtype=est.translations.dtype))
+    for t in range(1, est.frames_used):
+        rel = drop.rotations[t] @ drop.rotations[0].T
+        angle = np.degrees(np.linalg.norm(Rotation.from_matrix(est.rotations[t].numpy().T @ rel).as_rotvec()))
+        assert angle < 2.5, (t, angle)
+        moved = est.rotations[t].numpy() @ c.numpy() + est.translations[t].numpy()
+        assert np.linalg.norm(moved - drop.centroids[t]) < 0.005, t
+    assert float(np.linalg.norm(est.angular.numpy() - W_TRUE)) < 0.15
 
 
 def test_constant_omega_model_misses_the_tumble(drop: AnalyticDrop) -> None:
