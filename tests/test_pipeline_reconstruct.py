@@ -297,6 +297,36 @@ def test_motion_appearance_fits_the_gaussians_through_the_motion(tiny_asset, tin
         motion.carry(asset.gaussians, 5)
 
 
+def test_a_loss_power_below_one_favours_the_frames_the_motion_explains(tiny_asset, tiny_scene):
+    """Frame 4's images shifted by 6 pixels: a frame the motion does not explain. Minimising the loss's square
+    root per step (each frame's gradient scaled by loss^-0.5) keeps frames 0-3 closer to their images than
+    the loss itself does, which lets the shifted frame pull the Gaussians towards it."""
+    from vid2sim.metrics.images import image_metrics
+    from vid2sim.pipeline.evaluate import render_frames
+    from vid2sim.pipeline.motion_appearance import SkinnedMotion, refine_on_motion
+    from vid2sim.splats.fitting import FitConfig
+
+    asset, scene = load_asset(tiny_asset), load_scene(tiny_scene)
+    motion = SkinnedMotion.of_asset(asset, 5)
+    views, observed = scene.config.observed_views, [0, 1, 2, 3, 4]
+    images = scene.images[views][:, observed].float().clone()
+    images[:, 4] = torch.roll(images[:, 4], shifts=(6, 6), dims=(1, 2))
+    cameras = [scene.cameras[v] for v in views]
+
+    def explained_psnr(g):
+        renders = render_frames([motion.carry(g, t) for t in observed[:4]], cameras, progress=False)
+        return image_metrics(renders, images[:, :4], layout="VT")["psnr"]
+
+    fits = {p: refine_on_motion(asset.gaussians, motion, images, cameras, observed, FitConfig(), 80, geometry=False,
+                                loss_power=p) for p in (1.0, 0.5)}
+    assert fits[0.5][2]["loss_power"] == 0.5 and fits[1.0][2]["loss_power"] == 1.0
+    # measured: 25.03 against 24.80 dB
+    assert explained_psnr(fits[0.5][0]) > explained_psnr(fits[1.0][0]) + 0.1
+    for bad in (0.0, 1.5):
+        with pytest.raises(ValueError, match="loss_power"):
+            refine_on_motion(asset.gaussians, motion, images, cameras, observed, FitConfig(), 1, loss_power=bad)
+
+
 def test_an_interrupted_reconstruction_resumes_after_its_last_finished_stage(tiny_scene, tmp_path, monkeypatch, tiny_config):
     out = tmp_path / "asset"
 

@@ -397,6 +397,10 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
         overrides["motion_appearance_geometry"] = args.motion_geometry
     if args.shading is not None:
         overrides["motion_appearance_shading"] = args.shading
+    if args.motion_loss_power is not None:
+        if not 0 < args.motion_loss_power <= 1:
+            raise UserError(f"--motion-loss-power must be in (0, 1], got {args.motion_loss_power}")
+        overrides["motion_appearance_loss_power"] = args.motion_loss_power
     if args.predictor is not None:
         if not Path(args.predictor).is_file():
             raise UserError(f"--predictor {args.predictor}: no such checkpoint file (train one with "
@@ -752,6 +756,9 @@ def build_parser() -> argparse.ArgumentParser:
                      help="the last stage separates the colours' albedo from a light fixed in the world (a "
                      "direction and an ambient share, fitted), so the asset is lit by its pose as it turns (on by "
                      "default; --no-shading: the colours keep the light they were fitted under)")
+    rec.add_argument("--motion-loss-power", type=float, default=None, metavar="P",
+                     help="the last stage minimises (image loss)^P per step, P in (0, 1] (default 1: 3DGS's loss; "
+                     "0.5 weighs the frames the simulated motion explains well more; docs/architecture.md)")
     rec.add_argument("--predictor", metavar="PATH", default=None,
                      help="Stage I checkpoint (default: the one shipped with vid2sim; vid2sim train-predictor)")
     rec.add_argument("--device", default=None, help="torch device of the Gaussian fits, networks and joint "

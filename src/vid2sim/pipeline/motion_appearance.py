@@ -133,7 +133,8 @@ def initial_shading(gaussians: Any, interior: Tensor, volume: float, gravity: Se
 
 def refine_on_motion(gaussians: Any, motion: SkinnedMotion, images: Tensor, cameras: Sequence[Any],
                      frame_ids: Sequence[int], fit: Any, iterations: int, geometry: bool = True, seed: int = 0,
-                     progress: bool = False, shading: Any | None = None) -> tuple[Any, Any | None, dict]:
+                     progress: bool = False, shading: Any | None = None,
+                     loss_power: float = 1.0) -> tuple[Any, Any | None, dict]:
     """Fit ``gaussians`` to the observed frames along a given motion.
 
     Args:
@@ -153,6 +154,8 @@ def refine_on_motion(gaussians: Any, motion: SkinnedMotion, images: Tensor, came
             lit by its world-fixed light, and the light's direction, its ambient share and the normals are fitted
             along with them (Adam at :data:`SHADING_LR` and :data:`LIGHT_LR`).
             None: the colours render as stored.
+        loss_power: p in (0, 1]: each step minimises (3DGS's image loss)^p. 1: the loss itself; below 1 the
+            frames the motion explains well (small loss) weigh more against those it does not, by loss^(p − 1).
 
     Returns:
         (the refitted Gaussians, same count N; the fitted shading or None; {"iterations", "geometry",
@@ -167,6 +170,8 @@ def refine_on_motion(gaussians: Any, motion: SkinnedMotion, images: Tensor, came
 
     if iterations < 1:
         raise ValueError(f"refine_on_motion: iterations must be >= 1, got {iterations}")
+    if not 0 < loss_power <= 1:
+        raise ValueError(f"refine_on_motion: loss_power must be in (0, 1], got {loss_power}")
     V, T = images.shape[:2]
     if len(frame_ids) != T or len(cameras) != V:
         raise ValueError(f"refine_on_motion: images are {V} views x {T} frames, got {len(cameras)} cameras and "
@@ -210,14 +215,14 @@ def refine_on_motion(gaussians: Any, motion: SkinnedMotion, images: Tensor, came
         out = render_gaussians(moved, [cameras[v] for v in views], background=1.0).rgb
         loss = photometric_loss(out, images[views, t], fit.lambda_dssim)
         opt.zero_grad(set_to_none=True)
-        loss.backward()
+        (loss if loss_power == 1 else loss.clamp_min(1e-12) ** loss_power).backward()
         opt.step()
         losses.append(float(loss.detach()))
     k = max(1, len(losses) // 10)
     refined = current().detach()
     lit = None if shading is None else current_shading().detach()
-    record = {"iterations": iterations, "geometry": geometry, "loss_first": sum(losses[:k]) / k,
-              "loss_last": sum(losses[-k:]) / k}
+    record = {"iterations": iterations, "geometry": geometry, "loss_power": loss_power,
+              "loss_first": sum(losses[:k]) / k, "loss_last": sum(losses[-k:]) / k}
     if lit is not None:
         record["shading"] = lit.to_record()
     return refined, lit, record

@@ -89,6 +89,9 @@ class ReconstructConfig:
             (:mod:`vid2sim.splats.shading`: Lambert's law with an ambient share; the normals, the light's
             direction and the ambient share are fitted along with the colours), so the asset is lit by its pose
             as it turns (beyond the paper); False: the colours keep the light of the frames they were fitted to.
+        motion_appearance_loss_power: p in (0, 1]: each step of the last stage minimises (its image loss)^p.
+            1 is 3DGS's loss; below 1 a frame's gradient is scaled by its loss^(p − 1), so the frames the
+            simulated motion explains well count more against those it does not (p = 0.5: the square root).
         prior_E, prior_nu, prior_damping: the starting material when Stage I does not run (Stage I replaces the
             first two).
         stage1: run the Stage I predictor (module docstring); False (the default until the shipped predictor
@@ -135,6 +138,7 @@ class ReconstructConfig:
     motion_appearance_iterations: int = 300
     motion_appearance_geometry: bool = True
     motion_appearance_shading: bool = True
+    motion_appearance_loss_power: float = 1.0
     prior_E: float = 1e5
     prior_nu: float = 0.3
     prior_damping: float = 0.05
@@ -176,6 +180,9 @@ class ReconstructConfig:
         for name in ("appearance_iterations", "motion_appearance_iterations"):
             if getattr(self, name) < 0:
                 raise ValueError(f"ReconstructConfig.{name} must be >= 0, got {getattr(self, name)}")
+        p = self.motion_appearance_loss_power
+        if isinstance(p, bool) or not isinstance(p, (int, float)) or not 0 < p <= 1:
+            raise ValueError(f"ReconstructConfig.motion_appearance_loss_power must be in (0, 1], got {p!r}")
         if not (self.prior_E > 0 and 0 <= self.prior_nu < 0.5 and self.density > 0):
             raise ValueError("ReconstructConfig needs prior_E > 0, 0 <= prior_nu < 0.5 and density > 0")
 
@@ -714,7 +721,8 @@ def _reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructCon
             refined, shading, record = refine_on_motion(start, motion, images, cameras, list(T), cfg.gaussians,
                                                         cfg.motion_appearance_iterations,
                                                         geometry=cfg.motion_appearance_geometry, seed=cfg.seed,
-                                                        progress=progress, shading=shading)
+                                                        progress=progress, shading=shading,
+                                                        loss_power=cfg.motion_appearance_loss_power)
             save_ply(refined.to("cpu"), motion_ply)
             if shading is not None:
                 torch.save(shading.to("cpu").__dict__, work.dir / "shading_motion.pt")
