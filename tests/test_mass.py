@@ -97,6 +97,27 @@ def test_matched_volumes_give_every_affine_motion_the_continuum_s_kinetic_energy
     assert torch.allclose(sampled_moments(pts, float(np.prod(BOX))), exact, rtol=0.05, atol=2e-3)
 
 
+def test_few_float32_points_in_voxels_always_carry_the_voxels_moments():
+    """60 float32 cubature points of a voxelised ellipsoid and its exact voxel moments (``reconstruct --mass moments``
+    at a small size). Feasible every time, and Newton must say so: it once stalled on about 1 draw in 25 at the last
+    digits, where the line search compared dual values equal to rounding (the tiny test asset then failed in CI)."""
+    n = 12
+    centres = (torch.stack(torch.meshgrid(*[torch.arange(n)] * 3, indexing="ij"), -1).double() + 0.5) / n - 0.5
+    occupancy = ((centres / torch.tensor([0.5, 0.35, 0.25], dtype=torch.float64)) ** 2).sum(-1) <= 1
+    origin, voxel = torch.full((3,), -0.5, dtype=torch.float64), 1.0 / n
+    moments = voxel_moments(occupancy, origin, voxel)
+    cells = torch.nonzero(occupancy).double()
+    g = torch.Generator().manual_seed(0)
+    pick = torch.randint(len(cells), (1000,), generator=g)
+    pts = (origin + (cells[pick] + torch.rand(1000, 3, generator=g, dtype=torch.float64)) * voxel).float()
+    for seed in range(100):  # seeds 41, 73, 80, 87, 96 and 97 stalled before
+        idx, w = sample_cubature(pts, 60, volume=float(moments[0]), seed=seed)
+        matched = moment_matched_volumes(pts[idx], w, moments.to(w))
+        assert matched.dtype == torch.float32 and bool((matched > 0).all())
+        got = (moment_features(pts[idx].double()) * matched.double()[:, None]).sum(0)
+        assert torch.allclose(got, moments, rtol=0, atol=1e-6 * float(moments.abs().max())), seed
+
+
 def test_moments_the_points_cannot_carry_are_refused(box_points):
     X, T, pts = box_points
     idx, w = sample_cubature(pts, 200, volume=float(np.prod(BOX)), seed=0)
