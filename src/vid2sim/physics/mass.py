@@ -113,9 +113,9 @@ def moment_matched_volumes(points: Tensor, volumes: Tensor, moments: Tensor, max
             return (v * torch.exp(A @ lam)).to(device=volumes.device, dtype=volumes.dtype)
         step = torch.linalg.solve(A.T @ (tilted[:, None] * A), grad)
         t, f0, decrease = 1.0, dual(lam), float(grad @ step)  # the Newton decrement², ≥ 0
-        # Backtrack on the dual's value, unless the predicted decrease is below that value's rounding: there (the
-        # quadratically convergent end) the Armijo test would judge rounding noise and stall, so take the full step.
-        if decrease > 1e-13 * abs(f0):
+        # Backtrack on the dual's value, unless the predicted decrease is below the rounding of its two terms: there
+        # (the quadratically convergent end) the Armijo test would judge rounding noise and stall; take the full step.
+        if decrease > 1e-13 * (float(tilted.sum()) + abs(float(lam @ target))):
             while t > 1e-10 and not dual(lam - t * step) <= f0 - 1e-4 * t * decrease:
                 t *= 0.5
         lam = lam - t * step
