@@ -12,7 +12,8 @@ import torch
 from vid2sim.meshing.tetra import box_tet_mesh, sample_points_in_tets
 from vid2sim.physics.cubature import sample_cubature
 from vid2sim.physics.external import Gravity
-from vid2sim.physics.mass import moment_features, moment_matched_volumes, sampled_moments, tet_moments, voxel_moments
+from vid2sim.physics.mass import (centre_shifted_volumes, lumped_moments, moment_features, moment_matched_volumes,
+                                  sampled_moments, tet_moments, translated_moments, voxel_moments)
 from vid2sim.physics.skinning import SkinningField
 from vid2sim.physics.solver import Material, SimConfig, Simulator
 
@@ -188,3 +189,37 @@ def test_the_stiffness_calibration_uses_the_simulator_s_mass(box_points):
     s_plain = stiffness_calibration(field, pts[idx], w, X, T, 0.3)
     s_moved = stiffness_calibration(field, pts[idx], w, X, T, 0.3, mass_volumes=matched)
     assert s_moved == pytest.approx(s_plain * (plain[0] / moved[0]) ** 2, rel=1e-8)
+
+
+def test_translated_moments_are_the_moments_of_the_translated_points():
+    g = torch.Generator().manual_seed(3)
+    x = torch.rand(200, 3, generator=g, dtype=torch.float64)
+    v = torch.rand(200, generator=g, dtype=torch.float64) + 0.5
+    d = torch.tensor([0.01, -0.02, 0.005], dtype=torch.float64)
+    assert torch.allclose(translated_moments(lumped_moments(x, v), d), lumped_moments(x + d, v), atol=1e-12)
+
+
+def test_centre_shifted_volumes_move_the_centre_and_keep_the_mass_and_inertia():
+    """The same points carry the shifted centre of mass, the same total and the same inertia about the centre;
+    a zero offset gives the volumes back; an offset outside the points cannot be carried."""
+    g = torch.Generator().manual_seed(4)
+    x = torch.rand(300, 3, generator=g, dtype=torch.float64) - 0.5
+    v = torch.rand(300, generator=g, dtype=torch.float64) + 0.5
+    d = torch.tensor([0.02, -0.01, 0.015], dtype=torch.float64)
+    w = centre_shifted_volumes(x, v, d)
+    assert bool((w > 0).all())
+    assert float(w.sum()) == pytest.approx(float(v.sum()), rel=1e-10)
+
+    def centre_and_inertia(vol):
+        c = (vol[:, None] * x).sum(0) / vol.sum()
+        r = x - c
+        return c, (vol[:, None, None] * r[:, :, None] * r[:, None, :]).sum(0)
+
+    (c0, I0), (c1, I1) = centre_and_inertia(v), centre_and_inertia(w)
+    assert torch.allclose(c1 - c0, d, atol=1e-10)
+    assert torch.allclose(I1, I0, atol=1e-10)
+    assert torch.equal(centre_shifted_volumes(x, v, torch.zeros(3, dtype=torch.float64)), v)
+    with pytest.raises(ValueError, match="no positive volumes"):
+        centre_shifted_volumes(x, v, torch.tensor([0.8, 0.0, 0.0], dtype=torch.float64))
+    with pytest.raises(ValueError, match="offset must be"):
+        centre_shifted_volumes(x, v, torch.zeros(2))

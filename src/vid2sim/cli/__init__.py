@@ -416,6 +416,11 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
         if not 0 <= args.sh_degree <= 3:
             raise UserError(f"--sh-degree must be 0, 1, 2 or 3, got {args.sh_degree}")
         config.gaussians.sh_degree = args.sh_degree
+    if args.centre_of_mass_step is not None:
+        if not 0 <= args.centre_of_mass_step < 0.5:
+            raise UserError(f"--centre-of-mass-step must be a fraction of the object's size in [0, 0.5), "
+                            f"got {args.centre_of_mass_step}")
+        config.joint.centre_of_mass_step = args.centre_of_mass_step
     if args.frame_rounds is not None:
         if args.frame_rounds < 0:
             raise UserError(f"--frame-rounds must be >= 0, got {args.frame_rounds}")
@@ -759,6 +764,10 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--motion-loss-power", type=float, default=None, metavar="P",
                      help="the last stage minimises (image loss)^P per step, P in (0, 1] (default 1: 3DGS's loss; "
                      "0.5 weighs the frames the simulated motion explains well more; docs/architecture.md)")
+    rec.add_argument("--centre-of-mass-step", type=float, default=None, metavar="S",
+                     help="after the coarse E search, search the lumped masses' centre of mass along each axis, "
+                     "first in steps of S x the object's diagonal (0.02: about 1 cm on a 50 cm object), then half "
+                     "that; the whole observed clip's image loss picks it (default 0: the hull's centre)")
     rec.add_argument("--predictor", metavar="PATH", default=None,
                      help="Stage I checkpoint (default: the one shipped with vid2sim; vid2sim train-predictor)")
     rec.add_argument("--device", default=None, help="torch device of the Gaussian fits, networks and joint "

@@ -69,6 +69,34 @@ def sampled_moments(points: Tensor, volume: float) -> Tensor:
     return moment_features(points).mean(0) * volume
 
 
+def lumped_moments(points: Tensor, volumes: Tensor) -> Tensor:
+    """The moments Σ_p v_p a(x_p) (10,) of volumes (K,) lumped at points (K, 3)."""
+    return moment_features(points.double()).T @ volumes.double()
+
+
+def translated_moments(moments: Tensor, offset: Tensor) -> Tensor:
+    """The moments (10,) of the same body translated by ``offset`` (3,): its centre of mass moves by the offset,
+    its volume and its second moments about the centre of mass (the inertia tensor) stay.
+
+    ∫ (x + d)(x + d)ᵀ = S + f dᵀ + d fᵀ + V d dᵀ and ∫ (x + d) = f + V d, with f, S the first and second moments."""
+    return _moments_in_frame(moments.double(), -offset.double().cpu(), 1.0)
+
+
+def centre_shifted_volumes(points: Tensor, volumes: Tensor, offset: Tensor) -> Tensor:
+    """Lumped volumes (K,) on the same points whose centre of mass lies ``offset`` (3,) from that of ``volumes``
+    (K,), with the same total and the same inertia about the centre (:func:`moment_matched_volumes` on
+    :func:`translated_moments` of their own moments). A zero offset gives ``volumes`` back.
+
+    Raises:
+        ValueError: when no positive volumes on these points have those moments (an offset too large for them)."""
+    if offset.shape != (3,):
+        raise ValueError(f"centre_shifted_volumes: offset must be (3,), got {tuple(offset.shape)}")
+    if not bool(offset.ne(0).any()):
+        return volumes
+    moments = translated_moments(lumped_moments(points, volumes), offset)
+    return moment_matched_volumes(points, volumes, moments.to(volumes))
+
+
 def moment_matched_volumes(points: Tensor, volumes: Tensor, moments: Tensor, max_iterations: int = 100) -> Tensor:
     """Lumped volumes (K,) closest to ``volumes`` that integrate 1, x, x xᵀ to ``moments``; positive by construction.
 

@@ -55,6 +55,10 @@ class JointConfig:
         refresh_every: iterations between the whole rollouts that provide the windows' start states.
         validate_every: iterations between validations on all observed frames and views.
         nu_bounds: ν is kept in this interval.
+        centre_of_mass_step: the first step of a search over the centre of mass after the coarse search, as a
+            fraction of the simulator's length scale (the object's diagonal); 0 (the default): no search. See
+            :func:`centre_of_mass_search`.
+        centre_of_mass_rounds: rounds of that search, each with half the step of the one before.
         frame_decay: weights exp(−(t − 1)/τ) on the frames t = 1 … T−1 of the coarse search's and the
             validation's whole-clip losses, τ = ``frame_decay`` frames (default 4, beyond the paper); None:
             equal weights (the paper's mean over the clip). See :func:`clip_loss`. On the quadratic-tet
@@ -79,6 +83,8 @@ class JointConfig:
     validate_every: int = 50
     nu_bounds: tuple[float, float] = (0.0, 0.49)
     frame_decay: float | None = 4.0
+    centre_of_mass_step: float = 0.0
+    centre_of_mass_rounds: int = 2
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -98,6 +104,12 @@ class JointConfig:
                                              or not isinstance(self.frame_decay, (int, float))
                                              or not 0 < float(self.frame_decay) < math.inf):
             raise ValueError(f"JointConfig.frame_decay must be a finite number > 0 or None, got {self.frame_decay!r}")
+        if isinstance(self.centre_of_mass_step, bool) or not isinstance(self.centre_of_mass_step, (int, float)) \
+                or not 0 <= float(self.centre_of_mass_step) < 0.5:
+            raise ValueError("JointConfig.centre_of_mass_step must be a fraction of the object's size in [0, 0.5), "
+                             f"got {self.centre_of_mass_step!r}")
+        if self.centre_of_mass_rounds < 1:
+            raise ValueError(f"JointConfig.centre_of_mass_rounds must be >= 1, got {self.centre_of_mass_rounds}")
         lo, hi = self.nu_bounds
         if not 0 <= lo < hi < 0.5:
             raise ValueError(f"JointConfig.nu_bounds must satisfy 0 <= lo < hi < 0.5, got {self.nu_bounds}")
@@ -139,6 +151,9 @@ class JointResult:
         linear_velocity, angular_velocity: (3,) the initial rigid velocity about ``centre``.
         validation_loss: the best validation loss (mean squared image error, all observed frames and views).
         coarse: the coarse search, one ``{"log10_E", "loss"}`` per grid value.
+        centre_of_mass_offset: (3,) m, how far the search moved the lumped masses' centre (zeros: no search, or
+            none of its candidates did better); the simulator's ``mass_volumes`` carry it.
+        centre_of_mass_search: the search, one ``{"offset", "loss"}`` per candidate.
         log: one dict per iteration (``iteration``, ``loss``, ``log10_E``, ``nu``, ``damping_ratio``,
             ``window_start``, ``scale``, ``ms``) and per validation (``validation_loss``).
         seconds: wall time.
@@ -151,6 +166,8 @@ class JointResult:
     angular_velocity: list[float]
     validation_loss: float
     coarse: list[dict[str, float]] = field(default_factory=list)
+    centre_of_mass_offset: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
+    centre_of_mass_search: list[dict[str, Any]] = field(default_factory=list)
     log: list[dict[str, float]] = field(default_factory=list)
     seconds: float = 0.0
 
@@ -277,6 +294,71 @@ def clip_loss(sim: Simulator, rig: GaussianRig, start: SimState, obs: Observatio
     return total, states
 
 
+def centre_of_mass_search(sim: Simulator, rig: GaussianRig, start: Callable[[], SimState], obs: Observations,
+                          step: float, rounds: int, decay: float | None = None,
+                          progress: bool = False) -> tuple[list[float], list[dict[str, Any]]]:
+    """Move the lumped masses' centre of mass to where the whole observed clip is rendered best (beyond the paper).
+
+    The hull's centre of mass is off wherever the hull is carved unevenly (sides no view sees in profile stay
+    too wide), and where the centre lies sets how the floor's impulse at the bounce splits between spin and
+    translation (docs/architecture.md, "Where the motion goes wrong"). Each round tries the current best
+    centre moved by ± ``step`` along each world axis (masses on the same cubature points, re-matched by
+    :func:`~vid2sim.physics.mass.centre_shifted_volumes`: the same total and inertia about the centre), then the
+    offset made of each axis's parabola vertex; the best of all tried is kept, and the next round halves the step.
+    Losses are :func:`clip_loss` at ``obs``'s resolution from ``start()``; an offset no positive masses on the
+    points carry counts as infinitely bad.
+
+    Args:
+        sim: the simulator; its ``mass_volumes`` are set to the best candidate's (the start's when none does better).
+        step: the first round's step (m).
+        rounds: rounds, each with half the step of the one before.
+    Returns:
+        (the best offset (3,) in m, one ``{"offset", "loss"}`` per candidate, the start first).
+    """
+    from tqdm.auto import tqdm
+
+    from vid2sim.physics.mass import centre_shifted_volumes
+
+    base = sim.mass_volumes
+    tried: dict[tuple[float, float, float], float] = {}
+    records: list[dict[str, Any]] = []
+    bar = tqdm(total=1 + 7 * rounds, desc="search over the centre of mass", disable=not progress, leave=False)
+
+    def loss_at(offset: Sequence[float]) -> float:
+        key = tuple(round(float(o), 9) for o in offset)
+        if key not in tried:
+            try:
+                sim.mass_volumes = centre_shifted_volumes(sim.X, base, torch.tensor(key, dtype=torch.float64)).to(base)
+                tried[key] = clip_loss(sim, rig, _detached(start()), obs, decay)[0]
+            except ValueError:  # no positive masses on these points have that centre
+                tried[key] = math.inf
+            finally:
+                sim.mass_volumes = base
+            records.append({"offset": list(key), "loss": tried[key]})
+            bar.update(1)
+            bar.set_postfix(loss=f"{tried[key]:.3e}")
+        return tried[key]
+
+    best = [0.0, 0.0, 0.0]
+    loss_at(best)
+    for r in range(rounds):
+        d = step / 2 ** r
+        vertex = list(best)
+        for axis in range(3):
+            ends = []
+            for sign in (-1.0, 1.0):
+                moved = list(best)
+                moved[axis] += sign * d
+                ends.append(loss_at(moved))
+            if all(math.isfinite(v) for v in ends):
+                vertex[axis] = best[axis] + coarse_minimum([-d, 0.0, d], [ends[0], loss_at(best), ends[1]])
+        loss_at(vertex)
+        best = list(min(tried, key=tried.get))
+    bar.close()
+    sim.mass_volumes = centre_shifted_volumes(sim.X, base, torch.tensor(best, dtype=torch.float64)).to(base)
+    return best, records
+
+
 def first_moving_frame(images: Tensor, threshold: float = 1e-3) -> int:
     """s′: the first frame (≥ 1) whose images differ from frame 0 by a mean squared error above ``threshold``
     (the paper's start of the window range); 1 when every frame differs."""
@@ -345,6 +427,13 @@ def joint_optimisation(
         value = coarse_minimum([r["log10_E"] for r in coarse], [r["loss"] for r in coarse])
         with torch.no_grad():
             sim.log10_E.fill_(value)
+
+    # ---- search over the centre of mass (optional) -----------------------------------------------------
+    com_offset, com_records = [0.0, 0.0, 0.0], []
+    if cfg.centre_of_mass_step > 0:
+        com_offset, com_records = centre_of_mass_search(sim, rig, initial_state, coarse_obs,
+                                                        cfg.centre_of_mass_step * sim.length_scale,
+                                                        cfg.centre_of_mass_rounds, cfg.frame_decay, progress)
 
     # ---- gradient descent ----------------------------------------------------------------------------
     net_params = [p for p in sim.field.parameters()]
@@ -442,4 +531,5 @@ def joint_optimisation(
             sim.jacobian.load_state_dict(best["jacobian"])
     return JointResult(log10_E=best["log10_E"], nu=best["nu"], damping_ratio=best["damping_ratio"],
                        linear_velocity=best["v"].tolist(), angular_velocity=best["w"].tolist(),
-                       validation_loss=best_loss, coarse=coarse, log=log, seconds=time.perf_counter() - t_start)
+                       validation_loss=best_loss, coarse=coarse, centre_of_mass_offset=com_offset,
+                       centre_of_mass_search=com_records, log=log, seconds=time.perf_counter() - t_start)

@@ -678,6 +678,12 @@ def _reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructCon
         joint_path.write_text(json.dumps(asdict(result)))
         work.finish("joint", time.perf_counter() - t0)
     result = json.loads(joint_path.read_text())
+    offset = torch.tensor(result.get("centre_of_mass_offset", [0.0, 0.0, 0.0]), dtype=torch.float64)
+    if bool(offset.ne(0).any()):  # the joint stage's search moved the centre of mass: the same masses again
+        from vid2sim.physics.mass import centre_shifted_volumes
+
+        mass_volumes = centre_shifted_volumes(obj.points[idx], weights if mass_volumes is None else mass_volumes,
+                                              offset).to(weights)
     field.load_state_dict(torch.load(work.dir / "skinning_joint.pt", weights_only=True))
     if jacobian is not None:
         jacobian.load_state_dict(torch.load(work.dir / "jacobian_joint.pt", weights_only=True))
@@ -704,7 +710,8 @@ def _reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructCon
                          "scene": str(scene.root), "observed_views": list(V), "observed_frames": len(T),
                          "scene_frames": int(scene.images.shape[1]),
                          "volume_m3": obj.volume, "gaussians": gaussians.num,
-                         "initial_velocity_estimate": velocity, "validation_loss": result["validation_loss"]})
+                         "initial_velocity_estimate": velocity, "validation_loss": result["validation_loss"],
+                         "centre_of_mass_offset": offset.tolist()})
     motion_ply = work.dir / "gaussians_motion.ply"
     if cfg.motion_appearance_iterations > 0:
         if not work.done("motion_appearance"):
@@ -733,7 +740,7 @@ def _reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructCon
         asset = dataclasses.replace(asset, gaussians=load_ply(motion_ply), shading=shading)
         asset.extra["motion_appearance"] = json.loads((work.dir / "motion_appearance.json").read_text())
     log = {"timings_seconds": work.timings, "stage1": stage1, "carving": carving, "stiffness_calibration": calibration, "coarse_search": result["coarse"],
-           "iterations": result["log"]}
+           "centre_of_mass_search": result.get("centre_of_mass_search", []), "iterations": result["log"]}
     save_asset(asset, out, config=cfg.to_dict(), log=log)
     shutil.rmtree(work.dir, ignore_errors=True)
     return out
