@@ -424,6 +424,12 @@ def test_presets_and_config_errors():
         ReconstructConfig.preset("huge")
     with pytest.raises(ValueError, match="motion_appearance_iterations must be >= 0"):
         ReconstructConfig(motion_appearance_iterations=-1)
+    from vid2sim.pipeline.joint import JointConfig
+
+    with pytest.raises(ValueError, match="centre_of_mass_step must be a fraction"):
+        JointConfig(centre_of_mass_step=-0.01)
+    with pytest.raises(ValueError, match="centre_of_mass_rounds must be >= 1"):
+        JointConfig(centre_of_mass_rounds=0)
     assert reconstruct_module.STAGES == ("gaussians", "points", "velocity", "appearance", "networks", "joint",
                                          "motion_appearance")
 
@@ -572,7 +578,11 @@ def test_cli_no_stage1_and_predictor_flags(tiny_scene, tmp_path, monkeypatch):
     assert seen[-1].gaussians.sh_degree == 3 and seen[-1].points.frame_rounds == PointsConfig().frame_rounds == 2
     with pytest.raises(SystemExit):
         main(["reconstruct", str(tiny_scene), str(tmp_path / "a"), "--frame-rounds", "0", "--quiet"])
-    assert seen[-1].points.frame_rounds == 0
+    assert seen[-1].points.frame_rounds == 0 and seen[-1].joint.centre_of_mass_step == 0.0  # off by default
+    with pytest.raises(SystemExit):
+        main(["reconstruct", str(tiny_scene), str(tmp_path / "a"), "--centre-of-mass-step", "0.02", "--quiet"])
+    assert seen[-1].joint.centre_of_mass_step == 0.02
+    assert main(["reconstruct", str(tiny_scene), str(tmp_path / "a"), "--centre-of-mass-step", "0.6", "--quiet"]) == 2
     assert main(["reconstruct", str(tiny_scene), str(tmp_path / "a"), "--frame-rounds", "-1", "--quiet"]) == 2
     assert main(["reconstruct", str(tiny_scene), str(tmp_path / "a"), "--sh-degree", "4", "--quiet"]) == 2
     assert main(["reconstruct", str(tiny_scene), str(tmp_path / "a"), "--handles", "0", "--quiet"]) == 2
