@@ -70,8 +70,8 @@ def sampled_moments(points: Tensor, volume: float) -> Tensor:
 
 
 def lumped_moments(points: Tensor, volumes: Tensor) -> Tensor:
-    """The moments Σ_p v_p a(x_p) (10,) of volumes (K,) lumped at points (K, 3)."""
-    return moment_features(points.double()).T @ volumes.double()
+    """The moments Σ_p v_p a(x_p) (10,), float64 on the CPU, of volumes (K,) lumped at points (K, 3)."""
+    return (moment_features(points.double()).T @ volumes.double()).cpu()
 
 
 def translated_moments(moments: Tensor, offset: Tensor) -> Tensor:
@@ -79,7 +79,7 @@ def translated_moments(moments: Tensor, offset: Tensor) -> Tensor:
     its volume and its second moments about the centre of mass (the inertia tensor) stay.
 
     ∫ (x + d)(x + d)ᵀ = S + f dᵀ + d fᵀ + V d dᵀ and ∫ (x + d) = f + V d, with f, S the first and second moments."""
-    return _moments_in_frame(moments.double(), -offset.double().cpu(), 1.0)
+    return _moments_in_frame(moments.double().cpu(), -offset.double().cpu(), 1.0)
 
 
 def centre_shifted_volumes(points: Tensor, volumes: Tensor, offset: Tensor) -> Tensor:
