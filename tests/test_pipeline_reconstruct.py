@@ -328,14 +328,26 @@ def test_a_loss_power_below_one_favours_the_frames_the_motion_explains(tiny_asse
 
 
 def test_an_interrupted_reconstruction_resumes_after_its_last_finished_stage(tiny_scene, tmp_path, monkeypatch, tiny_config):
+    """An interrupted run resumes after its last finished stage and leaves nothing that looks finished; with the
+    centre-of-mass search on, the offset the joint stage found moves the asset's lumped masses."""
+    from vid2sim.pipeline import joint as joint_module
+
     out = tmp_path / "asset"
+    config = tiny_config()
+    config.joint.centre_of_mass_step = 0.05
+    real, offset = joint_module.joint_optimisation, [0.004, 0.0, -0.003]
+
+    def then_moved(*args, **kwargs):  # the real stage (its search runs), its offset replaced by a known one
+        result = real(*args, **kwargs)
+        assert len(result.centre_of_mass_search) >= 7
+        return dataclasses.replace(result, centre_of_mass_offset=offset)
 
     def interrupted(*args, **kwargs):
         raise KeyboardInterrupt
 
     monkeypatch.setattr("vid2sim.pipeline.joint.joint_optimisation", interrupted)
     with pytest.raises(KeyboardInterrupt):
-        reconstruct(tiny_scene, out, tiny_config(), progress=False)
+        reconstruct(tiny_scene, out, config, progress=False)
     work = tmp_path / ".asset.work"
     assert not out.exists()  # nothing that looks like a finished asset
     assert {p.name for p in work.glob("*.done")} == {"gaussians.done", "points.done", "velocity.done", "appearance.done",
@@ -347,48 +359,22 @@ def test_an_interrupted_reconstruction_resumes_after_its_last_finished_stage(tin
 
     monkeypatch.setattr("vid2sim.splats.fitting.fit_gaussians", must_not_run)
     monkeypatch.setattr("vid2sim.physics.skinning_training.train_skinning", must_not_run)
-    reconstruct(tiny_scene, out, tiny_config(), progress=False)
+    monkeypatch.setattr("vid2sim.pipeline.joint.joint_optimisation", then_moved)
+    reconstruct(tiny_scene, out, config, progress=False)
     assert (out / "material.json").is_file() and not work.exists()
+    asset = load_asset(out)  # the masses carry the joint stage's offset: same total, centre moved
+    w, m, x = asset.cubature_weights.double(), asset.mass_volumes.double(), asset.cubature_points.double()
+    moved = (m[:, None] * x).sum(0) / m.sum() - (w[:, None] * x).sum(0) / w.sum()
+    assert torch.allclose(moved, torch.tensor(offset, dtype=torch.float64), atol=1e-6)
+    assert float(m.sum()) == pytest.approx(float(w.sum()), rel=1e-6)
+    assert json.loads((out / "asset.json").read_text())["extra"]["centre_of_mass_offset"] == pytest.approx(offset)
+    assert len(json.loads((out / "log.json").read_text())["centre_of_mass_search"]) >= 7
     other = tiny_config()
     other.handles = 4
     (tmp_path / ".asset2.work").mkdir()
     (tmp_path / ".asset2.work" / "key.json").write_text(json.dumps({"config": {}, "scene": None}))
     with pytest.raises(ReconstructionError, match="--restart"):
         reconstruct(tiny_scene, tmp_path / "asset2", other, progress=False)
-
-
-def test_the_joint_stages_centre_of_mass_reaches_the_asset(tiny_scene, tmp_path, monkeypatch, tiny_config):
-    """With the centre-of-mass search on, the search runs in the joint stage (its candidates are logged) and the
-    offset it found moves the asset's lumped masses, also when the run resumes after the joint stage."""
-    from vid2sim.pipeline import joint as joint_module
-
-    real, offset = joint_module.joint_optimisation, [0.004, 0.0, -0.003]
-
-    def then_moved(*args, **kwargs):  # the real stage, its offset replaced by a known one
-        result = real(*args, **kwargs)
-        assert len(result.centre_of_mass_search) >= 7
-        return dataclasses.replace(result, centre_of_mass_offset=offset)
-
-    def interrupted(*args, **kwargs):
-        raise KeyboardInterrupt
-
-    monkeypatch.setattr("vid2sim.pipeline.joint.joint_optimisation", then_moved)
-    monkeypatch.setattr("vid2sim.pipeline.motion_appearance.refine_on_motion", interrupted)
-    config = tiny_config()
-    config.joint.centre_of_mass_step = 0.05
-    out = tmp_path / "asset"
-    with pytest.raises(KeyboardInterrupt):
-        reconstruct(tiny_scene, out, config, progress=False)
-    monkeypatch.undo()
-    reconstruct(tiny_scene, out, config, progress=False)  # resumes: the offset comes from the joint stage's record
-    asset = load_asset(out)
-    w, m = asset.cubature_weights.double(), asset.mass_volumes.double()
-    x = asset.cubature_points.double()
-    moved = (m[:, None] * x).sum(0) / m.sum() - (w[:, None] * x).sum(0) / w.sum()
-    assert torch.allclose(moved, torch.tensor(offset, dtype=torch.float64), atol=1e-6)
-    assert float(m.sum()) == pytest.approx(float(w.sum()), rel=1e-6)
-    assert json.loads((out / "asset.json").read_text())["extra"]["centre_of_mass_offset"] == pytest.approx(offset)
-    assert len(json.loads((out / "log.json").read_text())["centre_of_mass_search"]) >= 7
 
 
 def test_bad_scenes_get_clear_errors_and_leave_nothing(tiny_scene, tmp_path, tiny_config):
