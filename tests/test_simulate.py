@@ -14,6 +14,7 @@ import torch
 from vid2sim.cli import main
 from vid2sim.pipeline.asset import load_asset
 from vid2sim.pipeline.scenario import (
+    InitialSpec,
     ObstacleSpec,
     Scenario,
     ScenarioError,
@@ -94,20 +95,22 @@ def test_new_pose_and_velocity_are_a_rigid_unstressed_start(asset):
     w = torch.tensor([0.0, 0.0, 2.0], dtype=torch.float64)
     torch.testing.assert_close(v0, torch.tensor([1.0, 0.0, 0.5], dtype=torch.float64) + torch.cross(
         w.expand_as(expected), expected - com, dim=1), rtol=0, atol=1e-5)
-    # no floor: a rotated rest shape is unstressed, so it flies ballistically without deforming (the tiny
-    # asset's barely trained 3-handle field drifts by ~3e-4 L even without spin); spinning at 2 rad/s adds a
-    # stretch below the centrifugal scale ρ ω² L³ / E, so the bound follows the asset's fitted E
+    # no floor: a rotated rest shape without spin is unstressed, so it flies ballistically without deforming
+    # (the rigid handle carries translation exactly: ~1e-7 m of Newton tolerance); spinning at 2 rad/s adds a
+    # stretch below the centrifugal scale ρ ω² L³ / E, so the bound follows the asset's fitted E. The spin must be
+    # set to zero: a scenario's default spin is the asset's fitted one
     g = torch.tensor(asset.gravity, dtype=torch.float64)
     still = Scenario(frames=4)
     still.floor.enabled = False
     still.initial.axis_angle, still.initial.translation = s.initial.axis_angle, s.initial.translation
     still.initial.linear_velocity = s.initial.linear_velocity
+    still.initial.angular_velocity = (0.0, 0.0, 0.0)
     _, still_stats = _physics(asset, still)
     m = asset.material
     centrifugal = m["density"] * 2.0**2 * asset.length_scale**3 / m["E"]
     assert stats["per_frame"]["deformation_rms"][0] < 1e-6
     for k, t in enumerate(stats["per_frame"]["time"]):
-        assert still_stats["per_frame"]["deformation_rms"][k] < 1e-3 * asset.length_scale
+        assert still_stats["per_frame"]["deformation_rms"][k] < 1e-5 * asset.length_scale
         assert stats["per_frame"]["deformation_rms"][k] < still_stats["per_frame"]["deformation_rms"][k] + 0.05 * centrifugal
         ballistic = com + torch.tensor([1.0, 0.0, 0.5], dtype=torch.float64) * t + 0.5 * g * t * t
         assert torch.allclose(torch.tensor(stats["per_frame"]["centre_of_mass"][k], dtype=torch.float64), ballistic,
@@ -162,19 +165,20 @@ def test_sphere_obstacle_stops_the_object_above_the_floor(asset):
 
 
 def _lift(dz: float):
-    from vid2sim.pipeline.scenario import InitialSpec
-
     return InitialSpec(translation=(0.0, 0.0, dz))
 
 
 def test_plasticine_keeps_its_deformation_where_elastic_recovers(asset):
-    _, elastic = _physics(asset, Scenario(frames=16))
-    run, plastic = _physics(asset, Scenario(frames=16, material=_material("plasticine")))
+    # without spin (a scenario's default is the asset's fitted spin, whose centrifugal stretch would blur the
+    # in-air check), so the body is exactly rigid until it lands
+    still = InitialSpec(angular_velocity=(0.0, 0.0, 0.0))
+    _, elastic = _physics(asset, Scenario(frames=16, initial=still))
+    run, plastic = _physics(asset, Scenario(frames=16, material=_material("plasticine"), initial=still))
     e = elastic["per_frame"]["deformation_rms"]
     p = plastic["per_frame"]["deformation_rms"]
     contact = plastic["summary"]["floor"]["first_contact_frame"]
     assert contact is not None and contact <= 4
-    assert max(e[:contact]) < 1e-3 and max(p[:contact]) < 1e-3  # both rigid in the air
+    assert max(e[:contact]) < 1e-5 and max(p[:contact]) < 1e-5  # both rigid in the air
     assert min(e[contact + 2:]) < 0.3 * max(e)  # elastic: springs back towards its rest shape
     assert min(p[-4:]) > 3 * max(e[-4:])  # plasticine: the impact's deformation stays (and grows: 500 Pa yield)
     assert all(b >= a - 1e-4 for a, b in zip(p[contact + 1:], p[contact + 2:]))
