@@ -5,8 +5,25 @@ tiny scene or asset) are left out by the quick check ``python -m pytest -m "not 
 On a GPU machine, ``python -m pytest -m cuda`` runs exactly the GPU checks.
 """
 
+import os
+
 import pytest
 import torch
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
+    """``-n auto`` (pyproject.toml's default): one worker per core, at most 8 (each builds the shared tiny scene
+    and asset once, and holds about 1.5 GB)."""
+    return max(1, min(8, os.cpu_count() or 1))
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """Under pytest-xdist (``-n``, pyproject.toml's default), share the cores among the workers: each worker's
+    torch gets cores / workers threads, so two workers on two cores do not fight over them."""
+    workers = os.environ.get("PYTEST_XDIST_WORKER_COUNT")
+    if workers:
+        torch.set_num_threads(max(1, (os.cpu_count() or 1) // int(workers)))
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
