@@ -430,11 +430,13 @@ class StepProblem:
 
     def displacement(self, dy: Tensor) -> float:
         """Largest coordinate change max |Δx| over the cubature and contact points for a change dy: (D,)."""
-        dY = dy.reshape(3, -1).T
-        out = float((self.b @ dY).abs().max())
-        if self.contact_b is not None:
-            out = max(out, float((self.contact_b @ dY).abs().max()))
-        return out
+        return float((self._tracked_rows @ dy.reshape(3, -1).T).abs().max())
+
+    @functools.cached_property
+    def _tracked_rows(self) -> Tensor:
+        """The LBS rows (K [+ Nc], L) of the points :meth:`displacement` watches: cubature and contact points."""
+        rows = self.b if self.contact_b is None else torch.cat([self.b, self.contact_b])
+        return rows.detach()
 
     def hessian(self, y: Tensor, project: bool = True) -> Tensor:
         """∇²Φ(y): (D, D); per-point elastic, viscous and external blocks projected to PSD when ``project``

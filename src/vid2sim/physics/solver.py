@@ -435,15 +435,19 @@ class _ImplicitStep(torch.autograd.Function):
         y, *saved = ctx.saved_tensors
         it_saved = iter(saved)
         inputs = [next(it_saved) if p else None for p in ctx.present]
-        H = spec.problem(*inputs).hessian(y, project=False)
-        factor = _factorize(H)  # the exact Hessian may be indefinite (e.g. under compression): then LU
-        adj = torch.cholesky_solve(grad_y[:, None], factor)[:, 0] if factor is not None else torch.linalg.solve(H, grad_y)
         needs = [n and t is not None for n, t in zip(ctx.needs_input_grad[1:], inputs)]
+        # one problem for the gradient's graph and the Hessian: the Hessian reuses what the gradient cached
+        # (the inertial target, C_ref, the mass block) without recording it
         with torch.enable_grad():
             req = [t.detach().requires_grad_(n) if t is not None else None for t, n in zip(inputs, needs)]
-            g = spec.problem(*req).gradient(y.detach())
-            wanted = [r for r, n in zip(req, needs) if n]
-            grads = torch.autograd.grad(g, wanted, grad_outputs=-adj, allow_unused=True) if wanted else ()
+            problem = spec.problem(*req)
+            g = problem.gradient(y.detach())
+        with torch.no_grad():
+            H = problem.hessian(y.detach(), project=False)
+        factor = _factorize(H)  # the exact Hessian may be indefinite (e.g. under compression): then LU
+        adj = torch.cholesky_solve(grad_y[:, None], factor)[:, 0] if factor is not None else torch.linalg.solve(H, grad_y)
+        wanted = [r for r, n in zip(req, needs) if n]
+        grads = torch.autograd.grad(g, wanted, grad_outputs=-adj, allow_unused=True) if wanted else ()
         it = iter(grads)
         out = [next(it) if n else None for n in needs]
         return (None, *out)
