@@ -312,7 +312,9 @@ def test_cli_report_writes_the_report_replacing_an_earlier_one(scene_report, tin
     assert main(["report", str(tiny_asset), str(out), "--scene", str(tiny_scene), "--threads", "1", "--quiet"]) == 0
     assert f"wrote {out / 'index.html'}" in capsys.readouterr().out
     metrics = _parse(out / "index.html").metrics
-    assert float(metrics["novel_views.psnr"][0]) == pytest.approx(evaluation["novel_views"]["psnr"], abs=1e-9)
+    # the same evaluation, re-run by the command with --threads 1; the fixture's ran with the test process's
+    # threads (2 under `pytest -n 0` on 2 cores), so the rollout agrees to round-off, not bit for bit
+    assert float(metrics["novel_views.psnr"][0]) == pytest.approx(evaluation["novel_views"]["psnr"], abs=1e-4)
     assert not (out / "media" / "stale.png").exists()
     assert [p.name for p in tmp_path.iterdir()] == ["report"]  # no temporary or old folder left beside it
 

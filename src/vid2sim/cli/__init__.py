@@ -55,6 +55,22 @@ def _cmd_bench_fem(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_bench_predictability(args: argparse.Namespace) -> int:
+    from vid2sim.bench.predictability import PREDICTABILITY_JSON, format_summary, predictability
+
+    set_threads(args.threads)
+    if args.workers < 1:
+        raise UserError(f"--workers must be >= 1, got {args.workers}")
+    try:
+        report = predictability(args.scene, args.out, height_offset=args.height_offset, progress=not args.quiet,
+                                workers=args.workers)
+    except _generation_errors() as exc:
+        raise UserError(f"{exc} (the twin was not written)") from exc
+    print(format_summary(report))
+    print(f"wrote {os.path.join(args.out, PREDICTABILITY_JSON)}")
+    return 0
+
+
 def _index_list(text: str) -> tuple[int, ...]:
     """argparse type: comma-separated non-negative integers ("4,5")."""
     try:
@@ -562,6 +578,18 @@ def build_parser() -> argparse.ArgumentParser:
     fem.add_argument("--frames", type=int, default=None, help="frames to simulate (default: the preset's 24)")
     fem.add_argument("--quiet", action="store_true", help="no progress bars")
     fem.set_defaults(func=_cmd_bench_fem)
+
+    pred = bench_sub.add_parser("predictability", help="a synthetic scene's truth simulated again from a start "
+                                "1 mm higher and scored like an asset: how far its frames can be predicted at all")
+    pred.add_argument("scene", help="synthetic scene folder (make-scene / make-benchmark)")
+    pred.add_argument("out", help="results folder: twin/ (a scene folder, reused) and predictability.json")
+    pred.add_argument("--height-offset", type=float, default=1e-3, metavar="M",
+                      help="how much higher the twin starts, in metres (default 0.001)")
+    pred.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1),
+                      help="processes for the FEM's first pair of time resolutions (default: min(2, CPU count))")
+    add_threads_option(pred)
+    pred.add_argument("--quiet", action="store_true", help="no progress bars")
+    pred.set_defaults(func=_cmd_bench_predictability)
 
     ident = bench_sub.add_parser("identify", help="identify E, nu and damping from perfect-geometry 3-D motion "
                                  "(the upper bound of the video pipeline)")

@@ -39,6 +39,25 @@ def _group(renders: torch.Tensor, targets: torch.Tensor, views: list[int], frame
             "psnr_per_frame": m["psnr_per_frame"], "ssim_per_frame": m["ssim_per_frame"]}
 
 
+def scene_groups(renders: torch.Tensor, targets: torch.Tensor, config: Any) -> dict[str, dict[str, Any]]:
+    """The three scores of the module docstring for renders of every camera and frame of a scene.
+
+    Args:
+        renders, targets: (V, T, H, W, 3) in [0, 1] (the scene folder's order).
+        config: the scene's :class:`~vid2sim.scene.folder.SceneConfig` (its observed / held-out views and frames).
+
+    Returns:
+        ``{"dynamic": …, "future": …, "novel_views": …}``, each with ``views``, ``frames``, ``psnr``, ``ssim``
+        and their per-frame lists (empty when the scene has no such views or frames).
+    """
+    T = renders.shape[1]
+    obs_v, held_v = list(config.observed_views), list(config.held_out_views)
+    obs_f, held_f = list(config.observed_frames), list(config.held_out_frames)
+    return {"dynamic": _group(renders, targets, obs_v, [f for f in obs_f if f > 0]),
+            "future": _group(renders, targets, obs_v, held_f),
+            "novel_views": _group(renders, targets, held_v, list(range(1, T)))}
+
+
 def simulate_gaussians(asset: Any, num_frames: int, progress: bool = True) -> list[Any]:
     """The asset's captured drop: its Gaussians deformed by the simulator, one set per frame.
 
@@ -169,12 +188,8 @@ def evaluate(asset_path: str | Path, scene_path: str | Path, fovvdp: bool = Fals
     targets = scene.images.float()
     obs_v, held_v = list(scene.config.observed_views), list(scene.config.held_out_views)
     obs_f, held_f = list(scene.config.observed_frames), list(scene.config.held_out_frames)
-    report: dict[str, Any] = {
-        "asset": str(asset_path), "scene": str(scene_path),
-        "dynamic": _group(renders, targets, obs_v, [f for f in obs_f if f > 0]),
-        "future": _group(renders, targets, obs_v, held_f),
-        "novel_views": _group(renders, targets, held_v, list(range(1, T))),
-    }
+    report: dict[str, Any] = {"asset": str(asset_path), "scene": str(scene_path),
+                              **scene_groups(renders, targets, scene.config)}
     if fovvdp:
         from vid2sim.metrics.fvvdp import fovvdp as fovvdp_score
 
@@ -220,9 +235,7 @@ def evaluate(asset_path: str | Path, scene_path: str | Path, fovvdp: bool = Fals
         truth_renders = render_frames(carried[:T], scene.cameras, background=1.0, progress=progress)
         report["true_motion"] = {
             "what": "the asset's Gaussians moved by the ground truth's motion: the appearance's ceiling",
-            "dynamic": _group(truth_renders, targets, obs_v, [f for f in obs_f if f > 0]),
-            "future": _group(truth_renders, targets, obs_v, held_f),
-            "novel_views": _group(truth_renders, targets, held_v, list(range(1, T))),
+            **scene_groups(truth_renders, targets, scene.config),
         }
     report["timing"] = {"seconds": time.perf_counter() - t0}
     if return_renders:

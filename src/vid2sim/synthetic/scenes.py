@@ -546,7 +546,7 @@ def make_benchmark(n: int, out_dir: str | Path, preset: str = "full", seed: int 
     todo = []
     for i, config in enumerate(configs):  # every existing scene is checked before any work
         if (root / names[i]).exists():
-            _check_existing_scene(root / names[i], config)
+            check_existing_scene(root / names[i], config)
         else:
             todo.append(i)
     created = not root.exists()
@@ -612,7 +612,7 @@ def _check_no_scenes_beyond(root: Path, n: int) -> None:
             f"whatever n), or write the smaller suite to another folder")
 
 
-def _check_existing_scene(folder: Path, config: SyntheticSceneConfig) -> None:
+def check_existing_scene(folder: Path, config: SyntheticSceneConfig) -> None:
     """Raise unless ``folder`` is a finished scene made with ``config`` (up to the tet mesh reuse)."""
     path = folder / SYNTHETIC_JSON
     if not path.is_file():
