@@ -24,13 +24,16 @@ import json
 import math
 import os
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from vid2sim.synthetic.scenes import SyntheticSceneConfig
 
 PREDICTABILITY_JSON = "predictability.json"
 TWIN_DIR = "twin"
 
 
-def twin_config(scene: str | Path, height_offset: float) -> Any:
+def twin_config(scene: str | Path, height_offset: float) -> "SyntheticSceneConfig":
     """The :class:`~vid2sim.synthetic.scenes.SyntheticSceneConfig` of a scene's twin: the scene's own settings
     and tet mesh, the drop height raised by ``height_offset`` (m, ≥ 0)."""
     from dataclasses import replace
