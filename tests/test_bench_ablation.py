@@ -22,7 +22,8 @@ from vid2sim.bench.suite import EVALUATION_JSON, METRICS, SUITE_CONFIG_JSON, SUI
 from vid2sim.cli import main
 
 NAMES = ["stage1_only", "stage1_stage2", "stage2_prior"]
-TINY = {"resolution": 40, "frames": 6, "observed_frames": 5, "views": 4, "held_out_views": 1, "substeps": 4}
+TINY = {"resolution": 40, "frames": 6, "observed_frames": 5, "views": 4, "held_out_views": 1, "substeps": 4,
+        "element_order": 1}
 TIMINGS: dict[str, float] = {}
 _RUNS: dict[str, dict] = {}
 

@@ -22,9 +22,10 @@ from vid2sim.synthetic.scenes import SyntheticSceneConfig, benchmark_parameters,
 
 pytestmark = pytest.mark.slow  # end to end: scene generation, reconstruction, suites
 
-TINY = {"resolution": 40, "frames": 6, "observed_frames": 5, "views": 4, "held_out_views": 1, "substeps": 4}
+TINY = {"resolution": 40, "frames": 6, "observed_frames": 5, "views": 4, "held_out_views": 1, "substeps": 4,
+        "element_order": 1}
 TINY_FLAGS = ["--preset", "small", "--seed", "0", "--resolution", "40", "--frames", "6", "--observed-frames", "5",
-              "--views", "4", "--held-out-views", "1", "--substeps", "4", "--quiet"]
+              "--views", "4", "--held-out-views", "1", "--substeps", "4", "--element-order", "1", "--quiet"]
 SCENE_KEYS = {"name", "scene", "asset", "status", "error", "evaluation", "report", "seconds"}
 TIMINGS: dict[str, float] = {}  # wall times, printed at the end of the module (pytest -s)
 _RUNS: dict[str, dict] = {}

@@ -225,7 +225,7 @@ def test_benchmark_parameters_are_deterministic_and_in_range():
 
 
 TINY = ["--frames", "3", "--observed-frames", "2", "--resolution", "24", "--views", "2", "--held-out-views", "1",
-        "--substeps", "4"]
+        "--substeps", "4", "--element-order", "1"]
 
 
 def test_make_benchmark_writes_an_index_and_resumes(tmp_path, capsys):
@@ -248,6 +248,31 @@ def test_make_benchmark_writes_an_index_and_resumes(tmp_path, capsys):
     capsys.readouterr()
     assert main(["make-benchmark", str(root), "--n", "3", "--preset", "small", "--seed", "6", "--quiet", *TINY]) == 2
     assert "other settings" in capsys.readouterr().err
+
+
+def test_make_benchmark_defaults_to_quadratic_tets_and_resumes_an_older_linear_suite(tmp_path, capsys):
+    # a suite judges reconstructions, so its truth is converged in space by default: quadratic tets
+    from vid2sim.synthetic.scenes import BENCHMARK_ELEMENT_ORDER
+
+    assert BENCHMARK_ELEMENT_ORDER == 2
+    root = tmp_path / "old"
+    root.mkdir()
+    # the index.json of a suite written when suites were linear by default: no element_order in its overrides
+    flags = TINY[:-2]  # without --element-order
+    header = {"preset": "small", "seed": 5, "n": 1, "complete": False, "scenes": [], "E_range": [1e4, 1e6],
+              "nu_range": [0.2, 0.5], "overrides": {"frames": 3, "observed_frames": 2, "resolution": 24, "views": 2,
+                                                   "held_out_views": 1, "substeps": 4}}
+    (root / "index.json").write_text(json.dumps(header))
+    # the default (quadratic) is refused on it before any work, naming the setting that differs
+    assert main(["make-benchmark", str(root), "--n", "1", "--preset", "small", "--seed", "5", "--quiet", *flags]) == 2
+    err = capsys.readouterr().err
+    assert "other settings" in err and "'element_order': 1" in err and "'element_order': 2" in err
+    assert not (root / "scene_000").exists()
+    # asking for its linear tets resumes it
+    assert main(["make-benchmark", str(root), "--n", "1", "--preset", "small", "--seed", "5", "--quiet", *TINY]) == 0
+    index = json.loads((root / "index.json").read_text())
+    assert index["complete"] and index["overrides"]["element_order"] == 1
+    assert json.loads((root / "scene_000" / "synthetic.json").read_text())["element_order"] == 1
 
 
 def test_make_benchmark_refuses_a_foreign_folder(tmp_path):
