@@ -102,7 +102,7 @@ class ReconstructConfig:
             mode, so that the fitted E is the material's rather than the stiffer subspace's
             (:mod:`vid2sim.pipeline.stiffness`: quadratic tets on a surface of the kept voxels; see
             ``calibration_nu``). On by default: on the eight-scene small suite it takes the E error from
-            0.27 to 0.20 decade and ν's from 0.10 to 0.07 (README). Its tet reference runs in a child process
+            0.27 to 0.20 decade and ν's from 0.10 to 0.07 (docs/results.md). Its tet reference runs in a child process
             beside the velocity, appearance and network stages. fTetWild is not deterministic, so a
             calibrated reconstruction is not bit-reproducible: s depends on the mesh it makes.
         calibration_nu: with ``calibrate_stiffness``, "two_factor" (the default) a factor on μ and one on λ
@@ -195,7 +195,7 @@ class ReconstructConfig:
             # moves them imperceptibly in 100 iterations, and their gradient costs a third of an iteration).
             # View-independent colours (SH degree 0): with 4 views, higher bands fit the views, not the object,
             # and as the object moves they change its colour in the joint optimisation's images (8-scene small
-            # suite: |Δlog10 E| 0.155 against 0.243 at degree 3, images equal, 8 % faster; README)
+            # suite: |Δlog10 E| 0.155 against 0.243 at degree 3, images equal, 8 % faster; docs/results.md)
             base = cls(gaussians=FitConfig(iterations=500, sh_degree=0, densify=DensifyConfig(max_gaussians=6000)),
                        skinning_iterations=1000,
                        joint=JointConfig(iterations=100, validate_every=25, lr_skinning=0.0, lr_jacobian=0.0))
