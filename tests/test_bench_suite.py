@@ -85,7 +85,7 @@ def test_suite_json_schema_means_and_table(local_run, suite_dir, tiny_config):
     assert set(result["means"]) == set(METRICS) == {
         "dynamic_psnr", "dynamic_ssim", "future_psnr", "future_ssim", "novel_psnr", "novel_ssim",
         "abs_error_log10_E", "abs_error_nu", "start_abs_error_log10_E", "start_abs_error_nu", "chamfer_observed",
-        "chamfer_future", "seconds"}
+        "chamfer_future", "centre_of_mass_observed", "centre_of_mass_future", "seconds"}
     index = json.loads((suite_dir / "index.json").read_text())
     assert [r["name"] for r in result["scenes"]] == [s["name"] for s in index["scenes"]] == ["scene_000", "scene_001"]
     for record, truth in zip(result["scenes"], index["scenes"]):
@@ -119,6 +119,7 @@ def test_suite_json_schema_means_and_table(local_run, suite_dir, tiny_config):
         "abs_error_nu": [e["material"]["abs_error_nu"] for e in evs],
         "start_abs_error_nu": [e["material"]["start"]["abs_error_nu"] for e in evs],
         "chamfer_future": [e["chamfer"]["future_mean"] for e in evs],
+        "centre_of_mass_future": [e["centre_of_mass"]["future_mean"] for e in evs],
         "seconds": [r["seconds"] for r in result["scenes"]],
     }
     for key, values in expected.items():
@@ -136,7 +137,9 @@ def test_suite_json_schema_means_and_table(local_run, suite_dir, tiny_config):
     assert psnr[-1] == f"{result['means']['dynamic_psnr']:.2f}"
     chamfer = next(line for line in lines if line.startswith("Chamfer (cm)")).split()
     assert chamfer[-1] == f"{100 * result['means']['chamfer_observed']:.2f}"  # metres in JSON, cm in the table
-    assert len({len(line) for line in lines[2:13]}) == 1  # aligned columns
+    com = next(line for line in lines if line.startswith("centre of mass (cm)")).split()
+    assert com[-1] == f"{100 * result['means']['centre_of_mass_observed']:.2f}"
+    assert len({len(line) for line in lines[2:16]}) == 1  # aligned columns
     assert "FAILED" not in table
 
 

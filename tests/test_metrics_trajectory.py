@@ -89,3 +89,37 @@ def test_carry_by_tets_follows_an_affine_motion_exactly_inside_and_outside():
         torch.testing.assert_close(F[t], A.expand(53, 3, 3))
     with pytest.raises(ValueError, match="points"):
         carry_by_tets(torch.zeros(4, 2), torch.stack(frames), tets)
+
+
+def test_tet_centre_of_mass_is_the_exact_moment_and_keeps_each_tets_mass():
+    """Frame 0 gives the exact first moment of the solid (physics.mass.tet_moments); under an affine map the
+    centre maps with it; when one tet alone is squeezed its mass stays its rest mass (the centre moves by
+    exactly that tet's share of its centroid's motion)."""
+    from vid2sim.metrics import tet_centre_of_mass
+    from vid2sim.physics.mass import tet_moments
+
+    g = torch.Generator().manual_seed(1)
+    # a cube of 6 tets with uneven vertices, so the tets have different volumes
+    cube = torch.tensor([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0], [0, 0, 1], [1, 0, 1], [0, 1, 1], [1, 1, 1]],
+                        dtype=F64) + 0.1 * torch.rand(8, 3, generator=g, dtype=F64)
+    tets = torch.tensor([[0, 1, 3, 7], [0, 3, 2, 7], [0, 2, 6, 7], [0, 6, 4, 7], [0, 4, 5, 7], [0, 5, 1, 7]])
+    m = tet_moments(cube, tets)
+    A = _rotation((0.3, 1, 2), 0.7) @ torch.diag(torch.tensor([1.2, 0.8, 1.1], dtype=F64))
+    b = torch.tensor([0.5, -0.2, 2.0], dtype=F64)
+    frames = torch.stack([cube, cube @ A.T + b])
+    c = tet_centre_of_mass(frames, tets)
+    assert c.shape == (2, 3) and c.dtype == F64
+    torch.testing.assert_close(c[0], m[1:4] / m[0])
+    torch.testing.assert_close(c[1], A @ (m[1:4] / m[0]) + b)
+    # only vertex 5 moves: tets 4 and 5 (the ones holding vertex 5) change shape and volume, not mass
+    moved = cube.clone()
+    moved[5] += torch.tensor([0.3, -0.2, 0.1], dtype=F64)
+    c2 = tet_centre_of_mass(torch.stack([cube, moved]), tets)
+    v = cube[tets]
+    mass = torch.linalg.det(v[:, 1:] - v[:, :1]).abs()
+    share = mass[4:].sum() / mass.sum() / 4  # each of those tets' centroids moves by a quarter of the vertex
+    torch.testing.assert_close(c2[1] - c2[0], share * torch.tensor([0.3, -0.2, 0.1], dtype=F64))
+    with pytest.raises(ValueError, match="vertices must be"):
+        tet_centre_of_mass(cube, tets)
+    with pytest.raises(ValueError, match="indices"):
+        tet_centre_of_mass(frames, tets + 8)

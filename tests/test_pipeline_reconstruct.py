@@ -162,6 +162,10 @@ def test_evaluate_reports_views_frames_material_and_chamfer(tiny_asset, tiny_sce
     assert material["truth"] == {"E": 1e5, "nu": 0.3}
     assert material["abs_error_log10_E"] == pytest.approx(abs(material["fitted"]["log10_E"] - 5.0), abs=1e-6)
     assert len(report["chamfer"]["per_frame"]) == 6 and 0 < report["chamfer"]["observed_mean"] < 0.1
+    com = report["centre_of_mass"]  # the simulated body's centre of mass against the truth's, per frame
+    assert len(com["per_frame"]) == 6 and all(0 <= d < 0.1 for d in com["per_frame"])
+    assert com["observed_mean"] == pytest.approx(sum(com["per_frame"][:5]) / 5)  # observed frames 0..4
+    assert com["future_mean"] == pytest.approx(com["per_frame"][5])
     # Stage II's start (the tiny config's prior, E 1e5 and ν 0.3: the truth here) with its errors
     prior = json.loads((asset / "config.json").read_text())
     assert material["start"] == {"E": prior["prior_E"], "log10_E": pytest.approx(math.log10(prior["prior_E"])),

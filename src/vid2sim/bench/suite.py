@@ -55,6 +55,8 @@ METRICS: dict[str, tuple[str, ...]] = {
     "start_abs_error_nu": ("material", "start", "abs_error_nu"),
     "chamfer_observed": ("chamfer", "observed_mean"),
     "chamfer_future": ("chamfer", "future_mean"),
+    "centre_of_mass_observed": ("centre_of_mass", "observed_mean"),
+    "centre_of_mass_future": ("centre_of_mass", "future_mean"),
     "seconds": (),
 }
 
@@ -387,6 +389,8 @@ TABLE_ROWS: list[tuple[str, str, str, float, int]] = [
     ("", "|d nu|", "start_abs_error_nu", 1.0, 3),
     ("Chamfer (cm)", "observed", "chamfer_observed", 100.0, 2),
     ("", "future", "chamfer_future", 100.0, 2),
+    ("centre of mass (cm)", "observed", "centre_of_mass_observed", 100.0, 2),
+    ("", "future", "centre_of_mass_future", 100.0, 2),
     ("time (s)", "", "seconds", 1.0, 0),
 ]
 

@@ -484,6 +484,11 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         if start is not None and "abs_error_nu" in start:
             lines.append(f"  at the start ({start['source']}: E = {start['E']:.3e} Pa, nu = {start['nu']:.3f}): "
                          f"|d log10 E| = {start['abs_error_log10_E']:.3f}, |d nu| = {start['abs_error_nu']:.3f}")
+    for key, what in (("chamfer", "Chamfer to the true surface"), ("centre_of_mass", "centre of mass off the truth's")):
+        if key in report:
+            future = report[key]["future_mean"]
+            lines.append(f"{what}: {100 * report[key]['observed_mean']:.2f} cm observed"
+                         + (f", {100 * future:.2f} cm future" if future is not None else ""))
     print("\n".join(lines + [f"wrote {out}"]))
     if not args.no_report:
         _write_report(Path(args.asset) / "report", args.asset, args.scene, quiet=args.quiet, evaluation=report,
@@ -810,7 +815,7 @@ def build_parser() -> argparse.ArgumentParser:
     rec.set_defaults(func=_cmd_reconstruct)
 
     ev = sub.add_parser("evaluate", help="score an asset on a scene: PSNR/SSIM on observed, future and novel "
-                        "views, material and Chamfer errors against ground truth")
+                        "views, material, Chamfer and centre-of-mass errors against ground truth")
     ev.add_argument("asset", help="asset folder written by reconstruct")
     ev.add_argument("scene", help="scene folder")
     ev.add_argument("--out", default=None, help="JSON report (default ASSET/evaluation.json)")

@@ -21,6 +21,7 @@ from vid2sim.metrics.trajectory import (
     deformation,
     nonrigid_distance,
     rigidly_aligned,
+    tet_centre_of_mass,
     trajectory_distance,
 )
 
@@ -43,5 +44,6 @@ __all__ = [
     "ssim",
     "ssim_map",
     "surface_chamfer",
+    "tet_centre_of_mass",
     "trajectory_distance",
 ]

@@ -147,3 +147,33 @@ def carry_by_tets(points: Tensor, vertices: Tensor, tets: Tensor, candidates: in
     edges = torch.stack([Vt[:, t[:, q]] - Vt[:, t[:, 0]] for q in (1, 2, 3)], -1)  # (T, N, 3, 3)
     F = edges @ torch.linalg.inv(edges[0])[None]
     return x, F
+
+
+def tet_centre_of_mass(vertices: Tensor | np.ndarray, tets: Tensor | np.ndarray) -> Tensor:
+    """Centre of mass per frame of a tet mesh of uniform density moving through ``vertices``.
+
+    Each tet keeps its mass (its volume at frame 0, the rest shape placed in the world) and carries it at its
+    centroid, which is exact for the affine motion of a linear tet; for quadratic tets (corner vertices in
+    ``tets``, edge nodes listed after them in ``vertices``) it leaves out the bending of the edges.
+
+    Args:
+        vertices: (T, N, 3) node positions per frame (N ≥ the largest index in ``tets`` + 1).
+        tets: (Nt, 4) corner indices.
+    Returns:
+        (T, 3) float64 centres of mass.
+    Raises:
+        ValueError: shapes that do not fit, or a mesh of zero volume at frame 0.
+    """
+    x = torch.as_tensor(vertices).double()
+    t = torch.as_tensor(tets).long()
+    if x.ndim != 3 or x.shape[-1] != 3 or t.ndim != 2 or t.shape[1] != 4 or t.numel() == 0:
+        raise ValueError(f"tet_centre_of_mass: vertices must be (T, N, 3) and tets (Nt, 4), got {tuple(x.shape)} "
+                         f"and {tuple(t.shape)}")
+    if int(t.min()) < 0 or int(t.max()) >= x.shape[1]:
+        raise ValueError(f"tet_centre_of_mass: tet indices must lie in [0, {x.shape[1] - 1}]")
+    v0 = x[0, t]  # (Nt, 4, 3)
+    mass = torch.linalg.det(v0[:, 1:] - v0[:, :1]).abs()  # 6 × volume: the common factor cancels
+    if not float(mass.sum()) > 0:
+        raise ValueError("tet_centre_of_mass: the tets have zero volume at frame 0")
+    centroids = x[:, t].mean(dim=2)  # (T, Nt, 3)
+    return (mass[None, :, None] * centroids).sum(1) / mass.sum()

@@ -8,8 +8,10 @@ rendered in every camera. Reported (means, and per frame):
 * ``novel_views`` — held-out views, all frames 1 … T−1;
 * each as PSNR and SSIM (3DGS-lineage SSIM, window 11, σ = 1.5), and FoVVDP (JOD) when asked and the
   optional ``pyfvvdp`` is installed (its display model is named in the output);
-* with ground truth in the scene: the absolute errors of log10 E and ν, and the Chamfer distance (m) of the
-  simulated Gaussian centres to the ground-truth surface (the ``tet_trajectory`` extra) per frame;
+* with ground truth in the scene: the absolute errors of log10 E and ν, the Chamfer distance (m) of the
+  simulated Gaussian centres to the ground-truth surface (the ``tet_trajectory`` extra) per frame, and the
+  distance (m) between the simulated body's centre of mass and the truth's per frame (``centre_of_mass``: the
+  part of the motion error a wrong start or bounce leaves, whatever the shape);
 * the material Stage II started from (the documented prior, or Stage I's prediction) with its own errors
   (``material.start``, :func:`start_material`): the baseline that says whether the fit improved on its start.
 
@@ -69,19 +71,43 @@ def simulate_gaussians(asset: Any, num_frames: int, progress: bool = True) -> li
     Returns:
         T :class:`~vid2sim.splats.deform.DeformedGaussians` (world frame, m), without gradients.
     """
+    sim, states = simulate_states(asset, num_frames, progress=progress)
+    return deform_states(asset, sim, states, progress=progress)
+
+
+def deform_states(asset: Any, sim: Any, states: list[Any], progress: bool = True) -> list[Any]:
+    """The asset's Gaussians deformed by each of the simulator ``sim``'s ``states`` (:func:`simulate_states`):
+    one :class:`~vid2sim.splats.deform.DeformedGaussians` per state, without gradients."""
     from tqdm.auto import tqdm
 
     from vid2sim.pipeline.joint import GaussianRig
 
-    if num_frames < 1:
-        raise ValueError(f"simulate_gaussians: num_frames must be >= 1, got {num_frames}")
-    sim = asset.simulator()
-    start = asset.initial_state(sim)
     with torch.no_grad():
-        states = [start] + sim.rollout(start, num_frames - 1, progress=progress)
         rig = GaussianRig(sim, asset.gaussians, asset.shading)
         basis = rig.basis()
         return [rig.deformed(s.z, basis) for s in tqdm(states, desc="deform", disable=not progress, leave=False)]
+
+
+def simulate_states(asset: Any, num_frames: int, progress: bool = True) -> tuple[Any, list[Any]]:
+    """The asset's captured drop as simulator states: ``(simulator, T states)``, frame 0 the initial state.
+
+    Raises:
+        ValueError: ``num_frames`` < 1.
+    """
+    if num_frames < 1:
+        raise ValueError(f"simulate_states: num_frames must be >= 1, got {num_frames}")
+    sim = asset.simulator()
+    start = asset.initial_state(sim)
+    with torch.no_grad():
+        return sim, [start] + sim.rollout(start, num_frames - 1, progress=progress)
+
+
+def simulated_centre_of_mass(sim: Any, states: list[Any]) -> torch.Tensor:
+    """(T, 3) float64: the simulated body's centre of mass per state, Σ m_p x_p / Σ m_p over the simulator's
+    mass points (its cubature points with their lumped masses, :meth:`~vid2sim.physics.Simulator.masses`)."""
+    with torch.no_grad():
+        m = sim.masses().double()
+        return torch.stack([(m[:, None] * sim.positions(sim.X, s.z).double()).sum(0) / m.sum() for s in states])
 
 
 def render_frames(frames: list[Any], cameras: list[Any], background: float = 1.0,
@@ -165,14 +191,15 @@ def evaluate(asset_path: str | Path, scene_path: str | Path, fovvdp: bool = Fals
     Returns:
         a JSON-ready dict: ``dynamic``, ``future``, ``novel_views`` (each ``psnr``, ``ssim``, per-frame lists,
         optionally ``fovvdp``), ``material`` (fitted, truth, errors when known; ``start``: Stage II's starting
-        material and its errors, :func:`start_material`), ``chamfer`` (per frame and
-        means over observed and future frames, when the scene has a ``tet_trajectory``), ``timing``.
+        material and its errors, :func:`start_material`), ``chamfer`` and ``centre_of_mass`` (per
+        frame and means over observed and future frames, when the scene has a ``tet_trajectory``), ``timing``.
         With ``return_renders=True``: the pair (that dict, the renders (V, T, H, W, 3) in [0, 1] it scored,
         every scene camera and frame).
     """
     import time
 
     from vid2sim.metrics.geometry import boundary_faces, material_errors, surface_chamfer
+    from vid2sim.metrics.trajectory import tet_centre_of_mass
     from vid2sim.pipeline.asset import load_asset
     from vid2sim.scene.folder import load_scene
 
@@ -182,7 +209,8 @@ def evaluate(asset_path: str | Path, scene_path: str | Path, fovvdp: bool = Fals
     if abs(float(scene.config.dt) - asset.dt) > 1e-6 * asset.dt:
         raise ValueError(f"{scene_path}: frame time {scene.config.dt} s differs from the asset's {asset.dt} s")
     V, T = scene.images.shape[:2]
-    deformed = simulate_gaussians(asset, T, progress=progress)
+    sim, states = simulate_states(asset, T, progress=progress)
+    deformed = deform_states(asset, sim, states, progress=progress)
     centres = [d.means for d in deformed]
     renders = render_frames(deformed, scene.cameras, background=1.0, progress=progress)  # (V, T, H, W, 3)
     targets = scene.images.float()
@@ -224,6 +252,14 @@ def evaluate(asset_path: str | Path, scene_path: str | Path, fovvdp: bool = Fals
             "observed_mean": sum(per_frame[f] for f in obs_f) / len(obs_f),
             "future_mean": sum(per_frame[f] for f in held_f) / len(held_f) if held_f else None,
             "units": "m (mean of both directions, simulated Gaussian centres vs the ground-truth surface)",
+        }
+        offset = (simulated_centre_of_mass(sim, states)
+                  - tet_centre_of_mass(tet["vertices"][:T], tet["tets"])).norm(dim=1).tolist()
+        report["centre_of_mass"] = {
+            "per_frame": offset,
+            "observed_mean": sum(offset[f] for f in obs_f) / len(obs_f),
+            "future_mean": sum(offset[f] for f in held_f) / len(held_f) if held_f else None,
+            "units": "m (distance between the simulated body's centre of mass and the ground truth's)",
         }
     if true_motion:
         if tet is None:

@@ -37,6 +37,8 @@ MEAN_LABELS = {
     "start_abs_error_log10_E": ("|Δ log10 E| at the start (prior or Stage I)", "decades", 3, 1.0),
     "start_abs_error_nu": ("|Δ ν| at the start (prior or Stage I)", "", 3, 1.0),
     "chamfer_observed": ("Chamfer observed", "cm", 2, 100.0), "chamfer_future": ("Chamfer future", "cm", 2, 100.0),
+    "centre_of_mass_observed": ("centre of mass off, observed", "cm", 2, 100.0),
+    "centre_of_mass_future": ("centre of mass off, future", "cm", 2, 100.0),
     "seconds": ("time per scene", "s", 0, 1.0),
 }
 
