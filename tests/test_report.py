@@ -130,6 +130,9 @@ def test_tables_show_the_evaluation_numbers(scene_report, tiny_asset):
     value, text = metrics["chamfer.observed_mean"]
     assert float(value) == evaluation["chamfer"]["observed_mean"]
     assert text == f"{100 * evaluation['chamfer']['observed_mean']:.2f}"  # shown in cm
+    value, text = metrics["centre_of_mass.future_mean"]
+    assert float(value) == evaluation["centre_of_mass"]["future_mean"]
+    assert text == f"{100 * evaluation['centre_of_mass']['future_mean']:.2f}"
     material = json.loads((Path(tiny_asset) / "material.json").read_text())
     assert float(metrics["found.E"][0]) == material["E"]
     assert float(metrics["found.nu"][0]) == material["nu"]

@@ -80,13 +80,15 @@ def check_evaluation(evaluation: Any, name: str = "evaluation") -> dict[str, Any
                 _number(d.get(key), f"{name}['material'][{part!r}][{key!r}]")
         for key in ("abs_error_log10_E", "abs_error_nu"):
             _number(material.get(key), f"{name}['material'][{key!r}]")
-    chamfer = evaluation.get("chamfer")
-    if chamfer is not None:
-        if not isinstance(chamfer, Mapping):
-            raise ReportInputError(f"{name}['chamfer'] must be a dict, got {type(chamfer).__name__}")
+    for part in ("chamfer", "centre_of_mass"):
+        distances = evaluation.get(part)
+        if distances is None:
+            continue
+        if not isinstance(distances, Mapping):
+            raise ReportInputError(f"{name}[{part!r}] must be a dict, got {type(distances).__name__}")
         for key in ("observed_mean", "future_mean"):
-            _number(chamfer.get(key), f"{name}['chamfer'][{key!r}]")
-        _numbers(chamfer.get("per_frame"), f"{name}['chamfer']['per_frame']")
+            _number(distances.get(key), f"{name}[{part!r}][{key!r}]")
+        _numbers(distances.get("per_frame"), f"{name}[{part!r}]['per_frame']")
     return dict(evaluation)
 
 

@@ -439,6 +439,11 @@ class _Builder:
             cards.append(H.card("Chamfer, observed frames", H.fmt(100 * ch["observed_mean"], 2),
                                 f"future frames {H.fmt(100 * ch['future_mean'], 2, 'cm')}"
                                 if _isnum(ch.get("future_mean")) else "", unit="cm"))
+        com = ev.get("centre_of_mass") or {}
+        if _isnum(com.get("observed_mean")):
+            cards.append(H.card("Centre of mass off the truth's, observed frames", H.fmt(100 * com["observed_mean"], 2),
+                                f"future frames {H.fmt(100 * com['future_mean'], 2, 'cm')}"
+                                if _isnum(com.get("future_mean")) else "", unit="cm"))
         intro = ("Figures from the evaluation; green/red mark the issue's targets (|Δ log10 E| ≤ 0.2, |Δ ν| ≤ 0.05)."
                  if ev else "No evaluation is available (run <code>vid2sim evaluate ASSET SCENE</code> or give "
                             "<code>--scene</code>): only the material found is shown.")
@@ -474,7 +479,8 @@ class _Builder:
             "synthetic scene's ground truth when it is known.")))
         # metrics
         has_fov = any(_isnum((ev.get(g) or {}).get("fovvdp_jod")) for g in GROUPS)
-        headers = ["", "views", "frames", "PSNR (dB)", "SSIM"] + (["FoVVDP (JOD)"] if has_fov else []) + ["Chamfer (cm)"]
+        headers = ["", "views", "frames", "PSNR (dB)", "SSIM"] + (["FoVVDP (JOD)"] if has_fov else []) \
+            + ["Chamfer (cm)", "centre of mass off (cm)"]
         rows = []
         chamfer_key = {"dynamic": "observed_mean", "future": "future_mean"}
         for group in GROUPS:
@@ -490,11 +496,15 @@ class _Builder:
             cv = ch.get(chamfer_key[group]) if group in chamfer_key else None
             cells.append(H.num_cell(cv, H.fmt(100 * cv, 2) if _isnum(cv) else "—",
                                     key=f"chamfer.{chamfer_key[group]}" if group in chamfer_key else ""))
+            mv = com.get(chamfer_key[group]) if group in chamfer_key else None
+            cells.append(H.num_cell(mv, H.fmt(100 * mv, 2) if _isnum(mv) else "—",
+                                    key=f"centre_of_mass.{chamfer_key[group]}" if group in chamfer_key else ""))
             rows.append("".join(cells))
         if rows:
             note = ("PSNR and SSIM are means over every (view, frame) image of the group (3DGS-lineage SSIM); "
                     "Chamfer is the mean distance between the simulated Gaussian centres and the ground-truth surface "
-                    "over the observed / future frames (the cell's data-value is in metres).")
+                    "over the observed / future frames, and the centre of mass's the mean distance between the "
+                    "simulated body's centre of mass and the truth's (the cells' data-values are in metres).")
             if has_fov:
                 disp = next(((ev.get(g) or {}).get("fovvdp_display") for g in GROUPS
                              if (ev.get(g) or {}).get("fovvdp_display")), None)
