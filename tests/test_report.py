@@ -27,7 +27,8 @@ class _Page(HTMLParser):
         self.stack: list[str] = []
         self.errors: list[str] = []
         self.refs: list[tuple[str, str]] = []  # (tag, src/href)
-        self.metrics: dict[str, tuple[str, str]] = {}  # data-metric -> (data-value, text)
+        self.metrics: dict[str, tuple[str, str]] = {}  # data-metric -> (data-value, text) of its first element
+        self.metric_list: list[tuple[str, str, str]] = []  # every (data-metric, data-value, text), in page order
         self.tags: dict[str, int] = {}
         self._metric: tuple[str, str] | None = None
         self._text: list[str] = []
@@ -62,6 +63,7 @@ class _Page(HTMLParser):
         if self._metric is not None and len(self.stack) == self._metric_depth:
             key, value = self._metric
             self.metrics.setdefault(key, (value, "".join(self._text).strip()))
+            self.metric_list.append((key, value, "".join(self._text).strip()))
             self._metric = None
 
     def handle_data(self, data):
@@ -251,7 +253,7 @@ def test_suite_report_links_scenes_and_shows_failures(scene_report, tiny_scene, 
              "means": {"dynamic_psnr": evaluation["dynamic"]["psnr"], "dynamic_ssim": evaluation["dynamic"]["ssim"],
                        "future_psnr": None, "future_ssim": None, "novel_psnr": None, "novel_ssim": None,
                        "abs_error_log10_E": evaluation["material"]["abs_error_log10_E"], "abs_error_nu": 0.1,
-                       "start_abs_error_nu": 0.066, "seconds": 16.75}}
+                       "start_abs_error_nu": 0.066, "centre_of_mass_observed": 0.0123, "seconds": 16.75}}
     out = write_suite_report(tmp_path / "suite", suite)
     page = _parse(out / "index.html")
     links = [ref for tag, ref in page.refs if tag == "a" and ref.endswith("index.html")]
@@ -263,6 +265,9 @@ def test_suite_report_links_scenes_and_shows_failures(scene_report, tiny_scene, 
     assert "|Δ ν| at the start (prior or Stage I)" in text and "0.066" in text  # the baseline's card
     assert float(page.metrics["dynamic_psnr"][0]) == evaluation["dynamic"]["psnr"]
     assert float(page.metrics["found_E"][0]) == evaluation["material"]["fitted"]["E"]
+    com = [m for m in page.metric_list if m[0] == "centre_of_mass_observed"]  # the scene's cell, then the footer's
+    assert [float(v) for _, v, _ in com] == [evaluation["centre_of_mass"]["observed_mean"], 0.0123]
+    assert [text for _, _, text in com] == [f"{100 * evaluation['centre_of_mass']['observed_mean']:.2f}", "1.23"]
     assert json.loads((out / "suite.json").read_text())["scenes"][1]["status"] == "failed"
 
 

@@ -44,7 +44,7 @@ MEAN_LABELS = {
 
 
 METRIC_COLUMNS = ("observed PSNR / SSIM", "future PSNR / SSIM", "novel views PSNR / SSIM", "E (Pa)", "ν",
-                  "|Δ log10 E|", "|Δ ν|", "Chamfer (cm)")
+                  "|Δ log10 E|", "|Δ ν|", "Chamfer (cm)", "centre of mass off (cm)")
 
 
 def _isnum(x: Any) -> bool:
@@ -144,8 +144,9 @@ def write_suite_report(out_dir: str | Path, suite: Mapping[str, Any], config: Re
                                  + "</td>")
                 cells.append(H.num_cell(mat.get("abs_error_log10_E"), digits=3, key="abs_error_log10_E"))
                 cells.append(H.num_cell(mat.get("abs_error_nu"), digits=3, key="abs_error_nu"))
-                ch = (ev.get("chamfer") or {}).get("observed_mean")
-                cells.append(H.num_cell(ch, H.fmt(100 * ch, 2) if _isnum(ch) else "—", key="chamfer_observed"))
+                for group, key in (("chamfer", "chamfer_observed"), ("centre_of_mass", "centre_of_mass_observed")):
+                    cm = (ev.get(group) or {}).get("observed_mean")
+                    cells.append(H.num_cell(cm, H.fmt(100 * cm, 2) if _isnum(cm) else "—", key=key))
             cells.append(H.num_cell(s.get("seconds"), H.fmt(s.get("seconds"), 0), key="seconds"))
             rows.append("".join(cells))
             if s.get("error") and (s["status"] != "failed" or ev):
@@ -161,8 +162,9 @@ def write_suite_report(out_dir: str | Path, suite: Mapping[str, Any], config: Re
         foot_cells.append("<td></td><td></td>")
         foot_cells.append(H.num_cell(means.get("abs_error_log10_E"), digits=3, key="abs_error_log10_E"))
         foot_cells.append(H.num_cell(means.get("abs_error_nu"), digits=3, key="abs_error_nu"))
-        ch_mean = means.get("chamfer_observed")
-        foot_cells.append(H.num_cell(ch_mean, H.fmt(100 * ch_mean, 2) if _isnum(ch_mean) else "", key="chamfer_observed"))
+        for key in ("chamfer_observed", "centre_of_mass_observed"):
+            cm = means.get(key)
+            foot_cells.append(H.num_cell(cm, H.fmt(100 * cm, 2) if _isnum(cm) else "", key=key))
         foot_cells.append(H.num_cell(means.get("seconds"), H.fmt(means.get("seconds"), 0) if _isnum(means.get("seconds"))
                                      else "", key="seconds"))
         headers = ["#", "scene", "frame 0", "status"] + list(METRIC_COLUMNS) + ["seconds"]
@@ -180,8 +182,9 @@ def write_suite_report(out_dir: str | Path, suite: Mapping[str, Any], config: Re
                                          f"{n_ok} of {len(data['scenes'])} scenes ran"
                                          + (f"; {n_failed} failed (their rows say why)." if n_failed else "."))),
             ("scenes", "Scenes", H.section("scenes", "Scenes", table,
-                                           "One row per scene; the name links to the scene's own report. Chamfer: "
-                                           "observed frames; E in Pa; the footer holds the suite's means.")),
+                                           "One row per scene; the name links to the scene's own report. Chamfer and "
+                                           "centre of mass: means over the observed frames; E in Pa; the footer "
+                                           "holds the suite's means.")),
             ("material", "Material", H.section(
                 "material", "Material found vs truth",
                 '<div class="figure"><img src="media/material.svg" alt="material found vs truth" '
