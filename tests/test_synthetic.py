@@ -275,6 +275,20 @@ def test_make_benchmark_defaults_to_quadratic_tets_and_resumes_an_older_linear_s
     assert json.loads((root / "scene_000" / "synthetic.json").read_text())["element_order"] == 1
 
 
+def test_a_suites_quadratic_tets_have_the_small_presets_size_at_every_preset():
+    # quadratic tets of the full preset's size would take hours a scene; the small preset's are converged enough
+    from vid2sim.synthetic.scenes import BENCHMARK_QUADRATIC_TETS, benchmark_overrides
+
+    full = benchmark_overrides("full", {})
+    assert full == {"element_order": 2, **BENCHMARK_QUADRATIC_TETS}
+    config = SyntheticSceneConfig.preset("full", **full)
+    assert (config.tet_edge_length, config.tet_envelope) == (0.08, 5e-3) and config.resolution == 448
+    assert benchmark_overrides("small", {}) == {"element_order": 2}  # the small preset's own size: nothing to record
+    assert benchmark_overrides("full", {"element_order": 1}) == {"element_order": 1}  # linear keeps the preset's
+    assert benchmark_overrides("full", {"tet_edge_length": 0.05})["tet_edge_length"] == 0.05  # the caller's wins
+    assert SyntheticSceneConfig.preset("full").tet_edge_length == 0.06  # a single scene keeps the preset's
+
+
 def test_make_benchmark_refuses_a_foreign_folder(tmp_path):
     (tmp_path / "x.txt").write_text("x")
     with pytest.raises(FileExistsError, match="no index.json"):
