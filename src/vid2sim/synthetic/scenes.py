@@ -526,8 +526,9 @@ def make_benchmark(n: int, out_dir: str | Path, preset: str = "full", seed: int 
     to measure. Those quadratic tets have the size :data:`BENCHMARK_QUADRATIC_TETS` at every preset (the
     small preset's), unless ``tet_edge_length`` / ``tet_envelope`` are given: at the full preset this takes
     about 6 minutes a scene on 2 cores instead of hours. The cameras still see the preset's textured surface,
-    which the tets carry (:mod:`vid2sim.synthetic.embedding`). A suite written before this default, with no ``element_order`` in its ``index.json``, was
-    linear and resumes with ``element_order=1``. Resumable: a scene folder that already exists (they are written atomically) is
+    which the tets carry (:mod:`vid2sim.synthetic.embedding`). A suite written before quadratic tets became
+    the default, with no ``element_order`` in its ``index.json``, was linear and resumes with
+    ``element_order=1``. Resumable: a scene folder that already exists (they are written atomically) is
     kept if its ``synthetic.json`` matches the settings the suite asks for, else this raises (before any
     work); ``index.json`` is rewritten after every scene (listing the finished ones in order, ``complete``
     once all are). A larger ``n`` extends a suite; a smaller one than the scene folders already there is
