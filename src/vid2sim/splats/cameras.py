@@ -24,7 +24,9 @@ def _check_rigid(matrix: Tensor, name: str, atol: float = 1e-4) -> None:
         raise ValueError(f"{name} must be a 4x4 matrix, got shape {tuple(matrix.shape)}")
     if not torch.isfinite(matrix).all():
         raise ValueError(f"{name} contains NaN or infinite values")
-    m = matrix.to(torch.float64)
+    # a 4x4 check: done on the CPU in float64 whatever device the matrix lives on (the constants below are CPU
+    # tensors; comparing them with a CUDA matrix was the first-use crash of every GPU path)
+    m = matrix.detach().to(device="cpu", dtype=torch.float64)
     rot = m[:3, :3]
     eye = torch.eye(3, dtype=torch.float64)
     if not torch.allclose(rot @ rot.T, eye, atol=atol) or abs(float(torch.linalg.det(rot)) - 1.0) > atol:
