@@ -69,9 +69,9 @@ def tiny_training_data(tmp_path_factory):
 # tests (built once per test session: about half a minute on two cores).
 
 def _tiny_reconstruct_config():
-    from vid2sim.pipeline.joint import JointConfig
-    from vid2sim.pipeline.points import PointsConfig
-    from vid2sim.pipeline.reconstruct import ReconstructConfig
+    from vid2sim.reconstruct.stages.joint import JointConfig
+    from vid2sim.reconstruct.stages.points import PointsConfig
+    from vid2sim.reconstruct.pipeline import ReconstructConfig
     from vid2sim.splats.fitting import FitConfig
 
     return ReconstructConfig(gaussians=FitConfig(iterations=30), points=PointsConfig(resolution=24, num_points=1000),
@@ -103,7 +103,7 @@ def tiny_asset(tiny_scene, tmp_path_factory):
     moments, so that path is exercised too)."""
     from dataclasses import replace
 
-    from vid2sim.pipeline.reconstruct import reconstruct
+    from vid2sim.reconstruct.pipeline import reconstruct
 
     out = tmp_path_factory.mktemp("asset") / "asset"
     return reconstruct(tiny_scene, out, replace(_tiny_reconstruct_config(), mass="moments"), progress=False)

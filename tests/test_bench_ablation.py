@@ -15,10 +15,10 @@ from pathlib import Path
 import pytest
 import torch
 
-from vid2sim.bench import ablation
-from vid2sim.bench.ablation import (ABLATION_JSON, VARIANTS, Convergence, format_ablation_table,
+from vid2sim.apps.bench import ablation
+from vid2sim.apps.bench.ablation import (ABLATION_JSON, VARIANTS, Convergence, format_ablation_table,
                                     iterations_to_converge, run_ablation, variant_configs)
-from vid2sim.bench.suite import EVALUATION_JSON, METRICS, SUITE_CONFIG_JSON, SUITE_JSON, SuiteConfig
+from vid2sim.apps.bench.suite import EVALUATION_JSON, METRICS, SUITE_CONFIG_JSON, SUITE_JSON, SuiteConfig
 from vid2sim.cli import main
 
 NAMES = ["stage1_only", "stage1_stage2", "stage2_prior"]
@@ -195,7 +195,7 @@ def test_handles_and_a_missing_predictor_are_refused_before_any_work(fake_suite,
 
 def test_a_foreign_results_folder_and_a_missing_ray_are_refused(fake_suite, tmp_path, tiny_config, monkeypatch):
     pytest.importorskip("transformers")
-    from vid2sim.bench.ray_runner import RayUnavailable
+    from vid2sim.runtime.ray_runner import RayUnavailable
 
     _no_work(monkeypatch)
     ckpt = _tiny_predictor(tmp_path / "p.pt")
@@ -341,8 +341,8 @@ def _numbers(result: dict) -> dict:
 
 @pytest.mark.slow
 def test_rerun_resumes_without_recomputing_and_refuses_other_settings(run, tmp_path, monkeypatch):
-    import vid2sim.pipeline.evaluate as evaluate_module
-    import vid2sim.pipeline.reconstruct as reconstruct_module
+    import vid2sim.evaluate.scores as evaluate_module
+    import vid2sim.reconstruct.pipeline as reconstruct_module
 
     def must_not_run(*args, **kwargs):
         raise AssertionError("a finished scene was run again")
@@ -365,7 +365,7 @@ def test_rerun_resumes_without_recomputing_and_refuses_other_settings(run, tmp_p
 
 @pytest.mark.slow
 def test_a_stage_one_that_did_not_run_is_a_failure_and_the_command_exit_codes(run, tmp_path, monkeypatch, capsys):
-    import vid2sim.pipeline.reconstruct as reconstruct_module
+    import vid2sim.reconstruct.pipeline as reconstruct_module
 
     def must_not_run(*args, **kwargs):
         raise AssertionError("a finished scene was run again")

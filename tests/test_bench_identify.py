@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from vid2sim.bench import identify
+from vid2sim.apps.bench import identify
 from vid2sim.cli import main
 
 pytestmark = pytest.mark.slow  # end to end: scene generation, reconstruction, suites
@@ -229,7 +229,7 @@ def test_report_has_per_scene_figures_and_means(report):
     assert row["abs_error"]["log10_E"] == pytest.approx(abs(row["fitted"]["log10_E"] - row["true"]["log10_E"]))
     assert 0 < row["fitted"]["nu"] < 0.5 and row["fitted"]["damping_ratio"] >= 0
     # the fit starts at the coarse search's minimum (grid sorted, at the prior ν and ζ) and never ends worse
-    from vid2sim.pipeline.joint import coarse_minimum
+    from vid2sim.reconstruct.stages.joint import coarse_minimum
 
     grid = [c["log10_E"] for c in row["fit_coarse"]]
     assert grid == [4.0, 5.0, 5.5] == list(config.coarse_log10_E)

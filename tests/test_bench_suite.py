@@ -15,7 +15,7 @@ from dataclasses import asdict
 
 import pytest
 
-from vid2sim.bench.suite import (EVALUATION_JSON, METRICS, SUITE_CONFIG_JSON, SUITE_JSON, SuiteConfig, format_table,
+from vid2sim.apps.bench.suite import (EVALUATION_JSON, METRICS, SUITE_CONFIG_JSON, SUITE_JSON, SuiteConfig, format_table,
                                  run_suite)
 from vid2sim.cli import main
 from vid2sim.synthetic.scenes import SyntheticSceneConfig, benchmark_parameters, make_benchmark
@@ -35,7 +35,7 @@ _RUNS: dict[str, dict] = {}
 def ray_local():
     """A local Ray instance (2 CPUs) for the whole module, started through the runner's own "local" mode,
     or None without Ray. Every Ray call below reuses it."""
-    from vid2sim.bench.ray_runner import ray_session
+    from vid2sim.runtime.ray_runner import ray_session
 
     if importlib.util.find_spec("ray") is None:
         yield None
@@ -145,8 +145,8 @@ def test_suite_json_schema_means_and_table(local_run, suite_dir, tiny_config):
 
 def test_resume_skips_finished_scenes_and_refuses_other_settings(local_run, suite_dir, tiny_config, tmp_path,
                                                                   monkeypatch):
-    import vid2sim.pipeline.evaluate as evaluate_module
-    import vid2sim.pipeline.reconstruct as reconstruct_module
+    import vid2sim.evaluate.scores as evaluate_module
+    import vid2sim.reconstruct.pipeline as reconstruct_module
 
     out = tmp_path / "out"
     shutil.copytree(local_run["out"], out)
@@ -229,7 +229,7 @@ def test_cli_bench_suite_prints_the_table_and_exit_codes(local_run, suite_dir, t
 
 
 def test_ray_suite_gives_the_local_numbers(ray_local, local_run, suite_dir, tiny_config, tmp_path, monkeypatch):
-    import vid2sim.pipeline.reconstruct as reconstruct_module
+    import vid2sim.reconstruct.pipeline as reconstruct_module
 
     if ray_local is None:
         pytest.skip("ray is not installed (pip install \"vid2sim[ray]\")")

@@ -6,7 +6,7 @@ import pytest
 
 from vid2sim.cli import main
 from vid2sim.pipeline import demo as demo_module
-from vid2sim.pipeline.demo import DemoConfig, run_demo
+from vid2sim.apps.demo import DemoConfig, run_demo
 
 pytestmark = pytest.mark.slow
 
@@ -39,7 +39,7 @@ def test_demo_prints_true_and_recovered_material_and_the_report(tiny_demo, capsy
     def must_not_run(*args, **kwargs):
         raise AssertionError("a finished step ran again")
 
-    monkeypatch.setattr("vid2sim.pipeline.reconstruct.reconstruct", must_not_run)
+    monkeypatch.setattr("vid2sim.reconstruct.pipeline.reconstruct", must_not_run)
     monkeypatch.setattr("vid2sim.synthetic.scenes.make_scene", must_not_run)
     assert main(["demo", str(tiny_demo), "--size", "tiny", "--quiet"]) == 0  # resumes: only the report again
     out = capsys.readouterr().out

@@ -365,7 +365,7 @@ def test_reader_errors_name_the_problem(tmp_path):
 # ---- the rig -----------------------------------------------------------------------------------------
 
 def test_rig_numpy_reference_matches_torch(tiny_asset, tmp_path):
-    from vid2sim.pipeline.asset import load_asset
+    from vid2sim.asset.folder import load_asset
 
     asset = load_asset(tiny_asset)
     folder = export_rig(asset, tmp_path / "rig")
@@ -425,7 +425,7 @@ def test_rig_numpy_reference_matches_torch(tiny_asset, tmp_path):
 
 def test_rig_neural_jacobian_numpy_matches_torch(tiny_asset, tmp_path):
     from vid2sim.physics.neural_jacobian import NeuralJacobian
-    from vid2sim.pipeline.asset import load_asset
+    from vid2sim.asset.folder import load_asset
 
     asset = load_asset(tiny_asset)
     nj = NeuralJacobian(asset.field.num_handles_total, encoding_dim=8, widths=(8, 16), seed=3)
@@ -445,7 +445,7 @@ def test_rig_neural_jacobian_numpy_matches_torch(tiny_asset, tmp_path):
 
 def _fake_simulate_output(asset_folder: Path, out: Path, frames: int = 3) -> torch.Tensor:
     """What ``vid2sim simulate`` writes (per-frame PLYs, states.npz, summary.json), made with the asset's simulator."""
-    from vid2sim.pipeline.asset import load_asset
+    from vid2sim.asset.folder import load_asset
     from vid2sim.splats.deform import deform_gaussians
     from vid2sim.splats.ply import save_ply
 
@@ -467,7 +467,7 @@ def _fake_simulate_output(asset_folder: Path, out: Path, frames: int = 3) -> tor
 
 
 def test_sequence_export_and_rig_replay(tiny_asset, tmp_path):
-    from vid2sim.pipeline.asset import load_asset
+    from vid2sim.asset.folder import load_asset
     from vid2sim.splats.ply import load_ply
 
     sim_out = tmp_path / "sim"

@@ -1,4 +1,4 @@
-"""The initial rigid velocity from the ballistic frames (vid2sim.pipeline.initial_state).
+"""The initial rigid velocity from the ballistic frames (vid2sim.reconstruct.stages.velocity).
 
 Two kinds of data:
 
@@ -24,7 +24,7 @@ import torch
 from scipy.integrate import solve_ivp
 from scipy.spatial.transform import Rotation
 
-from vid2sim.pipeline.initial_state import InitialVelocity, estimate_initial_velocity, propagate_rotations
+from vid2sim.reconstruct.stages.velocity import InitialVelocity, estimate_initial_velocity, propagate_rotations
 from vid2sim.splats.cameras import camera_ring
 
 pytestmark = pytest.mark.slow  # fits Gaussians / generates synthetic scenes

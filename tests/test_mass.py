@@ -164,8 +164,8 @@ def test_the_simulator_lumps_its_mass_on_the_mass_volumes(box_points):
 
 
 def test_bad_mass_settings_are_refused():
-    from vid2sim.bench.identify import IdentifyConfig
-    from vid2sim.pipeline.reconstruct import ReconstructConfig
+    from vid2sim.apps.bench.identify import IdentifyConfig
+    from vid2sim.reconstruct.pipeline import ReconstructConfig
 
     with pytest.raises(ValueError, match="IdentifyConfig.mass"):
         IdentifyConfig(mass="dense")

@@ -152,7 +152,7 @@ def test_nested_dissection_keeps_each_node_s_components_together_and_cuts_the_fi
 
 
 def test_bench_speed_modes_section_agrees_with_its_baseline():
-    from vid2sim.bench.modes_speed import run
+    from vid2sim.apps.bench.modes_speed import run
 
     out = run(quick=True)
     assert out["modes_tets"] > 500 and out["modes_dof"] > 3000

@@ -9,9 +9,9 @@ import torch
 
 from vid2sim.physics import Floor, Gravity, Material, Simulator, SkinningField, sample_cubature
 from vid2sim.physics.external import AREA_CONTACT_STIFFNESS
-from vid2sim.pipeline.asset import Asset, AssetFormatError, load_asset, save_asset
-from vid2sim.pipeline.joint import GaussianRig, JointConfig, Observations, joint_optimisation, render_frames
-from vid2sim.pipeline.points import PointsConfig, object_points
+from vid2sim.asset.folder import Asset, AssetFormatError, load_asset, save_asset
+from vid2sim.reconstruct.stages.joint import GaussianRig, JointConfig, Observations, joint_optimisation, render_frames
+from vid2sim.reconstruct.stages.points import PointsConfig, object_points
 from vid2sim.physics.solver import SimConfig
 from vid2sim.splats.cameras import camera_ring
 from vid2sim.splats.gaussians import Gaussians
@@ -100,7 +100,7 @@ def test_rig_at_rest_renders_the_gaussians_and_moves_rigidly():
 
 
 def test_coarse_minimum_is_the_parabola_vertex_between_the_best_samples_neighbours():
-    from vid2sim.pipeline.joint import coarse_minimum
+    from vid2sim.reconstruct.stages.joint import coarse_minimum
 
     grid = [4.0, 4.5, 5.0, 5.5, 6.0]
     assert coarse_minimum(grid, [(x - 4.8) ** 2 + 1 for x in grid]) == pytest.approx(4.8)  # exact on a parabola
@@ -114,7 +114,7 @@ def test_clip_loss_weights_its_frames():
     weighted loss is the weighted sum of the per-frame image errors."""
     import math
 
-    from vid2sim.pipeline.joint import clip_loss, frame_weights
+    from vid2sim.reconstruct.stages.joint import clip_loss, frame_weights
 
     assert frame_weights(5, None) == pytest.approx([0.25] * 4)
     w = frame_weights(5, 2.0)
@@ -180,7 +180,7 @@ def test_centre_of_mass_search_finds_the_centre_the_images_were_made_with():
     within 5 mm of it (the bounce's spin shows where the centre is), leaves the simulator with those masses, and
     counts offsets the points cannot carry as infinitely bad."""
     from vid2sim.physics.mass import centre_shifted_volumes
-    from vid2sim.pipeline.joint import centre_of_mass_search
+    from vid2sim.reconstruct.stages.joint import centre_of_mass_search
 
     sim, gaussians, cams = _scene_setup()
     truth = torch.tensor([0.012, 0.0, -0.008], dtype=torch.float64)
@@ -350,7 +350,7 @@ def test_an_asset_keeps_its_stiffness_curve_and_the_rig_uses_it_at_its_nu(tmp_pa
 
 @pytest.mark.slow
 def test_bench_speed_joint_section_times_one_iteration():
-    from vid2sim.bench.joint_speed import run
+    from vid2sim.apps.bench.joint_speed import run
 
     result = run(torch.device("cpu"), quick=True)
     assert result["joint_settings"]["gaussians"] == 6000 and result["joint_settings"]["views"] == 4

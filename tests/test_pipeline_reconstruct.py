@@ -12,9 +12,9 @@ import torch
 
 from vid2sim.cli import main
 from vid2sim.pipeline import reconstruct as reconstruct_module
-from vid2sim.pipeline.asset import load_asset
-from vid2sim.pipeline.points import PointsConfig
-from vid2sim.pipeline.reconstruct import ReconstructConfig, ReconstructionError, reconstruct
+from vid2sim.asset.folder import load_asset
+from vid2sim.reconstruct.stages.points import PointsConfig
+from vid2sim.reconstruct.pipeline import ReconstructConfig, ReconstructionError, reconstruct
 from vid2sim.scene.folder import load_scene, write_scene
 
 
@@ -51,7 +51,7 @@ def test_reconstruct_writes_a_complete_asset(tiny_asset, tiny_scene):
     assert all(torch.isfinite(s.z).all() for s in states)
     assert asset.material["stiffness_scale"] == 1.0 == sim.stiffness_scale  # the tiny config does not calibrate
     # a shaded asset: the PLY shows the Gaussians lit as at frame 0, the asset holds albedos and the light
-    from vid2sim.pipeline.evaluate import simulate_gaussians
+    from vid2sim.evaluate.scores import simulate_gaussians
     from vid2sim.splats.ply import load_ply
 
     assert "shading.npz" in names and asset.shading is not None and asset.shading.num == asset.gaussians.num
@@ -98,7 +98,7 @@ def test_a_calibrated_reconstruction_records_and_uses_its_stiffness_scale(tiny_s
 def test_the_calibration_child_gets_one_of_the_callers_threads_while_it_runs():
     """On 2 cores, 2 torch threads beside the one-thread child oversubscribe them (the appearance stage took 3.6x
     as long): reconstruct gives the child one of its threads until it ends."""
-    from vid2sim.pipeline.reconstruct import _share_cores
+    from vid2sim.reconstruct.pipeline import _share_cores
 
     class Job:
         def __init__(self, alive: bool) -> None:
@@ -130,7 +130,7 @@ def test_a_calibration_child_that_dies_while_starting_is_an_error_not_a_hang(tmp
     script = tmp_path / "unguarded.py"
     script.write_text(textwrap.dedent(f"""
         import numpy as np
-        from vid2sim.pipeline.stiffness import TetReferenceJob
+        from vid2sim.reconstruct.stages.calibration import TetReferenceJob
         job = TetReferenceJob(np.random.default_rng(0).random((20000, 3)), {str(tmp_path / "ref.json")!r},
                               nus=(0.3,), k=1, cells=8, seed=0)
         print("started", flush=True)
@@ -175,7 +175,7 @@ def test_evaluate_reports_views_frames_material_and_chamfer(tiny_asset, tiny_sce
 
 
 def test_start_material_reads_the_prior_or_stage1_and_names_a_bad_file(tmp_path):
-    from vid2sim.pipeline.evaluate import start_material
+    from vid2sim.evaluate.scores import start_material
 
     assert start_material(tmp_path) is None  # not written by reconstruct: no baseline
     (tmp_path / "config.json").write_text(json.dumps({"prior_E": 2e5, "prior_nu": 0.25}))
@@ -196,7 +196,7 @@ def test_evaluate_true_motion_scores_the_gaussians_on_the_ground_truths_motion(t
                                                                                capsys):
     """--true-motion: the asset's Gaussians carried by the FEM's motion; at frame 0 they are the asset's own
     (the carry is the identity there), and a scene without the ground-truth motion gets a clear error."""
-    from vid2sim.pipeline.evaluate import true_motion_gaussians
+    from vid2sim.evaluate.scores import true_motion_gaussians
 
     out = tmp_path / "eval.json"
     assert main(["evaluate", str(tiny_asset), str(tiny_scene), "--out", str(out), "--quiet", "--no-report",
@@ -223,8 +223,8 @@ def test_evaluate_true_motion_scores_the_gaussians_on_the_ground_truths_motion(t
 
 def test_motion_appearance_fits_the_gaussians_through_the_motion(tiny_asset, tiny_scene):
     from vid2sim.metrics.images import image_metrics
-    from vid2sim.pipeline.evaluate import render_frames, simulate_gaussians
-    from vid2sim.pipeline.motion_appearance import SkinnedMotion, initial_shading, refine_on_motion
+    from vid2sim.evaluate.scores import render_frames, simulate_gaussians
+    from vid2sim.reconstruct.stages.motion_appearance import SkinnedMotion, initial_shading, refine_on_motion
     from vid2sim.splats.fitting import FitConfig
 
     asset, scene = load_asset(tiny_asset), load_scene(tiny_scene)
@@ -306,8 +306,8 @@ def test_a_loss_power_below_one_favours_the_frames_the_motion_explains(tiny_asse
     root per step (each frame's gradient scaled by loss^-0.5) keeps frames 0-3 closer to their images than
     the loss itself does, which lets the shifted frame pull the Gaussians towards it."""
     from vid2sim.metrics.images import image_metrics
-    from vid2sim.pipeline.evaluate import render_frames
-    from vid2sim.pipeline.motion_appearance import SkinnedMotion, refine_on_motion
+    from vid2sim.evaluate.scores import render_frames
+    from vid2sim.reconstruct.stages.motion_appearance import SkinnedMotion, refine_on_motion
     from vid2sim.splats.fitting import FitConfig
 
     asset, scene = load_asset(tiny_asset), load_scene(tiny_scene)
@@ -349,7 +349,7 @@ def test_an_interrupted_reconstruction_resumes_after_its_last_finished_stage(tin
     def interrupted(*args, **kwargs):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr("vid2sim.pipeline.joint.joint_optimisation", interrupted)
+    monkeypatch.setattr("vid2sim.reconstruct.stages.joint.joint_optimisation", interrupted)
     with pytest.raises(KeyboardInterrupt):
         reconstruct(tiny_scene, out, config, progress=False)
     work = tmp_path / ".asset.work"
@@ -363,7 +363,7 @@ def test_an_interrupted_reconstruction_resumes_after_its_last_finished_stage(tin
 
     monkeypatch.setattr("vid2sim.splats.fitting.fit_gaussians", must_not_run)
     monkeypatch.setattr("vid2sim.physics.skinning_training.train_skinning", must_not_run)
-    monkeypatch.setattr("vid2sim.pipeline.joint.joint_optimisation", then_moved)
+    monkeypatch.setattr("vid2sim.reconstruct.stages.joint.joint_optimisation", then_moved)
     reconstruct(tiny_scene, out, config, progress=False)
     assert (out / "material.json").is_file() and not work.exists()
     asset = load_asset(out)  # the masses carry the joint stage's offset: same total, centre moved
@@ -414,7 +414,7 @@ def test_presets_and_config_errors():
         ReconstructConfig.preset("huge")
     with pytest.raises(ValueError, match="motion_appearance_iterations must be >= 0"):
         ReconstructConfig(motion_appearance_iterations=-1)
-    from vid2sim.pipeline.joint import JointConfig
+    from vid2sim.reconstruct.stages.joint import JointConfig
 
     with pytest.raises(ValueError, match="centre_of_mass_step must be a fraction"):
         JointConfig(centre_of_mass_step=-0.01)
@@ -505,7 +505,7 @@ def test_stage1_sets_the_prior_the_coarse_grid_and_the_skinning_start(tiny_scene
 
 
 def test_stage1_is_skipped_with_a_recorded_reason(tiny_asset, tiny_scene, tmp_path):
-    from vid2sim.pipeline.reconstruct import run_stage1
+    from vid2sim.reconstruct.pipeline import run_stage1
 
     s1 = json.loads((tiny_asset / "log.json").read_text())["stage1"]
     assert s1["ran"] is False and s1["reason"]  # tiny config: 3 handles (or no shipped checkpoint)
@@ -597,7 +597,7 @@ def test_reconstruct_on_cuda_writes_the_same_asset_format(tiny_scene, tiny_asset
 
 
 def test_an_asset_without_shading_and_a_broken_shading_file(tiny_asset, tmp_path):
-    from vid2sim.pipeline.asset import AssetFormatError, save_asset
+    from vid2sim.asset.folder import AssetFormatError, save_asset
     from vid2sim.splats.ply import load_ply
 
     asset = load_asset(tiny_asset)

@@ -7,7 +7,7 @@ import torch
 from vid2sim.meshing.tetra import box_tet_mesh
 from vid2sim.physics import SkinningField, SkinningTrainingConfig, train_skinning
 from vid2sim.physics.modes import stiffness_calibration
-from vid2sim.pipeline.stiffness import calibrate_stiffness, solid_surface
+from vid2sim.reconstruct.stages.calibration import calibrate_stiffness, solid_surface
 
 BAR = (1.2, 0.4, 0.4)
 
@@ -56,7 +56,7 @@ def test_the_tet_reference_runs_in_a_child_process_and_feeds_the_calibration(tmp
     """TetReferenceJob: the same reference as in this process (fTetWild's meshes differ run to run in their last
     tets, so to 1 %), written to its file; calibrate_stiffness takes it instead of the points and checks its grid;
     the child's bad-input error comes back as the same ValueError."""
-    from vid2sim.pipeline.stiffness import TetReferenceJob, tet_reference
+    from vid2sim.reconstruct.stages.calibration import TetReferenceJob, tet_reference
 
     points = _bar(100000, 3).numpy()
     job = TetReferenceJob(points, tmp_path / "ref.json", nus=(0.3, 0.45), k=6, cells=32)

@@ -83,7 +83,7 @@ def _parse(path: Path) -> _Page:
 @pytest.fixture(scope="module")
 def scene_report(tiny_scene, tiny_asset, tmp_path_factory):
     """(report folder, evaluation, renders) of the tiny asset on its scene, written from the evaluation's renders."""
-    from vid2sim.pipeline.evaluate import evaluate
+    from vid2sim.evaluate.scores import evaluate
     from vid2sim.report import write_report
 
     evaluation, renders = evaluate(tiny_asset, tiny_scene, progress=False, return_renders=True)
@@ -200,8 +200,8 @@ def test_report_without_a_scene_renders_the_asset_in_a_ring(tiny_asset, tmp_path
 
 
 def test_simulations_of_the_asset_get_a_new_situations_section(tiny_asset, tmp_path):
-    from vid2sim.pipeline.scenario import ObstacleSpec, Scenario
-    from vid2sim.pipeline.simulate import simulate
+    from vid2sim.simulate.scenario import ObstacleSpec, Scenario
+    from vid2sim.simulate.run import simulate
     from vid2sim.report import ReportConfig, write_report
 
     scenario = Scenario(frames=3)

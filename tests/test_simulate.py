@@ -12,8 +12,8 @@ import pytest
 import torch
 
 from vid2sim.cli import main
-from vid2sim.pipeline.asset import load_asset
-from vid2sim.pipeline.scenario import (
+from vid2sim.asset.folder import load_asset
+from vid2sim.simulate.scenario import (
     InitialSpec,
     ObstacleSpec,
     Scenario,
@@ -23,7 +23,7 @@ from vid2sim.pipeline.scenario import (
     resolve_scenario,
     scene_cameras,
 )
-from vid2sim.pipeline.simulate import run_scenario, simulate, trajectory_stats
+from vid2sim.simulate.run import run_scenario, simulate, trajectory_stats
 
 
 @pytest.fixture(scope="module")
@@ -188,7 +188,7 @@ def test_plasticine_keeps_its_deformation_where_elastic_recovers(asset):
 
 
 def _material(preset: str, **kw):
-    from vid2sim.pipeline.scenario import MaterialSpec
+    from vid2sim.simulate.scenario import MaterialSpec
 
     return MaterialSpec(preset=preset, **kw)
 
@@ -323,13 +323,13 @@ def test_an_asset_without_a_floor(asset):
 
 
 def _floor(**kw):
-    from vid2sim.pipeline.scenario import FloorSpec
+    from vid2sim.simulate.scenario import FloorSpec
 
     return FloorSpec(**kw)
 
 
 def _cams(kind: str, **kw):
-    from vid2sim.pipeline.scenario import CameraSpec
+    from vid2sim.simulate.scenario import CameraSpec
 
     return CameraSpec(type=kind, **kw)
 

@@ -686,9 +686,9 @@ def test_centre_of_mass_of_a_spinning_vibrating_body_in_flight_falls_like_a_poin
     """Elastic and viscous forces depend on F only, so they do not move the centre of mass: in flight it falls
     like a point while the body spins and vibrates. Its frames then follow free fall's closed form under
     BDF2 (see the free-fall test; the start's velocity adds an exact linear motion): the second difference
-    of the centre (:func:`vid2sim.pipeline.evaluate.simulated_centre_of_mass`) about frame f (n = 3f
+    of the centre (:func:`vid2sim.evaluate.scores.simulated_centre_of_mass`) about frame f (n = 3f
     substeps of h) is −g dt² + (3/4) g h² (3^−(n−3) − 2·3^−n + 3^−(n+3)), to the Newton tolerance."""
-    from vid2sim.pipeline.evaluate import simulated_centre_of_mass
+    from vid2sim.evaluate.scores import simulated_centre_of_mass
 
     field, pts = trained_field
     sim = _sim(field, pts, externals=[Gravity()], config=SimConfig(substeps=3))

@@ -12,7 +12,7 @@ import pytest
 
 PARENT = '''
 import sys, time
-from vid2sim.workers import process_pool
+from vid2sim.runtime.workers import process_pool
 
 def work(path):
     import os, time

@@ -2,7 +2,7 @@
 
 Layers (see docs/architecture.md): ``vid2sim.physics`` (mesh-free reduced-order simulator),
 ``vid2sim.splats`` (3D Gaussians and their rendering), ``vid2sim.scene`` (the scene-folder format),
-``vid2sim.synthetic`` (the synthetic ground truth), ``vid2sim.metrics``, ``vid2sim.bench`` (benchmarks) and
+``vid2sim.synthetic`` (the synthetic ground truth), ``vid2sim.metrics``, ``vid2sim.apps.bench`` (benchmarks) and
 ``vid2sim.cli`` (the command).
 """
 

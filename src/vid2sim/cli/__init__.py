@@ -23,7 +23,7 @@ SHARED_MODULES = ("common",)  # modules of this package that are not subcommands
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:
-    from vid2sim.bench.speed import run_speed_benchmark
+    from vid2sim.apps.bench.speed import run_speed_benchmark
 
     set_threads(args.threads)
     result = run_speed_benchmark(device=args.device, sections=args.only, quick=args.quick)
@@ -36,8 +36,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench_jacobian(args: argparse.Namespace) -> int:
-    from vid2sim.bench import jacobian_accuracy
-    from vid2sim.bench.timing import resolve_device
+    from vid2sim.apps.bench import jacobian_accuracy
+    from vid2sim.runtime.device import resolve_device
 
     result = jacobian_accuracy.run(resolve_device(args.device), iterations=args.iterations, progress=True)
     print(json.dumps(result, indent=2, sort_keys=True))
@@ -45,7 +45,7 @@ def _cmd_bench_jacobian(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench_fem(args: argparse.Namespace) -> int:
-    from vid2sim.bench import fem_speed
+    from vid2sim.apps.bench import fem_speed
 
     try:
         result = fem_speed.run(args.preset, seed=args.seed, frames=args.frames, progress=not args.quiet)
@@ -56,7 +56,7 @@ def _cmd_bench_fem(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench_predictability(args: argparse.Namespace) -> int:
-    from vid2sim.bench.predictability import PREDICTABILITY_JSON, format_summary, predictability
+    from vid2sim.apps.bench.predictability import PREDICTABILITY_JSON, format_summary, predictability
 
     set_threads(args.threads)
     if args.workers < 1:
@@ -92,7 +92,7 @@ def _nu_grid(step: float) -> tuple[float, ...]:
 def _cmd_bench_identify(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from vid2sim.bench import identify
+    from vid2sim.apps.bench import identify
 
     set_threads(args.threads)
     if args.workers < 1:
@@ -166,8 +166,8 @@ def _cmd_bench_identify(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench_suite(args: argparse.Namespace) -> int:
-    from vid2sim.bench.ray_runner import RayUnavailable
-    from vid2sim.bench.suite import SUITE_JSON, SuiteConfig, format_table, run_suite
+    from vid2sim.runtime.ray_runner import RayUnavailable
+    from vid2sim.apps.bench.suite import SUITE_JSON, SuiteConfig, format_table, run_suite
 
     if args.iterations is not None and args.iterations < 0:
         raise UserError(f"--iterations must be >= 0, got {args.iterations}")
@@ -193,9 +193,9 @@ def _cmd_bench_suite(args: argparse.Namespace) -> int:
 def _cmd_bench_ablation(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from vid2sim.bench.ablation import ABLATION_JSON, format_ablation_table, run_ablation
-    from vid2sim.bench.ray_runner import RayUnavailable
-    from vid2sim.bench.suite import SuiteConfig
+    from vid2sim.apps.bench.ablation import ABLATION_JSON, format_ablation_table, run_ablation
+    from vid2sim.runtime.ray_runner import RayUnavailable
+    from vid2sim.apps.bench.suite import SuiteConfig
 
     if args.iterations is not None and args.iterations < 0:
         raise UserError(f"--iterations must be >= 0, got {args.iterations}")
@@ -272,7 +272,7 @@ def _cmd_make_scene(args: argparse.Namespace) -> int:
 
 
 def _cmd_make_benchmark(args: argparse.Namespace) -> int:
-    from vid2sim.bench.ray_runner import RayUnavailable
+    from vid2sim.runtime.ray_runner import RayUnavailable
     from vid2sim.synthetic.scenes import make_benchmark
 
     set_threads(args.threads)
@@ -301,7 +301,7 @@ def _cmd_fit_gaussians(args: argparse.Namespace) -> int:
     import torch
     from PIL import Image
 
-    from vid2sim.bench.timing import resolve_device
+    from vid2sim.runtime.device import resolve_device
     from vid2sim.scene.folder import SceneFormatError, load_scene, move_into_place
     from vid2sim.splats.fitting import FitConfig, fit_gaussians
     from vid2sim.splats.losses import psnr
@@ -378,8 +378,8 @@ def _cmd_fit_gaussians(args: argparse.Namespace) -> int:
 def _cmd_reconstruct(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from vid2sim.bench.timing import resolve_device
-    from vid2sim.pipeline.reconstruct import ReconstructConfig, reconstruct
+    from vid2sim.runtime.device import resolve_device
+    from vid2sim.reconstruct.pipeline import ReconstructConfig, reconstruct
 
     set_threads(args.threads)
     device = resolve_device(args.device)  # a bad --device fails before any work
@@ -463,7 +463,7 @@ def _write_report(out, asset, scene, quiet: bool, evaluation=None, renders=None)
 def _cmd_evaluate(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from vid2sim.pipeline.evaluate import evaluate, write_report
+    from vid2sim.evaluate.scores import evaluate, write_report
 
     set_threads(args.threads)
     report, renders = evaluate(args.asset, args.scene, fovvdp=args.fovvdp, progress=not args.quiet,

@@ -1,5 +1,5 @@
 """``vid2sim demo [OUT]``: a synthetic drop in, a simulation-ready asset, its scores, a simulation of it in a
-new situation and an HTML report out (:mod:`vid2sim.pipeline.demo`)."""
+new situation and an HTML report out (:mod:`vid2sim.apps.demo`)."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from vid2sim.cli.common import UserError, add_threads_option, set_threads
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
-    from vid2sim.pipeline.demo import DemoConfig, run_demo
+    from vid2sim.apps.demo import DemoConfig, run_demo
 
     set_threads(args.threads)
     try:
@@ -37,7 +37,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
         if e.get(key):
             lines.append(f"  PSNR on {name}: {e[key]['psnr']:.1f} dB")
     lines += [
-        f"  asset:      {result.asset}  (load it with vid2sim.pipeline.asset.load_asset)",
+        f"  asset:      {result.asset}  (load it with vid2sim.asset.folder.load_asset)",
         f"  simulation: {result.simulation}  (videos/, one 3DGS PLY per frame in ply/)",
         f"  report:     {result.report / 'index.html'}  <- open it in a browser",
     ]

@@ -99,7 +99,7 @@ def _cmd_export(args: argparse.Namespace) -> int:
 
     up = (0.0, 0.0, 1.0)
     if kind == "asset":
-        from vid2sim.pipeline.asset import AssetFormatError, load_asset
+        from vid2sim.asset.folder import AssetFormatError, load_asset
 
         try:
             asset = load_asset(source)

@@ -15,7 +15,7 @@ from vid2sim.cli.common import UserError, add_threads_option, set_threads
 
 
 def _cmd_report(args: argparse.Namespace) -> int:
-    from vid2sim.pipeline.asset import AssetFormatError
+    from vid2sim.asset.folder import AssetFormatError
     from vid2sim.report import ReportConfig, ReportInputError, write_report
     from vid2sim.scene.validation import SceneFormatError
 

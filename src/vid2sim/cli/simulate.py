@@ -54,9 +54,9 @@ def _numbers(text: str, flag: str, lengths: tuple[int, ...], example: str) -> tu
 
 
 def scenario_from_args(args: argparse.Namespace):
-    """The :class:`~vid2sim.pipeline.scenario.Scenario` of ``--scenario`` (or the captured drop) with the
+    """The :class:`~vid2sim.simulate.scenario.Scenario` of ``--scenario`` (or the captured drop) with the
     command-line options applied on top (each remembered as set by its flag)."""
-    from vid2sim.pipeline.scenario import Scenario
+    from vid2sim.simulate.scenario import Scenario
 
     scenario = Scenario.from_yaml(args.scenario) if args.scenario else Scenario()
     for dest, (path, flag) in _SCALARS.items():
@@ -89,7 +89,7 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from vid2sim.physics.solver import SimulationError
-    from vid2sim.pipeline.simulate import OUTPUT_MARKERS, simulate
+    from vid2sim.simulate.run import OUTPUT_MARKERS, simulate
 
     set_threads(args.threads)
     out = Path(args.out)

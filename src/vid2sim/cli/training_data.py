@@ -42,7 +42,7 @@ def _cmd_make_training_data(args: argparse.Namespace) -> int:
         config = TrainingDataConfig(**{k: v for k, v in given.items() if v is not None})
     except ValueError as exc:
         raise _config_error(exc) from exc
-    from vid2sim.bench.ray_runner import RayUnavailable
+    from vid2sim.runtime.ray_runner import RayUnavailable
     from vid2sim.physics import SimulationError
 
     try:

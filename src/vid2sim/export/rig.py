@@ -52,7 +52,7 @@ def _up(gravity: list[float]) -> list[float]:
 
 
 def rig_tensors(asset, z_sequence=None) -> dict[str, np.ndarray]:
-    """The tensors of ``rig.safetensors`` for an :class:`~vid2sim.pipeline.asset.Asset` (name → array)."""
+    """The tensors of ``rig.safetensors`` for an :class:`~vid2sim.asset.folder.Asset` (name → array)."""
     out: dict[str, np.ndarray] = {}
     for key, value in asset.field.state_dict().items():
         out[f"skinning.{key}"] = _np(value)
@@ -200,7 +200,7 @@ def _sim_config(cfg) -> dict[str, Any]:
 
 
 def export_rig(asset, folder: str | Path, *, z_sequence=None) -> Path:
-    """Write the rig of ``asset`` (a :class:`~vid2sim.pipeline.asset.Asset`) into ``folder`` atomically
+    """Write the rig of ``asset`` (a :class:`~vid2sim.asset.folder.Asset`) into ``folder`` atomically
     (the folder appears complete or not at all; an existing one is replaced).
 
     Args:

@@ -498,7 +498,7 @@ def make_training_data(config: TrainingDataConfig, out_dir: str | Path, workers:
             ``ray_address``: Ray tasks run side by side as the cluster has room, each reserving ``threads``
             CPUs.
         threads: torch threads per worker (None: torch's default).
-        ray_address: ``"local"`` or a Ray cluster address (:mod:`vid2sim.bench.ray_runner`); every node must
+        ray_address: ``"local"`` or a Ray cluster address (:mod:`vid2sim.runtime.ray_runner`); every node must
             see ``out_dir`` at the same path.
         progress: a tqdm bar.
         on_shard: called with each shard's name when it is written (tests, logs).
@@ -508,7 +508,7 @@ def make_training_data(config: TrainingDataConfig, out_dir: str | Path, workers:
         FileExistsError: ``out_dir`` is a file or a non-empty folder that is not such a dataset.
         ValueError: ``index.json`` was written with another config.
         FileNotFoundError: a user mesh or the template file is missing.
-        vid2sim.bench.ray_runner.RayUnavailable: ``ray_address`` given but Ray is missing or unreachable.
+        vid2sim.runtime.ray_runner.RayUnavailable: ``ray_address`` given but Ray is missing or unreachable.
     """
     from tqdm.auto import tqdm
 
@@ -522,7 +522,7 @@ def make_training_data(config: TrainingDataConfig, out_dir: str | Path, workers:
         if not Path(m).is_file():
             raise FileNotFoundError(f"mesh file {m} does not exist")
     if ray_address is not None:
-        from vid2sim.bench.ray_runner import import_ray
+        from vid2sim.runtime.ray_runner import import_ray
 
         import_ray()  # RayUnavailable before anything is written
     tpath = template_path(config)
@@ -610,7 +610,7 @@ def make_training_data(config: TrainingDataConfig, out_dir: str | Path, workers:
     errors: list[BaseException] = []
     try:
         if ray_address is not None:
-            from vid2sim.bench.ray_runner import ray_map
+            from vid2sim.runtime.ray_runner import ray_map
 
             def gathered(i: int, result: Any) -> None:
                 if isinstance(result, BaseException):
@@ -633,7 +633,7 @@ def make_training_data(config: TrainingDataConfig, out_dir: str | Path, workers:
         else:
             from concurrent.futures import FIRST_COMPLETED, wait
 
-            from vid2sim.workers import process_pool
+            from vid2sim.runtime.workers import process_pool
 
             with process_pool(min(workers, len(calls))) as pool:
                 pending = {pool.submit(shard_task, *c) for c in calls}

@@ -13,7 +13,7 @@ sampled from the surface directly:
   theorem: 0.1–0.3 % off at 64 columns on the procedural objects).
 - **Contact points**: the mesh vertices with their lumped areas (a third of each adjacent triangle's area,
   m²), reduced to at most ``max_contact_points`` by farthest-point sampling, each kept point taking the
-  area of the vertices nearest to it — as :mod:`vid2sim.pipeline.points` does for the visual hull's
+  area of the vertices nearest to it — as :mod:`vid2sim.reconstruct.stages.points` does for the visual hull's
   surface voxels, so the floor acts as a contact pressure (``AREA_CONTACT_STIFFNESS``) independent of the
   sampling.
 

@@ -40,7 +40,7 @@ def _numbers(value: Any, where: str) -> None:
 
 
 def check_evaluation(evaluation: Any, name: str = "evaluation") -> dict[str, Any]:
-    """Check an evaluation dict (the output of :func:`vid2sim.pipeline.evaluate.evaluate`); returns it.
+    """Check an evaluation dict (the output of :func:`vid2sim.evaluate.scores.evaluate`); returns it.
 
     Checked: it is a dict; ``dynamic`` / ``future`` / ``novel_views``, when present and non-empty, are dicts
     whose ``psnr``, ``ssim``, ``fovvdp_jod`` are numbers, whose per-frame lists hold numbers, one per entry

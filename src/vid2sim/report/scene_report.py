@@ -103,7 +103,7 @@ def write_report(out_dir: str | Path, asset: str | Path, scene: Any = None, eval
             asset's own drop in a ring of cameras.
         evaluation: the evaluation dict (``vid2sim evaluate``'s JSON). None: the asset's ``evaluation.json``
             if it exists (with a scene: only if it was computed on that scene folder); with a scene path and
-            no evaluation, :func:`~vid2sim.pipeline.evaluate.evaluate` runs and provides the renders too.
+            no evaluation, :func:`~vid2sim.evaluate.scores.evaluate` runs and provides the renders too.
         renders: (V, T, H, W, 3) renders in [0, 1] of the asset in the scene's cameras (e.g. from
             ``evaluate(..., return_renders=True)``); None renders them (one simulation). Only with a scene.
         progress: tqdm progress bars.
@@ -156,14 +156,14 @@ def write_report(out_dir: str | Path, asset: str | Path, scene: Any = None, eval
     if scene_obj is not None:
         V, T, Hh, Ww, _ = scene_obj.images.shape
         if renders is None and evaluation is None and scene_path is not None:
-            from vid2sim.pipeline.evaluate import evaluate
+            from vid2sim.evaluate.scores import evaluate
 
             t0 = time.perf_counter()
             evaluation, renders = evaluate(asset_dir, scene_path, progress=progress, return_renders=True)
             timings["evaluate (simulate, render, score)"] = time.perf_counter() - t0
         elif renders is None:
-            from vid2sim.pipeline.asset import load_asset
-            from vid2sim.pipeline.evaluate import render_frames, simulate_gaussians
+            from vid2sim.asset.folder import load_asset
+            from vid2sim.evaluate.scores import render_frames, simulate_gaussians
 
             t0 = time.perf_counter()
             loaded = load_asset(asset_dir)
@@ -354,8 +354,8 @@ class _Builder:
             "the evaluation's means); the shaded frames were held out and predicted.")))
 
     def ring_media(self) -> None:
-        from vid2sim.pipeline.asset import load_asset
-        from vid2sim.pipeline.evaluate import render_frames, simulate_gaussians
+        from vid2sim.asset.folder import load_asset
+        from vid2sim.evaluate.scores import render_frames, simulate_gaussians
 
         cfg = self.config
         t0 = time.perf_counter()

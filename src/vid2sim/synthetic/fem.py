@@ -1181,7 +1181,7 @@ def _simulate_each(vertices: np.ndarray, tets: np.ndarray, configs: list[FEMConf
     import multiprocessing as mp
     from concurrent.futures import wait
 
-    from vid2sim.workers import process_pool
+    from vid2sim.runtime.workers import process_pool
 
     with mp.get_context("spawn").Manager() as manager:
         queue = manager.Queue()

@@ -534,7 +534,7 @@ def make_benchmark(n: int, out_dir: str | Path, preset: str = "full", seed: int 
     once all are). A larger ``n`` extends a suite; a smaller one than the scene folders already there is
     refused (it would leave scenes outside ``index.json``).
 
-    With ``ray_address`` (``"local"`` or a Ray cluster address, :mod:`vid2sim.bench.ray_runner`) every
+    With ``ray_address`` (``"local"`` or a Ray cluster address, :mod:`vid2sim.runtime.ray_runner`) every
     missing scene is made by a Ray task reserving ``workers`` CPUs, with the same settings and seeds as here;
     on a cluster of several machines ``out_dir`` must be on a file system all of them see at the same path.
     A scene whose task fails does not stop the others; the first failure is raised once all have finished.
@@ -545,7 +545,7 @@ def make_benchmark(n: int, out_dir: str | Path, preset: str = "full", seed: int 
         FileExistsError: ``out_dir`` is a file, or a non-empty folder that is not a benchmark.
         ValueError: bad settings, an existing suite / scene written with other settings, or scene folders
             beyond ``n``.
-        vid2sim.bench.ray_runner.RayUnavailable: ``ray_address`` given but Ray missing or unreachable.
+        vid2sim.runtime.ray_runner.RayUnavailable: ``ray_address`` given but Ray missing or unreachable.
     """
     from tqdm.auto import tqdm
 
@@ -556,7 +556,7 @@ def make_benchmark(n: int, out_dir: str | Path, preset: str = "full", seed: int 
         raise ValueError(f"make_benchmark: {fixed} are set per scene by the suite and cannot be overridden")
     configs = [SyntheticSceneConfig.preset(preset, **{**overrides, **p}) for p in params]  # validates up front
     if ray_address is not None:  # fail before any work
-        from vid2sim.bench.ray_runner import check_ray
+        from vid2sim.runtime.ray_runner import check_ray
 
         check_ray(ray_address)
     root = Path(out_dir)
@@ -608,7 +608,7 @@ def make_benchmark(n: int, out_dir: str | Path, preset: str = "full", seed: int 
                     finished(i)
                     bar.update(1)
             else:
-                from vid2sim.bench.ray_runner import ray_map
+                from vid2sim.runtime.ray_runner import ray_map
 
                 failures: list[BaseException] = []
 

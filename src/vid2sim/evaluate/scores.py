@@ -64,7 +64,7 @@ def simulate_gaussians(asset: Any, num_frames: int, progress: bool = True) -> li
     """The asset's captured drop: its Gaussians deformed by the simulator, one set per frame.
 
     Args:
-        asset: a loaded :class:`~vid2sim.pipeline.asset.Asset`.
+        asset: a loaded :class:`~vid2sim.asset.folder.Asset`.
         num_frames: T ≥ 1 frames (frame 0 is the initial state; frames are ``asset.dt`` apart).
         progress: tqdm bars for the rollout and the deformation.
 
@@ -80,7 +80,7 @@ def deform_states(asset: Any, sim: Any, states: list[Any], progress: bool = True
     one :class:`~vid2sim.splats.deform.DeformedGaussians` per state, without gradients."""
     from tqdm.auto import tqdm
 
-    from vid2sim.pipeline.joint import GaussianRig
+    from vid2sim.reconstruct.stages.joint import GaussianRig
 
     with torch.no_grad():
         rig = GaussianRig(sim, asset.gaussians, asset.shading)
@@ -200,7 +200,7 @@ def evaluate(asset_path: str | Path, scene_path: str | Path, fovvdp: bool = Fals
 
     from vid2sim.metrics.geometry import boundary_faces, material_errors, surface_chamfer
     from vid2sim.metrics.trajectory import tet_centre_of_mass
-    from vid2sim.pipeline.asset import load_asset
+    from vid2sim.asset.folder import load_asset
     from vid2sim.scene.folder import load_scene
 
     t0 = time.perf_counter()

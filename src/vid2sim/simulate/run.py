@@ -1,7 +1,7 @@
-"""``vid2sim simulate ASSET OUT``: simulate a reconstructed asset in a :class:`~vid2sim.pipeline.scenario.Scenario`
+"""``vid2sim simulate ASSET OUT``: simulate a reconstructed asset in a :class:`~vid2sim.simulate.scenario.Scenario`
 and write what it looks like.
 
-The scenario is checked against the asset first (:func:`~vid2sim.pipeline.scenario.resolve_scenario`), so a
+The scenario is checked against the asset first (:func:`~vid2sim.simulate.scenario.resolve_scenario`), so a
 scenario that makes no sense fails before any simulation. Then the asset is simulated (``frames − 1`` video
 frames after the initial state), its Gaussians are moved with the simulated state and rendered in every
 camera, and the output folder is written (docs/scenarios.md)::
@@ -32,11 +32,11 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from vid2sim.pipeline.scenario import ResolvedScenario, Scenario, reframe, resolve_scenario
+from vid2sim.simulate.scenario import ResolvedScenario, Scenario, reframe, resolve_scenario
 
 if TYPE_CHECKING:
     from vid2sim.physics.solver import SimState, Simulator
-    from vid2sim.pipeline.asset import Asset
+    from vid2sim.asset.folder import Asset
     from vid2sim.splats.cameras import Camera
 
 __all__ = ["ScenarioRun", "run_scenario", "trajectory_stats", "simulate", "OUTPUT_MARKERS"]
@@ -194,20 +194,20 @@ def _check_out(out: Path, overwrite: bool) -> None:
 
 def simulate(asset: "Asset | str | Path", scenario: Scenario | None, out: str | Path, progress: bool = True, *,
              video: bool = True, ply: bool = True, overwrite: bool = False, scenery: bool = True) -> Path:
-    """Simulate ``asset`` (an :class:`~vid2sim.pipeline.asset.Asset` or its folder) in ``scenario`` (None: the
+    """Simulate ``asset`` (an :class:`~vid2sim.asset.folder.Asset` or its folder) in ``scenario`` (None: the
     captured drop) and write the output folder ``out`` (module docstring); returns ``out``.
 
     ``scenery`` draws the floor and the sphere obstacles in the frames and videos
-    (:mod:`vid2sim.pipeline.scenery`); the PLY files hold the object alone.
+    (:mod:`vid2sim.simulate.scenery`); the PLY files hold the object alone.
 
     Everything about the scenario is checked before any simulation (:class:`ScenarioError`); an existing
     ``out`` is replaced only with ``overwrite`` and only if it is an earlier output.
     """
     from tqdm.auto import tqdm
 
-    from vid2sim.pipeline.asset import load_asset
-    from vid2sim.pipeline.joint import GaussianRig
-    from vid2sim.pipeline.scenery import concatenate, scenery_gaussians
+    from vid2sim.asset.folder import load_asset
+    from vid2sim.reconstruct.stages.joint import GaussianRig
+    from vid2sim.simulate.scenery import concatenate, scenery_gaussians
     from vid2sim.scene.folder import move_into_place
     from vid2sim.scene.video import write_video
     from vid2sim.splats.ply import save_ply

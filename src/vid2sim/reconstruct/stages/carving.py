@@ -9,7 +9,7 @@ even with the true initial velocity and material. With the true surface as conta
 The object turns in the later frames, though, and shows those sides in profile. So, in ``rounds``:
 
 1. **Track** the hull's rigid pose in every observed frame from the masks (:func:`track_poses`: the
-   silhouette fit of :mod:`vid2sim.pipeline.initial_state`, each frame started from the previous pose
+   silhouette fit of :mod:`vid2sim.reconstruct.stages.velocity`, each frame started from the previous pose
    advanced by the last frame-to-frame motion). Poses are relative to frame 0's fit: frame t maps a frame-0
    point X to R_t X + T_t.
 2. **Choose frames** that a rigid pose explains:
@@ -24,7 +24,7 @@ The object turns in the later frames, though, and shows those sides in profile. 
      time order, so the early frames, whose track has not drifted, judge the late ones. Silhouettes alone can
      let the track drift on a rounded object: on scene 1 of the small suite the tracked pose is 13° off by
      frame 6 and 40–70° from frame 9 on, with residuals still a fraction of a pixel.
-3. **Carve** the frame-0 voxels (hull and depth carving, :func:`~vid2sim.pipeline.points.object_points`):
+3. **Carve** the frame-0 voxels (hull and depth carving, :func:`~vid2sim.reconstruct.stages.points.object_points`):
    keep the voxels whose centres, posed by each chosen frame, project inside that frame's masks in every view
    (:func:`within_silhouettes`, on the masks' sub-pixel signed distance, with ``carve_margin_px``).
 
@@ -82,7 +82,7 @@ def track_poses(points: Tensor, masks: Tensor, cameras: Sequence[Camera], iterat
         :class:`TrackedPoses` of frames 0 … K−1, K ≤ T: tracking stops before the first frame whose mask is
         empty in some view (the object left it).
     """
-    from vid2sim.pipeline.initial_state import _PoseFit, _prepare_silhouette, _surface_samples
+    from vid2sim.reconstruct.stages.velocity import _PoseFit, _prepare_silhouette, _surface_samples
 
     if masks.ndim != 4 or masks.shape[0] != len(cameras):
         raise ValueError(f"track_poses: masks must be (V={len(cameras)}, T, H, W), got {tuple(masks.shape)}")
@@ -139,9 +139,9 @@ def gravity_deviation(centroids: np.ndarray, dt: float, gravity: Sequence[float]
 
 def within_silhouettes(points: Tensor, masks: Tensor, viewmats: Tensor, Ks: Tensor, margin_px: float) -> Tensor:
     """(N,) bool: which world points (N, 3) project, in every view, at most ``margin_px`` pixels outside the
-    mask's 0.5 iso-line (the signed distance of :func:`~vid2sim.pipeline.initial_state._prepare_silhouette`,
+    mask's 0.5 iso-line (the signed distance of :func:`~vid2sim.reconstruct.stages.velocity._prepare_silhouette`,
     interpolated bilinearly). ``masks``: (V, H, W) in [0, 1]; ``viewmats``: (V, 4, 4); ``Ks``: (V, 3, 3)."""
-    from vid2sim.pipeline.initial_state import _prepare_silhouette
+    from vid2sim.reconstruct.stages.velocity import _prepare_silhouette
 
     V, H, W = masks.shape
     cam = torch.matmul(points, viewmats[:, :3, :3].transpose(1, 2)) + viewmats[:, None, :3, 3]
@@ -204,14 +204,14 @@ def carve_with_frames(masks: Tensor, cameras: Sequence[Camera], dt: float, gravi
         cameras: the V cameras.
         dt: seconds between frames; gravity: (3,) m/s².
         gaussians: the Gaussians fitted to frame 0 (their depth carves the frame-0 hull), or None.
-        config: :class:`~vid2sim.pipeline.points.PointsConfig` (its ``frame_*`` fields; ``frame_rounds`` 0
+        config: :class:`~vid2sim.reconstruct.stages.points.PointsConfig` (its ``frame_*`` fields; ``frame_rounds`` 0
             gives the frame-0 points).
 
     Returns:
-        (:class:`~vid2sim.pipeline.points.ObjectPoints`, a JSON-ready record: per round the tracked residuals,
+        (:class:`~vid2sim.reconstruct.stages.points.ObjectPoints`, a JSON-ready record: per round the tracked residuals,
         which frames were in free flight, chosen, or refused and why, and the voxel counts).
     """
-    from vid2sim.pipeline.points import PointsConfig, object_points, points_from_occupancy
+    from vid2sim.reconstruct.stages.points import PointsConfig, object_points, points_from_occupancy
 
     cfg = config or PointsConfig()
     V, T = masks.shape[:2]

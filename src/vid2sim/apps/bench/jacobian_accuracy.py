@@ -1,6 +1,6 @@
 """Accuracy of the data-free Neural Jacobian against the exact dF/dz (``vid2sim bench jacobian``).
 
-On the standard simulator setting of :mod:`vid2sim.bench.physics_speed` (10 + 1 handles, 20 000 box points,
+On the standard simulator setting of :mod:`vid2sim.apps.bench.physics_speed` (10 + 1 handles, 20 000 box points,
 500 cubature points, the drop on the floor), train the paper's Neural Jacobian data-free for a number of
 iterations and report
 
@@ -20,8 +20,8 @@ from typing import Any
 
 import torch
 
-from vid2sim.bench.physics_speed import PhysicsBenchSettings, build_standard_simulator
-from vid2sim.bench.timing import time_ms
+from vid2sim.apps.bench.physics_speed import PhysicsBenchSettings, build_standard_simulator
+from vid2sim.apps.bench.timing import time_ms
 
 
 def run(device: torch.device, iterations: int = 1000, progress: bool = True) -> dict[str, Any]:

@@ -2,16 +2,16 @@
 
 For each scene ``NAME`` listed in ``SUITE/index.json`` (:func:`vid2sim.synthetic.scenes.make_benchmark`):
 
-1. ``OUT/NAME/asset`` — :func:`vid2sim.pipeline.reconstruct.reconstruct` with the suite's
+1. ``OUT/NAME/asset`` — :func:`vid2sim.reconstruct.pipeline.reconstruct` with the suite's
    :class:`SuiteConfig` (skipped when a complete asset is already there; a reconstruction interrupted
    half-way resumes after its last finished stage through reconstruct's own work folder);
-2. ``OUT/NAME/evaluation.json`` — :func:`vid2sim.pipeline.evaluate.evaluate` of that asset on the scene
+2. ``OUT/NAME/evaluation.json`` — :func:`vid2sim.evaluate.scores.evaluate` of that asset on the scene
    (written last and atomically: a scene with this file is finished and skipped by the next run);
 3. ``OUT/NAME/run.json`` — the scene's wall time; ``OUT/NAME/error.txt`` — the traceback when it failed.
 
 A scene that raises is recorded as failed with its error message and the suite goes on; rerunning the
 command retries the failed and unfinished scenes only. The scenes run one after the other in this process,
-or as Ray tasks (``ray_address``, :mod:`vid2sim.bench.ray_runner`) with the same code and seeds, so the
+or as Ray tasks (``ray_address``, :mod:`vid2sim.runtime.ray_runner`) with the same code and seeds, so the
 numbers do not depend on where a scene ran. ``OUT/suite.json`` (written atomically at the end) holds
 every scene's record and the means over the finished scenes (schema in :func:`run_suite`);
 ``OUT/suite_config.json`` the settings, checked when a run resumes. :func:`format_table` prints the
@@ -32,7 +32,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
-    from vid2sim.pipeline.reconstruct import ReconstructConfig
+    from vid2sim.reconstruct.pipeline import ReconstructConfig
 
 SUITE_JSON = "suite.json"
 SUITE_CONFIG_JSON = "suite_config.json"
@@ -67,7 +67,7 @@ class SuiteConfig:
 
     Attributes:
         preset: the reconstruction preset, "small" (CPU minutes per scene) or "full" (the paper's sizes);
-            see :meth:`vid2sim.pipeline.reconstruct.ReconstructConfig.preset`.
+            see :meth:`vid2sim.reconstruct.pipeline.ReconstructConfig.preset`.
         iterations: joint-optimisation iterations instead of the preset's (None: the preset's).
         reconstruct: a complete ReconstructConfig used instead of the preset (tests, studies); ``iterations``
             still applies when given. suite.json then names the preset "custom".
@@ -100,7 +100,7 @@ class SuiteConfig:
 
     def reconstruct_config(self) -> "ReconstructConfig":
         """The ReconstructConfig every scene uses (a fresh copy)."""
-        from vid2sim.pipeline.reconstruct import ReconstructConfig
+        from vid2sim.reconstruct.pipeline import ReconstructConfig
 
         cfg = copy.deepcopy(self.reconstruct) if self.reconstruct is not None else ReconstructConfig.preset(self.preset)
         if self.iterations is not None:
@@ -135,8 +135,8 @@ def run_scene(task: SceneTask, progress: bool = False) -> dict[str, Any]:
     """
     import torch
 
-    from vid2sim.pipeline.evaluate import evaluate, write_report
-    from vid2sim.pipeline.reconstruct import reconstruct
+    from vid2sim.evaluate.scores import evaluate, write_report
+    from vid2sim.reconstruct.pipeline import reconstruct
     from vid2sim.report import write_report as write_html_report
 
     out = Path(task.out)
@@ -257,7 +257,7 @@ def run_suite(suite_dir: str | Path, out_dir: str | Path, config: SuiteConfig | 
         config: the settings (default :class:`SuiteConfig`).
         progress: a progress bar over the scenes.
         ray_address: run every unfinished scene as a Ray task there ("local", "auto", "HOST:PORT", …;
-            :mod:`vid2sim.bench.ray_runner`) instead of one after the other here.
+            :mod:`vid2sim.runtime.ray_runner`) instead of one after the other here.
     Returns:
         the content of ``out_dir/suite.json``: ``{"suite": path, "preset": str, "scenes": [record, ...],
         "means": {key: float | None}, "failed": int}`` with the scene records of :func:`run_scene` in the
@@ -266,13 +266,13 @@ def run_suite(suite_dir: str | Path, out_dir: str | Path, config: SuiteConfig | 
     Raises:
         FileNotFoundError / ValueError: not a finished suite; ``out_dir`` is a foreign non-empty folder or
             holds a run made with other settings.
-        vid2sim.bench.ray_runner.RayUnavailable: ``ray_address`` given but Ray missing or unreachable.
+        vid2sim.runtime.ray_runner.RayUnavailable: ``ray_address`` given but Ray missing or unreachable.
     """
     from tqdm.auto import tqdm
 
     config = config or SuiteConfig()
     if ray_address is not None:  # fail before writing anything
-        from vid2sim.bench.ray_runner import check_ray
+        from vid2sim.runtime.ray_runner import check_ray
 
         check_ray(ray_address)
     suite = Path(suite_dir).resolve()
@@ -301,7 +301,7 @@ def run_suite(suite_dir: str | Path, out_dir: str | Path, config: SuiteConfig | 
                 bar.set_postfix_str(f"{names[i]} running" + (f", {len(failed)} failed" if failed else ""))
                 done(i, run_scene(tasks[i]))
         else:
-            from vid2sim.bench.ray_runner import ray_map
+            from vid2sim.runtime.ray_runner import ray_map
 
             def gathered(i: int, result: Any) -> None:
                 if isinstance(result, BaseException):  # the worker or its node died: the task never returned

@@ -20,7 +20,7 @@ import math
 
 import torch
 
-from vid2sim.bench.timing import time_ms
+from vid2sim.apps.bench.timing import time_ms
 from vid2sim.splats.cameras import Camera, camera_ring
 from vid2sim.splats.render import render, resolve_backend
 from vid2sim.splats.sh import num_sh_bases, rgb_to_sh_dc

@@ -6,10 +6,10 @@ one):
 
 1. ``scene/`` — a procedural object dropped on the floor, simulated by the FEM (converged in time) with a known
    material and rendered in a ring of cameras (:func:`vid2sim.synthetic.scenes.make_scene`);
-2. ``asset/`` — reconstructed from the observed views and frames (:func:`vid2sim.pipeline.reconstruct.reconstruct`);
+2. ``asset/`` — reconstructed from the observed views and frames (:func:`vid2sim.reconstruct.pipeline.reconstruct`);
 3. ``asset/evaluation.json`` — PSNR / SSIM on observed, future and novel views, material and Chamfer errors
-   (:func:`vid2sim.pipeline.evaluate.evaluate`);
-4. ``simulation/`` — the asset in a situation it was never seen in (:mod:`vid2sim.pipeline.simulate`);
+   (:func:`vid2sim.evaluate.scores.evaluate`);
+4. ``simulation/`` — the asset in a situation it was never seen in (:mod:`vid2sim.simulate.run`);
 5. ``report/index.html`` — everything above, to open in a browser (:mod:`vid2sim.report`).
 
 ``DemoConfig.size = "small"`` is the README's demo (about 6 minutes on two CPU cores); ``"tiny"`` runs the same
@@ -25,8 +25,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
-    from vid2sim.pipeline.reconstruct import ReconstructConfig
-    from vid2sim.pipeline.scenario import Scenario
+    from vid2sim.reconstruct.pipeline import ReconstructConfig
+    from vid2sim.simulate.scenario import Scenario
     from vid2sim.synthetic.scenes import SyntheticSceneConfig
 
 SIZES = ("small", "tiny")
@@ -42,7 +42,7 @@ class DemoConfig:
         seed: seed of the procedural object, its texture and its drop.
         youngs_modulus: the true E of the scene (Pa); the reconstruction starts from 1e5 Pa.
         poisson_ratio: the true ν; the reconstruction starts from 0.3.
-        scenario: the new situation to simulate, as :class:`vid2sim.pipeline.scenario.Scenario` fields
+        scenario: the new situation to simulate, as :class:`vid2sim.simulate.scenario.Scenario` fields
             (a YAML-like dict): by default the object dropped from higher onto a ball lying on the floor,
             seen by a camera orbiting it.
     """
@@ -68,9 +68,9 @@ class DemoConfig:
 
     def reconstruct_config(self) -> "ReconstructConfig":
         """The reconstruction: the small preset, or toy sizes."""
-        from vid2sim.pipeline.joint import JointConfig
-        from vid2sim.pipeline.points import PointsConfig
-        from vid2sim.pipeline.reconstruct import ReconstructConfig
+        from vid2sim.reconstruct.stages.joint import JointConfig
+        from vid2sim.reconstruct.stages.points import PointsConfig
+        from vid2sim.reconstruct.pipeline import ReconstructConfig
         from vid2sim.splats.fitting import FitConfig
 
         if self.size == "small":
@@ -84,7 +84,7 @@ class DemoConfig:
     def new_scenario(self) -> "Scenario":
         """The new situation: the object lifted 30 cm and dropped onto a ball lying on the floor, filmed by a
         camera orbiting it (``scenario`` fields override)."""
-        from vid2sim.pipeline.scenario import Scenario
+        from vid2sim.simulate.scenario import Scenario
 
         frames = 8 if self.size == "tiny" else 36
         resolution = 32 if self.size == "tiny" else 160
@@ -117,7 +117,7 @@ STEPS = ("scene", "asset", "evaluation", "simulation", "report")
 def _ball_under(asset_path: Path, drop: float) -> dict[str, Any]:
     """A ball on the floor under the asset's frame-0 centre (radius a third of the object's size), clear of
     the object lifted by ``drop`` metres."""
-    from vid2sim.pipeline.asset import load_asset
+    from vid2sim.asset.folder import load_asset
 
     asset = load_asset(asset_path)
     pts = asset.points
@@ -140,9 +140,9 @@ def run_demo(out: str | Path, config: DemoConfig | None = None, progress: bool =
     Raises:
         FileExistsError: ``out`` holds something other than an earlier demo with the same settings.
     """
-    from vid2sim.pipeline.evaluate import evaluate, write_report as write_json
-    from vid2sim.pipeline.reconstruct import reconstruct
-    from vid2sim.pipeline.simulate import simulate
+    from vid2sim.evaluate.scores import evaluate, write_report as write_json
+    from vid2sim.reconstruct.pipeline import reconstruct
+    from vid2sim.simulate.run import simulate
     from vid2sim.report import write_report
     from vid2sim.synthetic.scenes import make_scene
 
@@ -192,7 +192,7 @@ def run_demo(out: str | Path, config: DemoConfig | None = None, progress: bool =
         t0 = step("simulation", 4, f"simulating it in a new situation (dropped onto a ball) into {sim}")
         scenario = cfg.new_scenario()
         if "obstacles" not in cfg.scenario:
-            from vid2sim.pipeline.scenario import ObstacleSpec
+            from vid2sim.simulate.scenario import ObstacleSpec
 
             ball = _ball_under(asset, drop=0.3)
             scenario.obstacles.append(ObstacleSpec(center=tuple(ball["center"]), radius=ball["radius"]))

@@ -231,10 +231,10 @@ def _surface_samples(points: np.ndarray, n: int, rng: np.random.Generator) -> np
     The silhouette of a solid is the projection of its surface, but interior samples stop short of the
     surface by a random, direction-dependent gap (a sparse rim): fitted to silhouettes they leave the pose,
     above all the rotation, uncertain by a degree or two. So the surface is taken from
-    :func:`vid2sim.pipeline.stiffness.solid_surface` (binned on a grid of their mean nearest-neighbour spacing,
+    :func:`vid2sim.reconstruct.stages.calibration.solid_surface` (binned on a grid of their mean nearest-neighbour spacing,
     at most 160 cells a side, blurred, marching cubes at half the density). Returns None when none is found.
     """
-    from vid2sim.pipeline.stiffness import solid_surface
+    from vid2sim.reconstruct.stages.calibration import solid_surface
 
     surface = solid_surface(points, cells=160, rng=rng)
     if surface is None:

@@ -29,7 +29,7 @@ from typing import Any
 
 import torch
 
-from vid2sim.bench.timing import time_ms
+from vid2sim.apps.bench.timing import time_ms
 
 
 @dataclass

@@ -40,7 +40,7 @@ class PointsConfig:
         max_contact_points: the surface voxels are reduced to at most this many contact points (farthest-point
             sampling; each keeps the area of the voxels nearest to it) — the contact's cost grows with them.
         seed: seeds the sampling.
-        frame_rounds: rounds of carving with the later frames' masks (:mod:`vid2sim.pipeline.carving`; 0: the
+        frame_rounds: rounds of carving with the later frames' masks (:mod:`vid2sim.reconstruct.stages.carving`; 0: the
             frame-0 hull only).
         frame_residual_ratio: a frame carves only if its rigid pose fits its silhouettes with a residual at most
             this many times frame 0's.

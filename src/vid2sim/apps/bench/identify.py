@@ -81,7 +81,7 @@ class IdentifyConfig:
         fit_damping: also fit ζ; False (the default) keeps it at ``prior_damping``, as ``reconstruct`` does by
             default (``JointConfig.fit_damping``). ζ and ν trade off: a fitted ζ lets ν drift.
         coarse_log10_E: the grid searched over log10 E (at the prior ν and ζ) before L-BFGS, as the video
-            pipeline does (:class:`~vid2sim.pipeline.joint.JointConfig`); empty: start at ``prior_E``. The loss
+            pipeline does (:class:`~vid2sim.reconstruct.stages.joint.JointConfig`); empty: start at ``prior_E``. The loss
             is not convex in E: with a subspace close to the truth's stiffness, two of the six scenes stopped in
             a side valley 0.5–0.8 decade below the truth when the descent started at the prior.
         fit_iterations: L-BFGS iterations (each takes a few loss evaluations).
@@ -500,7 +500,7 @@ def fit(scene: PerfectGeometry, config: IdentifyConfig, progress: bool = False) 
     unconstrained; the substep count follows the current E (:meth:`Simulator.substeps`)."""
     from tqdm.auto import tqdm
 
-    from vid2sim.pipeline.joint import coarse_minimum
+    from vid2sim.reconstruct.stages.joint import coarse_minimum
 
     sim = scene.simulator
     start = time.perf_counter()
@@ -783,7 +783,7 @@ def run(config: IdentifyConfig, workdir: str | Path, progress: bool = True, work
     """Run the benchmark; returns the JSON-ready report (per scene and means).
 
     ``workers`` > 1 runs that many scenes at once in spawned processes (each with ``threads_per_worker``
-    torch threads; :func:`vid2sim.workers.process_pool`). The ground truth of a scene runs in one process, so
+    torch threads; :func:`vid2sim.runtime.workers.process_pool`). The ground truth of a scene runs in one process, so
     on a 2-core machine two workers halve the wall time of a fresh work folder. The rows are the same as
     with one worker: every scene is computed from its own seed and cache.
     """
@@ -807,7 +807,7 @@ def run(config: IdentifyConfig, workdir: str | Path, progress: bool = True, work
     else:
         from concurrent.futures import as_completed
 
-        from vid2sim.workers import process_pool
+        from vid2sim.runtime.workers import process_pool
 
         with process_pool(workers) as pool, \
                 tqdm(total=len(suite), desc=f"identify scenes ({workers} workers)", unit="scene",

@@ -4,24 +4,24 @@ Stages (each saved in a work folder beside the output, so an interrupted run res
 stage; the asset folder itself appears only when everything is done):
 
 1. ``gaussians`` — 3D Gaussians fitted to frame 0 of the observed views (:func:`vid2sim.splats.fit_gaussians`).
-2. ``points`` — the object's interior at frame 0 (:func:`vid2sim.pipeline.points.object_points`): simulation
+2. ``points`` — the object's interior at frame 0 (:func:`vid2sim.reconstruct.stages.points.object_points`): simulation
    points, volume, contact points, canonical frame. The frame-0 hull is then carved again with the masks of
-   the later frames that a tracked rigid pose explains (:mod:`vid2sim.pipeline.carving`): the sides that no
+   the later frames that a tracked rigid pose explains (:mod:`vid2sim.reconstruct.stages.carving`): the sides that no
    camera saw in profile at frame 0, where the object meets the floor as it rolls, would otherwise give the
    bounce the wrong spin.
 3. ``velocity`` — the initial rigid velocity from the ballistic pre-contact frames
-   (:func:`vid2sim.pipeline.initial_state.estimate_initial_velocity`).
+   (:func:`vid2sim.reconstruct.stages.velocity.estimate_initial_velocity`).
 4. ``appearance`` — the Gaussians refined on all those ballistic frames at once: the object's fitted rigid pose
    in frame t turns each camera into a virtual camera looking at the frame-0 object, so K frames of V views
    become K·V views of one rigid object (a few views of frame 0 alone leave the Gaussians overfitted to
    those viewpoints; as the object turns and moves, that shows).
 5. ``networks`` — the skinning field trained data-free on the canonical points (and the Neural Jacobian when
    ``jacobian="neural"``), then moved to the metric frame by its input frame.
-6. ``joint`` — the joint optimisation (:func:`vid2sim.pipeline.joint.joint_optimisation`) from the prior
+6. ``joint`` — the joint optimisation (:func:`vid2sim.reconstruct.stages.joint.joint_optimisation`) from the prior
    material.
 7. ``motion_appearance`` — the Gaussians (colours, opacities and, by default, rest-frame geometry) refitted on
    every observed frame through the finished asset's simulated motion
-   (:mod:`vid2sim.pipeline.motion_appearance`): after the bounce the views see sides of the object and a
+   (:mod:`vid2sim.reconstruct.stages.motion_appearance`): after the bounce the views see sides of the object and a
    lighting that frame 0 never showed.
 
 **Stage I** (``ReconstructConfig.stage1``, ``--stage1``; off by default while the shipped predictor misses its
@@ -53,8 +53,8 @@ from typing import Any
 
 import torch
 
-from vid2sim.pipeline.joint import JointConfig
-from vid2sim.pipeline.points import PointsConfig
+from vid2sim.reconstruct.stages.joint import JointConfig
+from vid2sim.reconstruct.stages.points import PointsConfig
 from vid2sim.physics.solver import SimConfig
 from vid2sim.splats.densify import DensifyConfig
 from vid2sim.splats.fitting import FitConfig
@@ -100,7 +100,7 @@ class ReconstructConfig:
         density: kg/m³ when the scene does not give one.
         calibrate_stiffness: scale the simulator's elastic energy by s = (ω_tets / ω_subspace)² of the lowest
             mode, so that the fitted E is the material's rather than the stiffer subspace's
-            (:mod:`vid2sim.pipeline.stiffness`: quadratic tets on a surface of the kept voxels; see
+            (:mod:`vid2sim.reconstruct.stages.calibration`: quadratic tets on a surface of the kept voxels; see
             ``calibration_nu``). On by default: on the eight-scene small suite it takes the E error from
             0.27 to 0.20 decade and ν's from 0.10 to 0.07 (docs/results.md). Its tet reference runs in a child process
             beside the velocity, appearance and network stages. fTetWild is not deterministic, so a
@@ -329,7 +329,7 @@ def _calibrated(path: Path, want_curve: bool, want_two: bool, volumetric: str, m
 
 
 def _stored_reference(path: Path, nus: tuple[float, ...], k: int) -> dict | None:
-    """The tet reference a finished :class:`~vid2sim.pipeline.stiffness.TetReferenceJob` left at ``path`` for this
+    """The tet reference a finished :class:`~vid2sim.reconstruct.stages.calibration.TetReferenceJob` left at ``path`` for this
     grid and k, or None."""
     if not path.is_file():
         return None
@@ -344,9 +344,9 @@ def _stored_reference(path: Path, nus: tuple[float, ...], k: int) -> dict | None
 
 
 def _calibration_points(obj, cfg: ReconstructConfig) -> torch.Tensor:
-    """(N, 3) samples of the kept voxels of ``obj`` (:class:`~vid2sim.pipeline.points.ObjectPoints`) that the
+    """(N, 3) samples of the kept voxels of ``obj`` (:class:`~vid2sim.reconstruct.stages.points.ObjectPoints`) that the
     calibration's reference mesh is made from."""
-    from vid2sim.pipeline.points import sample_in_voxels
+    from vid2sim.reconstruct.stages.points import sample_in_voxels
 
     return sample_in_voxels(obj.occupancy, obj.origin.double(), obj.voxel, cfg.calibration_points,
                             torch.Generator().manual_seed(cfg.seed))
@@ -431,7 +431,7 @@ def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConf
     (one thread), the stages run on one torch thread fewer than the caller's; the count is restored on return.
 
     Returns:
-        the asset folder (readable with :func:`vid2sim.pipeline.asset.load_asset`).
+        the asset folder (readable with :func:`vid2sim.asset.folder.load_asset`).
     Raises:
         vid2sim.scene.validation.SceneFormatError: the scene folder is invalid.
         ReconstructionError: the scene cannot be reconstructed as given.
@@ -449,7 +449,7 @@ def _share_cores(job, threads: int) -> None:
     The child computes with one thread. With it running, a caller on all the cores oversubscribes them, and
     torch's thread pool then slows several-fold (the appearance stage took 3.6× as long with 2 threads as
     with 1 on a 2-core machine). Called at every stage boundary until the child is joined; a child that has
-    ended without its result is reported there (:meth:`~vid2sim.pipeline.stiffness.TetReferenceJob.check`)
+    ended without its result is reported there (:meth:`~vid2sim.reconstruct.stages.calibration.TetReferenceJob.check`)
     rather than after the stages that run beside it.
     """
     if job is not None:
@@ -469,16 +469,16 @@ def _reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructCon
     from vid2sim.physics.neural_jacobian import NeuralJacobian, NeuralJacobianTrainingConfig, train_neural_jacobian
     from vid2sim.physics.skinning_training import SkinningTrainingConfig, train_skinning
     from vid2sim.physics.stiffness_curve import StiffnessCurve
-    from vid2sim.pipeline.asset import Asset, save_asset
-    from vid2sim.pipeline.initial_state import TooFewBallisticFrames, estimate_initial_velocity
-    from vid2sim.pipeline.joint import Observations, joint_optimisation
-    from vid2sim.pipeline.carving import carve_with_frames
-    from vid2sim.pipeline.points import ObjectPoints
+    from vid2sim.asset.folder import Asset, save_asset
+    from vid2sim.reconstruct.stages.velocity import TooFewBallisticFrames, estimate_initial_velocity
+    from vid2sim.reconstruct.stages.joint import Observations, joint_optimisation
+    from vid2sim.reconstruct.stages.carving import carve_with_frames
+    from vid2sim.reconstruct.stages.points import ObjectPoints
     from vid2sim.scene.folder import load_scene
     from vid2sim.splats.fitting import fit_gaussians
     from vid2sim.splats.ply import load_ply, save_ply
 
-    from vid2sim.bench.timing import resolve_device
+    from vid2sim.runtime.device import resolve_device
 
     cfg = config or ReconstructConfig()
     dev = device if isinstance(device, torch.device) else resolve_device(device)
@@ -532,7 +532,7 @@ def _reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructCon
     if cfg.calibrate_stiffness and want_curve and \
             not _calibrated(calibration_path, want_curve, want_two, cfg.volumetric) and \
             _stored_reference(reference_path, CURVE_NUS, reference_k) is None:
-        from vid2sim.pipeline.stiffness import TetReferenceJob
+        from vid2sim.reconstruct.stages.calibration import TetReferenceJob
 
         reference_job = TetReferenceJob(_calibration_points(obj_cpu, cfg).numpy(), reference_path, nus=CURVE_NUS,
                                         k=reference_k, cells=cfg.calibration_cells, seed=cfg.seed)
@@ -639,7 +639,7 @@ def _reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructCon
         mass_volumes = moment_matched_volumes(obj.points[idx], weights,
                                               voxel_moments(obj.occupancy, obj.origin, obj.voxel).to(weights))
     if cfg.calibrate_stiffness and not _calibrated(calibration_path, want_curve, want_two, cfg.volumetric, cfg.mass):
-        from vid2sim.pipeline.stiffness import calibrate_stiffness
+        from vid2sim.reconstruct.stages.calibration import calibrate_stiffness
 
         _stage(progress, "      calibrating the subspace's stiffness against quadratic tets")
         if want_curve:
@@ -715,7 +715,7 @@ def _reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructCon
     motion_ply = work.dir / "gaussians_motion.ply"
     if cfg.motion_appearance_iterations > 0:
         if not work.done("motion_appearance"):
-            from vid2sim.pipeline.motion_appearance import SkinnedMotion, initial_shading, refine_on_motion
+            from vid2sim.reconstruct.stages.motion_appearance import SkinnedMotion, initial_shading, refine_on_motion
 
             what = "Gaussians" if cfg.motion_appearance_geometry else "colours"
             _stage(progress, f"[7/7] refitting the {what} on {len(T)} observed frames along the simulated motion")

@@ -35,7 +35,7 @@ if TYPE_CHECKING:  # heavy imports only where used
     from torch import Tensor
 
     from vid2sim.physics.solver import SimState, Simulator
-    from vid2sim.pipeline.asset import Asset
+    from vid2sim.asset.folder import Asset
     from vid2sim.splats.cameras import Camera
 
 __all__ = [
@@ -724,7 +724,7 @@ class ResolvedScenario:
         scenario: the scenario with every default filled in (what ``scenario.yaml`` records; running it
             again gives the same simulation).
         externals: gravity, the floor and the obstacles (:mod:`vid2sim.physics.external`).
-        material: keyword arguments of :meth:`~vid2sim.pipeline.asset.Asset.simulator` (E, ν, density,
+        material: keyword arguments of :meth:`~vid2sim.asset.folder.Asset.simulator` (E, ν, density,
             damping ratio, model, plasticity).
         rotation: (3, 3) float64 rotation of the rest shape about ``centre``; translation: (3,) m after it.
         centre: (3,) the rest shape's centre of mass (m).

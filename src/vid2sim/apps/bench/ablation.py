@@ -1,7 +1,7 @@
 """``vid2sim bench ablation``: the paper's Stage I ablation on a ``make-benchmark`` suite.
 
 Three variants of the reconstruction (:data:`VARIANTS`, in this order) each run as a whole
-:func:`vid2sim.bench.suite.run_suite` into ``OUT/<variant>``:
+:func:`vid2sim.apps.bench.suite.run_suite` into ``OUT/<variant>``:
 
 * ``stage1_only`` — Stage I alone: the predictor's log10 E and ν are the asset's material and its last layer
   starts the skinning field; Stage II does nothing (``JointConfig.iterations = 0``, no coarse search over E).
@@ -33,11 +33,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Mapping, Sequence
 
-from vid2sim.bench.suite import (SUITE_JSON, SuiteConfig, _write_json_atomic, check_out, read_index, run_suite,
+from vid2sim.apps.bench.suite import (SUITE_JSON, SuiteConfig, _write_json_atomic, check_out, read_index, run_suite,
                                  suite_summary)
 
 if TYPE_CHECKING:
-    from vid2sim.pipeline.reconstruct import ReconstructConfig
+    from vid2sim.reconstruct.pipeline import ReconstructConfig
 
 ABLATION_JSON = "ablation.json"
 TOLERANCE_LOG10_E = 0.05  # decades
@@ -119,7 +119,7 @@ def iterations_to_converge(log: Sequence[Mapping[str, Any]], final_log10_E: floa
                            tolerance_nu: float = TOLERANCE_NU) -> Convergence:
     """Stage II iterations a reconstruction needed to converge, from its joint log.
 
-    The log is the asset's ``log.json`` ``"iterations"`` (:attr:`vid2sim.pipeline.joint.JointResult.log`): one
+    The log is the asset's ``log.json`` ``"iterations"`` (:attr:`vid2sim.reconstruct.stages.joint.JointResult.log`): one
     dict per Adam iteration with ``iteration`` (1 … N) and the ``log10_E`` and ``nu`` *after* that iteration's
     step, preceded by the entry of iteration 0 (the state the iterations start from: after the coarse search
     over log10 E, or Stage I's prediction). For each of log10 E and ν the answer is the first iteration k after
@@ -252,20 +252,20 @@ def run_ablation(suite_dir: str | Path, out_dir: str | Path, config: SuiteConfig
         predictor: the Stage I checkpoint (None: ``config``'s ReconstructConfig.predictor, by default the one
             shipped with vid2sim).
         progress: progress bars, and a line per variant.
-        ray_address: run each variant's scenes as Ray tasks (:func:`vid2sim.bench.suite.run_suite`).
+        ray_address: run each variant's scenes as Ray tasks (:func:`vid2sim.apps.bench.suite.run_suite`).
     Returns:
         the content of ``out_dir/ablation.json``: ``{"suite": path, "preset": str, "predictor": path,
         "variants": {name: {"label", "out", "means", "failed", "scenes"}}, "iterations_to_converge":
         {"tolerance_log10_E", "tolerance_nu", "definition", "variants": {name: {"mean", "mean_log10_E",
         "mean_nu", "per_scene": {scene: int | None}, "not_settled": [scene, ...]}}}, "failed": int}``.
-        ``means`` holds the :data:`vid2sim.bench.suite.METRICS` means over the variant's finished scenes and
+        ``means`` holds the :data:`vid2sim.apps.bench.suite.METRICS` means over the variant's finished scenes and
         ``iterations_to_converge`` (+ ``_log10_E``, ``_nu``) means over those where it is defined; ``scenes``
-        are :func:`vid2sim.bench.suite.run_scene` records with ``stage1`` (log.json's) and ``convergence``
+        are :func:`vid2sim.apps.bench.suite.run_scene` records with ``stage1`` (log.json's) and ``convergence``
         (:class:`Convergence`, None for a failed scene) added.
     Raises:
         ValueError: handles != 10, the predictor checkpoint missing or transformers not installed (Stage I
             could not run), a variant folder holding a run with other settings — all before any work; and
-            what :func:`~vid2sim.bench.suite.run_suite` raises (not a finished suite, ...).
+            what :func:`~vid2sim.apps.bench.suite.run_suite` raises (not a finished suite, ...).
         FileExistsError: ``out_dir`` is a non-empty folder that holds no ablation.
     """
     from tqdm.auto import tqdm
@@ -282,7 +282,7 @@ def run_ablation(suite_dir: str | Path, out_dir: str | Path, config: SuiteConfig
         raise FileExistsError(f"{out} is not empty and holds no ablation run ({', '.join(configs)}): refusing to "
                               "write one there")
     if ray_address is not None:
-        from vid2sim.bench.ray_runner import check_ray
+        from vid2sim.runtime.ray_runner import check_ray
 
         check_ray(ray_address)
     for name, cfg in configs.items():  # a resumed variant with other settings: refused before any work

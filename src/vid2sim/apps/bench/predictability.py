@@ -10,7 +10,7 @@ This benchmark measures that. The scene's ground truth is simulated again with e
 ``synthetic.json``, its own tet mesh from ``fem_result.npz``, the same time-convergence schedule) except the
 drop height, raised by ``height_offset`` (default 1 mm, a fourteenth of a pixel at 128²). The twin is written
 as a scene folder, and its images are scored against the truth's exactly as ``vid2sim evaluate`` scores an
-asset (:func:`vid2sim.pipeline.evaluate.scene_groups`: dynamic, future and novel-view PSNR / SSIM). With the
+asset (:func:`vid2sim.evaluate.scores.scene_groups`: dynamic, future and novel-view PSNR / SSIM). With the
 offset 0 the twin is the truth itself (the FEM and the renderer are deterministic), which the tests check.
 The mean distance between the two surfaces (the same vertices) per frame is reported too.
 
@@ -91,7 +91,7 @@ def predictability(scene: str | Path, out: str | Path, height_offset: float = 1e
         ``surface_offset_m`` (per frame), ``observed_mean_surface_offset_m``, ``future_mean_surface_offset_m``,
         the twin's and the truth's FEM substeps, and the settings.
     """
-    from vid2sim.pipeline.evaluate import scene_groups
+    from vid2sim.evaluate.scores import scene_groups
     from vid2sim.scene.folder import load_scene
     from vid2sim.synthetic.scenes import SYNTHETIC_JSON, check_existing_scene, make_scene
 

@@ -1,0 +1,1 @@
+"""An asset scored on a scene: images (PSNR, SSIM, FoVVDP), material, geometry and motion."""

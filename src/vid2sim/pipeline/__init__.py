@@ -1,1 +1,0 @@
-"""Stage II orchestration: reconstruct a scene folder into a simulation-ready asset."""

@@ -1,0 +1,1 @@
+"""The stages of the reconstruction, one module each (docs/architecture.md)."""

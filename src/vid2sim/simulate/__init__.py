@@ -1,0 +1,1 @@
+"""New simulations of an asset: scenarios (materials, floors, obstacles, views), their runs and outputs."""
