@@ -5,7 +5,7 @@ import json
 import pytest
 
 from vid2sim.cli import main
-from vid2sim.pipeline import demo as demo_module
+from vid2sim.apps import demo as demo_module
 from vid2sim.apps.demo import DemoConfig, run_demo
 
 pytestmark = pytest.mark.slow

@@ -11,7 +11,8 @@ import pytest
 import torch
 
 from vid2sim.cli import main
-from vid2sim.pipeline import reconstruct as reconstruct_module
+from vid2sim.cli import reconstruct as cli_reconstruct
+from vid2sim.reconstruct import pipeline as reconstruct_module
 from vid2sim.asset.folder import load_asset
 from vid2sim.reconstruct.stages.points import PointsConfig
 from vid2sim.reconstruct.pipeline import ReconstructConfig, ReconstructionError, reconstruct
@@ -334,7 +335,7 @@ def test_a_loss_power_below_one_favours_the_frames_the_motion_explains(tiny_asse
 def test_an_interrupted_reconstruction_resumes_after_its_last_finished_stage(tiny_scene, tmp_path, monkeypatch, tiny_config):
     """An interrupted run resumes after its last finished stage and leaves nothing that looks finished; with the
     centre-of-mass search on, the offset the joint stage found moves the asset's lumped masses."""
-    from vid2sim.pipeline import joint as joint_module
+    from vid2sim.reconstruct.stages import joint as joint_module
 
     out = tmp_path / "asset"
     config = tiny_config()
@@ -425,7 +426,7 @@ def test_presets_and_config_errors():
 
 
 def test_a_drop_that_meets_the_floor_by_frame_1_still_reconstructs(tiny_scene, tmp_path, monkeypatch, tiny_config):
-    from vid2sim.pipeline import initial_state
+    from vid2sim.reconstruct.stages import velocity as initial_state
 
     real = initial_state.estimate_initial_velocity
     calls = []
@@ -535,7 +536,7 @@ def test_cli_no_stage1_and_predictor_flags(tiny_scene, tmp_path, monkeypatch):
         seen.append(config)
         raise SystemExit(0)
 
-    monkeypatch.setattr(reconstruct_module, "reconstruct", fake)
+    monkeypatch.setattr(cli_reconstruct, "reconstruct", fake)  # the name the command calls
     with pytest.raises(SystemExit):
         main(["reconstruct", str(tiny_scene), str(tmp_path / "a"), "--no-stage1", "--quiet"])
     assert seen[-1].stage1 is False and seen[-1].predictor is None

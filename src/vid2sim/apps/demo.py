@@ -24,6 +24,8 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from vid2sim.runtime.errors import ConfigError
+
 if TYPE_CHECKING:
     from vid2sim.reconstruct.pipeline import ReconstructConfig
     from vid2sim.simulate.scenario import Scenario
@@ -55,7 +57,7 @@ class DemoConfig:
 
     def __post_init__(self) -> None:
         if self.size not in SIZES:
-            raise ValueError(f"DemoConfig.size must be one of {SIZES}, got {self.size!r}")
+            raise ConfigError(f"DemoConfig.size must be one of {SIZES}, got {self.size!r}")
 
     def scene_config(self) -> "SyntheticSceneConfig":
         """The synthetic scene: the small preset (6 views, 128², 24 frames) or a toy version of it."""
@@ -68,9 +70,9 @@ class DemoConfig:
 
     def reconstruct_config(self) -> "ReconstructConfig":
         """The reconstruction: the small preset, or toy sizes."""
+        from vid2sim.reconstruct.pipeline import ReconstructConfig
         from vid2sim.reconstruct.stages.joint import JointConfig
         from vid2sim.reconstruct.stages.points import PointsConfig
-        from vid2sim.reconstruct.pipeline import ReconstructConfig
         from vid2sim.splats.fitting import FitConfig
 
         if self.size == "small":
@@ -140,10 +142,11 @@ def run_demo(out: str | Path, config: DemoConfig | None = None, progress: bool =
     Raises:
         FileExistsError: ``out`` holds something other than an earlier demo with the same settings.
     """
-    from vid2sim.evaluate.scores import evaluate, write_report as write_json
+    from vid2sim.evaluate.scores import evaluate
+    from vid2sim.evaluate.scores import write_report as write_json
     from vid2sim.reconstruct.pipeline import reconstruct
-    from vid2sim.simulate.run import simulate
     from vid2sim.report import write_report
+    from vid2sim.simulate.run import simulate
     from vid2sim.synthetic.scenes import make_scene
 
     cfg = config or DemoConfig()

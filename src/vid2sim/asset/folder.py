@@ -34,6 +34,7 @@ from torch import Tensor
 
 from vid2sim.physics.solver import SimConfig, SimState, Simulator
 from vid2sim.physics.stiffness_curve import StiffnessCurve
+from vid2sim.runtime.errors import ConfigError, InputError
 from vid2sim.splats.gaussians import Gaussians
 from vid2sim.splats.shading import Shading
 
@@ -44,7 +45,7 @@ FILES = {"asset": "asset.json", "material": "material.json", "gaussians": "gauss
          "shading": "shading.npz"}
 
 
-class AssetFormatError(ValueError):
+class AssetFormatError(InputError):
     """An asset folder is missing a file or holds an invalid value (the message names it)."""
 
 
@@ -100,7 +101,7 @@ class Asset:
 
     def __post_init__(self) -> None:
         if self.shading is not None and self.shading.num != self.gaussians.num:
-            raise ValueError(f"Asset: the shading has {self.shading.num} normals for {self.gaussians.num} Gaussians")
+            raise ConfigError(f"Asset: the shading has {self.shading.num} normals for {self.gaussians.num} Gaussians")
 
     def rest_gaussians(self) -> Gaussians:
         """The Gaussians as they look at rest (frame 0's pose): lit by the shading when the asset has one."""

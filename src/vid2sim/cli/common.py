@@ -4,9 +4,13 @@ from __future__ import annotations
 
 import argparse
 
+import torch
 
-class UserError(Exception):
-    """An error caused by the user's input; printed as one clear line, without a traceback."""
+from vid2sim.runtime.errors import InputError
+
+
+class UserError(InputError):
+    """A command-line option or argument the command cannot use; printed as one clear line, without a traceback."""
 
 
 def add_threads_option(p: argparse.ArgumentParser) -> None:
@@ -18,9 +22,18 @@ def add_threads_option(p: argparse.ArgumentParser) -> None:
 
 def set_threads(threads: int | None) -> None:
     """Apply ``--threads`` (None keeps torch's default); raises :class:`UserError` for a value below 1."""
-    import torch
 
     if threads is not None:
         if threads < 1:
             raise UserError(f"--threads must be >= 1, got {threads}")
         torch.set_num_threads(threads)
+
+
+def add_suite_run_options(p: argparse.ArgumentParser) -> None:
+    """--ray-address, --threads and --quiet of the commands that run a benchmark suite."""
+    p.add_argument("--ray-address", default=None, metavar="ADDR",
+                   help="run each scene as a Ray task: 'local' starts Ray on this machine, or a cluster address "
+                        "(auto, HOST:6379); OUT must be a path every node sees (needs pip install \"vid2sim[ray]\")")
+    p.add_argument("--threads", type=int, default=None,
+                   help="torch threads per scene, and CPUs each Ray task reserves (default: torch's; 1 per Ray task)")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")

@@ -7,11 +7,11 @@ import argparse
 import math
 import time
 
+from vid2sim.apps.demo import DemoConfig, run_demo
 from vid2sim.cli.common import UserError, add_threads_option, set_threads
 
 
-def _cmd_demo(args: argparse.Namespace) -> int:
-    from vid2sim.apps.demo import DemoConfig, run_demo
+def run(args: argparse.Namespace) -> int:
 
     set_threads(args.threads)
     try:
@@ -59,4 +59,4 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=0, help="seed of the object, its texture and its drop (default 0)")
     add_threads_option(p)
     p.add_argument("--quiet", action="store_true", help="no progress output")
-    p.set_defaults(func=_cmd_demo)
+    p.set_defaults(func=run)

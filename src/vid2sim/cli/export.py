@@ -9,7 +9,13 @@ import shutil
 import tempfile
 from pathlib import Path
 
+from vid2sim.asset.folder import AssetFormatError, load_asset
 from vid2sim.cli.common import UserError, add_threads_option, set_threads
+from vid2sim.export.gltf import export_gltf
+from vid2sim.export.rig import export_rig
+from vid2sim.export.sequence import export_sequence, find_sequence_frames
+from vid2sim.scene.folder import move_into_place
+from vid2sim.splats.ply import PlyFormatError, load_ply, save_ply
 
 FORMATS = ("glb", "gltf", "ply", "rig")
 _SUFFIXES = {".glb": "glb", ".gltf": "gltf", ".ply": "ply"}
@@ -33,11 +39,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="glTF: leave out COLOR_0, the point colours viewers without the splat extension show")
     p.add_argument("--quiet", action="store_true", help="no progress output")
     add_threads_option(p)
-    p.set_defaults(func=_cmd_export)
+    p.set_defaults(func=run)
 
 
 def _source_kind(source: Path) -> str:
-    from vid2sim.export.sequence import find_sequence_frames
 
     if source.is_file():
         if source.suffix.lower() == ".ply":
@@ -65,7 +70,7 @@ def _remove(path: Path) -> None:
         path.unlink()
 
 
-def _cmd_export(args: argparse.Namespace) -> int:
+def run(args: argparse.Namespace) -> int:
     set_threads(args.threads)
     source, out = Path(args.source), Path(args.out)
     kind = _source_kind(source)
@@ -88,18 +93,15 @@ def _cmd_export(args: argparse.Namespace) -> int:
             _remove(p)
 
     if kind == "sequence":
-        from vid2sim.export.sequence import export_sequence
 
         path = export_sequence(source, out, fmt, fallback_color=not args.no_fallback_color, progress=progress)
         index = json.loads((path / "sequence.json").read_text())
         print(f"wrote {path}: {len(index['frames'])} frames as {fmt} ({_size(path)})")
         return 0
 
-    from vid2sim.splats.ply import PlyFormatError, load_ply
 
     up = (0.0, 0.0, 1.0)
     if kind == "asset":
-        from vid2sim.asset.folder import AssetFormatError, load_asset
 
         try:
             asset = load_asset(source)
@@ -110,7 +112,6 @@ def _cmd_export(args: argparse.Namespace) -> int:
         if any(g):
             up = tuple(-float(v) for v in g)
         if fmt == "rig":
-            from vid2sim.export.rig import export_rig
 
             path = export_rig(asset, out)
             print(f"wrote {path}: rig.json, rig.safetensors, gaussians.ply ({_size(path)})")
@@ -127,7 +128,6 @@ def _cmd_export(args: argparse.Namespace) -> int:
               f"{_size(*files)})")
         return 0
 
-    from vid2sim.scene.folder import move_into_place
 
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
@@ -143,13 +143,11 @@ def _cmd_export(args: argparse.Namespace) -> int:
 
 def _write_gaussians(gaussians, path: Path, fmt: str, up, fallback_color: bool) -> list[Path]:
     if fmt == "ply":
-        from vid2sim.splats.ply import save_ply
 
         tmp = path.with_name(f".{path.name}.partial")
         save_ply(gaussians, tmp)
         tmp.replace(path)
         return [path]
-    from vid2sim.export.gltf import export_gltf
 
     return export_gltf(gaussians, path, up=up, fallback_color=fallback_color)
 

@@ -11,13 +11,13 @@ import argparse
 import time
 from pathlib import Path
 
+from vid2sim.asset.folder import AssetFormatError
 from vid2sim.cli.common import UserError, add_threads_option, set_threads
+from vid2sim.report import ReportConfig, ReportInputError, write_report
+from vid2sim.scene.validation import SceneFormatError
 
 
-def _cmd_report(args: argparse.Namespace) -> int:
-    from vid2sim.asset.folder import AssetFormatError
-    from vid2sim.report import ReportConfig, ReportInputError, write_report
-    from vid2sim.scene.validation import SceneFormatError
+def run(args: argparse.Namespace) -> int:
 
     set_threads(args.threads)
     asset = Path(args.asset)
@@ -37,6 +37,16 @@ def _cmd_report(args: argparse.Namespace) -> int:
     return 0
 
 
+def write_asset_report(out, asset, scene, quiet: bool, evaluation=None, renders=None) -> None:
+    """The HTML report of ``asset`` compared with ``scene`` (vid2sim.report), and one line saying where it is."""
+
+    try:
+        path = write_report(out, asset, scene=scene, evaluation=evaluation, renders=renders, progress=not quiet)
+    except ReportInputError as exc:
+        raise UserError(f"the report could not be written: {exc}") from exc
+    print(f"report: {path / 'index.html'}")
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     """Add the ``report`` subcommand."""
     p = sub.add_parser("report", help="write a self-contained HTML report of an asset: ground truth | reconstruction "
@@ -51,4 +61,4 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "the object's trajectory")
     add_threads_option(p)
     p.add_argument("--quiet", action="store_true", help="no progress output")
-    p.set_defaults(func=_cmd_report)
+    p.set_defaults(func=run)

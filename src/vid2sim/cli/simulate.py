@@ -7,8 +7,13 @@ field); with neither it is the captured drop. Every error names the flag, or the
 from __future__ import annotations
 
 import argparse
+import json
+from pathlib import Path
 
 from vid2sim.cli.common import UserError, add_threads_option, set_threads
+from vid2sim.physics.solver import SimulationError
+from vid2sim.simulate.run import OUTPUT_MARKERS, simulate
+from vid2sim.simulate.scenario import Scenario
 
 #: flag dest → (scenario field path, the flag as typed)
 _SCALARS = {
@@ -56,7 +61,6 @@ def _numbers(text: str, flag: str, lengths: tuple[int, ...], example: str) -> tu
 def scenario_from_args(args: argparse.Namespace):
     """The :class:`~vid2sim.simulate.scenario.Scenario` of ``--scenario`` (or the captured drop) with the
     command-line options applied on top (each remembered as set by its flag)."""
-    from vid2sim.simulate.scenario import Scenario
 
     scenario = Scenario.from_yaml(args.scenario) if args.scenario else Scenario()
     for dest, (path, flag) in _SCALARS.items():
@@ -85,11 +89,8 @@ def scenario_from_args(args: argparse.Namespace):
     return scenario
 
 
-def _cmd_simulate(args: argparse.Namespace) -> int:
-    from pathlib import Path
+def run(args: argparse.Namespace) -> int:
 
-    from vid2sim.physics.solver import SimulationError
-    from vid2sim.simulate.run import OUTPUT_MARKERS, simulate
 
     set_threads(args.threads)
     out = Path(args.out)
@@ -106,7 +107,6 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
                         scenery=not args.no_scenery)
     except SimulationError as exc:
         raise UserError(f"the simulation failed ({exc}); nothing was written to {out}") from exc
-    import json
 
     summary = json.loads((path / "summary.json").read_text())
     phys, times = summary["physics"], summary["timings_seconds"]
@@ -201,4 +201,4 @@ def register(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--overwrite", action="store_true", help="replace an earlier output folder")
     add_threads_option(g)
     g.add_argument("--quiet", action="store_true", help="no progress output")
-    p.set_defaults(func=_cmd_simulate)
+    p.set_defaults(func=run)

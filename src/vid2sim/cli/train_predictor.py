@@ -3,12 +3,15 @@
 from __future__ import annotations
 
 import argparse
+import json
+from pathlib import Path
 
 from vid2sim.cli.common import UserError, add_threads_option, set_threads
+from vid2sim.predictor.model import LossWeights, PredictorConfig
+from vid2sim.predictor.train import TrainConfig, train_predictor
 
 
-def _cmd_train_predictor(args: argparse.Namespace) -> int:
-    from pathlib import Path
+def run(args: argparse.Namespace) -> int:
 
     if not (Path(args.data) / "index.json").is_file():
         raise UserError(f"{args.data}: no index.json; expected a training-data folder (vid2sim make-training-data)")
@@ -17,10 +20,7 @@ def _cmd_train_predictor(args: argparse.Namespace) -> int:
                         "Hugging Face cache")
     set_threads(args.threads)
 
-    import json
 
-    from vid2sim.predictor.model import LossWeights, PredictorConfig
-    from vid2sim.predictor.train import TrainConfig, train_predictor
 
     try:
         frames = int(json.loads((Path(args.data) / "index.json").read_text())["config"]["frames"])
@@ -100,87 +100,4 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=0, help="seed of the initialisation and batch order (default 0)")
     add_threads_option(p)
     p.add_argument("--quiet", action="store_true", help="no progress bar")
-    p.set_defaults(func=_cmd_train_predictor)
-
-    q = sub.add_parser("eval-predictor", help="score a Stage I checkpoint on a training-data folder (a held-out "
-                       "test set) against the constant-mean baseline",
-                       description="Score the predictor CHECKPOINT on the videos of DATA (make a test set with "
-                       "`vid2sim make-training-data` and another --seed): MAE of log10 E and nu and the last "
-                       "layer's standardised MSE, beside the constant guess of the checkpoint's training means.")
-    q.add_argument("checkpoint", help="predictor checkpoint (train-predictor's predictor.pt)")
-    q.add_argument("data", help="training-data folder to score on")
-    q.add_argument("--split", choices=("all", "val", "train"), default="all",
-                   help="which objects of DATA (default all: a separate test set)")
-    q.add_argument("--json", metavar="FILE", default=None, help="also write the figures to FILE")
-    add_threads_option(q)
-    q.set_defaults(func=_cmd_eval_predictor)
-
-    e = sub.add_parser("ensemble-predictors", help="combine trained Stage I checkpoints into one ensemble checkpoint "
-                       "(their mean, with test-time mirroring)",
-                       description="Write OUT: one checkpoint that answers the mean of the CHECKPOINTs (networks "
-                       "trained with other --seed), each also run on the left-right mirrored video unless "
-                       "--no-mirror. reconstruct --predictor and eval-predictor read it like a single network. "
-                       "Details: docs/predictor.md.")
-    e.add_argument("out", help="the ensemble checkpoint to write")
-    e.add_argument("checkpoints", nargs="+", help="train-predictor's predictor.pt files")
-    e.add_argument("--no-mirror", action="store_true", help="no test-time mirroring (default: E and nu are "
-                   "averaged over each video and its mirror image)")
-    e.add_argument("--val-data", metavar="DATA", default=None,
-                   help="the members' training-data folder: score the ensemble on their common validation split "
-                        "and store the figures in OUT")
-    add_threads_option(e)
-    e.set_defaults(func=_cmd_ensemble_predictors)
-
-
-def _cmd_ensemble_predictors(args: argparse.Namespace) -> int:
-    from pathlib import Path
-
-    for c in args.checkpoints:
-        if not Path(c).is_file():
-            raise UserError(f"{c}: no such predictor checkpoint")
-    if args.val_data is not None and not (Path(args.val_data) / "index.json").is_file():
-        raise UserError(f"--val-data {args.val_data}: no index.json; expected a training-data folder")
-    set_threads(args.threads)
-    from vid2sim.predictor.ensemble import save_ensemble
-    from vid2sim.predictor.train import read_checkpoint
-
-    try:
-        out = save_ensemble(args.checkpoints, args.out, mirror=not args.no_mirror, val_data=args.val_data)
-    except ValueError as exc:
-        raise UserError(str(exc)) from exc
-    met = read_checkpoint(out)["metrics"]
-    size = out.stat().st_size / 2 ** 20
-    print(f"wrote {out} ({len(args.checkpoints)} networks, mirroring {'off' if args.no_mirror else 'on'}, "
-          f"{size:.1f} MB)")
-    if met:
-        print(f"  validation ({met['samples']} samples): MAE log10 E {met['mae_log10_E']:.3f} (constant mean "
-              f"{met['baseline_mae_log10_E']:.3f}), MAE nu {met['mae_nu']:.4f} (constant mean "
-              f"{met['baseline_mae_nu']:.4f})")
-    return 0
-
-
-def _cmd_eval_predictor(args: argparse.Namespace) -> int:
-    import json
-    from pathlib import Path
-
-    if not Path(args.checkpoint).is_file():
-        raise UserError(f"{args.checkpoint}: no such predictor checkpoint")
-    if not (Path(args.data) / "index.json").is_file():
-        raise UserError(f"{args.data}: no index.json; expected a training-data folder (vid2sim make-training-data)")
-    set_threads(args.threads)
-    from vid2sim.predictor.train import evaluate_predictor
-
-    try:
-        r = evaluate_predictor(args.checkpoint, args.data, args.split)
-    except ValueError as exc:
-        raise UserError(str(exc)) from exc
-    print(f"{r['samples']} videos of {args.data} ({args.split}), framing {r['framing']}:")
-    print(f"  MAE log10 E  {r['mae_log10_E']:.3f}   (constant mean {r['baseline_mae_log10_E']:.3f})")
-    print(f"  MAE nu       {r['mae_nu']:.4f}  (constant mean {r['baseline_mae_nu']:.4f})")
-    print(f"  last layer   {r['mse_last_layer_std']:.3f}   (constant mean {r['baseline_mse_last_layer_std']:.3f}; "
-          "standardised MSE)")
-    print("  log10 E by true value:  " + "  ".join(f"[{b['lo']:.2f},{b['hi']:.2f}) {b['mae']:.2f}{b['bias']:+.2f}"
-                                                   for b in r["by_log10_E"]) + "  (MAE, bias)")
-    if args.json:
-        Path(args.json).write_text(json.dumps(r, indent=2) + "\n")
-    return 0
+    p.set_defaults(func=run)

@@ -28,6 +28,8 @@ from typing import Any
 
 import torch
 
+from vid2sim.runtime.errors import InputError
+
 
 def _group(renders: torch.Tensor, targets: torch.Tensor, views: list[int], frames: list[int]) -> dict[str, Any]:
     from vid2sim.metrics.images import image_metrics
@@ -95,7 +97,7 @@ def simulate_states(asset: Any, num_frames: int, progress: bool = True) -> tuple
         ValueError: ``num_frames`` < 1.
     """
     if num_frames < 1:
-        raise ValueError(f"simulate_states: num_frames must be >= 1, got {num_frames}")
+        raise InputError(f"simulate_states: num_frames must be >= 1, got {num_frames}")
     sim = asset.simulator()
     start = asset.initial_state(sim)
     with torch.no_grad():
@@ -176,10 +178,10 @@ def start_material(asset_path: str | Path) -> dict[str, Any] | None:
         else:
             return None
     except (OSError, json.JSONDecodeError, AttributeError) as exc:
-        raise ValueError(f"{folder}: cannot read the start material from log.json / config.json ({exc})") from exc
+        raise InputError(f"{folder}: cannot read the start material from log.json / config.json ({exc})") from exc
     numbers = all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in (E, nu))
     if not (numbers and E > 0):
-        raise ValueError(f"{where}: the {source} material needs E > 0 and nu as numbers, got E={E!r}, nu={nu!r}")
+        raise InputError(f"{where}: the {source} material needs E > 0 and nu as numbers, got E={E!r}, nu={nu!r}")
     return {"E": float(E), "log10_E": math.log10(float(E)), "nu": float(nu), "source": source}
 
 
@@ -198,16 +200,20 @@ def evaluate(asset_path: str | Path, scene_path: str | Path, fovvdp: bool = Fals
     """
     import time
 
-    from vid2sim.metrics.geometry import boundary_faces, material_errors, surface_chamfer
-    from vid2sim.metrics.trajectory import tet_centre_of_mass
     from vid2sim.asset.folder import load_asset
+    from vid2sim.metrics.geometry import (
+        boundary_faces,
+        material_errors,
+        surface_chamfer,
+    )
+    from vid2sim.metrics.trajectory import tet_centre_of_mass
     from vid2sim.scene.folder import load_scene
 
     t0 = time.perf_counter()
     asset = load_asset(asset_path)
     scene = load_scene(scene_path)
     if abs(float(scene.config.dt) - asset.dt) > 1e-6 * asset.dt:
-        raise ValueError(f"{scene_path}: frame time {scene.config.dt} s differs from the asset's {asset.dt} s")
+        raise InputError(f"{scene_path}: frame time {scene.config.dt} s differs from the asset's {asset.dt} s")
     V, T = scene.images.shape[:2]
     sim, states = simulate_states(asset, T, progress=progress)
     deformed = deform_states(asset, sim, states, progress=progress)
@@ -263,11 +269,11 @@ def evaluate(asset_path: str | Path, scene_path: str | Path, fovvdp: bool = Fals
         }
     if true_motion:
         if tet is None:
-            raise ValueError(f"{scene_path}: true_motion needs the ground-truth motion (the tet_trajectory extra), "
+            raise InputError(f"{scene_path}: true_motion needs the ground-truth motion (the tet_trajectory extra), "
                              "which this scene does not have")
         carried = true_motion_gaussians(asset, tet)
         if len(carried) < T:
-            raise ValueError(f"{scene_path}: the tet_trajectory extra has {len(carried)} frames, the images {T}")
+            raise InputError(f"{scene_path}: the tet_trajectory extra has {len(carried)} frames, the images {T}")
         truth_renders = render_frames(carried[:T], scene.cameras, background=1.0, progress=progress)
         report["true_motion"] = {
             "what": "the asset's Gaussians moved by the ground truth's motion: the appearance's ceiling",

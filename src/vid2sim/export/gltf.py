@@ -40,8 +40,16 @@ import numpy as np
 import torch
 
 from vid2sim import __version__
-from vid2sim.export.transform import (check_rotation, quat_multiply, quat_to_rotmat_np, rotate_gaussian_arrays,
-                                      rotate_sh, rotation_to_y_up, rotmat_to_quat_np)
+from vid2sim.export.transform import (
+    check_rotation,
+    quat_multiply,
+    quat_to_rotmat_np,
+    rotate_gaussian_arrays,
+    rotate_sh,
+    rotation_to_y_up,
+    rotmat_to_quat_np,
+)
+from vid2sim.runtime.errors import InputError
 from vid2sim.splats.gaussians import Gaussians
 from vid2sim.splats.sh import C0, num_sh_bases
 
@@ -70,7 +78,7 @@ _COMPONENT_DTYPES = {BYTE: "<i1", UNSIGNED_BYTE: "<u1", SHORT: "<i2", UNSIGNED_S
 _TYPE_SIZES = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT2": 4, "MAT3": 9, "MAT4": 16}
 
 
-class GltfFormatError(ValueError):
+class GltfFormatError(InputError):
     """A glTF file that is not readable as Gaussians (the message names the file and the problem)."""
 
 
@@ -87,15 +95,15 @@ def _gaussian_arrays(gaussians: Gaussians, gltf_from_world: np.ndarray) -> dict[
     if not isinstance(gaussians, Gaussians):
         raise TypeError(f"gaussians must be a vid2sim Gaussians, got {type(gaussians).__name__}")
     if gaussians.num == 0:
-        raise ValueError("cannot export 0 Gaussians to glTF (accessors need count >= 1)")
+        raise InputError("cannot export 0 Gaussians to glTF (accessors need count >= 1)")
     g = gaussians.detach().to("cpu", torch.float64)
     for name, t in g.tensors().items():
         if not bool(torch.isfinite(t).all()):
-            raise ValueError(f"Gaussians.{name} holds NaN or infinite values; cannot export")
+            raise InputError(f"Gaussians.{name} holds NaN or infinite values; cannot export")
     quats = g.quats.numpy()
     norms = np.linalg.norm(quats, axis=1, keepdims=True)
     if np.any(norms == 0):
-        raise ValueError(f"{int((norms == 0).sum())} Gaussians have a zero quaternion; cannot export")
+        raise InputError(f"{int((norms == 0).sum())} Gaussians have a zero quaternion; cannot export")
     means, quats, sh = rotate_gaussian_arrays(g.means.numpy(), quats / norms, g.sh.numpy(), gltf_from_world)
     quats /= np.linalg.norm(quats, axis=1, keepdims=True)
     out: dict[str, np.ndarray] = {
@@ -240,7 +248,7 @@ def export_gltf(gaussians: Gaussians, path: str | os.PathLike, *,
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix not in (".glb", ".gltf"):
-        raise ValueError(f"{path}: a glTF export must end in .glb (binary) or .gltf (JSON + .bin), got {suffix!r}")
+        raise InputError(f"{path}: a glTF export must end in .glb (binary) or .gltf (JSON + .bin), got {suffix!r}")
     doc, binary = build_gltf(gaussians, up=up, fallback_color=fallback_color, name=name, extras=extras)
     path.parent.mkdir(parents=True, exist_ok=True)
     if suffix == ".glb":

@@ -31,13 +31,14 @@ import numpy as np
 
 from vid2sim import __version__
 from vid2sim.export.transform import rotation_to_y_up
+from vid2sim.runtime.errors import InputError
 
 RIG_FORMAT = "vid2sim-rig"
 RIG_VERSION = 1
 RIG_FILES = {"rig": "rig.json", "weights": "rig.safetensors", "gaussians": "gaussians.ply"}
 
 
-class RigFormatError(ValueError):
+class RigFormatError(InputError):
     """A rig folder that is incomplete or inconsistent (the message names the file and the problem)."""
 
 
@@ -70,7 +71,7 @@ def rig_tensors(asset, z_sequence=None) -> dict[str, np.ndarray]:
         z = np.asarray(z_sequence.detach().cpu().numpy() if hasattr(z_sequence, "detach") else z_sequence)
         h = asset.field.num_handles_total
         if z.ndim != 2 or z.shape[1] != 12 * h or not np.all(np.isfinite(z)):
-            raise ValueError(f"z_sequence must be finite with shape (T, {12 * h}) for {h} handles, got {z.shape}")
+            raise InputError(f"z_sequence must be finite with shape (T, {12 * h}) for {h} handles, got {z.shape}")
         out["states.z"] = z
     return out
 
@@ -276,9 +277,9 @@ def evaluate_rig_numpy(rig: str | Path | tuple[dict[str, Any], dict[str, np.ndar
     X = np.asarray(points, dtype=np.float64)
     z = np.asarray(z, dtype=np.float64).reshape(-1)
     if X.ndim != 2 or X.shape[1] != 3:
-        raise ValueError(f"points must have shape (N, 3), got {X.shape}")
+        raise InputError(f"points must have shape (N, 3), got {X.shape}")
     if z.shape != (12 * h,):
-        raise ValueError(f"z must have shape ({12 * h},) for {h} handles, got {z.shape}")
+        raise InputError(f"z must have shape ({12 * h},) for {h} handles, got {z.shape}")
     t = {k: v.astype(np.float64) for k, v in tensors.items()}
     centre = t[sk["input_normalisation"]["tensors"]["centre"]]
     scale = float(t[sk["input_normalisation"]["tensors"]["scale"]])

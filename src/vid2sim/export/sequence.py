@@ -18,6 +18,8 @@ from typing import Iterable
 
 import numpy as np
 
+from vid2sim.runtime.errors import InputError
+
 SEQUENCE_FORMAT = "vid2sim-sequence"
 SEQUENCE_VERSION = 1
 _FRAME = re.compile(r"^(\d+)\.ply$")
@@ -93,11 +95,11 @@ def export_sequence(source: str | Path, out: str | Path, fmt: str = "glb", *,
     from vid2sim.splats.ply import load_ply
 
     if fmt not in ("glb", "gltf", "ply"):
-        raise ValueError(f"sequence format must be 'glb', 'gltf' or 'ply', got {fmt!r}")
+        raise InputError(f"sequence format must be 'glb', 'gltf' or 'ply', got {fmt!r}")
     source, out = Path(source), Path(out)
     frames = find_sequence_frames(source)
     if not frames:
-        raise ValueError(f"{source}: no per-frame PLYs (expected {source / 'ply'}/0000.ply, 0001.ply, ...)")
+        raise InputError(f"{source}: no per-frame PLYs (expected {source / 'ply'}/0000.ply, 0001.ply, ...)")
     meta = sequence_metadata(source)
     if up is None:
         g = meta["gravity"]

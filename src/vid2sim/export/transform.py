@@ -25,6 +25,7 @@ import math
 import numpy as np
 import torch
 
+from vid2sim.runtime.errors import InputError
 from vid2sim.splats.sh import sh_basis
 
 _Y_AXIS = np.array([0.0, 1.0, 0.0])
@@ -41,7 +42,7 @@ def rotation_to_y_up(up: tuple[float, float, float] | np.ndarray) -> np.ndarray:
     """
     u = np.asarray(up, dtype=np.float64).reshape(-1)
     if u.shape != (3,) or not np.all(np.isfinite(u)) or np.linalg.norm(u) == 0:
-        raise ValueError(f"up must be 3 finite numbers with a non-zero length, got {np.asarray(up).tolist()}")
+        raise InputError(f"up must be 3 finite numbers with a non-zero length, got {np.asarray(up).tolist()}")
     u = u / np.linalg.norm(u)
     c = float(u @ _Y_AXIS)
     if c < -1 + 1e-12:
@@ -55,9 +56,9 @@ def check_rotation(rot: np.ndarray, name: str = "rotation") -> np.ndarray:
     """``rot`` as a float64 (3, 3) proper rotation; raises ValueError naming ``name`` otherwise."""
     r = np.asarray(rot, dtype=np.float64)
     if r.shape != (3, 3) or not np.all(np.isfinite(r)):
-        raise ValueError(f"{name} must be a finite 3x3 matrix, got shape {r.shape}")
+        raise InputError(f"{name} must be a finite 3x3 matrix, got shape {r.shape}")
     if np.abs(r @ r.T - np.eye(3)).max() > 1e-6 or np.linalg.det(r) < 0:
-        raise ValueError(f"{name} must be a proper rotation (orthonormal, det +1), got {r.tolist()}")
+        raise InputError(f"{name} must be a proper rotation (orthonormal, det +1), got {r.tolist()}")
     return r
 
 
@@ -131,7 +132,7 @@ def sh_rotation_matrices(rot: np.ndarray, degree: int) -> list[np.ndarray]:
         dmat, *_ = np.linalg.lstsq(after[:, sl], before[:, sl], rcond=None)
         resid = np.abs(after[:, sl] @ dmat - before[:, sl]).max()
         if resid > 1e-9:
-            raise ValueError(f"SH rotation of degree {lvl} is not exact (residual {resid:.2e})")
+            raise InputError(f"SH rotation of degree {lvl} is not exact (residual {resid:.2e})")
         out.append(dmat)
     return out
 

@@ -28,6 +28,7 @@ import torch
 from torch import Tensor
 
 from vid2sim.metrics.geometry import boundary_faces
+from vid2sim.runtime.errors import ConfigError
 
 
 class TetrahedralizationError(RuntimeError):
@@ -55,9 +56,9 @@ class TetMesh:
         self.vertices = torch.as_tensor(self.vertices, dtype=torch.float64)
         self.tets = torch.as_tensor(self.tets).to(torch.long)
         if self.vertices.ndim != 2 or self.vertices.shape[1] != 3:
-            raise ValueError(f"{label}: vertices must have shape (Nv, 3), got {tuple(self.vertices.shape)}")
+            raise ConfigError(f"{label}: vertices must have shape (Nv, 3), got {tuple(self.vertices.shape)}")
         if self.tets.ndim != 2 or self.tets.shape[1] != 4 or self.tets.shape[0] == 0:
-            raise ValueError(f"{label}: tets must have shape (Nt, 4) with Nt > 0, got {tuple(self.tets.shape)}")
+            raise ConfigError(f"{label}: tets must have shape (Nt, 4) with Nt > 0, got {tuple(self.tets.shape)}")
 
     @property
     def volume(self) -> float:

@@ -6,13 +6,29 @@ adjoint, data-free training of the skinning field and the Neural Jacobian.
 """
 
 from vid2sim.physics.cubature import farthest_point_sampling, sample_cubature
-from vid2sim.physics.external import Floor, Gravity, MovingFloor, SphereObstacle, external_from_dict
+from vid2sim.physics.external import (
+    Floor,
+    Gravity,
+    MovingFloor,
+    SphereObstacle,
+    external_from_dict,
+)
 from vid2sim.physics.materials import lame_parameters
-from vid2sim.physics.neural_jacobian import NeuralJacobian, NeuralJacobianTrainingConfig, train_neural_jacobian
+from vid2sim.physics.neural_jacobian import (
+    NeuralJacobian,
+    NeuralJacobianTrainingConfig,
+    train_neural_jacobian,
+)
 from vid2sim.physics.plasticity import DruckerPrager, VonMises
 from vid2sim.physics.skinning import SkinningField
 from vid2sim.physics.skinning_training import SkinningTrainingConfig, train_skinning
-from vid2sim.physics.solver import Material, SimConfig, SimState, SimulationError, Simulator
+from vid2sim.physics.solver import (
+    Material,
+    SimConfig,
+    SimState,
+    SimulationError,
+    Simulator,
+)
 
 __all__ = [
     "DruckerPrager",

@@ -41,6 +41,8 @@ from typing import Any, ClassVar, Mapping, Protocol, Sequence, runtime_checkable
 import torch
 from torch import Tensor
 
+from vid2sim.runtime.errors import ConfigError
+
 __all__ = [
     "AREA_CONTACT_STIFFNESS",
     "ExternalEnergy",
@@ -313,10 +315,10 @@ class MovingFloor:
         for name in ("height", "velocity", "amplitude", "frequency", "tilt_deg", "tilt_rate_deg"):
             object.__setattr__(self, name, _real(getattr(self, name), f"MovingFloor.{name}"))
         if self.frequency < 0:
-            raise ValueError(f"MovingFloor.frequency must be >= 0 (Hz), got {self.frequency}")
+            raise ConfigError(f"MovingFloor.frequency must be >= 0 (Hz), got {self.frequency}")
         axis = _vector(self.tilt_axis, 3, "MovingFloor.tilt_axis")
         if axis[2] != 0.0 or math.hypot(axis[0], axis[1]) == 0.0:
-            raise ValueError(
+            raise ConfigError(
                 f"MovingFloor.tilt_axis must be a nonzero horizontal vector (z component 0), got {list(axis)}"
             )
         object.__setattr__(self, "tilt_axis", axis)

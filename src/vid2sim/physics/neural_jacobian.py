@@ -33,8 +33,14 @@ from torch import Tensor, nn
 from torch.nn import functional as Fn
 
 from vid2sim.physics.input_frame import InputFrame
-from vid2sim.physics.skinning import SkinningField, dF_dz, deformation_gradient, gradient_basis
+from vid2sim.physics.skinning import (
+    SkinningField,
+    deformation_gradient,
+    dF_dz,
+    gradient_basis,
+)
 from vid2sim.physics.skinning_training import sample_handle_transforms
+from vid2sim.runtime.errors import ConfigError
 
 
 def _init_linear(layer: nn.Linear, gen: torch.Generator | None) -> None:
@@ -146,11 +152,11 @@ class NeuralJacobianTrainingConfig:
             v = getattr(self, name)
             lo = 0 if name == "iterations" else 1
             if isinstance(v, bool) or not isinstance(v, int) or v < lo:
-                raise ValueError(f"NeuralJacobianTrainingConfig.{name} must be an integer >= {lo}, got {v!r}")
+                raise ConfigError(f"NeuralJacobianTrainingConfig.{name} must be an integer >= {lo}, got {v!r}")
         for name in ("z_std", "lr"):
             v = getattr(self, name)
             if not isinstance(v, (int, float)) or not (0 < float(v) < math.inf):
-                raise ValueError(f"NeuralJacobianTrainingConfig.{name} must be a finite positive number, got {v!r}")
+                raise ConfigError(f"NeuralJacobianTrainingConfig.{name} must be a finite positive number, got {v!r}")
 
 
 def _check_pair(net: NeuralJacobian, field: SkinningField, points: Tensor) -> None:

@@ -33,6 +33,8 @@ from typing import Any, Mapping, Union
 import torch
 from torch import Tensor
 
+from vid2sim.runtime.errors import ConfigError
+
 Scalar = Union[float, Tensor]
 
 __all__ = [
@@ -70,7 +72,7 @@ class VonMises:
     def __post_init__(self) -> None:
         v = _finite_float(self.yield_stress, "VonMises.yield_stress")
         if not v > 0:
-            raise ValueError(f"VonMises.yield_stress must be > 0 (Pa), got {v}")
+            raise ConfigError(f"VonMises.yield_stress must be > 0 (Pa), got {v}")
         object.__setattr__(self, "yield_stress", v)
 
     def to_dict(self) -> dict:
@@ -96,7 +98,7 @@ class DruckerPrager:
     def __post_init__(self) -> None:
         v = _finite_float(self.friction_angle_deg, "DruckerPrager.friction_angle_deg")
         if not 0.0 < v < 90.0:
-            raise ValueError(f"DruckerPrager.friction_angle_deg must satisfy 0 < theta_f < 90 (degrees), got {v}")
+            raise ConfigError(f"DruckerPrager.friction_angle_deg must satisfy 0 < theta_f < 90 (degrees), got {v}")
         object.__setattr__(self, "friction_angle_deg", v)
 
     @property

@@ -38,7 +38,8 @@ from vid2sim.physics.materials import (
     neo_hookean_viscous_tangent,
     stvk_energy_and_pk1,
 )
-from vid2sim.physics.volumetric import project as project_volumetric, swap_tangent
+from vid2sim.physics.volumetric import project as project_volumetric
+from vid2sim.physics.volumetric import swap_tangent
 
 
 def z_to_y_index(num_handles_total: int, device: torch.device | None = None) -> Tensor:

@@ -67,7 +67,7 @@ from torch import Tensor
 from vid2sim.physics.materials import lame_parameters, neo_hookean_energy_density
 from vid2sim.physics.modes import subspace_stiffness_and_mass
 from vid2sim.physics.skinning import SkinningField, deformation_gradient, gradient_basis
-
+from vid2sim.runtime.errors import ConfigError
 
 #: training objectives of :func:`train_skinning`
 OBJECTIVES = ("random_z", "modal")
@@ -105,25 +105,25 @@ class SkinningTrainingConfig:
             v = getattr(self, name)
             lo = 0 if name == "iterations" else 1
             if isinstance(v, bool) or not isinstance(v, int) or v < lo:
-                raise ValueError(f"SkinningTrainingConfig.{name} must be an integer >= {lo}, got {v!r}")
+                raise ConfigError(f"SkinningTrainingConfig.{name} must be an integer >= {lo}, got {v!r}")
         for name in ("z_std", "lr", "youngs_modulus", "inversion_threshold"):
             v = getattr(self, name)
             if not isinstance(v, (int, float)) or not (0 < float(v) < math.inf):
-                raise ValueError(f"SkinningTrainingConfig.{name} must be a finite positive number, got {v!r}")
+                raise ConfigError(f"SkinningTrainingConfig.{name} must be a finite positive number, got {v!r}")
         for name in ("elastic_weight", "orthogonality_weight"):
             v = getattr(self, name)
             if not isinstance(v, (int, float)) or not (0 <= float(v) < math.inf):
-                raise ValueError(f"SkinningTrainingConfig.{name} must be a finite number >= 0, got {v!r}")
+                raise ConfigError(f"SkinningTrainingConfig.{name} must be a finite number >= 0, got {v!r}")
         if not isinstance(self.poisson_ratio, (int, float)) or not (-1.0 < float(self.poisson_ratio) < 0.5):
-            raise ValueError(f"SkinningTrainingConfig.poisson_ratio must satisfy -1 < nu < 0.5, got {self.poisson_ratio!r}")
+            raise ConfigError(f"SkinningTrainingConfig.poisson_ratio must satisfy -1 < nu < 0.5, got {self.poisson_ratio!r}")
         if self.objective not in OBJECTIVES:
-            raise ValueError(f"SkinningTrainingConfig.objective must be one of {OBJECTIVES}, got {self.objective!r}")
+            raise ConfigError(f"SkinningTrainingConfig.objective must be one of {OBJECTIVES}, got {self.objective!r}")
         if not isinstance(self.modal_shift, (int, float)) or not (0 < float(self.modal_shift) < math.inf):
-            raise ValueError(f"SkinningTrainingConfig.modal_shift must be a finite positive number, got {self.modal_shift!r}")
+            raise ConfigError(f"SkinningTrainingConfig.modal_shift must be a finite positive number, got {self.modal_shift!r}")
         for name in ("modal_orthogonality_weight", "modal_trace_weight"):
             w = getattr(self, name)
             if not isinstance(w, (int, float)) or not (0 <= float(w) < math.inf):
-                raise ValueError(f"SkinningTrainingConfig.{name} must be a finite number >= 0, got {w!r}")
+                raise ConfigError(f"SkinningTrainingConfig.{name} must be a finite number >= 0, got {w!r}")
 
 
 def robust_neo_hookean_energy(F: Tensor, mu: float | Tensor, lam: float | Tensor, threshold: float = 0.1) -> Tensor:

@@ -26,7 +26,11 @@ from typing import Sequence
 import torch
 from torch import Tensor
 
-from vid2sim.physics.damping import DEFAULT_DAMPING_RATIO, check_damping_ratio, retardation_time
+from vid2sim.physics.damping import (
+    DEFAULT_DAMPING_RATIO,
+    check_damping_ratio,
+    retardation_time,
+)
 from vid2sim.physics.integrators import INTEGRATORS, BDFStep, auto_substeps, bdf_step
 from vid2sim.physics.materials import ELASTIC_MODELS, det3, lame_parameters
 from vid2sim.physics.reduced import (
@@ -39,6 +43,7 @@ from vid2sim.physics.reduced import (
 )
 from vid2sim.physics.stiffness_curve import StiffnessCurve
 from vid2sim.physics.volumetric import check_volumetric, projection_basis
+from vid2sim.runtime.errors import ConfigError
 
 
 class SimulationError(RuntimeError):
@@ -94,23 +99,23 @@ class SimConfig:
 
     def __post_init__(self) -> None:
         if self.hessian_projection not in ("always", "on_demand"):
-            raise ValueError(
+            raise ConfigError(
                 f"SimConfig.hessian_projection must be 'always' or 'on_demand', got {self.hessian_projection!r}")
         if self.integrator not in INTEGRATORS:
-            raise ValueError(f"SimConfig.integrator must be one of {list(INTEGRATORS)}, got {self.integrator!r}")
+            raise ConfigError(f"SimConfig.integrator must be one of {list(INTEGRATORS)}, got {self.integrator!r}")
         if not (self.dt > 0 and math.isfinite(self.dt)):
-            raise ValueError(f"SimConfig.dt must be a positive finite number, got {self.dt}")
+            raise ConfigError(f"SimConfig.dt must be a positive finite number, got {self.dt}")
         if self.substeps is not None and (isinstance(self.substeps, bool) or not isinstance(self.substeps, int)
                                           or self.substeps < 1):
-            raise ValueError(f"SimConfig.substeps must be an integer >= 1 or None (automatic), got {self.substeps!r}")
+            raise ConfigError(f"SimConfig.substeps must be an integer >= 1 or None (automatic), got {self.substeps!r}")
         if self.newton_max_iters < 1:
-            raise ValueError(f"SimConfig.newton_max_iters must be >= 1, got {self.newton_max_iters}")
+            raise ConfigError(f"SimConfig.newton_max_iters must be >= 1, got {self.newton_max_iters}")
         if not self.newton_tol > 0:
-            raise ValueError(f"SimConfig.newton_tol must be > 0, got {self.newton_tol}")
+            raise ConfigError(f"SimConfig.newton_tol must be > 0, got {self.newton_tol}")
         if not self.newton_rtol > 0:
-            raise ValueError(f"SimConfig.newton_rtol must be > 0, got {self.newton_rtol}")
+            raise ConfigError(f"SimConfig.newton_rtol must be > 0, got {self.newton_rtol}")
         if not 0 < self.reuse_rate < 1:
-            raise ValueError(f"SimConfig.reuse_rate must be in (0, 1), got {self.reuse_rate}")
+            raise ConfigError(f"SimConfig.reuse_rate must be in (0, 1), got {self.reuse_rate}")
 
 
 @dataclass
@@ -140,9 +145,9 @@ class Material:
         lame_parameters(self.youngs_modulus, self.poisson_ratio)  # validates E and ν
         self.damping_ratio = check_damping_ratio(self.damping_ratio, "Material.damping_ratio")
         if not (self.density > 0 and math.isfinite(self.density)):
-            raise ValueError(f"Material.density must be a positive finite number (kg/m³), got {self.density}")
+            raise ConfigError(f"Material.density must be a positive finite number (kg/m³), got {self.density}")
         if self.model not in ELASTIC_MODELS:
-            raise ValueError(f"Material.model must be one of {sorted(ELASTIC_MODELS)}, got {self.model!r}")
+            raise ConfigError(f"Material.model must be one of {sorted(ELASTIC_MODELS)}, got {self.model!r}")
         self.plasticity = _check_plasticity(self.plasticity)
 
 

@@ -29,6 +29,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from vid2sim.runtime.errors import ConfigError
+
 
 def _pchip_slopes(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     """Fritsch–Carlson slopes of the monotone piecewise-cubic Hermite interpolant through (x, y)."""
@@ -72,17 +74,17 @@ class StiffnessCurve:
         nu = tuple(float(v) for v in self.nu)
         scale = tuple(float(v) for v in self.scale)
         if len(nu) < 2 or len(nu) != len(scale):
-            raise ValueError(f"StiffnessCurve needs n >= 2 values of nu and as many scales, got {len(nu)} and {len(scale)}")
+            raise ConfigError(f"StiffnessCurve needs n >= 2 values of nu and as many scales, got {len(nu)} and {len(scale)}")
         if not all(0.0 <= v < 0.5 for v in nu) or any(b <= a for a, b in zip(nu, nu[1:])):
-            raise ValueError(f"StiffnessCurve.nu must increase strictly within [0, 0.5), got {nu}")
+            raise ConfigError(f"StiffnessCurve.nu must increase strictly within [0, 0.5), got {nu}")
         if not all(math.isfinite(s) and s > 0 for s in scale):
-            raise ValueError(f"StiffnessCurve.scale must be finite and positive, got {scale}")
+            raise ConfigError(f"StiffnessCurve.scale must be finite and positive, got {scale}")
         object.__setattr__(self, "nu", nu)
         object.__setattr__(self, "scale", scale)
         if self.lam_scale is not None:
             lam_scale = tuple(float(v) for v in self.lam_scale)
             if len(lam_scale) != len(nu) or not all(math.isfinite(s) and s > 0 for s in lam_scale):
-                raise ValueError(f"StiffnessCurve.lam_scale must hold {len(nu)} finite positive values, got {lam_scale}")
+                raise ConfigError(f"StiffnessCurve.lam_scale must hold {len(nu)} finite positive values, got {lam_scale}")
             object.__setattr__(self, "lam_scale", lam_scale)
 
     def _tables(self, values: tuple[float, ...] | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -131,7 +133,7 @@ class StiffnessCurve:
     def from_dict(cls, values: dict[str, Any]) -> "StiffnessCurve":
         """The inverse of :meth:`to_dict`; a clear ``ValueError`` for anything else."""
         if not isinstance(values, dict) or not {"nu", "scale"} <= set(values) <= {"nu", "scale", "lam_scale"}:
-            raise ValueError("a stiffness curve must be {'nu': [...], 'scale': [...]} with an optional "
+            raise ConfigError("a stiffness curve must be {'nu': [...], 'scale': [...]} with an optional "
                              f"'lam_scale': [...], got {values!r}")
         lam = values.get("lam_scale")
         return cls(tuple(values["nu"]), tuple(values["scale"]), None if lam is None else tuple(lam))

@@ -11,7 +11,12 @@
 See docs/training-data.md.
 """
 
-from vid2sim.predictor.data import TrainingDataConfig, make_object_shard, make_training_data, object_specs
+from vid2sim.predictor.data import (
+    TrainingDataConfig,
+    make_object_shard,
+    make_training_data,
+    object_specs,
+)
 from vid2sim.predictor.dataset import TrainingData
 from vid2sim.predictor.front_view import FrontCamera, closest_view
 from vid2sim.predictor.template import (

@@ -53,6 +53,7 @@ import numpy as np
 import torch
 
 from vid2sim.predictor.front_view import FrontCamera
+from vid2sim.runtime.errors import ConfigError
 
 FORMAT = "vid2sim-training-data/1"
 INDEX = "index.json"
@@ -121,8 +122,8 @@ class TrainingDataConfig:
     max_retries: int = 3
 
     def __post_init__(self) -> None:
-        def bad(name: str, expected: str) -> ValueError:
-            return ValueError(f"TrainingDataConfig.{name} must be {expected}, got {getattr(self, name)!r}")
+        def bad(name: str, expected: str) -> ConfigError:
+            return ConfigError(f"TrainingDataConfig.{name} must be {expected}, got {getattr(self, name)!r}")
 
         if isinstance(self.camera, dict):
             self.camera = FrontCamera(**self.camera)
@@ -138,7 +139,7 @@ class TrainingDataConfig:
         if self.objects >= OBJECT_SEED_STRIDE:
             raise bad("objects", f"below {OBJECT_SEED_STRIDE}")
         if self.objects + len(self.meshes) == 0:
-            raise ValueError("TrainingDataConfig.objects must be >= 1 when no meshes are given, got 0")
+            raise ConfigError("TrainingDataConfig.objects must be >= 1 when no meshes are given, got 0")
         if self.cubature_points > self.points:
             raise bad("cubature_points", f"at most points ({self.points})")
         for name in ("dt", "density", "max_horizontal_speed", "max_downward_speed", "max_angular_speed",
@@ -176,7 +177,7 @@ class TrainingDataConfig:
     def from_dict(cls, values: dict[str, Any]) -> "TrainingDataConfig":
         unknown = sorted(set(values) - {f.name for f in fields(cls)})
         if unknown:
-            raise ValueError(f"unknown TrainingDataConfig fields {unknown}")
+            raise ConfigError(f"unknown TrainingDataConfig fields {unknown}")
         return cls(**values)
 
 
@@ -316,7 +317,11 @@ def make_object_shard(config: TrainingDataConfig, spec: ObjectSpec,
     from vid2sim.physics import SimulationError
     from vid2sim.physics.cubature import sample_cubature
     from vid2sim.predictor.solid import sample_solid
-    from vid2sim.predictor.template import fit_last_layer, field_from_last_layer, load_template
+    from vid2sim.predictor.template import (
+        field_from_last_layer,
+        fit_last_layer,
+        load_template,
+    )
     from vid2sim.synthetic.mesh_render import render_textured_mesh
     from vid2sim.synthetic.meshes import normalize_to_canonical
     from vid2sim.synthetic.shapes import random_rotation

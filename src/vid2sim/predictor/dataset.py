@@ -28,6 +28,7 @@ import torch
 from torch.utils.data import Dataset
 
 from vid2sim.predictor.data import FORMAT, INDEX
+from vid2sim.runtime.errors import InputError
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -64,19 +65,19 @@ class TrainingData(Dataset):
                                     "(make one with `vid2sim make-training-data`)")
         self.index: dict[str, Any] = json.loads(index_path.read_text())
         if self.index.get("format") != FORMAT:
-            raise ValueError(f"{index_path}: format {self.index.get('format')!r}, expected {FORMAT!r}")
+            raise InputError(f"{index_path}: format {self.index.get('format')!r}, expected {FORMAT!r}")
         if split not in SPLITS:
-            raise ValueError(f"split must be one of {SPLITS}, got {split!r}")
+            raise InputError(f"split must be one of {SPLITS}, got {split!r}")
         if not 0.0 <= val_fraction < 1.0:
-            raise ValueError(f"val_fraction must lie in [0, 1), got {val_fraction}")
+            raise InputError(f"val_fraction must lie in [0, 1), got {val_fraction}")
         if normalize not in ("imagenet", "unit"):
-            raise ValueError(f"normalize must be 'imagenet' or 'unit', got {normalize!r}")
+            raise InputError(f"normalize must be 'imagenet' or 'unit', got {normalize!r}")
         self.split, self.normalize = split, normalize
         self.draws = int(self.index["config"]["draws_per_object"])
         names = [s["file"] for s in self.index["shards"]]
         for n in names:
             if not (self.folder / n).is_file():
-                raise ValueError(f"{self.folder}: shard {n} is listed in {INDEX} but missing")
+                raise InputError(f"{self.folder}: shard {n} is listed in {INDEX} but missing")
 
         def keep(name: str) -> bool:
             if split == "all":

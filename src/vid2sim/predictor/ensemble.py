@@ -24,12 +24,11 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
 
-import torch
 from torch import Tensor, nn
 
 from vid2sim.predictor.model import LabelPredictor, PhysicsPredictor
+from vid2sim.runtime.errors import InputError
 
 ENSEMBLE_FORMAT = "vid2sim-predictor-ensemble/1"
 
@@ -45,7 +44,7 @@ class PredictorEnsemble(LabelPredictor):
     def __init__(self, members: Sequence[PhysicsPredictor], mirror: bool = True) -> None:
         super().__init__()
         if not members:
-            raise ValueError("PredictorEnsemble needs at least one member")
+            raise InputError("PredictorEnsemble needs at least one member")
         first = members[0]
         for i, m in enumerate(members[1:], start=1):
             for what, a, b in (("image size", m.image_size, first.image_size),
@@ -53,7 +52,7 @@ class PredictorEnsemble(LabelPredictor):
                                ("framing", m.config.framing, first.config.framing),
                                ("last-layer size", m.config.last_layer_size, first.config.last_layer_size)):
                 if a != b:
-                    raise ValueError(f"ensemble member {i} has {what} {a!r}, member 0 has {b!r}")
+                    raise InputError(f"ensemble member {i} has {what} {a!r}, member 0 has {b!r}")
         self.members = nn.ModuleList(members)
         self.mirror = bool(mirror)
         self.config = first.config
@@ -97,13 +96,18 @@ def save_ensemble(checkpoints: Sequence[str | Path], out: str | Path, mirror: bo
             or reads another input than the first (see :class:`PredictorEnsemble`); with ``val_data``, members
             held out different validation splits.
     """
-    from vid2sim.predictor.train import _atomic_save, evaluate_predictor, model_from_payload, read_checkpoint
+    from vid2sim.predictor.train import (
+        _atomic_save,
+        evaluate_predictor,
+        model_from_payload,
+        read_checkpoint,
+    )
 
     payloads = []
     for path in checkpoints:
         p = read_checkpoint(path)
         if p["format"] == ENSEMBLE_FORMAT:
-            raise ValueError(f"{path} is already an ensemble; give its members' checkpoints")
+            raise InputError(f"{path} is already an ensemble; give its members' checkpoints")
         payloads.append(p)
     PredictorEnsemble([model_from_payload(p) for p in payloads], mirror)  # checks that they fit together
     out = Path(out)
@@ -112,7 +116,7 @@ def save_ensemble(checkpoints: Sequence[str | Path], out: str | Path, mirror: bo
         splits = {(float((p.get("train_config") or {}).get("val_fraction", float("nan"))),
                    int((p.get("train_config") or {}).get("split_seed", -1))) for p in payloads}
         if len(splits) != 1 or -1 in {seed for _, seed in splits}:
-            raise ValueError(f"the members were trained with different (or unrecorded) validation splits "
+            raise InputError(f"the members were trained with different (or unrecorded) validation splits "
                              f"(val_fraction, split_seed): {sorted(splits)}; score the ensemble on a separate "
                              "test set with eval-predictor instead")
         (fraction, seed), = splits

@@ -32,6 +32,7 @@ from typing import Sequence
 
 import torch
 
+from vid2sim.runtime.errors import ConfigError
 from vid2sim.splats.cameras import Camera, camera_ring
 
 
@@ -57,16 +58,16 @@ class FrontCamera:
         for name in ("radius", "elevation_deg", "azimuth_deg", "fov_deg"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-                raise ValueError(f"FrontCamera.{name} must be a finite number, got {v!r}")
+                raise ConfigError(f"FrontCamera.{name} must be a finite number, got {v!r}")
         if not self.radius > 0:
-            raise ValueError(f"FrontCamera.radius must be positive, got {self.radius}")
+            raise ConfigError(f"FrontCamera.radius must be positive, got {self.radius}")
         if not 0 < self.fov_deg < 180:
-            raise ValueError(f"FrontCamera.fov_deg must be in (0, 180), got {self.fov_deg}")
+            raise ConfigError(f"FrontCamera.fov_deg must be in (0, 180), got {self.fov_deg}")
         if not -89 <= self.elevation_deg <= 89:
-            raise ValueError(f"FrontCamera.elevation_deg must be in [-89, 89], got {self.elevation_deg}")
+            raise ConfigError(f"FrontCamera.elevation_deg must be in [-89, 89], got {self.elevation_deg}")
         target = tuple(float(c) for c in self.target)
         if len(target) != 3 or not all(math.isfinite(c) for c in target):
-            raise ValueError(f"FrontCamera.target must be three finite numbers, got {self.target!r}")
+            raise ConfigError(f"FrontCamera.target must be three finite numbers, got {self.target!r}")
         object.__setattr__(self, "target", target)
 
     def camera(self, resolution: int) -> Camera:

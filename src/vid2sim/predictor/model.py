@@ -32,6 +32,8 @@ import torch
 from torch import Tensor, nn
 from torch.nn import functional as Fn
 
+from vid2sim.runtime.errors import ConfigError
+
 #: the skinning field's last layer: 10 handles × (64 weights + 1 bias)
 LAST_LAYER_SIZE = 650
 
@@ -71,16 +73,16 @@ class PredictorConfig:
                      "num_heads", "intermediate_size", "last_layer_size"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-                raise ValueError(f"PredictorConfig.{name} must be a positive integer, got {v!r}")
+                raise ConfigError(f"PredictorConfig.{name} must be a positive integer, got {v!r}")
         if self.framing not in ("object", "full"):
-            raise ValueError(f"PredictorConfig.framing must be 'object' or 'full', got {self.framing!r}")
+            raise ConfigError(f"PredictorConfig.framing must be 'object' or 'full', got {self.framing!r}")
         if self.pretrained is None:
             if self.image_size % self.patch_size or self.num_frames % self.tubelet_size:
-                raise ValueError(f"PredictorConfig: image_size {self.image_size} must be a multiple of patch_size "
+                raise ConfigError(f"PredictorConfig: image_size {self.image_size} must be a multiple of patch_size "
                                  f"{self.patch_size} and num_frames {self.num_frames} of tubelet_size "
                                  f"{self.tubelet_size}")
             if self.hidden_size % self.num_heads:
-                raise ValueError(f"PredictorConfig: hidden_size {self.hidden_size} must be a multiple of num_heads "
+                raise ConfigError(f"PredictorConfig: hidden_size {self.hidden_size} must be a multiple of num_heads "
                                  f"{self.num_heads}")
 
     def to_dict(self) -> dict[str, Any]:
@@ -285,7 +287,7 @@ class LossWeights:
         for name in ("log10_E", "nu", "last_layer"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 <= v < math.inf:
-                raise ValueError(f"LossWeights.{name} must be a finite number >= 0, got {v!r}")
+                raise ConfigError(f"LossWeights.{name} must be a finite number >= 0, got {v!r}")
 
 
 def predictor_loss(model: PhysicsPredictor, z: dict[str, Tensor], targets: dict[str, Tensor],

@@ -32,6 +32,7 @@ from torch.nn import functional as Fn
 
 from vid2sim.predictor.dataset import IMAGENET_MEAN, IMAGENET_STD
 from vid2sim.predictor.front_view import FrontCamera, closest_view
+from vid2sim.runtime.errors import InputError
 
 #: the checkpoint shipped with vid2sim (package data; may be absent in a source checkout without it)
 DEFAULT_PREDICTOR = Path(__file__).with_name("predictor_small.pt")
@@ -52,9 +53,9 @@ def resample_frames(images: Tensor, scene_dt: float, target_dt: float, num_frame
         ((num_frames, H, W, 3), how many frames were past the end).
     """
     if images.ndim != 4 or images.shape[0] < 1:
-        raise ValueError(f"images must be (T, H, W, 3) with T >= 1, got {tuple(images.shape)}")
+        raise InputError(f"images must be (T, H, W, 3) with T >= 1, got {tuple(images.shape)}")
     if not (scene_dt > 0 and target_dt > 0):
-        raise ValueError(f"frame spacings must be positive, got {scene_dt} and {target_dt}")
+        raise InputError(f"frame spacings must be positive, got {scene_dt} and {target_dt}")
     T = images.shape[0]
     pos = [k * target_dt / scene_dt for k in range(num_frames)]
     idx = [min(T - 1, int(round(p))) for p in pos]
@@ -84,7 +85,7 @@ def object_box(frames: Tensor, margin: float = OBJECT_MARGIN) -> tuple[int, int,
     rows = torch.nonzero(fg.any(1)).flatten()
     cols = torch.nonzero(fg.any(0)).flatten()
     if rows.numel() == 0:
-        raise ValueError("the front view shows no object: every pixel of every frame is background white "
+        raise InputError("the front view shows no object: every pixel of every frame is background white "
                          f"(all channels >= {BACKGROUND_LEVEL})")
     r0, r1, c0, c1 = int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
     side = max(r1 - r0, c1 - c0)
@@ -110,7 +111,7 @@ def frame_for_model(frames: Tensor, size: int, framing: str = "object") -> Tenso
     """(T, H, W, 3) RGB in [0, 1] → (T, 3, size, size) ImageNet-normalised, after the ``framing`` ("object":
     :func:`object_crop`; "full": the whole frame)."""
     if framing not in FRAMINGS:
-        raise ValueError(f"framing must be one of {FRAMINGS}, got {framing!r}")
+        raise InputError(f"framing must be one of {FRAMINGS}, got {framing!r}")
     if framing == "object":
         frames = object_crop(frames)
     return to_model_input(frames, size)

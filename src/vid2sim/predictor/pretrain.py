@@ -35,6 +35,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from vid2sim.runtime.errors import InputError
+
 if TYPE_CHECKING:  # pragma: no cover
     from vid2sim.predictor.model import PhysicsPredictor
     from vid2sim.predictor.train import TrainConfig, _Split
@@ -60,7 +62,7 @@ def tube_mask(batch: int, grid: tuple[int, int, int], ratio: float, generator: t
     t, h, w = grid
     hidden = int(round(ratio * h * w))
     if not 0 < hidden < h * w:
-        raise ValueError(f"mask ratio {ratio} hides {hidden} of {h * w} patch positions; it must hide at least one "
+        raise InputError(f"mask ratio {ratio} hides {hidden} of {h * w} patch positions; it must hide at least one "
                          "and leave at least one visible")
     order = torch.argsort(torch.rand(batch, h * w, generator=generator), dim=1)
     spatial = torch.zeros(batch, h * w, dtype=torch.bool)
@@ -126,11 +128,16 @@ def pretrain_backbone(model: "PhysicsPredictor", train: "_Split", cfg: "TrainCon
     """
     from tqdm.auto import tqdm
 
-    from vid2sim.predictor.train import _atomic_save, _lr_factor, normalise_video, optimiser_step
+    from vid2sim.predictor.train import (
+        _atomic_save,
+        _lr_factor,
+        normalise_video,
+        optimiser_step,
+    )
 
     steps, bs = cfg.pretrain_steps, cfg.pretrain_batch_size
     if len(train) < bs:
-        raise ValueError(f"pre-training: {len(train)} training videos, fewer than one batch ({bs})")
+        raise InputError(f"pre-training: {len(train)} training videos, fewer than one batch ({bs})")
     pre = build_pretraining_model(model, cfg.pretrain_decoder_layers, cfg.seed + 2)
     grid = token_grid(model)
     opt = torch.optim.Adam(pre.parameters(), lr=cfg.pretrain_lr, betas=(0.9, 0.95))
@@ -140,9 +147,9 @@ def pretrain_backbone(model: "PhysicsPredictor", train: "_Split", cfg: "TrainCon
     if path.is_file():
         ck = torch.load(path, map_location="cpu", weights_only=True)
         if not isinstance(ck, dict) or ck.get("format") != PRETRAIN_FORMAT:
-            raise ValueError(f"{path} is not a vid2sim pre-training checkpoint ({PRETRAIN_FORMAT})")
+            raise InputError(f"{path} is not a vid2sim pre-training checkpoint ({PRETRAIN_FORMAT})")
         if ck.get("settings") != settings:
-            raise ValueError(f"{path} was written with other pre-training settings; use another output folder or "
+            raise InputError(f"{path} was written with other pre-training settings; use another output folder or "
                              "the same settings to resume")
         pre.load_state_dict(ck["state_dict"])
         opt.load_state_dict(ck["optimizer"])

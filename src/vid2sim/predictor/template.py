@@ -64,7 +64,12 @@ from torch.nn import functional as Fn
 
 from vid2sim.physics.materials import lame_parameters
 from vid2sim.physics.skinning import SkinningField, gradient_basis
-from vid2sim.physics.skinning_training import elastic_loss, orthogonality_loss, sample_handle_transforms
+from vid2sim.physics.skinning_training import (
+    elastic_loss,
+    orthogonality_loss,
+    sample_handle_transforms,
+)
+from vid2sim.runtime.errors import ConfigError, InputError
 
 #: the shipped template (package data)
 TEMPLATE_PATH = Path(__file__).with_name("template_skinning.pt")
@@ -99,12 +104,12 @@ class SkinningLoss:
         for name in ("points_per_step", "batch_size"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-                raise ValueError(f"SkinningLoss.{name} must be an integer >= 1, got {v!r}")
+                raise ConfigError(f"SkinningLoss.{name} must be an integer >= 1, got {v!r}")
         lame_parameters(self.youngs_modulus, self.poisson_ratio)
         for name in ("z_std", "inversion_threshold", "elastic_weight", "orthogonality_weight"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 < v < math.inf:
-                raise ValueError(f"SkinningLoss.{name} must be a finite positive number, got {v!r}")
+                raise ConfigError(f"SkinningLoss.{name} must be a finite positive number, got {v!r}")
 
 
 # ---- the trunk's features -------------------------------------------------------------------------------
@@ -159,15 +164,15 @@ def _split(vec: Tensor, m: int, width: int) -> tuple[Tensor, Tensor]:
 def _check_last_layer(template: SkinningField, vec: Tensor) -> None:
     if not isinstance(vec, Tensor) or vec.shape != (template.last_layer_size,):
         shape = tuple(vec.shape) if isinstance(vec, Tensor) else type(vec).__name__
-        raise ValueError(f"a last layer must be a tensor of shape ({template.last_layer_size},), got {shape}")
+        raise InputError(f"a last layer must be a tensor of shape ({template.last_layer_size},), got {shape}")
 
 
 def _check_points(points: Tensor) -> None:
     if not isinstance(points, Tensor) or points.ndim != 2 or points.shape[1] != 3 or points.shape[0] < 2:
         shape = tuple(points.shape) if isinstance(points, Tensor) else type(points).__name__
-        raise ValueError(f"points must be a tensor of shape (N, 3) with N >= 2, got {shape}")
+        raise InputError(f"points must be a tensor of shape (N, 3) with N >= 2, got {shape}")
     if not bool(torch.isfinite(points).all()):
-        raise ValueError("points contain NaN or infinite values")
+        raise InputError("points contain NaN or infinite values")
 
 
 # ---- the closed-form start and the gauge ----------------------------------------------------------------
@@ -324,9 +329,9 @@ def fit_last_layer(template: SkinningField, points: Tensor, iterations: int = 0,
     loss = loss or SkinningLoss()
     _check_points(points)
     if isinstance(iterations, bool) or not isinstance(iterations, int) or iterations < 0:
-        raise ValueError(f"iterations must be an integer >= 0, got {iterations!r}")
+        raise InputError(f"iterations must be an integer >= 0, got {iterations!r}")
     if not (isinstance(volume, (int, float)) and 0 < volume < math.inf):
-        raise ValueError(f"volume must be a finite positive number, got {volume!r}")
+        raise InputError(f"volume must be a finite positive number, got {volume!r}")
     t0 = time.perf_counter()
     dtype = template.last_layer.weight.dtype
     feats = _frozen_features(template, points)
@@ -433,16 +438,16 @@ class TemplateConfig:
         for name in ("shapes", "points_per_shape", "shapes_per_step", "spectral_points", "num_handles", "width"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-                raise ValueError(f"TemplateConfig.{name} must be an integer >= 1, got {v!r}")
+                raise ConfigError(f"TemplateConfig.{name} must be an integer >= 1, got {v!r}")
         for name in ("seed", "shape_seed_base", "iterations", "warmup", "hidden_layers", "eval_shapes",
                      "eval_iterations"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 0:
-                raise ValueError(f"TemplateConfig.{name} must be an integer >= 0, got {v!r}")
+                raise ConfigError(f"TemplateConfig.{name} must be an integer >= 0, got {v!r}")
         if self.shapes_per_step > self.shapes:
-            raise ValueError(f"TemplateConfig.shapes_per_step ({self.shapes_per_step}) exceeds shapes ({self.shapes})")
+            raise ConfigError(f"TemplateConfig.shapes_per_step ({self.shapes_per_step}) exceeds shapes ({self.shapes})")
         if isinstance(self.lr, bool) or not isinstance(self.lr, (int, float)) or not 0 < self.lr < math.inf:
-            raise ValueError(f"TemplateConfig.lr must be a finite positive number, got {self.lr!r}")
+            raise ConfigError(f"TemplateConfig.lr must be a finite positive number, got {self.lr!r}")
 
 
 def procedural_shape_points(seed: int, rotation_seed: Sequence[int] | int, num_points: int,
@@ -451,7 +456,11 @@ def procedural_shape_points(seed: int, rotation_seed: Sequence[int] | int, num_p
     and re-normalised to the canonical frame; returns (points (N, 3) float32, volume in that frame)."""
     from vid2sim.predictor.solid import sample_solid
     from vid2sim.synthetic.meshes import normalize_to_canonical
-    from vid2sim.synthetic.shapes import ProceduralShapeConfig, make_procedural_object, random_rotation
+    from vid2sim.synthetic.shapes import (
+        ProceduralShapeConfig,
+        make_procedural_object,
+        random_rotation,
+    )
 
     mesh = make_procedural_object(seed, ProceduralShapeConfig(texture_size=8))
     R = torch.from_numpy(random_rotation(np.random.default_rng(rotation_seed)))
@@ -608,7 +617,7 @@ def _read(path: str | Path | None) -> dict:
                                    if path == TEMPLATE_PATH else ""))
     payload = torch.load(path, map_location="cpu", weights_only=True)
     if not isinstance(payload, dict) or payload.get("format") != TEMPLATE_FORMAT:
-        raise ValueError(f"{path} is not a vid2sim template skinning network (format {TEMPLATE_FORMAT})")
+        raise InputError(f"{path} is not a vid2sim template skinning network (format {TEMPLATE_FORMAT})")
     return payload
 
 

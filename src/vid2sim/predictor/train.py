@@ -37,7 +37,14 @@ import numpy as np
 import torch
 
 from vid2sim.predictor.dataset import IMAGENET_MEAN, IMAGENET_STD, TrainingData
-from vid2sim.predictor.model import LabelPredictor, LossWeights, PhysicsPredictor, PredictorConfig, predictor_loss
+from vid2sim.predictor.model import (
+    LabelPredictor,
+    LossWeights,
+    PhysicsPredictor,
+    PredictorConfig,
+    predictor_loss,
+)
+from vid2sim.runtime.errors import ConfigError, InputError
 
 CHECKPOINT_FORMAT = "vid2sim-predictor/1"
 
@@ -99,17 +106,17 @@ class TrainConfig:
         for name in ("steps", "batch_size", "eval_every", "pretrain_batch_size", "pretrain_decoder_layers"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-                raise ValueError(f"TrainConfig.{name} must be a positive integer, got {v!r}")
+                raise ConfigError(f"TrainConfig.{name} must be a positive integer, got {v!r}")
         if not (self.lr > 0 and 0 < self.final_lr_fraction <= 1 and self.warmup >= 0 and self.weight_decay >= 0):
-            raise ValueError("TrainConfig needs lr > 0, 0 < final_lr_fraction <= 1, warmup >= 0, weight_decay >= 0")
+            raise ConfigError("TrainConfig needs lr > 0, 0 < final_lr_fraction <= 1, warmup >= 0, weight_decay >= 0")
         if isinstance(self.pretrain_steps, bool) or not isinstance(self.pretrain_steps, int) or self.pretrain_steps < 0:
-            raise ValueError(f"TrainConfig.pretrain_steps must be an integer >= 0, got {self.pretrain_steps!r}")
+            raise ConfigError(f"TrainConfig.pretrain_steps must be an integer >= 0, got {self.pretrain_steps!r}")
         if not self.pretrain_lr > 0:
-            raise ValueError(f"TrainConfig.pretrain_lr must be positive, got {self.pretrain_lr}")
+            raise ConfigError(f"TrainConfig.pretrain_lr must be positive, got {self.pretrain_lr}")
         if not 0 < self.pretrain_mask_ratio < 1:
-            raise ValueError(f"TrainConfig.pretrain_mask_ratio must lie in (0, 1), got {self.pretrain_mask_ratio}")
+            raise ConfigError(f"TrainConfig.pretrain_mask_ratio must lie in (0, 1), got {self.pretrain_mask_ratio}")
         if self.max_minutes is not None and not self.max_minutes > 0:
-            raise ValueError(f"TrainConfig.max_minutes must be positive, got {self.max_minutes}")
+            raise ConfigError(f"TrainConfig.max_minutes must be positive, got {self.max_minutes}")
 
 
 # ---- data -----------------------------------------------------------------------------------------------
@@ -294,9 +301,9 @@ def evaluate_predictor(path: str | Path, data_folder: str | Path, split: str = "
     data = TrainingData(data_folder, split, val_fraction, split_seed)
     frames = int(data.index["config"]["frames"])
     if frames != model.num_frames:
-        raise ValueError(f"{data_folder}: videos of {frames} frames, the predictor takes {model.num_frames}")
+        raise InputError(f"{data_folder}: videos of {frames} frames, the predictor takes {model.num_frames}")
     if len(data) == 0:
-        raise ValueError(f"{data_folder}: the {split!r} split has no samples")
+        raise InputError(f"{data_folder}: the {split!r} split has no samples")
     part = _Split(data, model.image_size, model.config.framing)
     with torch.no_grad():
         figures = evaluate(model, part, LossWeights())
@@ -352,7 +359,7 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
 
     payload = torch.load(path, map_location="cpu", weights_only=True)
     if not isinstance(payload, dict) or payload.get("format") not in (CHECKPOINT_FORMAT, ENSEMBLE_FORMAT):
-        raise ValueError(f"{path} is not a vid2sim predictor checkpoint (format {CHECKPOINT_FORMAT} or "
+        raise InputError(f"{path} is not a vid2sim predictor checkpoint (format {CHECKPOINT_FORMAT} or "
                          f"{ENSEMBLE_FORMAT})")
     return payload
 
@@ -443,11 +450,11 @@ def train_predictor(data_folder: str | Path, out: str | Path, config: TrainConfi
     train_data = TrainingData(data_folder, "train", cfg.val_fraction, cfg.split_seed)
     val_data = TrainingData(data_folder, "val", cfg.val_fraction, cfg.split_seed)
     if len(train_data) < cfg.batch_size:
-        raise ValueError(f"{data_folder}: {len(train_data)} training samples, fewer than one batch "
+        raise InputError(f"{data_folder}: {len(train_data)} training samples, fewer than one batch "
                          f"({cfg.batch_size})")
     data_cfg = train_data.index.get("config")
     if int(data_cfg["frames"]) != cfg.model.num_frames:
-        raise ValueError(f"{data_folder}: videos of {data_cfg['frames']} frames, the model takes "
+        raise InputError(f"{data_folder}: videos of {data_cfg['frames']} frames, the model takes "
                          f"{cfg.model.num_frames}")
     stats = train_data.label_statistics()
     # decoded once into OUT (OUT/split_*.pt, memory-mapped on a resume)
@@ -465,7 +472,7 @@ def train_predictor(data_folder: str | Path, out: str | Path, config: TrainConfi
     if last_path.is_file():
         ck = read_checkpoint(last_path)
         if ck.get("train_config") != json.loads(json.dumps(cfg_dict)) and ck.get("train_config") != cfg_dict:
-            raise ValueError(f"{last_path} was written with other training settings; use another output folder or "
+            raise InputError(f"{last_path} was written with other training settings; use another output folder or "
                              "the same settings to resume")
         model.load_state_dict(ck["state_dict"])
         opt.load_state_dict(ck["optimizer"])

@@ -53,9 +53,10 @@ from typing import Any
 
 import torch
 
+from vid2sim.physics.solver import SimConfig
 from vid2sim.reconstruct.stages.joint import JointConfig
 from vid2sim.reconstruct.stages.points import PointsConfig
-from vid2sim.physics.solver import SimConfig
+from vid2sim.runtime.errors import ConfigError, InputError
 from vid2sim.splats.densify import DensifyConfig
 from vid2sim.splats.fitting import FitConfig
 from vid2sim.splats.shading import Shading
@@ -157,34 +158,34 @@ class ReconstructConfig:
 
     def __post_init__(self) -> None:
         if self.jacobian not in ("closed_form", "neural"):
-            raise ValueError(f"ReconstructConfig.jacobian must be 'closed_form' or 'neural', got {self.jacobian!r}")
+            raise ConfigError(f"ReconstructConfig.jacobian must be 'closed_form' or 'neural', got {self.jacobian!r}")
         from vid2sim.physics.skinning_training import OBJECTIVES
 
         if self.skinning_objective not in OBJECTIVES:
-            raise ValueError(f"ReconstructConfig.skinning_objective must be one of {OBJECTIVES}, "
+            raise ConfigError(f"ReconstructConfig.skinning_objective must be one of {OBJECTIVES}, "
                              f"got {self.skinning_objective!r}")
         if self.calibration_nu not in ("curve", "two_factor", "prior"):
-            raise ValueError("ReconstructConfig.calibration_nu must be 'curve', 'two_factor' or 'prior', "
+            raise ConfigError("ReconstructConfig.calibration_nu must be 'curve', 'two_factor' or 'prior', "
                              f"got {self.calibration_nu!r}")
         if self.volumetric not in ("pointwise", "projected"):
-            raise ValueError(f"ReconstructConfig.volumetric must be 'pointwise' or 'projected', got {self.volumetric!r}")
+            raise ConfigError(f"ReconstructConfig.volumetric must be 'pointwise' or 'projected', got {self.volumetric!r}")
         if self.mass not in ("moments", "cubature"):
-            raise ValueError(f"ReconstructConfig.mass must be 'moments' or 'cubature', got {self.mass!r}")
+            raise ConfigError(f"ReconstructConfig.mass must be 'moments' or 'cubature', got {self.mass!r}")
         if self.volumetric == "projected" and self.calibrate_stiffness and self.calibration_nu == "two_factor":
-            raise ValueError("ReconstructConfig: the projected volumetric term does not lock, so its calibration "
+            raise ConfigError("ReconstructConfig: the projected volumetric term does not lock, so its calibration "
                              "takes one factor (calibration_nu 'curve' or 'prior'), not 'two_factor'")
         for name in ("handles", "skinning_iterations", "num_cubature", "velocity_frames", "calibration_cells",
                      "calibration_points"):
             if getattr(self, name) < 1:
-                raise ValueError(f"ReconstructConfig.{name} must be >= 1, got {getattr(self, name)}")
+                raise ConfigError(f"ReconstructConfig.{name} must be >= 1, got {getattr(self, name)}")
         for name in ("appearance_iterations", "motion_appearance_iterations"):
             if getattr(self, name) < 0:
-                raise ValueError(f"ReconstructConfig.{name} must be >= 0, got {getattr(self, name)}")
+                raise ConfigError(f"ReconstructConfig.{name} must be >= 0, got {getattr(self, name)}")
         p = self.motion_appearance_loss_power
         if isinstance(p, bool) or not isinstance(p, (int, float)) or not 0 < p <= 1:
-            raise ValueError(f"ReconstructConfig.motion_appearance_loss_power must be in (0, 1], got {p!r}")
+            raise ConfigError(f"ReconstructConfig.motion_appearance_loss_power must be in (0, 1], got {p!r}")
         if not (self.prior_E > 0 and 0 <= self.prior_nu < 0.5 and self.density > 0):
-            raise ValueError("ReconstructConfig needs prior_E > 0, 0 <= prior_nu < 0.5 and density > 0")
+            raise ConfigError("ReconstructConfig needs prior_E > 0, 0 <= prior_nu < 0.5 and density > 0")
 
     @classmethod
     def preset(cls, name: str, **overrides: Any) -> "ReconstructConfig":
@@ -203,10 +204,10 @@ class ReconstructConfig:
             base = cls(gaussians=FitConfig(iterations=1000, views_per_step=2), skinning_iterations=2000,
                        joint=JointConfig(iterations=400, views_per_iteration=4))
         else:
-            raise ValueError(f"unknown reconstruct preset {name!r} (expected 'small' or 'full')")
+            raise ConfigError(f"unknown reconstruct preset {name!r} (expected 'small' or 'full')")
         for key, value in overrides.items():
             if not hasattr(base, key):
-                raise ValueError(f"ReconstructConfig has no field {key!r}")
+                raise ConfigError(f"ReconstructConfig has no field {key!r}")
             setattr(base, key, value)
         base.__post_init__()
         return base
@@ -260,7 +261,7 @@ def virtual_views(images: torch.Tensor, masks: torch.Tensor, cameras: list, rota
             masks.transpose(0, 1).reshape(K * V, *masks.shape[2:]), cams)
 
 
-class ReconstructionError(ValueError):
+class ReconstructionError(InputError):
     """The scene cannot be reconstructed as given (the message names the view, frame or field)."""
 
 
@@ -461,24 +462,30 @@ def _share_cores(job, threads: int) -> None:
 def _reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConfig | None, progress: bool,
                  restart: bool, device: str | torch.device | None, threads: int) -> Path:
     """:func:`reconstruct`'s body; ``threads``: the caller's torch thread count (restored by the caller)."""
-    from vid2sim.physics import Floor, Gravity, Material, SkinningField, Simulator
+    from vid2sim.asset.folder import Asset, save_asset
+    from vid2sim.physics import Floor, Gravity, Material, Simulator, SkinningField
     from vid2sim.physics.cubature import sample_cubature
     from vid2sim.physics.external import AREA_CONTACT_STIFFNESS
     from vid2sim.physics.mass import moment_matched_volumes, voxel_moments
     from vid2sim.physics.modes import CURVE_NUS, TWO_FACTOR_MODES
-    from vid2sim.physics.neural_jacobian import NeuralJacobian, NeuralJacobianTrainingConfig, train_neural_jacobian
+    from vid2sim.physics.neural_jacobian import (
+        NeuralJacobian,
+        NeuralJacobianTrainingConfig,
+        train_neural_jacobian,
+    )
     from vid2sim.physics.skinning_training import SkinningTrainingConfig, train_skinning
     from vid2sim.physics.stiffness_curve import StiffnessCurve
-    from vid2sim.asset.folder import Asset, save_asset
-    from vid2sim.reconstruct.stages.velocity import TooFewBallisticFrames, estimate_initial_velocity
-    from vid2sim.reconstruct.stages.joint import Observations, joint_optimisation
     from vid2sim.reconstruct.stages.carving import carve_with_frames
+    from vid2sim.reconstruct.stages.joint import Observations, joint_optimisation
     from vid2sim.reconstruct.stages.points import ObjectPoints
+    from vid2sim.reconstruct.stages.velocity import (
+        TooFewBallisticFrames,
+        estimate_initial_velocity,
+    )
+    from vid2sim.runtime.device import resolve_device
     from vid2sim.scene.folder import load_scene
     from vid2sim.splats.fitting import fit_gaussians
     from vid2sim.splats.ply import load_ply, save_ply
-
-    from vid2sim.runtime.device import resolve_device
 
     cfg = config or ReconstructConfig()
     dev = device if isinstance(device, torch.device) else resolve_device(device)
@@ -715,7 +722,11 @@ def _reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructCon
     motion_ply = work.dir / "gaussians_motion.ply"
     if cfg.motion_appearance_iterations > 0:
         if not work.done("motion_appearance"):
-            from vid2sim.reconstruct.stages.motion_appearance import SkinnedMotion, initial_shading, refine_on_motion
+            from vid2sim.reconstruct.stages.motion_appearance import (
+                SkinnedMotion,
+                initial_shading,
+                refine_on_motion,
+            )
 
             what = "Gaussians" if cfg.motion_appearance_geometry else "colours"
             _stage(progress, f"[7/7] refitting the {what} on {len(T)} observed frames along the simulated motion")

@@ -12,6 +12,8 @@ import math
 from dataclasses import asdict, dataclass
 from typing import Any
 
+from vid2sim.runtime.errors import InputError
+
 #: colour of observed frames (plots, the videos' timeline and the page); future frames use ``FUTURE_COLOUR``
 OBSERVED_COLOUR = "#1f7a4d"
 #: colour of held-out (future) frames, predicted by the simulator
@@ -19,7 +21,7 @@ FUTURE_COLOUR = "#d9631e"
 VIDEO_FORMATS = ("webm", "webp")
 
 
-class ReportInputError(ValueError):
+class ReportInputError(InputError):
     """Bad input to a report writer (the message names the argument / file / field and what was expected)."""
 
 

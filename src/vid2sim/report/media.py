@@ -24,6 +24,7 @@ from PIL import Image, ImageDraw, ImageFont
 from torch import Tensor
 
 from vid2sim.report.config import FUTURE_COLOUR, OBSERVED_COLOUR
+from vid2sim.runtime.errors import InputError
 
 HEADER_HEIGHT = 50
 """Pixels of the strip of column headings above the panels of a video or strip."""
@@ -239,13 +240,13 @@ def compose_video(panels: Sequence[np.ndarray], headings: Sequence[tuple[str, st
         (T, HEADER_HEIGHT + h + FOOTER_HEIGHT, P · w, 3) uint8 (even sides, for 4:2:0 video).
     """
     if len(panels) != len(headings):
-        raise ValueError(f"{len(panels)} panels but {len(headings)} headings")
+        raise InputError(f"{len(panels)} panels but {len(headings)} headings")
     T, h, w, _ = panels[0].shape
     for p in panels:
         if p.shape != panels[0].shape:
-            raise ValueError(f"panels differ in shape: {p.shape} and {panels[0].shape}")
+            raise InputError(f"panels differ in shape: {p.shape} and {panels[0].shape}")
     if len(future) != T or (psnr is not None and len(psnr) != T):
-        raise ValueError(f"future/psnr must hold {T} values")
+        raise InputError(f"future/psnr must hold {T} values")
     width = len(panels) * w
     body = np.concatenate(list(panels), axis=2)  # (T, h, P·w, 3)
     head = header_strip(width, w, headings, error_panel, error_max, cmap)
@@ -332,12 +333,13 @@ def encode_video(path: Path, frames: np.ndarray, fps: float, crf: int = 32, fmt:
 
 
 def _encode_webm(path: Path, frames: np.ndarray, fps: float, crf: int, threads: int) -> Path:
-    import imageio_ffmpeg
     from fractions import Fraction
+
+    import imageio_ffmpeg
 
     T, H, W, _ = frames.shape
     if H % 2 or W % 2:
-        raise ValueError(f"VP9 4:2:0 needs even sides, got {W}x{H}")
+        raise InputError(f"VP9 4:2:0 needs even sides, got {W}x{H}")
     writer = imageio_ffmpeg.write_frames(
         str(path), (W, H), pix_fmt_in="rgb24", pix_fmt_out="yuv420p", fps=Fraction(fps).limit_denominator(1001),
         codec="libvpx-vp9", macro_block_size=1, ffmpeg_log_level="error",

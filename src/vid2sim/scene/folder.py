@@ -44,6 +44,7 @@ from PIL import Image, UnidentifiedImageError
 from torch import Tensor
 from tqdm import tqdm
 
+from vid2sim.runtime.errors import ConfigError, InputError
 from vid2sim.scene.validation import (
     SCENE_FORMAT_NAME,
     SCENE_FORMAT_VERSION,
@@ -132,7 +133,7 @@ class SceneConfig:
             self.metadata,
         )
         if problems:
-            raise ValueError("SceneConfig: " + "; ".join(problems))
+            raise ConfigError("SceneConfig: " + "; ".join(problems))
         self.dt = float(self.dt)
         self.gravity = tuple(float(g) for g in self.gravity)  # type: ignore[assignment]
         self.floor_height = None if self.floor_height is None else float(self.floor_height)
@@ -151,7 +152,7 @@ class SceneConfig:
         """(3,) unit up vector, ``-gravity / |gravity|`` (raises for zero gravity)."""
         norm = math.sqrt(sum(g * g for g in self.gravity))
         if norm == 0.0:
-            raise ValueError("SceneConfig.up: gravity is zero, so there is no up direction")
+            raise InputError("SceneConfig.up: gravity is zero, so there is no up direction")
         return tuple(-g / norm for g in self.gravity)  # type: ignore[return-value]
 
     def resolved(self, num_views: int, num_frames: int) -> "SceneConfig":
@@ -164,7 +165,7 @@ class SceneConfig:
             num_views, num_frames, self.observed_frames, self.held_out_frames, self.observed_views, self.held_out_views
         )
         if problems:
-            raise ValueError("SceneConfig: " + "; ".join(problems))
+            raise InputError("SceneConfig: " + "; ".join(problems))
 
         def split(observed, held, n, default_observed):
             if observed is None and held is None:
@@ -236,34 +237,34 @@ class Scene:
 
     def __post_init__(self) -> None:
         if not isinstance(self.cameras, (list, tuple)) or not self.cameras:
-            raise ValueError(f"Scene: cameras must be a non-empty list of Camera, got {type(self.cameras).__name__}")
+            raise ConfigError(f"Scene: cameras must be a non-empty list of Camera, got {type(self.cameras).__name__}")
         for i, cam in enumerate(self.cameras):
             if not isinstance(cam, Camera):
-                raise ValueError(f"Scene: cameras[{i}] must be a vid2sim.splats.cameras.Camera, got {type(cam).__name__}")
+                raise ConfigError(f"Scene: cameras[{i}] must be a vid2sim.splats.cameras.Camera, got {type(cam).__name__}")
         self.cameras = list(self.cameras)
         num_views = len(self.cameras)
         if not isinstance(self.images, Tensor):
-            raise ValueError(f"Scene: images must be a torch.Tensor, got {type(self.images).__name__}")
+            raise ConfigError(f"Scene: images must be a torch.Tensor, got {type(self.images).__name__}")
         if self.images.ndim != 5 or self.images.shape[0] != num_views or self.images.shape[-1] != 3:
-            raise ValueError(
+            raise ConfigError(
                 f"Scene: images must have shape (V, T, H, W, 3) with V = {num_views} cameras, "
                 f"got {tuple(self.images.shape)}"
             )
         _, num_frames, height, width, _ = self.images.shape
         if num_frames == 0 or height == 0 or width == 0:
-            raise ValueError(f"Scene: images must be non-empty, got shape {tuple(self.images.shape)}")
+            raise ConfigError(f"Scene: images must be non-empty, got shape {tuple(self.images.shape)}")
         if not isinstance(self.masks, Tensor) or tuple(self.masks.shape) != (num_views, num_frames, height, width):
             got = tuple(self.masks.shape) if isinstance(self.masks, Tensor) else type(self.masks).__name__
-            raise ValueError(f"Scene: masks must have shape (V, T, H, W) = {(num_views, num_frames, height, width)}, got {got}")
+            raise ConfigError(f"Scene: masks must have shape (V, T, H, W) = {(num_views, num_frames, height, width)}, got {got}")
         for name in ("images", "masks"):
             _check_pixel_range(getattr(self, name), f"Scene: {name}")
         for i, cam in enumerate(self.cameras):
             if (cam.width, cam.height) != (width, height):
-                raise ValueError(
+                raise ConfigError(
                     f"Scene: cameras[{i}] is {cam.width}x{cam.height} but the images are {width}x{height} (W x H)"
                 )
         if not isinstance(self.config, SceneConfig):
-            raise ValueError(f"Scene: config must be a SceneConfig, got {type(self.config).__name__}")
+            raise ConfigError(f"Scene: config must be a SceneConfig, got {type(self.config).__name__}")
         self.config = self.config.resolved(num_views, num_frames)
         self.times = _check_times(self.times, num_frames, self.config.dt, "Scene: times")
         self.root = None if self.root is None else Path(self.root)
@@ -332,10 +333,10 @@ class Scene:
         """
         views = list(range(self.num_views)) if views is None else [int(v) for v in views]
         if not views or any(not 0 <= v < self.num_views for v in views) or len(set(views)) != len(views):
-            raise ValueError(f"Scene.subset: views must be distinct indices in 0..{self.num_views - 1}, got {views}")
+            raise InputError(f"Scene.subset: views must be distinct indices in 0..{self.num_views - 1}, got {views}")
         frames = range(self.num_frames) if frames is None else frames
         if not isinstance(frames, range) or frames.step != 1 or len(frames) == 0 or frames.start < 0 or frames.stop > self.num_frames:
-            raise ValueError(
+            raise InputError(
                 f"Scene.subset: frames must be a non-empty range(start, stop) within 0..{self.num_frames}, got {frames!r}"
             )
         view_map = {old: new for new, old in enumerate(views)}
@@ -368,7 +369,7 @@ class Scene:
 
 def _to_float(x: Tensor, dtype: torch.dtype) -> Tensor:
     if dtype not in _FLOAT_DTYPES:
-        raise ValueError(f"dtype must be a floating-point torch dtype, got {dtype}")
+        raise InputError(f"dtype must be a floating-point torch dtype, got {dtype}")
     if x.dtype == torch.uint8:
         return x.to(dtype) / 255.0
     return x.to(dtype)
@@ -378,13 +379,13 @@ def _check_pixel_range(x: Tensor, name: str) -> None:
     if x.dtype == torch.uint8:
         return
     if x.dtype not in _FLOAT_DTYPES:
-        raise ValueError(f"{name} must be uint8 or floating point, got dtype {x.dtype}")
+        raise InputError(f"{name} must be uint8 or floating point, got dtype {x.dtype}")
     lo, hi = torch.aminmax(x.detach())
     lo, hi = float(lo), float(hi)
     if not (math.isfinite(lo) and math.isfinite(hi)):
-        raise ValueError(f"{name} contains NaN or infinite values")
+        raise InputError(f"{name} contains NaN or infinite values")
     if lo < 0.0 or hi > 1.0:
-        raise ValueError(f"{name} must lie in [0, 1], got values in [{lo:.4g}, {hi:.4g}]")
+        raise InputError(f"{name} must lie in [0, 1], got values in [{lo:.4g}, {hi:.4g}]")
 
 
 def _check_times(times: Tensor | None, num_frames: int, dt: float, name: str) -> Tensor:
@@ -392,15 +393,15 @@ def _check_times(times: Tensor | None, num_frames: int, dt: float, name: str) ->
         return torch.arange(num_frames, dtype=torch.float64).mul(dt).to(torch.float32)
     times = torch.as_tensor(times)
     if tuple(times.shape) != (num_frames,):
-        raise ValueError(f"{name} must have shape (T,) = ({num_frames},), got {tuple(times.shape)}")
+        raise InputError(f"{name} must have shape (T,) = ({num_frames},), got {tuple(times.shape)}")
     t64 = times.detach().to("cpu", torch.float64)
     if not torch.isfinite(t64).all():
-        raise ValueError(f"{name} contains NaN or infinite values")
+        raise InputError(f"{name} contains NaN or infinite values")
     steps = t64[1:] - t64[:-1]
     bad = ((steps - dt).abs() > TIME_RTOL * dt).nonzero()
     if len(bad):
         k = int(bad[0])
-        raise ValueError(
+        raise InputError(
             f"{name} must step by config.dt = {dt:g} s (one simulation step per frame), but time index "
             f"{k} → {k + 1} steps by {float(steps[k]):.6g} s"
         )
@@ -411,23 +412,23 @@ def _check_extras(extras: Mapping[str, Mapping[str, Any]] | None) -> dict[str, d
     if extras is None:
         return {}
     if not isinstance(extras, Mapping):
-        raise ValueError(f"Scene: extras must be a dict of name -> dict of arrays, got {type(extras).__name__}")
+        raise InputError(f"Scene: extras must be a dict of name -> dict of arrays, got {type(extras).__name__}")
     out: dict[str, dict[str, Tensor]] = {}
     for name, group in extras.items():
         if not is_valid_extra_name(name):
-            raise ValueError(f"Scene: extras name {name!r} is not allowed (use ASCII letters, digits, '_' and '-')")
+            raise InputError(f"Scene: extras name {name!r} is not allowed (use ASCII letters, digits, '_' and '-')")
         if not isinstance(group, Mapping) or not group:
-            raise ValueError(f"Scene: extras['{name}'] must be a non-empty dict of array name -> array")
+            raise InputError(f"Scene: extras['{name}'] must be a non-empty dict of array name -> array")
         arrays: dict[str, Tensor] = {}
         for key, value in group.items():
             if not isinstance(key, str) or not key.isidentifier():
-                raise ValueError(f"Scene: extras['{name}'] has array name {key!r}; use a Python identifier")
+                raise InputError(f"Scene: extras['{name}'] has array name {key!r}; use a Python identifier")
             try:
                 arr = value if isinstance(value, Tensor) else torch.as_tensor(np.asarray(value))
             except (TypeError, ValueError, RuntimeError) as exc:
-                raise ValueError(f"Scene: extras['{name}']['{key}'] is not a numeric array: {exc}") from exc
+                raise InputError(f"Scene: extras['{name}']['{key}'] is not a numeric array: {exc}") from exc
             if not (arr.is_floating_point() or arr.dtype in _INT_DTYPES or arr.dtype == torch.bool):
-                raise ValueError(
+                raise InputError(
                     f"Scene: extras['{name}']['{key}'] has dtype {arr.dtype}; use a float, integer or bool array"
                 )
             arrays[key] = arr
@@ -466,14 +467,14 @@ def _read_raster(path: Path) -> np.ndarray:
         elif mode == "I":
             arr = np.asarray(img)
             if arr.min() < 0 or arr.max() > 65535:
-                raise ValueError(f"32-bit integer image with values outside 0..65535 (mode {mode})")
+                raise InputError(f"32-bit integer image with values outside 0..65535 (mode {mode})")
             arr = arr.astype(np.uint16)
         elif mode == "F":
             arr = np.asarray(img, dtype=np.float32)
             if not np.isfinite(arr).all() or arr.min() < 0 or arr.max() > 1:
-                raise ValueError("float image with values outside [0, 1]")
+                raise InputError("float image with values outside [0, 1]")
         else:
-            raise ValueError(f"unsupported image mode {mode!r}")
+            raise InputError(f"unsupported image mode {mode!r}")
     if arr.ndim == 2:
         arr = arr[:, :, None]
     return arr
@@ -562,7 +563,7 @@ def _run_parallel(
     """
     workers = workers if workers is not None else min(4, os.cpu_count() or 1)
     if workers < 1:
-        raise ValueError(f"workers must be >= 1, got {workers}")
+        raise InputError(f"workers must be >= 1, got {workers}")
     with tqdm(total=len(jobs), desc=desc, disable=not progress, unit="file") as bar:
         if workers == 1:
             for job in jobs:
@@ -610,7 +611,7 @@ def load_scene(
             naming the file, the frame/camera and the field.
     """
     if dtype not in (torch.uint8, torch.float32, torch.float64):
-        raise ValueError(f"load_scene: dtype must be torch.uint8, torch.float32 or torch.float64, got {dtype}")
+        raise InputError(f"load_scene: dtype must be torch.uint8, torch.float32 or torch.float64, got {dtype}")
     root = Path(path)
     if not root.exists():
         raise SceneFormatError(["the folder does not exist"], root)
@@ -789,9 +790,9 @@ def _read_mask(path: Path) -> np.ndarray:
         return raster[..., 0]
     rgb = raster[..., :3]
     if not (np.array_equal(rgb[..., 0], rgb[..., 1]) and np.array_equal(rgb[..., 0], rgb[..., 2])):
-        raise ValueError("it is a colour image; a mask must be grey (0 = background, max = object)")
+        raise InputError("it is a colour image; a mask must be grey (0 = background, max = object)")
     if channels == 4 and raster[..., 3].min() < np.iinfo(raster.dtype).max:
-        raise ValueError("it has transparency; masks are read from the grey value, not from alpha")
+        raise InputError("it has transparency; masks are read from the grey value, not from alpha")
     return rgb[..., 0]
 
 
@@ -1004,9 +1005,9 @@ def write_scene(
     if not isinstance(scene, Scene):
         raise TypeError(f"write_scene: scene must be a Scene, got {type(scene).__name__}")
     if layout not in LAYOUTS:
-        raise ValueError(f"write_scene: layout must be one of {', '.join(LAYOUTS)}, got {layout!r}")
+        raise InputError(f"write_scene: layout must be one of {', '.join(LAYOUTS)}, got {layout!r}")
     if layout == "video" and not 1.0 <= float(video_quality) <= 10.0:
-        raise ValueError(f"write_scene: video_quality must be in [1, 10], got {video_quality}")
+        raise InputError(f"write_scene: video_quality must be in [1, 10], got {video_quality}")
     target = Path(path)
     if target.exists() or target.is_symlink():
         if not overwrite:

@@ -23,6 +23,8 @@ from typing import Any, Iterable
 
 import numpy as np
 
+from vid2sim.runtime.errors import InputError
+
 __all__ = [
     "SceneFormatError",
     "Problems",
@@ -53,7 +55,7 @@ INTRINSICS_RTOL = 1e-3  # fl_x vs camera_angle_x, per-frame intrinsics of one ca
 TIME_RTOL = 1e-3  # frame times must step by dt within this relative tolerance
 
 
-class SceneFormatError(ValueError):
+class SceneFormatError(InputError):
     """A scene folder (or a :class:`~vid2sim.scene.folder.Scene` about to be written) is invalid.
 
     Attributes:

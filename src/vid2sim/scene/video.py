@@ -29,6 +29,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from vid2sim.runtime.errors import InputError
+
 __all__ = ["VideoInfo", "VideoError", "probe_video", "load_video", "read_video", "write_video"]
 
 
@@ -37,7 +39,7 @@ __all__ = ["VideoInfo", "VideoError", "probe_video", "load_video", "read_video",
 _SWS_FLAGS = ("-sws_flags", "accurate_rnd+full_chroma_int")
 
 
-class VideoError(ValueError):
+class VideoError(InputError):
     """A video file could not be read or written (message names the file and the reason)."""
 
 
@@ -111,7 +113,7 @@ def load_video(path: str | Path, dtype: torch.dtype = torch.float32) -> tuple[Te
     """
     path = Path(path)
     if dtype not in (torch.uint8, torch.float32, torch.float64):
-        raise ValueError(f"read_video: dtype must be torch.uint8, torch.float32 or torch.float64, got {dtype}")
+        raise InputError(f"read_video: dtype must be torch.uint8, torch.float32 or torch.float64, got {dtype}")
     _check_readable(path)
     ff = _ffmpeg()
     frames: list[np.ndarray] = []
@@ -146,18 +148,18 @@ def _to_uint8_frames(frames: Tensor | np.ndarray) -> np.ndarray:
     if arr.ndim == 3:
         arr = np.repeat(arr[..., None], 3, axis=-1)
     if arr.ndim != 4 or arr.shape[-1] != 3:
-        raise ValueError(f"write_video: frames must have shape (T, H, W, 3) or (T, H, W), got {tuple(arr.shape)}")
+        raise InputError(f"write_video: frames must have shape (T, H, W, 3) or (T, H, W), got {tuple(arr.shape)}")
     if arr.shape[0] == 0 or arr.shape[1] == 0 or arr.shape[2] == 0:
-        raise ValueError(f"write_video: frames must be non-empty, got shape {tuple(arr.shape)}")
+        raise InputError(f"write_video: frames must be non-empty, got shape {tuple(arr.shape)}")
     if arr.dtype == np.uint8:
         return np.ascontiguousarray(arr)
     if not np.issubdtype(arr.dtype, np.floating):
-        raise ValueError(f"write_video: frames must be uint8 or floating point in [0, 1], got dtype {arr.dtype}")
+        raise InputError(f"write_video: frames must be uint8 or floating point in [0, 1], got dtype {arr.dtype}")
     if not np.isfinite(arr).all():
-        raise ValueError("write_video: frames contain NaN or infinite values")
+        raise InputError("write_video: frames contain NaN or infinite values")
     lo, hi = float(arr.min()), float(arr.max())
     if lo < -1e-6 or hi > 1 + 1e-6:
-        raise ValueError(f"write_video: float frames must lie in [0, 1], got values in [{lo:.4g}, {hi:.4g}]")
+        raise InputError(f"write_video: float frames must lie in [0, 1], got values in [{lo:.4g}, {hi:.4g}]")
     return np.ascontiguousarray(np.clip(np.rint(arr * 255.0), 0, 255).astype(np.uint8))
 
 
@@ -190,9 +192,9 @@ def write_video(
     path = Path(path)
     data = _to_uint8_frames(frames)
     if not (isinstance(fps, (int, float, Fraction)) and float(fps) > 0 and np.isfinite(float(fps))):
-        raise ValueError(f"write_video: fps must be a positive number, got {fps!r}")
+        raise InputError(f"write_video: fps must be a positive number, got {fps!r}")
     if not lossless and not (1.0 <= float(quality) <= 10.0):
-        raise ValueError(f"write_video: quality must be in [1, 10], got {quality}")
+        raise InputError(f"write_video: quality must be in [1, 10], got {quality}")
     if not path.parent.is_dir():
         raise VideoError(f"cannot write video '{path}': folder '{path.parent}' does not exist")
     _, height, width, _ = data.shape

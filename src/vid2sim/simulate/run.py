@@ -32,11 +32,16 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from vid2sim.simulate.scenario import ResolvedScenario, Scenario, reframe, resolve_scenario
+from vid2sim.simulate.scenario import (
+    ResolvedScenario,
+    Scenario,
+    reframe,
+    resolve_scenario,
+)
 
 if TYPE_CHECKING:
-    from vid2sim.physics.solver import SimState, Simulator
     from vid2sim.asset.folder import Asset
+    from vid2sim.physics.solver import SimState, Simulator
     from vid2sim.splats.cameras import Camera
 
 __all__ = ["ScenarioRun", "run_scenario", "trajectory_stats", "simulate", "OUTPUT_MARKERS"]
@@ -207,9 +212,9 @@ def simulate(asset: "Asset | str | Path", scenario: Scenario | None, out: str | 
 
     from vid2sim.asset.folder import load_asset
     from vid2sim.reconstruct.stages.joint import GaussianRig
-    from vid2sim.simulate.scenery import concatenate, scenery_gaussians
     from vid2sim.scene.folder import move_into_place
     from vid2sim.scene.video import write_video
+    from vid2sim.simulate.scenery import concatenate, scenery_gaussians
     from vid2sim.splats.ply import save_ply
 
     t_start = time.perf_counter()

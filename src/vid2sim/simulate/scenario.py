@@ -31,11 +31,13 @@ from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Mapping, Sequence
 
+from vid2sim.runtime.errors import InputError
+
 if TYPE_CHECKING:  # heavy imports only where used
     from torch import Tensor
 
-    from vid2sim.physics.solver import SimState, Simulator
     from vid2sim.asset.folder import Asset
+    from vid2sim.physics.solver import SimState, Simulator
     from vid2sim.splats.cameras import Camera
 
 __all__ = [
@@ -78,7 +80,7 @@ AUTO_ELEVATION_DEG = 20.0
 MAX_RESOLUTION = 8192
 
 
-class ScenarioError(ValueError):
+class ScenarioError(InputError):
     """A scenario that makes no sense; the one-line message names the field (and its file or flag)."""
 
 
@@ -813,7 +815,13 @@ def scene_cameras(path: str | Path) -> tuple[list["Camera"], int]:
     import torch
     from PIL import Image
 
-    from vid2sim.scene.validation import Problems, SceneFormatError, parse_transforms, read_json, resolve_intrinsics
+    from vid2sim.scene.validation import (
+        Problems,
+        SceneFormatError,
+        parse_transforms,
+        read_json,
+        resolve_intrinsics,
+    )
     from vid2sim.scene.video import VideoError, probe_video
     from vid2sim.splats.cameras import Camera
 

@@ -15,6 +15,8 @@ from typing import Sequence
 import torch
 from torch import Tensor
 
+from vid2sim.runtime.errors import ConfigError
+
 # camera-side axis flip between OpenCV (y down, z forward) and OpenGL (y up, z backward)
 _FLIP_YZ = torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0], dtype=torch.float64))
 
@@ -55,11 +57,11 @@ class Camera:
         self.K = torch.as_tensor(self.K, dtype=torch.float32)
         _check_rigid(self.world_to_camera, "world_to_camera")
         if self.K.shape != (3, 3):
-            raise ValueError(f"K must be a 3x3 matrix, got shape {tuple(self.K.shape)}")
+            raise ConfigError(f"K must be a 3x3 matrix, got shape {tuple(self.K.shape)}")
         if not (self.K[0, 0] > 0 and self.K[1, 1] > 0):
-            raise ValueError(f"K must have positive focal lengths, got fx={float(self.K[0, 0])}, fy={float(self.K[1, 1])}")
+            raise ConfigError(f"K must have positive focal lengths, got fx={float(self.K[0, 0])}, fy={float(self.K[1, 1])}")
         if int(self.width) <= 0 or int(self.height) <= 0:
-            raise ValueError(f"image size must be positive, got {self.width}x{self.height}")
+            raise ConfigError(f"image size must be positive, got {self.width}x{self.height}")
         self.width, self.height = int(self.width), int(self.height)
 
     # ---- conversions -------------------------------------------------------------------------

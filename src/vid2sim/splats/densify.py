@@ -22,6 +22,7 @@ The optimiser is a ``torch.optim.Adam`` with one parameter group per tensor, eac
 from __future__ import annotations
 
 from dataclasses import dataclass
+
 import torch
 from torch import Tensor
 

@@ -24,8 +24,9 @@ import torch
 from torch import Tensor
 from tqdm.auto import tqdm
 
+from vid2sim.runtime.errors import ConfigError
 from vid2sim.splats.cameras import Camera, stack_cameras
-from vid2sim.splats.densify import DensifyConfig, Densifier
+from vid2sim.splats.densify import Densifier, DensifyConfig
 from vid2sim.splats.gaussians import Gaussians
 from vid2sim.splats.losses import photometric_loss, psnr
 from vid2sim.splats.rasterize import RasterOptions
@@ -85,23 +86,23 @@ class FitConfig:
 
     def __post_init__(self) -> None:
         if self.iterations < 1:
-            raise ValueError(f"FitConfig.iterations must be >= 1, got {self.iterations}")
+            raise ConfigError(f"FitConfig.iterations must be >= 1, got {self.iterations}")
         if not 0 <= self.densify_from <= self.densify_until <= 1:
-            raise ValueError(
+            raise ConfigError(
                 f"FitConfig needs 0 <= densify_from <= densify_until <= 1, got {self.densify_from}, {self.densify_until}"
             )
         if not 0 <= self.lambda_dssim <= 1:
-            raise ValueError(f"FitConfig.lambda_dssim must be in [0, 1], got {self.lambda_dssim}")
+            raise ConfigError(f"FitConfig.lambda_dssim must be in [0, 1], got {self.lambda_dssim}")
         if self.mask_weight < 0:
-            raise ValueError(f"FitConfig.mask_weight must be >= 0, got {self.mask_weight}")
+            raise ConfigError(f"FitConfig.mask_weight must be >= 0, got {self.mask_weight}")
         if self.densify_every is not None and self.densify_every < 1:
-            raise ValueError(f"FitConfig.densify_every must be >= 1 or None, got {self.densify_every}")
+            raise ConfigError(f"FitConfig.densify_every must be >= 1 or None, got {self.densify_every}")
         if self.min_reset_interval < 1:
-            raise ValueError(f"FitConfig.min_reset_interval must be >= 1, got {self.min_reset_interval}")
+            raise ConfigError(f"FitConfig.min_reset_interval must be >= 1, got {self.min_reset_interval}")
         if self.views_per_step is not None and self.views_per_step < 1:
-            raise ValueError(f"FitConfig.views_per_step must be >= 1 or None, got {self.views_per_step}")
+            raise ConfigError(f"FitConfig.views_per_step must be >= 1 or None, got {self.views_per_step}")
         if self.backend not in BACKENDS:
-            raise ValueError(f"FitConfig.backend must be one of {BACKENDS}, got {self.backend!r}")
+            raise ConfigError(f"FitConfig.backend must be one of {BACKENDS}, got {self.backend!r}")
 
 
 def scene_extent(cameras: Sequence[Camera]) -> float:

@@ -20,7 +20,13 @@ from typing import Iterator, Sequence
 import torch
 from torch import Tensor
 
-from vid2sim.splats.sh import num_sh_bases, rgb_to_sh_dc, sh_dc_to_rgb, sh_degree_from_bases
+from vid2sim.runtime.errors import ConfigError
+from vid2sim.splats.sh import (
+    num_sh_bases,
+    rgb_to_sh_dc,
+    sh_dc_to_rgb,
+    sh_degree_from_bases,
+)
 
 _EPS_OPACITY = 1e-6
 
@@ -106,21 +112,21 @@ class Gaussians:
             "opacity_logits": (n,),
         }
         if self.means.ndim != 2 or self.means.shape[1] != 3:
-            raise ValueError(f"Gaussians.means must have shape (N, 3), got {tuple(self.means.shape)}")
+            raise ConfigError(f"Gaussians.means must have shape (N, 3), got {tuple(self.means.shape)}")
         for name, shape in expected.items():
             t = getattr(self, name)
             if not isinstance(t, Tensor):
-                raise ValueError(f"Gaussians.{name} must be a torch.Tensor, got {type(t).__name__}")
+                raise ConfigError(f"Gaussians.{name} must be a torch.Tensor, got {type(t).__name__}")
             if tuple(t.shape) != shape:
-                raise ValueError(f"Gaussians.{name} must have shape {shape} (N={n}), got {tuple(t.shape)}")
+                raise ConfigError(f"Gaussians.{name} must have shape {shape} (N={n}), got {tuple(t.shape)}")
         if self.sh.ndim != 3 or self.sh.shape[0] != n or self.sh.shape[2] != 3:
-            raise ValueError(f"Gaussians.sh must have shape (N={n}, K, 3), got {tuple(self.sh.shape)}")
+            raise ConfigError(f"Gaussians.sh must have shape (N={n}, K, 3), got {tuple(self.sh.shape)}")
         sh_degree_from_bases(self.sh.shape[1])  # validates K
         dev, dt = self.means.device, self.means.dtype
         for f in fields(self):
             t = getattr(self, f.name)
             if t.device != dev or t.dtype != dt:
-                raise ValueError(
+                raise ConfigError(
                     f"Gaussians.{f.name} is {t.dtype} on {t.device}; all fields must share means' {dt} on {dev}"
                 )
 

@@ -23,11 +23,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from vid2sim.runtime.errors import InputError
 from vid2sim.splats.gaussians import Gaussians
 from vid2sim.splats.sh import sh_degree_from_bases
 
 
-class PlyFormatError(ValueError):
+class PlyFormatError(InputError):
     """A PLY file that is not a readable 3DGS Gaussian file."""
 
 

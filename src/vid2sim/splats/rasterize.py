@@ -38,6 +38,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from vid2sim.runtime.errors import ConfigError
 from vid2sim.splats.projection import ALPHA_THRESHOLD
 
 MAX_ALPHA = 0.999
@@ -64,11 +65,11 @@ class RasterOptions:
     def __post_init__(self) -> None:
         ts = self.tile_size
         if not isinstance(ts, int) or ts <= 0 or ts & (ts - 1) or ts > 32:
-            raise ValueError(f"RasterOptions.tile_size must be a power of two in [1, 32], got {ts!r}")
+            raise ConfigError(f"RasterOptions.tile_size must be a power of two in [1, 32], got {ts!r}")
         if not isinstance(self.chunk, int) or self.chunk < 1:
-            raise ValueError(f"RasterOptions.chunk must be a positive integer, got {self.chunk!r}")
+            raise ConfigError(f"RasterOptions.chunk must be a positive integer, got {self.chunk!r}")
         if self.max_elements < self.chunk * ts * ts:
-            raise ValueError(
+            raise ConfigError(
                 f"RasterOptions.max_elements={self.max_elements} is below one tile's chunk "
                 f"(chunk * tile_size² = {self.chunk * ts * ts})"
             )

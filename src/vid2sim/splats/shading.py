@@ -28,6 +28,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from vid2sim.runtime.errors import ConfigError
 from vid2sim.splats.sh import C0
 
 
@@ -103,11 +104,11 @@ class Shading:
     def __post_init__(self) -> None:
         n = self.normals
         if n.ndim != 2 or n.shape[1] != 3:
-            raise ValueError(f"Shading.normals must have shape (N, 3), got {tuple(n.shape)}")
+            raise ConfigError(f"Shading.normals must have shape (N, 3), got {tuple(n.shape)}")
         if tuple(self.light.shape) != (3,) or float(self.light.detach().norm()) == 0.0:
-            raise ValueError(f"Shading.light must be a non-zero 3-vector, got {self.light.tolist()}")
+            raise ConfigError(f"Shading.light must be a non-zero 3-vector, got {self.light.tolist()}")
         if self.ambient_logit.ndim != 0:
-            raise ValueError(f"Shading.ambient_logit must be a scalar, got shape {tuple(self.ambient_logit.shape)}")
+            raise ConfigError(f"Shading.ambient_logit must be a scalar, got shape {tuple(self.ambient_logit.shape)}")
 
     @classmethod
     def create(cls, normals: Tensor, light: Tensor | list[float], ambient: float) -> "Shading":

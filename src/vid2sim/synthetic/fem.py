@@ -73,6 +73,7 @@ from vid2sim.physics.materials import (
     stvk_energy_and_pk1,
 )
 from vid2sim.physics.sparse_lu import SymmetricLU, nested_dissection
+from vid2sim.runtime.errors import ConfigError
 
 
 class FEMSolverError(RuntimeError):
@@ -160,37 +161,37 @@ class FEMConfig:
     def __post_init__(self) -> None:
         lame_parameters(self.youngs_modulus, self.poisson_ratio)  # validates E and ν
         if self.element_order not in (1, 2) or isinstance(self.element_order, bool):
-            raise ValueError(f"FEMConfig.element_order must be 1 (linear tets) or 2 (quadratic tets), "
+            raise ConfigError(f"FEMConfig.element_order must be 1 (linear tets) or 2 (quadratic tets), "
                              f"got {self.element_order!r}")
         if self.hessian_projection not in ("always", "on_demand"):
-            raise ValueError(
+            raise ConfigError(
                 f"FEMConfig.hessian_projection must be 'always' or 'on_demand', got {self.hessian_projection!r}")
         if self.material not in ELASTIC_MODELS:
-            raise ValueError(f"FEMConfig.material must be one of {sorted(ELASTIC_MODELS)}, got {self.material!r}")
+            raise ConfigError(f"FEMConfig.material must be one of {sorted(ELASTIC_MODELS)}, got {self.material!r}")
         if self.integrator not in INTEGRATORS:
-            raise ValueError(f"FEMConfig.integrator must be one of {list(INTEGRATORS)}, got {self.integrator!r}")
+            raise ConfigError(f"FEMConfig.integrator must be one of {list(INTEGRATORS)}, got {self.integrator!r}")
         self.damping_ratio = check_damping_ratio(self.damping_ratio, "FEMConfig.damping_ratio")
         if self.damping_length is not None and not (isinstance(self.damping_length, (int, float))
                                                     and math.isfinite(self.damping_length) and self.damping_length > 0):
-            raise ValueError(f"FEMConfig.damping_length must be a positive number of metres or None, "
+            raise ConfigError(f"FEMConfig.damping_length must be a positive number of metres or None, "
                              f"got {self.damping_length!r}")
         if self.linear_solver not in ("direct", "cg"):
-            raise ValueError(f"FEMConfig.linear_solver must be 'direct' or 'cg', got {self.linear_solver!r}")
+            raise ConfigError(f"FEMConfig.linear_solver must be 'direct' or 'cg', got {self.linear_solver!r}")
         if not 0 < self.reuse_rate < 1:
-            raise ValueError(f"FEMConfig.reuse_rate must be in (0, 1), got {self.reuse_rate!r}")
+            raise ConfigError(f"FEMConfig.reuse_rate must be in (0, 1), got {self.reuse_rate!r}")
         for name in ("density", "dt", "floor_stiffness", "newton_tol", "newton_rtol", "cg_rtol"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and value > 0 and math.isfinite(value)):
-                raise ValueError(f"FEMConfig.{name} must be a positive finite number, got {value!r}")
+                raise ConfigError(f"FEMConfig.{name} must be a positive finite number, got {value!r}")
         for name in ("substeps", "newton_max_iters", "line_search_max_halvings", "cg_max_iters"):
             value = getattr(self, name)
             if not (isinstance(value, int) and value >= 1):
-                raise ValueError(f"FEMConfig.{name} must be an integer >= 1, got {value!r}")
+                raise ConfigError(f"FEMConfig.{name} must be an integer >= 1, got {value!r}")
         if self.floor_height is not None and not math.isfinite(self.floor_height):
-            raise ValueError(f"FEMConfig.floor_height must be finite or None, got {self.floor_height}")
+            raise ConfigError(f"FEMConfig.floor_height must be finite or None, got {self.floor_height}")
         g = tuple(float(c) for c in self.gravity)
         if len(g) != 3 or not all(math.isfinite(c) for c in g):
-            raise ValueError(f"FEMConfig.gravity must be three finite numbers, got {self.gravity!r}")
+            raise ConfigError(f"FEMConfig.gravity must be three finite numbers, got {self.gravity!r}")
         self.gravity = g
 
     @property
@@ -241,10 +242,10 @@ class InitialPose:
         for name in ("linear_velocity", "angular_velocity"):
             value = np.asarray(getattr(self, name), dtype=np.float64)
             if value.shape != (3,) or not np.isfinite(value).all():
-                raise ValueError(f"InitialPose.{name} must be three finite numbers, got {getattr(self, name)!r}")
+                raise ConfigError(f"InitialPose.{name} must be three finite numbers, got {getattr(self, name)!r}")
             setattr(self, name, tuple(float(c) for c in value))
         if not (math.isfinite(self.drop_height) and self.drop_height >= 0):
-            raise ValueError(f"InitialPose.drop_height must be a finite number >= 0, got {self.drop_height}")
+            raise ConfigError(f"InitialPose.drop_height must be a finite number >= 0, got {self.drop_height}")
         self.drop_height = float(self.drop_height)
 
     @classmethod

@@ -38,6 +38,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from vid2sim.runtime.errors import ConfigError
+
 SUPPORTED_MESH_SUFFIXES = (".obj", ".glb", ".gltf", ".ply")
 DEFAULT_FLAT_COLOR = (0.7, 0.7, 0.7)
 
@@ -77,28 +79,28 @@ class TexturedMesh:
         self.texture = torch.as_tensor(self.texture).to(torch.float32)
         self.to_canonical = torch.as_tensor(self.to_canonical, dtype=torch.float64)
         if self.vertices.ndim != 2 or self.vertices.shape[1] != 3:
-            raise ValueError(f"{label}: vertices must have shape (Nv, 3), got {tuple(self.vertices.shape)}")
+            raise ConfigError(f"{label}: vertices must have shape (Nv, 3), got {tuple(self.vertices.shape)}")
         if self.faces.ndim != 2 or self.faces.shape[1] != 3:
-            raise ValueError(f"{label}: faces must have shape (Nf, 3), got {tuple(self.faces.shape)}")
+            raise ConfigError(f"{label}: faces must have shape (Nf, 3), got {tuple(self.faces.shape)}")
         nf = self.faces.shape[0]
         if nf == 0:
-            raise ValueError(f"{label}: the mesh has no faces")
+            raise ConfigError(f"{label}: the mesh has no faces")
         if self.uvs.shape != (nf, 3, 2):
-            raise ValueError(f"{label}: uvs must have shape (Nf, 3, 2) = ({nf}, 3, 2), got {tuple(self.uvs.shape)}")
+            raise ConfigError(f"{label}: uvs must have shape (Nf, 3, 2) = ({nf}, 3, 2), got {tuple(self.uvs.shape)}")
         if self.texture.ndim != 3 or self.texture.shape[2] != 3 or min(self.texture.shape[:2]) < 1:
-            raise ValueError(f"{label}: texture must have shape (Ht, Wt, 3), got {tuple(self.texture.shape)}")
+            raise ConfigError(f"{label}: texture must have shape (Ht, Wt, 3), got {tuple(self.texture.shape)}")
         if self.to_canonical.shape != (4, 4):
-            raise ValueError(f"{label}: to_canonical must be a 4x4 matrix, got {tuple(self.to_canonical.shape)}")
+            raise ConfigError(f"{label}: to_canonical must be a 4x4 matrix, got {tuple(self.to_canonical.shape)}")
         lo, hi = int(self.faces.min()), int(self.faces.max())
         if lo < 0 or hi >= self.vertices.shape[0]:
-            raise ValueError(
+            raise ConfigError(
                 f"{label}: faces index vertices in [{lo}, {hi}] but there are {self.vertices.shape[0]} vertices"
             )
         if not torch.isfinite(self.vertices).all() or not torch.isfinite(self.uvs).all():
-            raise ValueError(f"{label}: vertices or uvs contain NaN or infinite values")
+            raise ConfigError(f"{label}: vertices or uvs contain NaN or infinite values")
         tmin, tmax = float(self.texture.min()), float(self.texture.max())
         if not (tmin >= 0.0 and tmax <= 1.0):
-            raise ValueError(f"{label}: texture values must lie in [0, 1], got range [{tmin}, {tmax}]")
+            raise ConfigError(f"{label}: texture values must lie in [0, 1], got range [{tmin}, {tmax}]")
 
     @property
     def num_vertices(self) -> int:

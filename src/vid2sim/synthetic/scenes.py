@@ -44,10 +44,11 @@ import torch
 
 from vid2sim.physics.damping import DEFAULT_DAMPING_RATIO
 from vid2sim.physics.external import AREA_CONTACT_STIFFNESS
+from vid2sim.runtime.errors import ConfigError
 
 if TYPE_CHECKING:
-    from vid2sim.synthetic.fem import FEMConfig, InitialPose
     from vid2sim.meshing.tetra import TetMesh
+    from vid2sim.synthetic.fem import FEMConfig, InitialPose
 
 MAX_RESOLUTION = 4096  # the largest image side a synthetic scene renders
 MAX_IMAGE_BYTES = 8 * 2**30  # rendered images of one scene in memory (checked before the FEM runs)
@@ -145,8 +146,8 @@ class SyntheticSceneConfig:
     def __post_init__(self) -> None:
         from vid2sim.physics.materials import ELASTIC_MODELS, lame_parameters
 
-        def bad(name: str, expected: str) -> ValueError:
-            return ValueError(f"SyntheticSceneConfig.{name} must be {expected}, got {getattr(self, name)!r}")
+        def bad(name: str, expected: str) -> ConfigError:
+            return ConfigError(f"SyntheticSceneConfig.{name} must be {expected}, got {getattr(self, name)!r}")
 
         if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
             raise bad("seed", "an integer >= 0")
@@ -167,7 +168,7 @@ class SyntheticSceneConfig:
         try:
             lame_parameters(self.youngs_modulus, self.poisson_ratio)
         except ValueError as exc:
-            raise ValueError(f"SyntheticSceneConfig: {exc}") from None
+            raise ConfigError(f"SyntheticSceneConfig: {exc}") from None
         for name in ("density", "dt", "floor_stiffness", "tet_edge_length", "tet_envelope", "camera_radius",
                      "time_tolerance"):
             if not getattr(self, name) > 0:
@@ -178,7 +179,7 @@ class SyntheticSceneConfig:
         if not 0 < self.camera_fov_deg < 180:
             raise bad("camera_fov_deg", "in (0, 180) degrees")
         if self.material not in ELASTIC_MODELS:
-            raise ValueError(
+            raise ConfigError(
                 f"SyntheticSceneConfig.material must be one of {sorted(ELASTIC_MODELS)} (the FEM ground truth is "
                 f"elastic; plasticine and sand are not simulated by it), got {self.material!r}")
         if self.drop_height is not None and not (isinstance(self.drop_height, (int, float))
@@ -198,11 +199,11 @@ class SyntheticSceneConfig:
             raise bad("resolution", f"at most {MAX_RESOLUTION} pixels (the image side)")
         need = self.image_bytes()
         if need > MAX_IMAGE_BYTES:
-            raise ValueError(f"SyntheticSceneConfig.resolution {self.resolution} with {self.views} views x "
+            raise ConfigError(f"SyntheticSceneConfig.resolution {self.resolution} with {self.views} views x "
                              f"{self.frames} frames needs {need / 2**30:.1f} GiB of images; at most "
                              f"{MAX_IMAGE_BYTES / 2**30:.0f} GiB (lower the resolution, views or frames)")
         if self.observed_frames > self.frames:
-            raise ValueError(f"SyntheticSceneConfig.observed_frames ({self.observed_frames}) must not exceed "
+            raise ConfigError(f"SyntheticSceneConfig.observed_frames ({self.observed_frames}) must not exceed "
                              f"frames ({self.frames})")
         target = tuple(float(c) for c in self.camera_target)
         if len(target) != 3 or not all(math.isfinite(c) for c in target):
@@ -221,7 +222,7 @@ class SyntheticSceneConfig:
         views, 128², 24 frames)
         with ``overrides`` applied (None values are ignored)."""
         if name not in PRESETS:
-            raise ValueError(f"unknown preset {name!r}; expected one of {sorted(PRESETS)}")
+            raise ConfigError(f"unknown preset {name!r}; expected one of {sorted(PRESETS)}")
         return cls._from_fields({**PRESETS[name], **{k: v for k, v in overrides.items() if v is not None}},
                                 "SyntheticSceneConfig")
 
@@ -348,14 +349,14 @@ def make_scene(config: SyntheticSceneConfig, out_dir: str | Path, overwrite: boo
     import shutil
     import uuid
 
+    from vid2sim.meshing.tetra import tetrahedralize
+    from vid2sim.scene.folder import Scene, SceneConfig, move_into_place, write_scene
+    from vid2sim.splats.cameras import camera_ring
     from vid2sim.synthetic.embedding import apply_embedding, embed_points
     from vid2sim.synthetic.fem import simulate_fem_converged
     from vid2sim.synthetic.mesh_render import render_textured_mesh
     from vid2sim.synthetic.meshes import load_user_mesh
-    from vid2sim.scene.folder import Scene, SceneConfig, move_into_place, write_scene
     from vid2sim.synthetic.shapes import make_procedural_object
-    from vid2sim.meshing.tetra import tetrahedralize
-    from vid2sim.splats.cameras import camera_ring
 
     if not isinstance(config, SyntheticSceneConfig):
         raise TypeError(f"config must be a SyntheticSceneConfig, got {type(config).__name__}")

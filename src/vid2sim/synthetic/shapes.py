@@ -36,6 +36,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from vid2sim.runtime.errors import ConfigError
+
 from .meshes import TexturedMesh, normalize_to_canonical, prepare_surface
 from .textures import TEXTURE_KINDS, procedural_texture
 
@@ -122,18 +124,18 @@ class ProceduralShapeConfig:
     def validate(self) -> None:
         lo, hi = self.n_primitives
         if not (1 <= lo <= hi):
-            raise ValueError(f"n_primitives must be a range (lo, hi) with 1 <= lo <= hi, got {self.n_primitives}")
+            raise ConfigError(f"n_primitives must be a range (lo, hi) with 1 <= lo <= hi, got {self.n_primitives}")
         bad = [k for k in self.kinds if k not in PRIMITIVE_KINDS]
         if not self.kinds or bad:
-            raise ValueError(f"kinds must be a non-empty subset of {PRIMITIVE_KINDS}, got {self.kinds}")
+            raise ConfigError(f"kinds must be a non-empty subset of {PRIMITIVE_KINDS}, got {self.kinds}")
         if self.target_faces < 100:
-            raise ValueError(f"target_faces must be >= 100, got {self.target_faces}")
+            raise ConfigError(f"target_faces must be >= 100, got {self.target_faces}")
         if not (0.0 <= self.iso_snap < 0.5):
-            raise ValueError(f"iso_snap must lie in [0, 0.5), got {self.iso_snap}")
+            raise ConfigError(f"iso_snap must lie in [0, 0.5), got {self.iso_snap}")
         if self.min_overlap <= 0:
-            raise ValueError(f"min_overlap must be positive, got {self.min_overlap}")
+            raise ConfigError(f"min_overlap must be positive, got {self.min_overlap}")
         if self.texture_kind is not None and self.texture_kind not in TEXTURE_KINDS:
-            raise ValueError(f"texture_kind must be one of {TEXTURE_KINDS} or None, got {self.texture_kind!r}")
+            raise ConfigError(f"texture_kind must be one of {TEXTURE_KINDS} or None, got {self.texture_kind!r}")
 
 
 def random_rotation(rng: np.random.Generator) -> np.ndarray:

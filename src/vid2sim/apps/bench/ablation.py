@@ -33,8 +33,16 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Mapping, Sequence
 
-from vid2sim.apps.bench.suite import (SUITE_JSON, SuiteConfig, _write_json_atomic, check_out, read_index, run_suite,
-                                 suite_summary)
+from vid2sim.apps.bench.suite import (
+    SUITE_JSON,
+    SuiteConfig,
+    _write_json_atomic,
+    check_out,
+    read_index,
+    run_suite,
+    suite_summary,
+)
+from vid2sim.runtime.errors import InputError
 
 if TYPE_CHECKING:
     from vid2sim.reconstruct.pipeline import ReconstructConfig
@@ -142,7 +150,7 @@ def iterations_to_converge(log: Sequence[Mapping[str, Any]], final_log10_E: floa
         log (Stage II did nothing) gives 0 throughout.
     """
     if not (tolerance_log10_E >= 0 and tolerance_nu >= 0):
-        raise ValueError(f"tolerances must be >= 0, got {tolerance_log10_E} (log10 E) and {tolerance_nu} (nu)")
+        raise InputError(f"tolerances must be >= 0, got {tolerance_log10_E} (log10 E) and {tolerance_nu} (nu)")
     k_e = _settled_from(log, "log10_E", float(final_log10_E), tolerance_log10_E)
     k_nu = _settled_from(log, "nu", float(final_nu), tolerance_nu)
     both = None if k_e is None or k_nu is None else max(k_e, k_nu)
@@ -174,15 +182,15 @@ def _check_stage1_possible(config: SuiteConfig, predictor: str | None) -> str:
     base = config.reconstruct_config()
     handles = load_template().num_handles
     if base.handles != handles:
-        raise ValueError(f"ReconstructConfig.handles is {base.handles}: Stage I predicts the skinning field of the "
+        raise InputError(f"ReconstructConfig.handles is {base.handles}: Stage I predicts the skinning field of the "
                          f"template's {handles} handles, so it could not run in the Stage I variants; set "
                          f"handles={handles}")
     path = Path(predictor if predictor is not None else base.predictor or DEFAULT_PREDICTOR).expanduser()
     if not path.is_file():
-        raise ValueError(f"predictor: no checkpoint file at {path} (train one with `vid2sim train-predictor`, "
+        raise InputError(f"predictor: no checkpoint file at {path} (train one with `vid2sim train-predictor`, "
                          "or pass the path of one)")
     if importlib.util.find_spec("transformers") is None:
-        raise ValueError("Stage I needs the transformers package to load the predictor (pip install transformers)")
+        raise InputError("Stage I needs the transformers package to load the predictor (pip install transformers)")
     return str(path.resolve())
 
 

@@ -42,7 +42,7 @@ import numpy as np
 import torch
 
 from vid2sim.physics.modes import CURVE_NUS
-
+from vid2sim.runtime.errors import ConfigError, InputError
 
 LOSSES = ("shape_and_centre", "positions")
 #: how ``calibrate_stiffness`` treats ν: a curve s(ν) over a grid, a curve of two factors (on μ and on λ),
@@ -188,54 +188,54 @@ class IdentifyConfig:
                      "fit_iterations", "sweep_points", "contact_iterations"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ValueError(f"IdentifyConfig.{name} must be an integer >= 1, got {value!r}")
+                raise ConfigError(f"IdentifyConfig.{name} must be an integer >= 1, got {value!r}")
         only = tuple(self.only)
         if any(isinstance(i, bool) or not isinstance(i, int) or not 0 <= i < self.scenes for i in only) \
                 or len(set(only)) != len(only):
-            raise ValueError(f"IdentifyConfig.only must be distinct scene indices in [0, {self.scenes}), got {self.only!r}")
+            raise ConfigError(f"IdentifyConfig.only must be distinct scene indices in [0, {self.scenes}), got {self.only!r}")
         self.only = tuple(sorted(only))
         if self.observed_frames >= self.frames:
-            raise ValueError(f"IdentifyConfig.observed_frames ({self.observed_frames}) must be < frames ({self.frames})")
+            raise ConfigError(f"IdentifyConfig.observed_frames ({self.observed_frames}) must be < frames ({self.frames})")
         if self.truth not in ("fem", "reduced"):
-            raise ValueError(f"IdentifyConfig.truth must be 'fem' or 'reduced', got {self.truth!r}")
+            raise ConfigError(f"IdentifyConfig.truth must be 'fem' or 'reduced', got {self.truth!r}")
         if self.loss not in LOSSES:
-            raise ValueError(f"IdentifyConfig.loss must be one of {LOSSES}, got {self.loss!r}")
+            raise ConfigError(f"IdentifyConfig.loss must be one of {LOSSES}, got {self.loss!r}")
         from vid2sim.physics.cubature import CUBATURE_WEIGHTS
         from vid2sim.physics.skinning_training import OBJECTIVES
 
         if self.skinning_objective not in OBJECTIVES:
-            raise ValueError(f"IdentifyConfig.skinning_objective must be one of {OBJECTIVES}, got {self.skinning_objective!r}")
+            raise ConfigError(f"IdentifyConfig.skinning_objective must be one of {OBJECTIVES}, got {self.skinning_objective!r}")
         if self.cubature_weights not in CUBATURE_WEIGHTS:
-            raise ValueError(f"IdentifyConfig.cubature_weights must be one of {CUBATURE_WEIGHTS}, got {self.cubature_weights!r}")
+            raise ConfigError(f"IdentifyConfig.cubature_weights must be one of {CUBATURE_WEIGHTS}, got {self.cubature_weights!r}")
         if self.fem_element_order not in (1, 2):
-            raise ValueError(f"IdentifyConfig.fem_element_order must be 1 or 2, got {self.fem_element_order!r}")
+            raise ConfigError(f"IdentifyConfig.fem_element_order must be 1 or 2, got {self.fem_element_order!r}")
         if self.calibration_nu not in CALIBRATIONS:
-            raise ValueError(f"IdentifyConfig.calibration_nu must be one of {CALIBRATIONS}, got {self.calibration_nu!r}")
+            raise ConfigError(f"IdentifyConfig.calibration_nu must be one of {CALIBRATIONS}, got {self.calibration_nu!r}")
         if self.volumetric not in ("pointwise", "projected"):
-            raise ValueError(f"IdentifyConfig.volumetric must be 'pointwise' or 'projected', got {self.volumetric!r}")
+            raise ConfigError(f"IdentifyConfig.volumetric must be 'pointwise' or 'projected', got {self.volumetric!r}")
         if self.mass not in MASSES:
-            raise ValueError(f"IdentifyConfig.mass must be one of {MASSES}, got {self.mass!r}")
+            raise ConfigError(f"IdentifyConfig.mass must be one of {MASSES}, got {self.mass!r}")
         if self.volumetric == "projected" and self.calibrate_stiffness and self.calibration_nu == "two_factor":
-            raise ValueError("IdentifyConfig: the projected volumetric term does not lock, so it takes one factor "
+            raise ConfigError("IdentifyConfig: the projected volumetric term does not lock, so it takes one factor "
                              "(calibration_nu 'curve' or 'prior'), not 'two_factor'")
         self.calibration_nus = tuple(float(v) for v in self.calibration_nus)
         nus = self.calibration_nus
         if len(nus) < 2 or not all(0 <= v < 0.5 for v in nus) or any(b <= a for a, b in zip(nus, nus[1:])):
-            raise ValueError(f"IdentifyConfig.calibration_nus must be >= 2 increasing values in [0, 0.5), got {nus!r}")
+            raise ConfigError(f"IdentifyConfig.calibration_nus must be >= 2 increasing values in [0, 0.5), got {nus!r}")
         if isinstance(self.contact_layer, bool) or not isinstance(self.contact_layer, (int, float)) \
                 or not 0 <= self.contact_layer < math.inf:
-            raise ValueError(f"IdentifyConfig.contact_layer must be a finite number >= 0, got {self.contact_layer!r}")
+            raise ConfigError(f"IdentifyConfig.contact_layer must be a finite number >= 0, got {self.contact_layer!r}")
         if isinstance(self.nu_sensitivity, bool) or not isinstance(self.nu_sensitivity, (int, float)) \
                 or not 0 <= self.nu_sensitivity < 0.5:
-            raise ValueError(f"IdentifyConfig.nu_sensitivity must be a number in [0, 0.5), got {self.nu_sensitivity!r}")
+            raise ConfigError(f"IdentifyConfig.nu_sensitivity must be a number in [0, 0.5), got {self.nu_sensitivity!r}")
         self.nu_scan = tuple(float(v) for v in self.nu_scan)
         if any(not 0 < v < 0.5 for v in self.nu_scan) or any(b <= a for a, b in zip(self.nu_scan, self.nu_scan[1:])):
-            raise ValueError(f"IdentifyConfig.nu_scan must be increasing values in (0, 0.5), got {self.nu_scan!r}")
+            raise ConfigError(f"IdentifyConfig.nu_scan must be increasing values in (0, 0.5), got {self.nu_scan!r}")
         if self.preset not in ("small", "full"):
-            raise ValueError(f"IdentifyConfig.preset must be 'small' or 'full', got {self.preset!r}")
+            raise ConfigError(f"IdentifyConfig.preset must be 'small' or 'full', got {self.preset!r}")
         self.coarse_log10_E = tuple(sorted(float(v) for v in self.coarse_log10_E))
         if not all(math.isfinite(v) for v in self.coarse_log10_E):
-            raise ValueError(f"IdentifyConfig.coarse_log10_E must be finite numbers, got {self.coarse_log10_E!r}")
+            raise ConfigError(f"IdentifyConfig.coarse_log10_E must be finite numbers, got {self.coarse_log10_E!r}")
 
 
 @dataclass
@@ -302,15 +302,23 @@ def _rigid_affine(rest: np.ndarray, posed: np.ndarray) -> np.ndarray:
 def prepare_scene(index: int, params: dict, config: IdentifyConfig, workdir: Path, progress: bool = False
                   ) -> PerfectGeometry:
     """Build (or load from ``workdir``) scene ``index`` of the suite: FEM ground truth and perfect geometry."""
+    from vid2sim.meshing.tetra import sample_points_in_tets, tet_volumes, tetrahedralize
+    from vid2sim.physics import (
+        Floor,
+        Gravity,
+        Material,
+        SimConfig,
+        SimState,
+        Simulator,
+        SkinningField,
+    )
+    from vid2sim.physics.cubature import sample_cubature
+    from vid2sim.physics.modes import stiffness_calibration, stiffness_calibration_curve
+    from vid2sim.physics.skinning_training import SkinningTrainingConfig, train_skinning
     from vid2sim.synthetic.embedding import apply_embedding
     from vid2sim.synthetic.fem import FEMResult, simulate_fem_converged
-    from vid2sim.synthetic.shapes import make_procedural_object
     from vid2sim.synthetic.scenes import SyntheticSceneConfig
-    from vid2sim.meshing.tetra import sample_points_in_tets, tet_volumes, tetrahedralize
-    from vid2sim.physics import Floor, Gravity, Material, SimConfig, SimState, Simulator, SkinningField
-    from vid2sim.physics.modes import stiffness_calibration, stiffness_calibration_curve
-    from vid2sim.physics.cubature import sample_cubature
-    from vid2sim.physics.skinning_training import SkinningTrainingConfig, train_skinning
+    from vid2sim.synthetic.shapes import make_procedural_object
 
     folder = workdir / f"scene_{index:03d}"
     folder.mkdir(parents=True, exist_ok=True)
@@ -440,7 +448,7 @@ def trajectory_loss(scene: PerfectGeometry, frames: int, grad: bool = False, kin
     from vid2sim.metrics import rigidly_aligned
 
     if kind not in LOSSES:
-        raise ValueError(f"trajectory_loss: kind must be one of {LOSSES}, got {kind!r}")
+        raise InputError(f"trajectory_loss: kind must be one of {LOSSES}, got {kind!r}")
     traj, truth = scene.trajectory(frames, grad=grad)[1:], scene.truth[1:frames]
     if kind == "positions":
         diff = traj - truth
@@ -474,7 +482,10 @@ def model_errors(scene: PerfectGeometry, config: IdentifyConfig) -> dict:
 def calibrate_contact(scene: PerfectGeometry, config: IdentifyConfig, log10_E: float, nu: float) -> list[dict]:
     """Set the simulator's contact layer from the continuum at (log10 E, ν) and the prior ζ (see
     ``IdentifyConfig.calibrate_contact``); returns each iteration's :class:`ContactCalibration` as a dict."""
-    from vid2sim.physics.contact_compliance import TetCompliance, contact_layer_from_simulation
+    from vid2sim.physics.contact_compliance import (
+        TetCompliance,
+        contact_layer_from_simulation,
+    )
 
     sim = scene.simulator
     set_material(sim, log10_E, nu, config.prior_damping)
@@ -792,9 +803,9 @@ def run(config: IdentifyConfig, workdir: str | Path, progress: bool = True, work
     from vid2sim.synthetic.scenes import benchmark_parameters
 
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
-        raise ValueError(f"workers must be an integer >= 1, got {workers!r}")
+        raise InputError(f"workers must be an integer >= 1, got {workers!r}")
     if isinstance(threads_per_worker, bool) or not isinstance(threads_per_worker, int) or threads_per_worker < 1:
-        raise ValueError(f"threads_per_worker must be an integer >= 1, got {threads_per_worker!r}")
+        raise InputError(f"threads_per_worker must be an integer >= 1, got {threads_per_worker!r}")
     workdir = Path(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
     suite = list(enumerate(benchmark_parameters(config.scenes, config.seed)))

@@ -20,8 +20,12 @@ from typing import Any
 
 import torch
 
-from vid2sim.apps.bench.physics_speed import PhysicsBenchSettings, build_standard_simulator
+from vid2sim.apps.bench.physics_speed import (
+    PhysicsBenchSettings,
+    build_standard_simulator,
+)
 from vid2sim.apps.bench.timing import time_ms
+from vid2sim.runtime.errors import ConfigError
 
 
 def run(device: torch.device, iterations: int = 1000, progress: bool = True) -> dict[str, Any]:
@@ -35,7 +39,7 @@ def run(device: torch.device, iterations: int = 1000, progress: bool = True) -> 
     from vid2sim.physics.solver import Simulator
 
     if isinstance(iterations, bool) or not isinstance(iterations, int) or iterations < 1:
-        raise ValueError(f"iterations must be a positive integer, got {iterations!r}")
+        raise ConfigError(f"iterations must be a positive integer, got {iterations!r}")
     settings = PhysicsBenchSettings()
     sim, pts = build_standard_simulator(settings, device)
     for p in sim.field.parameters():

@@ -20,7 +20,10 @@ from typing import Any
 
 import torch
 
-from vid2sim.apps.bench.physics_speed import PhysicsBenchSettings, build_standard_simulator
+from vid2sim.apps.bench.physics_speed import (
+    PhysicsBenchSettings,
+    build_standard_simulator,
+)
 from vid2sim.apps.bench.timing import time_ms
 
 
@@ -43,7 +46,12 @@ def run(device: torch.device, quick: bool = False, settings: PhysicsBenchSetting
     from vid2sim.physics.external import AREA_CONTACT_STIFFNESS, Floor, Gravity
     from vid2sim.physics.neural_jacobian import NeuralJacobian
     from vid2sim.physics.solver import Simulator
-    from vid2sim.reconstruct.stages.joint import GaussianRig, Observations, _image_loss, render_frames
+    from vid2sim.reconstruct.stages.joint import (
+        GaussianRig,
+        Observations,
+        _image_loss,
+        render_frames,
+    )
     from vid2sim.splats.cameras import camera_ring
     from vid2sim.splats.gaussians import Gaussians
 

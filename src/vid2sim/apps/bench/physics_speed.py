@@ -82,7 +82,11 @@ def build_standard_simulator(settings: PhysicsBenchSettings, device: torch.devic
 
 def run(device: torch.device, quick: bool = False, settings: PhysicsBenchSettings | None = None) -> dict[str, Any]:
     """The figures of the module docstring, plus skinning/Neural Jacobian training ms per iteration."""
-    from vid2sim.physics.neural_jacobian import NeuralJacobian, NeuralJacobianTrainingConfig, train_neural_jacobian
+    from vid2sim.physics.neural_jacobian import (
+        NeuralJacobian,
+        NeuralJacobianTrainingConfig,
+        train_neural_jacobian,
+    )
     from vid2sim.physics.skinning_training import SkinningTrainingConfig, train_skinning
 
     s = settings or PhysicsBenchSettings()

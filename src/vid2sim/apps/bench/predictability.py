@@ -26,6 +26,8 @@ import os
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from vid2sim.runtime.errors import InputError
+
 if TYPE_CHECKING:
     from vid2sim.synthetic.scenes import SyntheticSceneConfig
 
@@ -38,11 +40,15 @@ def twin_config(scene: str | Path, height_offset: float) -> "SyntheticSceneConfi
     and tet mesh, the drop height raised by ``height_offset`` (m, ≥ 0)."""
     from dataclasses import replace
 
-    from vid2sim.synthetic.scenes import FEM_RESULT_NPZ, SYNTHETIC_JSON, SyntheticSceneConfig
+    from vid2sim.synthetic.scenes import (
+        FEM_RESULT_NPZ,
+        SYNTHETIC_JSON,
+        SyntheticSceneConfig,
+    )
 
     root = Path(scene)
     if not (isinstance(height_offset, (int, float)) and math.isfinite(height_offset) and height_offset >= 0):
-        raise ValueError(f"height_offset must be a finite number of metres >= 0, got {height_offset!r}")
+        raise InputError(f"height_offset must be a finite number of metres >= 0, got {height_offset!r}")
     for name in (SYNTHETIC_JSON, FEM_RESULT_NPZ, "scene.json"):
         if not (root / name).is_file():
             raise FileNotFoundError(f"{root / name}: not found; bench predictability needs a synthetic scene "
@@ -53,7 +59,7 @@ def twin_config(scene: str | Path, height_offset: float) -> "SyntheticSceneConfi
     try:
         height = float(meta["initial_pose"]["drop_height"])
     except (KeyError, TypeError, ValueError):
-        raise ValueError(f"{root / 'scene.json'}: metadata.initial_pose.drop_height is needed (a scene written by "
+        raise InputError(f"{root / 'scene.json'}: metadata.initial_pose.drop_height is needed (a scene written by "
                          "make-scene)") from None
     schedule = fem.get("time_convergence", {}).get("substeps") if isinstance(fem, dict) else None
     # the same first substep count: the twin's time-convergence schedule is the truth's
@@ -93,7 +99,11 @@ def predictability(scene: str | Path, out: str | Path, height_offset: float = 1e
     """
     from vid2sim.evaluate.scores import scene_groups
     from vid2sim.scene.folder import load_scene
-    from vid2sim.synthetic.scenes import SYNTHETIC_JSON, check_existing_scene, make_scene
+    from vid2sim.synthetic.scenes import (
+        SYNTHETIC_JSON,
+        check_existing_scene,
+        make_scene,
+    )
 
     root, out = Path(scene), Path(out)
     config = twin_config(root, height_offset)
@@ -104,7 +114,7 @@ def predictability(scene: str | Path, out: str | Path, height_offset: float = 1e
         make_scene(config, twin, progress=progress, workers=workers)
     truth, copy = load_scene(root), load_scene(twin)
     if truth.images.shape != copy.images.shape:
-        raise ValueError(f"{twin}: the twin's images {tuple(copy.images.shape)} differ in shape from the scene's "
+        raise InputError(f"{twin}: the twin's images {tuple(copy.images.shape)} differ in shape from the scene's "
                          f"{tuple(truth.images.shape)}")
     report: dict[str, Any] = {
         "what": "the scene's ground truth simulated again from a start raised by height_offset_m, scored "

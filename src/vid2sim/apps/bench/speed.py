@@ -8,6 +8,7 @@ from typing import Any, Callable
 import torch
 
 from vid2sim.runtime.device import resolve_device
+from vid2sim.runtime.errors import ConfigError
 
 
 def _sections() -> dict[str, Callable[..., dict[str, Any]]]:
@@ -26,7 +27,7 @@ def run_speed_benchmark(
     names = list(available) if not sections else sections
     unknown = [n for n in names if n not in available]
     if unknown:
-        raise ValueError(f"unknown benchmark section(s) {unknown}; expected some of {sorted(available)}")
+        raise ConfigError(f"unknown benchmark section(s) {unknown}; expected some of {sorted(available)}")
     result: dict[str, Any] = {
         "device": str(dev),
         "device_name": torch.cuda.get_device_name(dev) if dev.type == "cuda" else platform.processor() or platform.machine(),

@@ -31,6 +31,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from vid2sim.runtime.errors import ConfigError, InputError
+
 if TYPE_CHECKING:
     from vid2sim.reconstruct.pipeline import ReconstructConfig
 
@@ -85,13 +87,13 @@ class SuiteConfig:
 
     def __post_init__(self) -> None:
         if self.preset not in ("small", "full"):
-            raise ValueError(f"SuiteConfig.preset must be 'small' or 'full', got {self.preset!r}")
+            raise ConfigError(f"SuiteConfig.preset must be 'small' or 'full', got {self.preset!r}")
         if self.iterations is not None and (isinstance(self.iterations, bool) or not isinstance(self.iterations, int)
                                             or self.iterations < 0):
-            raise ValueError(f"SuiteConfig.iterations must be an integer >= 0, got {self.iterations!r}")
+            raise ConfigError(f"SuiteConfig.iterations must be an integer >= 0, got {self.iterations!r}")
         if self.threads is not None and (isinstance(self.threads, bool) or not isinstance(self.threads, int)
                                          or self.threads < 1):
-            raise ValueError(f"SuiteConfig.threads must be an integer >= 1, got {self.threads!r}")
+            raise ConfigError(f"SuiteConfig.threads must be an integer >= 1, got {self.threads!r}")
 
     @property
     def preset_name(self) -> str:
@@ -209,7 +211,7 @@ def _finished_record(task: SceneTask) -> dict[str, Any] | None:
     except FileNotFoundError:
         return None
     except ValueError as exc:
-        raise ValueError(f"{out / EVALUATION_JSON} is not valid JSON ({exc}); delete it to rerun the scene") from None
+        raise InputError(f"{out / EVALUATION_JSON} is not valid JSON ({exc}); delete it to rerun the scene") from None
     try:
         seconds = float(json.loads((out / RUN_JSON).read_text())["seconds"])
     except (OSError, ValueError, KeyError, TypeError):
@@ -235,15 +237,15 @@ def read_index(suite_dir: str | Path) -> list[str]:
         index = json.loads(path.read_text())
         names = [str(s["name"]) for s in index["scenes"]]
     except (ValueError, KeyError, TypeError) as exc:
-        raise ValueError(f"{path} is not a make-benchmark index (expected 'scenes': [{{'name': ...}}, ...]): "
+        raise InputError(f"{path} is not a make-benchmark index (expected 'scenes': [{{'name': ...}}, ...]): "
                          f"{exc!r}") from None
     n = index.get("n", len(names))
     if not index.get("complete", True) or len(names) != n:
-        raise ValueError(f"{path} lists {len(names)} of its {n} scenes: make-benchmark did not finish; run it "
+        raise InputError(f"{path} lists {len(names)} of its {n} scenes: make-benchmark did not finish; run it "
                          "again with the same settings to complete the suite")
     missing = [name for name in names if not (root / name).is_dir()]
     if missing:
-        raise ValueError(f"{path} lists scenes whose folders are missing: {', '.join(missing)}")
+        raise InputError(f"{path} lists scenes whose folders are missing: {', '.join(missing)}")
     return names
 
 
@@ -337,7 +339,7 @@ def check_out(out: Path, settings: dict[str, Any]) -> None:
         keys = ("suite", "preset", "iterations", "fovvdp", "reconstruct")  # threads may change between runs
         differ = [k for k in keys if previous.get(k) != settings.get(k)]
         if differ:
-            raise ValueError(f"{out} holds a suite run with other settings ({', '.join(differ)} differ; see "
+            raise InputError(f"{out} holds a suite run with other settings ({', '.join(differ)} differ; see "
                              f"{path}): resume it with the same settings, or write to another folder")
     elif out.exists() and any(out.iterdir()):
         raise FileExistsError(f"{out} is not empty and holds no {SUITE_CONFIG_JSON}: refusing to write a suite "

@@ -87,7 +87,11 @@ def tet_reference(points: np.ndarray, nus: tuple[float, ...], k: int, edge_lengt
     Raises:
         ValueError: no closed surface could be made from the points.
     """
-    from vid2sim.meshing.tetra import largest_connected_part, tet_volumes, tetrahedralize
+    from vid2sim.meshing.tetra import (
+        largest_connected_part,
+        tet_volumes,
+        tetrahedralize,
+    )
     from vid2sim.physics.tet_modes import tet_frequency_curve
 
     t0 = time.perf_counter()
@@ -210,7 +214,11 @@ def calibrate_stiffness(field, cubature: Tensor, weights: Tensor, points: Tensor
     Raises:
         ValueError: no closed surface could be made from the points, or ``reference`` is for another grid.
     """
-    from vid2sim.physics.modes import TWO_FACTOR_MODES, stiffness_calibration_curve, subspace_frequencies
+    from vid2sim.physics.modes import (
+        TWO_FACTOR_MODES,
+        stiffness_calibration_curve,
+        subspace_frequencies,
+    )
 
     t0 = time.perf_counter()
     grid = tuple(float(v) for v in nus) if nus is not None else (float(poisson_ratio),)

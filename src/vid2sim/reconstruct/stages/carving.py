@@ -82,7 +82,11 @@ def track_poses(points: Tensor, masks: Tensor, cameras: Sequence[Camera], iterat
         :class:`TrackedPoses` of frames 0 … K−1, K ≤ T: tracking stops before the first frame whose mask is
         empty in some view (the object left it).
     """
-    from vid2sim.reconstruct.stages.velocity import _PoseFit, _prepare_silhouette, _surface_samples
+    from vid2sim.reconstruct.stages.velocity import (
+        _PoseFit,
+        _prepare_silhouette,
+        _surface_samples,
+    )
 
     if masks.ndim != 4 or masks.shape[0] != len(cameras):
         raise ValueError(f"track_poses: masks must be (V={len(cameras)}, T, H, W), got {tuple(masks.shape)}")
@@ -211,7 +215,11 @@ def carve_with_frames(masks: Tensor, cameras: Sequence[Camera], dt: float, gravi
         (:class:`~vid2sim.reconstruct.stages.points.ObjectPoints`, a JSON-ready record: per round the tracked residuals,
         which frames were in free flight, chosen, or refused and why, and the voxel counts).
     """
-    from vid2sim.reconstruct.stages.points import PointsConfig, object_points, points_from_occupancy
+    from vid2sim.reconstruct.stages.points import (
+        PointsConfig,
+        object_points,
+        points_from_occupancy,
+    )
 
     cfg = config or PointsConfig()
     V, T = masks.shape[:2]

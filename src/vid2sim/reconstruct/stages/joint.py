@@ -34,6 +34,7 @@ import torch
 from torch import Tensor
 
 from vid2sim.physics.solver import SimState, Simulator
+from vid2sim.runtime.errors import ConfigError
 from vid2sim.splats.cameras import Camera
 from vid2sim.splats.gaussians import Gaussians
 
@@ -89,30 +90,30 @@ class JointConfig:
 
     def __post_init__(self) -> None:
         if self.iterations < 0:
-            raise ValueError(f"JointConfig.iterations must be >= 0, got {self.iterations}")
+            raise ConfigError(f"JointConfig.iterations must be >= 0, got {self.iterations}")
         if self.window < 1:
-            raise ValueError(f"JointConfig.window must be >= 1, got {self.window}")
+            raise ConfigError(f"JointConfig.window must be >= 1, got {self.window}")
         if not 0 < self.coarse_scale <= 1:
-            raise ValueError(f"JointConfig.coarse_scale must be in (0, 1], got {self.coarse_scale}")
+            raise ConfigError(f"JointConfig.coarse_scale must be in (0, 1], got {self.coarse_scale}")
         if not 0 <= self.coarse_fraction <= 1:
-            raise ValueError(f"JointConfig.coarse_fraction must be in [0, 1], got {self.coarse_fraction}")
+            raise ConfigError(f"JointConfig.coarse_fraction must be in [0, 1], got {self.coarse_fraction}")
         if self.views_per_iteration is not None and self.views_per_iteration < 1:
-            raise ValueError(f"JointConfig.views_per_iteration must be >= 1 or None, got {self.views_per_iteration}")
+            raise ConfigError(f"JointConfig.views_per_iteration must be >= 1 or None, got {self.views_per_iteration}")
         if self.refresh_every < 1 or self.validate_every < 1:
-            raise ValueError("JointConfig.refresh_every and validate_every must be >= 1")
+            raise ConfigError("JointConfig.refresh_every and validate_every must be >= 1")
         if self.frame_decay is not None and (isinstance(self.frame_decay, bool)
                                              or not isinstance(self.frame_decay, (int, float))
                                              or not 0 < float(self.frame_decay) < math.inf):
-            raise ValueError(f"JointConfig.frame_decay must be a finite number > 0 or None, got {self.frame_decay!r}")
+            raise ConfigError(f"JointConfig.frame_decay must be a finite number > 0 or None, got {self.frame_decay!r}")
         if isinstance(self.centre_of_mass_step, bool) or not isinstance(self.centre_of_mass_step, (int, float)) \
                 or not 0 <= float(self.centre_of_mass_step) < 0.5:
-            raise ValueError("JointConfig.centre_of_mass_step must be a fraction of the object's size in [0, 0.5), "
+            raise ConfigError("JointConfig.centre_of_mass_step must be a fraction of the object's size in [0, 0.5), "
                              f"got {self.centre_of_mass_step!r}")
         if self.centre_of_mass_rounds < 1:
-            raise ValueError(f"JointConfig.centre_of_mass_rounds must be >= 1, got {self.centre_of_mass_rounds}")
+            raise ConfigError(f"JointConfig.centre_of_mass_rounds must be >= 1, got {self.centre_of_mass_rounds}")
         lo, hi = self.nu_bounds
         if not 0 <= lo < hi < 0.5:
-            raise ValueError(f"JointConfig.nu_bounds must satisfy 0 <= lo < hi < 0.5, got {self.nu_bounds}")
+            raise ConfigError(f"JointConfig.nu_bounds must satisfy 0 <= lo < hi < 0.5, got {self.nu_bounds}")
         self.coarse_log10_E = tuple(sorted(float(v) for v in self.coarse_log10_E))  # the parabola needs order
 
 

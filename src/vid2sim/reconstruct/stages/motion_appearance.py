@@ -88,7 +88,11 @@ class SkinnedMotion:
         covariance through the change of F along the move (a second-order effect that would cost a
         differentiation through the field's own gradient at every step).
         """
-        from vid2sim.physics.skinning import deform, deformation_gradient, gradient_basis
+        from vid2sim.physics.skinning import (
+            deform,
+            deformation_gradient,
+            gradient_basis,
+        )
         from vid2sim.splats.deform import deform_gaussians
 
         if not 0 <= t < self.num_frames:

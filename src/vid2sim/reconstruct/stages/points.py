@@ -22,6 +22,7 @@ from typing import Sequence
 import torch
 from torch import Tensor
 
+from vid2sim.runtime.errors import ConfigError
 from vid2sim.splats.cameras import Camera, stack_cameras
 from vid2sim.splats.gaussians import Gaussians
 
@@ -70,22 +71,22 @@ class PointsConfig:
 
     def __post_init__(self) -> None:
         if self.frame_rounds < 0 or self.track_points < 4:
-            raise ValueError(f"PointsConfig.frame_rounds must be >= 0 and track_points >= 4, got {self.frame_rounds}, "
+            raise ConfigError(f"PointsConfig.frame_rounds must be >= 0 and track_points >= 4, got {self.frame_rounds}, "
                              f"{self.track_points}")
         if not (isinstance(self.carve_margin_px, (int, float)) and 0 <= self.carve_margin_px < math.inf):
-            raise ValueError(f"PointsConfig.carve_margin_px must be a finite number >= 0, got {self.carve_margin_px!r}")
+            raise ConfigError(f"PointsConfig.carve_margin_px must be a finite number >= 0, got {self.carve_margin_px!r}")
         for name in ("frame_residual_ratio", "free_flight_tolerance", "coverage_tolerance"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
-                raise ValueError(f"PointsConfig.{name} must be a finite number > 0, got {value!r}")
+                raise ConfigError(f"PointsConfig.{name} must be a finite number > 0, got {value!r}")
         if self.resolution < 8:
-            raise ValueError(f"PointsConfig.resolution must be >= 8, got {self.resolution}")
+            raise ConfigError(f"PointsConfig.resolution must be >= 8, got {self.resolution}")
         if self.num_points < 100:
-            raise ValueError(f"PointsConfig.num_points must be >= 100, got {self.num_points}")
+            raise ConfigError(f"PointsConfig.num_points must be >= 100, got {self.num_points}")
         if self.max_contact_points < 1:
-            raise ValueError(f"PointsConfig.max_contact_points must be >= 1, got {self.max_contact_points}")
+            raise ConfigError(f"PointsConfig.max_contact_points must be >= 1, got {self.max_contact_points}")
         if self.depth_tolerance < 0:
-            raise ValueError(f"PointsConfig.depth_tolerance must be >= 0, got {self.depth_tolerance}")
+            raise ConfigError(f"PointsConfig.depth_tolerance must be >= 0, got {self.depth_tolerance}")
 
 
 @dataclass

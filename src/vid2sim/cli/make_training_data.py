@@ -4,8 +4,12 @@ from __future__ import annotations
 
 import argparse
 import re
+from pathlib import Path
 
 from vid2sim.cli.common import UserError
+from vid2sim.physics import SimulationError
+from vid2sim.predictor.data import TrainingDataConfig, make_training_data
+from vid2sim.runtime.ray_runner import RayUnavailable
 
 # TrainingDataConfig fields and the flags that set them (for error messages)
 _FLAGS = {"objects": "--objects", "draws_per_object": "--draws", "resolution": "--resolution", "frames": "--frames",
@@ -19,10 +23,8 @@ def _config_error(exc: ValueError) -> UserError:
     return UserError(message)
 
 
-def _cmd_make_training_data(args: argparse.Namespace) -> int:
-    from pathlib import Path
+def run(args: argparse.Namespace) -> int:
 
-    from vid2sim.predictor.data import TrainingDataConfig, make_training_data
 
     if args.threads < 1:
         raise UserError(f"--threads must be >= 1, got {args.threads}")
@@ -42,8 +44,6 @@ def _cmd_make_training_data(args: argparse.Namespace) -> int:
         config = TrainingDataConfig(**{k: v for k, v in given.items() if v is not None})
     except ValueError as exc:
         raise _config_error(exc) from exc
-    from vid2sim.runtime.ray_runner import RayUnavailable
-    from vid2sim.physics import SimulationError
 
     try:
         index = make_training_data(config, args.out, workers=args.workers, threads=args.threads,
@@ -94,4 +94,4 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--threads", type=int, default=1,
                    help="torch threads per worker (default 1; shards are reproducible for a given value)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
-    p.set_defaults(func=_cmd_make_training_data)
+    p.set_defaults(func=run)

@@ -1,0 +1,69 @@
+"""``vid2sim bench ablation``: the paper's Stage I ablation on a make-benchmark suite."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+
+from vid2sim.apps.bench.ablation import (
+    ABLATION_JSON,
+    format_ablation_table,
+    run_ablation,
+)
+from vid2sim.apps.bench.suite import SuiteConfig
+from vid2sim.cli.common import (
+    UserError,
+    add_suite_run_options,
+)
+from vid2sim.runtime.ray_runner import RayUnavailable
+
+
+def run(args: argparse.Namespace) -> int:
+
+
+    if args.iterations is not None and args.iterations < 0:
+        raise UserError(f"--iterations must be >= 0, got {args.iterations}")
+    if args.threads is not None and args.threads < 1:
+        raise UserError(f"--threads must be >= 1, got {args.threads}")
+    if args.predictor is not None and not Path(args.predictor).is_file():
+        raise UserError(f"--predictor {args.predictor}: no such checkpoint file (train one with "
+                        "`vid2sim train-predictor`)")
+    config = SuiteConfig(preset=args.preset, iterations=args.iterations, threads=args.threads)
+    try:
+        result = run_ablation(args.suite, args.out, config, predictor=args.predictor, progress=not args.quiet,
+                              ray_address=args.ray_address)
+    except RayUnavailable as exc:
+        raise UserError(str(exc)) from exc
+    print(format_ablation_table(result))
+    path = os.path.join(args.out, ABLATION_JSON)
+    failed = [f"{name}/{r['name']}" for name, v in result["variants"].items() for r in v["scenes"]
+              if r["status"] != "ok"]
+    if failed:
+        total = sum(len(v["scenes"]) for v in result["variants"].values())
+        print(f"vid2sim bench ablation: {len(failed)} of {total} variant scenes failed ({', '.join(failed)}); the "
+              f"others finished. Wrote {path}; each failed scene's traceback is in OUT/VARIANT/NAME/error.txt; run "
+              "the command again to retry the failed scenes.", file=sys.stderr)
+        return 1
+    print(f"wrote {path}")
+    return 0
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    """Add the ``bench ablation`` subcommand."""
+    babl = sub.add_parser("ablation", help="the paper's Stage I ablation on a make-benchmark suite: Stage I "
+                                "alone, Stage I + II, Stage II from the prior; one table row each, ablation.json "
+                                "(resumable)")
+    babl.add_argument("suite", help="benchmark folder written by make-benchmark (index.json + scenes)")
+    babl.add_argument("out", help="results folder: one bench-suite folder per variant (stage1_only, stage1_stage2, "
+                      "stage2_prior) and ablation.json (resumed if it holds them)")
+    babl.add_argument("--preset", choices=["small", "full"], default="small",
+                      help="reconstruct preset: small (CPU minutes per scene) or full; default small")
+    babl.add_argument("--iterations", type=int, default=None,
+                      help="joint-optimisation iterations of the Stage II variants (default: the preset's)")
+    babl.add_argument("--predictor", metavar="PATH", default=None,
+                      help="Stage I checkpoint (default: the one shipped with vid2sim; vid2sim train-predictor)")
+    add_suite_run_options(babl)
+    babl.set_defaults(func=run)
+

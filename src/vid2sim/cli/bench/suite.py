@@ -1,0 +1,52 @@
+"""``vid2sim bench suite``: reconstruct + evaluate every scene of a make-benchmark suite."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+
+from vid2sim.apps.bench.suite import SUITE_JSON, SuiteConfig, format_table, run_suite
+from vid2sim.cli.common import (
+    UserError,
+    add_suite_run_options,
+)
+from vid2sim.runtime.ray_runner import RayUnavailable
+
+
+def run(args: argparse.Namespace) -> int:
+
+    if args.iterations is not None and args.iterations < 0:
+        raise UserError(f"--iterations must be >= 0, got {args.iterations}")
+    if args.threads is not None and args.threads < 1:
+        raise UserError(f"--threads must be >= 1, got {args.threads}")
+    config = SuiteConfig(preset=args.preset, iterations=args.iterations, threads=args.threads)
+    try:
+        result = run_suite(args.suite, args.out, config, progress=not args.quiet, ray_address=args.ray_address)
+    except RayUnavailable as exc:
+        raise UserError(str(exc)) from exc
+    print(format_table(result))
+    path = os.path.join(args.out, SUITE_JSON)
+    failed = [r["name"] for r in result["scenes"] if r["status"] != "ok"]
+    if failed:
+        print(f"vid2sim bench suite: {len(failed)} of {len(result['scenes'])} scenes failed ({', '.join(failed)}); "
+              f"the others finished. Wrote {path}; each failed scene's traceback is in OUT/NAME/error.txt; run "
+              "the command again to retry only the failed scenes.", file=sys.stderr)
+        return 1
+    print(f"wrote {path}; report: {os.path.join(args.out, 'report', 'index.html')}")
+    return 0
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    """Add the ``bench suite`` subcommand."""
+    bsuite = sub.add_parser("suite", help="reconstruct + evaluate every scene of a make-benchmark suite; "
+                                  "per-scene table and means, suite.json (resumable)")
+    bsuite.add_argument("suite", help="benchmark folder written by make-benchmark (index.json + scenes)")
+    bsuite.add_argument("out", help="results folder: NAME/asset, NAME/evaluation.json per scene, suite.json "
+                        "(resumed if it holds a suite_config.json)")
+    bsuite.add_argument("--preset", choices=["small", "full"], default="small",
+                        help="reconstruct preset: small (CPU minutes per scene) or full; default small")
+    bsuite.add_argument("--iterations", type=int, default=None,
+                        help="joint-optimisation iterations (default: the preset's)")
+    add_suite_run_options(bsuite)
+    bsuite.set_defaults(func=run)

@@ -1,0 +1,61 @@
+"""``vid2sim evaluate ASSET SCENE``: an asset scored on a scene."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from vid2sim.cli.common import add_threads_option, set_threads
+from vid2sim.cli.report import write_asset_report
+from vid2sim.evaluate.scores import evaluate, write_report
+
+
+def run(args: argparse.Namespace) -> int:
+
+
+    set_threads(args.threads)
+    report, renders = evaluate(args.asset, args.scene, fovvdp=args.fovvdp, progress=not args.quiet,
+                               return_renders=True, true_motion=args.true_motion)
+    out = Path(args.out) if args.out else Path(args.asset) / "evaluation.json"
+    write_report(report, out)
+    lines = []
+    for key in ("dynamic", "future", "novel_views"):
+        if report[key]:
+            lines.append(f"{key}: PSNR {report[key]['psnr']:.2f} dB, SSIM {report[key]['ssim']:.4f}")
+    for key, group in report.get("true_motion", {}).items():
+        if isinstance(group, dict) and group:
+            lines.append(f"{key} on the true motion: PSNR {group['psnr']:.2f} dB, SSIM {group['ssim']:.4f}")
+    mat = report["material"]
+    if "abs_error_log10_E" in mat:
+        lines.append(f"|d log10 E| = {mat['abs_error_log10_E']:.3f}, |d nu| = {mat['abs_error_nu']:.3f}")
+        start = mat.get("start")
+        if start is not None and "abs_error_nu" in start:
+            lines.append(f"  at the start ({start['source']}: E = {start['E']:.3e} Pa, nu = {start['nu']:.3f}): "
+                         f"|d log10 E| = {start['abs_error_log10_E']:.3f}, |d nu| = {start['abs_error_nu']:.3f}")
+    for key, what in (("chamfer", "Chamfer to the true surface"), ("centre_of_mass", "centre of mass off the truth's")):
+        if key in report:
+            future = report[key]["future_mean"]
+            lines.append(f"{what}: {100 * report[key]['observed_mean']:.2f} cm observed"
+                         + (f", {100 * future:.2f} cm future" if future is not None else ""))
+    print("\n".join(lines + [f"wrote {out}"]))
+    if not args.no_report:
+        write_asset_report(Path(args.asset) / "report", args.asset, args.scene, quiet=args.quiet, evaluation=report,
+                      renders=renders)
+    return 0
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    """Add the ``evaluate`` subcommand."""
+    ev = sub.add_parser("evaluate", help="score an asset on a scene: PSNR/SSIM on observed, future and novel "
+                        "views, material, Chamfer and centre-of-mass errors against ground truth")
+    ev.add_argument("asset", help="asset folder written by reconstruct")
+    ev.add_argument("scene", help="scene folder")
+    ev.add_argument("--out", default=None, help="JSON report (default ASSET/evaluation.json)")
+    ev.add_argument("--fovvdp", action="store_true", help="also FoVVDP (needs the optional pyfvvdp, CC BY-NC)")
+    ev.add_argument("--no-report", action="store_true", help="do not write the HTML report (ASSET/report/index.html)")
+    ev.add_argument("--true-motion", action="store_true",
+                    help="also score the asset's Gaussians moved by the ground truth's motion (needs the "
+                         "tet_trajectory extra): the appearance's share of the image error")
+    add_threads_option(ev)
+    ev.add_argument("--quiet", action="store_true", help="no progress output")
+    ev.set_defaults(func=run)
