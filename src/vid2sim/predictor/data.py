@@ -43,7 +43,6 @@ import json
 import math
 import os
 import time
-import uuid
 import zipfile
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
@@ -54,6 +53,7 @@ import torch
 
 from vid2sim.predictor.front_view import FrontCamera
 from vid2sim.runtime.errors import ConfigError
+from vid2sim.runtime.files import write_file_atomic, write_json_atomic
 
 FORMAT = "vid2sim-training-data/1"
 INDEX = "index.json"
@@ -408,9 +408,8 @@ def make_object_shard(config: TrainingDataConfig, spec: ObjectSpec,
 def write_npz(path: str | Path, arrays: dict[str, np.ndarray], compress: bool = True) -> Path:
     """Write ``arrays`` as an ``.npz`` that ``numpy.load`` reads, atomically (temp file + rename) and
     byte-reproducibly (fixed member order, timestamps and compression level)."""
-    path = Path(path)
-    tmp = path.parent / f".{path.name}.{uuid.uuid4().hex[:12]}.tmp"
-    try:
+
+    def write(tmp: str) -> None:
         with zipfile.ZipFile(tmp, "w") as zf:
             for key in arrays:
                 info = zipfile.ZipInfo(f"{key}.npy", date_time=(1980, 1, 1, 0, 0, 0))
@@ -419,25 +418,8 @@ def write_npz(path: str | Path, arrays: dict[str, np.ndarray], compress: bool = 
                 buf = io.BytesIO()
                 np.lib.format.write_array(buf, np.asarray(arrays[key]), allow_pickle=False)  # 0-d stays 0-d
                 zf.writestr(info, buf.getvalue(), compresslevel=6 if compress else None)
-        _apply_umask_file(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    return path
 
-
-def _apply_umask_file(path: Path) -> None:
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(path, 0o666 & ~umask)
-
-
-def _write_json_atomic(path: Path, obj: Any) -> None:
-    tmp = path.parent / f".{path.name}.{uuid.uuid4().hex[:12]}.tmp"
-    tmp.write_text(json.dumps(obj, indent=2) + "\n")
-    _apply_umask_file(tmp)
-    os.replace(tmp, path)
+    return write_file_atomic(path, write)
 
 
 def shard_task(config_dict: dict, spec_fields: tuple, out_dir: str, threads: int | None) -> dict:
@@ -587,7 +569,7 @@ def make_training_data(config: TrainingDataConfig, out_dir: str | Path, workers:
                               "seconds_split": split,
                               "seconds_per_sample": {k: v / made_samples for k, v in split.items()} if made else None},
                  "shards": shards}
-        _write_json_atomic(index_path, index)
+        write_json_atomic(index_path, index)
         return index
 
     by_name = {s.name: s for s in specs}

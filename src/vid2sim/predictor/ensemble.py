@@ -29,6 +29,7 @@ from torch import Tensor, nn
 
 from vid2sim.predictor.model import LabelPredictor, PhysicsPredictor
 from vid2sim.runtime.errors import InputError
+from vid2sim.runtime.files import save_torch_atomic
 
 ENSEMBLE_FORMAT = "vid2sim-predictor-ensemble/1"
 
@@ -97,7 +98,6 @@ def save_ensemble(checkpoints: Sequence[str | Path], out: str | Path, mirror: bo
             held out different validation splits.
     """
     from vid2sim.predictor.train import (
-        _atomic_save,
         evaluate_predictor,
         model_from_payload,
         read_checkpoint,
@@ -121,12 +121,12 @@ def save_ensemble(checkpoints: Sequence[str | Path], out: str | Path, mirror: bo
                              "test set with eval-predictor instead")
         (fraction, seed), = splits
         tmp = out.with_name(f".{out.name}.unscored")
-        _atomic_save(payload, tmp)
+        save_torch_atomic(payload, tmp)
         try:
             figures = evaluate_predictor(tmp, val_data, "val", fraction, seed)
         finally:
             tmp.unlink(missing_ok=True)
         payload["metrics"] = {k: v for k, v in figures.items() if k not in ("checkpoint", "seconds")}
         payload["metrics"]["val_samples"] = figures["samples"]
-    _atomic_save(payload, out)
+    save_torch_atomic(payload, out)
     return out

@@ -36,6 +36,7 @@ import torch
 from torch import Tensor
 
 from vid2sim.runtime.errors import InputError
+from vid2sim.runtime.files import save_torch_atomic
 
 if TYPE_CHECKING:  # pragma: no cover
     from vid2sim.predictor.model import PhysicsPredictor
@@ -129,7 +130,6 @@ def pretrain_backbone(model: "PhysicsPredictor", train: "_Split", cfg: "TrainCon
     from tqdm.auto import tqdm
 
     from vid2sim.predictor.train import (
-        _atomic_save,
         _lr_factor,
         normalise_video,
         optimiser_step,
@@ -158,7 +158,7 @@ def pretrain_backbone(model: "PhysicsPredictor", train: "_Split", cfg: "TrainCon
             "decoder_layers": int(pre.config.decoder_num_hidden_layers), "mask_ratio": cfg.pretrain_mask_ratio}
 
     def save() -> None:
-        _atomic_save({"format": PRETRAIN_FORMAT, "settings": settings, "state_dict": pre.state_dict(),
+        save_torch_atomic({"format": PRETRAIN_FORMAT, "settings": settings, "state_dict": pre.state_dict(),
                       "optimizer": opt.state_dict(), "step": step, "curve": curve, "seconds": seconds}, path)
 
     per_epoch = max(1, len(train) // bs)

@@ -26,8 +26,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import tempfile
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -45,6 +43,7 @@ from vid2sim.predictor.model import (
     predictor_loss,
 )
 from vid2sim.runtime.errors import ConfigError, InputError
+from vid2sim.runtime.files import save_torch_atomic
 
 CHECKPOINT_FORMAT = "vid2sim-predictor/1"
 
@@ -193,7 +192,7 @@ class _Split:
                 split.videos, split.targets = stored["videos"], stored["targets"]
                 return split
         split = cls(data, size, framing)
-        _atomic_save({"key": json.dumps(key), "videos": split.videos, "targets": split.targets}, path)
+        save_torch_atomic({"key": json.dumps(key), "videos": split.videos, "targets": split.targets}, path)
         return split
 
     def __len__(self) -> int:
@@ -315,20 +314,6 @@ def evaluate_predictor(path: str | Path, data_folder: str | Path, split: str = "
 
 # ---- checkpoints ----------------------------------------------------------------------------------------
 
-def _atomic_save(payload: dict, path: Path) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    os.close(fd)
-    try:
-        torch.save(payload, tmp)
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
 
 def checkpoint_payload(model: PhysicsPredictor, *, half: bool = False, label_stats: dict | None = None,
                        data_config: dict | None = None, train_config: dict | None = None,
@@ -346,7 +331,7 @@ def save_predictor(model: PhysicsPredictor, path: str | Path, half: bool = False
     """Write ``model`` as a checkpoint at ``path`` atomically (``info``: label_stats, data_config, train_config,
     metrics)."""
     path = Path(path)
-    _atomic_save(checkpoint_payload(model, half=half, **info), path)
+    save_torch_atomic(checkpoint_payload(model, half=half, **info), path)
     return path
 
 
@@ -504,7 +489,7 @@ def train_predictor(data_folder: str | Path, out: str | Path, config: TrainConfi
             save_predictor(model, best_path, metrics=dict(metrics, step=step), **info)
         payload = checkpoint_payload(model, metrics=metrics, **info)
         payload.update(optimizer=opt.state_dict(), step=step, log=log)
-        _atomic_save(payload, last_path)
+        save_torch_atomic(payload, last_path)
 
     t_mark = [time.perf_counter()]
     bar = tqdm(total=cfg.steps, initial=step, desc="train-predictor", unit="step", disable=not progress)

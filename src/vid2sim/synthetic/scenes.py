@@ -45,6 +45,7 @@ import torch
 from vid2sim.physics.damping import DEFAULT_DAMPING_RATIO
 from vid2sim.physics.external import AREA_CONTACT_STIFFNESS
 from vid2sim.runtime.errors import ConfigError
+from vid2sim.runtime.files import write_json_atomic
 
 if TYPE_CHECKING:
     from vid2sim.meshing.tetra import TetMesh
@@ -592,7 +593,7 @@ def make_benchmark(n: int, out_dir: str | Path, preset: str = "full", seed: int 
         c = configs[i]
         entries[i] = {"name": names[i], "seed": c.seed, "E": c.youngs_modulus, "nu": c.poisson_ratio,
                       "density": c.density, "material": c.material}
-        _write_json_atomic(index_path, {**header, "n": n, "complete": len(entries) == n,
+        write_json_atomic(index_path, {**header, "n": n, "complete": len(entries) == n,
                                         "scenes": [entries[k] for k in sorted(entries)]})
 
     try:
@@ -659,10 +660,4 @@ def check_existing_scene(folder: Path, config: SyntheticSceneConfig) -> None:
     if differ:
         changes = ", ".join(f"{k}: {found[k]!r} != {wanted[k]!r}" for k in differ)
         raise ValueError(f"{folder} was made with other settings ({changes}); remove it to regenerate")
-
-
-def _write_json_atomic(path: Path, obj: Any) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(json.dumps(obj, indent=2))
-    tmp.replace(path)
 

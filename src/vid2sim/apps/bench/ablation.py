@@ -36,13 +36,13 @@ from typing import TYPE_CHECKING, Any, Mapping, Sequence
 from vid2sim.apps.bench.suite import (
     SUITE_JSON,
     SuiteConfig,
-    _write_json_atomic,
     check_out,
     read_index,
     run_suite,
     suite_summary,
 )
 from vid2sim.runtime.errors import InputError
+from vid2sim.runtime.files import write_json_atomic
 
 if TYPE_CHECKING:
     from vid2sim.reconstruct.pipeline import ReconstructConfig
@@ -308,7 +308,7 @@ def run_ablation(suite_dir: str | Path, out_dir: str | Path, config: SuiteConfig
         if marked:  # the variant's own suite.json and report must not count them as Stage I results either
             plain = suite_summary(result["suite"], result["preset"],
                                   [{k: r[k] for k in before} for r, before in zip(records, result["scenes"])])
-            _write_json_atomic(out / variant.name / SUITE_JSON, plain)
+            write_json_atomic(out / variant.name / SUITE_JSON, plain)
             from vid2sim.report import write_suite_report
 
             write_suite_report(out / variant.name / "report", plain)
@@ -333,7 +333,7 @@ def run_ablation(suite_dir: str | Path, out_dir: str | Path, config: SuiteConfig
                                 "asset's material (best validation); max of the two; 0 for stage1_only",
                   "variants": convergence},
               "failed": sum(v["failed"] for v in variants.values())}
-    _write_json_atomic(out / ABLATION_JSON, result)
+    write_json_atomic(out / ABLATION_JSON, result)
     return result
 
 

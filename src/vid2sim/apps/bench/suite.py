@@ -24,7 +24,6 @@ import copy
 import dataclasses
 import json
 import math
-import os
 import time
 import traceback
 from dataclasses import dataclass, field
@@ -32,6 +31,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from vid2sim.runtime.errors import ConfigError, InputError
+from vid2sim.runtime.files import write_json_atomic
 
 if TYPE_CHECKING:
     from vid2sim.reconstruct.pipeline import ReconstructConfig
@@ -163,7 +163,7 @@ def run_scene(task: SceneTask, progress: bool = False) -> dict[str, Any]:
                                    return_renders=True)
         t2 = time.perf_counter()
         seconds = earlier + (t2 - start)
-        _write_json_atomic(out / RUN_JSON, {"seconds": seconds, "reconstruct_seconds": earlier + (t1 - t0),
+        write_json_atomic(out / RUN_JSON, {"seconds": seconds, "reconstruct_seconds": earlier + (t1 - t0),
                                             "evaluate_seconds": t2 - t1})
         write_html_report(out / REPORT_DIR, asset, scene=task.scene, evaluation=report, renders=renders,
                           progress=progress)
@@ -321,7 +321,7 @@ def run_suite(suite_dir: str | Path, out_dir: str | Path, config: SuiteConfig | 
     finally:
         bar.close()
     result = suite_summary(str(suite), config.preset_name, [r for r in records if r is not None])
-    _write_json_atomic(out / SUITE_JSON, result)
+    write_json_atomic(out / SUITE_JSON, result)
     from vid2sim.report import write_suite_report
 
     write_suite_report(out / REPORT_DIR, result)
@@ -350,7 +350,7 @@ def _prepare_out(out: Path, settings: dict[str, Any]) -> None:
     """Create ``out`` and its suite_config.json, or check that an earlier run there used ``settings``."""
     check_out(out, settings)
     out.mkdir(parents=True, exist_ok=True)
-    _write_json_atomic(out / SUITE_CONFIG_JSON, settings)
+    write_json_atomic(out / SUITE_CONFIG_JSON, settings)
 
 
 def _metric(record: dict[str, Any], key: str) -> float | None:
@@ -436,10 +436,3 @@ def _fmt(value: float | None, scale: float, decimals: int) -> str:
     if value is None or not math.isfinite(value):
         return "-"
     return f"{value * scale:.{decimals}f}"
-
-
-def _write_json_atomic(path: Path, obj: Any) -> None:
-    """Write JSON beside ``path`` and rename it into place (a reader never sees half a file)."""
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(json.dumps(obj, indent=2) + "\n")
-    os.replace(tmp, path)
