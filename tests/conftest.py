@@ -69,15 +69,13 @@ def tiny_training_data(tmp_path_factory):
 # tests (built once per test session: about half a minute on two cores).
 
 def _tiny_reconstruct_config():
-    from vid2sim.reconstruct.stages.joint import JointConfig
-    from vid2sim.reconstruct.stages.points import PointsConfig
-    from vid2sim.reconstruct.pipeline import ReconstructConfig
-    from vid2sim.splats.fitting import FitConfig
+    """The demo's toy sizes (``vid2sim demo --size tiny``) on the defaults; the stiffness calibration is off (it
+    is tested on its own)."""
+    from vid2sim.apps.demo import TINY
+    from vid2sim.reconstruct.config import ReconstructConfig
+    from vid2sim.runtime import config as configs
 
-    return ReconstructConfig(gaussians=FitConfig(iterations=30), points=PointsConfig(resolution=24, num_points=1000),
-                             appearance_iterations=5, motion_appearance_iterations=5, handles=3,
-                             skinning_iterations=10, num_cubature=60, calibrate_stiffness=False,  # tested on its own
-                             joint=JointConfig(iterations=2, coarse_log10_E=(4.5, 5.0), validate_every=1, window=2))
+    return configs.merge(ReconstructConfig(), TINY)
 
 
 @pytest.fixture
@@ -101,9 +99,10 @@ def tiny_scene(tmp_path_factory):
 def tiny_asset(tiny_scene, tmp_path_factory):
     """The asset folder reconstructed from ``tiny_scene`` with the tiny config (masses matched to the voxels'
     moments, so that path is exercised too)."""
-    from dataclasses import replace
 
     from vid2sim.reconstruct.pipeline import reconstruct
 
     out = tmp_path_factory.mktemp("asset") / "asset"
-    return reconstruct(tiny_scene, out, replace(_tiny_reconstruct_config(), mass="moments"), progress=False)
+    config = _tiny_reconstruct_config()
+    config.simulator.mass = "moments"
+    return reconstruct(tiny_scene, out, config, progress=False)

@@ -16,9 +16,22 @@ import pytest
 import torch
 
 from vid2sim.apps.bench import ablation
-from vid2sim.apps.bench.ablation import (ABLATION_JSON, VARIANTS, Convergence, format_ablation_table,
-                                    iterations_to_converge, run_ablation, variant_configs)
-from vid2sim.apps.bench.suite import EVALUATION_JSON, METRICS, SUITE_CONFIG_JSON, SUITE_JSON, SuiteConfig
+from vid2sim.apps.bench.ablation import (
+    ABLATION_JSON,
+    VARIANTS,
+    Convergence,
+    format_ablation_table,
+    iterations_to_converge,
+    run_ablation,
+    variant_configs,
+)
+from vid2sim.apps.bench.suite import (
+    EVALUATION_JSON,
+    METRICS,
+    SUITE_CONFIG_JSON,
+    SUITE_JSON,
+    SuiteConfig,
+)
 from vid2sim.cli import main
 
 NAMES = ["stage1_only", "stage1_stage2", "stage2_prior"]
@@ -93,27 +106,27 @@ def test_variants_apply_to_the_preset_or_the_given_config(tiny_config):
     assert [v.name for v in VARIANTS] == NAMES
     assert [(v.stage1, v.stage2) for v in VARIANTS] == [(True, False), (True, True), (False, True)]
     base = tiny_config()
-    base.handles = 10
+    base.networks.handles = 10
     given = SuiteConfig(reconstruct=base, iterations=7, threads=1)
     configs = variant_configs(given, predictor="/x/p.pt")
     assert list(configs) == NAMES
     s1, full, prior = (configs[n].reconstruct_config() for n in NAMES)
-    assert (s1.stage1, s1.predictor, s1.joint.iterations, s1.joint.coarse_log10_E) == (True, "/x/p.pt", 0, ())
-    assert (full.stage1, full.predictor, full.joint.iterations, full.joint.coarse_log10_E) == (True, "/x/p.pt", 7,
+    assert (s1.stage1.enabled, s1.stage1.predictor, s1.joint.iterations, s1.joint.coarse_log10_E) == (True, "/x/p.pt", 0, ())
+    assert (full.stage1.enabled, full.stage1.predictor, full.joint.iterations, full.joint.coarse_log10_E) == (True, "/x/p.pt", 7,
                                                                                               (4.5, 5.0))
-    assert (prior.stage1, prior.predictor, prior.joint.iterations, prior.joint.coarse_log10_E) == (False, None, 7,
+    assert (prior.stage1.enabled, prior.stage1.predictor, prior.joint.iterations, prior.joint.coarse_log10_E) == (False, None, 7,
                                                                                                   (4.5, 5.0))
     # everything else is the given config's; the given config is untouched
-    assert {k: v for k, v in s1.to_dict().items() if k not in ("stage1", "predictor", "joint")} == \
-        {k: v for k, v in base.to_dict().items() if k not in ("stage1", "predictor", "joint")}
-    assert base.stage1 is False and base.predictor is None and base.joint.iterations == 2
+    assert {k: v for k, v in s1.to_dict().items() if k not in ("stage1", "joint")} == \
+        {k: v for k, v in base.to_dict().items() if k not in ("stage1", "joint")}
+    assert base.stage1.enabled is False and base.stage1.predictor is None and base.joint.iterations == 2
     assert [configs[n].iterations for n in NAMES] == [0, 7, 7] and all(configs[n].threads == 1 for n in NAMES)
     # Stage I alone does not depend on the iterations; the preset's settings are used without a config
     assert variant_configs(SuiteConfig(iterations=3))["stage1_only"].to_dict() == \
         variant_configs(SuiteConfig())["stage1_only"].to_dict()
     small = variant_configs()
     assert small["stage2_prior"].reconstruct_config().joint.iterations == 100  # the small preset's
-    assert small["stage1_stage2"].reconstruct_config().predictor is None  # None: the shipped checkpoint
+    assert small["stage1_stage2"].reconstruct_config().stage1.predictor is None  # None: the shipped checkpoint
 
 
 def _result(means: dict[str, dict], failed: dict[str, list[str]], not_settled: dict[str, list[str]]) -> dict:
@@ -173,14 +186,14 @@ def test_handles_and_a_missing_predictor_are_refused_before_any_work(fake_suite,
     _no_work(monkeypatch)
     out = tmp_path / "out"
     three = tiny_config()  # the tiny config's 3 handles: the predicted last layer is for 10
-    with pytest.raises(ValueError, match="ReconstructConfig.handles is 3.*set handles=10"):
+    with pytest.raises(ValueError, match="networks.handles is 3.*set handles=10"):
         run_ablation(fake_suite, out, SuiteConfig(reconstruct=three), predictor=None, progress=False)
     ten = tiny_config()
-    ten.handles = 10
+    ten.networks.handles = 10
     with pytest.raises(ValueError, match="predictor: no checkpoint file at .*none.pt"):
         run_ablation(fake_suite, out, SuiteConfig(reconstruct=ten), predictor=str(tmp_path / "none.pt"),
                      progress=False)
-    ten.predictor = str(tmp_path / "gone.pt")  # the ReconstructConfig's own checkpoint is checked too
+    ten.stage1.predictor = str(tmp_path / "gone.pt")  # the ReconstructConfig's own checkpoint is checked too
     with pytest.raises(ValueError, match="gone.pt"):
         run_ablation(fake_suite, out, SuiteConfig(reconstruct=ten), progress=False)
     assert not out.exists()
@@ -200,7 +213,7 @@ def test_a_foreign_results_folder_and_a_missing_ray_are_refused(fake_suite, tmp_
     _no_work(monkeypatch)
     ckpt = _tiny_predictor(tmp_path / "p.pt")
     cfg = tiny_config()
-    cfg.handles = 10
+    cfg.networks.handles = 10
     (tmp_path / "out").mkdir()
     (tmp_path / "out" / "x.txt").write_text("x")
     with pytest.raises(FileExistsError, match="holds no ablation run"):
@@ -240,7 +253,7 @@ def run(tiny_config, tmp_path_factory):
         make_benchmark(1, root / "suite", preset="small", seed=0, progress=False, workers=1, **TINY)
         TIMINGS["make_benchmark_s"] = time.perf_counter() - t0
         cfg = tiny_config()
-        cfg.handles = 10
+        cfg.networks.handles = 10
         config = SuiteConfig(reconstruct=cfg, threads=1)
         ckpt = _tiny_predictor(root / "p.pt")
         t0 = time.perf_counter()

@@ -83,10 +83,11 @@ def test_perfect_geometry_starts_exactly_where_the_fem_starts(report):
                                          calibration_nus=(0.3, 0.45)), workdir)
     curve2 = two.simulator.stiffness_scale
     assert curve2.lam_scale is not None and two.info["stiffness_curve"]["lam_scale"] == list(curve2.lam_scale)
+    from scipy.linalg import eigh
+
     from vid2sim.physics.materials import lame_parameters
     from vid2sim.physics.modes import subspace_stiffness_parts
     from vid2sim.physics.reduced import lbs_rows
-    from scipy.linalg import eigh
 
     with torch.no_grad():
         w, dw = sim.field.weights_and_gradients(sim.X)

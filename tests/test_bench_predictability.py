@@ -6,7 +6,12 @@ import json
 
 import pytest
 
-from vid2sim.apps.bench.predictability import PREDICTABILITY_JSON, TWIN_DIR, predictability, twin_config
+from vid2sim.apps.bench.predictability import (
+    PREDICTABILITY_JSON,
+    TWIN_DIR,
+    predictability,
+    twin_config,
+)
 from vid2sim.cli import main
 from vid2sim.metrics.images import MSE_FLOOR
 

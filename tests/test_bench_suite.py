@@ -10,15 +10,26 @@ import math
 import shutil
 import sys
 import time
-from pathlib import Path
 from dataclasses import asdict
+from pathlib import Path
 
 import pytest
 
-from vid2sim.apps.bench.suite import (EVALUATION_JSON, METRICS, SUITE_CONFIG_JSON, SUITE_JSON, SuiteConfig, format_table,
-                                 run_suite)
+from vid2sim.apps.bench.suite import (
+    EVALUATION_JSON,
+    METRICS,
+    SUITE_CONFIG_JSON,
+    SUITE_JSON,
+    SuiteConfig,
+    format_table,
+    run_suite,
+)
 from vid2sim.cli import main
-from vid2sim.synthetic.scenes import SyntheticSceneConfig, benchmark_parameters, make_benchmark
+from vid2sim.synthetic.scenes import (
+    SyntheticSceneConfig,
+    benchmark_parameters,
+    make_benchmark,
+)
 
 pytestmark = pytest.mark.slow  # end to end: scene generation, reconstruction, suites
 
@@ -108,9 +119,9 @@ def test_suite_json_schema_means_and_table(local_run, suite_dir, tiny_config):
         # the start of Stage II (the prior: Stage I is off) with its own errors, the fit's baseline
         prior = tiny_config()
         start = ev["material"]["start"]
-        assert start["source"] == "prior" and start["E"] == prior.prior_E and start["nu"] == prior.prior_nu
-        assert start["abs_error_log10_E"] == pytest.approx(abs(math.log10(prior.prior_E) - math.log10(truth["E"])))
-        assert start["abs_error_nu"] == pytest.approx(abs(prior.prior_nu - truth["nu"]))
+        assert start["source"] == "prior" and start["E"] == prior.prior.E and start["nu"] == prior.prior.nu
+        assert start["abs_error_log10_E"] == pytest.approx(abs(math.log10(prior.prior.E) - math.log10(truth["E"])))
+        assert start["abs_error_nu"] == pytest.approx(abs(prior.prior.nu - truth["nu"]))
     # means: the plain average of the two scenes' evaluation.json values
     evs = [json.loads((out / n / EVALUATION_JSON).read_text()) for n in ("scene_000", "scene_001")]
     expected = {

@@ -5,7 +5,13 @@ import math
 import pytest
 import torch
 
-from vid2sim.splats.cameras import Camera, camera_ring, camera_sphere, look_at, stack_cameras
+from vid2sim.splats.cameras import (
+    Camera,
+    camera_ring,
+    camera_sphere,
+    look_at,
+    stack_cameras,
+)
 
 
 def _cam(eye, target=(0.0, 0.0, 0.0), f=100.0, w=128, h=96):

@@ -1,4 +1,4 @@
-"""The hull carved with the later frames (vid2sim.reconstruct.stages.carving), on the analytic tumbling drop of
+"""The hull carved with the later frames (vid2sim.reconstruct.stages.points), on the analytic tumbling drop of
 test_initial_state: two overlapping ellipsoids rendered exactly by 4 cameras at 64 × 64 px, torque-free
 rotation from Euler's equations (scipy), so the true pose of every frame is known independently of the
 module's tracker."""
@@ -9,10 +9,16 @@ import numpy as np
 import pytest
 import torch
 from scipy.spatial.transform import Rotation
-
 from test_initial_state import DT, ELLIPSOIDS, GRAVITY, AnalyticDrop
-from vid2sim.reconstruct.stages.carving import carve_with_frames, gravity_deviation, silhouette_coverage, track_poses
-from vid2sim.reconstruct.stages.points import PointsConfig, object_points
+
+from vid2sim.reconstruct.config import PointsConfig
+from vid2sim.reconstruct.stages.points import (
+    carve_with_frames,
+    gravity_deviation,
+    object_points,
+    silhouette_coverage,
+    track_poses,
+)
 
 pytestmark = pytest.mark.slow  # silhouette fits of several frames
 

@@ -13,8 +13,8 @@ from PIL import Image
 from vid2sim.cli import main
 from vid2sim.scene.folder import Scene, SceneConfig, load_scene, write_scene
 from vid2sim.splats.cameras import camera_ring
-from vid2sim.splats.ply import load_ply
 from vid2sim.splats.losses import psnr
+from vid2sim.splats.ply import load_ply
 from vid2sim.splats.preview import LABEL_HEIGHT
 from vid2sim.splats.render import render, render_gaussians
 

@@ -5,8 +5,11 @@ import pytest
 import torch
 
 from vid2sim.meshing.tetra import box_tet_mesh
-from vid2sim.physics.contact_compliance import (contact_layer_calibration, subspace_impact_compliance,
-                                                tet_impact_compliance)
+from vid2sim.physics.contact_compliance import (
+    contact_layer_calibration,
+    subspace_impact_compliance,
+    tet_impact_compliance,
+)
 from vid2sim.physics.tet_modes import TET_EDGES, quadratic_tet_nodes
 
 L, W = 2.0, 0.5  # bar length (x) and square cross-section side
@@ -133,7 +136,14 @@ def test_bad_loads_are_named():
 def _bar_simulator(k_floor: float = 5e7):
     """A reduced simulator of the bar (an untrained 2-handle field) whose contact points are the bottom face's
     quadratic nodes, with equal areas, above a floor at z = 0."""
-    from vid2sim.physics import Floor, Gravity, Material, SimConfig, Simulator, SkinningField
+    from vid2sim.physics import (
+        Floor,
+        Gravity,
+        Material,
+        SimConfig,
+        Simulator,
+        SkinningField,
+    )
 
     vertices, tets = _bar()
     nodes, _ = quadratic_tet_nodes(vertices, tets)
@@ -191,8 +201,11 @@ def test_simulated_contact_loads_are_the_floor_forces_in_the_rest_frame():
 
 
 def test_contact_layer_from_simulation_adds_the_compliance_the_subspace_misses():
-    from vid2sim.physics.contact_compliance import (TetCompliance, contact_layer_from_simulation,
-                                                    simulated_contact_loads)
+    from vid2sim.physics.contact_compliance import (
+        TetCompliance,
+        contact_layer_from_simulation,
+        simulated_contact_loads,
+    )
 
     sim, vertices, tets, bottom = _bar_simulator()
     tet = TetCompliance(vertices, tets, 0.3)

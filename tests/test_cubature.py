@@ -3,7 +3,11 @@
 import pytest
 import torch
 
-from vid2sim.physics.cubature import farthest_point_sampling, sample_cubature, voronoi_weights
+from vid2sim.physics.cubature import (
+    farthest_point_sampling,
+    sample_cubature,
+    voronoi_weights,
+)
 
 
 def _cloud(n: int, seed: int = 0) -> torch.Tensor:

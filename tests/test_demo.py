@@ -4,9 +4,9 @@ import json
 
 import pytest
 
-from vid2sim.cli import main
 from vid2sim.apps import demo as demo_module
 from vid2sim.apps.demo import DemoConfig, run_demo
+from vid2sim.cli import main
 
 pytestmark = pytest.mark.slow
 

@@ -16,9 +16,24 @@ import pytest
 import torch
 
 from vid2sim.cli import main
-from vid2sim.export.gltf import (ATTR_OPACITY, ATTR_ROTATION, ATTR_SCALE, EXTENSION, GltfFormatError, export_gltf,
-                                 load_gltf_gaussians, read_gltf, sh_attribute)
-from vid2sim.export.rig import RigFormatError, evaluate_rig_numpy, export_rig, load_rig, neural_jacobian_numpy
+from vid2sim.export.gltf import (
+    ATTR_OPACITY,
+    ATTR_ROTATION,
+    ATTR_SCALE,
+    EXTENSION,
+    GltfFormatError,
+    export_gltf,
+    load_gltf_gaussians,
+    read_gltf,
+    sh_attribute,
+)
+from vid2sim.export.rig import (
+    RigFormatError,
+    evaluate_rig_numpy,
+    export_rig,
+    load_rig,
+    neural_jacobian_numpy,
+)
 from vid2sim.export.sequence import export_sequence
 from vid2sim.export.transform import rotation_to_y_up
 from vid2sim.splats.gaussians import Gaussians
@@ -424,8 +439,8 @@ def test_rig_numpy_reference_matches_torch(tiny_asset, tmp_path):
 
 
 def test_rig_neural_jacobian_numpy_matches_torch(tiny_asset, tmp_path):
-    from vid2sim.physics.neural_jacobian import NeuralJacobian
     from vid2sim.asset.folder import load_asset
+    from vid2sim.physics.neural_jacobian import NeuralJacobian
 
     asset = load_asset(tiny_asset)
     nj = NeuralJacobian(asset.field.num_handles_total, encoding_dim=8, widths=(8, 16), seed=3)

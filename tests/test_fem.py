@@ -19,6 +19,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 import torch
 
+from vid2sim.meshing.tetra import box_tet_mesh, surface_vertex_areas
 from vid2sim.synthetic.fem import (
     FEMConfig,
     FEMResult,
@@ -29,7 +30,6 @@ from vid2sim.synthetic.fem import (
     simulate_fem_converged,
     static_solve,
 )
-from vid2sim.meshing.tetra import box_tet_mesh, surface_vertex_areas
 
 skfem = pytest.importorskip("skfem")
 from skfem.models.elasticity import lame_parameters as skfem_lame  # noqa: E402

@@ -11,10 +11,20 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 import torch
 
-from vid2sim.synthetic.embedding import apply_embedding, embed_points
-from vid2sim.synthetic.fem import FEMConfig, FEMResult, InitialPose, TetFEM, simulate_fem, static_solve
-from vid2sim.physics.tet_modes import quadratic_tet_nodes, tet_frequencies, tet_stiffness_and_mass
 from vid2sim.meshing.tetra import box_tet_mesh
+from vid2sim.physics.tet_modes import (
+    quadratic_tet_nodes,
+    tet_stiffness_and_mass,
+)
+from vid2sim.synthetic.embedding import apply_embedding, embed_points
+from vid2sim.synthetic.fem import (
+    FEMConfig,
+    FEMResult,
+    InitialPose,
+    TetFEM,
+    simulate_fem,
+    static_solve,
+)
 
 skfem = pytest.importorskip("skfem")
 from skfem.models.elasticity import lame_parameters as skfem_lame  # noqa: E402

@@ -24,7 +24,11 @@ import torch
 from scipy.integrate import solve_ivp
 from scipy.spatial.transform import Rotation
 
-from vid2sim.reconstruct.stages.velocity import InitialVelocity, estimate_initial_velocity, propagate_rotations
+from vid2sim.reconstruct.stages.velocity import (
+    InitialVelocity,
+    estimate_initial_velocity,
+    propagate_rotations,
+)
 from vid2sim.splats.cameras import camera_ring
 
 pytestmark = pytest.mark.slow  # fits Gaussians / generates synthetic scenes

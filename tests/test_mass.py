@@ -12,8 +12,16 @@ import torch
 from vid2sim.meshing.tetra import box_tet_mesh, sample_points_in_tets
 from vid2sim.physics.cubature import sample_cubature
 from vid2sim.physics.external import Gravity
-from vid2sim.physics.mass import (centre_shifted_volumes, lumped_moments, moment_features, moment_matched_volumes,
-                                  sampled_moments, tet_moments, translated_moments, voxel_moments)
+from vid2sim.physics.mass import (
+    centre_shifted_volumes,
+    lumped_moments,
+    moment_features,
+    moment_matched_volumes,
+    sampled_moments,
+    tet_moments,
+    translated_moments,
+    voxel_moments,
+)
 from vid2sim.physics.skinning import SkinningField
 from vid2sim.physics.solver import Material, SimConfig, Simulator
 
@@ -165,13 +173,13 @@ def test_the_simulator_lumps_its_mass_on_the_mass_volumes(box_points):
 
 def test_bad_mass_settings_are_refused():
     from vid2sim.apps.bench.identify import IdentifyConfig
-    from vid2sim.reconstruct.pipeline import ReconstructConfig
+    from vid2sim.reconstruct.config import ReconstructConfig, SimulatorConfig
 
     with pytest.raises(ValueError, match="IdentifyConfig.mass"):
         IdentifyConfig(mass="dense")
-    with pytest.raises(ValueError, match="ReconstructConfig.mass"):
-        ReconstructConfig(mass="dense")
-    assert IdentifyConfig().mass == "moments" and ReconstructConfig().mass == "cubature"
+    with pytest.raises(ValueError, match="SimulatorConfig.mass"):
+        SimulatorConfig(mass="dense")
+    assert IdentifyConfig().mass == "moments" and ReconstructConfig().simulator.mass == "cubature"
 
 
 def test_the_stiffness_calibration_uses_the_simulator_s_mass(box_points):

@@ -249,7 +249,11 @@ def test_fused_neo_hookean_viscous_tangent_equals_the_separate_tangents():
     """The damped step's exact tangent, assembled from outer and Kronecker products, equals
     k_e ∂P_NH/∂F + k_v ∂P_StVK(C_ref)/∂F, and the viscous part is the derivative of its stress."""
     from vid2sim.physics.damping import viscous_pk1
-    from vid2sim.physics.materials import neo_hookean_viscous_tangent, neo_hookean_tangent, stvk_tangent
+    from vid2sim.physics.materials import (
+        neo_hookean_tangent,
+        neo_hookean_viscous_tangent,
+        stvk_tangent,
+    )
 
     gen = torch.Generator().manual_seed(3)
     F = torch.eye(3, dtype=torch.float64) + 0.2 * torch.randn(40, 3, 3, generator=gen, dtype=torch.float64)

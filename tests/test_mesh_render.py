@@ -8,9 +8,14 @@ import numpy as np
 import pytest
 import torch
 
-from vid2sim.synthetic.mesh_render import render_mesh, render_textured_mesh, sample_texture, vertex_normals
-from vid2sim.synthetic.shapes import ProceduralShapeConfig, make_procedural_object
 from vid2sim.splats.cameras import Camera, camera_ring
+from vid2sim.synthetic.mesh_render import (
+    render_mesh,
+    render_textured_mesh,
+    sample_texture,
+    vertex_normals,
+)
+from vid2sim.synthetic.shapes import ProceduralShapeConfig, make_procedural_object
 
 F64 = torch.float64
 

@@ -5,7 +5,12 @@ import math
 import pytest
 import torch
 
-from vid2sim.metrics import deformation, nonrigid_distance, rigidly_aligned, trajectory_distance
+from vid2sim.metrics import (
+    deformation,
+    nonrigid_distance,
+    rigidly_aligned,
+    trajectory_distance,
+)
 
 F64 = torch.float64
 

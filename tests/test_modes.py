@@ -5,10 +5,17 @@ import math
 import numpy as np
 import pytest
 
-from vid2sim.physics.sparse_lu import SymmetricLU, nested_dissection
-from vid2sim.physics.tet_modes import (lowest_elastic_modes, quadratic_tet_nodes, reference_mass, rigid_modes,
-                                      tet_frequencies, tet_frequency_curve, tet_stiffness_and_mass)
 from vid2sim.meshing.tetra import box_tet_mesh
+from vid2sim.physics.sparse_lu import SymmetricLU, nested_dissection
+from vid2sim.physics.tet_modes import (
+    lowest_elastic_modes,
+    quadratic_tet_nodes,
+    reference_mass,
+    rigid_modes,
+    tet_frequencies,
+    tet_frequency_curve,
+    tet_stiffness_and_mass,
+)
 
 BAR = (2.0, 0.4, 0.4)  # a free 2 m bar of 0.4 m square section; E = ρ = 1, ν = 0.3
 NU = 0.3

@@ -7,12 +7,25 @@ import json
 import pytest
 import torch
 
-from vid2sim.physics import Floor, Gravity, Material, Simulator, SkinningField, sample_cubature
-from vid2sim.physics.external import AREA_CONTACT_STIFFNESS
 from vid2sim.asset.folder import Asset, AssetFormatError, load_asset, save_asset
-from vid2sim.reconstruct.stages.joint import GaussianRig, JointConfig, Observations, joint_optimisation, render_frames
-from vid2sim.reconstruct.stages.points import PointsConfig, object_points
+from vid2sim.asset.motion import GaussianRig
+from vid2sim.physics import (
+    Floor,
+    Gravity,
+    Material,
+    Simulator,
+    SkinningField,
+    sample_cubature,
+)
+from vid2sim.physics.external import AREA_CONTACT_STIFFNESS
 from vid2sim.physics.solver import SimConfig
+from vid2sim.reconstruct.config import JointConfig, PointsConfig
+from vid2sim.reconstruct.stages.joint import (
+    Observations,
+    joint_optimisation,
+    render_states,
+)
+from vid2sim.reconstruct.stages.points import object_points
 from vid2sim.splats.cameras import camera_ring
 from vid2sim.splats.gaussians import Gaussians
 
@@ -132,7 +145,7 @@ def test_clip_loss_weights_its_frames():
     equal, states = clip_loss(sim, rig, start, obs)
     decayed, _ = clip_loss(sim, rig, start, obs, decay=2.0)
     with torch.no_grad():
-        per_frame = [float(((render_frames(rig, [states[t]], obs, [0, 1])[0] - target[:, t]) ** 2).mean())
+        per_frame = [float(((render_states(rig, [states[t]], obs, [0, 1])[0] - target[:, t]) ** 2).mean())
                      for t in range(1, 5)]
     assert equal == pytest.approx(sum(per_frame) / 4, rel=1e-6)
     assert decayed == pytest.approx(sum(a * b for a, b in zip(w, per_frame)), rel=1e-6)
@@ -143,14 +156,14 @@ def test_clip_loss_weights_its_frames():
     normals = torch.randn(gaussians.num, 3, dtype=gaussians.means.dtype, generator=torch.Generator().manual_seed(1))
     lit = GaussianRig(sim, gaussians, Shading.create(normals, [0.3, 0.2, 1.0], 0.3))
     with torch.no_grad():
-        together = render_frames(lit, states[1:4], obs, [0, 1])
+        together = render_states(lit, states[1:4], obs, [0, 1])
         basis = lit.basis()
         for t in range(3):
             d = lit.deformed(states[t + 1].z, basis)
             alone = render(d.means, d.opacities, d.sh, cams, covars=d.covars, sh_degree=d.sh_degree,
                            background=list(obs.background)).rgb
             assert torch.allclose(together[t], alone, atol=1e-6)
-        assert not torch.allclose(together, render_frames(rig, states[1:4], obs, [0, 1]), atol=1e-3)
+        assert not torch.allclose(together, render_states(rig, states[1:4], obs, [0, 1]), atol=1e-3)
 
 def test_joint_optimisation_recovers_E_from_images_of_the_same_model():
     """Images rendered from the model at log10 E = 4.5 → the coarse search and Adam find it from the prior 5."""
@@ -158,7 +171,7 @@ def test_joint_optimisation_recovers_E_from_images_of_the_same_model():
     start = sim.rigid_velocity_state([0.1, 0.0, -1.0], [0.0, 1.0, 0.0], [0.0, 0.0, 0.0])
     with torch.no_grad():
         states = [start] + sim.rollout(start, 7)
-        images = render_frames(GaussianRig(sim, gaussians), states, Observations(torch.zeros(2, 8, 32, 32, 3), cams),
+        images = render_states(GaussianRig(sim, gaussians), states, Observations(torch.zeros(2, 8, 32, 32, 3), cams),
                                [0, 1]).transpose(0, 1).float()
     assert float(images.std()) > 0.05  # the object is in view
     with torch.no_grad():
@@ -193,7 +206,7 @@ def test_centre_of_mass_search_finds_the_centre_the_images_were_made_with():
 
     with torch.no_grad():
         states = [start()] + sim.rollout(start(), 8)
-        images = render_frames(rig, states, Observations(torch.zeros(2, 9, 32, 32, 3), cams),
+        images = render_states(rig, states, Observations(torch.zeros(2, 9, 32, 32, 3), cams),
                                [0, 1]).transpose(0, 1).float()
     sim.mass_volumes = base
     offset, records = centre_of_mass_search(sim, rig, start, Observations(images, cams), 0.01, 2)
@@ -248,7 +261,7 @@ def test_joint_optimisation_gradient_reaches_E_and_the_initial_velocity():
         with torch.no_grad():
             sim.log10_E.fill_(log10_E)
         states = sim.rollout(sim.rigid_velocity_state(v, [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]), 3)
-        return ((render_frames(rig, states, obs, [0, 1]) - target) ** 2).mean()
+        return ((render_states(rig, states, obs, [0, 1]) - target) ** 2).mean()
 
     sim.log10_E.requires_grad_(True)
     v = v0.clone().requires_grad_(True)

@@ -10,12 +10,16 @@ import numpy as np
 import pytest
 import torch
 
+from vid2sim.asset.folder import load_asset
 from vid2sim.cli import main
 from vid2sim.cli import reconstruct as cli_reconstruct
 from vid2sim.reconstruct import pipeline as reconstruct_module
-from vid2sim.asset.folder import load_asset
-from vid2sim.reconstruct.stages.points import PointsConfig
-from vid2sim.reconstruct.pipeline import ReconstructConfig, ReconstructionError, reconstruct
+from vid2sim.reconstruct.pipeline import (
+    ReconstructConfig,
+    ReconstructionError,
+    reconstruct,
+)
+from vid2sim.reconstruct.config import PointsConfig
 from vid2sim.scene.folder import load_scene, write_scene
 
 
@@ -28,11 +32,13 @@ def test_reconstruct_writes_a_complete_asset(tiny_asset, tiny_scene):
     assert asset.material["E"] == pytest.approx(10 ** asset.material["log10_E"])
     assert asset.material["density"] == 1000.0 and asset.floor_height == pytest.approx(-0.7)
     config = json.loads((tiny_asset / "config.json").read_text())
-    assert config["joint"]["iterations"] == 2 and config["handles"] == 3
+    assert config["joint"]["iterations"] == 2 and config["networks"]["handles"] == 3
+    assert ReconstructConfig.from_dict(config).networks.handles == 3  # config.json loads back
     log = json.loads((tiny_asset / "log.json").read_text())
     assert [r["log10_E"] for r in log["coarse_search"]] == [4.5, 5.0]
-    assert set(log["timings_seconds"]) == {"gaussians", "points", "velocity", "appearance", "networks", "joint",
-                                           "motion_appearance"}
+    assert set(log["timings_seconds"]) == {"gaussians", "points", "velocity", "appearance", "stage1", "networks",
+                                           "joint", "motion_appearance"}  # the calibration is off: not timed
+    assert log["device"] == "cpu" and log["device_name"] == "cpu"
     # the hull was carved with the later frames: the record says which, and the points are the last round's
     carving = log["carving"]
     assert len(carving["rounds"]) == config["points"]["frame_rounds"] == 2
@@ -52,7 +58,7 @@ def test_reconstruct_writes_a_complete_asset(tiny_asset, tiny_scene):
     assert all(torch.isfinite(s.z).all() for s in states)
     assert asset.material["stiffness_scale"] == 1.0 == sim.stiffness_scale  # the tiny config does not calibrate
     # a shaded asset: the PLY shows the Gaussians lit as at frame 0, the asset holds albedos and the light
-    from vid2sim.evaluate.scores import simulate_gaussians
+    from vid2sim.asset.motion import simulate_gaussians
     from vid2sim.splats.ply import load_ply
 
     assert "shading.npz" in names and asset.shading is not None and asset.shading.num == asset.gaussians.num
@@ -68,10 +74,10 @@ def test_a_calibrated_reconstruction_records_and_uses_its_stiffness_scale(tiny_s
     """--calibrate-stiffness: the factor is recorded in material.json and the log, used by the asset's simulator
     and kept under another material (its accuracy: tests/test_pipeline_stiffness.py; 10 skinning iterations
     and 60 cubature points leave this subspace anywhere near the tets)."""
-    assert ReconstructConfig().calibrate_stiffness and ReconstructConfig().calibration_nu == "two_factor"  # defaults
+    assert ReconstructConfig().calibration.enabled and ReconstructConfig().calibration.nu == "two_factor"  # defaults
     cfg = tiny_config()
-    cfg.calibrate_stiffness, cfg.calibration_cells, cfg.calibration_points = True, 24, 20000
-    cfg.calibration_nu, cfg.volumetric = "curve", "projected"  # the projected volumetric term end to end
+    cfg.calibration.enabled, cfg.calibration.cells, cfg.calibration.points = True, 24, 20000
+    cfg.calibration.nu, cfg.simulator.volumetric = "curve", "projected"  # the projected volumetric term end to end
     threads = torch.get_num_threads()
     torch.set_num_threads(2)  # the child's core is taken from these and given back
     try:
@@ -87,7 +93,7 @@ def test_a_calibrated_reconstruction_records_and_uses_its_stiffness_scale(tiny_s
     curve, calibration = asset.stiffness(), log["stiffness_calibration"]
     assert isinstance(curve, StiffnessCurve)
     assert curve.to_dict() == calibration["stiffness_curve"] == asset.material["stiffness_curve"]
-    assert curve.at(cfg.prior_nu) == pytest.approx(calibration["stiffness_scale"], rel=1e-12)
+    assert curve.at(cfg.prior.nu) == pytest.approx(calibration["stiffness_scale"], rel=1e-12)
     s = asset.material["stiffness_scale"]
     assert 0.05 < s < 5.0 and s != 1.0 and s == pytest.approx(curve.at(asset.material["nu"]), rel=1e-12)
     assert 0.7 < calibration["points_volume_ratio"] < 1.3 and calibration["volumetric"] == "projected"
@@ -99,7 +105,7 @@ def test_a_calibrated_reconstruction_records_and_uses_its_stiffness_scale(tiny_s
 def test_the_calibration_child_gets_one_of_the_callers_threads_while_it_runs():
     """On 2 cores, 2 torch threads beside the one-thread child oversubscribe them (the appearance stage took 3.6x
     as long): reconstruct gives the child one of its threads until it ends."""
-    from vid2sim.reconstruct.pipeline import _share_cores
+    from vid2sim.reconstruct.runner import share_cores
 
     class Job:
         def __init__(self, alive: bool) -> None:
@@ -114,7 +120,7 @@ def test_the_calibration_child_gets_one_of_the_callers_threads_while_it_runs():
     before = torch.get_num_threads()
     try:
         for job, threads, expected in ((Job(True), 3, 2), (Job(True), 1, 1), (Job(False), 3, 3), (None, 2, 2)):
-            _share_cores(job, threads)
+            share_cores([job] if job is not None else [], threads)
             assert torch.get_num_threads() == expected
     finally:
         torch.set_num_threads(before)
@@ -168,18 +174,20 @@ def test_evaluate_reports_views_frames_material_and_chamfer(tiny_asset, tiny_sce
     assert com["observed_mean"] == pytest.approx(sum(com["per_frame"][:5]) / 5)  # observed frames 0..4
     assert com["future_mean"] == pytest.approx(com["per_frame"][5])
     # Stage II's start (the tiny config's prior, E 1e5 and ν 0.3: the truth here) with its errors
-    prior = json.loads((asset / "config.json").read_text())
-    assert material["start"] == {"E": prior["prior_E"], "log10_E": pytest.approx(math.log10(prior["prior_E"])),
-                                 "nu": prior["prior_nu"], "source": "prior",
-                                 "abs_error_log10_E": pytest.approx(abs(math.log10(prior["prior_E"]) - 5.0)),
-                                 "abs_error_nu": pytest.approx(abs(prior["prior_nu"] - 0.3))}
+    prior = json.loads((asset / "config.json").read_text())["prior"]
+    assert material["start"] == {"E": prior["E"], "log10_E": pytest.approx(math.log10(prior["E"])),
+                                 "nu": prior["nu"], "source": "prior",
+                                 "abs_error_log10_E": pytest.approx(abs(math.log10(prior["E"]) - 5.0)),
+                                 "abs_error_nu": pytest.approx(abs(prior["nu"] - 0.3))}
 
 
 def test_start_material_reads_the_prior_or_stage1_and_names_a_bad_file(tmp_path):
     from vid2sim.evaluate.scores import start_material
 
     assert start_material(tmp_path) is None  # not written by reconstruct: no baseline
-    (tmp_path / "config.json").write_text(json.dumps({"prior_E": 2e5, "prior_nu": 0.25}))
+    (tmp_path / "config.json").write_text(json.dumps({"prior_E": 2e5, "prior_nu": 0.25}))  # an older asset's
+    assert start_material(tmp_path)["E"] == 2e5
+    (tmp_path / "config.json").write_text(json.dumps({"prior": {"E": 2e5, "nu": 0.25}}))
     (tmp_path / "log.json").write_text(json.dumps({"stage1": {"ran": False, "reason": "disabled"}}))
     assert start_material(tmp_path) == {"E": 2e5, "log10_E": pytest.approx(math.log10(2e5)), "nu": 0.25,
                                         "source": "prior"}
@@ -197,7 +205,7 @@ def test_evaluate_true_motion_scores_the_gaussians_on_the_ground_truths_motion(t
                                                                                capsys):
     """--true-motion: the asset's Gaussians carried by the FEM's motion; at frame 0 they are the asset's own
     (the carry is the identity there), and a scene without the ground-truth motion gets a clear error."""
-    from vid2sim.evaluate.scores import true_motion_gaussians
+    from vid2sim.asset.motion import true_motion_gaussians
 
     out = tmp_path / "eval.json"
     assert main(["evaluate", str(tiny_asset), str(tiny_scene), "--out", str(out), "--quiet", "--no-report",
@@ -223,9 +231,13 @@ def test_evaluate_true_motion_scores_the_gaussians_on_the_ground_truths_motion(t
 
 
 def test_motion_appearance_fits_the_gaussians_through_the_motion(tiny_asset, tiny_scene):
+    from vid2sim.asset.motion import render_frames, simulate_gaussians
     from vid2sim.metrics.images import image_metrics
-    from vid2sim.evaluate.scores import render_frames, simulate_gaussians
-    from vid2sim.reconstruct.stages.motion_appearance import SkinnedMotion, initial_shading, refine_on_motion
+    from vid2sim.reconstruct.stages.motion_appearance import (
+        SkinnedMotion,
+        initial_shading,
+        refine_on_motion,
+    )
     from vid2sim.splats.fitting import FitConfig
 
     asset, scene = load_asset(tiny_asset), load_scene(tiny_scene)
@@ -306,9 +318,12 @@ def test_a_loss_power_below_one_favours_the_frames_the_motion_explains(tiny_asse
     """Frame 4's images shifted by 6 pixels: a frame the motion does not explain. Minimising the loss's square
     root per step (each frame's gradient scaled by loss^-0.5) keeps frames 0-3 closer to their images than
     the loss itself does, which lets the shifted frame pull the Gaussians towards it."""
+    from vid2sim.asset.motion import render_frames
     from vid2sim.metrics.images import image_metrics
-    from vid2sim.evaluate.scores import render_frames
-    from vid2sim.reconstruct.stages.motion_appearance import SkinnedMotion, refine_on_motion
+    from vid2sim.reconstruct.stages.motion_appearance import (
+        SkinnedMotion,
+        refine_on_motion,
+    )
     from vid2sim.splats.fitting import FitConfig
 
     asset, scene = load_asset(tiny_asset), load_scene(tiny_scene)
@@ -356,14 +371,14 @@ def test_an_interrupted_reconstruction_resumes_after_its_last_finished_stage(tin
     work = tmp_path / ".asset.work"
     assert not out.exists()  # nothing that looks like a finished asset
     assert {p.name for p in work.glob("*.done")} == {"gaussians.done", "points.done", "velocity.done", "appearance.done",
-                                                      "networks.done"}
+                                                      "stage1.done", "networks.done", "calibration.done"}
     monkeypatch.undo()
 
     def must_not_run(*args, **kwargs):
         raise AssertionError("a finished stage ran again")
 
-    monkeypatch.setattr("vid2sim.splats.fitting.fit_gaussians", must_not_run)
-    monkeypatch.setattr("vid2sim.physics.skinning_training.train_skinning", must_not_run)
+    monkeypatch.setattr("vid2sim.reconstruct.stages.gaussians.fit_gaussians", must_not_run)
+    monkeypatch.setattr("vid2sim.reconstruct.stages.networks.train_skinning", must_not_run)
     monkeypatch.setattr("vid2sim.reconstruct.stages.joint.joint_optimisation", then_moved)
     reconstruct(tiny_scene, out, config, progress=False)
     assert (out / "material.json").is_file() and not work.exists()
@@ -374,11 +389,13 @@ def test_an_interrupted_reconstruction_resumes_after_its_last_finished_stage(tin
     assert float(m.sum()) == pytest.approx(float(w.sum()), rel=1e-6)
     assert json.loads((out / "asset.json").read_text())["extra"]["centre_of_mass_offset"] == pytest.approx(offset)
     assert len(json.loads((out / "log.json").read_text())["centre_of_mass_search"]) >= 7
+    # a finished stage with other settings is refused, naming it; settings of stages not yet run may change
     other = tiny_config()
-    other.handles = 4
+    other.networks.handles = 4
     (tmp_path / ".asset2.work").mkdir()
-    (tmp_path / ".asset2.work" / "key.json").write_text(json.dumps({"config": {}, "scene": None}))
-    with pytest.raises(ReconstructionError, match="--restart"):
+    (tmp_path / ".asset2.work" / "keys.json").write_text(json.dumps({"networks": "an older key"}))
+    (tmp_path / ".asset2.work" / "networks.done").write_text("")
+    with pytest.raises(ReconstructionError, match="'networks' stage ran with other settings.*--restart"):
         reconstruct(tiny_scene, tmp_path / "asset2", other, progress=False)
 
 
@@ -397,32 +414,61 @@ def test_bad_scenes_get_clear_errors_and_leave_nothing(tiny_scene, tmp_path, tin
 
 
 def test_presets_and_config_errors():
+    from vid2sim.reconstruct.config import (
+        CalibrationConfig,
+        JointConfig,
+        MotionAppearanceConfig,
+        NetworksConfig,
+        SimulatorConfig,
+    )
+
     small, full = ReconstructConfig.preset("small"), ReconstructConfig.preset("full")
     assert small.joint.iterations < full.joint.iterations == 400  # the paper's 400 at full size
     assert full.joint.lr_log10_E == 5e-3 and full.joint.lr_nu == 1e-3 and full.joint.window == 4
     with pytest.raises(ValueError, match="jacobian"):
-        ReconstructConfig(jacobian="finite_differences")
+        NetworksConfig(jacobian="finite_differences")
     with pytest.raises(ValueError, match="skinning_objective must be one of"):
-        ReconstructConfig(skinning_objective="eigen")
-    assert ReconstructConfig(calibration_nu="two_factor").calibration_nu == "two_factor"
-    with pytest.raises(ValueError, match="calibration_nu must be 'curve', 'two_factor' or 'prior'"):
-        ReconstructConfig(calibration_nu="three")
+        NetworksConfig(skinning_objective="eigen")
+    assert CalibrationConfig(nu="two_factor").nu == "two_factor"
+    with pytest.raises(ValueError, match="nu must be 'curve', 'two_factor' or 'prior'"):
+        CalibrationConfig(nu="three")
     with pytest.raises(ValueError, match="volumetric must be 'pointwise' or 'projected'"):
-        ReconstructConfig(volumetric="mixed")
+        SimulatorConfig(volumetric="mixed")
     with pytest.raises(ValueError, match="takes one factor"):
-        ReconstructConfig(volumetric="projected", calibration_nu="two_factor")
+        ReconstructConfig(simulator=SimulatorConfig(volumetric="projected"), calibration=CalibrationConfig(nu="two_factor"))
     with pytest.raises(ValueError, match="preset"):
         ReconstructConfig.preset("huge")
-    with pytest.raises(ValueError, match="motion_appearance_iterations must be >= 0"):
-        ReconstructConfig(motion_appearance_iterations=-1)
-    from vid2sim.reconstruct.stages.joint import JointConfig
-
+    with pytest.raises(ValueError, match="iterations must be >= 0"):
+        MotionAppearanceConfig(iterations=-1)
     with pytest.raises(ValueError, match="centre_of_mass_step must be a fraction"):
         JointConfig(centre_of_mass_step=-0.01)
     with pytest.raises(ValueError, match="centre_of_mass_rounds must be >= 1"):
         JointConfig(centre_of_mass_rounds=0)
-    assert reconstruct_module.STAGES == ("gaussians", "points", "velocity", "appearance", "networks", "joint",
-                                         "motion_appearance")
+    assert reconstruct_module.STAGES == ("gaussians", "points", "velocity", "appearance", "stage1", "networks",
+                                         "calibration", "joint", "motion_appearance")
+
+
+def test_config_json_loads_back_and_bad_settings_name_their_path(tmp_path):
+    """config.json is the configuration's dict and loads back to an equal configuration; a preset is its
+    overrides on the defaults; an unknown key, a wrong type or a bad value names the dotted path."""
+    from vid2sim.runtime import config as configs
+
+    full = ReconstructConfig.preset("full", {"joint": {"iterations": 7}, "networks": {"handles": 12}})
+    assert full.joint.iterations == 7 and full.networks.handles == 12 and full.gaussians.views_per_step == 2
+    text = json.dumps(full.to_dict())
+    assert ReconstructConfig.from_dict(json.loads(text)) == full
+    assert ReconstructConfig.from_dict({}) == ReconstructConfig()  # missing fields take their defaults
+    with pytest.raises(ValueError, match="unknown setting joint.iteration "):
+        ReconstructConfig.from_dict({"joint": {"iteration": 3}})
+    with pytest.raises(ValueError, match="networks.handles must be an integer"):
+        ReconstructConfig.from_dict({"networks": {"handles": "ten"}})
+    with pytest.raises(ValueError, match="joint.coarse_log10_E\\[1\\] must be a number"):
+        ReconstructConfig.from_dict({"joint": {"coarse_log10_E": [4.0, None]}})
+    with pytest.raises(ValueError, match="NetworksConfig.handles must be >= 1"):
+        ReconstructConfig.from_dict({"networks": {"handles": 0}})
+    assert configs.name_flags("NetworksConfig.handles must be >= 1", ReconstructConfig,
+                              {"--handles": "networks.handles"}) == "--handles must be >= 1"
+    assert configs.field_docs(ReconstructConfig)["seed"] == "seeds every stage."
 
 
 def test_a_drop_that_meets_the_floor_by_frame_1_still_reconstructs(tiny_scene, tmp_path, monkeypatch, tiny_config):
@@ -439,7 +485,7 @@ def test_a_drop_that_meets_the_floor_by_frame_1_still_reconstructs(tiny_scene, t
 
     monkeypatch.setattr(initial_state, "estimate_initial_velocity", early_contact)
     config = tiny_config()
-    config.motion_appearance_iterations = 0  # and the last stage switched off
+    config.motion_appearance.iterations = 0  # and the last stage switched off
     out = reconstruct(tiny_scene, tmp_path / "asset", config, progress=False)
     assert calls == [pytest.approx(-0.7), None]  # then frames 0 and 1 without the floor test
     extra = json.loads((out / "asset.json").read_text())["extra"]
@@ -466,20 +512,20 @@ def _tiny_predictor(path):
 
 def test_stage1_sets_the_prior_the_coarse_grid_and_the_skinning_start(tiny_scene, tmp_path, monkeypatch, tiny_config):
     pytest.importorskip("transformers")
-    from vid2sim.physics import skinning_training
     from vid2sim.predictor.predict import front_video
     from vid2sim.predictor.template import load_template
+    from vid2sim.reconstruct.stages import networks as networks_stage
 
     ckpt, model = _tiny_predictor(tmp_path / "p.pt")
-    starts, real = [], skinning_training.train_skinning
+    starts, real = [], networks_stage.train_skinning
 
     def spy(field, *args, **kwargs):
         starts.append(field.get_last_layer().clone())
         return real(field, *args, **kwargs)
 
-    monkeypatch.setattr(skinning_training, "train_skinning", spy)
+    monkeypatch.setattr(networks_stage, "train_skinning", spy)
     cfg = tiny_config()
-    cfg.handles, cfg.predictor, cfg.stage1 = 10, str(ckpt), True  # Stage I needs the template's 10 handles
+    cfg.networks.handles, cfg.stage1.predictor, cfg.stage1.enabled = 10, str(ckpt), True  # Stage I needs the template's 10 handles
     out = reconstruct(tiny_scene, tmp_path / "asset", cfg, progress=False)
     s1 = json.loads((out / "log.json").read_text())["stage1"]
     assert s1["ran"] and s1["checkpoint"] == str(ckpt) and s1["seconds"] > 0
@@ -506,14 +552,15 @@ def test_stage1_sets_the_prior_the_coarse_grid_and_the_skinning_start(tiny_scene
 
 
 def test_stage1_is_skipped_with_a_recorded_reason(tiny_asset, tiny_scene, tmp_path):
-    from vid2sim.reconstruct.pipeline import run_stage1
+    from vid2sim.reconstruct.config import NetworksConfig, Stage1Config
+    from vid2sim.reconstruct.stages.stage1 import run_stage1
 
     s1 = json.loads((tiny_asset / "log.json").read_text())["stage1"]
     assert s1["ran"] is False and s1["reason"]  # tiny config: 3 handles (or no shipped checkpoint)
-    cfg = ReconstructConfig(stage1=False)
+    cfg = ReconstructConfig(stage1=Stage1Config(enabled=False))
     assert "w/o Stage I" in run_stage1(cfg, None, [], 0.05, [0, 0, 0])["reason"]
     assert "w/o Stage I" in run_stage1(ReconstructConfig(), None, [], 0.05, [0, 0, 0])["reason"]  # off by default
-    missing = run_stage1(ReconstructConfig(stage1=True, predictor=str(tmp_path / "none.pt")), None, [], 0.05,
+    missing = run_stage1(ReconstructConfig(stage1=Stage1Config(True, str(tmp_path / "none.pt"))), None, [], 0.05,
                          [0, 0, 0])
     assert not missing["ran"] and "none.pt" in missing["reason"]
     ckpt, _ = _tiny_predictor(tmp_path / "p.pt")
@@ -522,8 +569,8 @@ def test_stage1_is_skipped_with_a_recorded_reason(tiny_asset, tiny_scene, tmp_pa
     scene = load_scene(tiny_scene)
     V, T = scene.config.observed_views, scene.config.observed_frames
     images, cameras = scene.images[V][:, T].float(), [scene.cameras[v] for v in V]
-    full = run_stage1(ReconstructConfig(stage1=True, predictor=str(ckpt)), images, cameras, 0.05, [0, 0, 0])
-    few = run_stage1(ReconstructConfig(stage1=True, predictor=str(ckpt), handles=3), images, cameras, 0.05, [0, 0, 0])
+    full = run_stage1(ReconstructConfig(stage1=Stage1Config(True, str(ckpt))), images, cameras, 0.05, [0, 0, 0])
+    few = run_stage1(ReconstructConfig(stage1=Stage1Config(True, str(ckpt)), networks=NetworksConfig(handles=3)), images, cameras, 0.05, [0, 0, 0])
     assert full["ran"] and full["skinning_start"] and full["last_layer"] is not None
     assert few["ran"] and not few["skinning_start"] and few["last_layer"] is None and "handles" in few["skinning_note"]
     assert few["log10_E"] == full["log10_E"] and few["nu"] == full["nu"]
@@ -539,28 +586,28 @@ def test_cli_no_stage1_and_predictor_flags(tiny_scene, tmp_path, monkeypatch):
     monkeypatch.setattr(cli_reconstruct, "reconstruct", fake)  # the name the command calls
     with pytest.raises(SystemExit):
         main(["reconstruct", str(tiny_scene), str(tmp_path / "a"), "--no-stage1", "--quiet"])
-    assert seen[-1].stage1 is False and seen[-1].predictor is None
+    assert seen[-1].stage1.enabled is False and seen[-1].stage1.predictor is None
     with pytest.raises(SystemExit):
         main(["reconstruct", str(tiny_scene), str(tmp_path / "a"), "--quiet"])
-    assert seen[-1].stage1 is False  # off by default while the shipped predictor misses its targets
+    assert seen[-1].stage1.enabled is False  # off by default while the shipped predictor misses its targets
     with pytest.raises(SystemExit):
         main(["reconstruct", str(tiny_scene), str(tmp_path / "a"), "--stage1", "--quiet"])
-    assert seen[-1].stage1 is True and seen[-1].predictor is None
+    assert seen[-1].stage1.enabled is True and seen[-1].stage1.predictor is None
     (tmp_path / "p.pt").write_bytes(b"x")
     with pytest.raises(SystemExit):
         main(["reconstruct", str(tiny_scene), str(tmp_path / "a"), "--predictor", str(tmp_path / "p.pt"), "--quiet"])
-    assert seen[-1].stage1 is True and seen[-1].predictor == str((tmp_path / "p.pt").resolve())
-    assert seen[-1].skinning_objective == ReconstructConfig().skinning_objective
+    assert seen[-1].stage1.enabled is True and seen[-1].stage1.predictor == str((tmp_path / "p.pt").resolve())
+    assert seen[-1].networks.skinning_objective == ReconstructConfig().networks.skinning_objective
     with pytest.raises(SystemExit):
         main(["reconstruct", str(tiny_scene), str(tmp_path / "a"), "--skinning-objective", "modal", "--quiet"])
-    assert seen[-1].skinning_objective == "modal"
-    assert seen[-2].handles == ReconstructConfig().handles == 10
+    assert seen[-1].networks.skinning_objective == "modal"
+    assert seen[-2].networks.handles == ReconstructConfig().networks.handles == 10
     with pytest.raises(SystemExit):
         main(["reconstruct", str(tiny_scene), str(tmp_path / "a"), "--handles", "20", "--quiet"])
-    assert seen[-1].handles == 20 and seen[-1].motion_appearance_shading is True
+    assert seen[-1].networks.handles == 20 and seen[-1].motion_appearance.shading is True
     with pytest.raises(SystemExit):
         main(["reconstruct", str(tiny_scene), str(tmp_path / "a"), "--no-shading", "--quiet"])
-    assert seen[-1].motion_appearance_shading is False and seen[-1].gaussians.sh_degree == 0  # the small preset's
+    assert seen[-1].motion_appearance.shading is False and seen[-1].gaussians.sh_degree == 0  # the small preset's
     with pytest.raises(SystemExit):
         main(["reconstruct", str(tiny_scene), str(tmp_path / "a"), "--sh-degree", "1", "--quiet"])
     assert seen[-1].gaussians.sh_degree == 1

@@ -13,13 +13,35 @@ from torch import nn
 
 pytest.importorskip("transformers")
 
-from vid2sim.predictor.model import (LossWeights, PhysicsPredictor, PredictorConfig, head_widths,  # noqa: E402
-                                     interpolate_position_table, predictor_loss, sinusoid_table)
-from vid2sim.predictor.predict import (DEFAULT_PREDICTOR, centred_grid, frame_for_model,  # noqa: E402
-                                       front_video, object_box, object_crop, predict_video, resample_frames)
 from vid2sim.cli import main  # noqa: E402
-from vid2sim.predictor.train import (TrainConfig, errors_by_range, evaluate_predictor, load_predictor,  # noqa: E402
-                                     read_checkpoint, save_predictor, train_predictor)
+from vid2sim.predictor.model import (  # noqa: E402
+    LossWeights,
+    PhysicsPredictor,
+    PredictorConfig,
+    head_widths,
+    interpolate_position_table,
+    predictor_loss,
+    sinusoid_table,
+)
+from vid2sim.predictor.predict import (  # noqa: E402
+    DEFAULT_PREDICTOR,
+    centred_grid,
+    frame_for_model,
+    front_video,
+    object_box,
+    object_crop,
+    predict_video,
+    resample_frames,
+)
+from vid2sim.predictor.train import (  # noqa: E402
+    TrainConfig,
+    errors_by_range,
+    evaluate_predictor,
+    load_predictor,
+    read_checkpoint,
+    save_predictor,
+    train_predictor,
+)
 
 TINY_MODEL = dict(image_size=16, num_frames=4, patch_size=8, tubelet_size=2, hidden_size=48, num_layers=1,
                   num_heads=2, intermediate_size=96)
@@ -102,7 +124,9 @@ def test_last_layer_mask_drops_mirrored_samples_from_the_last_layer_term():
 
 
 def test_position_table_matches_transformers_and_interpolates():
-    from transformers.models.videomae.modeling_videomae import get_sinusoid_encoding_table
+    from transformers.models.videomae.modeling_videomae import (
+        get_sinusoid_encoding_table,
+    )
 
     torch.testing.assert_close(sinusoid_table(40, 24)[None], get_sinusoid_encoding_table(40, 24))
     table = torch.randn(2 * 3 * 3, 5)
@@ -221,12 +245,12 @@ def test_training_decreases_the_loss_resumes_exactly_and_logs_baselines(tiny_tra
 
 
 def test_colour_permutation_keeps_labels_and_is_deterministic(tiny_training_data, tmp_path):
-    from vid2sim.predictor.train import _Split, normalise_video, random_channel_orders
+    from vid2sim.predictor.train import Split, normalise_video, random_channel_orders
 
     orders = random_channel_orders(600, torch.Generator().manual_seed(0))
     assert (orders.sort(dim=1).values == torch.arange(3)).all()  # every row a permutation
     assert len({tuple(o) for o in orders.tolist()}) == 6  # all six orders drawn
-    split = _Split.__new__(_Split)
+    split = Split.__new__(Split)
     split.videos = torch.randint(0, 256, (3, 2, 3, 4, 4), dtype=torch.uint8)
     split.targets = {"log10_E": torch.arange(3.0), "nu": torch.arange(3.0), "last_layer": torch.zeros(3, 650)}
     idx = torch.tensor([2, 0])
@@ -329,10 +353,10 @@ def test_training_split_holds_each_video_as_the_model_sees_it(tiny_training_data
     exactly as `frame_for_model` gives them, rounded to uint8, and its labels."""
     from vid2sim.predictor.dataset import IMAGENET_MEAN, IMAGENET_STD, TrainingData
     from vid2sim.predictor.predict import frame_for_model
-    from vid2sim.predictor.train import _Split, release_freed_memory
+    from vid2sim.predictor.train import Split, release_freed_memory
 
     data = TrainingData(tiny_training_data, "all")
-    split = _Split(data, 8, "object")
+    split = Split(data, 8, "object")
     assert split.videos.shape == (len(data), 4, 3, 8, 8) and split.videos.dtype == torch.uint8
     mean, std = torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1), torch.tensor(IMAGENET_STD).view(1, 3, 1, 1)
     for i in range(len(data)):
@@ -344,29 +368,29 @@ def test_training_split_holds_each_video_as_the_model_sees_it(tiny_training_data
 
 
 def test_decoded_split_is_cached_and_remade_when_its_source_changes(tiny_training_data, tmp_path, monkeypatch):
-    """`_Split.cached` decodes once into a file that later runs read back memory-mapped, equal to a fresh decode;
+    """`Split.cached` decodes once into a file that later runs read back memory-mapped, equal to a fresh decode;
     another size (or other shards) decodes again and replaces the file."""
     from vid2sim.predictor.dataset import TrainingData
-    from vid2sim.predictor.train import _Split
+    from vid2sim.predictor.train import Split
 
     data = TrainingData(tiny_training_data, "all")
     path = tmp_path / "split.pt"
-    first = _Split.cached(data, 8, "object", path)
+    first = Split.cached(data, 8, "object", path)
     assert path.is_file()
     decodes = []
-    original = _Split.__init__
-    monkeypatch.setattr(_Split, "__init__", lambda self, *a, **k: (decodes.append(a), original(self, *a, **k))[1])
-    again = _Split.cached(data, 8, "object", path)
+    original = Split.__init__
+    monkeypatch.setattr(Split, "__init__", lambda self, *a, **k: (decodes.append(a), original(self, *a, **k))[1])
+    again = Split.cached(data, 8, "object", path)
     assert decodes == []  # read back, not decoded
     assert torch.equal(again.videos, first.videos)
     for k in first.targets:
         assert torch.equal(again.targets[k], first.targets[k])
-    other = _Split.cached(data, 16, "object", path)
+    other = Split.cached(data, 16, "object", path)
     assert len(decodes) == 1 and other.videos.shape[-1] == 16
-    assert _Split.cached(TrainingData(tiny_training_data, "train", 0.2, 4), 16, "object", path).videos.shape[0] < len(data)
+    assert Split.cached(TrainingData(tiny_training_data, "train", 0.2, 4), 16, "object", path).videos.shape[0] < len(data)
     assert len(decodes) == 2
     path.write_bytes(b"not a torch file")  # torn: decoded again
-    assert torch.equal(_Split.cached(data, 8, "object", path).videos, first.videos) and len(decodes) == 3
+    assert torch.equal(Split.cached(data, 8, "object", path).videos, first.videos) and len(decodes) == 3
 
 
 def _tiny_member(seed: int, log_e_mean: float) -> PhysicsPredictor:

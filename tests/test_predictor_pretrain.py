@@ -13,9 +13,21 @@ pytest.importorskip("transformers")
 from vid2sim.cli import main  # noqa: E402
 from vid2sim.predictor.dataset import TrainingData  # noqa: E402
 from vid2sim.predictor.model import PhysicsPredictor, PredictorConfig  # noqa: E402
-from vid2sim.predictor.pretrain import (PRETRAIN_FILE, build_pretraining_model, decoder_width,  # noqa: E402
-                                        pretrain_backbone, token_grid, tube_mask)
-from vid2sim.predictor.train import TrainConfig, _Split, normalise_video, read_checkpoint, train_predictor  # noqa: E402
+from vid2sim.predictor.pretrain import (  # noqa: E402
+    PRETRAIN_FILE,
+    build_pretraining_model,
+    decoder_width,
+    pretrain_backbone,
+    token_grid,
+    tube_mask,
+)
+from vid2sim.predictor.train import (  # noqa: E402
+    TrainConfig,
+    _Split,
+    normalise_video,
+    read_checkpoint,
+    train_predictor,
+)
 
 # 4x4 patches of 16x16 frames: 16 patch positions per tubelet, so a 0.75 mask hides 12 and leaves 4
 MODEL = dict(image_size=16, num_frames=4, patch_size=4, tubelet_size=2, hidden_size=48, num_layers=1, num_heads=2,

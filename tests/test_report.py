@@ -180,10 +180,12 @@ def test_videos_hold_every_frame_in_three_panels_matching_the_data(scene_report,
 
 
 def test_report_without_a_scene_renders_the_asset_in_a_ring(tiny_asset, tmp_path):
-    from vid2sim.report import ReportConfig, media as M, write_report
+    from vid2sim.apps.report import asset_report
+    from vid2sim.report import ReportConfig
+    from vid2sim.report import media as M
 
     cfg = ReportConfig(ring_views=2, ring_resolution=32, ring_frames=4, panel_size=64)
-    out = write_report(tmp_path / "ring", tiny_asset, progress=False, config=cfg)
+    out = asset_report(tmp_path / "ring", tiny_asset, progress=False, config=cfg)
     page = _parse(out / "index.html")
     assert page.tags.get("video") == 1
     frames, width, height = M.video_frame_count(out / "media" / "ring.webm")
@@ -200,16 +202,17 @@ def test_report_without_a_scene_renders_the_asset_in_a_ring(tiny_asset, tmp_path
 
 
 def test_simulations_of_the_asset_get_a_new_situations_section(tiny_asset, tmp_path):
-    from vid2sim.simulate.scenario import ObstacleSpec, Scenario
+    from vid2sim.apps.report import asset_report
+    from vid2sim.report import ReportConfig
     from vid2sim.simulate.run import simulate
-    from vid2sim.report import ReportConfig, write_report
+    from vid2sim.simulate.scenario import ObstacleSpec, Scenario
 
     scenario = Scenario(frames=3)
     scenario.cameras.type, scenario.cameras.views, scenario.resolution = "ring", 2, 24
     scenario.obstacles.append(ObstacleSpec(center=(0.0, 0.0, -2.0), radius=0.3))
     sim = simulate(tiny_asset, scenario, tmp_path / "sim", progress=False, ply=False)
     cfg = ReportConfig(ring_views=2, ring_resolution=32, ring_frames=3, panel_size=64)
-    out = write_report(tmp_path / "report", tiny_asset, progress=False, config=cfg, simulations=[sim])
+    out = asset_report(tmp_path / "report", tiny_asset, progress=False, config=cfg, simulations=[sim])
     html = (out / "index.html").read_text()
     assert 'id="simulations"' in html and "sphere obstacle at" in html
     gifs = sorted(p.name for p in (out / "media").glob("simulation0_*.gif"))
@@ -272,7 +275,12 @@ def test_suite_report_links_scenes_and_shows_failures(scene_report, tiny_scene, 
 
 
 def test_bad_inputs_raise_named_errors(scene_report, tiny_asset, tiny_scene, tmp_path):
-    from vid2sim.report import ReportConfig, ReportInputError, write_report, write_suite_report
+    from vid2sim.report import (
+        ReportConfig,
+        ReportInputError,
+        write_report,
+        write_suite_report,
+    )
 
     out, evaluation, renders = scene_report
     with pytest.raises(ReportInputError, match="asset folder .*nowhere.* not found"):
@@ -288,6 +296,8 @@ def test_bad_inputs_raise_named_errors(scene_report, tiny_asset, tiny_scene, tmp
         write_report(tmp_path / "r", tiny_asset, scene=tiny_scene, evaluation=evaluation, renders=renders[:, :2])
     with pytest.raises(ReportInputError, match="without a scene"):
         write_report(tmp_path / "r", tiny_asset, renders=renders)
+    with pytest.raises(ReportInputError, match="give ring"):  # the report computes nothing: no scene, no ring
+        write_report(tmp_path / "r", tiny_asset)
     (tmp_path / "busy").mkdir()
     (tmp_path / "busy" / "notes.txt").write_text("mine")
     with pytest.raises(ReportInputError, match="non-empty folder without index.html"):

@@ -16,7 +16,14 @@ import torch
 from PIL import Image
 
 import vid2sim.scene.folder as scene_mod
-from vid2sim.scene.folder import LAYOUTS, Scene, SceneConfig, SceneFormatError, load_scene, write_scene
+from vid2sim.scene.folder import (
+    LAYOUTS,
+    Scene,
+    SceneConfig,
+    SceneFormatError,
+    load_scene,
+    write_scene,
+)
 from vid2sim.splats.cameras import Camera, camera_ring
 
 V, T, H, W = 3, 5, 12, 16

@@ -48,8 +48,8 @@ def test_sphere_shell_sits_on_the_obstacle_and_nothing_is_drawn_without_contact_
 def test_simulate_draws_the_floor_in_the_frames_but_not_in_the_ply_files(tiny_asset, tmp_path):
     from PIL import Image
 
-    from vid2sim.simulate.scenario import Scenario
     from vid2sim.simulate.run import simulate
+    from vid2sim.simulate.scenario import Scenario
     from vid2sim.splats.ply import load_ply
 
     def run(name, scenery):

@@ -17,7 +17,13 @@ from vid2sim.synthetic.shapes import (
     random_rotation,
     union_sdf,
 )
-from vid2sim.synthetic.textures import TEXTURE_KINDS, checkers, procedural_texture, stripes, value_noise
+from vid2sim.synthetic.textures import (
+    TEXTURE_KINDS,
+    checkers,
+    procedural_texture,
+    stripes,
+    value_noise,
+)
 
 SMALL = ProceduralShapeConfig(target_faces=800, texture_size=32)
 

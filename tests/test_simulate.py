@@ -11,8 +11,9 @@ import numpy as np
 import pytest
 import torch
 
-from vid2sim.cli import main
 from vid2sim.asset.folder import load_asset
+from vid2sim.cli import main
+from vid2sim.simulate.run import run_scenario, simulate, trajectory_stats
 from vid2sim.simulate.scenario import (
     InitialSpec,
     ObstacleSpec,
@@ -23,7 +24,6 @@ from vid2sim.simulate.scenario import (
     resolve_scenario,
     scene_cameras,
 )
-from vid2sim.simulate.run import run_scenario, simulate, trajectory_stats
 
 
 @pytest.fixture(scope="module")

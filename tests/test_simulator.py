@@ -13,7 +13,13 @@ from vid2sim.physics.materials import energy_and_pk1, neo_hookean_indefinite
 from vid2sim.physics.reduced import y_to_z_index, z_to_y_index
 from vid2sim.physics.skinning import SkinningField, dF_dz, gradient_basis
 from vid2sim.physics.skinning_training import SkinningTrainingConfig, train_skinning
-from vid2sim.physics.solver import Material, SimConfig, SimState, SimulationError, Simulator
+from vid2sim.physics.solver import (
+    Material,
+    SimConfig,
+    SimState,
+    SimulationError,
+    Simulator,
+)
 
 G = 9.8
 
@@ -688,7 +694,7 @@ def test_centre_of_mass_of_a_spinning_vibrating_body_in_flight_falls_like_a_poin
     BDF2 (see the free-fall test; the start's velocity adds an exact linear motion): the second difference
     of the centre (:func:`vid2sim.evaluate.scores.simulated_centre_of_mass`) about frame f (n = 3f
     substeps of h) is −g dt² + (3/4) g h² (3^−(n−3) − 2·3^−n + 3^−(n+3)), to the Newton tolerance."""
-    from vid2sim.evaluate.scores import simulated_centre_of_mass
+    from vid2sim.asset.motion import simulated_centre_of_mass
 
     field, pts = trained_field
     sim = _sim(field, pts, externals=[Gravity()], config=SimConfig(substeps=3))

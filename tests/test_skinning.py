@@ -7,9 +7,9 @@ import torch
 
 from vid2sim.physics.skinning import (
     SkinningField,
-    dF_dz,
     deform,
     deformation_gradient,
+    dF_dz,
     gradient_basis,
     lbs_matrix,
 )

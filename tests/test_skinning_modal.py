@@ -8,10 +8,14 @@ import torch
 from scipy.linalg import eigh
 
 from vid2sim.physics.materials import lame_parameters, neo_hookean_energy_density
+from vid2sim.physics.modes import subspace_frequencies, subspace_stiffness_and_mass
 from vid2sim.physics.reduced import ElasticBasis, lbs_rows
 from vid2sim.physics.skinning import SkinningField, gradient_basis
-from vid2sim.physics.modes import subspace_frequencies, subspace_stiffness_and_mass
-from vid2sim.physics.skinning_training import SkinningTrainingConfig, modal_loss, train_skinning
+from vid2sim.physics.skinning_training import (
+    SkinningTrainingConfig,
+    modal_loss,
+    train_skinning,
+)
 
 BAR = (2.0, 0.4, 0.4)
 BAR_VOLUME = BAR[0] * BAR[1] * BAR[2]
@@ -150,9 +154,9 @@ def test_subspace_frequencies_are_the_scaled_ritz_values_of_the_simulators_quadr
 def test_stiffness_calibration_brings_the_subspaces_lowest_mode_to_the_tets():
     """The modal subspace of a free bar lies above quadratic tets (Rayleigh–Ritz); the calibration factor s is
     (ω_tets / ω_subspace)² < 1, and at E·s the subspace's lowest frequency is the tets' at E, for any E, ρ."""
+    from vid2sim.meshing.tetra import box_tet_mesh
     from vid2sim.physics.modes import stiffness_calibration
     from vid2sim.physics.tet_modes import tet_frequencies
-    from vid2sim.meshing.tetra import box_tet_mesh
 
     mesh = box_tet_mesh(BAR, (10, 2, 2))
     field = SkinningField(num_handles=4, seed=0).double()
@@ -173,7 +177,10 @@ def test_two_factor_curve_matches_six_modes_better_than_one_factor_and_the_simul
     ``Simulator.lame()`` applies the two factors, differentiably in ν."""
     from vid2sim.meshing.tetra import box_tet_mesh
     from vid2sim.physics import Material, SimConfig, Simulator
-    from vid2sim.physics.modes import stiffness_calibration_curve, subspace_stiffness_parts
+    from vid2sim.physics.modes import (
+        stiffness_calibration_curve,
+        subspace_stiffness_parts,
+    )
     from vid2sim.physics.tet_modes import tet_frequency_curve
 
     mesh = box_tet_mesh(BAR, (10, 2, 2))

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from vid2sim.splats.cameras import Camera, camera_ring, camera_sphere, stack_cameras
-from vid2sim.splats.densify import DensifyConfig, Densifier
+from vid2sim.splats.densify import Densifier, DensifyConfig
 from vid2sim.splats.fitting import FitConfig, fit_gaussians
 from vid2sim.splats.losses import l1, photometric_loss, psnr, ssim, ssim_map
 from vid2sim.splats.render import render, render_gaussians

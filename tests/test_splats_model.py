@@ -9,7 +9,12 @@ import numpy as np
 import pytest
 import torch
 
-from vid2sim.splats.gaussians import Gaussians, covariances_from_scales_quats, quat_to_rotmat, rotmat_to_quat
+from vid2sim.splats.gaussians import (
+    Gaussians,
+    covariances_from_scales_quats,
+    quat_to_rotmat,
+    rotmat_to_quat,
+)
 from vid2sim.splats.ply import PlyFormatError, load_ply, save_ply
 from vid2sim.splats.sh import C0, eval_sh, num_sh_bases, rgb_to_sh_dc, sh_basis
 

@@ -8,7 +8,7 @@ import types
 import pytest
 import torch
 
-from vid2sim.splats.cameras import Camera, camera_ring, look_at
+from vid2sim.splats.cameras import Camera, camera_ring
 from vid2sim.splats.gaussians import Gaussians, covariances_from_scales_quats
 from vid2sim.splats.rasterize import RasterOptions
 from vid2sim.splats.render import render, render_gaussians, resolve_backend

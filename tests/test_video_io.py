@@ -11,8 +11,20 @@ import pytest
 import torch
 from PIL import Image
 
-from vid2sim.scene.folder import Scene, SceneConfig, SceneFormatError, load_scene, write_scene
-from vid2sim.scene.video import VideoError, load_video, probe_video, read_video, write_video
+from vid2sim.scene.folder import (
+    Scene,
+    SceneConfig,
+    SceneFormatError,
+    load_scene,
+    write_scene,
+)
+from vid2sim.scene.video import (
+    VideoError,
+    load_video,
+    probe_video,
+    read_video,
+    write_video,
+)
 from vid2sim.splats.cameras import camera_ring
 
 

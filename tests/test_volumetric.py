@@ -12,7 +12,11 @@ from vid2sim.physics.cubature import sample_cubature
 from vid2sim.physics.external import Floor, Gravity
 from vid2sim.physics.integrators import bdf_step
 from vid2sim.physics.materials import lame_parameters
-from vid2sim.physics.modes import stiffness_calibration_curve, subspace_frequencies, subspace_stiffness_parts
+from vid2sim.physics.modes import (
+    stiffness_calibration_curve,
+    subspace_frequencies,
+    subspace_stiffness_parts,
+)
 from vid2sim.physics.neural_jacobian import NeuralJacobian
 from vid2sim.physics.skinning import SkinningField
 from vid2sim.physics.skinning_training import SkinningTrainingConfig, train_skinning

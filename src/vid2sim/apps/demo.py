@@ -24,6 +24,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from vid2sim.runtime import config as configs
 from vid2sim.runtime.errors import ConfigError
 
 if TYPE_CHECKING:
@@ -32,6 +33,13 @@ if TYPE_CHECKING:
     from vid2sim.synthetic.scenes import SyntheticSceneConfig
 
 SIZES = ("small", "tiny")
+#: the reconstruction at toy sizes (``--size tiny``: checks an installation in about a minute; the tests' shared
+#: asset too), on top of the defaults
+TINY = {"gaussians": {"iterations": 30}, "points": {"resolution": 24, "num_points": 1000},
+        "appearance": {"iterations": 5}, "motion_appearance": {"iterations": 5},
+        "networks": {"handles": 3, "skinning_iterations": 10}, "simulator": {"cubature": 60},
+        "calibration": {"enabled": False},
+        "joint": {"iterations": 2, "coarse_log10_E": [4.5, 5.0], "validate_every": 1, "window": 2}}
 
 
 @dataclass
@@ -71,17 +79,10 @@ class DemoConfig:
     def reconstruct_config(self) -> "ReconstructConfig":
         """The reconstruction: the small preset, or toy sizes."""
         from vid2sim.reconstruct.pipeline import ReconstructConfig
-        from vid2sim.reconstruct.stages.joint import JointConfig
-        from vid2sim.reconstruct.stages.points import PointsConfig
-        from vid2sim.splats.fitting import FitConfig
 
         if self.size == "small":
-            return ReconstructConfig.preset("small", seed=self.seed)
-        return ReconstructConfig(gaussians=FitConfig(iterations=30), points=PointsConfig(resolution=24, num_points=1000),
-                                 appearance_iterations=5, motion_appearance_iterations=5, handles=3,
-                                 skinning_iterations=10, num_cubature=60, calibrate_stiffness=False,
-                                 joint=JointConfig(iterations=2, coarse_log10_E=(4.5, 5.0), validate_every=1,
-                                                   window=2), seed=self.seed)
+            return ReconstructConfig.preset("small", {"seed": self.seed})
+        return configs.merge(ReconstructConfig(), {**TINY, "seed": self.seed})
 
     def new_scenario(self) -> "Scenario":
         """The new situation: the object lifted 30 cm and dropped onto a ball lying on the floor, filmed by a
@@ -143,9 +144,9 @@ def run_demo(out: str | Path, config: DemoConfig | None = None, progress: bool =
         FileExistsError: ``out`` holds something other than an earlier demo with the same settings.
     """
     from vid2sim.evaluate.scores import evaluate
-    from vid2sim.evaluate.scores import write_report as write_json
+    from vid2sim.evaluate.scores import write_evaluation
     from vid2sim.reconstruct.pipeline import reconstruct
-    from vid2sim.report import write_report
+    from vid2sim.apps.report import asset_report
     from vid2sim.simulate.run import simulate
     from vid2sim.synthetic.scenes import make_scene
 
@@ -188,7 +189,7 @@ def run_demo(out: str | Path, config: DemoConfig | None = None, progress: bool =
     if not evaluation_path.is_file():
         t0 = step("evaluation", 3, "scoring it on observed, future and held-out views")
         evaluation, renders = evaluate(asset, scene, progress=progress, return_renders=True)
-        write_json(evaluation, evaluation_path)
+        write_evaluation(evaluation, evaluation_path)
         done("evaluation", t0)
     evaluation = json.loads(evaluation_path.read_text())
     if not (sim / "summary.json").is_file():
@@ -202,7 +203,7 @@ def run_demo(out: str | Path, config: DemoConfig | None = None, progress: bool =
         simulate(asset, scenario, sim, progress=progress, overwrite=True)
         done("simulation", t0)
     t0 = step("report", 5, f"writing the report {report / 'index.html'}")
-    write_report(report, asset, scene=scene, evaluation=evaluation, renders=renders, progress=progress,
+    asset_report(report, asset, scene=scene, evaluation=evaluation, renders=renders, progress=progress,
                  simulations=[sim])
     done("report", t0)
     material = evaluation["material"]

@@ -7,7 +7,7 @@ from pathlib import Path
 
 from vid2sim.cli.common import add_threads_option, set_threads
 from vid2sim.cli.report import write_asset_report
-from vid2sim.evaluate.scores import evaluate, write_report
+from vid2sim.evaluate.scores import evaluate, write_evaluation
 
 
 def run(args: argparse.Namespace) -> int:
@@ -17,7 +17,7 @@ def run(args: argparse.Namespace) -> int:
     report, renders = evaluate(args.asset, args.scene, fovvdp=args.fovvdp, progress=not args.quiet,
                                return_renders=True, true_motion=args.true_motion)
     out = Path(args.out) if args.out else Path(args.asset) / "evaluation.json"
-    write_report(report, out)
+    write_evaluation(report, out)
     lines = []
     for key in ("dynamic", "future", "novel_views"):
         if report[key]:

@@ -13,12 +13,12 @@ from pathlib import Path
 
 from vid2sim.asset.folder import AssetFormatError
 from vid2sim.cli.common import UserError, add_threads_option, set_threads
-from vid2sim.report import ReportConfig, ReportInputError, write_report
+from vid2sim.apps.report import asset_report
+from vid2sim.report import ReportConfig, ReportInputError
 from vid2sim.scene.validation import SceneFormatError
 
 
 def run(args: argparse.Namespace) -> int:
-
     set_threads(args.threads)
     asset = Path(args.asset)
     if not asset.is_dir():
@@ -28,7 +28,7 @@ def run(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     try:
         config = ReportConfig(video_format=args.video_format, crop=not args.full_frame)
-        out = write_report(args.out, asset, scene=args.scene, progress=not args.quiet, config=config)
+        out = asset_report(args.out, asset, scene=args.scene, progress=not args.quiet, config=config)
     except (ReportInputError, AssetFormatError, SceneFormatError) as exc:
         raise UserError(str(exc)) from exc
     files = [p for p in out.rglob("*") if p.is_file()]
@@ -39,9 +39,8 @@ def run(args: argparse.Namespace) -> int:
 
 def write_asset_report(out, asset, scene, quiet: bool, evaluation=None, renders=None) -> None:
     """The HTML report of ``asset`` compared with ``scene`` (vid2sim.report), and one line saying where it is."""
-
     try:
-        path = write_report(out, asset, scene=scene, evaluation=evaluation, renders=renders, progress=not quiet)
+        path = asset_report(out, asset, scene=scene, evaluation=evaluation, renders=renders, progress=not quiet)
     except ReportInputError as exc:
         raise UserError(f"the report could not be written: {exc}") from exc
     print(f"report: {path / 'index.html'}")

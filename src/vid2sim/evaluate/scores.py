@@ -28,6 +28,13 @@ from typing import Any
 
 import torch
 
+from vid2sim.asset.motion import (
+    deform_states,
+    render_frames,
+    simulate_states,
+    simulated_centre_of_mass,
+    true_motion_gaussians,
+)
 from vid2sim.runtime.errors import InputError
 
 
@@ -62,98 +69,10 @@ def scene_groups(renders: torch.Tensor, targets: torch.Tensor, config: Any) -> d
             "novel_views": _group(renders, targets, held_v, list(range(1, T)))}
 
 
-def simulate_gaussians(asset: Any, num_frames: int, progress: bool = True) -> list[Any]:
-    """The asset's captured drop: its Gaussians deformed by the simulator, one set per frame.
-
-    Args:
-        asset: a loaded :class:`~vid2sim.asset.folder.Asset`.
-        num_frames: T ≥ 1 frames (frame 0 is the initial state; frames are ``asset.dt`` apart).
-        progress: tqdm bars for the rollout and the deformation.
-
-    Returns:
-        T :class:`~vid2sim.splats.deform.DeformedGaussians` (world frame, m), without gradients.
-    """
-    sim, states = simulate_states(asset, num_frames, progress=progress)
-    return deform_states(asset, sim, states, progress=progress)
-
-
-def deform_states(asset: Any, sim: Any, states: list[Any], progress: bool = True) -> list[Any]:
-    """The asset's Gaussians deformed by each of the simulator ``sim``'s ``states`` (:func:`simulate_states`):
-    one :class:`~vid2sim.splats.deform.DeformedGaussians` per state, without gradients."""
-    from tqdm.auto import tqdm
-
-    from vid2sim.reconstruct.stages.joint import GaussianRig
-
-    with torch.no_grad():
-        rig = GaussianRig(sim, asset.gaussians, asset.shading)
-        basis = rig.basis()
-        return [rig.deformed(s.z, basis) for s in tqdm(states, desc="deform", disable=not progress, leave=False)]
-
-
-def simulate_states(asset: Any, num_frames: int, progress: bool = True) -> tuple[Any, list[Any]]:
-    """The asset's captured drop as simulator states: ``(simulator, T states)``, frame 0 the initial state.
-
-    Raises:
-        ValueError: ``num_frames`` < 1.
-    """
-    if num_frames < 1:
-        raise InputError(f"simulate_states: num_frames must be >= 1, got {num_frames}")
-    sim = asset.simulator()
-    start = asset.initial_state(sim)
-    with torch.no_grad():
-        return sim, [start] + sim.rollout(start, num_frames - 1, progress=progress)
-
-
-def simulated_centre_of_mass(sim: Any, states: list[Any]) -> torch.Tensor:
-    """(T, 3) float64: the simulated body's centre of mass per state, Σ m_p x_p / Σ m_p over the simulator's
-    mass points (its cubature points with their lumped masses, :meth:`~vid2sim.physics.Simulator.masses`)."""
-    with torch.no_grad():
-        m = sim.masses().double()
-        return torch.stack([(m[:, None] * sim.positions(sim.X, s.z).double()).sum(0) / m.sum() for s in states])
-
-
-def render_frames(frames: list[Any], cameras: list[Any], background: float = 1.0,
-                  progress: bool = True) -> torch.Tensor:
-    """Render deformed Gaussians (one set per frame, e.g. from :func:`simulate_gaussians`) in every camera.
-
-    Returns:
-        (V, T, H, W, 3) RGB in [0, 1] on the given ``background`` (1.0 = white, the scenes' background).
-    """
-    from tqdm.auto import tqdm
-
-    from vid2sim.splats.render import render_gaussians
-
-    with torch.no_grad():
-        renders = [render_gaussians(d, cameras, background=background).rgb
-                   for d in tqdm(frames, desc="render", disable=not progress, leave=False)]
-    return torch.stack(renders, dim=1).clamp(0, 1)
-
-
-def true_motion_gaussians(asset: Any, tet_trajectory: dict[str, torch.Tensor]) -> list[Any]:
-    """The asset's Gaussians carried by the ground truth's motion instead of the simulator's.
-
-    Each Gaussian follows the frame-0 tet it lies in (or is least outside of) of the scene's ``tet_trajectory``
-    extra (:func:`vid2sim.metrics.carry_by_tets`): its centre moves with the tet's affine map and its covariance
-    is deformed by the tet's F. Scoring these images separates the appearance's share of the image error (what
-    the Gaussians cannot show even on the true motion: lighting baked in at frame 0, surfaces no observed view
-    saw) from the dynamics'.
-
-    Returns:
-        T :class:`~vid2sim.splats.deform.DeformedGaussians`, one per frame of the trajectory.
-    """
-    from vid2sim.metrics import carry_by_tets
-    from vid2sim.splats.deform import deform_gaussians
-
-    g = asset.gaussians
-    vertices, tets = tet_trajectory["vertices"], tet_trajectory["tets"]
-    used = vertices[:, : int(tets.max()) + 1]  # quadratic meshes list edge midpoints after the vertices
-    x, F = carry_by_tets(g.means, used, tets)
-    return [deform_gaussians(g, x[t].to(g.means.dtype), F[t].to(g.means.dtype), asset.shading) for t in range(len(x))]
-
-
 def start_material(asset_path: str | Path) -> dict[str, Any] | None:
     """The material ``reconstruct``'s Stage II started from: Stage I's prediction when it ran (``log.json``
-    ``stage1``), else the prior of ``config.json`` (``prior_E``, ``prior_nu``).
+    ``stage1``), else the prior of ``config.json`` (``prior.E``, ``prior.nu``; ``prior_E``, ``prior_nu`` in assets
+    written before the configuration was nested).
 
     Returns:
         {"E", "log10_E", "nu", "source": "stage1" | "prior"}, or None for an asset without those records (one
@@ -172,9 +91,12 @@ def start_material(asset_path: str | Path) -> dict[str, Any] | None:
             E, nu, source, where = stage1.get("E"), stage1.get("nu"), "stage1", log_path
         elif config_path.is_file():
             config = json.loads(config_path.read_text())
-            if "prior_E" not in config and "prior_nu" not in config:
+            prior = config.get("prior") if isinstance(config.get("prior"), dict) else \
+                {"E": config.get("prior_E"), "nu": config.get("prior_nu")} if "prior_E" in config or "prior_nu" in config \
+                else None
+            if prior is None:
                 return None
-            E, nu, source, where = config.get("prior_E"), config.get("prior_nu"), "prior", config_path
+            E, nu, source, where = prior.get("E"), prior.get("nu"), "prior", config_path
         else:
             return None
     except (OSError, json.JSONDecodeError, AttributeError) as exc:
@@ -285,7 +207,7 @@ def evaluate(asset_path: str | Path, scene_path: str | Path, fovvdp: bool = Fals
     return report
 
 
-def write_report(report: dict[str, Any], path: str | Path) -> Path:
+def write_evaluation(report: dict[str, Any], path: str | Path) -> Path:
     """Write ``report`` as JSON (atomically)."""
     import os
 

@@ -40,7 +40,7 @@ from vid2sim.runtime.files import save_torch_atomic
 
 if TYPE_CHECKING:  # pragma: no cover
     from vid2sim.predictor.model import PhysicsPredictor
-    from vid2sim.predictor.train import TrainConfig, _Split
+    from vid2sim.predictor.train import TrainConfig, Split
 
 PRETRAIN_FORMAT = "vid2sim-predictor-pretrain/1"
 PRETRAIN_FILE = "pretrain.pt"
@@ -104,14 +104,14 @@ def token_grid(model: "PhysicsPredictor") -> tuple[int, int, int]:
 
 def pretrain_settings(cfg: "TrainConfig") -> dict[str, Any]:
     """The settings a ``pretrain.pt`` must share with a run that resumes it."""
-    from vid2sim.predictor.train import _config_dict
+    from vid2sim.predictor.train import config_dict
 
-    d = _config_dict(cfg)
+    d = config_dict(cfg)
     keep = ("model", "seed", "mirror", "val_fraction", "split_seed", "final_lr_fraction", "warmup", "eval_every")
     return json.loads(json.dumps({k: v for k, v in d.items() if k in keep or k.startswith("pretrain_")}))
 
 
-def pretrain_backbone(model: "PhysicsPredictor", train: "_Split", cfg: "TrainConfig", out: Path,
+def pretrain_backbone(model: "PhysicsPredictor", train: "Split", cfg: "TrainConfig", out: Path,
                       deadline: float | None = None, progress: bool = True,
                       stop_at_step: int | None = None) -> dict[str, Any]:
     """Masked-autoencoder pre-training of ``model.backbone`` on the videos of ``train`` (module docstring).
@@ -130,7 +130,7 @@ def pretrain_backbone(model: "PhysicsPredictor", train: "_Split", cfg: "TrainCon
     from tqdm.auto import tqdm
 
     from vid2sim.predictor.train import (
-        _lr_factor,
+        lr_factor,
         normalise_video,
         optimiser_step,
     )
@@ -185,7 +185,7 @@ def pretrain_backbone(model: "PhysicsPredictor", train: "_Split", cfg: "TrainCon
         mask = tube_mask(len(idx), grid, cfg.pretrain_mask_ratio,
                          torch.Generator().manual_seed(cfg.seed * 1_000_003 + _MASK_SEED + step))
         for group in opt.param_groups:
-            group["lr"] = cfg.pretrain_lr * _lr_factor(step, steps, cfg.warmup, cfg.final_lr_fraction)
+            group["lr"] = cfg.pretrain_lr * lr_factor(step, steps, cfg.warmup, cfg.final_lr_fraction)
         window.append(optimiser_step(opt, pre(pixel_values=video, bool_masked_pos=mask).loss, "pre-training", step))
         step += 1
         bar.update(1)

@@ -142,7 +142,7 @@ def release_freed_memory() -> None:
     trim(0)
 
 
-class _Split:
+class Split:
     """One split decoded into memory: uint8 videos (N, T, 3, S, S) and labels (frames framed as the model's
     ``framing`` says and resized to side ``size`` by area averaging, as :func:`frame_for_model` does)."""
 
@@ -173,7 +173,7 @@ class _Split:
                         "last_layer": torch.stack(layers) if n else torch.zeros(0, 650)}
 
     @classmethod
-    def cached(cls, data: TrainingData, size: int | None, framing: str, path: Path) -> "_Split":
+    def cached(cls, data: TrainingData, size: int | None, framing: str, path: Path) -> "Split":
         """The split decoded once and kept in ``path`` (a torch file read memory-mapped on later runs).
 
         Decoding 20 000 videos takes tens of minutes, and a long training resumes over several sittings. The
@@ -224,7 +224,7 @@ def normalise_video(frames: torch.Tensor) -> torch.Tensor:
 # ---- evaluation -----------------------------------------------------------------------------------------
 
 @torch.no_grad()
-def evaluate(model: LabelPredictor, split: _Split, weights: LossWeights, batch_size: int = 16) -> dict[str, float]:
+def evaluate(model: LabelPredictor, split: Split, weights: LossWeights, batch_size: int = 16) -> dict[str, float]:
     """Validation figures of ``model`` on ``split``: loss, MAE of log10 E and ν (label units), MSE of the
     standardised last layer."""
     model.eval()
@@ -269,7 +269,7 @@ def errors_by_range(pred: torch.Tensor, true: torch.Tensor, width: float = 0.25)
     return out
 
 
-def constant_baselines(stats: dict[str, dict[str, torch.Tensor]], split: _Split) -> dict[str, float]:
+def constant_baselines(stats: dict[str, dict[str, torch.Tensor]], split: Split) -> dict[str, float]:
     """MAE on ``split`` of the constant predictor that always answers the training split's mean (label units),
     and the standardised last layer's MSE for the mean last layer."""
     t = split.targets
@@ -303,7 +303,7 @@ def evaluate_predictor(path: str | Path, data_folder: str | Path, split: str = "
         raise InputError(f"{data_folder}: videos of {frames} frames, the predictor takes {model.num_frames}")
     if len(data) == 0:
         raise InputError(f"{data_folder}: the {split!r} split has no samples")
-    part = _Split(data, model.image_size, model.config.framing)
+    part = Split(data, model.image_size, model.config.framing)
     with torch.no_grad():
         figures = evaluate(model, part, LossWeights())
     stats = model.label_statistics()
@@ -387,7 +387,7 @@ def _plain(x: Any) -> Any:
 
 # ---- training -------------------------------------------------------------------------------------------
 
-def _lr_factor(step: int, steps: int, warmup: int, final_fraction: float) -> float:
+def lr_factor(step: int, steps: int, warmup: int, final_fraction: float) -> float:
     """The learning-rate factor at ``step`` of ``steps``: linear warm-up over ``warmup`` steps, then cosine decay
     from 1 to ``final_fraction``."""
     if warmup and step < warmup:
@@ -407,7 +407,7 @@ def optimiser_step(opt: torch.optim.Optimizer, loss: torch.Tensor, what: str, st
     return float(loss.detach())
 
 
-def _config_dict(cfg: TrainConfig) -> dict[str, Any]:
+def config_dict(cfg: TrainConfig) -> dict[str, Any]:
     d = asdict(cfg)
     d.pop("max_minutes")
     return d
@@ -443,15 +443,15 @@ def train_predictor(data_folder: str | Path, out: str | Path, config: TrainConfi
                          f"{cfg.model.num_frames}")
     stats = train_data.label_statistics()
     # decoded once into OUT (OUT/split_*.pt, memory-mapped on a resume)
-    train = _Split.cached(train_data, cfg.model.image_size, cfg.model.framing, out / "split_train.pt")
-    val = _Split.cached(val_data, cfg.model.image_size, cfg.model.framing, out / "split_val.pt")
+    train = Split.cached(train_data, cfg.model.image_size, cfg.model.framing, out / "split_train.pt")
+    val = Split.cached(val_data, cfg.model.image_size, cfg.model.framing, out / "split_val.pt")
     t_data = time.perf_counter() - t_start
 
     model = PhysicsPredictor(cfg.model)
     model.set_label_statistics(stats)
     opt = torch.optim.Adam(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     last_path, best_path = out / "last.pt", out / "best.pt"
-    cfg_dict = _config_dict(cfg)
+    cfg_dict = config_dict(cfg)
     log: dict[str, Any] = {"train_curve": [], "val_curve": [], "best": None, "seconds_training": 0.0}
     step = 0
     if last_path.is_file():
@@ -508,7 +508,7 @@ def train_predictor(data_folder: str | Path, out: str | Path, config: TrainConfi
         idx = perm[pos * cfg.batch_size:(pos + 1) * cfg.batch_size]
         model.train()
         for g in opt.param_groups:
-            g["lr"] = cfg.lr * _lr_factor(step, cfg.steps, cfg.warmup, cfg.final_lr_fraction)
+            g["lr"] = cfg.lr * lr_factor(step, cfg.steps, cfg.warmup, cfg.final_lr_fraction)
         orders = None
         if cfg.colour_permute:
             orders = random_channel_orders(len(idx), torch.Generator().manual_seed(cfg.seed * 1_000_003 + step + 7919))

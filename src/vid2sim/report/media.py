@@ -25,6 +25,7 @@ from torch import Tensor
 
 from vid2sim.report.config import FUTURE_COLOUR, OBSERVED_COLOUR
 from vid2sim.runtime.errors import InputError
+from vid2sim.scene.video import probe_video
 
 HEADER_HEIGHT = 50
 """Pixels of the strip of column headings above the panels of a video or strip."""
@@ -368,7 +369,6 @@ def video_frame_count(path: Path) -> tuple[int, int, int]:
     if path.suffix == ".webp":
         with Image.open(path) as im:
             return int(getattr(im, "n_frames", 1)), im.width, im.height
-    from vid2sim.scene.video import probe_video
 
     info = probe_video(path)
     return info.num_frames, info.width, info.height

@@ -22,6 +22,7 @@ import shutil
 import time
 import uuid
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -29,10 +30,14 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from vid2sim import __version__
+from vid2sim.metrics.images import psnr
 from vid2sim.report import html as H
 from vid2sim.report import media as M
 from vid2sim.report.config import ReportConfig, ReportInputError
-from vid2sim.report.inputs import GROUPS, check_evaluation, read_evaluation
+from vid2sim.report.inputs import GROUPS, check_evaluation
+from vid2sim.report.plots import optimisation_figure, psnr_figure
+from vid2sim.scene.folder import Scene, load_scene, move_into_place
 
 GROUP_TITLES = {"dynamic": "Dynamic reconstruction", "future": "Future prediction", "novel_views": "Novel views"}
 
@@ -55,7 +60,8 @@ def _read_json(path: Path, required: bool) -> dict[str, Any] | None:
     return data
 
 
-def _check_out(out: Path) -> None:
+def check_out(out: Path) -> None:
+    """Raise :class:`ReportInputError` unless ``out`` can become a report folder (absent, or a previous report)."""
     if out.exists() and not out.is_dir():
         raise ReportInputError(f"report folder {out} exists and is not a folder")
     if out.is_dir() and any(out.iterdir()) and not (out / "index.html").is_file():
@@ -69,22 +75,21 @@ def _same_folder(a: Any, b: Any) -> bool:
         return False
 
 
-def _ring_cameras(frames: Sequence[Any], config: ReportConfig) -> tuple[list[Any], list[float]]:
-    """Cameras on a ring around the whole trajectory (the 2nd–98th percentile box of the Gaussian centres over
-    all frames), far enough that it fits the 40° field of view; returns (cameras, azimuths in degrees)."""
-    from vid2sim.splats.cameras import camera_ring
+@dataclass
+class RingRenders:
+    """An asset's own drop rendered in a ring of cameras (the report without a scene).
 
-    means = torch.cat([f.means.detach().reshape(-1, 3) for f in frames]).double()
-    if means.shape[0] > 200_000:
-        means = means[torch.randperm(means.shape[0], generator=torch.Generator().manual_seed(0))[:200_000]]
-    lo, hi = torch.quantile(means, 0.02, dim=0), torch.quantile(means, 0.98, dim=0)
-    centre, radius = (lo + hi) / 2, float((hi - lo).norm()) / 2
-    radius = max(radius, 1e-3)
-    fov = 40.0
-    distance = 1.15 * radius / math.sin(math.radians(fov / 2))
-    cams = camera_ring(config.ring_views, distance, config.ring_elevation_deg, config.ring_resolution,
-                       config.ring_resolution, fov_x_deg=fov, target=tuple(float(c) for c in centre))
-    return cams, [360.0 * i / config.ring_views for i in range(config.ring_views)]
+    Attributes:
+        renders: (V, T, R, R, 3) in [0, 1]: V ring cameras, T frames.
+        azimuths_deg: (V,) the cameras' azimuths.
+        dt: seconds between frames.
+        observed_frames: frames of the observed video (the later ones are marked future).
+    """
+
+    renders: Tensor
+    azimuths_deg: list[float]
+    dt: float
+    observed_frames: int
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -92,34 +97,35 @@ def _ring_cameras(frames: Sequence[Any], config: ReportConfig) -> tuple[list[Any
 # ---------------------------------------------------------------------------------------------------------
 
 def write_report(out_dir: str | Path, asset: str | Path, scene: Any = None, evaluation: Mapping[str, Any] | None = None,
-                 renders: Tensor | None = None, progress: bool = True, config: ReportConfig | None = None,
-                 simulations: Sequence[str | Path] = ()) -> Path:
+                 renders: Tensor | None = None, ring: RingRenders | None = None, progress: bool = True,
+                 config: ReportConfig | None = None, simulations: Sequence[str | Path] = (),
+                 timings: Mapping[str, float] | None = None) -> Path:
     """Write the HTML report of an asset into ``out_dir`` (atomically; a previous report there is replaced).
+
+    The report renders what it is given and computes nothing (:func:`vid2sim.apps.report.asset_report` simulates,
+    renders and evaluates what is missing, then calls this).
 
     Args:
         out_dir: the report folder to create (``index.html`` + ``media/`` + ``report.json``).
         asset: the asset folder (``material.json``, ``log.json``, …; docs/asset-format.md).
         scene: the scene folder (path) or a loaded :class:`~vid2sim.scene.folder.Scene`, or None for the
-            asset's own drop in a ring of cameras.
-        evaluation: the evaluation dict (``vid2sim evaluate``'s JSON). None: the asset's ``evaluation.json``
-            if it exists (with a scene: only if it was computed on that scene folder); with a scene path and
-            no evaluation, :func:`~vid2sim.evaluate.scores.evaluate` runs and provides the renders too.
-        renders: (V, T, H, W, 3) renders in [0, 1] of the asset in the scene's cameras (e.g. from
-            ``evaluate(..., return_renders=True)``); None renders them (one simulation). Only with a scene.
+            asset's own drop in a ring of cameras (``ring``).
+        evaluation: the evaluation dict (``vid2sim evaluate``'s JSON), or None.
+        renders: with a scene: (V, T, H, W, 3) renders in [0, 1] of the asset in the scene's cameras.
+        ring: without a scene: the asset's drop in a ring of cameras.
         progress: tqdm progress bars.
         config: :class:`ReportConfig` (sizes, colour map, video format); None for the defaults.
         simulations: ``vid2sim simulate`` output folders of this asset, shown in a "New situations" section
             (each one's scenario, summary figures and its cameras' animated GIFs).
+        timings: seconds the caller spent making the inputs, by what it did (shown with the report's own).
 
     Returns:
         ``out_dir`` as a Path.
 
     Raises:
-        ReportInputError: a missing or malformed input (the message names it); SceneFormatError /
-        AssetFormatError from loading the scene or the asset.
+        ReportInputError: a missing or malformed input (the message names it); SceneFormatError from loading
+        the scene.
     """
-    from vid2sim.scene.folder import Scene, load_scene, move_into_place
-
     t_start = time.perf_counter()
     config = config or ReportConfig()
     out = Path(out_dir)
@@ -129,47 +135,16 @@ def write_report(out_dir: str | Path, asset: str | Path, scene: Any = None, eval
     material = _read_json(asset_dir / "material.json", required=True)
     log = _read_json(asset_dir / "log.json", required=False) or {}
     asset_json = _read_json(asset_dir / "asset.json", required=False) or {}
-    _check_out(out)
+    check_out(out)
     if renders is not None and scene is None:
         raise ReportInputError("renders were given without a scene; renders are the asset in the scene's cameras")
+    if scene is None and ring is None:
+        raise ReportInputError("without a scene the report shows the asset's drop in a ring of cameras: give ring")
     if evaluation is not None:
         evaluation = check_evaluation(evaluation)
-
-    scene_obj: Scene | None = None
-    scene_path: Path | None = None
-    if scene is not None:
-        if isinstance(scene, Scene):
-            scene_obj, scene_path = scene, scene.root
-        elif isinstance(scene, (str, Path)):
-            scene_path = Path(scene)
-            if not scene_path.is_dir():
-                raise ReportInputError(f"scene folder {scene_path} not found")
-            scene_obj = load_scene(scene_path, progress=progress)
-        else:
-            raise ReportInputError(f"scene must be a scene folder path or a loaded Scene, got {type(scene).__name__}")
-    stored = asset_dir / "evaluation.json"
-    if evaluation is None and stored.is_file():
-        candidate = read_evaluation(stored)
-        if scene_obj is None or _same_folder(candidate.get("scene"), scene_path):
-            evaluation = candidate
-    timings: dict[str, float] = {}
+    scene_obj, scene_path = _scene(scene, progress)
     if scene_obj is not None:
         V, T, Hh, Ww, _ = scene_obj.images.shape
-        if renders is None and evaluation is None and scene_path is not None:
-            from vid2sim.evaluate.scores import evaluate
-
-            t0 = time.perf_counter()
-            evaluation, renders = evaluate(asset_dir, scene_path, progress=progress, return_renders=True)
-            timings["evaluate (simulate, render, score)"] = time.perf_counter() - t0
-        elif renders is None:
-            from vid2sim.asset.folder import load_asset
-            from vid2sim.evaluate.scores import render_frames, simulate_gaussians
-
-            t0 = time.perf_counter()
-            loaded = load_asset(asset_dir)
-            renders = render_frames(simulate_gaussians(loaded, T, progress=progress), scene_obj.cameras,
-                                    progress=progress)
-            timings["simulate and render"] = time.perf_counter() - t0
         if not isinstance(renders, Tensor) or tuple(renders.shape) != (V, T, Hh, Ww, 3):
             shape = tuple(renders.shape) if isinstance(renders, Tensor) else type(renders).__name__
             raise ReportInputError(f"renders must be a tensor of the scene's shape {(V, T, Hh, Ww, 3)} "
@@ -182,16 +157,29 @@ def write_report(out_dir: str | Path, asset: str | Path, scene: Any = None, eval
         if scene_obj is not None:
             builder.scene_media(scene_obj, scene_path, renders.detach().float().cpu())
         else:
-            builder.ring_media()
+            builder.ring_media(ring)
         for folder in simulations:
             builder.simulation_media(Path(folder))
-        builder.timings.update(timings)
+        builder.timings.update(timings or {})
         builder.finish(time.perf_counter() - t_start)
         move_into_place(tmp, out)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     return out
+
+
+def _scene(scene: Any, progress: bool) -> tuple[Scene | None, Path | None]:
+    """The loaded scene and its folder (both None without a scene)."""
+    if scene is None:
+        return None, None
+    if isinstance(scene, Scene):
+        return scene, scene.root
+    if isinstance(scene, (str, Path)):
+        if not Path(scene).is_dir():
+            raise ReportInputError(f"scene folder {scene} not found")
+        return load_scene(scene, progress=progress), Path(scene)
+    raise ReportInputError(f"scene must be a scene folder path or a loaded Scene, got {type(scene).__name__}")
 
 
 class _Builder:
@@ -230,7 +218,6 @@ class _Builder:
     def scene_media(self, scene: Any, scene_path: Path | None, renders: Tensor) -> None:
         from tqdm.auto import tqdm
 
-        from vid2sim.metrics.images import psnr
 
         cfg = self.config
         targets = scene.float_images() if hasattr(scene, "float_images") else scene.images.float()
@@ -305,7 +292,6 @@ class _Builder:
         gt_t, rd_t, _ = panels(tv, [0], cfg.thumb_size)
         M.save_png(self.media / "thumb.png", M.titled_panels([gt_t[0], rd_t[0]], ["ground truth", "reconstruction"]))
         # per-frame PSNR plot
-        from vid2sim.report.plots import psnr_figure
 
         labels = {v: f"view {v}" + (" (held out)" if v in held_v else "") for v in range(V)}
         means = []
@@ -353,41 +339,29 @@ class _Builder:
             "bold lines are the evaluation's means over views. Frame 0 is the fitted initial state (not part of "
             "the evaluation's means); the shaded frames were held out and predicted.")))
 
-    def ring_media(self) -> None:
-        from vid2sim.asset.folder import load_asset
-        from vid2sim.evaluate.scores import render_frames, simulate_gaussians
-
+    def ring_media(self, ring: RingRenders) -> None:
         cfg = self.config
-        t0 = time.perf_counter()
-        asset = load_asset(self.asset_dir)
-        T = cfg.ring_frames
-        frames = simulate_gaussians(asset, T, progress=self.progress)
-        cams, azimuths = _ring_cameras(frames, cfg)
-        renders = render_frames(frames, cams, progress=self.progress)  # (V, T, R, R, 3)
-        self.timings["simulate and render (ring)"] = time.perf_counter() - t0
-        observed = asset.extra.get("observed_frames")
-        observed = int(observed) if isinstance(observed, int) else T
+        renders, azimuths, T, observed = ring.renders, ring.azimuths_deg, ring.renders.shape[1], ring.observed_frames
+        views, R = renders.shape[0], renders.shape[2]
         future = [t >= observed for t in range(T)]
-        self.future, self.dt = future, float(asset.dt)
+        self.future, self.dt = future, float(ring.dt)
         self.scene_name = None
-        self.scene_desc = (f"no scene: the asset's captured drop in {cfg.ring_views} ring cameras · "
-                           f"{cfg.ring_resolution}×{cfg.ring_resolution} px · {T} frames "
-                           f"(the observed video had {observed}) · Δt = {asset.dt:g} s")
-        self.data.update({"scene": None, "views": cfg.ring_views, "frames": T, "dt": asset.dt,
-                          "ring_azimuths_deg": azimuths})
+        self.scene_desc = (f"no scene: the asset's captured drop in {views} ring cameras · "
+                           f"{R}×{R} px · {T} frames (the observed video had {observed}) · Δt = {ring.dt:g} s")
+        self.data.update({"scene": None, "views": views, "frames": T, "dt": ring.dt, "ring_azimuths_deg": azimuths})
         ev_truth = ((self.evaluation or {}).get("material") or {}).get("truth") or {}
         self.truth = {k: ev_truth[k] for k in ("E", "nu") if isinstance(ev_truth.get(k), (int, float))}
         if self.truth.get("E", 0) > 0:
             self.truth["log10_E"] = math.log10(self.truth["E"])
         r8 = M.to_uint8(renders)
-        factor = M.scale_factor(cfg.ring_resolution, cfg.panel_size)
-        video = M.compose_video([M.rescale(r8[v], factor) for v in range(cfg.ring_views)],
+        factor = M.scale_factor(R, cfg.panel_size)
+        video = M.compose_video([M.rescale(r8[v], factor) for v in range(views)],
                                 [(f"camera {v}", f"azimuth {a:.0f}°") for v, a in enumerate(azimuths)], future, self.dt,
                                 tags=("OBSERVED TIME SPAN", "FUTURE · predicted"))
         path = self._encode("ring", video)
         self.video_count = 1
         self.data["videos"] = [path.name]
-        tf = M.scale_factor(cfg.ring_resolution, cfg.thumb_size)
+        tf = M.scale_factor(R, cfg.thumb_size)
         M.save_png(self.media / "thumb.png", M.titled_panels([M.rescale(r8[0, 0], tf)], ["reconstruction"]))
         self._summary_and_tables()
         controls = _controls(T, cfg, path.suffix == ".webm")
@@ -396,7 +370,7 @@ class _Builder:
             f'<div class="controls">{controls}</div><div class="video-card">'
             f'{self._video_html(path, "video:ring", (video.shape[2], video.shape[1]))}</div>',
             "No scene was given, so there is no ground truth to compare with: the asset is simulated from its "
-            f"recovered initial state with its recovered material and rendered in {cfg.ring_views} cameras around "
+            f"recovered initial state with its recovered material and rendered in {views} cameras around "
             'its trajectory. Frames past the length of the observed video are marked <span class="tag fut">future'
             "</span>; give <code>--scene</code> for the comparison with the scene's frames.")))
 
@@ -517,7 +491,6 @@ class _Builder:
         self.sections.append(("metrics", "Metrics", H.section("metrics", "Metrics", body, note)))
 
     def _optimisation_section(self) -> None:
-        from vid2sim.report.plots import optimisation_figure
 
         if not self.log:
             self.sections.append(("optimisation", "Optimisation", H.section(
@@ -600,7 +573,6 @@ class _Builder:
             body, "The reconstructed asset simulated where it was never seen (vid2sim simulate).")))
 
     def finish(self, elapsed: float) -> None:
-        from vid2sim import __version__
 
         self._optimisation_section()
         self._timings_section(elapsed)

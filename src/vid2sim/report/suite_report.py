@@ -23,10 +23,14 @@ from typing import Any
 
 import numpy as np
 
+from vid2sim import __version__
 from vid2sim.report import html as H
 from vid2sim.report import media as M
 from vid2sim.report.config import ReportConfig
 from vid2sim.report.inputs import check_suite
+from vid2sim.report.plots import material_scatter
+from vid2sim.report.scene_report import check_out
+from vid2sim.scene.folder import load_scene, move_into_place
 
 #: suite means key → (label, unit, decimals, scale of the shown value)
 MEAN_LABELS = {
@@ -61,7 +65,6 @@ def _thumbnail(scene: Mapping[str, Any], target: Path, config: ReportConfig) -> 
         return False
     import torch
 
-    from vid2sim.scene.folder import load_scene
 
     try:
         s = load_scene(scene["scene"], dtype=torch.uint8)
@@ -93,16 +96,12 @@ def write_suite_report(out_dir: str | Path, suite: Mapping[str, Any], config: Re
     Returns:
         ``out_dir`` as a Path.
     """
-    from vid2sim import __version__
-    from vid2sim.report.plots import material_scatter
-    from vid2sim.report.scene_report import _check_out
-    from vid2sim.scene.folder import move_into_place
 
     t0 = time.perf_counter()
     config = config or ReportConfig()
     data = check_suite(suite)
     out = Path(out_dir)
-    _check_out(out)
+    check_out(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.parent / f".{out.name}.tmp-{uuid.uuid4().hex[:10]}"
     (tmp / "media").mkdir(parents=True)

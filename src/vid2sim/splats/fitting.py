@@ -87,6 +87,8 @@ class FitConfig:
     def __post_init__(self) -> None:
         if self.iterations < 1:
             raise ConfigError(f"FitConfig.iterations must be >= 1, got {self.iterations}")
+        if not 0 <= self.sh_degree <= 3:
+            raise ConfigError(f"FitConfig.sh_degree must be 0, 1, 2 or 3, got {self.sh_degree}")
         if not 0 <= self.densify_from <= self.densify_until <= 1:
             raise ConfigError(
                 f"FitConfig needs 0 <= densify_from <= densify_until <= 1, got {self.densify_from}, {self.densify_until}"

@@ -36,7 +36,7 @@ class Initializer(Protocol):
         ...
 
 
-def _project(points: Tensor, viewmats: Tensor, Ks: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+def project_points(points: Tensor, viewmats: Tensor, Ks: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """Integer pixel (V, N) columns and rows, and depths (V, N), of world points (N, 3)."""
     cam = torch.matmul(points, viewmats[:, :3, :3].transpose(1, 2)) + viewmats[:, None, :3, 3]
     z = cam[..., 2]
@@ -56,7 +56,7 @@ def carve(points: Tensor, masks: Tensor, viewmats: Tensor, Ks: Tensor, threshold
         points: (N, 3); masks: (V, H, W); viewmats: (V, 4, 4); Ks: (V, 3, 3).
     """
     V, H, W = masks.shape
-    col, row, _ = _project(points, viewmats, Ks)
+    col, row, _ = project_points(points, viewmats, Ks)
     inside = (col >= 0) & (col < W) & (row >= 0) & (row < H)
     flat = (torch.arange(V, device=points.device)[:, None] * H + row.clamp(0, H - 1)) * W + col.clamp(0, W - 1)
     hit = masks.reshape(-1)[flat] > threshold
@@ -125,7 +125,7 @@ def visual_hull(
     return occ, lo, float(step[0])
 
 
-def _surface(occ: Tensor) -> Tensor:
+def surface_voxels(occ: Tensor) -> Tensor:
     """Occupied voxels with at least one empty 6-neighbour (the grid border counts as empty)."""
     p = torch.nn.functional.pad(occ.float()[None, None], (1, 1, 1, 1, 1, 1))[0, 0]
     inner = p[:-2, 1:-1, 1:-1] * p[2:, 1:-1, 1:-1] * p[1:-1, :-2, 1:-1] * p[1:-1, 2:, 1:-1]
@@ -181,7 +181,7 @@ def visible_colours(points: Tensor, images: Tensor, viewmats: Tensor, Ks: Tensor
     nowhere get the mean over all views that contain them.
     """
     V, H, W, _ = images.shape
-    col, row, z = _project(points, viewmats, Ks)
+    col, row, z = project_points(points, viewmats, Ks)
     inside = (col >= 0) & (col < W) & (row >= 0) & (row < H)
     pix = (torch.arange(V, device=points.device)[:, None] * H + row.clamp(0, H - 1)) * W + col.clamp(0, W - 1)
     vis = inside & (z <= depth.reshape(-1)[pix] + tolerance)
@@ -221,7 +221,7 @@ class VisualHullInitializer:
         generator: torch.Generator,
     ) -> Gaussians:
         occ, lo, voxel = visual_hull(masks, cameras, self.resolution, self.coarse_resolution, self.mask_threshold)
-        surf = _surface(occ)
+        surf = surface_voxels(occ)
         idx = torch.nonzero(surf).to(images.dtype)  # (S, 3) voxel indices
         if idx.shape[0] > self.num_points:
             pick = torch.randperm(idx.shape[0], generator=generator)[: self.num_points].to(idx.device)

@@ -7,7 +7,7 @@ Three variants of the reconstruction (:data:`VARIANTS`, in this order) each run 
   starts the skinning field; Stage II does nothing (``JointConfig.iterations = 0``, no coarse search over E).
   The paper's "Ours (Stage I only)" for the physics (its Gaussians are still fitted, as in every variant).
 * ``stage1_stage2`` — Stage I then the preset's Stage II (the paper's full method).
-* ``stage2_prior`` — Stage II alone from ``ReconstructConfig.prior_E``/``prior_nu`` and a seeded skinning
+* ``stage2_prior`` — Stage II alone from ``ReconstructConfig.prior``'s E and ν and a seeded skinning
   field: the paper's "w/o Stage I".
 
 Each variant's folder is an ordinary ``bench suite`` results folder (``suite.json``, ``suite_config.json``,
@@ -59,7 +59,7 @@ class Variant:
     Attributes:
         name: the variant's folder under OUT and its key in ablation.json.
         label: the paper's name for it.
-        stage1: Stage I runs (``ReconstructConfig.stage1``).
+        stage1: Stage I runs (``ReconstructConfig.stage1.enabled``).
         stage2: Stage II runs with the preset's settings; False: no coarse search, 0 iterations.
     """
 
@@ -70,11 +70,11 @@ class Variant:
 
     def reconstruct_config(self, base: "ReconstructConfig", predictor: str | None) -> "ReconstructConfig":
         """``base`` (not modified) with this variant applied; ``predictor`` (a checkpoint path, None: keep
-        ``base.predictor``) is set in the Stage I variants."""
+        ``base.stage1.predictor``) is set in the Stage I variants."""
         cfg = copy.deepcopy(base)
-        cfg.stage1 = self.stage1
+        cfg.stage1.enabled = self.stage1
         if self.stage1 and predictor is not None:
-            cfg.predictor = predictor
+            cfg.stage1.predictor = predictor
         if not self.stage2:
             cfg.joint = dataclasses.replace(cfg.joint, iterations=0, coarse_log10_E=())
         return cfg
@@ -165,7 +165,7 @@ def variant_configs(config: SuiteConfig | None = None, predictor: str | None = N
     ``config.iterations`` applied, then the variant) and ``config``'s threads and fovvdp. ``iterations`` stays
     ``config.iterations`` in the Stage II variants and is 0 in ``stage1_only``, whose settings therefore do not
     depend on it. ``predictor`` (None: the ReconstructConfig's, by default the shipped checkpoint) goes into
-    the Stage I variants' ``ReconstructConfig.predictor``.
+    the Stage I variants' ``stage1.predictor``.
     """
     config = config or SuiteConfig()
     base = config.reconstruct_config()
@@ -181,11 +181,11 @@ def _check_stage1_possible(config: SuiteConfig, predictor: str | None) -> str:
 
     base = config.reconstruct_config()
     handles = load_template().num_handles
-    if base.handles != handles:
-        raise InputError(f"ReconstructConfig.handles is {base.handles}: Stage I predicts the skinning field of the "
+    if base.networks.handles != handles:
+        raise InputError(f"networks.handles is {base.networks.handles}: Stage I predicts the skinning field of the "
                          f"template's {handles} handles, so it could not run in the Stage I variants; set "
                          f"handles={handles}")
-    path = Path(predictor if predictor is not None else base.predictor or DEFAULT_PREDICTOR).expanduser()
+    path = Path(predictor if predictor is not None else base.stage1.predictor or DEFAULT_PREDICTOR).expanduser()
     if not path.is_file():
         raise InputError(f"predictor: no checkpoint file at {path} (train one with `vid2sim train-predictor`, "
                          "or pass the path of one)")
@@ -257,7 +257,7 @@ def run_ablation(suite_dir: str | Path, out_dir: str | Path, config: SuiteConfig
         out_dir: the results folder (created; resumed when it holds an earlier ablation's variant folders).
         config: the settings shared by the variants (default :class:`SuiteConfig`: the small preset); its
             ReconstructConfig must have the template's 10 handles.
-        predictor: the Stage I checkpoint (None: ``config``'s ReconstructConfig.predictor, by default the one
+        predictor: the Stage I checkpoint (None: ``config``'s ``stage1.predictor``, by default the one
             shipped with vid2sim).
         progress: progress bars, and a line per variant.
         ray_address: run each variant's scenes as Ray tasks (:func:`vid2sim.apps.bench.suite.run_suite`).

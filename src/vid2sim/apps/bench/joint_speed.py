@@ -43,15 +43,11 @@ def run(device: torch.device, quick: bool = False, settings: PhysicsBenchSetting
     """The figures of the module docstring."""
     from dataclasses import replace
 
+    from vid2sim.asset.motion import GaussianRig
     from vid2sim.physics.external import AREA_CONTACT_STIFFNESS, Floor, Gravity
     from vid2sim.physics.neural_jacobian import NeuralJacobian
     from vid2sim.physics.solver import Simulator
-    from vid2sim.reconstruct.stages.joint import (
-        GaussianRig,
-        Observations,
-        _image_loss,
-        render_frames,
-    )
+    from vid2sim.reconstruct.stages.joint import Observations, image_loss, render_states
     from vid2sim.splats.cameras import camera_ring
     from vid2sim.splats.gaussians import Gaussians
 
@@ -75,7 +71,7 @@ def run(device: torch.device, quick: bool = False, settings: PhysicsBenchSetting
     start = sim.rigid_velocity_state([0.1, 0.0, -1.0], [0.0, 1.0, 0.0], [0.0, 0.0, 0.0])
     with torch.no_grad():
         states = [start] + sim.rollout(start, 9)
-        target = render_frames(rig, states, Observations(torch.zeros(4, 10, 128, 128, 3), cams),
+        target = render_states(rig, states, Observations(torch.zeros(4, 10, 128, 128, 3), cams),
                                range(4)).transpose(0, 1)  # (V, T, H, W, 3)
     full = Observations(target, cams)
     half = full.at_scale(0.5)
@@ -88,8 +84,8 @@ def run(device: torch.device, quick: bool = False, settings: PhysicsBenchSetting
         sim.log10_E.requires_grad_(True)
         sim.nu.requires_grad_(True)
         out = sim.rollout(window_start, 4)
-        renders = render_frames(rig, out, obs, range(4), basis)
-        loss = _image_loss(renders, obs.images[:, 6:10].transpose(0, 1))
+        renders = render_states(rig, out, obs, range(4), basis)
+        loss = image_loss(renders, obs.images[:, 6:10].transpose(0, 1))
         loss.backward()
         sim.log10_E.grad = sim.nu.grad = None
         sim.log10_E.requires_grad_(False)

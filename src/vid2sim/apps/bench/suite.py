@@ -97,8 +97,12 @@ class SuiteConfig:
 
     @property
     def preset_name(self) -> str:
-        """The preset as suite.json names it: the preset, or "custom" for an explicit ReconstructConfig."""
-        return "custom" if self.reconstruct is not None else self.preset
+        """The preset as suite.json names it: the preset, or "custom" for a ReconstructConfig other than the
+        preset's."""
+        from vid2sim.reconstruct.pipeline import ReconstructConfig
+
+        differs = self.reconstruct is not None and self.reconstruct != ReconstructConfig.preset(self.preset)
+        return "custom" if differs else self.preset
 
     def reconstruct_config(self) -> "ReconstructConfig":
         """The ReconstructConfig every scene uses (a fresh copy)."""
@@ -137,9 +141,9 @@ def run_scene(task: SceneTask, progress: bool = False) -> dict[str, Any]:
     """
     import torch
 
-    from vid2sim.evaluate.scores import evaluate, write_report
+    from vid2sim.evaluate.scores import evaluate, write_evaluation
     from vid2sim.reconstruct.pipeline import reconstruct
-    from vid2sim.report import write_report as write_html_report
+    from vid2sim.report import write_report
 
     out = Path(task.out)
     asset = out / "asset"
@@ -165,9 +169,9 @@ def run_scene(task: SceneTask, progress: bool = False) -> dict[str, Any]:
         seconds = earlier + (t2 - start)
         write_json_atomic(out / RUN_JSON, {"seconds": seconds, "reconstruct_seconds": earlier + (t1 - t0),
                                             "evaluate_seconds": t2 - t1})
-        write_html_report(out / REPORT_DIR, asset, scene=task.scene, evaluation=report, renders=renders,
+        write_report(out / REPORT_DIR, asset, scene=task.scene, evaluation=report, renders=renders,
                           progress=progress)
-        write_report(report, out / EVALUATION_JSON)  # last: its presence marks the scene finished
+        write_evaluation(report, out / EVALUATION_JSON)  # last: its presence marks the scene finished
         (out / ERROR_TXT).unlink(missing_ok=True)
         record.update(status="ok", evaluation=report, seconds=seconds, report=str(out / REPORT_DIR))
     except Exception as exc:

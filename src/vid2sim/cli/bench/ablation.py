@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import os
 import sys
-from pathlib import Path
 
 from vid2sim.apps.bench.ablation import (
     ABLATION_JSON,
@@ -17,22 +16,17 @@ from vid2sim.cli.common import (
     UserError,
     add_suite_run_options,
 )
+from vid2sim.cli.reconstruct_options import add_reconstruct_options, reconstruct_config
 from vid2sim.runtime.ray_runner import RayUnavailable
 
 
 def run(args: argparse.Namespace) -> int:
 
-
-    if args.iterations is not None and args.iterations < 0:
-        raise UserError(f"--iterations must be >= 0, got {args.iterations}")
     if args.threads is not None and args.threads < 1:
         raise UserError(f"--threads must be >= 1, got {args.threads}")
-    if args.predictor is not None and not Path(args.predictor).is_file():
-        raise UserError(f"--predictor {args.predictor}: no such checkpoint file (train one with "
-                        "`vid2sim train-predictor`)")
-    config = SuiteConfig(preset=args.preset, iterations=args.iterations, threads=args.threads)
+    config = SuiteConfig(preset=args.preset, reconstruct=reconstruct_config(args), threads=args.threads)
     try:
-        result = run_ablation(args.suite, args.out, config, predictor=args.predictor, progress=not args.quiet,
+        result = run_ablation(args.suite, args.out, config, progress=not args.quiet,
                               ray_address=args.ray_address)
     except RayUnavailable as exc:
         raise UserError(str(exc)) from exc
@@ -58,12 +52,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     babl.add_argument("suite", help="benchmark folder written by make-benchmark (index.json + scenes)")
     babl.add_argument("out", help="results folder: one bench-suite folder per variant (stage1_only, stage1_stage2, "
                       "stage2_prior) and ablation.json (resumed if it holds them)")
-    babl.add_argument("--preset", choices=["small", "full"], default="small",
-                      help="reconstruct preset: small (CPU minutes per scene) or full; default small")
-    babl.add_argument("--iterations", type=int, default=None,
-                      help="joint-optimisation iterations of the Stage II variants (default: the preset's)")
-    babl.add_argument("--predictor", metavar="PATH", default=None,
-                      help="Stage I checkpoint (default: the one shipped with vid2sim; vid2sim train-predictor)")
+    add_reconstruct_options(babl)
     add_suite_run_options(babl)
     babl.set_defaults(func=run)
 

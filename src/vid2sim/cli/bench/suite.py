@@ -11,16 +11,14 @@ from vid2sim.cli.common import (
     UserError,
     add_suite_run_options,
 )
+from vid2sim.cli.reconstruct_options import add_reconstruct_options, reconstruct_config
 from vid2sim.runtime.ray_runner import RayUnavailable
 
 
 def run(args: argparse.Namespace) -> int:
-
-    if args.iterations is not None and args.iterations < 0:
-        raise UserError(f"--iterations must be >= 0, got {args.iterations}")
     if args.threads is not None and args.threads < 1:
         raise UserError(f"--threads must be >= 1, got {args.threads}")
-    config = SuiteConfig(preset=args.preset, iterations=args.iterations, threads=args.threads)
+    config = SuiteConfig(preset=args.preset, reconstruct=reconstruct_config(args), threads=args.threads)
     try:
         result = run_suite(args.suite, args.out, config, progress=not args.quiet, ray_address=args.ray_address)
     except RayUnavailable as exc:
@@ -44,9 +42,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     bsuite.add_argument("suite", help="benchmark folder written by make-benchmark (index.json + scenes)")
     bsuite.add_argument("out", help="results folder: NAME/asset, NAME/evaluation.json per scene, suite.json "
                         "(resumed if it holds a suite_config.json)")
-    bsuite.add_argument("--preset", choices=["small", "full"], default="small",
-                        help="reconstruct preset: small (CPU minutes per scene) or full; default small")
-    bsuite.add_argument("--iterations", type=int, default=None,
-                        help="joint-optimisation iterations (default: the preset's)")
+    add_reconstruct_options(bsuite)
     add_suite_run_options(bsuite)
     bsuite.set_defaults(func=run)

@@ -19,7 +19,6 @@ tets on a mesh of the same solid. A reconstruction has no such mesh; it has inte
 from __future__ import annotations
 
 import json
-import math
 import time
 from pathlib import Path
 
@@ -27,47 +26,22 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from vid2sim.meshing.tetra import largest_connected_part, tet_volumes, tetrahedralize
+from vid2sim.physics.modes import (
+    CURVE_NUS,
+    TWO_FACTOR_MODES,
+    stiffness_calibration_curve,
+    subspace_frequencies,
+)
+from vid2sim.physics.tet_modes import tet_frequency_curve
+from vid2sim.reconstruct.config import CalibrationConfig
+from vid2sim.reconstruct.runner import Context, State
+from vid2sim.reconstruct.silhouettes import solid_surface
+from vid2sim.reconstruct.stages.points import ObjectPoints, sample_in_voxels
+from vid2sim.reconstruct.stages.stage1 import prior_material
+from vid2sim.runtime.files import read_json, write_json_atomic
 
-def solid_surface(points: np.ndarray, cells: int = 64, rng: np.random.Generator | None = None,
-                  max_points: int = 50000) -> tuple[np.ndarray, np.ndarray] | None:
-    """A closed, outward-oriented triangle surface of the solid that ``points`` (N, 3) fill uniformly.
-
-    ``rng`` draws the ``max_points`` used when there are more (default: seed 0).
-
-    Returns:
-        vertices (Nv, 3) float64 and faces (Nf, 3) int64, or None when no surface is found (too few points).
-    """
-    from scipy.ndimage import gaussian_filter, map_coordinates
-    from scipy.spatial import cKDTree
-    from skimage.measure import marching_cubes
-
-    rng = rng if rng is not None else np.random.default_rng(0)
-    Q = points if len(points) <= max_points else points[rng.choice(len(points), max_points, replace=False)]
-    if len(Q) < 8:
-        return None
-    spacing = float(cKDTree(Q).query(Q, k=2)[0][:, 1].mean())
-    lo, hi = Q.min(0), Q.max(0)
-    h = max(spacing, float((hi - lo).max()) / cells, 1e-9)
-    sigma = 1.5
-    pad = math.ceil(4 * sigma) + 2
-    lo = lo - pad * h
-    shape = np.ceil((hi + pad * h - lo) / h).astype(np.int64)
-    counts = np.histogramdd(Q, bins=tuple(shape), range=[(lo[i], lo[i] + shape[i] * h) for i in range(3)])[0]
-    density = gaussian_filter(counts, sigma)
-    level = 0.5 * float(np.median(map_coordinates(density, ((Q - lo) / h - 0.5).T, order=1)))
-    if not 0 < level < float(density.max()):
-        return None
-    try:
-        verts, faces = marching_cubes(density, level=level)[:2]
-    except (ValueError, RuntimeError):
-        return None
-    if len(verts) < 4:
-        return None
-    verts, faces = lo + (verts + 0.5) * h, faces.astype(np.int64)
-    a, b, c = verts[faces[:, 0]], verts[faces[:, 1]], verts[faces[:, 2]]
-    if np.einsum("ij,ij->", a, np.cross(b, c)) < 0:  # 6 × the signed volume: orient the normals outward
-        faces = faces[:, ::-1].copy()
-    return verts, faces
+RESULT, REFERENCE = "stiffness.json", "stiffness_reference.json"
 
 
 def tet_reference(points: np.ndarray, nus: tuple[float, ...], k: int, edge_length: float = 0.08,
@@ -87,19 +61,13 @@ def tet_reference(points: np.ndarray, nus: tuple[float, ...], k: int, edge_lengt
     Raises:
         ValueError: no closed surface could be made from the points.
     """
-    from vid2sim.meshing.tetra import (
-        largest_connected_part,
-        tet_volumes,
-        tetrahedralize,
-    )
-    from vid2sim.physics.tet_modes import tet_frequency_curve
 
     t0 = time.perf_counter()
     P = np.asarray(points, dtype=np.float64)
     surface = solid_surface(P, cells=cells, rng=np.random.default_rng(seed))
     if surface is None:
         raise ValueError(f"no closed surface could be made from the {len(P)} interior points for the stiffness "
-                         "calibration; set ReconstructConfig.calibrate_stiffness=False")
+                         "calibration; switch it off with --no-calibrate-stiffness (calibration.enabled false)")
     mesh = tetrahedralize(surface[0], surface[1], edge_length_fac=edge_length, epsilon=5e-3, name="reconstructed solid")
     # the level set also wraps small blobs of stray samples; as separate pieces (or pieces hinged on a vertex)
     # they would add rigid motions that the eigensolve reports as the lowest "elastic" frequencies
@@ -176,7 +144,7 @@ class TetReferenceJob:
                 f"wrote no result to {self.path}. It is a spawned process: if the reconstruction was started from a "
                 "script, the script's top-level code must be under 'if __name__ == \"__main__\":' (the child imports "
                 "the main module again); otherwise see the child's error above, or set "
-                "ReconstructConfig.calibrate_stiffness=False")
+                "--no-calibrate-stiffness (calibration.enabled false)")
         self.path.with_suffix(".points.npy").unlink(missing_ok=True)
         out = json.loads(self.path.read_text())
         if not out["ok"]:
@@ -214,11 +182,6 @@ def calibrate_stiffness(field, cubature: Tensor, weights: Tensor, points: Tensor
     Raises:
         ValueError: no closed surface could be made from the points, or ``reference`` is for another grid.
     """
-    from vid2sim.physics.modes import (
-        TWO_FACTOR_MODES,
-        stiffness_calibration_curve,
-        subspace_frequencies,
-    )
 
     t0 = time.perf_counter()
     grid = tuple(float(v) for v in nus) if nus is not None else (float(poisson_ratio),)
@@ -250,3 +213,89 @@ def calibrate_stiffness(field, cubature: Tensor, weights: Tensor, points: Tensor
             "points_volume_ratio": volume / float(weights.sum()), "volumetric": volumetric,
             "mass": "cubature" if mass_volumes is None else "moments",
             "seconds": reference["seconds"] + time.perf_counter() - t0}
+
+
+# ---- the stage -------------------------------------------------------------------------------------------------
+
+
+def calibration_points(obj: ObjectPoints, config: CalibrationConfig, seed: int) -> Tensor:
+    """(N, 3) samples of the kept voxels of ``obj`` that the calibration's reference mesh is made from."""
+    return sample_in_voxels(obj.occupancy, obj.origin.double(), obj.voxel, config.points,
+                            torch.Generator().manual_seed(seed))
+
+
+def stored_reference(path: Path, nus: tuple[float, ...], k: int) -> dict | None:
+    """The tet reference a finished :class:`TetReferenceJob` left at ``path`` for this grid and k, or None."""
+    if not path.is_file():
+        return None
+    try:
+        stored = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError):
+        return None
+    reference = stored.get("reference") if isinstance(stored, dict) and stored.get("ok") else None
+    if not isinstance(reference, dict) or reference.get("nus") != [float(v) for v in nus] or reference.get("k") != k:
+        return None
+    return reference
+
+
+class CalibrationStage:
+    """Calibrates the subspace's stiffness (``config.calibration``); writes ``stiffness.json``.
+
+    With a curve over ν (``calibration.nu`` "two_factor" or "curve"), the tet reference needs only the interior
+    points: it starts in a child process as soon as the ``points`` stage is loaded (:meth:`start`), runs beside the
+    velocity, appearance, Stage I and network stages, and is joined here.
+    """
+
+    name = "calibration"
+    sections = ("calibration", "simulator", "prior.nu")
+
+    def __init__(self) -> None:
+        self.job: TetReferenceJob | None = None
+
+    def _grid(self, ctx: Context) -> tuple[bool, int]:
+        """(whether a curve over ν is wanted, the number of modes its reference needs)."""
+        nu = ctx.config.calibration.nu
+        return nu != "prior", TWO_FACTOR_MODES if nu == "two_factor" else 1
+
+    def ready(self, state: State) -> bool:
+        """Whether :meth:`start` can run (the object's points are loaded)."""
+        return state.obj_cpu is not None
+
+    def start(self, ctx: Context, state: State) -> None:
+        """Start the tet reference in a child process, unless it is not needed or already stored."""
+        curve, k = self._grid(ctx)
+        cfg = ctx.config
+        if not (cfg.calibration.enabled and curve) or stored_reference(ctx.path(REFERENCE), CURVE_NUS, k) is not None:
+            return
+        self.job = TetReferenceJob(calibration_points(state.obj_cpu, cfg.calibration, cfg.seed).numpy(),
+                                   ctx.path(REFERENCE), nus=CURVE_NUS, k=k, cells=cfg.calibration.cells, seed=cfg.seed)
+        ctx.jobs.append(self.job)
+
+    def title(self, ctx: Context, state: State) -> str | None:
+        if not ctx.config.calibration.enabled:
+            return None
+        return "calibrating the subspace's stiffness against quadratic tets"
+
+    def run(self, ctx: Context, state: State) -> None:
+        cfg, obj, cub = ctx.config, state.obj, state.cubature
+        curve, k = self._grid(ctx)
+        if curve:
+            reference = self.job.result() if self.job is not None else stored_reference(ctx.path(REFERENCE),
+                                                                                          CURVE_NUS, k)
+            dense = None
+        else:  # one factor at the prior's ν (Stage I may have set it): computed here
+            reference, dense = None, calibration_points(state.obj_cpu, cfg.calibration, cfg.seed)
+        _, prior_nu = prior_material(cfg, state.stage1)
+        record = calibrate_stiffness(state.skinning, obj.points[cub.index], cub.weights, dense, prior_nu,
+                                     cells=cfg.calibration.cells, seed=cfg.seed, nus=CURVE_NUS if curve else None,
+                                     factors=2 if cfg.calibration.nu == "two_factor" else 1, reference=reference,
+                                     volumetric=cfg.simulator.volumetric, mass_volumes=cub.mass_volumes)
+        write_json_atomic(ctx.path(RESULT), record)
+
+    def load(self, ctx: Context, state: State) -> None:
+        if self.job is not None:
+            ctx.jobs.remove(self.job)
+            self.job = None
+        state.calibration = (read_json(ctx.path(RESULT), "the stiffness calibration") if ctx.config.calibration.enabled
+                             else {"stiffness_scale": 1.0, "stiffness_curve": None})
+        state.log["stiffness_calibration"] = state.calibration

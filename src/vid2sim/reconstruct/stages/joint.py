@@ -27,94 +27,26 @@ from __future__ import annotations
 import copy
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import Any, Callable, Sequence
 
 import torch
 from torch import Tensor
 
-from vid2sim.physics.solver import SimState, Simulator
-from vid2sim.runtime.errors import ConfigError
+from vid2sim.asset.folder import Asset
+from vid2sim.asset.motion import GaussianRig
+from vid2sim.physics.external import AREA_CONTACT_STIFFNESS, Floor, Gravity
+from vid2sim.physics.mass import centre_shifted_volumes
+from vid2sim.physics.solver import Material, SimState, Simulator
+from vid2sim.physics.stiffness_curve import StiffnessCurve
+from vid2sim.reconstruct.config import JointConfig
+from vid2sim.reconstruct.runner import Context, State
+from vid2sim.reconstruct.stages.networks import cpu_state
+from vid2sim.reconstruct.stages.stage1 import prior_material
+from vid2sim.runtime.files import read_json, save_torch_atomic, write_json_atomic
 from vid2sim.splats.cameras import Camera
 from vid2sim.splats.gaussians import Gaussians
-
-
-@dataclass
-class JointConfig:
-    """Settings of :func:`joint_optimisation` (defaults: the paper's, plus the CPU measures above).
-
-    Attributes:
-        iterations: Adam iterations.
-        window: frames per window (Δs).
-        lr_log10_E, lr_nu, lr_skinning, lr_jacobian: the paper's learning rates.
-        lr_velocity: learning rate of the initial linear (m/s) and angular (rad/s) velocity.
-        fit_damping: also fit the damping ratio (learning rate ``lr_damping``); otherwise it stays at its prior.
-        coarse_log10_E: grid of the coarse search (empty: skip it).
-        coarse_scale: image scale of the coarse search and the first ``coarse_fraction`` of the iterations.
-        coarse_fraction: fraction of the iterations rendered at ``coarse_scale`` (then full resolution).
-        views_per_iteration: views rendered per iteration (None: all observed views).
-        refresh_every: iterations between the whole rollouts that provide the windows' start states.
-        validate_every: iterations between validations on all observed frames and views.
-        nu_bounds: ν is kept in this interval.
-        centre_of_mass_step: the first step of a search over the centre of mass after the coarse search, as a
-            fraction of the simulator's length scale (the object's diagonal); 0 (the default): no search. See
-            :func:`centre_of_mass_search`.
-        centre_of_mass_rounds: rounds of that search, each with half the step of the one before.
-        frame_decay: weights exp(−(t − 1)/τ) on the frames t = 1 … T−1 of the coarse search's and the
-            validation's whole-clip losses, τ = ``frame_decay`` frames (default 4, beyond the paper); None:
-            equal weights (the paper's mean over the clip). See :func:`clip_loss`. On the quadratic-tet
-            small suite (8 scenes) τ = 4 gave |Δlog10 E| 0.30 against 0.37 with equal weights.
-        seed: seeds the windows and view subsets.
-    """
-
-    iterations: int = 400
-    window: int = 4
-    lr_log10_E: float = 5e-3
-    lr_nu: float = 1e-3
-    lr_skinning: float = 5e-7
-    lr_jacobian: float = 5e-7
-    lr_velocity: float = 5e-3
-    fit_damping: bool = False
-    lr_damping: float = 1e-3
-    coarse_log10_E: tuple[float, ...] = (4.0, 4.25, 4.5, 4.75, 5.0, 5.25, 5.5, 5.75, 6.0)
-    coarse_scale: float = 0.5
-    coarse_fraction: float = 0.5
-    views_per_iteration: int | None = None
-    refresh_every: int = 10
-    validate_every: int = 50
-    nu_bounds: tuple[float, float] = (0.0, 0.49)
-    frame_decay: float | None = 4.0
-    centre_of_mass_step: float = 0.0
-    centre_of_mass_rounds: int = 2
-    seed: int = 0
-
-    def __post_init__(self) -> None:
-        if self.iterations < 0:
-            raise ConfigError(f"JointConfig.iterations must be >= 0, got {self.iterations}")
-        if self.window < 1:
-            raise ConfigError(f"JointConfig.window must be >= 1, got {self.window}")
-        if not 0 < self.coarse_scale <= 1:
-            raise ConfigError(f"JointConfig.coarse_scale must be in (0, 1], got {self.coarse_scale}")
-        if not 0 <= self.coarse_fraction <= 1:
-            raise ConfigError(f"JointConfig.coarse_fraction must be in [0, 1], got {self.coarse_fraction}")
-        if self.views_per_iteration is not None and self.views_per_iteration < 1:
-            raise ConfigError(f"JointConfig.views_per_iteration must be >= 1 or None, got {self.views_per_iteration}")
-        if self.refresh_every < 1 or self.validate_every < 1:
-            raise ConfigError("JointConfig.refresh_every and validate_every must be >= 1")
-        if self.frame_decay is not None and (isinstance(self.frame_decay, bool)
-                                             or not isinstance(self.frame_decay, (int, float))
-                                             or not 0 < float(self.frame_decay) < math.inf):
-            raise ConfigError(f"JointConfig.frame_decay must be a finite number > 0 or None, got {self.frame_decay!r}")
-        if isinstance(self.centre_of_mass_step, bool) or not isinstance(self.centre_of_mass_step, (int, float)) \
-                or not 0 <= float(self.centre_of_mass_step) < 0.5:
-            raise ConfigError("JointConfig.centre_of_mass_step must be a fraction of the object's size in [0, 0.5), "
-                             f"got {self.centre_of_mass_step!r}")
-        if self.centre_of_mass_rounds < 1:
-            raise ConfigError(f"JointConfig.centre_of_mass_rounds must be >= 1, got {self.centre_of_mass_rounds}")
-        lo, hi = self.nu_bounds
-        if not 0 <= lo < hi < 0.5:
-            raise ConfigError(f"JointConfig.nu_bounds must satisfy 0 <= lo < hi < 0.5, got {self.nu_bounds}")
-        self.coarse_log10_E = tuple(sorted(float(v) for v in self.coarse_log10_E))  # the parabola needs order
+from vid2sim.splats.render import render
 
 
 @dataclass
@@ -173,48 +105,6 @@ class JointResult:
     seconds: float = 0.0
 
 
-class GaussianRig:
-    """Moves the frame-0 Gaussians with the simulator's state.
-
-    Args:
-        sim: the simulator (its field, and Neural Jacobian when ``sim.use_neural_jacobian``).
-        gaussians: the Gaussians fitted to frame 0 (world frame = the rest configuration).
-        shading: a :class:`~vid2sim.splats.shading.Shading` for the Gaussians (their colours are then albedos,
-            lit per frame by its world-fixed light), or None (colours as stored).
-    """
-
-    def __init__(self, sim: Simulator, gaussians: Gaussians, shading: Any | None = None) -> None:
-        self.sim = sim
-        self.gaussians = gaussians
-        self.shading = shading
-        self.X = gaussians.means.detach().to(sim.X.dtype)
-
-    def basis(self) -> tuple[Tensor, Tensor | None, Tensor | None]:
-        """(w (N, H), gradient basis G (N, 3, 4H) or None, Neural Jacobian dF/dz (N, 9, 12H) or None) at the
-        Gaussian centres, differentiable w.r.t. the networks."""
-        from vid2sim.physics.skinning import gradient_basis
-
-        if self.sim.use_neural_jacobian:
-            return self.sim.field(self.X), None, self.sim.jacobian(self.X)
-        w, dw = self.sim.field.weights_and_gradients(self.X)
-        return w, gradient_basis(self.X, w, dw), None
-
-    def deformed(self, z: Tensor, basis: tuple[Tensor, Tensor | None, Tensor | None]):
-        """:class:`~vid2sim.splats.deform.DeformedGaussians` for the state z: (12H,)."""
-        from vid2sim.physics.skinning import deform, deformation_gradient
-        from vid2sim.splats.deform import deform_gaussians
-
-        w, G, J = basis
-        x = deform(self.X, w, z)
-        if J is None:
-            F = deformation_gradient(G, z)
-        else:
-            F = torch.eye(3, dtype=z.dtype, device=z.device) + (J @ z).reshape(-1, 3, 3)
-        g = self.gaussians
-        return deform_gaussians(g, x.to(g.means.dtype), F.to(g.means.dtype), self.shading)
-
-
-
 def coarse_minimum(values: Sequence[float], losses: Sequence[float]) -> float:
     """The minimum of a loss sampled on an ascending grid: the vertex of the parabola through the best sample
     and its two neighbours (kept between them), or the best sample itself at an end of the grid or where the
@@ -236,14 +126,13 @@ def _detached(state: SimState) -> SimState:
                     zdot_prev=d(state.zdot_prev), h_prev=state.h_prev)
 
 
-def render_frames(rig: GaussianRig, states: Sequence[SimState], obs: Observations, views: Sequence[int],
+def render_states(rig: GaussianRig, states: Sequence[SimState], obs: Observations, views: Sequence[int],
                   basis: tuple[Tensor, Tensor] | None = None) -> Tensor:
     """(len(states), len(views), H, W, 3) renders of the states in the given views of ``obs``.
 
     All frames go to the renderer in one call (per-view Gaussians: frame t's Gaussians for frame t's
     cameras), which composites them together; with gsplat that is one batched launch. On the CPU it saves
     6 % at the small preset's 4 frames × 4 views (forward + backward 390 → 368 ms, 1 thread)."""
-    from vid2sim.splats.render import render
 
     basis = rig.basis() if basis is None else basis
     cams = [obs.cameras[v] for v in views]
@@ -260,7 +149,8 @@ def render_frames(rig: GaussianRig, states: Sequence[SimState], obs: Observation
     return out.reshape(len(frames), nv, *out.shape[1:])
 
 
-def _image_loss(renders: Tensor, targets: Tensor) -> Tensor:
+def image_loss(renders: Tensor, targets: Tensor) -> Tensor:
+    """The mean squared image error (the paper's loss), a scalar."""
     return ((renders - targets) ** 2).mean()
 
 
@@ -290,8 +180,8 @@ def clip_loss(sim: Simulator, rig: GaussianRig, start: SimState, obs: Observatio
         basis = rig.basis()
         total = 0.0
         for t in range(1, T):
-            r = render_frames(rig, [states[t]], obs, range(len(obs.cameras)), basis)[0]
-            total += weights[t - 1] * float(_image_loss(r, obs.images[:, t].to(r)))
+            r = render_states(rig, [states[t]], obs, range(len(obs.cameras)), basis)[0]
+            total += weights[t - 1] * float(image_loss(r, obs.images[:, t].to(r)))
     return total, states
 
 
@@ -318,7 +208,6 @@ def centre_of_mass_search(sim: Simulator, rig: GaussianRig, start: Callable[[], 
     """
     from tqdm.auto import tqdm
 
-    from vid2sim.physics.mass import centre_shifted_volumes
 
     base = sim.mass_volumes
     tried: dict[tuple[float, float, float], float] = {}
@@ -495,9 +384,9 @@ def joint_optimisation(
             start = initial_state() if s == 0 else _detached(states[s])
             opt.zero_grad(set_to_none=True)
             window_states = sim.rollout(start, cfg.window)
-            renders = render_frames(rig, window_states, obs, views, fixed_basis)
+            renders = render_states(rig, window_states, obs, views, fixed_basis)
             target = obs.images[views][:, s + 1: s + 1 + cfg.window].transpose(0, 1).to(renders)
-            loss = _image_loss(renders, target)
+            loss = image_loss(renders, target)
             loss.backward()
             opt.step()
             with torch.no_grad():
@@ -534,3 +423,104 @@ def joint_optimisation(
                        linear_velocity=best["v"].tolist(), angular_velocity=best["w"].tolist(),
                        validation_loss=best_loss, coarse=coarse, centre_of_mass_offset=com_offset,
                        centre_of_mass_search=com_records, log=log, seconds=time.perf_counter() - t_start)
+
+
+# ---- the stage -------------------------------------------------------------------------------------------------
+
+
+def scene_density(ctx: Context) -> float:
+    """kg/m³: the scene's ``metadata.density`` when it gives a number, else ``prior.density``."""
+    value = ctx.scene.config.metadata.get("density")
+    return float(value) if isinstance(value, (int, float)) and not isinstance(value, bool) else ctx.config.prior.density
+
+
+def stiffness_of(calibration: dict[str, Any]) -> float | StiffnessCurve:
+    """The simulator's stiffness scale from the calibration record: a curve over ν, or one factor."""
+    curve = calibration.get("stiffness_curve")
+    return StiffnessCurve.from_dict(curve) if curve else calibration["stiffness_scale"]
+
+
+def build_simulator(ctx: Context, state: State, mass_volumes: Tensor | None) -> Simulator:
+    """The reduced simulator at the prior material (Stage I's when it ran), on the run's device."""
+    cfg, obj, cub, o = ctx.config, state.obj, state.cubature, ctx.observed
+    externals = [Gravity(list(o.gravity))]
+    if o.floor_height is not None:
+        externals.append(Floor(height=o.floor_height, stiffness=AREA_CONTACT_STIFFNESS))
+    E, nu = prior_material(cfg, state.stage1)
+    return Simulator(state.skinning, obj.points[cub.index], cub.weights,
+                     Material(E, nu, scene_density(ctx), damping_ratio=cfg.prior.damping), externals,
+                     cfg.simulator.integration, jacobian=state.jacobian,
+                     use_neural_jacobian=state.jacobian is not None, length_scale=obj.scale,
+                     contact_points=obj.contact_points, contact_weights=obj.contact_areas,
+                     stiffness_scale=stiffness_of(state.calibration), volumetric=cfg.simulator.volumetric,
+                     mass_volumes=mass_volumes)
+
+
+class JointStage:
+    """The joint optimisation (``config.joint``) from the prior material; writes ``joint.json`` and the networks
+    as it left them. Loading it assembles the asset (:class:`~vid2sim.asset.Asset`) in ``state.asset``."""
+
+    name = "joint"
+    sections = ("joint", "simulator", "prior")
+
+    def title(self, ctx: Context, state: State) -> str:
+        return "joint optimisation of the material, initial velocity and networks"
+
+    def run(self, ctx: Context, state: State) -> None:
+        cfg, o, v = ctx.config, ctx.observed, state.velocity
+        joint_cfg = cfg.joint
+        if state.stage1["ran"]:  # the coarse grid centred on Stage I's E
+            joint_cfg = replace(cfg.joint, coarse_log10_E=tuple(state.stage1["coarse_log10_E"]))
+        sim = build_simulator(ctx, state, state.cubature.mass_volumes)
+        result = joint_optimisation(sim, state.gaussians, Observations(o.images, o.cameras), v["linear"],
+                                    v["angular"], v["centre"], joint_cfg, progress=ctx.progress)
+        save_torch_atomic(cpu_state(state.skinning), ctx.path("skinning_joint.pt"))
+        if state.jacobian is not None:
+            save_torch_atomic(cpu_state(state.jacobian), ctx.path("jacobian_joint.pt"))
+        write_json_atomic(ctx.path("joint.json"), asdict(result))
+
+    def load(self, ctx: Context, state: State) -> None:
+        result = state.joint = read_json(ctx.path("joint.json"), "the joint optimisation's result")
+        state.skinning.load_state_dict(torch.load(ctx.path("skinning_joint.pt"), weights_only=True))
+        if state.jacobian is not None:
+            state.jacobian.load_state_dict(torch.load(ctx.path("jacobian_joint.pt"), weights_only=True))
+        state.log.update(coarse_search=result["coarse"], centre_of_mass_search=result.get("centre_of_mass_search", []),
+                         iterations=result["log"])
+        state.asset = assemble_asset(ctx, state)
+
+
+def assemble_asset(ctx: Context, state: State) -> Asset:
+    """The asset of the joint stage's result (on the CPU); the centre-of-mass search's offset, if any, moves the
+    lumped masses."""
+    cfg, obj, obj_cpu, cub, result, o = ctx.config, state.obj, state.obj_cpu, state.cubature, state.joint, ctx.observed
+    mass_volumes = cub.mass_volumes
+    offset = torch.tensor(result.get("centre_of_mass_offset", [0.0, 0.0, 0.0]), dtype=torch.float64)
+    if bool(offset.ne(0).any()):  # the joint stage's search moved the centre of mass: the same masses again
+        mass_volumes = centre_shifted_volumes(obj.points[cub.index],
+                                              cub.weights if mass_volumes is None else mass_volumes,
+                                              offset).to(cub.weights)
+    stiffness = stiffness_of(state.calibration)
+    material = {"model": "neo-hookean", "E": float(10.0 ** result["log10_E"]), "log10_E": result["log10_E"],
+                "nu": result["nu"], "density": scene_density(ctx), "damping_ratio": result["damping_ratio"],
+                "stiffness_scale": stiffness.at(result["nu"]) if isinstance(stiffness, StiffnessCurve) else stiffness,
+                "volumetric": cfg.simulator.volumetric}
+    if isinstance(stiffness, StiffnessCurve):
+        material["stiffness_curve"] = stiffness.to_dict()
+    index = cub.index.cpu()
+    return Asset(gaussians=state.gaussians.to("cpu"), field=copy.deepcopy(state.skinning).to("cpu"),
+                 jacobian=copy.deepcopy(state.jacobian).to("cpu") if state.jacobian is not None else None,
+                 material=material, cubature_points=obj_cpu.points[index], cubature_weights=cub.weights.cpu(),
+                 contact_points=obj_cpu.contact_points, contact_areas=obj_cpu.contact_areas, points=obj_cpu.points,
+                 volume=obj.volume, sim_config=cfg.simulator.integration,
+                 mass_volumes=None if mass_volumes is None else mass_volumes.detach().cpu(),
+                 gravity=list(o.gravity), floor_height=o.floor_height, floor_stiffness=AREA_CONTACT_STIFFNESS,
+                 length_scale=obj.scale,
+                 initial_velocity={"linear": result["linear_velocity"], "angular": result["angular_velocity"],
+                                   "centre": state.velocity["centre"]},
+                 dt=o.dt,
+                 extra={"canonical_frame": {"centre": obj_cpu.centre.tolist(), "scale": obj.scale,
+                                            "maps": "X -> (X - centre) / scale"},
+                        "scene": str(ctx.scene.root), "observed_views": list(o.views), "observed_frames": o.frames,
+                        "scene_frames": int(ctx.scene.images.shape[1]), "volume_m3": obj.volume,
+                        "gaussians": state.gaussians.num, "initial_velocity_estimate": state.velocity,
+                        "validation_loss": result["validation_loss"], "centre_of_mass_offset": offset.tolist()})

@@ -28,7 +28,17 @@ from typing import Any, Sequence
 import torch
 from torch import Tensor
 
+from vid2sim.physics.skinning import deform, deformation_gradient, gradient_basis
+from vid2sim.reconstruct.runner import Context, State
+from vid2sim.runtime.files import read_json, save_torch_atomic, write_json_atomic
+from vid2sim.splats.deform import deform_gaussians
+from vid2sim.splats.fitting import scene_extent
+from vid2sim.splats.losses import photometric_loss
+from vid2sim.splats.ply import load_ply, save_ply
+from vid2sim.splats.render import render_gaussians
 from vid2sim.splats.shading import Shading, outward_normals
+
+PLY, SHADING, RECORD = "gaussians_motion.ply", "shading_motion.pt", "motion_appearance.json"
 
 SHADING_LR = 0.01
 """Adam learning rate of the shading's normals (unit vectors)."""
@@ -88,12 +98,6 @@ class SkinnedMotion:
         covariance through the change of F along the move (a second-order effect that would cost a
         differentiation through the field's own gradient at every step).
         """
-        from vid2sim.physics.skinning import (
-            deform,
-            deformation_gradient,
-            gradient_basis,
-        )
-        from vid2sim.splats.deform import deform_gaussians
 
         if not 0 <= t < self.num_frames:
             raise ValueError(f"SkinnedMotion.carry: frame {t} asked, the motion has {self.num_frames} frames")
@@ -168,9 +172,6 @@ def refine_on_motion(gaussians: Any, motion: SkinnedMotion, images: Tensor, came
     """
     from tqdm.auto import tqdm
 
-    from vid2sim.splats.fitting import scene_extent
-    from vid2sim.splats.losses import photometric_loss
-    from vid2sim.splats.render import render_gaussians
 
     if iterations < 1:
         raise ValueError(f"refine_on_motion: iterations must be >= 1, got {iterations}")
@@ -230,3 +231,46 @@ def refine_on_motion(gaussians: Any, motion: SkinnedMotion, images: Tensor, came
     if lit is not None:
         record["shading"] = lit.to_record()
     return refined, lit, record
+
+
+# ---- the stage -------------------------------------------------------------------------------------------------
+
+
+class MotionAppearanceStage:
+    """Refits the asset's Gaussians through its simulated motion (``config.motion_appearance``; skipped at 0
+    iterations); writes ``gaussians_motion.ply``, ``shading_motion.pt`` and ``motion_appearance.json``, and
+    loading it puts them into ``state.asset``."""
+
+    name = "motion_appearance"
+    sections = ("motion_appearance", "gaussians")
+
+    def title(self, ctx: Context, state: State) -> str | None:
+        cfg = ctx.config.motion_appearance
+        if cfg.iterations == 0:
+            return None
+        what = "Gaussians" if cfg.geometry else "colours"
+        return f"refitting the {what} on {ctx.observed.frames} observed frames along the simulated motion"
+
+    def run(self, ctx: Context, state: State) -> None:
+        cfg, o, g = ctx.config, ctx.observed, state.gaussians
+        motion = SkinnedMotion.of_asset(state.asset, o.frames, device=ctx.device)
+        start, shading = g, None
+        if cfg.motion_appearance.shading:
+            shading = initial_shading(g, state.obj_cpu.points.to(ctx.device), state.obj.volume, o.gravity)
+            start = replace(g, sh=shading.unshade(g.sh))
+        refined, shading, record = refine_on_motion(
+            start, motion, o.images, o.cameras, list(range(o.frames)), cfg.gaussians, cfg.motion_appearance.iterations,
+            geometry=cfg.motion_appearance.geometry, seed=cfg.seed, progress=ctx.progress, shading=shading,
+            loss_power=cfg.motion_appearance.loss_power)
+        save_ply(refined.to("cpu"), ctx.path(PLY))
+        if shading is not None:
+            save_torch_atomic(shading.to("cpu").__dict__, ctx.path(SHADING))
+        write_json_atomic(ctx.path(RECORD), record)
+
+    def load(self, ctx: Context, state: State) -> None:
+        if ctx.config.motion_appearance.iterations == 0:
+            return
+        shading_path = ctx.path(SHADING)
+        shading = Shading(**torch.load(shading_path, weights_only=True)) if shading_path.is_file() else None
+        state.asset = replace(state.asset, gaussians=load_ply(ctx.path(PLY)), shading=shading)
+        state.asset.extra["motion_appearance"] = read_json(ctx.path(RECORD), "the motion-appearance record")

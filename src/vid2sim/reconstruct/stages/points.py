@@ -11,82 +11,62 @@
 
 The object's canonical frame (centred on its bounding box, scaled so that half the box diagonal is 0.5) is
 recorded for the skinning network's input; physics stays in the scene's metric frame.
+
+**Carving with the later frames** (:func:`carve_with_frames`). The object's hull carved again with the silhouettes of its later frames 
+
+Four views of frame 0 leave the visual hull far too large wherever no camera sees the object in profile. The
+worst of it is where the simulator's contact happens. On the small suite's scene 4 the frame-0 hull (after
+the Gaussians' depth carving) sticks out 4–7 cm below the object along the directions that face the floor
+while it rolls after its first bounce. The simulated bounce then gives the wrong spin: 130° off by frame 15,
+even with the true initial velocity and material. With the true surface as contact points it is 20° off.
+
+The object turns in the later frames, though, and shows those sides in profile. So, in ``rounds``:
+
+1. **Track** the hull's rigid pose in every observed frame from the masks (:func:`track_poses`: the
+   silhouette fit of :mod:`vid2sim.reconstruct.stages.velocity`, each frame started from the previous pose
+   advanced by the last frame-to-frame motion). Poses are relative to frame 0's fit: frame t maps a frame-0
+   point X to R_t X + T_t.
+2. **Choose frames** that a rigid pose explains:
+   * in free flight: the tracked centroid's acceleration (central difference) is within
+     ``free_flight_tolerance`` · |g| of gravity. In contact the object is squashed, and those silhouettes would
+     carve away what the squash hides.
+   * fitted about as well as frame 0: silhouette residual at most ``frame_residual_ratio`` × frame 0's. A
+     soft object vibrating after its bounce, or a lost track, fits worse.
+   * harmless to the frames already chosen: carving with the frame must not uncover more than
+     ``coverage_tolerance`` of any mask of frame 0 or of an earlier chosen frame, each seen through its own
+     pose (a correct hull projects onto its own masks; a wrong pose cuts into the object). Frames are taken in
+     time order, so the early frames, whose track has not drifted, judge the late ones. Silhouettes alone can
+     let the track drift on a rounded object: on scene 1 of the small suite the tracked pose is 13° off by
+     frame 6 and 40–70° from frame 9 on, with residuals still a fraction of a pixel.
+3. **Carve** the frame-0 voxels (hull and depth carving, :func:`~vid2sim.reconstruct.stages.points.object_points`):
+   keep the voxels whose centres, posed by each chosen frame, project inside that frame's masks in every view
+   (:func:`within_silhouettes`, on the masks' sub-pixel signed distance, with ``carve_margin_px``).
+
+The next round tracks with the carved hull, which fits the silhouettes better, and carves the frame-0 voxels
+again (not the previous round's), so a pose that was wrong in one round leaves no trace. Measurements:
+docs/architecture.md, "The hull from the later frames".
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
-from typing import Sequence
+from dataclasses import asdict, dataclass, replace
+from typing import Any, Sequence
 
+import numpy as np
 import torch
 from torch import Tensor
 
-from vid2sim.runtime.errors import ConfigError
+from vid2sim.physics.cubature import farthest_point_sampling, sample_cubature
+from vid2sim.physics.mass import moment_matched_volumes, voxel_moments
+from vid2sim.reconstruct.config import PointsConfig
+from vid2sim.reconstruct.runner import Context, State
+from vid2sim.reconstruct.silhouettes import PoseFit, prepare_silhouette, surface_samples
+from vid2sim.runtime.files import read_json, save_torch_atomic, write_json_atomic
 from vid2sim.splats.cameras import Camera, stack_cameras
 from vid2sim.splats.gaussians import Gaussians
-
-
-@dataclass
-class PointsConfig:
-    """Settings of :func:`object_points`.
-
-    Attributes:
-        resolution: voxels along the longest side of the hull's box (fine carving pass).
-        num_points: interior samples drawn (skinning training and cubature choose among them).
-        depth_tolerance: how far (in voxels) a hull voxel may lie in front of the Gaussians' rendered
-            surface before it is carved.
-        alpha_threshold: the rendered opacity above which a pixel's depth is trusted.
-        mask_threshold: mask values above it count as object.
-        max_contact_points: the surface voxels are reduced to at most this many contact points (farthest-point
-            sampling; each keeps the area of the voxels nearest to it) — the contact's cost grows with them.
-        seed: seeds the sampling.
-        frame_rounds: rounds of carving with the later frames' masks (:mod:`vid2sim.reconstruct.stages.carving`; 0: the
-            frame-0 hull only).
-        frame_residual_ratio: a frame carves only if its rigid pose fits its silhouettes with a residual at most
-            this many times frame 0's.
-        free_flight_tolerance: a frame carves only if the tracked centroid's acceleration is within this
-            fraction of |g| of gravity (no contact).
-        coverage_tolerance: a frame carves only if that uncovers at most this fraction of every mask of frame 0
-            and of the frames chosen before it.
-        track_points: surface samples the tracking fits to the silhouettes.
-        carve_margin_px: a later frame carves a voxel only if its centre projects more than this many pixels
-            outside a mask, on the mask's sub-pixel signed distance (0: at the mask's 0.5 iso-line; on the small
-            suite 0.25 gave the same images and a worse E, README).
-    """
-
-    resolution: int = 64
-    num_points: int = 20000
-    depth_tolerance: float = 1.5
-    alpha_threshold: float = 0.5
-    mask_threshold: float = 0.5
-    max_contact_points: int = 1000
-    seed: int = 0
-    frame_rounds: int = 2
-    frame_residual_ratio: float = 4.0
-    free_flight_tolerance: float = 0.5
-    coverage_tolerance: float = 0.01
-    track_points: int = 5000
-    carve_margin_px: float = 0.0
-
-    def __post_init__(self) -> None:
-        if self.frame_rounds < 0 or self.track_points < 4:
-            raise ConfigError(f"PointsConfig.frame_rounds must be >= 0 and track_points >= 4, got {self.frame_rounds}, "
-                             f"{self.track_points}")
-        if not (isinstance(self.carve_margin_px, (int, float)) and 0 <= self.carve_margin_px < math.inf):
-            raise ConfigError(f"PointsConfig.carve_margin_px must be a finite number >= 0, got {self.carve_margin_px!r}")
-        for name in ("frame_residual_ratio", "free_flight_tolerance", "coverage_tolerance"):
-            value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
-                raise ConfigError(f"PointsConfig.{name} must be a finite number > 0, got {value!r}")
-        if self.resolution < 8:
-            raise ConfigError(f"PointsConfig.resolution must be >= 8, got {self.resolution}")
-        if self.num_points < 100:
-            raise ConfigError(f"PointsConfig.num_points must be >= 100, got {self.num_points}")
-        if self.max_contact_points < 1:
-            raise ConfigError(f"PointsConfig.max_contact_points must be >= 1, got {self.max_contact_points}")
-        if self.depth_tolerance < 0:
-            raise ConfigError(f"PointsConfig.depth_tolerance must be >= 0, got {self.depth_tolerance}")
+from vid2sim.splats.render import render_gaussians
+from vid2sim.splats.visual_hull import project_points, surface_voxels, visual_hull
 
 
 @dataclass
@@ -158,8 +138,6 @@ def object_points(masks: Tensor, cameras: Sequence[Camera], gaussians: Gaussians
     Raises:
         ValueError: empty hull (names the likely cause) or too few kept voxels.
     """
-    from vid2sim.splats.render import render_gaussians
-    from vid2sim.splats.visual_hull import visual_hull
 
     cfg = config or PointsConfig()
     dtype = torch.float32
@@ -191,7 +169,6 @@ def points_from_occupancy(occ: Tensor, origin: Tensor, voxel: float, config: Poi
     Raises:
         ValueError: fewer than 8 voxels.
     """
-    from vid2sim.splats.visual_hull import _surface
 
     cfg = config or PointsConfig()
     dtype = torch.float32
@@ -203,7 +180,7 @@ def points_from_occupancy(occ: Tensor, origin: Tensor, voxel: float, config: Poi
                          "(hull {hull}); check the masks and cameras, or raise PointsConfig.resolution")
     gen = torch.Generator().manual_seed(cfg.seed)
     points = sample_in_voxels(occ, lo, voxel, cfg.num_points, gen)
-    surface = _surface(occ)
+    surface = surface_voxels(occ)
     s_idx = torch.nonzero(surface)
     p = torch.nn.functional.pad(occ.float()[None, None], (1, 1, 1, 1, 1, 1))[0, 0]
     i, j, k = (s_idx + 1).T
@@ -212,7 +189,6 @@ def points_from_occupancy(occ: Tensor, origin: Tensor, voxel: float, config: Poi
     contact = lo + (s_idx.to(dtype) + 0.5) * voxel
     areas = exposed.to(dtype) * voxel ** 2 / 1.5  # a staircase overestimates a surface's area by 3/2 on average
     if contact.shape[0] > cfg.max_contact_points:
-        from vid2sim.physics.cubature import farthest_point_sampling
 
         keep = farthest_point_sampling(contact, cfg.max_contact_points, seed=cfg.seed)
         nearest = torch.cdist(contact, contact[keep]).argmin(dim=1)
@@ -222,3 +198,282 @@ def points_from_occupancy(occ: Tensor, origin: Tensor, voxel: float, config: Poi
     return ObjectPoints(points=points, volume=kept * voxel ** 3, contact_points=contact, contact_areas=areas,
                         centre=0.5 * (box_lo + box_hi), scale=float((box_hi - box_lo).norm()), voxel=voxel,
                         hull_voxels=hull, kept_voxels=kept, occupancy=occ.cpu(), origin=lo.cpu())
+
+
+@dataclass
+class TrackedPoses:
+    """Rigid poses of the object in consecutive frames, relative to frame 0.
+
+    Attributes:
+        rotations: (T, 3, 3) and translations: (T, 3): frame t maps a frame-0 point X to R_t X + T_t.
+        residuals_px: (T,) the silhouette fits' mean residuals (pixels).
+        centroids: (T, 3) the tracked points' centroid in each frame (m).
+    """
+
+    rotations: np.ndarray
+    translations: np.ndarray
+    residuals_px: np.ndarray
+    centroids: np.ndarray
+
+    @property
+    def num_frames(self) -> int:
+        return int(self.rotations.shape[0])
+
+
+def track_poses(points: Tensor, masks: Tensor, cameras: Sequence[Camera], iterations: int = 30,
+                max_points: int = 5000, seed: int = 0) -> TrackedPoses:
+    """Track the rigid pose of the solid that ``points`` fill through the frames of ``masks``.
+
+    Args:
+        points: (N, 3) samples filling the object at frame 0 (world frame, m).
+        masks: (V, T, H, W) object masks in [0, 1] of consecutive frames (frame 0 first).
+        cameras: the V cameras (one image size).
+        iterations: Levenberg–Marquardt iterations per frame, at most.
+        max_points: surface samples fitted to the silhouettes.
+        seed: seeds the surface samples.
+
+    Returns:
+        :class:`TrackedPoses` of frames 0 … K−1, K ≤ T: tracking stops before the first frame whose mask is
+        empty in some view (the object left it).
+    """
+
+    if masks.ndim != 4 or masks.shape[0] != len(cameras):
+        raise ValueError(f"track_poses: masks must be (V={len(cameras)}, T, H, W), got {tuple(masks.shape)}")
+    P = points.detach().to("cpu", torch.float64).numpy()
+    centre = P.mean(0)
+    rng = np.random.default_rng(seed)
+    surface = surface_samples(P, max_points, rng)
+    if surface is None:
+        surface = P[rng.choice(len(P), min(max_points, len(P)), replace=False)]
+    Xc = surface - centre
+    radius = float(np.linalg.norm(P - centre, axis=1).max())
+    viewmats_t, Ks_t, width, height = stack_cameras(list(cameras))
+    viewmats, Ks = viewmats_t.detach().cpu().double().numpy(), Ks_t.detach().cpu().double().numpy()
+    depth = np.einsum("vj,nj->vn", viewmats[:, 2, :3], P[:: max(1, len(P) // 1000)]) + viewmats[:, 2:3, 3]
+    metres_per_px = float(depth.mean()) / float(Ks[:, [0, 1], [0, 1]].mean())
+    m = masks.detach().to("cpu", torch.float32).numpy()
+    R, p = np.eye(3), centre.copy()
+    step_R, step_p = np.eye(3), np.zeros(3)
+    Rs, ps, res = [], [], []
+    for t in range(m.shape[1]):
+        if not all((m[v, t] >= 0.5).any() for v in range(len(cameras))):
+            break
+        fitter = PoseFit(Xc, viewmats, Ks, width, height, [prepare_silhouette(m[v, t]) for v in range(len(cameras))])
+        R_new, p_new, r = fitter.fit(step_R @ R, p + step_p, metres_per_px, radius, iterations)
+        if t > 0:
+            step_R, step_p = R_new @ R.T, p_new - p
+        R, p = R_new, p_new
+        Rs.append(R)
+        ps.append(p)
+        res.append(r)
+    if not Rs:
+        raise ValueError("track_poses: the masks of frame 0 are empty in some view")
+    Rs_a, ps_a = np.stack(Rs), np.stack(ps)
+    rel = Rs_a @ Rs_a[0].T  # frame 0's fit → frame t's
+    return TrackedPoses(rotations=rel, translations=ps_a - rel @ ps_a[0], residuals_px=np.array(res),
+                        centroids=ps_a)
+
+
+def gravity_deviation(centroids: np.ndarray, dt: float, gravity: Sequence[float]) -> list[float | None]:
+    """Per frame, |a − g| / |g| for the centroid's acceleration a (central difference of the (T, 3)
+    ``centroids``, ``dt`` s apart): 0 in free flight, several in contact. None for the first and last frame."""
+    g = np.asarray(gravity, dtype=np.float64)
+    if g.shape != (3,) or not np.isfinite(g).all() or not np.linalg.norm(g) > 0:
+        raise ValueError(f"gravity_deviation: gravity must be a finite non-zero (3,) vector to tell free flight from "
+                         f"contact, got {list(np.ravel(g))}")
+    if not (math.isfinite(dt) and dt > 0):
+        raise ValueError(f"gravity_deviation: dt must be a positive number of seconds, got {dt!r}")
+    out: list[float | None] = [None] * len(centroids)
+    for t in range(1, len(centroids) - 1):
+        acc = (centroids[t + 1] - 2 * centroids[t] + centroids[t - 1]) / (dt * dt)
+        out[t] = float(np.linalg.norm(acc - g) / np.linalg.norm(g))
+    return out
+
+
+def within_silhouettes(points: Tensor, masks: Tensor, viewmats: Tensor, Ks: Tensor, margin_px: float) -> Tensor:
+    """(N,) bool: which world points (N, 3) project, in every view, at most ``margin_px`` pixels outside the
+    mask's 0.5 iso-line (the signed distance of :func:`~vid2sim.reconstruct.stages.velocity.prepare_silhouette`,
+    interpolated bilinearly). ``masks``: (V, H, W) in [0, 1]; ``viewmats``: (V, 4, 4); ``Ks``: (V, 3, 3)."""
+
+    V, H, W = masks.shape
+    cam = torch.matmul(points, viewmats[:, :3, :3].transpose(1, 2)) + viewmats[:, None, :3, 3]
+    z = cam[..., 2]
+    zs = torch.where(z > 1e-6, z, torch.ones_like(z))
+    u = Ks[:, None, 0, 0] * cam[..., 0] / zs + Ks[:, None, 0, 2]
+    v = Ks[:, None, 1, 1] * cam[..., 1] / zs + Ks[:, None, 1, 2]
+    keep = torch.ones(points.shape[0], dtype=torch.bool, device=points.device)
+    for i in range(V):
+        field = torch.from_numpy(prepare_silhouette(masks[i].detach().cpu().numpy())[0]).float()
+        grid = torch.stack([u[i] / W * 2 - 1, v[i] / H * 2 - 1], -1)[None, None]  # pixel centres at +0.5
+        d = torch.nn.functional.grid_sample(field[None, None], grid, mode="bilinear", padding_mode="border",
+                                            align_corners=False)[0, 0, 0]
+        outside_image = (u[i] < 0) | (u[i] > W) | (v[i] < 0) | (v[i] > H)
+        keep &= (z[i] > 1e-6) & (d <= margin_px) & ~outside_image
+    return keep
+
+
+def silhouette_coverage(occupancy: Tensor, origin: Tensor, voxel: float, masks: Tensor,
+                        cameras: Sequence[Camera], threshold: float = 0.5,
+                        pose: tuple[np.ndarray, np.ndarray] | None = None) -> list[float]:
+    """Per view, the fraction of the mask's pixels (> ``threshold``) that the occupied voxels cover.
+
+    Each occupied voxel is projected as its centre and 8 points at ±0.45 voxel (voxels are about a pixel wide
+    at the default resolution), so the covered pixels form a solid silhouette.
+
+    Args:
+        occupancy: (A, B, C) bool; origin: (3,) the grid's corner; voxel: its edge (m).
+        masks: (V, H, W) in [0, 1]; cameras: the V cameras.
+        pose: (R (3, 3), T (3,)) moving the voxels (X ↦ R X + T) into the frame of ``masks``; None: as they are.
+    """
+
+    V, H, W = masks.shape
+    idx = torch.nonzero(occupancy).to(torch.float32)
+    corners = torch.tensor([[0.0, 0.0, 0.0]] + [[a, b, c] for a in (-0.45, 0.45) for b in (-0.45, 0.45)
+                                                 for c in (-0.45, 0.45)])
+    pts = (origin.float() + (idx[:, None, :] + 0.5 + corners[None]) * voxel).reshape(-1, 3)
+    if pose is not None:
+        pts = pts @ torch.as_tensor(pose[0], dtype=torch.float32).T + torch.as_tensor(pose[1], dtype=torch.float32)
+    viewmats, Ks, _, _ = stack_cameras(list(cameras))
+    col, row, _ = project_points(pts, viewmats.float(), Ks.float())
+    out = []
+    for v in range(V):
+        ok = (col[v] >= 0) & (col[v] < W) & (row[v] >= 0) & (row[v] < H)
+        hit = torch.zeros(H * W, dtype=torch.bool)
+        hit[(row[v][ok] * W + col[v][ok])] = True
+        inside = masks[v].reshape(-1) > threshold
+        out.append(float((hit & inside).sum()) / max(1, int(inside.sum())))
+    return out
+
+
+def carve_with_frames(masks: Tensor, cameras: Sequence[Camera], dt: float, gravity: Sequence[float],
+                      gaussians: Any | None = None, config: Any | None = None,
+                      progress: bool = False) -> tuple[Any, dict[str, Any]]:
+    """The object's points from the masks of all observed frames (the module docstring).
+
+    Args:
+        masks: (V, T, H, W) object masks in [0, 1] of the observed views, consecutive frames from frame 0.
+        cameras: the V cameras.
+        dt: seconds between frames; gravity: (3,) m/s².
+        gaussians: the Gaussians fitted to frame 0 (their depth carves the frame-0 hull), or None.
+        config: :class:`~vid2sim.reconstruct.stages.points.PointsConfig` (its ``frame_*`` fields; ``frame_rounds`` 0
+            gives the frame-0 points).
+
+    Returns:
+        (:class:`~vid2sim.reconstruct.stages.points.ObjectPoints`, a JSON-ready record: per round the tracked residuals,
+        which frames were in free flight, chosen, or refused and why, and the voxel counts).
+    """
+
+    cfg = config or PointsConfig()
+    V, T = masks.shape[:2]
+    obj0 = object_points(masks[:, 0], cameras, gaussians, cfg)
+    record: dict[str, Any] = {"frame0_voxels": obj0.kept_voxels, "rounds": []}
+    if cfg.frame_rounds == 0 or T < 3:
+        record["skipped"] = "frame_rounds is 0" if cfg.frame_rounds == 0 else f"{T} frames (3 or more needed)"
+        return obj0, record
+    occ0, origin, voxel = obj0.occupancy, obj0.origin, obj0.voxel
+    idx = torch.nonzero(occ0)
+    centres = (origin.double() + (idx.double() + 0.5) * voxel)
+    viewmats, Ks, _, _ = stack_cameras(list(cameras))
+    viewmats, Ks = viewmats.float(), Ks.float()
+    obj = obj0
+    for r in range(cfg.frame_rounds):
+        poses = track_poses(obj.points, masks, cameras, max_points=cfg.track_points, seed=cfg.seed)
+        deviation = gravity_deviation(poses.centroids, dt, gravity)
+        limit = cfg.frame_residual_ratio * float(poses.residuals_px[0])
+        keep = torch.ones(len(idx), dtype=torch.bool)
+        chosen, refused = [], {}
+
+        def cover(occupancy: Tensor, s: int) -> list[float]:
+            pose = (poses.rotations[s], poses.translations[s])
+            return silhouette_coverage(occupancy, origin, voxel, masks[:, s].float(), cameras, cfg.mask_threshold, pose)
+
+        base_cover = {0: cover(occ0, 0)}  # the frames that carve, and what the frame-0 voxels cover of them
+        for t in range(1, poses.num_frames):
+            if deviation[t] is None or deviation[t] > cfg.free_flight_tolerance:
+                refused[t] = "not in free flight" if deviation[t] is not None else "last frame"
+                continue
+            if poses.residuals_px[t] > limit:
+                refused[t] = f"residual {poses.residuals_px[t]:.2f} px > {limit:.2f}"
+                continue
+            posed = centres @ torch.from_numpy(poses.rotations[t]).T + torch.from_numpy(poses.translations[t])
+            inside = within_silhouettes(posed.float(), masks[:, t], viewmats, Ks, cfg.carve_margin_px)
+            trial = torch.zeros_like(occ0)
+            trial[tuple(idx[keep & inside].T)] = True
+            losses = {s: max(b - c for b, c in zip(base, cover(trial, s))) for s, base in base_cover.items()}
+            worst = max(losses, key=losses.get)
+            if losses[worst] > cfg.coverage_tolerance:
+                refused[t] = f"uncovers {100 * losses[worst]:.1f} % of a mask of frame {worst}"
+                continue
+            keep &= inside
+            chosen.append(t)
+            base_cover[t] = cover(occ0, t)
+        occ = torch.zeros_like(occ0)
+        occ[tuple(idx[keep].T)] = True
+        obj = points_from_occupancy(occ, origin, voxel, cfg, hull_voxels=obj0.hull_voxels)
+        record["rounds"].append({"tracked_frames": poses.num_frames,
+                                 "residuals_px": [round(float(x), 4) for x in poses.residuals_px],
+                                 "gravity_deviation": [None if d is None else round(d, 3) for d in deviation],
+                                 "chosen": chosen, "refused": {str(k): v for k, v in refused.items()},
+                                 "voxels": int(keep.sum())})
+        if progress:
+            print(f"      round {r + 1}: carved with frames {chosen}: {int(keep.sum())} of {len(idx)} voxels kept",
+                  flush=True)
+    return obj, record
+
+
+# ---- the stage -------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class Cubature:
+    """The simulator's integration points among the object's points.
+
+    Attributes:
+        index: (K,) indices into the object's points (farthest-point sampled).
+        weights: (K,) their integration volumes in m³ (the object's volume / K each).
+        mass_volumes: (K,) the volumes their lumped masses are made of when the masses are corrected to the
+            kept voxels' moments (``simulator.mass`` "moments"), else None (the masses are ``weights``).
+    """
+
+    index: Tensor
+    weights: Tensor
+    mass_volumes: Tensor | None
+
+
+def simulation_cubature(obj: ObjectPoints, count: int, mass: str, seed: int) -> Cubature:
+    """The :class:`Cubature` of ``count`` points of ``obj`` (on its device), with masses by ``mass``."""
+    index, weights = sample_cubature(obj.points, count, volume=obj.volume, seed=seed)
+    mass_volumes = None
+    if mass == "moments":  # the kept voxels' mass, centre of mass and inertia, exactly
+        mass_volumes = moment_matched_volumes(obj.points[index], weights,
+                                              voxel_moments(obj.occupancy, obj.origin, obj.voxel).to(weights))
+    return Cubature(index, weights, mass_volumes)
+
+
+class PointsStage:
+    """Fills the object with points (:func:`object_points`) and carves the hull with the later frames
+    (:func:`carve_with_frames`, ``config.points``); writes ``points.pt`` and ``carving.json``."""
+
+    name = "points"
+    sections = ("points",)
+
+    def title(self, ctx: Context, state: State) -> str:
+        rounds = ctx.config.points.frame_rounds
+        return "filling the object with simulation points" + (
+            f" (the hull carved with the later frames, {rounds} rounds)" if rounds else "")
+
+    def run(self, ctx: Context, state: State) -> None:
+        o = ctx.observed
+        carved, carving = carve_with_frames(o.masks_cpu, o.cameras_cpu, o.dt, o.gravity, state.gaussians.to("cpu"),
+                                            ctx.config.points, progress=ctx.progress)
+        save_torch_atomic({k: v for k, v in asdict(carved).items()}, ctx.path("points.pt"))
+        write_json_atomic(ctx.path("carving.json"), carving)
+
+    def load(self, ctx: Context, state: State) -> None:
+        state.obj_cpu = ObjectPoints(**torch.load(ctx.path("points.pt"), weights_only=True))
+        state.carving = read_json(ctx.path("carving.json"), "the carving record")
+        state.log["carving"] = state.carving
+        state.obj = replace(state.obj_cpu, **{k: getattr(state.obj_cpu, k).to(ctx.device) for k in
+                                              ("points", "contact_points", "contact_areas", "centre")})
+        sim = ctx.config.simulator
+        state.cubature = simulation_cubature(state.obj, sim.cubature, sim.mass, ctx.config.seed)

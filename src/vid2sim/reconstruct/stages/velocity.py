@@ -26,7 +26,7 @@ alone; :func:`estimate_initial_velocity` recovers (v, ω) from them in three ste
    the fitted rotation wanders by 1–3° from frame to frame (measured on the synthetic scenes) — with the
    3 pre-contact frames of a typical drop that alone is an error of several tenths of a rad/s in ω. The
    default ``shape_model="surface"`` therefore fits dense samples of a smooth surface reconstructed from
-   the points (:func:`_surface_samples`: binned, blurred, marching cubes at half the interior density),
+   the points (:func:`surface_samples`: binned, blurred, marching cubes at half the interior density),
    which lowers that scatter to a few tenths of a degree.
 
    Frame 0 is fitted as well (from the identity), so that a misfit of the shape to the frame-0 masks is
@@ -79,6 +79,15 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from vid2sim.reconstruct.runner import Context, State
+from vid2sim.reconstruct.silhouettes import (
+    PoseFit,
+    prepare_silhouette,
+    so3_exp,
+    so3_log,
+    surface_samples,
+)
+from vid2sim.runtime.files import read_json, write_json_atomic
 from vid2sim.splats.cameras import Camera, stack_cameras
 
 ROTATION_MODELS = ("torque_free", "constant")
@@ -136,33 +145,6 @@ class InitialVelocity:
 # =============================================================================================
 
 
-def _hat(w: np.ndarray) -> np.ndarray:
-    """Skew matrices (..., 3, 3) with [w]× y = w × y, of vectors (..., 3)."""
-    out = np.zeros(w.shape[:-1] + (3, 3))
-    out[..., 0, 1], out[..., 0, 2] = -w[..., 2], w[..., 1]
-    out[..., 1, 0], out[..., 1, 2] = w[..., 2], -w[..., 0]
-    out[..., 2, 0], out[..., 2, 1] = -w[..., 1], w[..., 0]
-    return out
-
-
-def _exp(w: np.ndarray) -> np.ndarray:
-    """Rotation matrices (..., 3, 3) of rotation vectors (..., 3) (Rodrigues)."""
-    theta = np.linalg.norm(w, axis=-1)[..., None, None]
-    small = theta < 1e-8
-    safe = np.where(small, 1.0, theta)
-    a = np.where(small, 1.0 - theta**2 / 6.0, np.sin(safe) / safe)
-    b = np.where(small, 0.5 - theta**2 / 24.0, 2.0 * np.sin(0.5 * safe) ** 2 / safe**2)
-    k = _hat(w)
-    return np.eye(3) + a * k + b * (k @ k)
-
-
-def _log(R: np.ndarray) -> np.ndarray:
-    """Rotation vectors (..., 3) (angles in [0, π]) of rotation matrices (..., 3, 3)."""
-    from scipy.spatial.transform import Rotation
-
-    return Rotation.from_matrix(R.reshape(-1, 3, 3)).as_rotvec().reshape(R.shape[:-1])
-
-
 def propagate_rotations(R0: np.ndarray, omega0: np.ndarray, inertia: np.ndarray | None, times: Sequence[float],
                         max_step: float) -> np.ndarray:
     """Orientations (M, 3, 3) at ``times`` (M,) (non-decreasing, ≥ 0) of a free rigid body at R0 (3, 3) at t = 0.
@@ -174,7 +156,7 @@ def propagate_rotations(R0: np.ndarray, omega0: np.ndarray, inertia: np.ndarray 
     """
     times = np.asarray(times, dtype=np.float64)
     if inertia is None:
-        return _exp(times[:, None] * omega0[None]) @ R0
+        return so3_exp(times[:, None] * omega0[None]) @ R0
     inv = np.linalg.inv(inertia)
     L = R0 @ (inertia @ (R0.T @ omega0))
     out = np.empty((len(times), 3, 3))
@@ -184,8 +166,8 @@ def propagate_rotations(R0: np.ndarray, omega0: np.ndarray, inertia: np.ndarray 
             n = max(1, math.ceil((target - now) / max_step - 1e-9))
             h = (target - now) / n
             for _ in range(n):
-                half = _exp(0.5 * h * (R @ (inv @ (R.T @ L)))) @ R
-                R = _exp(h * (half @ (inv @ (half.T @ L)))) @ R
+                half = so3_exp(0.5 * h * (R @ (inv @ (R.T @ L)))) @ R
+                R = so3_exp(h * (half @ (inv @ (half.T @ L)))) @ R
             now = float(target)
         out[i] = R
     return out
@@ -194,175 +176,6 @@ def propagate_rotations(R0: np.ndarray, omega0: np.ndarray, inertia: np.ndarray 
 # =============================================================================================
 # silhouettes
 # =============================================================================================
-
-
-def _prepare_silhouette(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """A mask (H, W) in [0, 1] prepared for fitting.
-
-    Returns ``(field (H, W), boundary (M, 2))``. ``field`` is the signed distance (px) of each pixel centre
-    from the mask's 0.5 iso-line, positive outside: on anti-aliased pixels 0.5 − m (a straight edge through
-    a pixel that covers the fraction m lies 0.5 − m px from its centre), elsewhere the Euclidean distance
-    transform to the nearest pixel on the other side minus 0.5 px. ``boundary`` holds the iso-line's
-    crossings of the segments between 4-neighbouring pixel centres (x, y in pixels, centres at +0.5),
-    linearly interpolated.
-    """
-    from scipy.ndimage import distance_transform_edt
-
-    m = mask.astype(np.float64)
-    inside = m >= 0.5
-    field = np.where(inside, 0.5 - distance_transform_edt(inside), distance_transform_edt(~inside) - 0.5)
-    frac = (m > 1e-3) & (m < 1.0 - 1e-3)
-    field = np.where(frac, 0.5 - m, field)
-    samples = []
-    for axis in (0, 1):
-        a = m[:-1, :] if axis == 0 else m[:, :-1]
-        b = m[1:, :] if axis == 0 else m[:, 1:]
-        r, c = np.nonzero((a - 0.5) * (b - 0.5) < 0)
-        f = (a[r, c] - 0.5) / (a[r, c] - b[r, c])
-        x = c + 0.5 + (f if axis == 1 else 0.0)
-        y = r + 0.5 + (f if axis == 0 else 0.0)
-        samples.append(np.stack([x, y], -1))
-    return field, np.concatenate(samples, 0)
-
-
-def _surface_samples(points: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray | None:
-    """At most ``n`` points (M, 3) on a smooth estimate of the surface of the solid that ``points`` (N, 3) fill.
-
-    The silhouette of a solid is the projection of its surface, but interior samples stop short of the
-    surface by a random, direction-dependent gap (a sparse rim): fitted to silhouettes they leave the pose,
-    above all the rotation, uncertain by a degree or two. So the surface is taken from
-    :func:`vid2sim.reconstruct.stages.calibration.solid_surface` (binned on a grid of their mean nearest-neighbour spacing,
-    at most 160 cells a side, blurred, marching cubes at half the density). Returns None when none is found.
-    """
-    from vid2sim.reconstruct.stages.calibration import solid_surface
-
-    surface = solid_surface(points, cells=160, rng=rng)
-    if surface is None:
-        return None
-    verts = surface[0]
-    return verts if len(verts) <= n else verts[rng.choice(len(verts), n, replace=False)]
-
-
-class _PoseFit:
-    """The silhouette objective of one frame (V views) as a function of a rigid pose.
-
-    A pose (R (3, 3), p (3,)) places the centred shape points Xc (N, 3) at x = R Xc + p. Residuals, in
-    pixels: per view, every point's distance outside the mask (weight 1/(V N)), and every boundary sample's
-    distance to its nearest projected point (weight 1/(V M_v)). Only points projecting within
-    ``candidate_px`` of the boundary or outside it are searched for the nearest one (the nearest point of a
-    boundary sample at distance d lies within d of the boundary, so this is exact whenever d is smaller).
-    """
-
-    candidate_px = 4.0
-
-    def __init__(self, Xc: np.ndarray, viewmats: np.ndarray, Ks: np.ndarray, width: int, height: int,
-                 silhouettes: list[tuple[np.ndarray, np.ndarray]]) -> None:
-        self.Xc, self.Rv, self.tv, self.Ks = Xc, viewmats[:, :3, :3], viewmats[:, :3, 3], Ks
-        self.width, self.height = width, height
-        self.fields = [s[0] for s in silhouettes]
-        self.boundary = [s[1] for s in silhouettes]
-
-    def _project(self, R: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Pixels (V, N, 2) of the points posed by (R, p), their rotated offsets y = R Xc (N, 3) and camera
-        coordinates (V, N, 3)."""
-        y = self.Xc @ R.T
-        cam = np.matmul((y + p)[None], self.Rv.transpose(0, 2, 1)) + self.tv[:, None, :]
-        z = np.maximum(cam[..., 2], 1e-6)
-        pix = np.stack([self.Ks[:, None, 0, 0] * cam[..., 0] / z + self.Ks[:, None, 0, 2],
-                        self.Ks[:, None, 1, 1] * cam[..., 1] / z + self.Ks[:, None, 1, 2]], -1)
-        return pix, y, cam
-
-    def _jacobian(self, v: int, y: np.ndarray, cam: np.ndarray) -> np.ndarray:
-        """Derivatives (n, 2, 6) of the pixels of n points in view v (rotated offsets y (n, 3), camera
-        coordinates cam (n, 3)) with respect to a left rotation increment ρ (R ← exp(ρ) R) and a
-        translation increment τ (p ← p + τ)."""
-        z = np.maximum(cam[:, 2], 1e-6)
-        fx, fy = self.Ks[v, 0, 0], self.Ks[v, 1, 1]
-        d = np.zeros((len(z), 2, 3))
-        d[:, 0, 0], d[:, 0, 2] = fx / z, -fx * cam[:, 0] / z**2
-        d[:, 1, 1], d[:, 1, 2] = fy / z, -fy * cam[:, 1] / z**2
-        dpix_dx = d @ self.Rv[v]  # (n, 2, 3)
-        return np.concatenate([-dpix_dx @ _hat(y), dpix_dx], -1)  # d(ρ × y)/dρ = −[y]×
-
-    def _sample(self, v: int, pix: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Signed distance (N,) of pixels (N, 2) from the mask boundary of view v (bilinear, border-clamped,
-        plus the distance beyond the image; positive outside) and its gradient (N, 2)."""
-        field = self.fields[v]
-        H, W = field.shape
-        xs, ys = pix[:, 0] - 0.5, pix[:, 1] - 0.5
-        cx, cy = np.clip(xs, 0.0, W - 1.0), np.clip(ys, 0.0, H - 1.0)
-        i0 = np.minimum(np.floor(cx).astype(np.int64), W - 2)
-        j0 = np.minimum(np.floor(cy).astype(np.int64), H - 2)
-        fx, fy = cx - i0, cy - j0
-        f00, f01 = field[j0, i0], field[j0, i0 + 1]
-        f10, f11 = field[j0 + 1, i0], field[j0 + 1, i0 + 1]
-        value = (1 - fy) * ((1 - fx) * f00 + fx * f01) + fy * ((1 - fx) * f10 + fx * f11)
-        gx = np.where(cx == xs, (1 - fy) * (f01 - f00) + fy * (f11 - f10), 0.0)
-        gy = np.where(cy == ys, (1 - fx) * (f10 - f00) + fx * (f11 - f01), 0.0)
-        u, w = pix[:, 0], pix[:, 1]
-        value = value + np.maximum(-u, 0) + np.maximum(u - W, 0) + np.maximum(-w, 0) + np.maximum(w - H, 0)
-        gx = gx - (u < 0) + (u > W)
-        gy = gy - (w < 0) + (w > H)
-        return value, np.stack([gx, gy], -1)
-
-    def evaluate(self, R: np.ndarray, p: np.ndarray, jacobian: bool = True
-                 ) -> tuple[float, np.ndarray, np.ndarray, list[tuple[float, float]]]:
-        """The loss at (R, p); the Gauss–Newton system JᵀWJ (6, 6) and JᵀWr (6,) (zeros unless ``jacobian``);
-        and per view the mean outside distance and the mean coverage distance (px)."""
-        from scipy.spatial import cKDTree
-
-        pix, y, cam = self._project(R, p)
-        V, N = pix.shape[:2]
-        loss, A, g, means = 0.0, np.zeros((6, 6)), np.zeros(6), []
-        for v in range(V):
-            signed, grad = self._sample(v, pix[v])
-            active = np.nonzero(signed > 0)[0]
-            o = signed[active]
-            w_out = 1.0 / (V * N)
-            b = self.boundary[v]
-            w_cov = 1.0 / (V * max(len(b), 1))
-            near = np.nonzero(signed > -self.candidate_px)[0]
-            if len(near) == 0:
-                near = np.arange(N)
-            dist, j = cKDTree(pix[v, near]).query(b) if len(b) else (np.zeros(0), np.zeros(0, np.int64))
-            idx = near[j]
-            loss += w_out * float(o @ o) + w_cov * float(dist @ dist)
-            means.append((float(o.sum()) / N, float(dist.mean()) if len(b) else 0.0))
-            if not jacobian:
-                continue
-            Jo = (grad[active, None, :] @ self._jacobian(v, y[active], cam[v, active]))[:, 0]
-            A += w_out * Jo.T @ Jo
-            g += w_out * Jo.T @ o
-            keep = dist > 0
-            off = pix[v, idx[keep]] - b[keep]
-            unit = off / dist[keep, None]
-            Jc = (unit[:, None, :] @ self._jacobian(v, y[idx[keep]], cam[v, idx[keep]]))[:, 0]
-            A += w_cov * Jc.T @ Jc
-            g += w_cov * Jc.T @ dist[keep]
-        return loss, A, g, means
-
-    def fit(self, R: np.ndarray, p: np.ndarray, metres_per_px: float, radius: float, iterations: int
-            ) -> tuple[np.ndarray, np.ndarray, float]:
-        """Levenberg–Marquardt from (R, p); returns the fitted (R (3, 3), p (3,)) and the residual (px)."""
-        loss, A, g, means = self.evaluate(R, p)
-        lam = 1e-3
-        for _ in range(iterations):
-            diag = np.maximum(np.diag(A), 1e-12 * max(float(np.diag(A).max()), 1e-30))
-            step = np.linalg.solve(A + lam * np.diag(diag), -g)
-            R_new, p_new = _exp(step[:3]) @ R, p + step[3:]
-            new, A_new, g_new, means_new = self.evaluate(R_new, p_new)
-            moved_px = (np.linalg.norm(step[:3]) * radius + np.linalg.norm(step[3:])) / metres_per_px
-            if new <= loss:
-                done = loss - new <= 1e-6 * loss or moved_px < 5e-3
-                R, p, loss, A, g, means = R_new, p_new, new, A_new, g_new, means_new
-                lam = max(lam / 3.0, 1e-7)
-                if done:
-                    break
-            else:
-                lam *= 4.0
-                if lam > 1e6 or moved_px < 1e-4:
-                    break
-        return R, p, float(np.mean([0.5 * (a + b) for a, b in means]))
 
 
 # =============================================================================================
@@ -401,16 +214,16 @@ def _fit_ballistic(times: np.ndarray, centroids: np.ndarray, rotations: np.ndarr
     sol = np.linalg.lstsq(A, centroids - 0.5 * gravity[None] * times[:, None] ** 2, rcond=None)[0]
     p0, v = sol[0], sol[1]
     # constant-ω start: log(R_t R_0ᵀ) ≈ t ω
-    logs = _log(rotations @ rotations[0].T)
+    logs = so3_log(rotations @ rotations[0].T)
     omega = (times[:, None] * logs).sum(0) / max(float(times @ times), 1e-30)
 
     def residuals(x: np.ndarray) -> np.ndarray:
-        R0 = _exp(x[:3]) @ rotations[0]
+        R0 = so3_exp(x[:3]) @ rotations[0]
         pred = propagate_rotations(R0, x[3:], inertia, times, max_step)
-        return _log(rotations.transpose(0, 2, 1) @ pred).reshape(-1)
+        return so3_log(rotations.transpose(0, 2, 1) @ pred).reshape(-1)
 
     fit = least_squares(residuals, np.concatenate([np.zeros(3), omega]), method="lm", xtol=1e-12, ftol=1e-12)
-    return _Ballistic(p0, v, gravity, _exp(fit.x[:3]) @ rotations[0], fit.x[3:], inertia, max_step)
+    return _Ballistic(p0, v, gravity, so3_exp(fit.x[:3]) @ rotations[0], fit.x[3:], inertia, max_step)
 
 
 # =============================================================================================
@@ -498,7 +311,7 @@ def estimate_initial_velocity(
             samples or of the points; the floor tests always use all given points).
         iterations: Levenberg–Marquardt iterations per fit, at most.
         shape_model: what is fitted to the silhouettes: ``"surface"`` (samples of a smooth surface
-            reconstructed from the points, :func:`_surface_samples`; falls back to the points when none is
+            reconstructed from the points, :func:`surface_samples`; falls back to the points when none is
             found) or ``"points"`` (a subset of the points themselves).
         seed: seeds the subsets.
 
@@ -569,7 +382,7 @@ def estimate_initial_velocity(
             raise ValueError(f"{name}: the points do not match the frame-0 mask of view {v}: only {100 * matched:.0f} % "
                              "of them project inside it (are they the object at frame 0, in the cameras' world frame?)")
     metres_per_px = float(z.mean()) / float(Ks[:, [0, 1], [0, 1]].mean())
-    surface = _surface_samples(P, max_points, rng) if shape_model == "surface" else None
+    surface = surface_samples(P, max_points, rng) if shape_model == "surface" else None
     Xc = subset if surface is None else surface - centre  # the points the silhouettes are fitted with
 
     up = -g / np.linalg.norm(g) if floor_height is not None else None
@@ -592,7 +405,7 @@ def estimate_initial_velocity(
         return None
 
     def fit_frame(t: int, R: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
-        fitter = _PoseFit(Xc, viewmats, Ks, width, height, [_prepare_silhouette(masks_np[v, t]) for v in range(V)])
+        fitter = PoseFit(Xc, viewmats, Ks, width, height, [prepare_silhouette(masks_np[v, t]) for v in range(V)])
         return fitter.fit(R, p, metres_per_px, radius, iterations)
 
     def say(message: str) -> None:
@@ -672,3 +485,39 @@ def estimate_initial_velocity(
         stop_reason=stop,
         seconds=time.perf_counter() - start,
     )
+
+
+# ---- the stage -------------------------------------------------------------------------------------------------
+
+
+class VelocityStage:
+    """Estimates the initial rigid velocity from the ballistic frames (``config.velocity``); writes
+    ``velocity.json``. A drop that meets the floor by frame 1 is estimated from frames 0 and 1 regardless of the
+    floor (to first order; the joint optimisation refines it), and the record says so."""
+
+    name = "velocity"
+    sections = ("velocity",)
+
+    def title(self, ctx: Context, state: State) -> str:
+        return "estimating the initial velocity from the pre-contact frames"
+
+    def run(self, ctx: Context, state: State) -> None:
+        o = ctx.observed
+        gravity = torch.tensor(o.gravity, dtype=torch.float32)
+        points = state.obj_cpu.points
+        contact_before_frame_1 = False
+        try:
+            est = estimate_initial_velocity(points, o.masks_cpu, o.cameras_cpu, o.dt, gravity, o.floor_height,
+                                            max_frames=ctx.config.velocity.frames)
+        except TooFewBallisticFrames as exc:
+            ctx.say(f"      {exc}; estimating from frames 0 and 1 regardless of the floor")
+            est = estimate_initial_velocity(points, o.masks_cpu, o.cameras_cpu, o.dt, gravity, None, max_frames=2)
+            contact_before_frame_1 = True
+        write_json_atomic(ctx.path("velocity.json"), {
+            "contact_before_frame_1": contact_before_frame_1, "linear": est.linear.tolist(),
+            "angular": est.angular.tolist(), "centre": est.centre.tolist(), "frames_used": est.frames_used,
+            "residual_px": est.residual_px, "rotations": est.rotations.tolist(),
+            "translations": est.translations.tolist()})
+
+    def load(self, ctx: Context, state: State) -> None:
+        state.velocity = read_json(ctx.path("velocity.json"), "the initial-velocity estimate")

@@ -1,0 +1,142 @@
+"""An asset in motion: its Gaussians carried by its simulated (or a given) motion, and rendered.
+
+:class:`GaussianRig` moves an asset's frame-0 Gaussians with a simulator state (LBS of the centres, the
+deformation gradient F on the covariances); the functions below roll out an asset's own captured drop and
+render it, which is what evaluation, reports, the demo and new simulations all need.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from torch import Tensor
+from tqdm.auto import tqdm
+
+from vid2sim.metrics import carry_by_tets
+from vid2sim.physics.skinning import deform, deformation_gradient, gradient_basis
+from vid2sim.physics.solver import Simulator
+from vid2sim.splats.deform import deform_gaussians
+from vid2sim.splats.gaussians import Gaussians
+from vid2sim.splats.render import render_gaussians
+
+
+class GaussianRig:
+    """Moves the frame-0 Gaussians with the simulator's state.
+
+    Args:
+        sim: the simulator (its field, and Neural Jacobian when ``sim.use_neural_jacobian``).
+        gaussians: the Gaussians fitted to frame 0 (world frame = the rest configuration).
+        shading: a :class:`~vid2sim.splats.shading.Shading` for the Gaussians (their colours are then albedos,
+            lit per frame by its world-fixed light), or None (colours as stored).
+    """
+
+    def __init__(self, sim: Simulator, gaussians: Gaussians, shading: Any | None = None) -> None:
+        self.sim = sim
+        self.gaussians = gaussians
+        self.shading = shading
+        self.X = gaussians.means.detach().to(sim.X.dtype)
+
+    def basis(self) -> tuple[Tensor, Tensor | None, Tensor | None]:
+        """(w (N, H), gradient basis G (N, 3, 4H) or None, Neural Jacobian dF/dz (N, 9, 12H) or None) at the
+        Gaussian centres, differentiable w.r.t. the networks."""
+
+        if self.sim.use_neural_jacobian:
+            return self.sim.field(self.X), None, self.sim.jacobian(self.X)
+        w, dw = self.sim.field.weights_and_gradients(self.X)
+        return w, gradient_basis(self.X, w, dw), None
+
+    def deformed(self, z: Tensor, basis: tuple[Tensor, Tensor | None, Tensor | None]):
+        """:class:`~vid2sim.splats.deform.DeformedGaussians` for the state z: (12H,)."""
+
+        w, G, J = basis
+        x = deform(self.X, w, z)
+        if J is None:
+            F = deformation_gradient(G, z)
+        else:
+            F = torch.eye(3, dtype=z.dtype, device=z.device) + (J @ z).reshape(-1, 3, 3)
+        g = self.gaussians
+        return deform_gaussians(g, x.to(g.means.dtype), F.to(g.means.dtype), self.shading)
+
+
+def simulate_gaussians(asset: Any, num_frames: int, progress: bool = True) -> list[Any]:
+    """The asset's captured drop: its Gaussians deformed by the simulator, one set per frame.
+
+    Args:
+        asset: a loaded :class:`~vid2sim.asset.folder.Asset`.
+        num_frames: T ≥ 1 frames (frame 0 is the initial state; frames are ``asset.dt`` apart).
+        progress: tqdm bars for the rollout and the deformation.
+
+    Returns:
+        T :class:`~vid2sim.splats.deform.DeformedGaussians` (world frame, m), without gradients.
+    """
+    sim, states = simulate_states(asset, num_frames, progress=progress)
+    return deform_states(asset, sim, states, progress=progress)
+
+
+def deform_states(asset: Any, sim: Any, states: list[Any], progress: bool = True) -> list[Any]:
+    """The asset's Gaussians deformed by each of the simulator ``sim``'s ``states`` (:func:`simulate_states`):
+    one :class:`~vid2sim.splats.deform.DeformedGaussians` per state, without gradients."""
+
+
+    with torch.no_grad():
+        rig = GaussianRig(sim, asset.gaussians, asset.shading)
+        basis = rig.basis()
+        return [rig.deformed(s.z, basis) for s in tqdm(states, desc="deform", disable=not progress, leave=False)]
+
+
+def simulate_states(asset: Any, num_frames: int, progress: bool = True) -> tuple[Any, list[Any]]:
+    """The asset's captured drop as simulator states: ``(simulator, T states)``, frame 0 the initial state.
+
+    Raises:
+        ValueError: ``num_frames`` < 1.
+    """
+    if num_frames < 1:
+        raise ValueError(f"simulate_states: num_frames must be >= 1, got {num_frames}")
+    sim = asset.simulator()
+    start = asset.initial_state(sim)
+    with torch.no_grad():
+        return sim, [start] + sim.rollout(start, num_frames - 1, progress=progress)
+
+
+def simulated_centre_of_mass(sim: Any, states: list[Any]) -> torch.Tensor:
+    """(T, 3) float64: the simulated body's centre of mass per state, Σ m_p x_p / Σ m_p over the simulator's
+    mass points (its cubature points with their lumped masses, :meth:`~vid2sim.physics.Simulator.masses`)."""
+    with torch.no_grad():
+        m = sim.masses().double()
+        return torch.stack([(m[:, None] * sim.positions(sim.X, s.z).double()).sum(0) / m.sum() for s in states])
+
+
+def render_frames(frames: list[Any], cameras: list[Any], background: float = 1.0,
+                  progress: bool = True) -> torch.Tensor:
+    """Render deformed Gaussians (one set per frame, e.g. from :func:`simulate_gaussians`) in every camera.
+
+    Returns:
+        (V, T, H, W, 3) RGB in [0, 1] on the given ``background`` (1.0 = white, the scenes' background).
+    """
+
+
+    with torch.no_grad():
+        renders = [render_gaussians(d, cameras, background=background).rgb
+                   for d in tqdm(frames, desc="render", disable=not progress, leave=False)]
+    return torch.stack(renders, dim=1).clamp(0, 1)
+
+
+def true_motion_gaussians(asset: Any, tet_trajectory: dict[str, torch.Tensor]) -> list[Any]:
+    """The asset's Gaussians carried by the ground truth's motion instead of the simulator's.
+
+    Each Gaussian follows the frame-0 tet it lies in (or is least outside of) of the scene's ``tet_trajectory``
+    extra (:func:`vid2sim.metrics.carry_by_tets`): its centre moves with the tet's affine map and its covariance
+    is deformed by the tet's F. Scoring these images separates the appearance's share of the image error (what
+    the Gaussians cannot show even on the true motion: lighting baked in at frame 0, surfaces no observed view
+    saw) from the dynamics'.
+
+    Returns:
+        T :class:`~vid2sim.splats.deform.DeformedGaussians`, one per frame of the trajectory.
+    """
+
+    g = asset.gaussians
+    vertices, tets = tet_trajectory["vertices"], tet_trajectory["tets"]
+    used = vertices[:, : int(tets.max()) + 1]  # quadratic meshes list edge midpoints after the vertices
+    x, F = carry_by_tets(g.means, used, tets)
+    return [deform_gaussians(g, x[t].to(g.means.dtype), F[t].to(g.means.dtype), asset.shading) for t in range(len(x))]

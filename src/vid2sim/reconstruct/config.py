@@ -1,0 +1,419 @@
+"""The settings of ``vid2sim reconstruct``: one nested dataclass per stage, the presets as data.
+
+:class:`ReconstructConfig` is saved as the asset's ``config.json`` and loads back with
+:meth:`ReconstructConfig.from_dict` (``vid2sim reconstruct --config ASSET/config.json`` repeats a run). Every
+leaf field is a command-line flag ``--section.field`` (:mod:`vid2sim.runtime.config`); its help is the field's
+entry in its class docstring, so a new option is one documented field.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+from vid2sim.physics.solver import SimConfig
+from vid2sim.runtime import config as configs
+from vid2sim.runtime.errors import ConfigError
+from vid2sim.splats.fitting import FitConfig
+
+
+@dataclass
+class PointsConfig:
+    """Settings of :func:`object_points`.
+
+    Attributes:
+        resolution: voxels along the longest side of the hull's box (fine carving pass).
+        num_points: interior samples drawn (skinning training and cubature choose among them).
+        depth_tolerance: how far (in voxels) a hull voxel may lie in front of the Gaussians' rendered
+            surface before it is carved.
+        alpha_threshold: the rendered opacity above which a pixel's depth is trusted.
+        mask_threshold: mask values above it count as object.
+        max_contact_points: the surface voxels are reduced to at most this many contact points (farthest-point
+            sampling; each keeps the area of the voxels nearest to it) — the contact's cost grows with them.
+        seed: seeds the sampling.
+        frame_rounds: rounds of carving with the later frames' masks (:mod:`vid2sim.reconstruct.stages.points`; 0: the
+            frame-0 hull only).
+        frame_residual_ratio: a frame carves only if its rigid pose fits its silhouettes with a residual at most
+            this many times frame 0's.
+        free_flight_tolerance: a frame carves only if the tracked centroid's acceleration is within this
+            fraction of |g| of gravity (no contact).
+        coverage_tolerance: a frame carves only if that uncovers at most this fraction of every mask of frame 0
+            and of the frames chosen before it.
+        track_points: surface samples the tracking fits to the silhouettes.
+        carve_margin_px: a later frame carves a voxel only if its centre projects more than this many pixels
+            outside a mask, on the mask's sub-pixel signed distance (0: at the mask's 0.5 iso-line; on the small
+            suite 0.25 gave the same images and a worse E, README).
+    """
+
+    resolution: int = 64
+    num_points: int = 20000
+    depth_tolerance: float = 1.5
+    alpha_threshold: float = 0.5
+    mask_threshold: float = 0.5
+    max_contact_points: int = 1000
+    seed: int = 0
+    frame_rounds: int = 2
+    frame_residual_ratio: float = 4.0
+    free_flight_tolerance: float = 0.5
+    coverage_tolerance: float = 0.01
+    track_points: int = 5000
+    carve_margin_px: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.frame_rounds < 0 or self.track_points < 4:
+            raise ConfigError(f"PointsConfig.frame_rounds must be >= 0 and track_points >= 4, got {self.frame_rounds}, "
+                             f"{self.track_points}")
+        if not (isinstance(self.carve_margin_px, (int, float)) and 0 <= self.carve_margin_px < math.inf):
+            raise ConfigError(f"PointsConfig.carve_margin_px must be a finite number >= 0, got {self.carve_margin_px!r}")
+        for name in ("frame_residual_ratio", "free_flight_tolerance", "coverage_tolerance"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise ConfigError(f"PointsConfig.{name} must be a finite number > 0, got {value!r}")
+        if self.resolution < 8:
+            raise ConfigError(f"PointsConfig.resolution must be >= 8, got {self.resolution}")
+        if self.num_points < 100:
+            raise ConfigError(f"PointsConfig.num_points must be >= 100, got {self.num_points}")
+        if self.max_contact_points < 1:
+            raise ConfigError(f"PointsConfig.max_contact_points must be >= 1, got {self.max_contact_points}")
+        if self.depth_tolerance < 0:
+            raise ConfigError(f"PointsConfig.depth_tolerance must be >= 0, got {self.depth_tolerance}")
+
+
+@dataclass
+class VelocityConfig:
+    """Stage ``velocity``: the initial rigid velocity from the ballistic pre-contact frames.
+
+    Attributes:
+        frames: at most this many pre-contact frames estimate the initial velocity.
+    """
+
+    frames: int = 8
+
+    def __post_init__(self) -> None:
+        if self.frames < 2:
+            raise ConfigError(f"VelocityConfig.frames must be >= 2, got {self.frames}")
+
+
+@dataclass
+class AppearanceConfig:
+    """Stage ``appearance``: the Gaussians refined on all ballistic frames at once.
+
+    Attributes:
+        iterations: Gaussian refinement steps on the ballistic frames (0: skip).
+    """
+
+    iterations: int = 300
+
+    def __post_init__(self) -> None:
+        if self.iterations < 0:
+            raise ConfigError(f"AppearanceConfig.iterations must be >= 0, got {self.iterations}")
+
+
+@dataclass
+class Stage1Config:
+    """Stage ``stage1``: the feed-forward predictor (paper §4.1).
+
+    Attributes:
+        enabled: run the Stage I predictor; off (the default until the shipped predictor meets its targets,
+            docs/predictor.md) is the paper's "w/o Stage I" ablation.
+        predictor: its checkpoint (None: the one shipped with vid2sim).
+    """
+
+    enabled: bool = False
+    predictor: str | None = None
+
+
+@dataclass
+class NetworksConfig:
+    """Stage ``networks``: the skinning field (and the Neural Jacobian) trained data-free.
+
+    Attributes:
+        handles: learned skinning handles (+1 rigid); more let the subspace squash and bend closer to the
+            continuum at a higher cost per step (Stage I's template has 10).
+        skinning_iterations: data-free skinning iterations (paper: 10 000).
+        skinning_objective: "modal" (the subspace's lowest vibration modes; the default) or "random_z" (the
+            paper's random handle transforms); docs/architecture.md, "Subspace stiffness".
+        jacobian: dF/dz: "closed_form" (exact, from the field; faster on a CPU) or "neural" (the paper's Neural
+            Jacobian).
+        jacobian_iterations: data-free Neural Jacobian iterations when ``jacobian`` is "neural".
+    """
+
+    handles: int = 10
+    skinning_iterations: int = 2000
+    skinning_objective: Literal["modal", "random_z"] = "modal"
+    jacobian: Literal["closed_form", "neural"] = "closed_form"
+    jacobian_iterations: int = 2000
+
+    def __post_init__(self) -> None:
+        if self.jacobian not in ("closed_form", "neural"):
+            raise ConfigError(f"NetworksConfig.jacobian must be 'closed_form' or 'neural', got {self.jacobian!r}")
+        if self.skinning_objective not in ("modal", "random_z"):
+            raise ConfigError("NetworksConfig.skinning_objective must be one of ('random_z', 'modal'), "
+                              f"got {self.skinning_objective!r}")
+        for name in ("handles", "skinning_iterations", "jacobian_iterations"):
+            if getattr(self, name) < 1:
+                raise ConfigError(f"NetworksConfig.{name} must be >= 1, got {getattr(self, name)}")
+
+
+@dataclass
+class PriorConfig:
+    """The material the joint optimisation starts from when Stage I does not run (Stage I replaces E and ν).
+
+    Attributes:
+        E: Young's modulus in Pa.
+        nu: Poisson's ratio.
+        damping: the damping ratio ζ (Kelvin–Voigt; held there unless ``joint.fit_damping``).
+        density: kg/m³ when the scene's metadata gives none (a drop identifies E/ρ only).
+    """
+
+    E: float = 1e5
+    nu: float = 0.3
+    damping: float = 0.05
+    density: float = 1000.0
+
+    def __post_init__(self) -> None:
+        if not (self.E > 0 and 0 <= self.nu < 0.5 and self.density > 0 and self.damping >= 0):
+            raise ConfigError("PriorConfig needs E > 0, 0 <= nu < 0.5, damping >= 0 and density > 0, got "
+                              f"E={self.E}, nu={self.nu}, damping={self.damping}, density={self.density}")
+
+
+@dataclass
+class SimulatorConfig:
+    """The reduced simulator the joint optimisation fits and the asset carries.
+
+    Attributes:
+        cubature: cubature points (paper: 500).
+        volumetric: the volumetric term, "pointwise" or "projected" onto the skinning weights' span
+            (:mod:`vid2sim.physics.volumetric`: no volumetric locking, so λ needs no factor of its own; calibrate
+            it with ``calibration.nu`` "curve").
+        mass: lumped masses: "cubature" (the cubature volumes as sampled; the default) or "moments" (those volumes
+            corrected so that the mass, centre of mass and inertia tensor are the kept voxels',
+            :mod:`vid2sim.physics.mass`).
+        integration: time integration (time-converged BDF2 substeps by default).
+    """
+
+    cubature: int = 500
+    volumetric: Literal["pointwise", "projected"] = "pointwise"
+    mass: Literal["cubature", "moments"] = "cubature"
+    integration: SimConfig = field(default_factory=SimConfig)
+
+    def __post_init__(self) -> None:
+        if self.cubature < 1:
+            raise ConfigError(f"SimulatorConfig.cubature must be >= 1, got {self.cubature}")
+        if self.volumetric not in ("pointwise", "projected"):
+            raise ConfigError(f"SimulatorConfig.volumetric must be 'pointwise' or 'projected', got {self.volumetric!r}")
+        if self.mass not in ("moments", "cubature"):
+            raise ConfigError(f"SimulatorConfig.mass must be 'moments' or 'cubature', got {self.mass!r}")
+
+
+@dataclass
+class CalibrationConfig:
+    """Stage ``calibration``: the subspace's stiffness matched to quadratic tets (:mod:`~.stages.calibration`).
+
+    Attributes:
+        enabled: scale the simulator's elastic energy so that the subspace's lowest modes vibrate at the
+            frequencies of quadratic tets on a surface of the kept voxels: the subspace is stiffer than the
+            continuum, and the fitted E is then the material's. fTetWild is not deterministic, so a calibrated
+            reconstruction is not bit-reproducible.
+        nu: "two_factor" (the default): a factor on μ and one on λ over a grid of ν, matched to the six lowest
+            modes and used at the simulator's current ν; "curve": one factor s(ν) over that grid; "prior": one
+            factor at the prior ν.
+        cells: the surface grid's cells along the longest side for the reference mesh.
+        points: samples of the kept voxels that grid is made from.
+    """
+
+    enabled: bool = True
+    nu: Literal["two_factor", "curve", "prior"] = "two_factor"
+    cells: int = 96
+    points: int = 200_000
+
+    def __post_init__(self) -> None:
+        if self.nu not in ("curve", "two_factor", "prior"):
+            raise ConfigError(f"CalibrationConfig.nu must be 'curve', 'two_factor' or 'prior', got {self.nu!r}")
+        for name in ("cells", "points"):
+            if getattr(self, name) < 1:
+                raise ConfigError(f"CalibrationConfig.{name} must be >= 1, got {getattr(self, name)}")
+
+
+@dataclass
+class JointConfig:
+    """Settings of :func:`joint_optimisation` (defaults: the paper's, plus the CPU measures above).
+
+    Attributes:
+        iterations: Adam iterations.
+        window: frames per window (Δs).
+        lr_log10_E, lr_nu, lr_skinning, lr_jacobian: the paper's learning rates.
+        lr_velocity: learning rate of the initial linear (m/s) and angular (rad/s) velocity.
+        fit_damping: also fit the damping ratio (learning rate ``lr_damping``); otherwise it stays at its prior.
+        coarse_log10_E: grid of the coarse search (empty: skip it).
+        coarse_scale: image scale of the coarse search and the first ``coarse_fraction`` of the iterations.
+        coarse_fraction: fraction of the iterations rendered at ``coarse_scale`` (then full resolution).
+        views_per_iteration: views rendered per iteration (None: all observed views).
+        refresh_every: iterations between the whole rollouts that provide the windows' start states.
+        validate_every: iterations between validations on all observed frames and views.
+        nu_bounds: ν is kept in this interval.
+        centre_of_mass_step: the first step of a search over the centre of mass after the coarse search, as a
+            fraction of the simulator's length scale (the object's diagonal); 0 (the default): no search. See
+            :func:`centre_of_mass_search`.
+        centre_of_mass_rounds: rounds of that search, each with half the step of the one before.
+        frame_decay: weights exp(−(t − 1)/τ) on the frames t = 1 … T−1 of the coarse search's and the
+            validation's whole-clip losses, τ = ``frame_decay`` frames (default 4, beyond the paper); None:
+            equal weights (the paper's mean over the clip). See :func:`clip_loss`. On the quadratic-tet
+            small suite (8 scenes) τ = 4 gave |Δlog10 E| 0.30 against 0.37 with equal weights.
+        seed: seeds the windows and view subsets.
+    """
+
+    iterations: int = 400
+    window: int = 4
+    lr_log10_E: float = 5e-3
+    lr_nu: float = 1e-3
+    lr_skinning: float = 5e-7
+    lr_jacobian: float = 5e-7
+    lr_velocity: float = 5e-3
+    fit_damping: bool = False
+    lr_damping: float = 1e-3
+    coarse_log10_E: tuple[float, ...] = (4.0, 4.25, 4.5, 4.75, 5.0, 5.25, 5.5, 5.75, 6.0)
+    coarse_scale: float = 0.5
+    coarse_fraction: float = 0.5
+    views_per_iteration: int | None = None
+    refresh_every: int = 10
+    validate_every: int = 50
+    nu_bounds: tuple[float, float] = (0.0, 0.49)
+    frame_decay: float | None = 4.0
+    centre_of_mass_step: float = 0.0
+    centre_of_mass_rounds: int = 2
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.iterations < 0:
+            raise ConfigError(f"JointConfig.iterations must be >= 0, got {self.iterations}")
+        if self.window < 1:
+            raise ConfigError(f"JointConfig.window must be >= 1, got {self.window}")
+        if not 0 < self.coarse_scale <= 1:
+            raise ConfigError(f"JointConfig.coarse_scale must be in (0, 1], got {self.coarse_scale}")
+        if not 0 <= self.coarse_fraction <= 1:
+            raise ConfigError(f"JointConfig.coarse_fraction must be in [0, 1], got {self.coarse_fraction}")
+        if self.views_per_iteration is not None and self.views_per_iteration < 1:
+            raise ConfigError(f"JointConfig.views_per_iteration must be >= 1 or None, got {self.views_per_iteration}")
+        if self.refresh_every < 1 or self.validate_every < 1:
+            raise ConfigError("JointConfig.refresh_every and validate_every must be >= 1")
+        if self.frame_decay is not None and (isinstance(self.frame_decay, bool)
+                                             or not isinstance(self.frame_decay, (int, float))
+                                             or not 0 < float(self.frame_decay) < math.inf):
+            raise ConfigError(f"JointConfig.frame_decay must be a finite number > 0 or None, got {self.frame_decay!r}")
+        if isinstance(self.centre_of_mass_step, bool) or not isinstance(self.centre_of_mass_step, (int, float)) \
+                or not 0 <= float(self.centre_of_mass_step) < 0.5:
+            raise ConfigError("JointConfig.centre_of_mass_step must be a fraction of the object's size in [0, 0.5), "
+                             f"got {self.centre_of_mass_step!r}")
+        if self.centre_of_mass_rounds < 1:
+            raise ConfigError(f"JointConfig.centre_of_mass_rounds must be >= 1, got {self.centre_of_mass_rounds}")
+        lo, hi = self.nu_bounds
+        if not 0 <= lo < hi < 0.5:
+            raise ConfigError(f"JointConfig.nu_bounds must satisfy 0 <= lo < hi < 0.5, got {self.nu_bounds}")
+        self.coarse_log10_E = tuple(sorted(float(v) for v in self.coarse_log10_E))  # the parabola needs order
+
+
+@dataclass
+class MotionAppearanceConfig:
+    """Stage ``motion_appearance``: the Gaussians refitted on every observed frame through the simulated motion.
+
+    Attributes:
+        iterations: refitting steps (0: skip; the Gaussians of the ballistic frames are kept).
+        geometry: also fit the Gaussians' rest-frame centres, scales and rotations (default, beyond the paper);
+            off: colours and opacities only.
+        shading: separate albedo from a light fixed in the world (:mod:`vid2sim.splats.shading`), so the asset is
+            lit by its pose as it turns (beyond the paper); off: the colours keep the light they were fitted under.
+        loss_power: p in (0, 1]: each step minimises (its image loss)^p; 1 is 3DGS's loss, below 1 the frames the
+            simulated motion explains well count more (0.5: the square root).
+    """
+
+    iterations: int = 300
+    geometry: bool = True
+    shading: bool = True
+    loss_power: float = 1.0
+
+    def __post_init__(self) -> None:
+        if self.iterations < 0:
+            raise ConfigError(f"MotionAppearanceConfig.iterations must be >= 0, got {self.iterations}")
+        p = self.loss_power
+        if isinstance(p, bool) or not isinstance(p, (int, float)) or not 0 < p <= 1:
+            raise ConfigError(f"MotionAppearanceConfig.loss_power must be in (0, 1], got {p!r}")
+
+
+@dataclass
+class ReconstructConfig:
+    """Settings of :func:`vid2sim.reconstruct.reconstruct`, one section per stage (saved as ``config.json``).
+
+    Attributes:
+        gaussians: stage ``gaussians``, the Gaussians fitted to frame 0 (and the later fits' settings).
+        points: stage ``points``, the interior points of the hull carved with the later frames.
+        velocity: stage ``velocity``.
+        appearance: stage ``appearance``.
+        stage1: stage ``stage1``.
+        networks: stage ``networks``.
+        prior: the starting material.
+        simulator: the reduced simulator.
+        calibration: stage ``calibration``.
+        joint: stage ``joint``, the joint optimisation.
+        motion_appearance: stage ``motion_appearance``.
+        seed: seeds every stage.
+    """
+
+    gaussians: FitConfig = field(default_factory=lambda: FitConfig(iterations=1000))
+    points: PointsConfig = field(default_factory=PointsConfig)
+    velocity: VelocityConfig = field(default_factory=VelocityConfig)
+    appearance: AppearanceConfig = field(default_factory=AppearanceConfig)
+    stage1: Stage1Config = field(default_factory=Stage1Config)
+    networks: NetworksConfig = field(default_factory=NetworksConfig)
+    prior: PriorConfig = field(default_factory=PriorConfig)
+    simulator: SimulatorConfig = field(default_factory=SimulatorConfig)
+    calibration: CalibrationConfig = field(default_factory=CalibrationConfig)
+    joint: JointConfig = field(default_factory=JointConfig)
+    motion_appearance: MotionAppearanceConfig = field(default_factory=MotionAppearanceConfig)
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.simulator.volumetric == "projected" and self.calibration.enabled and \
+                self.calibration.nu == "two_factor":
+            raise ConfigError("ReconstructConfig: the projected volumetric term does not lock, so its calibration "
+                              "takes one factor (calibration.nu 'curve' or 'prior'), not 'two_factor'")
+
+    @classmethod
+    def preset(cls, name: str, overrides: dict[str, Any] | None = None) -> "ReconstructConfig":
+        """The preset ``name`` ("small" or "full", :data:`PRESETS`) with the nested dict ``overrides`` on top."""
+        if name not in PRESETS:
+            raise ConfigError(f"unknown reconstruct preset {name!r} (expected one of {', '.join(PRESETS)})")
+        return configs.merge(configs.merge(cls(), PRESETS[name]), overrides or {})
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> "ReconstructConfig":
+        """The configuration of a ``config.json`` (:meth:`to_dict`); missing fields take their defaults."""
+        return configs.from_dict(cls, data)
+
+    def to_dict(self) -> dict[str, Any]:
+        """The JSON-ready nested dict (``config.json``)."""
+        return configs.to_dict(self)
+
+    def replace(self, **changes: Any) -> "ReconstructConfig":
+        """A copy with top-level fields replaced (``dataclasses.replace``)."""
+        return dataclasses.replace(self, **changes)
+
+
+#: The presets, as overrides of the defaults (the defaults are the paper's where it gives one).
+PRESETS: dict[str, dict[str, Any]] = {
+    # CPU minutes: at most 6 000 Gaussians (4 views of 128² need no more; rendering cost grows with them), and the
+    # networks fixed during the joint optimisation (the paper's learning rate of 5e-7 moves them imperceptibly in
+    # 100 iterations, and their gradient costs a third of an iteration). View-independent colours (SH degree 0):
+    # with 4 views, higher bands fit the views, not the object, and as the object moves they change its colour in
+    # the joint optimisation's images (8-scene small suite: |Δlog10 E| 0.155 against 0.243 at degree 3, images
+    # equal, 8 % faster; docs/results.md).
+    "small": {"gaussians": {"iterations": 500, "sh_degree": 0, "densify": {"max_gaussians": 6000}},
+              "networks": {"skinning_iterations": 1000},
+              "joint": {"iterations": 100, "validate_every": 25, "lr_skinning": 0.0, "lr_jacobian": 0.0}},
+    # the paper's sizes
+    "full": {"gaussians": {"iterations": 1000, "views_per_step": 2},
+             "networks": {"skinning_iterations": 2000},
+             "joint": {"iterations": 400, "views_per_iteration": 4}},
+}

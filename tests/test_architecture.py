@@ -1,0 +1,115 @@
+"""The package's layers (docs/architecture.md): each module imports only from its own layer's package or from the
+layers below it, never a private name of another module, and the modules form no import cycle."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+SRC = Path(__file__).resolve().parents[1] / "src" / "vid2sim"
+
+#: bottom to top; a package may import the packages of the rows below its own
+LAYERS = [
+    ["runtime"],
+    ["physics", "splats", "metrics", "meshing"],
+    ["scene", "asset"],
+    ["synthetic", "predictor"],
+    ["reconstruct"],
+    ["simulate", "evaluate", "export", "report"],
+    ["apps"],
+    ["cli"],
+]
+#: imports between packages of the same row that the layering allows (importer, imported)
+SIBLINGS = {("splats", "metrics"), ("meshing", "metrics"), ("asset", "scene"), ("predictor", "synthetic")}
+RANK = {package: rank for rank, row in enumerate(LAYERS) for package in row}
+
+
+def _modules() -> dict[str, Path]:
+    out = {}
+    for path in SRC.rglob("*.py"):
+        parts = path.relative_to(SRC.parent).with_suffix("").parts
+        name = ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+        out[name] = path
+    return out
+
+
+def _imports(path: Path) -> list[tuple[str, list[str], bool]]:
+    """(module imported, names imported, inside a function or TYPE_CHECKING block) for each project import."""
+    tree = ast.parse(path.read_text())
+    found = []
+
+    def visit(node: ast.AST, nested: bool) -> None:
+        for child in ast.iter_child_nodes(node):
+            inner = nested or isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef)) or (
+                isinstance(child, ast.If) and "TYPE_CHECKING" in ast.unparse(child.test))
+            if isinstance(child, ast.ImportFrom) and child.level == 0 and (child.module or "").startswith("vid2sim"):
+                found.append((child.module, [a.name for a in child.names], inner))
+            elif isinstance(child, ast.Import):
+                found.extend((a.name, [], inner) for a in child.names if a.name.startswith("vid2sim"))
+            visit(child, inner)
+
+    visit(tree, False)
+    return found
+
+
+def _package(module: str) -> str | None:
+    parts = module.split(".")
+    return parts[1] if len(parts) > 1 else None
+
+
+def test_every_package_has_a_layer():
+    packages = {p.name for p in SRC.iterdir() if p.is_dir() and (p / "__init__.py").is_file()}
+    assert packages == set(RANK), packages ^ set(RANK)
+
+
+def test_no_module_imports_a_layer_above_its_own():
+    wrong = []
+    for module, path in _modules().items():
+        own = _package(module)
+        if own is None or own == "__main__":  # the root package and the entry point
+            continue
+        for target, _, _ in _imports(path):
+            other = _package(target)
+            if other is None or other == own:
+                continue
+            if RANK[other] > RANK[own] or (RANK[other] == RANK[own] and (own, other) not in SIBLINGS):
+                wrong.append(f"{module} imports {target}")
+    assert not wrong, "\n".join(wrong)
+
+
+def test_no_module_imports_another_module_s_private_names():
+    wrong = [f"{module} imports {name} from {target}" for module, path in _modules().items()
+             for target, names, _ in _imports(path) if target != module
+             for name in names if name.startswith("_") and not name.startswith("__")]
+    assert not wrong, "\n".join(wrong)
+
+
+def test_the_top_level_imports_form_no_cycle():
+    modules = _modules()
+    graph: dict[str, set[str]] = {}
+    for m, p in modules.items():
+        edges = set()
+        for target, names, nested in _imports(p):
+            if nested:
+                continue
+            submodules = {f"{target}.{n}" for n in names} & set(modules)  # from package import module
+            edges |= submodules or ({target} & set(modules))
+        graph[m] = edges - {m}
+    state: dict[str, int] = {}
+    cycle: list[str] = []
+
+    def visit(node: str, path: list[str]) -> bool:
+        state[node] = 1
+        for nxt in sorted(graph[node]):
+            if state.get(nxt) == 1:
+                cycle.extend(path + [node, nxt])
+                return True
+            if nxt not in state and visit(nxt, path + [node]):
+                return True
+        state[node] = 2
+        return False
+
+    for module in sorted(graph):
+        if module not in state and visit(module, []):
+            break
+    assert not cycle, " -> ".join(cycle)
