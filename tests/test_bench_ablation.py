@@ -295,7 +295,7 @@ def test_three_variants_stage_one_where_it_belongs_and_ablation_json(run):
         logs[name] = _json(asset / "log.json")
         assert scene["stage1"] == logs[name]["stage1"]
         config = _json(out / name / SUITE_CONFIG_JSON)["reconstruct"]
-        assert config["stage1"] == (name != "stage2_prior") and config["handles"] == 10
+        assert config["stage1"]["enabled"] == (name != "stage2_prior") and config["networks"]["handles"] == 10
     # Stage I ran in the Stage I variants (with the given checkpoint) and not in the "w/o Stage I" one
     for name in ("stage1_only", "stage1_stage2"):
         assert logs[name]["stage1"]["ran"] is True and logs[name]["stage1"]["checkpoint"] == str(ckpt.resolve())

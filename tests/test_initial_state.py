@@ -16,7 +16,6 @@ frames) |Δv| ≤ 0.008 m/s, |Δω| ≤ 0.11 rad/s. The tolerances below leave a
 
 from __future__ import annotations
 
-import time
 
 import numpy as np
 import pytest
@@ -165,9 +164,7 @@ def test_torque_free_propagation_matches_euler_equations() -> None:
 
 
 def test_recovers_velocity_of_tumbling_drop(drop: AnalyticDrop) -> None:
-    start = time.perf_counter()
     est = estimate(drop)
-    elapsed = time.perf_counter() - start
     assert est.frames_used == 8 and est.stop_reason == "max_frames"
     assert est.rotations.shape == (8, 3, 3) and est.translations.shape == (8, 3) and est.frame_residuals_px.shape == (8,)
     torch.testing.assert_close(est.centre, drop.points.mean(0))
@@ -191,7 +188,6 @@ def test_recovers_velocity_of_tumbling_drop(drop: AnalyticDrop) -> None:
     vel = est.point_velocities(x)
     expected = est.linear + torch.linalg.cross(est.angular.expand_as(x), x - est.centre, dim=-1)
     torch.testing.assert_close(vel, expected)
-    assert elapsed < 15.0, f"took {elapsed:.1f} s"
 
 
 def test_poses_are_relative_to_frame_0s_fit(drop: AnalyticDrop) -> None:
@@ -256,9 +252,7 @@ def test_matches_ground_truth_of_synthetic_scene(small_scene) -> None:
     points, _, _ = sample_points_in_tets(fem.trajectory[0], fem.tets, 20000, seed=0)
     masks = scene.float_masks()[cfg.observed_views][:, cfg.observed_frames]
     cameras = [scene.cameras[v] for v in cfg.observed_views]
-    start = time.perf_counter()
     est = estimate_initial_velocity(points, masks, cameras, cfg.dt, torch.tensor(cfg.gravity), cfg.floor_height)
-    elapsed = time.perf_counter() - start
 
     # ground truth: metadata velocities are about the tet mesh's centre of mass; move them to our centre
     pose = cfg.metadata["initial_pose"]
@@ -279,7 +273,6 @@ def test_matches_ground_truth_of_synthetic_scene(small_scene) -> None:
     K = est.frames_used
     assert 3 <= K <= 5, est.stop_reason
     assert float(fem.trajectory[:K, :, 2].min()) > cfg.floor_height
-    assert elapsed < 10.0, f"took {elapsed:.1f} s"
 
 
 # ---- argument checks -------------------------------------------------------------------------------------------

@@ -23,7 +23,7 @@ from vid2sim.predictor.pretrain import (  # noqa: E402
 )
 from vid2sim.predictor.train import (  # noqa: E402
     TrainConfig,
-    _Split,
+    Split,
     normalise_video,
     read_checkpoint,
     train_predictor,
@@ -59,7 +59,7 @@ def test_tube_mask_hides_the_same_positions_in_every_tubelet():
 
 def test_pretraining_lowers_the_reconstruction_loss_and_resumes_exactly(tiny_training_data, tmp_path):
     cfg = _config()
-    train = _Split(TrainingData(tiny_training_data, "train", cfg.val_fraction, cfg.split_seed), 16, "object")
+    train = Split(TrainingData(tiny_training_data, "train", cfg.val_fraction, cfg.split_seed), 16, "object")
     model = PhysicsPredictor(cfg.model)
     before = {k: v.clone() for k, v in model.backbone.state_dict().items()}
     # the pre-training model's encoder starts as the backbone and uses its position table

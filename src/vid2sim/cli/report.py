@@ -11,9 +11,9 @@ import argparse
 import time
 from pathlib import Path
 
+from vid2sim.apps.report import asset_report
 from vid2sim.asset.folder import AssetFormatError
 from vid2sim.cli.common import UserError, add_threads_option, set_threads
-from vid2sim.apps.report import asset_report
 from vid2sim.report import ReportConfig, ReportInputError
 from vid2sim.scene.validation import SceneFormatError
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import sys
 
@@ -17,6 +18,7 @@ from vid2sim.cli.common import (
     add_suite_run_options,
 )
 from vid2sim.cli.reconstruct_options import add_reconstruct_options, reconstruct_config
+from vid2sim.reconstruct.config import Stage1Config
 from vid2sim.runtime.ray_runner import RayUnavailable
 
 
@@ -24,9 +26,11 @@ def run(args: argparse.Namespace) -> int:
 
     if args.threads is not None and args.threads < 1:
         raise UserError(f"--threads must be >= 1, got {args.threads}")
-    config = SuiteConfig(preset=args.preset, reconstruct=reconstruct_config(args), threads=args.threads)
+    base = reconstruct_config(args)  # its stage1 section is the variants' to set; --predictor is theirs
+    config = SuiteConfig(preset=args.preset, reconstruct=dataclasses.replace(base, stage1=Stage1Config()),
+                         threads=args.threads)
     try:
-        result = run_ablation(args.suite, args.out, config, progress=not args.quiet,
+        result = run_ablation(args.suite, args.out, config, predictor=base.stage1.predictor, progress=not args.quiet,
                               ray_address=args.ray_address)
     except RayUnavailable as exc:
         raise UserError(str(exc)) from exc
