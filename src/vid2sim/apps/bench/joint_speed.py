@@ -16,6 +16,7 @@ for dF/dz instead of the exact closed form). Medians over repeats.
 
 from __future__ import annotations
 
+from dataclasses import dataclass, replace
 from typing import Any
 
 import torch
@@ -36,21 +37,66 @@ def _box_surface(n: int, size: torch.Tensor, seed: int) -> tuple[torch.Tensor, t
     return p.float(), torch.full((n,), float(faces.sum()) / n)
 
 
-def run(device: torch.device, quick: bool = False, settings: PhysicsBenchSettings | None = None) -> dict[str, Any]:
-    """The figures of the module docstring."""
-    from dataclasses import replace
+@dataclass
+class JointBench:
+    """The bench's joint setting, ready to run iterations (:func:`build_joint_bench`).
 
+    Attributes:
+        sim: the simulator (floor with 1 000 area-weighted contact points, E guessed at 10^5.3).
+        rig: the 6 000 Gaussians on the box's surface, moved by ``sim``.
+        full: the target images (V = 4, T = 10, 128, 128, 3) and cameras; ``half`` the same at 64².
+        fixed: the rig's basis at the Gaussians with the networks fixed (``rig.basis()``).
+        window_start: the state the 4-frame window starts from (frame 5).
+    """
+
+    sim: Any
+    rig: Any
+    full: Any
+    half: Any
+    fixed: Any
+    window_start: Any
+
+    def iteration(self, obs: Any | None = None, basis: Any = "fixed") -> None:
+        """One joint iteration (forward + backward) on ``obs`` (default ``full``) with the rig's ``basis``
+        (default the fixed one; None: recomputed from the networks, differentiably)."""
+        from vid2sim.reconstruct.stages.joint import _image_loss, render_frames
+
+        sim, obs = self.sim, self.full if obs is None else obs
+        basis = self.fixed if isinstance(basis, str) else basis
+        sim.log10_E.requires_grad_(True)
+        sim.nu.requires_grad_(True)
+        out = sim.rollout(self.window_start, 4)
+        renders = render_frames(self.rig, out, obs, range(4), basis)
+        loss = _image_loss(renders, obs.images[:, 6:10].transpose(0, 1))
+        loss.backward()
+        sim.log10_E.grad = sim.nu.grad = None
+        sim.log10_E.requires_grad_(False)
+        sim.nu.requires_grad_(False)
+
+    def with_networks(self) -> None:
+        """One iteration with the skinning MLP (and the Neural Jacobian, when in use) optimised too."""
+        sim = self.sim
+        nets = list(sim.field.parameters()) + (list(sim.jacobian.parameters()) if sim.use_neural_jacobian else [])
+        for p in nets:
+            p.requires_grad_(True)
+        self.iteration(self.full, None)
+        for p in nets:
+            p.requires_grad_(False)
+            p.grad = None
+
+
+def build_joint_bench(device: torch.device, settings: PhysicsBenchSettings | None = None,
+                      quick: bool = False) -> JointBench:
+    """The joint setting of the module docstring (``quick``: a 20-iteration skinning pretraining)."""
     from vid2sim.physics.external import AREA_CONTACT_STIFFNESS, Floor, Gravity
-    from vid2sim.physics.neural_jacobian import NeuralJacobian
     from vid2sim.physics.solver import Simulator
-    from vid2sim.reconstruct.stages.joint import GaussianRig, Observations, _image_loss, render_frames
+    from vid2sim.reconstruct.stages.joint import GaussianRig, Observations, render_frames
     from vid2sim.splats.cameras import camera_ring
     from vid2sim.splats.gaussians import Gaussians
 
     s = settings or PhysicsBenchSettings()
     if quick:
         s = replace(s, skinning_pretrain_iters=20)
-    repeats = 1 if quick else 5
     base, pts = build_standard_simulator(s, device)
     size = pts.max(0).values - pts.min(0).values
     contact, areas = _box_surface(1000, size.double().cpu(), s.seed)
@@ -70,42 +116,30 @@ def run(device: torch.device, quick: bool = False, settings: PhysicsBenchSetting
         target = render_frames(rig, states, Observations(torch.zeros(4, 10, 128, 128, 3), cams),
                                range(4)).transpose(0, 1)  # (V, T, H, W, 3)
     full = Observations(target, cams)
-    half = full.at_scale(0.5)
     with torch.no_grad():
         sim.log10_E.fill_(5.3)  # a wrong guess: the gradients are not zero
         fixed = rig.basis()
-    window_start = states[5]
-
-    def iteration(obs: Observations, basis) -> None:
-        sim.log10_E.requires_grad_(True)
-        sim.nu.requires_grad_(True)
-        out = sim.rollout(window_start, 4)
-        renders = render_frames(rig, out, obs, range(4), basis)
-        loss = _image_loss(renders, obs.images[:, 6:10].transpose(0, 1))
-        loss.backward()
-        sim.log10_E.grad = sim.nu.grad = None
-        sim.log10_E.requires_grad_(False)
-        sim.nu.requires_grad_(False)
-
-    def with_networks() -> None:
-        nets = list(sim.field.parameters()) + (list(sim.jacobian.parameters()) if sim.use_neural_jacobian else [])
-        for p in nets:
-            p.requires_grad_(True)
-        iteration(full, None)
-        for p in nets:
-            p.requires_grad_(False)
-            p.grad = None
-
     for p in sim.field.parameters():  # fixed networks: no gradients to the skinning MLP
         p.requires_grad_(False)
+    return JointBench(sim, rig, full, full.at_scale(0.5), fixed, states[5])
+
+
+def run(device: torch.device, quick: bool = False, settings: PhysicsBenchSettings | None = None) -> dict[str, Any]:
+    """The figures of the module docstring."""
+    from vid2sim.physics.neural_jacobian import NeuralJacobian
+
+    s = settings or PhysicsBenchSettings()
+    repeats = 1 if quick else 5
+    bench = build_joint_bench(device, s, quick)
+    sim = bench.sim
     # the closed-form dF/dz (the default) first: the Neural Jacobian below stays switched on in ``sim``
-    fixed_full = time_ms(lambda: iteration(full, fixed), device, repeats)
-    fixed_half = time_ms(lambda: iteration(half, fixed), device, repeats)
-    closed_form = time_ms(with_networks, device, repeats)
+    fixed_full = time_ms(lambda: bench.iteration(bench.full), device, repeats)
+    fixed_half = time_ms(lambda: bench.iteration(bench.half), device, repeats)
+    closed_form = time_ms(bench.with_networks, device, repeats)
     # the paper's Neural Jacobian instead of the exact closed-form dF/dz (untrained: the cost is the same)
-    sim.jacobian = NeuralJacobian(num_handles_total=sim.field.num_handles_total, seed=s.seed).to(pts)
+    sim.jacobian = NeuralJacobian(num_handles_total=sim.field.num_handles_total, seed=s.seed).to(bench.fixed[0])
     sim.use_neural_jacobian = True
-    neural = time_ms(with_networks, device, repeats)
+    neural = time_ms(bench.with_networks, device, repeats)
 
     return {
         "joint_iter_ms": fixed_full,
