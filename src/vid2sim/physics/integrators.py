@@ -24,6 +24,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import torch
 from torch import Tensor
 
 INTEGRATORS = ("bdf2", "implicit_euler")
@@ -59,25 +60,25 @@ class BDFStep:
 
     def target(self, y: Tensor, ydot: Tensor, y_prev: Tensor | None = None, ydot_prev: Tensor | None = None) -> Tensor:
         """ŷ, the inertial target (same shape as y) from the last state (y, ẏ) and, for BDF2, the one before."""
-        out = (self.a1 / self.a0) * y + (self.h * self.a1 / self.a0**2) * ydot
+        out = torch.add(y * (self.a1 / self.a0), ydot, alpha=self.h * self.a1 / self.a0**2)
         if self.needs_history:
-            out = out + (self.a2 / self.a0) * y_prev + (self.h * self.a2 / self.a0**2) * ydot_prev
+            out = out.add(y_prev, alpha=self.a2 / self.a0).add_(ydot_prev, alpha=self.h * self.a2 / self.a0**2)
         return out
 
     def start(self, y: Tensor, ydot: Tensor, ydot_prev: Tensor | None = None) -> Tensor:
         """A starting guess for the step's solve: y_n + h ẏ_n + h²/2 (ẏ_n − ẏ_{n−1})/h_{n−1} (error O(h³)) with
         history, else y_n + h ẏ_n."""
         if ydot_prev is None or self.h_prev is None:
-            return y + self.h * ydot
+            return torch.add(y, ydot, alpha=self.h)
         w = self.h / self.h_prev
-        return y + self.h * ((1.0 + 0.5 * w) * ydot - 0.5 * w * ydot_prev)
+        return torch.add(y, ydot, alpha=self.h * (1.0 + 0.5 * w)).add_(ydot_prev, alpha=-self.h * 0.5 * w)
 
     def velocity(self, y_new: Tensor, y: Tensor, y_prev: Tensor | None = None) -> Tensor:
         """ẏ_{n+1} = (a₀ y_{n+1} − a₁ y_n − a₂ y_{n−1}) / h."""
-        out = self.a0 * y_new - self.a1 * y
+        out = torch.add(y_new * (self.a0 / self.h), y, alpha=-self.a1 / self.h)
         if self.needs_history:
-            out = out - self.a2 * y_prev
-        return out / self.h
+            out = out.add(y_prev, alpha=-self.a2 / self.h)
+        return out
 
 
 #: Largest ratio h_{n+1}/h_n of consecutive steps for which variable-step BDF2 is zero-stable (1 + √2); a
