@@ -13,12 +13,14 @@ needs goes through the per-term code, which stays the reference (``SimConfig.fus
 Layouts (as in :mod:`vid2sim.physics.reduced`; K points, L = 4H, D = 3L):
 
 - ``y`` (D,) row-major, ``Y = y.view(3, L)``;
-- the F-basis ``G: (K, 3, L)`` is kept as ``G_rows = G.view(3K, L)`` (row (p, c)) and its transpose;
-- deformation gradients are kept **transposed**, ``Ft: (K, 3, 3)`` with ``Ft[p, c, a] = F_p[a, c]``: one
-  ``addmm`` gives them, ``Ft = I + G_rows Yᵀ``, and a stress kept transposed the same way, ``Pt[p, c, a] =
-  P_p[a, c]``, gives the force as one product ``Σ_p ∂vec F_p/∂yᵀ vec P_p = (Pt_rowsᵀ G_rows)``;
-- tangents are returned as ``T: (K, 3, 3, 3, 3)`` with ``T[p, j, i, k, l] = ∂P_ij/∂F_kl`` (the row index of P
-  second), which makes the Hessian's assembly two matrix products with no reordering of the points.
+- Newton's evaluations (few points, many calls) keep deformation gradients **transposed and point-major**,
+  ``Ft: (K, 3, 3)`` with ``Ft[p, c, a] = F_p[a, c]``: one ``addmm`` of the basis rows ``G_rows[(p, c), l] =
+  G[p, c, l]`` gives them, ``Ft = I + G_rows Yᵀ``, and a stress kept the same way, ``Pt[p, c, a] = P_p[a, c]``,
+  gives the force as one product ``Pt_rowsᵀ G_rows``;
+- the Hessians and the adjoint (many points: a batch of steps) keep per-point quantities **point-last**,
+  ``F: (3, 3, n)`` with ``F[a, c, p] = F_p[a, c]``, from the basis columns ``G_soa_cols[l, (c, p)]``, so that every
+  elementwise product runs along the points (small batched matrix products and inner dimensions of 3 are slow on
+  a CPU); tangents are ``T: (3, 3, 3, 3, n)`` with ``T[i, k, j, l, p] = ∂P_ij/∂F_kl``.
 
 Damped Neo-Hookean terms (materials.neo_hookean_viscous_*; v the cubature weights, k_e = h²/a₀², k_d = hτ/a₀):
 
@@ -44,11 +46,14 @@ from torch import Tensor
 from vid2sim.physics.external import Floor, Gravity, energy_and_gradient
 from vid2sim.physics.integrators import BDFStep
 
-#: Temporary memory (bytes) one batch of adjoint Hessians may take; longer rollouts are done in several batches.
+#: Temporary memory (bytes) one batch of adjoint data may take; longer rollouts are done in several batches.
 ADJOINT_BATCH_BYTES = 1 << 27
+#: On a CPU the Hessians' per-point products are made for as many steps at once as fit in this many bytes (a
+#: cache's worth: larger blocks are slower there); on a GPU for the whole batch.
+CPU_BLOCK_BYTES = 1 << 22
 
 
-# ---- per-point kernels -------------------------------------------------------------------------
+# ---- per-point coefficients --------------------------------------------------------------------
 
 @dataclass
 class PointCoefficients:
@@ -57,17 +62,17 @@ class PointCoefficients:
     α = v k_d μ, β₀ = v k_e μ, β₁ = ½ v k_d λ, γ = v k_e λ.
 
     Attributes:
-        alpha, gamma, neg_beta0: (K, 1, 1) α, γ, −β₀.
+        flat: the (K,) vectors 'alpha', 'beta0', 'beta1', 'gamma', 'vk_e' (v k_e), 'vk_d' (v k_d), 'tau_mu'
+            (−(h/a₀) v μ) and 'tau_lam' (−½ (h/a₀) v λ): the point-last kernels' factors.
+        alpha, gamma, neg_beta0: (K, 1, 1) α, γ, −β₀ (the point-major stress kernel's).
         beta0, beta1: (K, 1) β₀, β₁.
         lin, quad: (K, 11) the energy Σ_p f·(lin + quad ∘ f) of the per-point features f = [tr(C − C_ref), ln J,
             vec(C − C_ref)]: lin = [½β₀, −β₀, 0 …], quad = [¼β₁, ½γ, ¼α …] (:func:`energy_offset` adds the rest).
-        plain: (K, 2, 1) [γ, 2β₁]: the factors of the tangent's outer products vec F⁻ᵀ vec F⁻ᵀᵀ and vec F vec Fᵀ.
-        vk_e, vk_d: (K, 1, 1) v k_e, v k_d; tau_mu, tau_lam: (K, 1, 1) −(h/a₀) v μ, −½ (h/a₀) v λ (the adjoint's
-            rows to μ, λ and τ).
         beta0_eye: (9K,) vec(β₀ I) per point (Σ β₀ tr C_ref as one product); offset: 0-d −3/2 Σ β₀.
         k_e, k_d: the step's weights of the potential energy and of the viscous potential (k_d a float or 0-d).
     """
 
+    flat: dict[str, Tensor]
     alpha: Tensor
     beta0: Tensor
     beta1: Tensor
@@ -75,40 +80,35 @@ class PointCoefficients:
     neg_beta0: Tensor
     lin: Tensor
     quad: Tensor
-    plain: Tensor
-    vk_e: Tensor
-    vk_d: Tensor
-    tau_mu: Tensor
-    tau_lam: Tensor
     beta0_eye: Tensor
     offset: Tensor
     k_e: float
     k_d: float | Tensor
-
-    _POINTWISE = ("alpha", "beta0", "beta1", "gamma", "neg_beta0", "lin", "quad", "plain", "vk_e", "vk_d", "tau_mu",
-                  "tau_lam", "beta0_eye")
 
     @classmethod
     def make(cls, vol: Tensor, mu: Tensor, lam: Tensor, k_e: float, k_d: float | Tensor,
              h_over_a0: float) -> "PointCoefficients":
         """From the cubature weights ``vol: (K,)``, 0-d μ and λ, and the step's k_e, k_d and h / a₀."""
         K = vol.shape[0]
-        v = vol.view(K, 1)
-        alpha, beta0, beta1, gamma = v * (k_d * mu), v * (k_e * mu), v * (0.5 * k_d * lam), v * (k_e * lam)
-        lin = torch.cat([0.5 * beta0, -beta0, torch.zeros_like(vol).view(K, 1).expand(K, 9)], dim=1)
+        flat = {"alpha": vol * (k_d * mu), "beta0": vol * (k_e * mu), "beta1": vol * (0.5 * k_d * lam),
+                "gamma": vol * (k_e * lam), "vk_e": vol * k_e, "vk_d": vol * k_d, "tau_mu": vol * (-h_over_a0 * mu),
+                "tau_lam": vol * (-0.5 * h_over_a0 * lam)}
+        alpha, beta0, beta1, gamma = (flat[k].view(K, 1) for k in ("alpha", "beta0", "beta1", "gamma"))
+        lin = torch.cat([0.5 * beta0, -beta0, torch.zeros_like(beta0).expand(K, 9)], dim=1)
         quad = torch.cat([0.25 * beta1, 0.5 * gamma, (0.25 * alpha).expand(K, 9)], dim=1)
         eye = torch.eye(3, dtype=vol.dtype, device=vol.device).view(1, 9)
-        pointwise = [t.view(K, 1, 1) for t in (v * k_e, v * k_d, v * (-h_over_a0 * mu), v * (-0.5 * h_over_a0 * lam))]
-        return cls(alpha.view(K, 1, 1), beta0, beta1, gamma.view(K, 1, 1), (-beta0).view(K, 1, 1), lin, quad,
-                   torch.stack([gamma, 2.0 * beta1], dim=1), *pointwise, (beta0 * eye).view(-1), -1.5 * beta0.sum(),
-                   k_e, k_d)
+        return cls(flat, alpha.view(K, 1, 1), beta0, beta1, gamma.view(K, 1, 1), (-beta0).view(K, 1, 1), lin, quad,
+                   (beta0 * eye).view(-1), -1.5 * beta0.sum(), k_e, k_d)
 
-    @staticmethod
-    def cat(parts: Sequence["PointCoefficients"]) -> "PointCoefficients":
-        """The coefficients of several point sets (e.g. several steps' points) one after the other."""
-        tensors = {name: torch.cat([getattr(p, name) for p in parts]) for name in PointCoefficients._POINTWISE}
-        return PointCoefficients(**tensors, offset=sum(p.offset for p in parts), k_e=parts[0].k_e, k_d=parts[0].k_d)
 
+def _flat_coefficients(parts: Sequence[PointCoefficients]) -> dict[str, Tensor]:
+    """The point-last factors of several point sets one after the other (n = Σ K,)."""
+    if len(parts) == 1:
+        return parts[0].flat
+    return {k: torch.cat([p.flat[k] for p in parts]) for k in parts[0].flat}
+
+
+# ---- Newton's kernels (point-major, transposed F) ---------------------------------------------------
 
 def point_state(Ft: Tensor, C_ref: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """(cof, J, C − C_ref, tr(C − C_ref)) of transposed deformation gradients ``Ft: (K, 3, 3)`` and reference
@@ -153,65 +153,94 @@ def damped_neo_hookean_stress(Ft: Tensor, C_ref: Tensor, coef: PointCoefficients
 
 
 def energy_offset(C_ref: Tensor, coef: PointCoefficients) -> Tensor:
-    """0-d Σ_p ½β₀ (tr C_ref − 3): the constant the energy of :func:`damped_neo_hookean_stress` leaves out."""
+    """0-d Σ_p ½β₀ (tr C_ref − 3): the constant the energy of :func:`damped_neo_hookean_stress` leaves out
+    (C_ref: (K, 3, 3))."""
     return torch.dot(coef.beta0_eye, C_ref.reshape(-1)).mul(0.5).add_(coef.offset)
 
 
-def damped_neo_hookean_tangent(Ft: Tensor, C_ref: Tensor, coef: PointCoefficients,
+# ---- the Hessians' and the adjoint's kernels (point-last F) --------------------------------------------
+
+def soa_point_state(F: Tensor, C_ref: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """(cof(F) = J F⁻ᵀ (3, 3, n), J (n,), C − C_ref (3, 3, n), tr(C − C_ref) (n,)) of point-last deformation gradients
+    F: (3, 3, n) (contiguous) and metrics C_ref: (3, 3, n), C = FᵀF."""
+    n = F.shape[2]
+    cof = torch.linalg.cross(F.roll(-1, 0), F.roll(-2, 0), dim=1)
+    J = (F * cof).sum((0, 1)).div_(3.0)
+    diff = (F.view(3, 3, 1, n) * F.view(3, 1, 3, n)).sum(0).sub_(C_ref)
+    return cof, J, diff, diff.diagonal(dim1=0, dim2=1).sum(-1)
+
+
+def _soa_stress_factor(diff: Tensor, tr: Tensor, c: dict[str, Tensor]) -> Tensor:
+    """Dm = α (C − C_ref) + (β₀ + β₁ tr(C − C_ref)) I, point-last (3, 3, n) (:func:`_stress_factor`)."""
+    Dm = diff * c["alpha"]
+    Dm.diagonal(dim1=0, dim2=1).add_(torch.addcmul(c["beta0"], c["beta1"], tr).unsqueeze(-1))
+    return Dm
+
+
+def damped_neo_hookean_tangent(F: Tensor, C_ref: Tensor, c: dict[str, Tensor],
                                state: tuple[Tensor, Tensor, Tensor, Tensor] | None = None) -> Tensor:
     """The exact volume-weighted, step-weighted tangent v (k_e ∂P_NH/∂F + k_d ∂P_v/∂F) of every point.
 
     With A = F⁻ᵀ and c = μ − λ ln J it is v k_e [μ δ_ik δ_jl + c A_il A_kj + λ A_ij A_kl] + v k_d [δ_ik S_lj +
-    μ F_il F_kj + μ (FFᵀ)_ik δ_lj + λ F_ij F_kl] (:func:`~vid2sim.physics.materials.neo_hookean_viscous_tangent`),
-    made of two batched products over the pair (A, F) and two diagonal updates.
+    μ F_il F_kj + μ (FFᵀ)_ik δ_lj + λ F_ij F_kl] (:func:`~vid2sim.physics.materials.neo_hookean_viscous_tangent`):
+    six outer products, each one broadcast product along the points.
 
     Args:
-        Ft, C_ref, coef: as in :func:`damped_neo_hookean_stress`; state: their :func:`point_state`, if made.
+        F: (3, 3, n) point-last deformation gradients (contiguous); C_ref: (3, 3, n) the viscous reference
+            metrics (the identity when undamped); c: the (n,) factors (:attr:`PointCoefficients.flat`);
+            state: their :func:`soa_point_state`, if made.
     Returns:
-        T: (K, 3, 3, 3, 3) with ``T[p, j, i, k, l] = ∂P_ij/∂F_kl`` (contiguous).
+        T: (3, 3, 3, 3, n) with ``T[i, k, j, l, p] = ∂P_ij/∂F_kl`` (contiguous).
     """
-    K = Ft.shape[0]
-    cof, J, diff, tr = state if state is not None else point_state(Ft, C_ref)
-    pair = torch.stack([cof / J, Ft], dim=1)  # (K, 2, 3, 3): F⁻¹ = Aᵀ and Fᵀ, i.e. [s, j, i] = V_s[i, j]
-    U = pair.view(K, 2, 9).transpose(1, 2)  # (K, 9 (j, i), 2)
-    V = pair.transpose(2, 3).reshape(K, 2, 9)  # (K, 2, 9 (k, l)) = V_s[k, l]
-    swap_coef = torch.cat([torch.addcmul(coef.beta0.view(K, 1, 1), coef.gamma, J.log(), value=-1.0),
-                           coef.alpha], dim=1)  # (K, 2, 1): [v k_e c, v k_d μ]
-    out = torch.bmm(U, coef.plain * V).view(K, 3, 3, 3, 3)  # Σ_s ρ_s V_s[i, j] V_s[k, l]
-    # Σ_s σ_s V_s[k, j] V_s[i, l], made at [j, k, i, l]
-    out += torch.bmm(U, swap_coef * V).view(K, 3, 3, 3, 3).permute(0, 1, 3, 2, 4)
-    out.diagonal(dim1=2, dim2=3).add_(_stress_factor(diff, tr, coef).unsqueeze(-1))  # δ_ik Dm_jl
-    out.diagonal(dim1=1, dim2=4).add_((torch.bmm(Ft.transpose(1, 2), Ft) * coef.alpha).unsqueeze(-1))  # δ_jl α(FFᵀ)_ik
+    n = F.shape[2]
+    cof, J, diff, tr = state if state is not None else soa_point_state(F, C_ref)
+    A = cof / J  # F⁻ᵀ
+    eye = torch.eye(3, dtype=F.dtype, device=F.device)
+    FFt = (F.view(3, 1, 3, n) * F.view(1, 3, 3, n)).sum(2)
+    swap = torch.addcmul(c["beta0"], c["gamma"], J.log(), value=-1.0)  # v k_e (μ − λ ln J)
+    out = torch.mul((A * c["gamma"]).view(3, 1, 3, 1, n), A.view(1, 3, 1, 3, n), out=F.new_empty(3, 3, 3, 3, n))
+    out.addcmul_((F * (2.0 * c["beta1"])).view(3, 1, 3, 1, n), F.view(1, 3, 1, 3, n))  # λ-terms: V_ij V_kl
+    out.addcmul_((A * swap).view(3, 1, 1, 3, n), A.view(1, 3, 3, 1, n))  # V_il V_kj
+    out.addcmul_((F * c["alpha"]).view(3, 1, 1, 3, n), F.view(1, 3, 3, 1, n))
+    out.addcmul_(eye.view(3, 3, 1, 1, 1), _soa_stress_factor(diff, tr, c).view(1, 1, 3, 3, n))  # δ_ik Dm_jl
+    out.addcmul_((FFt * c["alpha"]).view(3, 3, 1, 1, n), eye.view(1, 1, 3, 3, 1))  # α (FFᵀ)_ik δ_jl
     return out
 
 
-def material_adjoint_rows(Ft: Tensor, state: tuple[Tensor, Tensor, Tensor, Tensor], coef: PointCoefficients) -> Tensor:
-    """Per point the matrices B_θ (K, 3, 3, 3) (θ = μ, λ, τ; transposed layout) with −λᵀ ∂∇Φ/∂θ = Σ_p ⟨B_θ,p, dFt_p⟩,
+def material_adjoint_rows(F: Tensor, state: tuple[Tensor, Tensor, Tensor, Tensor], c: dict[str, Tensor]) -> Tensor:
+    """Per point the matrices B_θ (3, 3, 3, n) (θ = μ, λ, τ; point-last) with −λᵀ ∂∇Φ/∂θ = Σ_p ⟨B_θ,p, dF_p⟩,
     dF = ∂F/∂y λ. From ∂P/∂μ = k_e (F − F⁻ᵀ) + k_d F (C − C_ref), ∂P/∂λ = k_e ln J F⁻ᵀ + ½ k_d tr(C − C_ref) F
-    and ∂P/∂τ = (h/a₀) F S: B_μ = v k_e (F⁻¹ − Fᵀ) − v k_d (C − C_ref) Fᵀ, B_λ = −½ v k_d tr(C − C_ref) Fᵀ −
-    v k_e ln J F⁻¹, B_τ = −(h/a₀) v (μ (C − C_ref) + ½ λ tr(C − C_ref)) Fᵀ."""
+    and ∂P/∂τ = (h/a₀) F S: B_μ = v k_e (F⁻ᵀ − F) − v k_d F (C − C_ref), B_λ = −½ v k_d tr(C − C_ref) F −
+    v k_e ln J F⁻ᵀ, B_τ = −(h/a₀) v F (μ (C − C_ref) + ½ λ tr(C − C_ref) I)."""
     cof, J, diff, tr = state
-    K = Ft.shape[0]
-    Ainv = cof / J
-    DF = torch.bmm(diff, Ft)
-    trF = tr.view(K, 1, 1) * Ft
-    b_mu = torch.addcmul((Ainv - Ft) * coef.vk_e, coef.vk_d, DF, value=-1.0)
-    b_lam = torch.addcmul(trF * (-0.5 * coef.vk_d), Ainv * J.log(), coef.vk_e, value=-1.0)
-    b_tau = torch.addcmul(DF * coef.tau_mu, coef.tau_lam, trF)
-    return torch.stack([b_mu, b_lam, b_tau], dim=1)
+    n = F.shape[2]
+    A = cof / J
+    Fd = (F.view(3, 3, 1, n) * diff.view(1, 3, 3, n)).sum(1)  # F (C − C_ref)
+    trF = F * tr
+    b_mu = torch.addcmul((A - F) * c["vk_e"], Fd, c["vk_d"], value=-1.0)
+    b_lam = torch.addcmul(trF * (-0.5 * c["vk_d"]), A * J.log(), c["vk_e"], value=-1.0)
+    b_tau = torch.addcmul(Fd * c["tau_mu"], trF, c["tau_lam"])
+    return torch.stack([b_mu, b_lam, b_tau])
 
 
-def metric_adjoint_map(Ft: Tensor, Ft_prev: Tensor, a: Tensor, b: Tensor) -> Tensor:
-    """The map dFt ↦ R = Q Fᵀ_prev per point (n, 9, 9), ``R.view(9) = map @ dFt.view(9)``, where Q = a (W + Wᵀ) +
-    b tr W I, W = FᵀdF (the viscous term's dependence on C_ref passes λ on to a previous state F_prev through
-    C_ref = Σ c F_prevᵀF_prev: the gradient to F_prev is 2c F_prev Q with a = ½α, b = β₁; here a and b (n, 1, 1)
-    carry the 2c). Entries: R[c, e] = Σ_xy (a Ft[c, y] Ft_prev[x, e] + a δ_cx (FtᵀFt_prev)[y, e] + b Ft_prev[c, e]
-    Ft[x, y]) dFt[x, y]."""
-    n = Ft.shape[0]
-    out = torch.bmm(Ft_prev.view(n, 9, 1) * b, Ft.view(n, 1, 9))  # b Ft_prev[c, e] Ft[x, y]
-    o5 = out.view(n, 3, 3, 3, 3)  # [c, e, x, y]
-    o5 += torch.bmm(Ft.view(n, 9, 1) * a, Ft_prev.view(n, 1, 9)).view(n, 3, 3, 3, 3).permute(0, 1, 4, 3, 2)
-    o5.diagonal(dim1=1, dim2=3).add_((torch.bmm(Ft.transpose(1, 2), Ft_prev) * a).transpose(1, 2).unsqueeze(-1))
+def metric_adjoint_map(F: Tensor, F_prev: Tensor, a: Tensor, b: Tensor) -> Tensor:
+    """The map dF ↦ R = 2c F_prev Q per point, where Q = ½α (W + Wᵀ) + β₁ tr W I, W = FᵀdF: the viscous term's
+    dependence on C_ref passes λ on to a previous state F_prev through C_ref = Σ c F_prevᵀF_prev, whose gradient
+    to F_prev is 2c F_prev Q (a = cα, b = 2cβ₁, (n,)).
+
+    R[e, c] = Σ_xy (a δ_yc (F_prev Fᵀ)[e, x] + a F_prev[e, y] F[x, c] + b F_prev[e, c] F[x, y]) dF[x, y].
+
+    Args:
+        F, F_prev: (3, 3, n) point-last, contiguous.
+    Returns:
+        (3, 3, 3, 3, n) with ``[e, c, x, y, p]`` the coefficient of dF[x, y] in R[e, c].
+    """
+    n = F.shape[2]
+    eye = torch.eye(3, dtype=F.dtype, device=F.device)
+    N = (F_prev.view(3, 1, 3, n) * F.view(1, 3, 3, n)).sum(2)  # F_prev Fᵀ
+    out = torch.mul((F_prev * b).view(3, 3, 1, 1, n), F.view(1, 1, 3, 3, n), out=F.new_empty(3, 3, 3, 3, n))
+    out.addcmul_((F_prev * a).view(3, 1, 1, 3, n), F.transpose(0, 1).reshape(1, 3, 3, 1, n))
+    out.addcmul_((N * a).view(3, 1, 3, 1, n), eye.view(1, 3, 1, 3, 1))
     return out
 
 
@@ -231,8 +260,10 @@ class FusedFrame:
     """The constants of a frame's substeps (one basis, material and set of points), detached.
 
     Attributes:
-        G_rows: (3K, L) the F-basis, row (p, c); G_cols: (L, 3K) its transpose (contiguous).
-        eye_rows: (3K, 3) the identity's rows per point (F = I + Y G).
+        G_rows: (3K, L) the F-basis point-major, ``G_rows[(p, c), l] = G[p, c, l]``; eye_rows: (3K, 3) the identity's
+            rows per point (Ft = I + G_rows Yᵀ).
+        G_soa_cols: (L, 3K) point-last, ``[l, (c, p)]``; G_soa_rows: (3K, L) its transpose; G_soa: (3, L, K)
+            ``[c, l, p]``; eye_soa: (3, 3K) the identity's columns (F = I + Y G_soa_cols).
         vol: (K,) cubature weights; mu, lam: 0-d Lamé parameters; tau: 0-d retardation time or None.
         mass_block: (L, L) Σ_p m_p b_p b_pᵀ; mass_matrix: (D, D) I₃ ⊗ mass_block.
         tracked_cols: (L, K + Nc) LBS rows of the cubature and contact points, transposed (the points
@@ -245,8 +276,11 @@ class FusedFrame:
     """
 
     G_rows: Tensor
-    G_cols: Tensor
     eye_rows: Tensor
+    G_soa_cols: Tensor
+    G_soa_rows: Tensor
+    G_soa: Tensor
+    eye_soa: Tensor
     vol: Tensor
     mu: Tensor
     lam: Tensor
@@ -271,7 +305,9 @@ class FusedFrame:
         """From the step's inputs (shapes of :class:`~vid2sim.physics.reduced.StepProblem`; G: (K, 3, L))."""
         K, _, L = G.shape
         X, vol, mass, b, G = (t.detach() for t in (X, vol, mass, b, G))
-        G_rows = G.reshape(3 * K, L)
+        eye = torch.eye(3, dtype=X.dtype, device=X.device)
+        G_soa = G.permute(1, 2, 0).contiguous()  # [c, l, p]
+        G_soa_cols = G_soa.transpose(0, 1).reshape(L, 3 * K)
         mass_block = (b * mass[:, None]).T @ b
         if contact_b is None:
             contact_X, contact_b, contact_w = X, b, torch.ones_like(mass)
@@ -282,9 +318,9 @@ class FusedFrame:
         gravity = (-(mass * (X @ acc)).sum(), acc[:, None] * (mass @ b)[None, :])
         contact = [e for e in externals if getattr(e, "kind", "body") == "contact"]
         floors = [(contact_X[:, 2] - e.height, 2.0 * e.stiffness) for e in contact if type(e) is Floor]
-        return cls(G_rows, G_rows.T.contiguous(), torch.eye(3, dtype=X.dtype, device=X.device).repeat(K, 1), vol,
-                   mu.detach(), lam.detach(), None if tau is None else tau.detach(), mass_block,
-                   torch.block_diag(mass_block, mass_block, mass_block), tracked.T.contiguous(), gravity,
+        return cls(G.reshape(3 * K, L), eye.repeat(K, 1), G_soa_cols, G_soa_cols.T.contiguous(), G_soa,
+                   eye.repeat_interleave(K, dim=1), vol, mu.detach(), lam.detach(), None if tau is None else tau.detach(),
+                   mass_block, torch.block_diag(mass_block, mass_block, mass_block), tracked.T.contiguous(), gravity,
                    contact_X, contact_b, contact_w, contact_b.T.contiguous(), floors,
                    [e for e in contact if type(e) is not Floor])
 
@@ -306,6 +342,14 @@ class FusedFrame:
     def deformation(self, y: Tensor) -> Tensor:
         """Ft: (K, 3, 3) transposed deformation gradients at the row-major state y: (D,)."""
         return torch.addmm(self.eye_rows, self.G_rows, y.view(3, -1).t()).view(-1, 3, 3)
+
+    def soa_deformations(self, Y: Tensor) -> Tensor:
+        """F: (3, 3, S K) point-last deformation gradients of S states Y: (S, 3, L) (contiguous, state-major points)."""
+        S, _, L = Y.shape
+        K = self.num_points
+        F = torch.addmm(self.eye_soa, Y.view(3 * S, L), self.G_soa_cols) if S == 1 else \
+            torch.mm(Y.view(3 * S, L), self.G_soa_cols).view(S, 9, K).add_(self.eye_soa.view(1, 9, K))
+        return F.view(S, 3, 3, K).permute(1, 2, 0, 3).reshape(3, 3, S * K)
 
     def metric(self, y: Tensor) -> tuple[Tensor, Tensor]:
         """(Ft, C = FᵀF) (K, 3, 3) at y; the last two states asked for are remembered (a step's previous state
@@ -329,8 +373,8 @@ class StepAdjoint:
         hessian: (D, D) the exact Hessian at the converged state; factor: its Cholesky factor, or None where it is
             indefinite (then LU).
         rows: (3, D) E: the gradients to (μ, λ, τ) are E λ.
-        metric_map: (2, K, 9, 9) the maps of :func:`metric_adjoint_map` to the previous state and the one before
-            (2c folded in), or None when undamped.
+        metric_map: (2, 3, 3, 3, 3, K) the maps of :func:`metric_adjoint_map` to the previous state and the one
+            before (2c folded in), or None when undamped.
         history: (4, 1, 1) the factors of Mλ in the gradients to (y_prev, ẏ_prev, y_prev2, ẏ_prev2):
             (a₁/a₀, h a₁/a₀², a₂/a₀, h a₂/a₀²) (ŷ's coefficients).
     """
@@ -363,16 +407,16 @@ class FusedStep:
         self.solution: Tensor | None = None
         self.adjoint_data: StepAdjoint | None = None
         a0, a1, a2 = step.coefficients
-        self.previous: list[tuple[float, Tensor]] = []
+        self.previous: list[Tensor] = []  # Ft (K, 3, 3) of the states C_ref is made of
         if frame.tau is None:
             self.C_ref = frame.eye_rows.view(-1, 3, 3)
         else:
             Ft1, C1 = frame.metric(y_prev)
-            self.previous.append((a1 / a0, Ft1))
+            self.previous.append(Ft1)
             self.C_ref = (a1 / a0) * C1
             if step.needs_history:
                 Ft2, C2 = frame.metric(y_prev2)
-                self.previous.append((a2 / a0, Ft2))
+                self.previous.append(Ft2)
                 self.C_ref.add_(C2, alpha=a2 / a0)
         # Φ's constant parts: Σ ½β₀ (tr C_ref − 3) + k_e e₀ + f·ŷ (the gravity term f·y is written f·(y − ŷ) + f·ŷ)
         self.constants = [energy_offset(self.C_ref, self.coef), torch.dot(self.force_constant.view(-1), y_pred), constant]
@@ -432,11 +476,15 @@ class FusedStep:
         return bool(torch.linalg.det(Ft).amin() > 0)
 
     # ---- the exact Hessian and the adjoint -------------------------------------------------------
+    def soa_metric(self) -> Tensor:
+        """C_ref point-last (3, 3, K) (a view)."""
+        return self.C_ref.permute(1, 2, 0)
+
     def hessian(self, y: Tensor) -> Tensor:
         """∇²Φ(y): (D, D), exact (unprojected)."""
-        Ft = torch.addmm(self.frame.eye_rows, self.frame.G_rows, y.view(3, -1).t()).view(-1, 3, 3)
-        return _assemble_hessians([self], y.view(1, 3, -1), Ft,
-                                  damped_neo_hookean_tangent(Ft, self.C_ref, self.coef))[0]
+        Y = y.view(1, 3, -1)
+        T = damped_neo_hookean_tangent(self.frame.soa_deformations(Y), self.soa_metric(), self.coef.flat)
+        return _assemble_hessians([self], Y, T)[0]
 
     def adjoint_solve(self, grad_y: Tensor) -> Tensor:
         """λ = H⁻¹ ∂L/∂y* (D,) with the exact Hessian H at the converged state (LU where it is indefinite, e.g. under
@@ -459,8 +507,9 @@ class FusedStep:
         Lam = lam.view(3, -1)
         history = data.history * torch.mm(Lam, fr.mass_block)  # (4, 3, L): through ŷ
         if data.metric_map is not None:  # through C_ref to the previous states
-            R = torch.matmul(data.metric_map, torch.mm(fr.G_rows, Lam.t()).view(-1, 9, 1)).view(2, -1, 3)
-            history[0::2] += torch.matmul(R.transpose(1, 2), fr.G_rows)
+            dF = torch.mm(Lam, fr.G_soa_cols).view(1, 1, 1, 3, 3, -1)  # dF[x, y, p]
+            R = (data.metric_map * dF).sum((3, 4))  # (2, 3, 3, K): [state, e, c, p]
+            history[0::2] += torch.mm(R.view(6, -1), fr.G_soa_rows).view(2, 3, -1)
         return history.view(4, -1), torch.mv(data.rows, lam)
 
 
@@ -481,7 +530,7 @@ class AdjointBatch:
         """Make the adjoint data of ``step`` and of the pending steps before it in one batch."""
         fr = step.frame
         K, L = fr.num_points, fr.G_rows.shape[1]
-        per_step = fr.G_rows.element_size() * (K * (27 * L + 400) + 8 * (3 * L) ** 2)
+        per_step = fr.G_rows.element_size() * (K * 800 + 8 * (3 * L) ** 2)
         most = max(1, ADJOINT_BATCH_BYTES // per_step)
         end = self._pending.index(step)
         start = end
@@ -493,38 +542,43 @@ class AdjointBatch:
             s.adjoint_data = data
 
 
+def _soa_stack(mats: Sequence[Tensor]) -> Tensor:
+    """Point-major (K, 3, 3) matrices of S steps as one point-last (3, 3, S K) tensor."""
+    M = torch.stack(list(mats))  # (S, K, 3, 3)
+    return M.permute(2, 3, 0, 1).reshape(3, 3, -1)
+
+
 def _adjoint_data(steps: Sequence[FusedStep]) -> list[StepAdjoint]:
     """The :class:`StepAdjoint` of S steps sharing one frame's constants, in one batch."""
     fr = steps[0].frame
     S, K = len(steps), fr.num_points
     L = fr.G_rows.shape[1]
     Y = torch.stack([s.solution for s in steps]).view(S, 3, L)
-    Ft = torch.matmul(fr.G_rows, Y.transpose(1, 2)).add_(fr.eye_rows).view(S * K, 3, 3)
-    coef = PointCoefficients.cat([s.coef for s in steps]) if S > 1 else steps[0].coef
-    C_ref = torch.cat([s.C_ref for s in steps]) if S > 1 else steps[0].C_ref
-    state = point_state(Ft, C_ref)
-    H = _assemble_hessians(steps, Y, Ft, damped_neo_hookean_tangent(Ft, C_ref, coef, state))
+    F = fr.soa_deformations(Y)
+    c = _flat_coefficients([s.coef for s in steps])
+    C_ref = _soa_stack([s.C_ref for s in steps])  # symmetric: the order of its two indices does not matter
+    state = soa_point_state(F, C_ref)
+    H = _assemble_hessians(steps, Y, damped_neo_hookean_tangent(F, C_ref, c, state))
     factor, info = torch.linalg.cholesky_ex(H)
-    B = material_adjoint_rows(Ft, state, coef).view(S, K, 3, 3, 3).transpose(1, 2).reshape(S, 3, 3 * K, 3)
-    rows = torch.matmul(B.transpose(2, 3), fr.G_rows).view(S, 3, 3 * L)  # Σ_p ⟨B_p, G_p Λᵀ⟩ = E λ
-    a0, a1, a2 = (torch.tensor([s.step.coefficients[i] for s in steps], dtype=H.dtype, device=H.device)
-                  for i in range(3))
-    h = torch.tensor([s.step.h for s in steps], dtype=H.dtype, device=H.device)
+    B = material_adjoint_rows(F, state, c).view(3, 3, 3, S, K).permute(3, 0, 1, 2, 4).reshape(S * 9, 3 * K)
+    rows = torch.mm(B, fr.G_soa_rows).view(S, 3, 3 * L)  # Σ_p ⟨B_p, dF_p⟩ = E λ
+    a0, a1, a2, h = torch.tensor([[*s.step.coefficients, s.step.h] for s in steps], dtype=H.dtype,
+                                 device=H.device).unbind(1)
     history = torch.stack([a1 / a0, h * a1 / a0**2, a2 / a0, h * a2 / a0**2], dim=1).view(S, 4, 1, 1)
     maps = None
     if fr.tau is not None:
         maps = []
-        for i, c in ((0, a1 / a0), (1, a2 / a0)):  # the state one step back and two (C_ref's terms)
-            prev = torch.cat([(s.previous[i] if i < len(s.previous) else s.previous[0])[1] for s in steps])
-            scale = (2.0 * c).repeat_interleave(K).view(S * K, 1, 1)
-            maps.append(metric_adjoint_map(Ft, prev, coef.alpha * (0.5 * scale), coef.beta1.view(-1, 1, 1) * scale))
-        maps = torch.stack(maps).view(2, S, K, 9, 9)
-    return [StepAdjoint(H[s], factor[s] if bad == 0 else None, rows[s], None if maps is None else maps[:, s],
+        for i, ratio in ((0, a1 / a0), (1, a2 / a0)):  # the state one step back and two (C_ref's terms)
+            prev = _soa_stack([(s.previous[i] if i < len(s.previous) else s.previous[0]).transpose(1, 2) for s in steps])
+            scale = ratio.repeat_interleave(K)
+            maps.append(metric_adjoint_map(F, prev, c["alpha"] * scale, (2.0 * scale) * c["beta1"]))
+        maps = torch.stack(maps).view(2, 3, 3, 3, 3, S, K)
+    return [StepAdjoint(H[s], factor[s] if bad == 0 else None, rows[s], None if maps is None else maps[..., s, :],
                         history[s]) for s, bad in enumerate(info.tolist())]
 
 
-#: The row blocks (a, b), a ≤ b, of the Hessian that are assembled; the others are their transposes: those of
-#: the pairs _BELOW, and _ORDER puts the nine (made six, then the three transposed) in row-major order.
+#: The row blocks (i, k), i ≤ k, of the Hessian that are assembled; the others are transposes: those of the pairs
+#: _BELOW, and _ORDER puts the nine (the six made, then the three transposed) in row-major order.
 _PAIRS = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
 _BELOW = (1, 2, 4)
 _ORDER = (0, 1, 2, 6, 3, 4, 7, 8, 5)
@@ -536,20 +590,29 @@ def _index(values: tuple[int, ...], device: torch.device) -> Tensor:
     return torch.tensor(values, device=device)
 
 
-def _assemble_hessians(steps: Sequence[FusedStep], Y: Tensor, Ft: Tensor, T: Tensor) -> Tensor:
+def _assemble_hessians(steps: Sequence[FusedStep], Y: Tensor, T: Tensor) -> Tensor:
     """The exact Hessians (S, D, D) of S steps sharing one frame's constants at their states Y: (S, 3, L), from the
-    points' transposed F (S K, 3, 3) and tangents T (S K, 3, 3, 3, 3) ([p, j, i, k, l] = ∂P_ij/∂F_kl):
-    H[(i, l'), (k, m)] = Σ_p Σ_jl G[p, j, l'] T[p, j, i, k, l] G[p, l, m] + the mass and contact terms."""
+    points' tangents T (3, 3, 3, 3, S K) (:func:`damped_neo_hookean_tangent`):
+    H[(i, l'), (k, m)] = Σ_p Σ_jl G[p, j, l'] T[i, k, j, l, p] G[p, l, m] + the mass and contact terms. For the six
+    row-block pairs i ≤ k, TG[q, m, j, p] = Σ_l T[q, j, l, p] G[p, l, m] is a product along the points and the sum
+    over (j, p) one matrix product, for as many steps at once as :data:`CPU_BLOCK_BYTES` allow on a CPU."""
     fr = steps[0].frame
     S, K = len(steps), fr.num_points
     L = fr.G_rows.shape[1]
-    T6 = T.view(S, K, 3, 9, 3).index_select(3, _index(tuple(3 * i + k for i, k in _PAIRS), Ft.device))  # (S, K, j, 6, l)
-    TG = torch.matmul(T6.view(S, K, 18, 3), fr.G_rows.view(K, 3, L))  # (S, K, 18, L): [p, (j, q), m]
-    Hq = torch.matmul(fr.G_cols, TG.view(S, 3 * K, 6 * L)).view(S, L, 6, L)  # [l', q, m]
-    # the nine blocks (i, k) in order: the six made and the transposes of the three below the diagonal
-    blocks = torch.cat([Hq, Hq.index_select(2, _index(_BELOW, Ft.device)).permute(0, 3, 2, 1)], 2)
-    H = blocks.index_select(2, _index(_ORDER, Ft.device)).view(S, L, 3, 3, L)
-    H = H.permute(0, 2, 1, 3, 4).reshape(S, 3 * L, 3 * L) + fr.mass_matrix
+    T6 = T.view(9, 3, 3, S, K).index_select(0, _index(tuple(3 * i + k for i, k in _PAIRS), T.device))
+    T6 = T6.permute(2, 3, 0, 1, 4).contiguous()  # [l, s, q, j, p]
+    per_step = 18 * L * K * T.element_size()
+    block = S if T.device.type != "cpu" else max(1, min(S, CPU_BLOCK_BYTES // per_step))
+    G = fr.G_soa.view(3, 1, 1, L, 1, K)
+    parts = []
+    for s0 in range(0, S, block):
+        Tb = T6[:, s0:s0 + block].unsqueeze(3)  # (l, s, q, 1, j, p)
+        TG = torch.mul(Tb[0], G[0]).addcmul_(Tb[1], G[1]).addcmul_(Tb[2], G[2])  # (s, q, m, j, p)
+        parts.append(torch.mm(TG.view(-1, 3 * K), fr.G_soa_rows))  # [(s, q, m), l']
+    Hq = (parts[0] if len(parts) == 1 else torch.cat(parts)).view(S, 6, L, L)  # [s, q, m, l'] = H[(i, l'), (k, m)]
+    blocks = torch.cat([Hq.transpose(2, 3), Hq.index_select(1, _index(_BELOW, T.device))], 1)  # [(i, k), l', m]
+    H = blocks.index_select(1, _index(_ORDER, T.device)).view(S, 3, 3, L, L)
+    H = H.permute(0, 1, 3, 2, 4).reshape(S, 3 * L, 3 * L) + fr.mass_matrix
     _add_barrier_hessians(steps, Y, H)
     return 0.5 * (H + H.transpose(1, 2))
 
@@ -559,13 +622,14 @@ def _add_barrier_hessians(steps: Sequence[FusedStep], Y: Tensor, H: Tensor) -> N
     from vid2sim.physics.reduced import _reduced_point_hessian
 
     fr = steps[0].frame
-    L = Y.shape[2]
+    S, _, L = Y.shape
     if fr.floors:
-        k_e = torch.tensor([s.k_e for s in steps], dtype=H.dtype, device=H.device)
-        heights = torch.matmul(fr.contact_b, Y[:, 2].t())  # (Nc, S): z − z_rest
+        k_e = torch.tensor([s.k_e for s in steps], dtype=H.dtype, device=H.device).view(S, 1)
+        heights = torch.mm(Y[:, 2], fr.contact_cols)  # (S, Nc): z − z_rest
         for offset, k2 in fr.floors:  # k2 w e_z e_zᵀ where a point is below the floor: the zz block only
-            h = (heights + offset[:, None] < 0).to(H.dtype) * (k2 * fr.contact_w[:, None]) * k_e
-            H[:, 2 * L:, 2 * L:] += torch.matmul(fr.contact_cols * h.t()[:, None, :], fr.contact_b)
+            h = (heights + offset < 0).to(H.dtype) * (k2 * fr.contact_w) * k_e
+            weighted = (fr.contact_cols.unsqueeze(0) * h.unsqueeze(1)).view(S * L, -1)  # (S L, Nc)
+            H[:, 2 * L:, 2 * L:] += torch.mm(weighted, fr.contact_b).view(S, L, L)
     for ext in fr.barriers:
         for s, step in enumerate(steps):
             x = torch.addmm(fr.contact_X, fr.contact_b, Y[s].t())

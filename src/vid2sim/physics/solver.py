@@ -66,7 +66,7 @@ class SimConfig:
             below 30 ε of the dtype × the length scale.
         newton_rtol: that relative part of the tolerance.
         reuse_hessian: keep the factorised Hessian across Newton iterations and substeps (a chord
-            iteration: every iteration then costs one gradient and two triangular solves), turned with the
+            iteration: every iteration then costs one gradient and one product with the kept inverse), turned with the
             object by a fitted rotation (:class:`NewtonCache`), and refactorise it when a line search needs
             halvings or an iteration shrinks the step by less than ``reuse_rate``. The converged state is
             the same minimiser; the adjoint always uses the exact Hessian at it. False: a fresh Hessian at
@@ -255,30 +255,36 @@ class NewtonCache:
     rotation: Tensor | None = None
     adjoint: AdjointBatch = field(default_factory=AdjointBatch)
     frame: tuple[tuple, FusedFrame] | None = None
-    _rotations: tuple[Tensor, Tensor] | None = None
+    inverse: Tensor | None = None
+    step_matrix: Tensor | None = None
 
-    def keep(self, factor: Tensor, problem: StepProblem, y: Tensor) -> None:
-        """Store a fresh factor made at the state y: (D,) of ``problem``."""
+    def keep(self, factor: Tensor, problem: StepProblem, y: Tensor, chord: bool = True) -> None:
+        """Store a fresh factor made at the state y: (D,) of ``problem`` (with ``chord``, also its inverse for the
+        chord steps)."""
         x = problem.positions(y)
         m = problem.mass
         a = m[:, None] * (x - (m[:, None] * x).sum(0) / m.sum())  # m_p a_p, (K, 3)
         self.factor, self.moments = factor, (problem.X.T @ a, problem.b.T @ a)
         self.stale = False
-        self._turn(torch.eye(3, dtype=y.dtype, device=y.device))
+        self.rotation = torch.eye(3, dtype=y.dtype, device=y.device)
+        self.inverse = torch.cholesky_inverse(factor).contiguous() if chord else None
+        self.step_matrix = None if self.inverse is None else -self.inverse
 
     def _turn(self, rotation: Tensor) -> None:
+        """Fit the chord step's matrix −(R ⊗ I) H₀⁻¹ (R ⊗ I)ᵀ (D, D) to the rotation R (3, 3): every chord step of the
+        substep is then one product. [a, l, b, m] = −Σ_cd R[a, c] H₀⁻¹[(c, l), (d, m)] R[b, d]."""
         self.rotation = rotation
-        self._rotations = (rotation.t(), -rotation)  # (Rᵀ, −R) as each chord step uses them
+        D = self.inverse.shape[0]
+        left = torch.mm(-rotation, self.inverse.view(3, -1)).view(D, 3, D // 3)  # [(a, l), d, m]
+        self.step_matrix = torch.matmul(rotation, left).view(D, D)
 
     def direction(self, problem: StepProblem, y: Tensor, g: Tensor, refit: bool = True) -> Tensor:
-        """The chord step −(R ⊗ I) H₀⁻¹ (R ⊗ I)ᵀ g (D,) with the factorised H₀ and the rotation R fitted now
-        (``refit``) or at the last fit (within one short step the object turns by a negligible angle)."""
+        """The chord step −(R ⊗ I) H₀⁻¹ (R ⊗ I)ᵀ g (D,) with the kept H₀ and the rotation R fitted now (``refit``)
+        or at the last fit (within one short step the object turns by a negligible angle)."""
         if refit or self.rotation is None:
             Xa, Ba = self.moments
             self._turn(_rotation_of(torch.addmm(Xa, y.view(3, -1), Ba)))
-        Rt, neg_R = self._rotations
-        d = torch.cholesky_solve(torch.mm(Rt, g.view(3, -1)).view(-1, 1), self.factor)
-        return torch.mm(neg_R, d.view(3, -1)).view(-1)
+        return torch.mv(self.step_matrix, g)
 
 
 def _rotation_of(cov: Tensor) -> Tensor:
@@ -349,9 +355,10 @@ def newton_solve(problem: StepProblem, config: SimConfig, length_scale: float,
     for it in range(config.newton_max_iters):
         fresh = cache.factor is None or cache.stale or not config.reuse_hessian
         if fresh:
-            cache.keep(_newton_factor(problem, y, config), problem, y)
+            cache.keep(_newton_factor(problem, y, config), problem, y, config.reuse_hessian)
             stats.hessians += 1
-            d = torch.cholesky_solve(g.view(-1, 1), cache.factor).view(-1).neg_()
+            d = torch.mv(cache.step_matrix, g) if config.reuse_hessian \
+                else torch.cholesky_solve(g.view(-1, 1), cache.factor).view(-1).neg_()
         else:
             d = cache.direction(problem, y, g, refit=it == 0)
         stats.iterations = it + 1
