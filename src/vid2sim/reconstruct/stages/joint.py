@@ -212,6 +212,26 @@ class GaussianRig:
         g = self.gaussians
         return deform_gaussians(g, x.to(g.means.dtype), F.to(g.means.dtype), self.shading)
 
+    def deformed_frames(self, Z: Tensor, basis: tuple[Tensor, Tensor | None, Tensor | None]) -> tuple[Tensor, Tensor]:
+        """(means (T, N, 3), covariances F Σ Fᵀ (T, N, 3, 3)) of the Gaussians for T states Z: (T, 12H) in one batch
+        (what :meth:`deformed` gives frame by frame; the colours are the Gaussians' own, so no shading)."""
+        from vid2sim.physics.reduced import lbs_rows
+        from vid2sim.splats.deform import deform_covariances
+        from vid2sim.splats.gaussians import quat_to_rotmat
+
+        w, G, J = basis
+        T, H = Z.shape[0], w.shape[1]
+        Y = Z.view(T, H, 3, 4).transpose(1, 2).reshape(T, 3, 4 * H)  # Y[t, a, 4j + k] = Z_j[a, k]
+        x = self.X + lbs_rows(self.X, w) @ Y.transpose(1, 2)
+        if J is None:
+            F = torch.einsum("tal,pcl->tpac", Y, G)
+        else:
+            F = (J @ Z.T).permute(2, 0, 1).reshape(T, -1, 3, 3)
+        F = F + torch.eye(3, dtype=Z.dtype, device=Z.device)
+        g = self.gaussians
+        rs = quat_to_rotmat(g.quats) * g.scales[:, None, :]
+        return x.to(g.means.dtype), deform_covariances(rs, F.to(g.means.dtype))
+
 
 
 def coarse_minimum(values: Sequence[float], losses: Sequence[float]) -> float:
@@ -246,17 +266,16 @@ def render_frames(rig: GaussianRig, states: Sequence[SimState], obs: Observation
 
     basis = rig.basis() if basis is None else basis
     cams = [obs.cameras[v] for v in views]
-    frames = [rig.deformed(s.z, basis) for s in states]
     nv = len(cams)
     if rig.shading is not None:  # colours differ per frame: one call per frame
+        frames = [rig.deformed(s.z, basis) for s in states]
         return torch.stack([render(d.means, d.opacities, d.sh, cams, covars=d.covars, sh_degree=d.sh_degree,
                                    background=list(obs.background)).rgb for d in frames])
-    means = torch.stack([d.means for d in frames]).repeat_interleave(nv, dim=0)  # (T·V, N, 3)
-    covars = torch.stack([d.covars for d in frames]).repeat_interleave(nv, dim=0)
-    g = frames[0]
-    out = render(means, g.opacities, g.sh, cams * len(frames), covars=covars, sh_degree=g.sh_degree,
-                 background=list(obs.background)).rgb
-    return out.reshape(len(frames), nv, *out.shape[1:])
+    means, covars = rig.deformed_frames(torch.stack([s.z for s in states]), basis)  # all frames in one batch
+    g = rig.gaussians
+    out = render(means.repeat_interleave(nv, dim=0), g.opacities, g.sh, cams * len(states),  # (T·V, N, 3)
+                 covars=covars.repeat_interleave(nv, dim=0), sh_degree=g.sh_degree, background=list(obs.background)).rgb
+    return out.reshape(len(states), nv, *out.shape[1:])
 
 
 def _image_loss(renders: Tensor, targets: Tensor) -> Tensor:
