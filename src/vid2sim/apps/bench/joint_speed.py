@@ -11,7 +11,15 @@ Figures: ``joint_iter_ms`` (the small preset: networks fixed, full resolution), 
 (the first half of the small preset's iterations) and ``joint_iter_ms_with_networks`` (the paper's setting:
 the skinning MLP optimised too, so its weights and gradients at the Gaussians are recomputed every
 iteration), and ``joint_iter_ms_with_networks_neural_jacobian`` (the same with the paper's Neural Jacobian
-for dF/dz instead of the exact closed form). Medians over repeats.
+for dF/dz instead of the exact closed form). Medians over repeats. ``joint_iter_ms_reference_kernels`` is
+``joint_iter_ms`` with the simulator's per-term reference code (``SimConfig(fused_kernels=False)``) in the same
+run, for a same-machine ratio.
+
+Operation counts (:mod:`vid2sim.apps.bench.op_count`; deterministic, unlike the timings): ``joint_iter_ops``, the
+top-level aten operators one ``joint_iter_ms`` iteration dispatches on the device that runs it (on a GPU each is
+a launch: the iteration is launch-bound there), ``joint_iter_aten_events`` all aten events (nested ones too),
+and ``joint_iter_ops_render`` the share of the rendering alone (the window's frames rendered in the 4 views,
+the image loss and its backward pass to the states; the torch rasteriser on a CPU, gsplat on a GPU).
 """
 
 from __future__ import annotations
@@ -55,6 +63,7 @@ class JointBench:
     half: Any
     fixed: Any
     window_start: Any
+    _window: Any = None
 
     def iteration(self, obs: Any | None = None, basis: Any = "fixed") -> None:
         """One joint iteration (forward + backward) on ``obs`` (default ``full``) with the rig's ``basis``
@@ -72,6 +81,19 @@ class JointBench:
         sim.log10_E.grad = sim.nu.grad = None
         sim.log10_E.requires_grad_(False)
         sim.nu.requires_grad_(False)
+
+    def render_iteration(self, obs: Any | None = None) -> None:
+        """The rendering part of :meth:`iteration` alone: the window's states (simulated once, without gradients)
+        rendered, the image loss and its backward pass to the states."""
+        from vid2sim.reconstruct.stages.joint import _image_loss, render_frames
+
+        obs = self.full if obs is None else obs
+        if self._window is None:
+            with torch.no_grad():
+                self._window = self.sim.rollout(self.window_start, 4)
+        states = [type(s)(s.z.detach().requires_grad_(True), s.zdot) for s in self._window]
+        renders = render_frames(self.rig, states, obs, range(4), self.fixed)
+        _image_loss(renders, obs.images[:, 6:10].transpose(0, 1)).backward()
 
     def with_networks(self) -> None:
         """One iteration with the skinning MLP (and the Neural Jacobian, when in use) optimised too."""
@@ -128,12 +150,21 @@ def run(device: torch.device, quick: bool = False, settings: PhysicsBenchSetting
     """The figures of the module docstring."""
     from vid2sim.physics.neural_jacobian import NeuralJacobian
 
+    from vid2sim.apps.bench.op_count import count_aten_ops
+
     s = settings or PhysicsBenchSettings()
     repeats = 1 if quick else 5
     bench = build_joint_bench(device, s, quick)
     sim = bench.sim
     # the closed-form dF/dz (the default) first: the Neural Jacobian below stays switched on in ``sim``
     fixed_full = time_ms(lambda: bench.iteration(bench.full), device, repeats)
+    ops = count_aten_ops(lambda: bench.iteration(bench.full))
+    bench.render_iteration()
+    render_ops = count_aten_ops(bench.render_iteration)
+    default = sim.config
+    sim.config = replace(default, fused_kernels=False)
+    reference = time_ms(lambda: bench.iteration(bench.full), device, repeats)
+    sim.config = default
     fixed_half = time_ms(lambda: bench.iteration(bench.half), device, repeats)
     closed_form = time_ms(bench.with_networks, device, repeats)
     # the paper's Neural Jacobian instead of the exact closed-form dF/dz (untrained: the cost is the same)
@@ -143,6 +174,10 @@ def run(device: torch.device, quick: bool = False, settings: PhysicsBenchSetting
 
     return {
         "joint_iter_ms": fixed_full,
+        "joint_iter_ms_reference_kernels": reference,
+        "joint_iter_ops": ops.top_level,
+        "joint_iter_aten_events": ops.total,
+        "joint_iter_ops_render": render_ops.top_level,
         "joint_iter_ms_half_resolution": fixed_half,
         "joint_iter_ms_with_networks": closed_form,
         "joint_iter_ms_with_networks_neural_jacobian": neural,
