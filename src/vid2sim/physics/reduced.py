@@ -451,13 +451,10 @@ class StepProblem:
             raise ValueError("the gradient is undefined where a cubature point is inverted (det F <= 0)")
         return g
 
-    def displacement(self, dy: Tensor) -> float:
-        """Largest coordinate change max |Δx| over the cubature and contact points for a change dy: (D,)."""
-        return float(torch.mm(dy.view(3, -1), self._tracked_cols).abs().max())
-
     def newton_measures(self, g: Tensor, d: Tensor, y_new: Tensor) -> tuple[float, float, float]:
-        """(:meth:`displacement` of the Newton step d, that of the whole step so far y_new − y_prev, the slope
-        g·d) for g, d, y_new: (D,), with one synchronisation."""
+        """(the largest coordinate change max |Δx| over the cubature and contact points for the Newton step d, the
+        same for the whole step so far y_new − y_prev, the slope g·d) for g, d, y_new: (D,), with one
+        synchronisation."""
         both = torch.stack([d, y_new - self.y_prev]).view(6, -1)
         moves = torch.linalg.vector_norm(torch.mm(both, self._tracked_cols), ord=float("inf"), dim=1)
         values = torch.cat([moves, torch.dot(g, d).view(1)]).tolist()
@@ -465,7 +462,7 @@ class StepProblem:
 
     @functools.cached_property
     def _tracked_cols(self) -> Tensor:
-        """The LBS rows of the points :meth:`displacement` watches, the cubature and contact points, transposed:
+        """The LBS rows of the points :meth:`newton_measures` watches, the cubature and contact points, transposed:
         (L, K [+ Nc])."""
         if self.fused is not None:
             return self.fused.frame.tracked_cols

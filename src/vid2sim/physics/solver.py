@@ -29,7 +29,7 @@ from torch import Tensor
 from vid2sim.physics.damping import DEFAULT_DAMPING_RATIO, check_damping_ratio, retardation_time
 from vid2sim.physics.fused import AdjointBatch, FusedFrame, FusedStep, fused_supported
 from vid2sim.physics.integrators import INTEGRATORS, BDFStep, auto_substeps, bdf_step
-from vid2sim.physics.materials import ELASTIC_MODELS, det3, lame_parameters
+from vid2sim.physics.materials import ELASTIC_MODELS, lame_parameters
 from vid2sim.physics.reduced import (
     ElasticBasis,
     StepProblem,
