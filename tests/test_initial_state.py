@@ -16,7 +16,6 @@ frames) |Δv| ≤ 0.008 m/s, |Δω| ≤ 0.11 rad/s. The tolerances below leave a
 
 from __future__ import annotations
 
-
 import numpy as np
 import pytest
 import torch

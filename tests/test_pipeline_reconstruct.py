@@ -14,12 +14,12 @@ from vid2sim.asset.folder import load_asset
 from vid2sim.cli import main
 from vid2sim.cli import reconstruct as cli_reconstruct
 from vid2sim.reconstruct import pipeline as reconstruct_module
+from vid2sim.reconstruct.config import PointsConfig
 from vid2sim.reconstruct.pipeline import (
     ReconstructConfig,
     ReconstructionError,
     reconstruct,
 )
-from vid2sim.reconstruct.config import PointsConfig
 from vid2sim.scene.folder import load_scene, write_scene
 
 

@@ -22,8 +22,8 @@ from vid2sim.predictor.pretrain import (  # noqa: E402
     tube_mask,
 )
 from vid2sim.predictor.train import (  # noqa: E402
-    TrainConfig,
     Split,
+    TrainConfig,
     normalise_video,
     read_checkpoint,
     train_predictor,

@@ -143,10 +143,9 @@ def run_demo(out: str | Path, config: DemoConfig | None = None, progress: bool =
     Raises:
         FileExistsError: ``out`` holds something other than an earlier demo with the same settings.
     """
-    from vid2sim.evaluate.scores import evaluate
-    from vid2sim.evaluate.scores import write_evaluation
-    from vid2sim.reconstruct.pipeline import reconstruct
     from vid2sim.apps.report import asset_report
+    from vid2sim.evaluate.scores import evaluate, write_evaluation
+    from vid2sim.reconstruct.pipeline import reconstruct
     from vid2sim.simulate.run import simulate
     from vid2sim.synthetic.scenes import make_scene
 

@@ -14,10 +14,11 @@ from torch import Tensor
 from tqdm.auto import tqdm
 
 from vid2sim.metrics import carry_by_tets
+from vid2sim.physics.reduced import lbs_rows
 from vid2sim.physics.skinning import deform, deformation_gradient, gradient_basis
 from vid2sim.physics.solver import Simulator
-from vid2sim.splats.deform import deform_gaussians
-from vid2sim.splats.gaussians import Gaussians
+from vid2sim.splats.deform import deform_covariances, deform_gaussians
+from vid2sim.splats.gaussians import Gaussians, quat_to_rotmat
 from vid2sim.splats.render import render_gaussians
 
 
@@ -57,6 +58,22 @@ class GaussianRig:
             F = torch.eye(3, dtype=z.dtype, device=z.device) + (J @ z).reshape(-1, 3, 3)
         g = self.gaussians
         return deform_gaussians(g, x.to(g.means.dtype), F.to(g.means.dtype), self.shading)
+
+    def deformed_frames(self, Z: Tensor, basis: tuple[Tensor, Tensor | None, Tensor | None]) -> tuple[Tensor, Tensor]:
+        """(means (T, N, 3), covariances F Σ Fᵀ (T, N, 3, 3)) of the Gaussians for T states Z: (T, 12H) in one batch
+        (what :meth:`deformed` gives frame by frame; the colours are the Gaussians' own, so no shading)."""
+        w, G, J = basis
+        T, H = Z.shape[0], w.shape[1]
+        Y = Z.view(T, H, 3, 4).transpose(1, 2).reshape(T, 3, 4 * H)  # Y[t, a, 4j + k] = Z_j[a, k]
+        x = self.X + lbs_rows(self.X, w) @ Y.transpose(1, 2)
+        if J is None:
+            F = torch.einsum("tal,pcl->tpac", Y, G)
+        else:
+            F = (J @ Z.T).permute(2, 0, 1).reshape(T, -1, 3, 3)
+        F = F + torch.eye(3, dtype=Z.dtype, device=Z.device)
+        g = self.gaussians
+        rs = quat_to_rotmat(g.quats) * g.scales[:, None, :]
+        return x.to(g.means.dtype), deform_covariances(rs, F.to(g.means.dtype))
 
 
 def simulate_gaussians(asset: Any, num_frames: int, progress: bool = True) -> list[Any]:

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass
-from typing import Sequence
+from typing import TYPE_CHECKING, Sequence
 
 import torch
 from torch import Tensor
@@ -40,6 +40,9 @@ from vid2sim.physics.materials import (
 )
 from vid2sim.physics.volumetric import project as project_volumetric
 from vid2sim.physics.volumetric import swap_tangent
+
+if TYPE_CHECKING:  # pragma: no cover
+    from vid2sim.physics.fused import FusedStep
 
 
 def z_to_y_index(num_handles_total: int, device: torch.device | None = None) -> Tensor:
@@ -190,6 +193,7 @@ class StepProblem:
     contact_layer_stiffness: Tensor | None = None  # k_b (0-d, Pa/m): the body's contact layer in series
     contact_damping: Tensor | None = None  # c (0-d, N·s/m per unit contact weight): the contact dashpot
     volumetric: Tensor | None = None  # (K, H) V-orthonormal weights: the λ term projected (physics.volumetric)
+    fused: "FusedStep | None" = None  # the same step on the fused kernels (physics.fused), used where it applies
 
     # ---- pieces ------------------------------------------------------------------------------
     @property
@@ -363,7 +367,16 @@ class StepProblem:
     def evaluate(self, y: Tensor, energy: bool = True) -> tuple[Tensor, Tensor | None, bool]:
         """(Φ(y) (), ∇Φ(y) (D,), valid) in one pass over the points. ``valid`` is False (Φ = inf, ∇Φ None)
         when a cubature point is inverted (det F ≤ 0). With ``energy=False`` Φ is not computed (0).
-        A differentiable expression of every input (the adjoint differentiates ∇Φ)."""
+        A differentiable expression of every input (the adjoint differentiates ∇Φ) unless the step is ``fused``
+        (:mod:`vid2sim.physics.fused`: inputs detached, the same values)."""
+        if self.fused is not None:
+            if energy:
+                phi, g, J = self.fused.potential(y)
+            else:
+                phi, (_, g, J) = y.new_zeros(()), self.fused.evaluate(y, energy=False)
+            if not bool((J > 0).all()):
+                return y.new_full((), float("inf")), None, False
+            return phi, g, True
         F = self.basis.deformation_gradient(y)
         k_e = self.step.energy_scale
         projected = self.volumetric is not None
@@ -413,8 +426,18 @@ class StepProblem:
             return self.y_pred
         return self.step.start(self.y_prev, self.ydot_prev, self.ydot_prev2)
 
+    def energy_and_gradient(self, y: Tensor) -> tuple[float, Tensor | None]:
+        """(Φ(y) as a float, ∇Φ(y) (D,)) as Newton needs them, with one synchronisation on the fused kernels;
+        (inf, None) where a cubature point is inverted (det F ≤ 0)."""
+        if self.fused is not None:
+            return self.fused.energy_and_gradient(y)
+        phi, g, ok = self.evaluate(y)
+        return (float(phi), g) if ok else (float("inf"), None)
+
     def valid(self, y: Tensor) -> bool:
         """No cubature point is inverted at y (det F > 0 everywhere)."""
+        if self.fused is not None:
+            return self.fused.valid(y)
         return bool((det3(self.basis.deformation_gradient(y)) > 0).all())
 
     def potential(self, y: Tensor) -> tuple[Tensor, bool]:
@@ -429,20 +452,31 @@ class StepProblem:
             raise ValueError("the gradient is undefined where a cubature point is inverted (det F <= 0)")
         return g
 
-    def displacement(self, dy: Tensor) -> float:
-        """Largest coordinate change max |Δx| over the cubature and contact points for a change dy: (D,)."""
-        return float((self._tracked_rows @ dy.reshape(3, -1).T).abs().max())
+    def newton_measures(self, g: Tensor, d: Tensor, y_new: Tensor) -> tuple[float, float, float]:
+        """(the largest coordinate change max |Δx| over the cubature and contact points for the Newton step d, the
+        same for the whole step so far y_new − y_prev, the slope g·d) for g, d, y_new: (D,), with one
+        synchronisation."""
+        both = torch.stack([d, y_new - self.y_prev]).view(6, -1)
+        moves = torch.linalg.vector_norm(torch.mm(both, self._tracked_cols), ord=float("inf"), dim=1)
+        values = torch.cat([moves, torch.dot(g, d).view(1)]).tolist()
+        return max(values[:3]), max(values[3:6]), values[6]
 
     @functools.cached_property
-    def _tracked_rows(self) -> Tensor:
-        """The LBS rows (K [+ Nc], L) of the points :meth:`displacement` watches: cubature and contact points."""
+    def _tracked_cols(self) -> Tensor:
+        """The LBS rows of the points :meth:`newton_measures` watches, the cubature and contact points, transposed:
+        (L, K [+ Nc])."""
+        if self.fused is not None:
+            return self.fused.frame.tracked_cols
         rows = self.b if self.contact_b is None else torch.cat([self.b, self.contact_b])
-        return rows.detach()
+        return rows.detach().T.contiguous()
 
     def hessian(self, y: Tensor, project: bool = True) -> Tensor:
         """∇²Φ(y): (D, D); per-point elastic, viscous and external blocks projected to PSD when ``project``
         (Newton), exact when not (the adjoint)."""
         from vid2sim.physics.materials import project_tangent_psd
+
+        if self.fused is not None and not project:
+            return self.fused.hessian(y)
 
         F = self.basis.deformation_gradient(y)
         k_d = self.step.damping_scale(self.tau) if self.tau is not None else 0.0

@@ -206,6 +206,10 @@ class SkinningField(InputFrame):
             w: (N, H) weights (last column ≡ 1); dw: (N, H, 3) with ``dw[p, j, c] = ∂w_j/∂X_c`` (rigid column 0).
         """
         self._check_input(X)
+        return self._weights_and_gradients(X)
+
+    def _weights_and_gradients(self, X: Tensor) -> tuple[Tensor, Tensor]:
+        """:meth:`weights_and_gradients` without checking X (for callers that did, e.g. a training loop)."""
         n = X.shape[0]
         h = self._canonical(X)
         # D: (N, 3, d) — Jacobian transposed so that Linear is a right-multiplication by Wᵀ.
@@ -214,8 +218,8 @@ class SkinningField(InputFrame):
             u = layer(h)
             D = D @ layer.weight.T
             h = Fn.elu(u)
-            slope = torch.where(u > 0, 1.0, h + 1.0)  # elu'(u) = e^u = elu(u) + 1 for u <= 0
-            D = D * slope[:, None, :]
+            slope = h.clamp_max(0.0) + 1.0  # elu'(u) = 1 for u > 0 (h > 0), e^u = elu(u) + 1 for u <= 0
+            D = D * slope.unsqueeze(1)
         last = self.last_layer
         w = last(h)
         dw = (D @ last.weight.T).transpose(1, 2)  # (N, num_handles, 3)
@@ -262,6 +266,12 @@ def gradient_basis(X: Tensor, w: Tensor, dw: Tensor) -> Tensor:
         raise ValueError(f"dw must have shape (N, H, 3) = ({n}, {H}, 3), got {tuple(dw.shape)}")
     if not bool(torch.isfinite(dw).all()):
         raise ValueError("weight gradients dw contain NaN or infinite values")
+    return gradient_basis_unchecked(X, w, dw)
+
+
+def gradient_basis_unchecked(X: Tensor, w: Tensor, dw: Tensor) -> Tensor:
+    """:func:`gradient_basis` without checking its inputs."""
+    n, H = w.shape
     delta = torch.eye(3, 4, dtype=X.dtype, device=X.device)  # delta[c, k] = δ_kc, zero for k = 3
     G = w[:, None, :, None] * delta[None, :, None, :] + dw.transpose(1, 2)[:, :, :, None] * homogeneous(X)[:, None, None, :]
     return G.reshape(n, 3, 4 * H)
@@ -280,6 +290,12 @@ def deformation_gradient(G: Tensor, z: Tensor) -> Tensor:
     """
     H = _check_basis(G)
     _check_z(z, H, allow_batch=True)
+    return deformation_gradient_unchecked(G, z)
+
+
+def deformation_gradient_unchecked(G: Tensor, z: Tensor) -> Tensor:
+    """:func:`deformation_gradient` without checking its inputs."""
+    H = G.shape[2] // 4
     eye = torch.eye(3, dtype=G.dtype, device=G.device)
     Y = z.reshape(*z.shape[:-1], H, 3, 4).transpose(-3, -2).reshape(*z.shape[:-1], 3, 4 * H)  # Y[a, 4j+k]
     if z.ndim == 1:

@@ -64,9 +64,14 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from vid2sim.physics.materials import lame_parameters, neo_hookean_energy_density
+from vid2sim.physics.materials import det3, lame_parameters
 from vid2sim.physics.modes import subspace_stiffness_and_mass
-from vid2sim.physics.skinning import SkinningField, deformation_gradient, gradient_basis
+from vid2sim.physics.skinning import (
+    SkinningField,
+    deformation_gradient,
+    deformation_gradient_unchecked,
+    gradient_basis_unchecked,
+)
 from vid2sim.runtime.errors import ConfigError
 
 #: training objectives of :func:`train_skinning`
@@ -138,23 +143,18 @@ def robust_neo_hookean_energy(F: Tensor, mu: float | Tensor, lam: float | Tensor
     if not threshold > 0:
         raise ValueError(f"threshold must be positive, got {threshold}")
     J = torch.linalg.det(F)
-    safe = J > threshold
-    out = torch.zeros(F.shape[0], dtype=F.dtype, device=F.device)
-    if bool(safe.all()):
-        return neo_hookean_energy_density(F, mu, lam)
-    si = torch.nonzero(safe).squeeze(1)
-    ui = torch.nonzero(~safe).squeeze(1)
-    if si.numel() > 0:
-        out = out.index_put((si,), neo_hookean_energy_density(F[si], mu, lam))
-    Fu, Ju = F[ui], J[ui]
+    # both branches at every point, chosen per point (no synchronisation, no gathers): the exact density where
+    # J > threshold (its ln J taken of det F clamped at the threshold so that it is finite everywhere)
+    isochoric = 0.5 * mu * ((F * F).sum(dim=(1, 2)) - 3.0)
+    logj = torch.log(det3(F).clamp_min(threshold))
+    exact = isochoric - mu * logj + 0.5 * lam * logj * logj
     j0 = threshold
     l0 = math.log(j0)
     g0 = -mu * l0 + 0.5 * lam * l0 * l0
     g1 = (lam * l0 - mu) / j0
     g2 = (mu + lam - lam * l0) / (j0 * j0)
-    dj = Ju - j0
-    ext = 0.5 * mu * ((Fu * Fu).sum(dim=(1, 2)) - 3.0) + g0 + g1 * dj + 0.5 * g2 * dj * dj
-    return out.index_put((ui,), ext)
+    dj = J - j0
+    return torch.where(J > threshold, exact, isochoric + g0 + g1 * dj + 0.5 * g2 * dj * dj)
 
 
 def orthogonality_loss(w: Tensor) -> Tensor:
@@ -167,17 +167,19 @@ def orthogonality_loss(w: Tensor) -> Tensor:
 
 
 def elastic_loss(
-    G: Tensor, z: Tensor, mu: float | Tensor, lam: float | Tensor, volume: float = 1.0, threshold: float = 0.1
+    G: Tensor, z: Tensor, mu: float | Tensor, lam: float | Tensor, volume: float = 1.0, threshold: float = 0.1,
+    trusted: bool = False,
 ) -> Tensor:
     """Mean over the batch of the elastic energy volume/n · Σ_p Ψ(F_p(z_b)).
 
     Args:
         G: (n, 3, 4H) gradient basis at the sampled points (:func:`~vid2sim.physics.skinning.gradient_basis`).
         z: (B, 12H) random handle transforms.
+        trusted: G and z were made by the caller (a training loop): their checks are skipped.
     Returns:
         0-d tensor.
     """
-    F = deformation_gradient(G, z)  # (B, n, 3, 3)
+    F = deformation_gradient_unchecked(G, z) if trusted else deformation_gradient(G, z)  # (B, n, 3, 3)
     B, n = F.shape[:2]
     psi = robust_neo_hookean_energy(F.reshape(B * n, 3, 3), mu, lam, threshold)
     return psi.reshape(B, n).sum(dim=1).mean() * (volume / n)
@@ -213,6 +215,41 @@ def sample_handle_transforms(
     if not rigid:
         z[:, -1] = 0.0
     return z.reshape(batch_size, 12 * num_handles_total)
+
+
+class _RandomDraws:
+    """The random point indices (points_per_step,) and handle transforms (batch_size, 12H) of the training
+    iterations, drawn on the CPU generator in the order the loop used to draw them one iteration at a time (the
+    indices, then the transforms), but :data:`DRAW_CHUNK` iterations at a time and moved to the device in one
+    copy each (a copy from the CPU waits for the device: one per iteration was one synchronisation more)."""
+
+    def __init__(self, gen: torch.Generator, n_all: int, config: SkinningTrainingConfig, H: int, modal: bool,
+                 like: Tensor) -> None:
+        self.gen, self.n_all, self.config, self.H, self.modal, self.like = gen, n_all, config, H, modal, like
+        self.start, self.idx, self.z = 0, None, None
+
+    def next(self, it: int) -> tuple[Tensor, Tensor | None]:
+        """(indices, transforms or None for the modal objective) of iteration ``it`` (asked for in order)."""
+        if self.idx is None or it - self.start >= self.idx.shape[0]:
+            self._draw(it)
+        k = it - self.start
+        return self.idx[k], None if self.z is None else self.z[k]
+
+    def _draw(self, it: int) -> None:
+        c = self.config
+        n = min(DRAW_CHUNK, c.iterations - it)
+        idx, z = [], []
+        for _ in range(n):
+            idx.append(torch.randint(self.n_all, (c.points_per_step,), generator=self.gen))
+            if not self.modal:
+                z.append(sample_handle_transforms(c.batch_size, self.H, c.z_std, self.gen))
+        self.start = it
+        self.idx = torch.stack(idx).to(self.like.device)
+        self.z = torch.stack(z).to(dtype=self.like.dtype, device=self.like.device) if z else None
+
+
+#: Training iterations whose random draws are made and moved to the device together.
+DRAW_CHUNK = 64
 
 
 def _check_points(points: Tensor, field: torch.nn.Module) -> None:
@@ -260,7 +297,7 @@ def train_skinning(
     params = list(field.last_layer.parameters()) if config.last_layer_only else list(field.parameters())
     if config.iterations == 0:
         return []
-    opt = torch.optim.Adam(params, lr=config.lr)
+    opt = torch.optim.Adam(params, lr=config.lr, foreach=True)  # one multi-tensor update (the same values)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=config.iterations)
     gen = torch.Generator(device="cpu")
     gen.manual_seed(int(config.seed))
@@ -280,24 +317,24 @@ def train_skinning(
     was_training = field.training
     field.train()
     try:
+        draws = _RandomDraws(gen, n_all, config, H, modal, points)
         for it in iterator:
-            idx = torch.randint(n_all, (config.points_per_step,), generator=gen).to(points.device)
+            idx, z = draws.next(it)
             X = points[idx]
-            w, dw = field.weights_and_gradients(X)
+            w, dw = field._weights_and_gradients(X)  # the points were checked above
             lo = orthogonality_loss(w[:, :-1])
             if modal:
                 K, M = subspace_stiffness_and_mass(X, w, dw, float(volume), config.poisson_ratio)
                 le = modal_loss(K, M, alpha, config.modal_trace_weight)
                 loss = le + config.modal_orthogonality_weight * lo
             else:
-                z = sample_handle_transforms(config.batch_size, H, config.z_std, gen).to(dtype=points.dtype,
-                                                                                          device=points.device)
-                G = gradient_basis(X, w, dw)
-                le = elastic_loss(G, z, mu, lam, float(volume), config.inversion_threshold)
+                G = gradient_basis_unchecked(X, w, dw)
+                le = elastic_loss(G, z, mu, lam, float(volume), config.inversion_threshold, trusted=True)
                 loss = config.elastic_weight * le + config.orthogonality_weight * lo
-            if not bool(torch.isfinite(loss)):
+            value = float(loss.detach())  # the iteration's one synchronisation
+            if not math.isfinite(value):
                 raise FloatingPointError(
-                    f"skinning training loss became {float(loss)} at iteration {it} "
+                    f"skinning training loss became {value} at iteration {it} "
                     f"(elastic {float(le)}, orthogonality {float(lo)}); try a smaller lr or z_std"
                 )
             grads = torch.autograd.grad(loss, params)
@@ -305,7 +342,7 @@ def train_skinning(
                 p.grad = g
             opt.step()
             sched.step()
-            losses.append(float(loss.detach()))
+            losses.append(value)
             if progress and (it % 50 == 0 or it == config.iterations - 1):
                 iterator.set_postfix({"loss": f"{losses[-1]:.4g}", "modal" if modal else "elastic": f"{float(le):.3g}",
                                       "ortho": f"{float(lo):.3g}"})

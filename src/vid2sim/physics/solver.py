@@ -31,8 +31,9 @@ from vid2sim.physics.damping import (
     check_damping_ratio,
     retardation_time,
 )
+from vid2sim.physics.fused import AdjointBatch, FusedFrame, FusedStep, fused_supported
 from vid2sim.physics.integrators import INTEGRATORS, BDFStep, auto_substeps, bdf_step
-from vid2sim.physics.materials import ELASTIC_MODELS, det3, lame_parameters
+from vid2sim.physics.materials import ELASTIC_MODELS, lame_parameters
 from vid2sim.physics.reduced import (
     ElasticBasis,
     StepProblem,
@@ -70,12 +71,16 @@ class SimConfig:
             below 30 ε of the dtype × the length scale.
         newton_rtol: that relative part of the tolerance.
         reuse_hessian: keep the factorised Hessian across Newton iterations and substeps (a chord
-            iteration: every iteration then costs one gradient and two triangular solves), turned with the
+            iteration: every iteration then costs one gradient and one product with the kept inverse), turned with the
             object by a fitted rotation (:class:`NewtonCache`), and refactorise it when a line search needs
             halvings or an iteration shrinks the step by less than ``reuse_rate``. The converged state is
             the same minimiser; the adjoint always uses the exact Hessian at it. False: a fresh Hessian at
             every iteration (plain Newton).
         reuse_rate: the contraction per iteration below which a kept Hessian is reused.
+        fused_kernels: evaluate the step on the fused kernels of :mod:`vid2sim.physics.fused` where it allows them
+            (elastic Neo-Hookean, the closed-form F-basis, the pointwise volumetric term, no contact layer or
+            dashpot): the same potential, gradient, Hessian and adjoint in far fewer tensor operations. False: the
+            per-term reference code everywhere.
         line_search_max_halvings: backtracking halvings before the step is declared failed.
         armijo: sufficient-decrease constant of the line search.
         hessian_projection: "always" — Newton uses the Hessian with every per-point block projected to
@@ -93,6 +98,7 @@ class SimConfig:
     newton_rtol: float = 1e-4
     reuse_hessian: bool = True
     reuse_rate: float = 0.25
+    fused_kernels: bool = True
     line_search_max_halvings: int = 30
     armijo: float = 1e-4
     hessian_projection: str = "on_demand"
@@ -241,41 +247,58 @@ class NewtonCache:
         factor: Cholesky factor (D, D) of the last Hessian, or None.
         moments: (Xa (3, 3), Ba (L, 3)) of the cubature positions where it was made, for the rotation fit.
         stale: refactorise at the next iteration.
+        rotation: the last fitted rotation (3, 3).
+        adjoint: the converged states of the fused steps that will need an adjoint (their Hessians are made in one
+            batch, :class:`~vid2sim.physics.fused.AdjointBatch`).
+        frame: (the inputs it was made of, the :class:`~vid2sim.physics.fused.FusedFrame`) of the frames sharing
+            this cache.
     """
 
     factor: Tensor | None = None
     moments: tuple[Tensor, Tensor] | None = None
     stale: bool = True
     rotation: Tensor | None = None
+    adjoint: AdjointBatch = field(default_factory=AdjointBatch)
+    frame: tuple[tuple, FusedFrame] | None = None
+    inverse: Tensor | None = None
+    step_matrix: Tensor | None = None
 
-    def keep(self, factor: Tensor, problem: StepProblem, y: Tensor) -> None:
-        """Store a fresh factor made at the state y: (D,) of ``problem``."""
+    def keep(self, factor: Tensor, problem: StepProblem, y: Tensor, chord: bool = True) -> None:
+        """Store a fresh factor made at the state y: (D,) of ``problem`` (with ``chord``, also its inverse for the
+        chord steps)."""
         x = problem.positions(y)
         m = problem.mass
         a = m[:, None] * (x - (m[:, None] * x).sum(0) / m.sum())  # m_p a_p, (K, 3)
         self.factor, self.moments = factor, (problem.X.T @ a, problem.b.T @ a)
         self.stale = False
         self.rotation = torch.eye(3, dtype=y.dtype, device=y.device)
+        self.inverse = torch.cholesky_inverse(factor).contiguous() if chord else None
+        self.step_matrix = None if self.inverse is None else -self.inverse
+
+    def _turn(self, rotation: Tensor) -> None:
+        """Fit the chord step's matrix −(R ⊗ I) H₀⁻¹ (R ⊗ I)ᵀ (D, D) to the rotation R (3, 3): every chord step of the
+        substep is then one product. [a, l, b, m] = −Σ_cd R[a, c] H₀⁻¹[(c, l), (d, m)] R[b, d]."""
+        self.rotation = rotation
+        D = self.inverse.shape[0]
+        left = torch.mm(-rotation, self.inverse.view(3, -1)).view(D, 3, D // 3)  # [(a, l), d, m]
+        self.step_matrix = torch.matmul(rotation, left).view(D, D)
 
     def direction(self, problem: StepProblem, y: Tensor, g: Tensor, refit: bool = True) -> Tensor:
-        """The chord step −(R ⊗ I) H₀⁻¹ (R ⊗ I)ᵀ g (D,) with the factorised H₀ and the rotation R fitted now
-        (``refit``) or at the last fit (within one short step the object turns by a negligible angle)."""
+        """The chord step −(R ⊗ I) H₀⁻¹ (R ⊗ I)ᵀ g (D,) with the kept H₀ and the rotation R fitted now (``refit``)
+        or at the last fit (within one short step the object turns by a negligible angle)."""
         if refit or self.rotation is None:
             Xa, Ba = self.moments
-            self.rotation = _rotation_of(Xa + y.reshape(3, -1) @ Ba)
-        R = self.rotation
-        gy = (R.T @ g.reshape(3, -1)).reshape(-1)
-        d = torch.cholesky_solve(gy[:, None], self.factor)[:, 0]
-        return -(R @ d.reshape(3, -1)).reshape(-1)
+            self._turn(_rotation_of(torch.addmm(Xa, y.view(3, -1), Ba)))
+        return torch.mv(self.step_matrix, g)
 
 
 def _rotation_of(cov: Tensor) -> Tensor:
     """The rotation R (3, 3) minimising Σ m_p ‖R a_p − b_p‖² given cov = Σ m_p b_p a_pᵀ (3, 3) of centred
     reference points a and points b (Kabsch, with the reflection removed)."""
     U, _, Vh = torch.linalg.svd(cov)
-    D = torch.ones(3, dtype=cov.dtype, device=cov.device)
-    D[2] = torch.sign(det3((U @ Vh)[None])[0])
-    return (U * D) @ Vh
+    R = U @ Vh
+    flip = torch.linalg.det(R).sign_().sub_(1.0)  # det R = ±1: 0, or −2 where U Vh reflects
+    return torch.addcmul(R, flip, torch.outer(U.select(1, 2), Vh.select(0, 2)))  # U diag(1, 1, ±1) Vh
 
 
 def _factorize(H: Tensor) -> Tensor | None:
@@ -327,38 +350,39 @@ def newton_solve(problem: StepProblem, config: SimConfig, length_scale: float,
     floor = 30.0 * eps * length_scale
     absolute = max(config.newton_tol * length_scale, floor)
     y = problem.y_start
-    phi, g, ok = problem.evaluate(y)
-    if not ok:  # the prediction inverts something: start from the previous (valid) state
+    phi, g = problem.energy_and_gradient(y)
+    if g is None:  # the prediction inverts something: start from the previous (valid) state
         y = problem.y_prev
-        phi, g, ok = problem.evaluate(y)
-        if not ok:
+        phi, g = problem.energy_and_gradient(y)
+        if g is None:
             raise SimulationError(f"state at t = {problem.t - problem.dt:.4g} s has inverted cubature points (det F <= 0)")
     previous = math.inf
     for it in range(config.newton_max_iters):
         fresh = cache.factor is None or cache.stale or not config.reuse_hessian
         if fresh:
-            cache.keep(_newton_factor(problem, y, config), problem, y)
+            cache.keep(_newton_factor(problem, y, config), problem, y, config.reuse_hessian)
             stats.hessians += 1
-            d = -torch.cholesky_solve(g[:, None], cache.factor)[:, 0]
+            d = torch.mv(cache.step_matrix, g) if config.reuse_hessian \
+                else torch.cholesky_solve(g.view(-1, 1), cache.factor).view(-1).neg_()
         else:
             d = cache.direction(problem, y, g, refit=it == 0)
         stats.iterations = it + 1
-        size = problem.displacement(d)
-        tol = max(floor, min(absolute, config.newton_rtol * problem.displacement(y + d - problem.y_prev)))
+        y_full = y + d
+        size, move, slope = problem.newton_measures(g, d, y_full)
+        tol = max(floor, min(absolute, config.newton_rtol * move))
         if size <= tol:
-            if problem.valid(y + d):
-                y = y + d
+            if problem.valid(y_full):
+                y = y_full
             stats.converged = True
             break
-        slope = float(g @ d)
         alpha = 1.0
         inverted = False
         for halving in range(config.line_search_max_halvings + 1):
-            y_new = y + alpha * d
-            phi_new, g_new, ok = problem.evaluate(y_new)
-            inverted = not ok
-            slack = 16 * eps * max(abs(float(phi)), abs(float(phi_new)) if ok else 0.0, 1.0)
-            if ok and float(phi_new) <= float(phi) + config.armijo * alpha * slope + slack:
+            y_new = y_full if halving == 0 else y + alpha * d
+            phi_new, g_new = problem.energy_and_gradient(y_new)
+            inverted = g_new is None
+            slack = 16 * eps * max(abs(phi), abs(phi_new) if not inverted else 0.0, 1.0)
+            if not inverted and phi_new <= phi + config.armijo * alpha * slope + slack:
                 break
             alpha *= 0.5
         else:
@@ -366,7 +390,7 @@ def newton_solve(problem: StepProblem, config: SimConfig, length_scale: float,
                 cache.stale = True
                 stats.line_search_halvings.append(config.line_search_max_halvings + 1)
                 continue
-            if abs(slope) <= 1e4 * eps * max(abs(float(phi)), 1.0):
+            if abs(slope) <= 1e4 * eps * max(abs(phi), 1.0):
                 # the remaining decrease is below round-off: this is as converged as the precision allows
                 stats.converged = True
                 break
@@ -406,13 +430,24 @@ class _StepSpec:
     length_scale: float = 1.0
     cache: NewtonCache | None = None
     stats: StepStats | None = None
+    frame: FusedFrame | None = None  # the frame's constants when the step runs on the fused kernels
+    fused: FusedStep | None = None  # the step on them, once made
 
     def problem(self, y_prev, ydot_prev, y_prev2, ydot_prev2, mu, lam, tau, mass, b, basis_t, contact_b,
-                layer_k=None, dashpot=None, volumetric=None) -> StepProblem:
+                layer_k=None, dashpot=None, volumetric=None, fused: bool = False) -> StepProblem:
+        """The step's problem of these inputs; with ``fused`` (and a ``frame``) on the fused kernels."""
         basis = ElasticBasis(self.A, basis_t, None) if self.structured else ElasticBasis(self.A, None, basis_t)
-        return StepProblem(self.X, self.vol, mass, b, basis, mu, lam, self.model, self.externals,
-                           self.t, self.step, y_prev, ydot_prev, y_prev2, ydot_prev2, tau,
-                           self.contact_X, contact_b, self.contact_w, layer_k, dashpot, volumetric)
+        problem = StepProblem(self.X, self.vol, mass, b, basis, mu, lam, self.model, self.externals,
+                              self.t, self.step, y_prev, ydot_prev, y_prev2, ydot_prev2, tau,
+                              self.contact_X, contact_b, self.contact_w, layer_k, dashpot, volumetric)
+        if fused and self.frame is not None:
+            problem.fused = self.fused = FusedStep(self.frame, self.step, self.t, y_prev, y_prev2, problem.y_pred)
+        return problem
+
+
+#: The inputs of :class:`_ImplicitStep` after ``spec``, in order; the fused adjoint serves the first seven.
+_STEP_INPUTS = ("y_prev", "ydot_prev", "y_prev2", "ydot_prev2", "mu", "lam", "tau", "mass", "b", "basis",
+                "contact_b", "layer_k", "dashpot", "volumetric")
 
 
 class _ImplicitStep(torch.autograd.Function):
@@ -426,8 +461,10 @@ class _ImplicitStep(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, spec: _StepSpec, *inputs):  # type: ignore[override]
-        problem = spec.problem(*inputs)
+        problem = spec.problem(*inputs, fused=True)
         y, stats = newton_solve(problem, spec.config, spec.length_scale, spec.cache)
+        if spec.fused is not None and any(ctx.needs_input_grad[1:]):
+            spec.cache.adjoint.add(spec.fused, y)
         spec.stats = stats
         ctx.spec = spec
         ctx.present = [t is not None for t in inputs]
@@ -441,21 +478,37 @@ class _ImplicitStep(torch.autograd.Function):
         it_saved = iter(saved)
         inputs = [next(it_saved) if p else None for p in ctx.present]
         needs = [n and t is not None for n, t in zip(ctx.needs_input_grad[1:], inputs)]
+        if spec.fused is not None and not any(needs[len(_FUSED_ADJOINT):]):
+            return (None, *_fused_adjoint(spec.fused, grad_y, needs))
         # one problem for the gradient's graph and the Hessian: the Hessian reuses what the gradient cached
         # (the inertial target, C_ref, the mass block) without recording it
         with torch.enable_grad():
             req = [t.detach().requires_grad_(n) if t is not None else None for t, n in zip(inputs, needs)]
             problem = spec.problem(*req)
             g = problem.gradient(y.detach())
-        with torch.no_grad():
-            H = problem.hessian(y.detach(), project=False)
-        factor = _factorize(H)  # the exact Hessian may be indefinite (e.g. under compression): then LU
-        adj = torch.cholesky_solve(grad_y[:, None], factor)[:, 0] if factor is not None else torch.linalg.solve(H, grad_y)
+        if spec.fused is not None:  # the same exact Hessian, made with the rollout's others
+            adj = spec.fused.adjoint_solve(grad_y)
+        else:
+            with torch.no_grad():
+                H = problem.hessian(y.detach(), project=False)
+            factor = _factorize(H)  # the exact Hessian may be indefinite (e.g. under compression): then LU
+            adj = torch.cholesky_solve(grad_y[:, None], factor)[:, 0] if factor is not None else torch.linalg.solve(H, grad_y)
         wanted = [r for r, n in zip(req, needs) if n]
         grads = torch.autograd.grad(g, wanted, grad_outputs=-adj, allow_unused=True) if wanted else ()
         it = iter(grads)
         out = [next(it) if n else None for n in needs]
         return (None, *out)
+
+
+_FUSED_ADJOINT = _STEP_INPUTS[:7]
+
+
+def _fused_adjoint(fused: FusedStep, grad_y: Tensor, needs: list[bool]) -> list[Tensor | None]:
+    """The adjoint of a step on the fused kernels: the gradients of the inputs ``needs`` marks, in the order of
+    :data:`_STEP_INPUTS` (those beyond the first seven are never needed here)."""
+    history, params = fused.adjoint(grad_y)
+    values = [*history.unbind(0), *params.unbind(0)]
+    return [v if need else None for v, need in zip(values, needs)] + [None] * (len(needs) - len(values))
 
 
 class Simulator:
@@ -696,18 +749,18 @@ class Simulator:
     # ---- stepping ------------------------------------------------------------------------------
     def step(self, state: SimState, basis: "ReducedBasis | None" = None,
              lame: tuple[Tensor, Tensor] | None = None, tau: Tensor | None | str = "auto",
-             cache: NewtonCache | None = None, substeps: int | None = None) -> SimState:
+             cache: NewtonCache | None = None, substeps: int | None = None, masses: Tensor | None = None) -> SimState:
         """Advance one video frame (``config.substeps`` implicit steps). Differentiable (adjoint of every
         step) w.r.t. the state, E, ν, density, the damping ratio and the field.
 
-        ``basis``, ``lame``, ``tau`` and ``substeps`` may be passed precomputed and ``cache`` shared between
-        frames (as :meth:`rollout` does); the cache must only be shared by steps with the same inputs."""
+        ``basis``, ``lame``, ``tau``, ``substeps`` and ``masses`` may be passed precomputed and ``cache`` shared
+        between frames (as :meth:`rollout` does); the cache must only be shared by steps with the same inputs."""
         if state.z.shape != (self.num_dofs,) or state.zdot.shape != (self.num_dofs,):
             raise ValueError(f"state z and zdot must have shape ({self.num_dofs},), got {tuple(state.z.shape)}, {tuple(state.zdot.shape)}")
         if (state.z_prev is None) != (state.zdot_prev is None):
             raise ValueError("state.z_prev and state.zdot_prev must be given together (or both None)")
         history = [state.z, state.zdot] + ([state.z_prev, state.zdot_prev] if state.z_prev is not None else [])
-        if not all(bool(torch.isfinite(v).all()) for v in history):
+        if not bool(torch.isfinite(torch.cat(history)).all()):
             raise SimulationError(f"state at t = {state.t:.4g} s contains NaN or infinite values")
         basis = basis if basis is not None else self.reduced_basis()
         b, basis_t, structured = basis.b, basis.basis, basis.structured
@@ -716,6 +769,7 @@ class Simulator:
         mu, lam = torch.as_tensor(mu), torch.as_tensor(lam)
         layer_k = self.contact_layer_stiffness()
         dashpot = self.contact_dashpot()
+        masses = self.masses() if masses is None else masses
         cfg = self.config
         cache = cache if cache is not None else NewtonCache()
         n = substeps if substeps is not None else self.substeps()
@@ -725,10 +779,22 @@ class Simulator:
         y2 = state.z_prev[self._perm] if state.z_prev is not None else None
         ydot2 = state.zdot_prev[self._perm] if state.zdot_prev is not None else None
         Fp_inv = state.Fp_inv
+        frame = None
+        if cfg.fused_kernels and fused_supported(self.material.model, structured, Fp_inv is not None,
+                                                 basis.volumetric, dashpot, layer_k, self.externals):
+            inputs = (self.X, self.vol, masses, b, basis_t, mu, lam, tau, basis.contact_b, self.contact_points,
+                      self.contact_weights, *self.externals)
+            if cache.frame is not None and len(cache.frame[0]) == len(inputs) \
+                    and all(a is c for a, c in zip(cache.frame[0], inputs)):
+                frame = cache.frame[1]  # the same inputs as the frame before (a rollout's): the same constants
+            else:
+                frame = FusedFrame.build(self.X, self.vol, masses, b, basis_t, mu, lam, tau, self.externals,
+                                         self.contact_points, basis.contact_b, self.contact_weights)
+                cache.frame = (inputs, frame)
+        identity = torch.eye(3, dtype=self.X.dtype, device=self.X.device).expand(self.X.shape[0], 3, 3)
         iterations, converged = 0, True
         for s in range(n):
-            A = torch.eye(3, dtype=self.X.dtype, device=self.X.device).expand(self.X.shape[0], 3, 3)
-            step_basis = basis_t
+            A, step_basis = identity, basis_t
             if Fp_inv is not None:
                 folded = apply_plastic_state(basis_t, structured, Fp_inv)
                 A, step_basis = folded.A, folded.tensor
@@ -737,9 +803,9 @@ class Simulator:
             if Fp_inv is not None:
                 cache.stale = True  # the plastic state changed the basis
             spec = _StepSpec(self.X, self.vol, A, structured, self.material.model, self.externals, t_next, bdf, cfg,
-                             self.contact_points, self.contact_weights, self.length_scale, cache)
+                             self.contact_points, self.contact_weights, self.length_scale, cache, frame=frame)
             y_new = _ImplicitStep.apply(spec, y, ydot, y2 if bdf.needs_history else None,
-                                        ydot2 if bdf.needs_history else None, mu, lam, tau, self.masses(), b,
+                                        ydot2 if bdf.needs_history else None, mu, lam, tau, masses, b,
                                         step_basis, basis.contact_b, layer_k, dashpot, basis.volumetric)
             ydot_new = bdf.velocity(y_new, y, y2 if bdf.needs_history else None)
             iterations += spec.stats.iterations
@@ -765,6 +831,7 @@ class Simulator:
         basis = self.reduced_basis()
         lame = self.lame()
         tau = self.retardation_time()
+        masses = self.masses()
         cache = NewtonCache()
         n = self.substeps()
         out = []
@@ -774,7 +841,7 @@ class Simulator:
 
             iterator = tqdm(iterator, desc="simulate", unit="frame")
         for _ in iterator:
-            state = self.step(state, basis, lame, tau, cache, n)
+            state = self.step(state, basis, lame, tau, cache, n, masses)
             out.append(state)
         return out
 

@@ -40,7 +40,7 @@ from vid2sim.runtime.files import save_torch_atomic
 
 if TYPE_CHECKING:  # pragma: no cover
     from vid2sim.predictor.model import PhysicsPredictor
-    from vid2sim.predictor.train import TrainConfig, Split
+    from vid2sim.predictor.train import Split, TrainConfig
 
 PRETRAIN_FORMAT = "vid2sim-predictor-pretrain/1"
 PRETRAIN_FILE = "pretrain.pt"

@@ -66,9 +66,10 @@ class DeformedGaussians:
 
 
 def deform_covariances(rs: Tensor, F: Tensor) -> Tensor:
-    """Σ' = (F R S)(F R S)ᵀ from ``rs = R S: (N, 3, 3)`` and ``F: (N, 3, 3)`` → ``(N, 3, 3)``."""
+    """Σ' = (F R S)(F R S)ᵀ from ``rs = R S: (N, 3, 3)`` and ``F: (N, 3, 3)`` → ``(N, 3, 3)``; F may carry leading
+    batch dimensions (e.g. frames, (T, N, 3, 3) → (T, N, 3, 3))."""
     L = F @ rs
-    return L @ L.transpose(1, 2)
+    return L @ L.transpose(-1, -2)
 
 
 def _check(name: str, t: Tensor, shape: tuple[int, ...], like: Tensor) -> None:

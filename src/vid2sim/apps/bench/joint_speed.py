@@ -11,20 +11,37 @@ Figures: ``joint_iter_ms`` (the small preset: networks fixed, full resolution), 
 (the first half of the small preset's iterations) and ``joint_iter_ms_with_networks`` (the paper's setting:
 the skinning MLP optimised too, so its weights and gradients at the Gaussians are recomputed every
 iteration), and ``joint_iter_ms_with_networks_neural_jacobian`` (the same with the paper's Neural Jacobian
-for dF/dz instead of the exact closed form). Medians over repeats.
+for dF/dz instead of the exact closed form). Medians over repeats. ``joint_iter_ms_reference_kernels`` is
+``joint_iter_ms`` with the simulator's per-term reference code (``SimConfig(fused_kernels=False)``) in the same
+run, for a same-machine ratio.
+
+Operation counts (:mod:`vid2sim.apps.bench.op_count`; deterministic, unlike the timings): ``joint_iter_ops``, the
+top-level aten operators one ``joint_iter_ms`` iteration dispatches on the device that runs it (on a GPU each is
+a launch: the iteration is launch-bound there), ``joint_iter_aten_events`` all aten events (nested ones too),
+and ``joint_iter_ops_render`` the share of the rendering alone (the window's frames rendered in the 4 views,
+the image loss and its backward pass to the states; the torch rasteriser on a CPU, gsplat on a GPU).
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass, replace
 from typing import Any
 
 import torch
 
+from vid2sim.apps.bench.op_count import count_aten_ops
 from vid2sim.apps.bench.physics_speed import (
     PhysicsBenchSettings,
     build_standard_simulator,
 )
 from vid2sim.apps.bench.timing import time_ms
+from vid2sim.asset.motion import GaussianRig
+from vid2sim.physics.external import AREA_CONTACT_STIFFNESS, Floor, Gravity
+from vid2sim.physics.neural_jacobian import NeuralJacobian
+from vid2sim.physics.solver import Simulator
+from vid2sim.reconstruct.stages.joint import Observations, image_loss, render_states
+from vid2sim.splats.cameras import camera_ring
+from vid2sim.splats.gaussians import Gaussians
 
 
 def _box_surface(n: int, size: torch.Tensor, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -39,22 +56,73 @@ def _box_surface(n: int, size: torch.Tensor, seed: int) -> tuple[torch.Tensor, t
     return p.float(), torch.full((n,), float(faces.sum()) / n)
 
 
-def run(device: torch.device, quick: bool = False, settings: PhysicsBenchSettings | None = None) -> dict[str, Any]:
-    """The figures of the module docstring."""
-    from dataclasses import replace
+@dataclass
+class JointBench:
+    """The bench's joint setting, ready to run iterations (:func:`build_joint_bench`).
 
-    from vid2sim.asset.motion import GaussianRig
-    from vid2sim.physics.external import AREA_CONTACT_STIFFNESS, Floor, Gravity
-    from vid2sim.physics.neural_jacobian import NeuralJacobian
-    from vid2sim.physics.solver import Simulator
-    from vid2sim.reconstruct.stages.joint import Observations, image_loss, render_states
-    from vid2sim.splats.cameras import camera_ring
-    from vid2sim.splats.gaussians import Gaussians
+    Attributes:
+        sim: the simulator (floor with 1 000 area-weighted contact points, E guessed at 10^5.3).
+        rig: the 6 000 Gaussians on the box's surface, moved by ``sim``.
+        full: the target images (V = 4, T = 10, 128, 128, 3) and cameras; ``half`` the same at 64².
+        fixed: the rig's basis at the Gaussians with the networks fixed (``rig.basis()``).
+        window_start: the state the 4-frame window starts from (frame 5).
+    """
+
+    sim: Any
+    rig: Any
+    full: Any
+    half: Any
+    fixed: Any
+    window_start: Any
+    _window: Any = None
+
+    def iteration(self, obs: Any | None = None, basis: Any = "fixed") -> None:
+        """One joint iteration (forward + backward) on ``obs`` (default ``full``) with the rig's ``basis``
+        (default the fixed one; None: recomputed from the networks, differentiably)."""
+
+        sim, obs = self.sim, self.full if obs is None else obs
+        basis = self.fixed if isinstance(basis, str) else basis
+        sim.log10_E.requires_grad_(True)
+        sim.nu.requires_grad_(True)
+        out = sim.rollout(self.window_start, 4)
+        renders = render_states(self.rig, out, obs, range(4), basis)
+        loss = image_loss(renders, obs.images[:, 6:10].transpose(0, 1))
+        loss.backward()
+        sim.log10_E.grad = sim.nu.grad = None
+        sim.log10_E.requires_grad_(False)
+        sim.nu.requires_grad_(False)
+
+    def render_iteration(self, obs: Any | None = None) -> None:
+        """The rendering part of :meth:`iteration` alone: the window's states (simulated once, without gradients)
+        rendered, the image loss and its backward pass to the states."""
+
+        obs = self.full if obs is None else obs
+        if self._window is None:
+            with torch.no_grad():
+                self._window = self.sim.rollout(self.window_start, 4)
+        states = [type(s)(s.z.detach().requires_grad_(True), s.zdot) for s in self._window]
+        renders = render_states(self.rig, states, obs, range(4), self.fixed)
+        image_loss(renders, obs.images[:, 6:10].transpose(0, 1)).backward()
+
+    def with_networks(self) -> None:
+        """One iteration with the skinning MLP (and the Neural Jacobian, when in use) optimised too."""
+        sim = self.sim
+        nets = list(sim.field.parameters()) + (list(sim.jacobian.parameters()) if sim.use_neural_jacobian else [])
+        for p in nets:
+            p.requires_grad_(True)
+        self.iteration(self.full, None)
+        for p in nets:
+            p.requires_grad_(False)
+            p.grad = None
+
+
+def build_joint_bench(device: torch.device, settings: PhysicsBenchSettings | None = None,
+                      quick: bool = False) -> JointBench:
+    """The joint setting of the module docstring (``quick``: a 20-iteration skinning pretraining)."""
 
     s = settings or PhysicsBenchSettings()
     if quick:
         s = replace(s, skinning_pretrain_iters=20)
-    repeats = 1 if quick else 5
     base, pts = build_standard_simulator(s, device)
     size = pts.max(0).values - pts.min(0).values
     contact, areas = _box_surface(1000, size.double().cpu(), s.seed)
@@ -74,45 +142,44 @@ def run(device: torch.device, quick: bool = False, settings: PhysicsBenchSetting
         target = render_states(rig, states, Observations(torch.zeros(4, 10, 128, 128, 3), cams),
                                range(4)).transpose(0, 1)  # (V, T, H, W, 3)
     full = Observations(target, cams)
-    half = full.at_scale(0.5)
     with torch.no_grad():
         sim.log10_E.fill_(5.3)  # a wrong guess: the gradients are not zero
         fixed = rig.basis()
-    window_start = states[5]
-
-    def iteration(obs: Observations, basis) -> None:
-        sim.log10_E.requires_grad_(True)
-        sim.nu.requires_grad_(True)
-        out = sim.rollout(window_start, 4)
-        renders = render_states(rig, out, obs, range(4), basis)
-        loss = image_loss(renders, obs.images[:, 6:10].transpose(0, 1))
-        loss.backward()
-        sim.log10_E.grad = sim.nu.grad = None
-        sim.log10_E.requires_grad_(False)
-        sim.nu.requires_grad_(False)
-
-    def with_networks() -> None:
-        nets = list(sim.field.parameters()) + (list(sim.jacobian.parameters()) if sim.use_neural_jacobian else [])
-        for p in nets:
-            p.requires_grad_(True)
-        iteration(full, None)
-        for p in nets:
-            p.requires_grad_(False)
-            p.grad = None
-
     for p in sim.field.parameters():  # fixed networks: no gradients to the skinning MLP
         p.requires_grad_(False)
+    return JointBench(sim, rig, full, full.at_scale(0.5), fixed, states[5])
+
+
+def run(device: torch.device, quick: bool = False, settings: PhysicsBenchSettings | None = None) -> dict[str, Any]:
+    """The figures of the module docstring."""
+
+
+    s = settings or PhysicsBenchSettings()
+    repeats = 1 if quick else 5
+    bench = build_joint_bench(device, s, quick)
+    sim = bench.sim
     # the closed-form dF/dz (the default) first: the Neural Jacobian below stays switched on in ``sim``
-    fixed_full = time_ms(lambda: iteration(full, fixed), device, repeats)
-    fixed_half = time_ms(lambda: iteration(half, fixed), device, repeats)
-    closed_form = time_ms(with_networks, device, repeats)
+    fixed_full = time_ms(lambda: bench.iteration(bench.full), device, repeats)
+    ops = count_aten_ops(lambda: bench.iteration(bench.full))
+    bench.render_iteration()
+    render_ops = count_aten_ops(bench.render_iteration)
+    default = sim.config
+    sim.config = replace(default, fused_kernels=False)
+    reference = time_ms(lambda: bench.iteration(bench.full), device, repeats)
+    sim.config = default
+    fixed_half = time_ms(lambda: bench.iteration(bench.half), device, repeats)
+    closed_form = time_ms(bench.with_networks, device, repeats)
     # the paper's Neural Jacobian instead of the exact closed-form dF/dz (untrained: the cost is the same)
-    sim.jacobian = NeuralJacobian(num_handles_total=sim.field.num_handles_total, seed=s.seed).to(pts)
+    sim.jacobian = NeuralJacobian(num_handles_total=sim.field.num_handles_total, seed=s.seed).to(bench.fixed[0])
     sim.use_neural_jacobian = True
-    neural = time_ms(with_networks, device, repeats)
+    neural = time_ms(bench.with_networks, device, repeats)
 
     return {
         "joint_iter_ms": fixed_full,
+        "joint_iter_ms_reference_kernels": reference,
+        "joint_iter_ops": ops.top_level,
+        "joint_iter_aten_events": ops.total,
+        "joint_iter_ops_render": render_ops.top_level,
         "joint_iter_ms_half_resolution": fixed_half,
         "joint_iter_ms_with_networks": closed_form,
         "joint_iter_ms_with_networks_neural_jacobian": neural,

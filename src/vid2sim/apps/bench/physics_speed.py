@@ -19,7 +19,12 @@ Figures (medians; every baseline is measured in the same run):
   parameters (forward + backward), ``sim_window_ms_one_step_per_frame`` the same with one implicit-Euler
   step per frame; ``sim_window_points_ms`` with the loss on all 20 000 points;
 - ``sim_frame_ms_projected`` and ``sim_window_ms_projected`` — the same frame and window with the projected
-  volumetric term (``Simulator(volumetric="projected")``, :mod:`vid2sim.physics.volumetric`).
+  volumetric term (``Simulator(volumetric="projected")``, :mod:`vid2sim.physics.volumetric`);
+- ``skinning_train_ms_per_iter`` and ``jacobian_train_ms_per_iter`` — one data-free training iteration of the
+  skinning field (the paper's random-z objective, 1 000 points) and of the Neural Jacobian;
+  ``skinning_iter_ops`` the top-level aten operators one skinning iteration dispatches
+  (:mod:`vid2sim.apps.bench.op_count`: those of 11 iterations less those of 1, over 10, so without the
+  optimiser's set-up).
 """
 
 from __future__ import annotations
@@ -78,6 +83,22 @@ def build_standard_simulator(settings: PhysicsBenchSettings, device: torch.devic
     # substeps' length scale (the cubature points' own box is slightly smaller)
     sim = Simulator(field, pts[idx], weights.to(pts), material, externals, SimConfig(dt=settings.dt), length_scale=1.0)
     return sim, pts
+
+
+def skinning_iteration_ops(field, points: torch.Tensor, seed: int = 0) -> float:
+    """Top-level aten operators of one data-free skinning iteration (default objective) on a copy of ``field``:
+    those of an 11-iteration run less those of a 1-iteration run, over 10 (the set-up cancels)."""
+    import copy
+
+    from vid2sim.apps.bench.op_count import count_aten_ops
+    from vid2sim.physics.skinning_training import SkinningTrainingConfig, train_skinning
+
+    field = copy.deepcopy(field)
+
+    def train(n: int):
+        return lambda: train_skinning(field, points, SkinningTrainingConfig(iterations=n, seed=seed), progress=False)
+
+    return (count_aten_ops(train(11)).top_level - count_aten_ops(train(1)).top_level) / 10
 
 
 def run(device: torch.device, quick: bool = False, settings: PhysicsBenchSettings | None = None) -> dict[str, Any]:
@@ -169,6 +190,7 @@ def run(device: torch.device, quick: bool = False, settings: PhysicsBenchSetting
     iters = s.train_timing_iters
     skin_ms = time_ms(lambda: train_skinning(sim.field, pts, SkinningTrainingConfig(iterations=iters, seed=s.seed),
                                              progress=False), device, repeats=1) / iters
+    skin_ops = skinning_iteration_ops(sim.field, pts, s.seed)
     nj = NeuralJacobian(num_handles_total=sim.field.num_handles_total, seed=s.seed).to(device)
     nj_ms = time_ms(lambda: train_neural_jacobian(nj, sim.field, pts, NeuralJacobianTrainingConfig(
         iterations=iters, seed=s.seed), progress=False), device, repeats=1) / iters
@@ -188,6 +210,7 @@ def run(device: torch.device, quick: bool = False, settings: PhysicsBenchSetting
         "sim_frame_ms_projected": frame_projected_ms,
         "sim_window_ms_projected": window_projected_ms,
         "skinning_train_ms_per_iter": skin_ms,
+        "skinning_iter_ops": skin_ops,
         "jacobian_train_ms_per_iter": nj_ms,
         "physics_settings": asdict(s),
     }

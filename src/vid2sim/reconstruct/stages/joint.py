@@ -136,17 +136,16 @@ def render_states(rig: GaussianRig, states: Sequence[SimState], obs: Observation
 
     basis = rig.basis() if basis is None else basis
     cams = [obs.cameras[v] for v in views]
-    frames = [rig.deformed(s.z, basis) for s in states]
     nv = len(cams)
     if rig.shading is not None:  # colours differ per frame: one call per frame
+        frames = [rig.deformed(s.z, basis) for s in states]
         return torch.stack([render(d.means, d.opacities, d.sh, cams, covars=d.covars, sh_degree=d.sh_degree,
                                    background=list(obs.background)).rgb for d in frames])
-    means = torch.stack([d.means for d in frames]).repeat_interleave(nv, dim=0)  # (T·V, N, 3)
-    covars = torch.stack([d.covars for d in frames]).repeat_interleave(nv, dim=0)
-    g = frames[0]
-    out = render(means, g.opacities, g.sh, cams * len(frames), covars=covars, sh_degree=g.sh_degree,
-                 background=list(obs.background)).rgb
-    return out.reshape(len(frames), nv, *out.shape[1:])
+    means, covars = rig.deformed_frames(torch.stack([s.z for s in states]), basis)  # all frames in one batch
+    g = rig.gaussians
+    out = render(means.repeat_interleave(nv, dim=0), g.opacities, g.sh, cams * len(states),  # (T·V, N, 3)
+                 covars=covars.repeat_interleave(nv, dim=0), sh_degree=g.sh_degree, background=list(obs.background)).rgb
+    return out.reshape(len(states), nv, *out.shape[1:])
 
 
 def image_loss(renders: Tensor, targets: Tensor) -> Tensor:
