@@ -106,3 +106,26 @@ def tiny_asset(tiny_scene, tmp_path_factory):
     config = _tiny_reconstruct_config()
     config.simulator.mass = "moments"
     return reconstruct(tiny_scene, out, config, progress=False)
+
+
+def box_points(n: int, seed: int, size=(0.6, 0.4, 0.6), dtype=torch.float64) -> torch.Tensor:
+    """(n, 3) points uniform in a centred box of the given proportions, half its diagonal 0.5 (canonical)."""
+    g = torch.Generator().manual_seed(seed)
+    s = torch.tensor(size, dtype=torch.float64)
+    s = s * (0.5 / float(s.norm() / 2))
+    return ((torch.rand(n, 3, generator=g, dtype=torch.float64) - 0.5) * s).to(dtype)
+
+
+@pytest.fixture(scope="module")
+def trained_field():
+    """A small data-free-trained skinning field (4 learned handles) on a box, float64, and its points."""
+    from vid2sim.physics import SkinningField, SkinningTrainingConfig, train_skinning
+
+    torch.manual_seed(0)
+    pts = box_points(1500, 0)
+    field = SkinningField(num_handles=4, seed=0).double()
+    train_skinning(field, pts, SkinningTrainingConfig(iterations=150, points_per_step=500, batch_size=4, seed=0),
+                   progress=False)
+    for p in field.parameters():
+        p.requires_grad_(False)
+    return field, pts

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from test_simulator import _box, trained_field  # noqa: F401  (the trained 4-handle field on the box, a fixture)
+from conftest import box_points as _box
 
 from vid2sim.physics import fused
 from vid2sim.physics.cubature import sample_cubature
@@ -167,7 +167,7 @@ def test_adjoint_batches_and_hessian_blocks_do_not_change_the_gradients(trained_
 
 
 def test_batched_frames_deform_the_gaussians_as_each_frame(trained_field):
-    from vid2sim.reconstruct.stages.joint import GaussianRig
+    from vid2sim.asset.motion import GaussianRig
     from vid2sim.splats.gaussians import Gaussians
 
     field, pts = trained_field

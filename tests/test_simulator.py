@@ -12,7 +12,6 @@ from vid2sim.physics.external import Floor, Gravity, SphereObstacle
 from vid2sim.physics.materials import energy_and_pk1, neo_hookean_indefinite
 from vid2sim.physics.reduced import y_to_z_index, z_to_y_index
 from vid2sim.physics.skinning import SkinningField, dF_dz, gradient_basis
-from vid2sim.physics.skinning_training import SkinningTrainingConfig, train_skinning
 from vid2sim.physics.solver import (
     Material,
     SimConfig,
@@ -22,26 +21,6 @@ from vid2sim.physics.solver import (
 )
 
 G = 9.8
-
-
-def _box(n: int, seed: int, size=(0.6, 0.4, 0.6), dtype=torch.float64) -> torch.Tensor:
-    g = torch.Generator().manual_seed(seed)
-    s = torch.tensor(size, dtype=torch.float64)
-    s = s * (0.5 / float(s.norm() / 2))
-    return ((torch.rand(n, 3, generator=g, dtype=torch.float64) - 0.5) * s).to(dtype)
-
-
-@pytest.fixture(scope="module")
-def trained_field() -> tuple[SkinningField, torch.Tensor]:
-    """A small data-free-trained skinning field (4 learned handles) on a box, float64."""
-    torch.manual_seed(0)
-    pts = _box(1500, 0)
-    field = SkinningField(num_handles=4, seed=0).double()
-    train_skinning(field, pts, SkinningTrainingConfig(iterations=150, points_per_step=500, batch_size=4, seed=0),
-                   progress=False)
-    for p in field.parameters():
-        p.requires_grad_(False)
-    return field, pts
 
 
 def _sim(field, pts, material=None, externals=None, k=120, config=None, dtype=torch.float64):

@@ -107,7 +107,7 @@ def test_visual_hull_rejects_bad_masks():
 def test_ssim_l1_psnr_hand_values():
     a = torch.full((1, 16, 16, 3), 0.2)
     b = torch.full((1, 16, 16, 3), 0.6)
-    c1, c2 = 0.01**2, 0.03**2
+    c1 = 0.01**2
     # constant images: no variance, SSIM reduces to its luminance term
     expected = (2 * 0.2 * 0.6 + c1) / (0.2**2 + 0.6**2 + c1)
     assert float(ssim(a, b)) == pytest.approx(expected, rel=1e-5)

@@ -619,7 +619,7 @@ def _assemble_hessians(steps: Sequence[FusedStep], Y: Tensor, T: Tensor) -> Tens
 
 def _add_barrier_hessians(steps: Sequence[FusedStep], Y: Tensor, H: Tensor) -> None:
     """Add k_e ∇²E_contact of each step at its state (Y: (S, 3, L)) to H: (S, D, D) in place."""
-    from vid2sim.physics.reduced import _reduced_point_hessian
+    from vid2sim.physics.reduced import reduced_point_hessian
 
     fr = steps[0].frame
     S, _, L = Y.shape
@@ -633,4 +633,4 @@ def _add_barrier_hessians(steps: Sequence[FusedStep], Y: Tensor, H: Tensor) -> N
     for ext in fr.barriers:
         for s, step in enumerate(steps):
             x = torch.addmm(fr.contact_X, fr.contact_b, Y[s].t())
-            H[s] += step.k_e * _reduced_point_hessian(ext.hessian(x, fr.contact_w, step.t, project=False), fr.contact_b)
+            H[s] += step.k_e * reduced_point_hessian(ext.hessian(x, fr.contact_w, step.t, project=False), fr.contact_b)

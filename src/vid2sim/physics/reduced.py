@@ -307,7 +307,7 @@ class StepProblem:
                 if project:
                     r = r.clamp_min(0.0)
                 hx = hx + (k * r)[:, None, None] * curvature
-        return _reduced_point_hessian(hx, self._contact[1])
+        return reduced_point_hessian(hx, self._contact[1])
 
     @functools.cached_property
     def _gravity(self) -> tuple[Tensor, Tensor] | None:
@@ -355,13 +355,13 @@ class StepProblem:
             hx = x.new_zeros(x.shape[0], 3, 3)
             for ext in body:
                 hx = hx + ext.hessian(x, self.mass, self.t, project=project)
-            H = H + _reduced_point_hessian(hx, self.b)
+            H = H + reduced_point_hessian(hx, self.b)
         if contact:
             xc, w = self._contact_positions(y), self._contact[2]
             hx = xc.new_zeros(xc.shape[0], 3, 3)
             for ext in contact:
                 hx = hx + ext.hessian(xc, self._barrier_weights(ext, w), self.t, project=project)
-            H = H + _reduced_point_hessian(hx, self._contact[1])
+            H = H + reduced_point_hessian(hx, self._contact[1])
         return H
 
     def evaluate(self, y: Tensor, energy: bool = True) -> tuple[Tensor, Tensor | None, bool]:
@@ -540,7 +540,7 @@ def _half_trace_strain(F: Tensor, C_ref: Tensor) -> Tensor:
     return 0.5 * ((F * F).sum(dim=(1, 2)) - C_ref.diagonal(dim1=1, dim2=2).sum(-1))
 
 
-def _reduced_point_hessian(hx: Tensor, b: Tensor) -> Tensor:
+def reduced_point_hessian(hx: Tensor, b: Tensor) -> Tensor:
     """Σ_p (I₃ ⊗ b_p) H_p (I₃ ⊗ b_p)ᵀ (3L, 3L) for per-point blocks hx: (N, 3, 3) and LBS rows b: (N, L),
     over the points with a nonzero block only."""
     L = b.shape[1]
