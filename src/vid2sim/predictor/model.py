@@ -1,5 +1,5 @@
 """The Stage I network: a VideoMAE backbone, mean-pooled tokens, and heads for log10 E, ν and the skinning
-field's last layer (paper §4.1; DESIGN.md "Stage I").
+field's last layer (paper §4.1; docs/architecture.md, "The paper's numbers").
 
 - **Backbone**: ``transformers.VideoMAEModel``. By default a small configuration trained from scratch
   (:class:`PredictorConfig` defaults: 64² input, 16 frames, 16² patches, tubelets of 2 → 128 tokens; width
@@ -15,7 +15,7 @@ field's last layer (paper §4.1; DESIGN.md "Stage I").
   saved with the checkpoint.
 - **Pooling**: the mean of all tokens' last hidden states (no masking).
 - **Heads** (GELU between layers), scaled to the backbone width w: log10 E and ν each
-  w → 2w/3 → w/3 → w/6 → 1 (768-512-256-128-1 for w = 768, as DESIGN.md), and the hypernetwork
+  w → 2w/3 → w/3 → w/6 → 1 (768-512-256-128-1 for w = 768, as the paper's, docs/architecture.md), and the hypernetwork
   w → 650 → 650 → 650 → 650.
 - **Outputs** are standardised: each head predicts (label − mean) / std with the training split's
   statistics, which are buffers of the model (``label_mean_*``, ``label_std_*``) and so travel with it;

@@ -411,7 +411,7 @@ class TemplateConfig:
         lr: Adam's learning rate of the trunk (linear warm-up over ``warmup`` steps, then a cosine schedule
             to 0).
         loss: the data-free loss.
-        num_handles, width, hidden_layers: the skinning MLP (DESIGN.md: 10, 64, 8).
+        num_handles, width, hidden_layers: the skinning MLP (the paper's: 10, 64, 8).
         eval_shapes: held-out shapes (seeds ``shape_seed_base + shapes + k``) for the report.
         eval_iterations: iterations of the report's last-layer fits and full trainings.
     """

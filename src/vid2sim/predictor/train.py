@@ -57,7 +57,7 @@ class TrainConfig:
         steps: optimiser steps in all.
         batch_size: samples per step.
         lr: Adam's learning rate (cosine decay to ``lr · final_lr_fraction`` after ``warmup`` linear steps).
-            DESIGN.md gives 1e-5 for fine-tuning a pre-trained backbone; a small backbone from scratch needs more.
+            The paper gives 1e-5 for fine-tuning a pre-trained backbone; a small backbone from scratch needs more.
         final_lr_fraction, warmup: the schedule.
         weight_decay: Adam's L2 term.
         loss: the loss weights (the issue's 1, 100, 1).
