@@ -73,6 +73,7 @@ from vid2sim.physics.skinning import (
     gradient_basis_unchecked,
 )
 from vid2sim.runtime.errors import ConfigError
+from vid2sim.runtime.training import Progress, Schedule, optimise
 
 #: training objectives of :func:`train_skinning`
 OBJECTIVES = ("random_z", "modal")
@@ -297,57 +298,33 @@ def train_skinning(
     params = list(field.last_layer.parameters()) if config.last_layer_only else list(field.parameters())
     if config.iterations == 0:
         return []
-    opt = torch.optim.Adam(params, lr=config.lr, foreach=True)  # one multi-tensor update (the same values)
-    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=config.iterations)
     gen = torch.Generator(device="cpu")
     gen.manual_seed(int(config.seed))
     H = field.num_handles_total
-    n_all = points.shape[0]
     modal = config.objective == "modal"
     size = float((points.max(0).values - points.min(0).values).norm()) if modal else 1.0
     if modal and not size > 0:
         raise ValueError("the modal objective needs points that span a volume (their bounding box is a point)")
     alpha = config.modal_shift / size**2
-    losses: list[float] = []
-    iterator = range(config.iterations)
-    if progress:
-        from tqdm.auto import tqdm
+    draws = _RandomDraws(gen, points.shape[0], config, H, modal, points)
 
-        iterator = tqdm(iterator, desc="skinning (data-free)", unit="it")
+    def step(it: int) -> tuple[Tensor, dict[str, Tensor]]:
+        idx, z = draws.next(it)
+        X = points[idx]
+        w, dw = field._weights_and_gradients(X)  # the points were checked above
+        lo = orthogonality_loss(w[:, :-1])
+        if modal:
+            K, M = subspace_stiffness_and_mass(X, w, dw, float(volume), config.poisson_ratio)
+            le = modal_loss(K, M, alpha, config.modal_trace_weight)
+            return le + config.modal_orthogonality_weight * lo, {"modal": le, "ortho": lo}
+        G = gradient_basis_unchecked(X, w, dw)
+        le = elastic_loss(G, z, mu, lam, float(volume), config.inversion_threshold, trusted=True)
+        return config.elastic_weight * le + config.orthogonality_weight * lo, {"elastic": le, "ortho": lo}
+
     was_training = field.training
     field.train()
-    try:
-        draws = _RandomDraws(gen, n_all, config, H, modal, points)
-        for it in iterator:
-            idx, z = draws.next(it)
-            X = points[idx]
-            w, dw = field._weights_and_gradients(X)  # the points were checked above
-            lo = orthogonality_loss(w[:, :-1])
-            if modal:
-                K, M = subspace_stiffness_and_mass(X, w, dw, float(volume), config.poisson_ratio)
-                le = modal_loss(K, M, alpha, config.modal_trace_weight)
-                loss = le + config.modal_orthogonality_weight * lo
-            else:
-                G = gradient_basis_unchecked(X, w, dw)
-                le = elastic_loss(G, z, mu, lam, float(volume), config.inversion_threshold, trusted=True)
-                loss = config.elastic_weight * le + config.orthogonality_weight * lo
-            value = float(loss.detach())  # the iteration's one synchronisation
-            if not math.isfinite(value):
-                raise FloatingPointError(
-                    f"skinning training loss became {value} at iteration {it} "
-                    f"(elastic {float(le)}, orthogonality {float(lo)}); try a smaller lr or z_std"
-                )
-            grads = torch.autograd.grad(loss, params)
-            for p, g in zip(params, grads):
-                p.grad = g
-            opt.step()
-            sched.step()
-            losses.append(value)
-            if progress and (it % 50 == 0 or it == config.iterations - 1):
-                iterator.set_postfix({"loss": f"{losses[-1]:.4g}", "modal" if modal else "elastic": f"{float(le):.3g}",
-                                      "ortho": f"{float(lo):.3g}"})
+    try:  # foreach: one multi-tensor update (the same values)
+        return optimise(params, step, Schedule(config.iterations, config.lr, foreach=True),
+                        Progress("skinning (data-free)", progress), "skinning training")
     finally:
-        for p in params:
-            p.grad = None
         field.train(was_training)
-    return losses
