@@ -65,5 +65,5 @@ def register(sub: argparse._SubParsersAction) -> None:
     babl.add_argument("--predictor", metavar="PATH", default=None,
                       help="Stage I checkpoint (default: the one shipped with vid2sim; vid2sim train-predictor)")
     add_suite_run_options(babl)
-    babl.set_defaults(func=run)
+    babl.set_defaults(func=run, lock_output="out")  # one writer per OUT (runtime.locks)
 

@@ -49,4 +49,4 @@ def register(sub: argparse._SubParsersAction) -> None:
     bsuite.add_argument("--iterations", type=int, default=None,
                         help="joint-optimisation iterations (default: the preset's)")
     add_suite_run_options(bsuite)
-    bsuite.set_defaults(func=run)
+    bsuite.set_defaults(func=run, lock_output="out")  # one writer per OUT (runtime.locks)
