@@ -330,7 +330,7 @@ def load_asset(folder: str | Path, device: torch.device | str = "cpu") -> Asset:
     shading_path = folder / FILES["shading"]
     if shading_path.is_file():
         try:
-            with np.load(shading_path) as z:
+            with np.load(shading_path, allow_pickle=False) as z:
                 shading = Shading(*(torch.from_numpy(np.asarray(z[k])).to(device=device, dtype=gaussians.means.dtype)
                                     for k in ("normals", "light", "ambient_logit")))
         except (KeyError, ValueError) as exc:

@@ -523,7 +523,7 @@ def _reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructCon
         torch.save(asdict(carved), pts_path)
         (work.dir / "carving.json").write_text(json.dumps(carving))
         work.finish("points", time.perf_counter() - t0)
-    obj_cpu = ObjectPoints(**torch.load(pts_path))
+    obj_cpu = ObjectPoints(**torch.load(pts_path, weights_only=True))
     carving = json.loads((work.dir / "carving.json").read_text())
     obj = dataclasses.replace(obj_cpu, **{k: getattr(obj_cpu, k).to(dev) for k in
                                           ("points", "contact_points", "contact_areas", "centre")})

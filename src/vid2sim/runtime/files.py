@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import os
+import pickle
 import tempfile
 from pathlib import Path
 from typing import Any, Callable
@@ -99,6 +100,11 @@ def load_torch_file(path: str | Path, what: str = "a torch file", error: type[In
         return torch.load(path, map_location=map_location, weights_only=True)
     except OSError as exc:
         raise error(f"{path}: cannot read it ({exc}); expected {what}") from None
+    except pickle.UnpicklingError as exc:
+        if "Weights only load failed" in str(exc):
+            raise error(f"{path}: refused: it holds Python objects other than tensors and plain containers, and "
+                        f"loading them could run code (expected {what})") from None
+        raise error(f"{path}: not {what}, or corrupt (UnpicklingError: {str(exc).splitlines()[0][:200]})") from None
     except Exception as exc:  # noqa: BLE001 - a corrupt or hostile file fails in many ways inside the unpickler
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise error(f"{path}: not {what}, or corrupt ({type(exc).__name__}: {first[:200]})") from None

@@ -47,7 +47,7 @@ from torch import Tensor
 from tqdm import tqdm
 
 from vid2sim.runtime.errors import ConfigError, InputError
-from vid2sim.runtime.limits import image_size_problem, npz_size_problem, outside
+from vid2sim.runtime.limits import image_size_problem, max_image_pixels, npz_size_problem, outside
 from vid2sim.scene.validation import (
     SCENE_FORMAT_NAME,
     SCENE_FORMAT_VERSION,
@@ -450,6 +450,7 @@ _INT_DTYPES = (torch.uint8, torch.int8, torch.int16, torch.int32, torch.int64)
 def _open_image(path: Path) -> Image.Image:
     """``Image.open`` with vid2sim's pixel limit (``VID2SIM_MAX_IMAGE_PIXELS``) in place of Pillow's warning and
     error: raises ValueError naming the limit, before any pixel is decoded."""
+    Image.MAX_IMAGE_PIXELS = max_image_pixels()  # Pillow's error then comes at twice vid2sim's own limit
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", Image.DecompressionBombWarning)
         try:

@@ -348,7 +348,7 @@ def prepare_scene(index: int, params: dict, config: IdentifyConfig, workdir: Pat
     suffix = "_v2" if config.skinning_objective == "random_z" else f"_{config.skinning_objective}"
     field_path = folder / f"skinning_{config.handles}h_{config.skinning_iterations}it_{config.skinning_points}p{suffix}.pt"
     if field_path.is_file():
-        field.load_state_dict(torch.load(field_path))
+        field.load_state_dict(torch.load(field_path, weights_only=True))
     else:
         pool, _, _ = sample_points_in_tets(X, T, config.skinning_points, seed=100_000 + index)
         train_skinning(field, pool, SkinningTrainingConfig(iterations=config.skinning_iterations, seed=index,

@@ -70,7 +70,7 @@ class FuzzConfig:
     @classmethod
     def quick_run(cls, **overrides: Any) -> "FuzzConfig":
         """The ``--quick`` campaign: a few cases of every section."""
-        values: dict[str, Any] = {"physics": 2, "inputs": 40, "hostile": True, "kills": 1, "quick": True,
+        values: dict[str, Any] = {"physics": 2, "inputs": 20, "hostile": True, "kills": 1, "quick": True,
                                   "timeout": 30.0}
         values.update(overrides)
         return cls(**values)
@@ -88,21 +88,25 @@ def run_fuzz(config: FuzzConfig, out: str | Path | None = None, progress: bool =
         write_json_atomic(folder / "fuzz_config.json", asdict(config))
     figures: dict[str, Any] = {"config": asdict(config)}
     t0 = time.perf_counter()
-    if config.physics:
-        from vid2sim.apps.bench.fuzz import physics
+    record = lambda name: None if folder is None else folder / f"{name}.jsonl"  # noqa: E731
+    if config.inputs or config.hostile:  # forked cases first, while this process has run no torch threads
+        import tempfile
 
-        figures["physics"] = physics.run(config, None if folder is None else folder / "physics.jsonl", progress)
-    if config.inputs:
-        from vid2sim.apps.bench.fuzz import inputs
+        from vid2sim.apps.bench.fuzz import hostile, inputs
 
-        figures["inputs"] = inputs.run(config, None if folder is None else folder / "inputs.jsonl", progress)
-    if config.hostile:
-        from vid2sim.apps.bench.fuzz import hostile
-
-        figures["hostile"] = hostile.run(config, None if folder is None else folder / "hostile.jsonl", progress)
+        with tempfile.TemporaryDirectory(prefix="vid2sim-fuzz-seeds-") as tmp:
+            seeds = inputs.seeds_in_child(Path(tmp) / "seeds", config.quick)
+            if config.inputs:
+                figures["inputs"] = inputs.run(config, record("inputs"), seeds, progress)
+            if config.hostile:
+                figures["hostile"] = hostile.run(config, record("hostile"), seeds, progress)
     if config.kills:
         from vid2sim.apps.bench.fuzz import kills
 
-        figures["kills"] = kills.run(config, None if folder is None else folder / "kills.jsonl", progress)
+        figures["kills"] = kills.run(config, record("kills"), progress)
+    if config.physics:
+        from vid2sim.apps.bench.fuzz import physics
+
+        figures["physics"] = physics.run(config, record("physics"), progress)
     figures["seconds"] = round(time.perf_counter() - t0, 1)
     return figures

@@ -202,30 +202,30 @@ def summarize(records: list[dict[str, Any]]) -> dict[str, Any]:
     }
 
 
-def run(config, records_path: str | Path | None, progress: bool = False) -> dict[str, Any]:
-    """``config.inputs`` cases, resumed from ``records_path``; returns the figures."""
+def seeds_in_child(folder: Path, quick: bool = False) -> dict[str, Path]:
+    """:func:`make_seeds` into ``folder`` in a forked child (the campaign's own process stays free of torch
+    threads, so that its later forks are safe); returns kind → path."""
+    made = run_in_child(lambda: (make_seeds(folder, quick), 0)[1], 600.0)
+    if made.returncode != 0:
+        raise RuntimeError(f"could not build the fuzz seeds: {made.stderr[-2000:]}")
+    return {k: folder / v for k, v in _SEED_NAMES.items()}
+
+
+def run(config, records_path: str | Path | None, seeds: dict[str, Path], progress: bool = False) -> dict[str, Any]:
+    """``config.inputs`` cases on ``seeds`` (:func:`seeds_in_child`), resumed from ``records_path``; returns the
+    figures."""
     from vid2sim.apps.bench.fuzz.records import RecordFile, read_records, todo
 
     done = read_records(records_path) if records_path is not None else {}
     sink = RecordFile(records_path)
     results = dict(done)
-    indices = todo(range(config.inputs), done)
-    if indices:
-        with tempfile.TemporaryDirectory(prefix="vid2sim-fuzz-seeds-") as tmp:
-            t0 = time.perf_counter()
-            made = run_in_child(lambda: (make_seeds(Path(tmp) / "seeds", config.quick), 0)[1], 600.0)
-            if made.returncode != 0:
-                raise RuntimeError(f"could not build the fuzz seeds: {made.stderr[-2000:]}")
-            seeds = {k: Path(tmp) / "seeds" / _SEED_NAMES[k] for k in KINDS}
-            if progress:
-                print(f"inputs: seeds built in {time.perf_counter() - t0:.1f} s", flush=True)
-            for i in indices:
-                record = run_case(i, config.seed + i, seeds, config.timeout)
-                results[i] = record
-                sink.add(record)
-                if progress:
-                    print(f"inputs {len(results)}/{config.inputs}: {record['kind']} {record['file']} "
-                          f"{record['mutation']}: {record['verdict']} ({record['seconds']} s)", flush=True)
+    for i in todo(range(config.inputs), done):
+        record = run_case(i, config.seed + i, seeds, config.timeout)
+        results[i] = record
+        sink.add(record)
+        if progress:
+            print(f"inputs {len(results)}/{config.inputs}: {record['kind']} {record['file']} "
+                  f"{record['mutation']}: {record['verdict']} ({record['seconds']} s)", flush=True)
     return summarize([results[i] for i in sorted(results) if i < config.inputs])
 
 
