@@ -552,6 +552,13 @@ def train_predictor(data_folder: str | Path, out: str | Path, config: TrainConfi
         shipped = dict(best_metrics or {}, **{f"baseline_{k}": v for k, v in baselines.items()},
                        val_samples=len(val), train_samples=len(train))
         save_predictor(best_model, out / "predictor.pt", half=True, metrics=shipped, **info)
+    elif complete and len(val) == 0:  # no validation split, so no best: the trained model is the one to ship
+        # (before, a run whose --val-fraction held out no object printed "done: OUT/predictor.pt" and wrote none;
+        # found by vid2sim bench fuzz --kills)
+        save_predictor(model, out / "predictor.pt", half=True,
+                       metrics={f"baseline_{k}": v for k, v in baselines.items()} | {"val_samples": 0,
+                                                                                     "train_samples": len(train)},
+                       **info)
     record = {"config": cfg_dict, "data": data_record, "pretrain": log.get("pretrain"),
               "label_stats": _plain({k: {"mean": v["mean"], "std": v["std"]} for k, v in stats.items()
                                      if k != "last_layer"}),
