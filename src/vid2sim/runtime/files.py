@@ -101,7 +101,7 @@ def load_torch_file(path: str | Path, what: str = "a torch file", error: type[In
     except OSError as exc:
         raise error(f"{path}: cannot read it ({exc}); expected {what}") from None
     except pickle.UnpicklingError as exc:
-        if "Weights only load failed" in str(exc):
+        if "Unsupported global" in str(exc):  # a pickle naming a Python callable (what an exploit needs)
             raise error(f"{path}: refused: it holds Python objects other than tensors and plain containers, and "
                         f"loading them could run code (expected {what})") from None
         raise error(f"{path}: not {what}, or corrupt (UnpicklingError: {str(exc).splitlines()[0][:200]})") from None

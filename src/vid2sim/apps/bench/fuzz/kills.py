@@ -9,8 +9,9 @@ Each command runs at a toy size, in a fresh interpreter (``python -m vid2sim``: 
 | ``train-predictor`` (6 steps on that data, checkpoint every 2) | ``predictor.pt`` exists | the final weights within 1e-5 (one torch thread) |
 
 Case i draws the command and the moment (uniform between 0.3 s and the uninterrupted run's duration) from
-``seed + i``. Two processes on one output (:mod:`vid2sim.runtime.locks`) are checked on every case: while the
-killed command runs, a second one on the same output must stop with exit code 2 and a line naming the first.
+``seed + i``. Two processes on one output (:mod:`vid2sim.runtime.locks`) are checked on every other case: while
+the command runs, a second one on the same output must stop with exit code 2 and a line naming the first (the
+kill then comes once that second one has ended, or at the drawn moment if later).
 """
 
 from __future__ import annotations
@@ -136,9 +137,13 @@ def run(config, records_path: str | Path | None, progress: bool = False) -> dict
                 argv = _argv(command, out, root / "ref_data", config.quick)
                 moment = float(rng.uniform(0.3, max(0.6, ref_secs)))
                 proc = _start(argv, config.threads)
-                time.sleep(min(moment, 0.2))
-                second = _run_to_end(argv, config.threads, 120.0) if proc.poll() is None else None
-                time.sleep(max(0.0, moment - 0.2 - (second[1] if second else 0.0)))
+                second = None
+                if i % 2 == 0:  # every other case: a second process on the same output first (it takes a few s)
+                    time.sleep(0.2)
+                    second = _run_to_end(argv, config.threads, 120.0) if proc.poll() is None else None
+                    time.sleep(max(0.0, moment - 0.2 - (second[1] if second else 0.0)))
+                else:  # the others are killed at the drawn moment exactly
+                    time.sleep(moment)
                 killed = proc.poll() is None
                 premature = False
                 if killed:
