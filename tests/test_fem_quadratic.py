@@ -3,6 +3,8 @@ closed forms, and the modal reference of :mod:`vid2sim.physics.tet_modes`."""
 
 from __future__ import annotations
 
+import importlib
+
 import math
 
 import numpy as np
@@ -16,7 +18,7 @@ from vid2sim.synthetic.fem import FEMConfig, FEMResult, InitialPose, TetFEM, sim
 from vid2sim.physics.tet_modes import quadratic_tet_nodes, tet_frequencies, tet_stiffness_and_mass
 from vid2sim.meshing.tetra import box_tet_mesh
 
-skfem = pytest.importorskip("skfem")
+skfem = importlib.import_module("skfem")  # a declared test dependency: a broken install fails
 from skfem.models.elasticity import lame_parameters as skfem_lame  # noqa: E402
 from skfem.models.elasticity import linear_elasticity  # noqa: E402
 
