@@ -147,10 +147,11 @@ def run(config, records_path: str | Path | None, progress: bool = False) -> dict
                 killed = proc.poll() is None
                 premature = False
                 if killed:
-                    premature = looks_finished(command, out)
                     os.killpg(proc.pid, signal.SIGKILL)
                     proc.wait()
-                    premature = premature or looks_finished(command, out)
+                    # an output that claims to be finished must be the finished result (a kill can come after the
+                    # last file is in place and before the process exits)
+                    premature = looks_finished(command, out) and not same_result(command, ref_out, out)[0]
                 rc, _, err = _run_to_end(argv, config.threads, limit)
                 same, why = same_result(command, ref_out, out) if rc == 0 else (False, f"rerun failed: {err[-500:]}")
                 lock_ok = None

@@ -43,7 +43,8 @@ class ChildResult:
 
 def run_in_child(fn: Callable[[], int], timeout: float, cwd: str | Path | None = None,
                  env: dict[str, str] | None = None) -> ChildResult:
-    """Run ``fn()`` (returning an exit code) in a forked child; kill its process group after ``timeout`` s."""
+    """Run ``fn()`` (returning an exit code) in a forked child; kill its process group once it has used
+    ``timeout`` s of CPU (or :data:`WALL_FACTOR` × ``timeout`` s of wall time)."""
     with tempfile.TemporaryDirectory(prefix="vid2sim-fuzz-child-") as tmp:
         out_path, err_path = Path(tmp) / "stdout", Path(tmp) / "stderr"
         sys.stdout.flush()
@@ -75,23 +76,39 @@ def run_in_child(fn: Callable[[], int], timeout: float, cwd: str | Path | None =
                     sys.stderr.flush()
                 finally:
                     os._exit(code)
-        deadline = t0 + timeout
         status = None
         while True:
             done, st = os.waitpid(pid, os.WNOHANG)
             if done:
                 status = st
                 break
-            if time.perf_counter() > deadline:
+            wall = time.perf_counter() - t0
+            # the limit is on CPU time (a loaded machine slows a case down without making it hang), with a wall
+            # limit of WALL_FACTOR × the limit for a child that waits without computing (a deadlock)
+            if wall > WALL_FACTOR * timeout or (wall > timeout and _cpu_seconds(pid) > timeout):
                 _kill_group(pid)
                 os.waitpid(pid, 0)
                 break
-            time.sleep(0.01)
+            time.sleep(0.01 if wall < 1 else 0.1)
         seconds = time.perf_counter() - t0
         _kill_group(pid)  # grandchildren left behind (a process pool) go with it
         code = None if status is None else (os.waitstatus_to_exitcode(status))
         read = lambda p: p.read_text(encoding="utf-8", errors="replace") if p.exists() else ""  # noqa: E731
         return ChildResult(code, read(out_path), read(err_path), seconds)
+
+
+#: a child may run this many times its time limit in wall time while its CPU time stays under the limit
+WALL_FACTOR = 10.0
+
+
+def _cpu_seconds(pid: int) -> float:
+    """User + system CPU seconds of a running process (Linux /proc; elsewhere its wall time counts)."""
+    try:
+        with open(f"/proc/{pid}/stat", encoding="utf-8") as f:
+            fields = f.read().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    except (OSError, IndexError, ValueError):
+        return float("inf")
 
 
 def _kill_group(pid: int) -> None:
@@ -136,10 +153,10 @@ def reader_call(what: str, fn: Callable[[], Any]) -> Callable[[], int]:
 def judge(result: ChildResult, names: Sequence[str]) -> tuple[str, str]:
     """(verdict, why) of a case expected to fail cleanly or succeed.
 
-    Verdicts: ``clean`` (exit code 2, no traceback, the last line ``vid2sim …: error: …`` naming one of
-    ``names``), ``accepted`` (exit code 0: the file was still usable), ``vague`` (a clean line that names none of
-    ``names``), ``noisy`` (a clean last line but more lines before it), ``bug`` (a traceback or any other exit
-    code), ``hang`` (killed at the time limit)."""
+    Verdicts: ``clean`` (exit code 2, no traceback, one line ``vid2sim …: error: …`` naming one of ``names``),
+    ``accepted`` (exit code 0: the file was still usable), ``vague`` (an error that names none of ``names``),
+    ``noisy`` (other lines before the error line), ``multiline`` (the error continued on more lines), ``bug`` (a
+    traceback or any other exit code), ``hang`` (killed at the time limit)."""
     if result.timed_out:
         return "hang", f"still running after {result.seconds:.1f} s"
     lines = result.error_lines()
@@ -148,10 +165,14 @@ def judge(result: ChildResult, names: Sequence[str]) -> tuple[str, str]:
     if "Traceback (most recent call last)" in result.stderr or result.returncode != 2:
         tail = " | ".join(lines[-3:])
         return "bug", f"exit code {result.returncode}: {tail[-600:]}"
-    if not lines or ": error: " not in lines[-1] or not lines[-1].startswith("vid2sim"):
+    first = next((k for k, line in enumerate(lines) if line.startswith("vid2sim") and ": error: " in line), None)
+    if first is None:
         return "bug", f"exit code 2 without an error line: {' | '.join(lines[-3:])[-600:]}"
-    if not any(n and n in lines[-1] for n in names):
-        return "vague", lines[-1][:600]
-    if len(lines) > 1:
-        return "noisy", " | ".join(lines[-3:])[-600:]
-    return "clean", lines[-1][:600]
+    message = " | ".join(lines[first:])
+    if not any(n and n in message for n in names):
+        return "vague", message[:600]
+    if first > 0:  # warnings or progress before the error line
+        return "noisy", " | ".join(lines[:3])[-600:]
+    if len(lines) > 1:  # a message of several lines (a scene folder's list of problems)
+        return "multiline", message[:600]
+    return "clean", lines[0][:600]
