@@ -212,3 +212,24 @@ def test_train_predictor_with_an_empty_validation_split_ships_its_model(tiny_tra
     from vid2sim.predictor.train import load_predictor
 
     assert load_predictor(out / "predictor.pt").metrics["val_samples"] == 0
+
+
+def test_a_full_disk_names_the_file_and_leaves_nothing_half_written(tmp_path, monkeypatch):
+    """ENOSPC carries no file name: the atomic writer adds the one it was writing, and removes its temporary file
+    (found on a 24 kB tmpfs: `make-training-data` said only "[Errno 28] No space left on device")."""
+    import errno
+
+    from vid2sim.runtime.files import write_json_atomic
+
+    write_json_atomic(tmp_path / "index.json", {"complete": False})
+
+    def full(self, *args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(Path, "write_text", full)
+    with pytest.raises(OSError, match=r"No space left on device \(writing .*index\.json\)") as info:
+        write_json_atomic(tmp_path / "index.json", {"complete": True})
+    assert info.value.errno == errno.ENOSPC
+    monkeypatch.undo()
+    assert json.loads((tmp_path / "index.json").read_text()) == {"complete": False}  # the old file stands
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["index.json"]  # no temporary file left

@@ -37,6 +37,11 @@ def write_file_atomic(path: str | Path, write: Callable[[str], None]) -> Path:
         write(tmp)
         os.chmod(tmp, 0o666 & ~_umask())
         os.replace(tmp, path)
+    except OSError as exc:
+        Path(tmp).unlink(missing_ok=True)
+        if exc.filename is None:  # a full disk raises ENOSPC without a file name: say which file it was writing
+            raise OSError(exc.errno, f"{exc.strerror or exc} (writing {path})") from exc
+        raise
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
