@@ -35,7 +35,7 @@ from torch import Tensor
 from vid2sim.physics.solver import SimConfig, SimState, Simulator
 from vid2sim.physics.stiffness_curve import StiffnessCurve
 from vid2sim.runtime.errors import ConfigError, InputError
-from vid2sim.runtime.files import load_torch_file
+from vid2sim.runtime.files import load_torch_file, read_json
 from vid2sim.splats.gaussians import Gaussians
 from vid2sim.splats.shading import Shading
 
@@ -199,13 +199,7 @@ def save_asset(asset: Asset, folder: str | Path, config: dict[str, Any] | None =
 def _read_json(path: Path) -> dict:
     if not path.is_file():
         raise AssetFormatError(f"{path}: missing (an asset folder holds {', '.join(FILES.values())})")
-    try:
-        value = json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
-        raise AssetFormatError(f"{path}: not valid JSON ({exc})") from None
-    if not isinstance(value, dict):
-        raise AssetFormatError(f"{path}: expected a JSON object")
-    return value
+    return read_json(path, "a JSON object of an asset folder", AssetFormatError)
 
 
 #: points.npz: array → (trailing shape, positive) — the first axis is the count (K, S or N)
@@ -217,6 +211,7 @@ def _read_points(path: Path, device: torch.device | str) -> tuple[dict[str, Tens
     """The arrays of an asset's ``points.npz`` (checked: present, numeric, shaped, finite, weights and volume
     positive) and its volume; raises :class:`AssetFormatError` naming the file and the array."""
     import zipfile
+    import zlib
 
     from vid2sim.runtime.limits import npz_size_problem
 
@@ -228,7 +223,7 @@ def _read_points(path: Path, device: torch.device | str) -> tuple[dict[str, Tens
     try:
         with np.load(path, allow_pickle=False) as z:
             raw = {k: np.asarray(z[k]) for k in z.files}
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
         raise AssetFormatError(f"{path}: not a readable .npz file ({type(exc).__name__}: {exc})") from None
     for key in (*_POINT_ARRAYS, "volume"):
         if key not in raw:

@@ -47,6 +47,7 @@ def read_shard(path: Path, draws: int) -> dict[str, np.ndarray]:
     """The arrays of one shard (``video`` (D, T, H, W, 3) uint8, ``log10_E`` (D,), ``nu`` (D,), ``last_layer``
     (650,)), checked; raises InputError naming the shard when it is unreadable or not that."""
     import zipfile
+    import zlib
 
     from vid2sim.runtime.limits import npz_size_problem
 
@@ -58,7 +59,7 @@ def read_shard(path: Path, draws: int) -> dict[str, np.ndarray]:
             arrays = {k: z[k] for k in ("video", "log10_E", "nu", "last_layer")}
     except KeyError as exc:
         raise InputError(f"{path}: a training-data shard without the array {exc}") from None
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
         raise InputError(f"{path}: not a readable training-data shard ({type(exc).__name__}: {exc})") from None
     v, e, n, last = arrays["video"], arrays["log10_E"], arrays["nu"], arrays["last_layer"]
     if v.dtype != np.uint8 or v.ndim != 5 or v.shape[0] != draws or v.shape[-1] != 3:

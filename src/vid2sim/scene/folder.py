@@ -34,6 +34,7 @@ import threading
 import uuid
 import warnings
 import zipfile
+import zlib
 from collections import Counter
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
@@ -999,7 +1000,7 @@ def _load_extras(root: Path, paths: dict[str, str], problems: Problems) -> dict[
         try:
             with np.load(path, allow_pickle=False) as data:
                 raw = {key: np.array(data[key]) for key in data.files}
-        except (OSError, ValueError, EOFError, zipfile.BadZipFile, KeyError) as exc:
+        except (OSError, ValueError, EOFError, zipfile.BadZipFile, KeyError, zlib.error) as exc:
             problems.add(f"{SCENE_JSON}: extras '{name}': cannot read '{rel}' as an .npz file: {exc}")
             continue
         odd = [f"{key} ({a.dtype})" for key, a in raw.items() if a.dtype.kind not in "biuf"]
