@@ -402,3 +402,23 @@ def test_shape_and_centre_loss_is_blind_to_orientation_and_sees_centre_and_shape
     assert float((x.grad * direction).sum()) == pytest.approx(float(fd), rel=1e-5)
     with pytest.raises(ValueError, match="loss must be one of"):
         identify.IdentifyConfig(loss="pose")
+
+
+def test_summary_counts_the_fits_a_failed_line_search_ended():
+    """A fit whose line search pushed E or ν where the simulation fails stops early; the summary counts it (it was
+    only in the per-scene history)."""
+    from vid2sim.apps.bench.identify import summarise
+
+    def row(failures: int) -> dict:
+        pct = {"observed_percent": 1.0, "future_percent": 2.0, "observed_nonrigid_percent": 0.5,
+               "future_nonrigid_percent": 0.6}
+        return {"abs_error": {"log10_E": 0.1, "nu": 0.05, "damping_ratio": 0.0}, "model_error_at_truth_percent": pct,
+                "trajectory_error_fitted_percent": pct, "e_valley": {"depth_at_minus": 3.0, "depth_at_plus": 4.0},
+                "reduced_time_convergence_at_truth": {"mean_percent": 0.2}, "stiffness_scale": 1.0,
+                "fit": {"seconds": 1.0, "line_search_failures": failures,
+                        "line_search_error": "line search failed" if failures else None},
+                "frequencies": {k: [1.0] for k in ("linear_tets_over_quadratic", "reduced_over_quadratic",
+                                                    "reduced_over_linear_tets")}}
+
+    assert summarise([row(0), row(1), row(1)])["summary"]["fit_line_search_failures"] == 2
+    assert summarise([row(0)])["summary"]["fit_line_search_failures"] == 0

@@ -127,5 +127,5 @@ def register(sub: argparse._SubParsersAction) -> None:
     fit.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
     add_threads_option(fit)
     fit.add_argument("--quiet", action="store_true", help="no progress output")
-    fit.set_defaults(func=run)
+    fit.set_defaults(func=run, lock_output="out")  # one writer per OUT (runtime.locks)
 

@@ -42,5 +42,5 @@ def register(sub: argparse._SubParsersAction) -> None:
                        "instead of fTetWild, which is not reproducible; same settings then give the same scene")
     scene.add_argument("--overwrite", action="store_true", help="replace an existing scene folder")
     add_scene_options(scene, material_options=True)
-    scene.set_defaults(func=run)
+    scene.set_defaults(func=run, lock_output="out")  # one writer per OUT (runtime.locks)
 

@@ -201,4 +201,4 @@ def register(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--overwrite", action="store_true", help="replace an earlier output folder")
     add_threads_option(g)
     g.add_argument("--quiet", action="store_true", help="no progress output")
-    p.set_defaults(func=run)
+    p.set_defaults(func=run, lock_output="out")  # one writer per OUT (runtime.locks)

@@ -32,6 +32,9 @@ import os
 import shutil
 import threading
 import uuid
+import warnings
+import zipfile
+import zlib
 from collections import Counter
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
@@ -45,6 +48,12 @@ from torch import Tensor
 from tqdm import tqdm
 
 from vid2sim.runtime.errors import ConfigError, InputError
+from vid2sim.runtime.limits import (
+    image_size_problem,
+    max_image_pixels,
+    npz_size_problem,
+    outside,
+)
 from vid2sim.scene.validation import (
     SCENE_FORMAT_NAME,
     SCENE_FORMAT_VERSION,
@@ -444,13 +453,32 @@ _INT_DTYPES = (torch.uint8, torch.int8, torch.int16, torch.int32, torch.int64)
 # =============================================================================================
 
 
+def _open_image(path: Path) -> Image.Image:
+    """``Image.open`` with vid2sim's pixel limit (``VID2SIM_MAX_IMAGE_PIXELS``) in place of Pillow's warning and
+    error: raises ValueError naming the limit, before any pixel is decoded."""
+    Image.MAX_IMAGE_PIXELS = max_image_pixels()  # Pillow's error then comes at twice vid2sim's own limit
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+        try:
+            img = Image.open(path)
+        except Image.DecompressionBombError as exc:
+            raise ValueError(f"{exc}; raise vid2sim's limit with the environment variable "
+                             "VID2SIM_MAX_IMAGE_PIXELS") from None
+    problem = image_size_problem(int(img.width), int(img.height))
+    if problem is not None:
+        img.close()
+        raise ValueError(problem)
+    return img
+
+
 def _read_raster(path: Path) -> np.ndarray:
     """Decode an image file into an (H, W, C) array, C in {1, 2, 3, 4}; uint8, uint16 or float32.
 
     Palette images are expanded, 1-bit images become uint8 0/255, 16-bit grey stays uint16.
     Raises OSError/ValueError (with the reason) for unreadable or unsupported files.
     """
-    with Image.open(path) as img:
+    with _open_image(path) as img, warnings.catch_warnings():
+        warnings.simplefilter("ignore", Image.DecompressionBombWarning)
         img.load()
         mode = img.mode
         if mode == "P" or mode == "PA":
@@ -490,8 +518,12 @@ def _unit(arr: np.ndarray, dtype: np.dtype) -> np.ndarray:
 
 
 def _image_size(path: Path) -> tuple[int, int]:
-    """(width, height) from the file header, without decoding the pixels."""
-    with Image.open(path) as img:
+    """(width, height) from the file header, without decoding the pixels.
+
+    Raises:
+        ValueError: more pixels than ``VID2SIM_MAX_IMAGE_PIXELS`` (:mod:`vid2sim.runtime.limits`).
+    """
+    with _open_image(path) as img:
         return int(img.width), int(img.height)
 
 
@@ -501,15 +533,27 @@ def _write_png(path: Path, array: np.ndarray) -> None:
 
 
 def _resolve_file(root: Path, rel: str) -> Path | None:
-    """The file ``rel`` names (relative to ``root``); NeRF-style paths without suffix get ``.png``."""
+    """The file ``rel`` names (relative to ``root``); NeRF-style paths without suffix get ``.png``.
+
+    Raises:
+        SceneFormatError: the file (after following symlinks) lies outside the scene folder, unless
+            ``VID2SIM_ALLOW_OUTSIDE_PATHS=1`` (:mod:`vid2sim.runtime.limits`): a scene from someone else must not
+            make vid2sim read the user's other files.
+    """
     path = Path(rel) if Path(rel).is_absolute() else root / rel
+    found = None
     if path.is_file():
-        return path
-    if not path.suffix:
+        found = path
+    elif not path.suffix:
         with_png = path.with_name(path.name + ".png")
         if with_png.is_file():
-            return with_png
-    return None
+            found = with_png
+    if found is not None:
+        real = outside(root, found)
+        if real is not None:
+            raise SceneFormatError([f"file '{rel}' resolves to {real}, outside the scene folder (set "
+                                    "VID2SIM_ALLOW_OUTSIDE_PATHS=1 to allow files elsewhere)"], root)
+    return found
 
 
 def _composite(rgb: np.ndarray, mask: np.ndarray) -> np.ndarray:
@@ -949,12 +993,26 @@ def _load_extras(root: Path, paths: dict[str, str], problems: Problems) -> dict[
         if not path.is_file():
             problems.add(f"{SCENE_JSON}: extras '{name}': file '{rel}' not found")
             continue
+        real = outside(root, path)
+        if real is not None:
+            problems.add(f"{SCENE_JSON}: extras '{name}': file '{rel}' resolves to {real}, outside the scene folder "
+                         "(set VID2SIM_ALLOW_OUTSIDE_PATHS=1 to allow files elsewhere)")
+            continue
+        too_big = npz_size_problem(path)
+        if too_big is not None:
+            problems.add(f"{SCENE_JSON}: extras '{name}': '{rel}': {too_big}")
+            continue
         try:
             with np.load(path, allow_pickle=False) as data:
-                arrays = {key: torch.from_numpy(np.array(data[key])) for key in data.files}
-        except (OSError, ValueError, EOFError) as exc:
+                raw = {key: np.array(data[key]) for key in data.files}
+        except (OSError, ValueError, EOFError, zipfile.BadZipFile, KeyError, zlib.error) as exc:
             problems.add(f"{SCENE_JSON}: extras '{name}': cannot read '{rel}' as an .npz file: {exc}")
             continue
+        odd = [f"{key} ({a.dtype})" for key, a in raw.items() if a.dtype.kind not in "biuf"]
+        if odd:
+            problems.add(f"{SCENE_JSON}: extras '{name}': '{rel}': arrays {', '.join(odd)} are not numbers")
+            continue
+        arrays = {key: torch.from_numpy(a) for key, a in raw.items()}
         if not arrays:
             problems.add(f"{SCENE_JSON}: extras '{name}': '{rel}' holds no arrays")
             continue

@@ -348,7 +348,7 @@ def prepare_scene(index: int, params: dict, config: IdentifyConfig, workdir: Pat
     suffix = "_v2" if config.skinning_objective == "random_z" else f"_{config.skinning_objective}"
     field_path = folder / f"skinning_{config.handles}h_{config.skinning_iterations}it_{config.skinning_points}p{suffix}.pt"
     if field_path.is_file():
-        field.load_state_dict(torch.load(field_path))
+        field.load_state_dict(torch.load(field_path, weights_only=True))
     else:
         pool, _, _ = sample_points_in_tets(X, T, config.skinning_points, seed=100_000 + index)
         train_skinning(field, pool, SkinningTrainingConfig(iterations=config.skinning_iterations, seed=index,
@@ -573,6 +573,9 @@ def fit(scene: PerfectGeometry, config: IdentifyConfig, progress: bool = False) 
     return {"log10_E": best["log10_E"], "nu": best["nu"], "damping_ratio": best["damping_ratio"],
             "contact_layer": best.get("contact_layer"),
             "loss": best["loss"], "evaluations": len([h for h in history if "loss" in h]), "seconds": seconds,
+            # a line search that pushed E or ν where the simulation fails ends the fit early: counted, not hidden
+            "line_search_failures": sum(1 for h in history if "error" in h),
+            "line_search_error": next((h["error"] for h in history if "error" in h), None),
             "coarse": coarse, "history": history, "contact_calibration": contact}
 
 
@@ -774,7 +777,7 @@ def run_scene(index: int, params: dict, config: IdentifyConfig, workdir: Path, p
         "images_fitted": images_fitted,
         "trajectory_error_fitted_percent": fitted_errors,
         "reduced_time_convergence_at_truth": converged,
-        "fit": {k: result[k] for k in ("loss", "evaluations", "seconds")},
+        "fit": {k: result[k] for k in ("loss", "evaluations", "seconds", "line_search_failures", "line_search_error")},
         "fit_coarse": result["coarse"],
         "contact_calibration": result["contact_calibration"],
         "fit_history": result["history"],
@@ -863,6 +866,8 @@ def summarise(rows: list[dict]) -> dict:
         "mean_valley_depth_at_half_decade": mean(lambda r: min(r["e_valley"]["depth_at_minus"], r["e_valley"]["depth_at_plus"])),
         "max_reduced_time_convergence_percent": max(r["reduced_time_convergence_at_truth"]["mean_percent"] for r in rows),
         "mean_fit_seconds": mean(lambda r: r["fit"]["seconds"]),
+        # fits that a failed line search ended early (their scenes' rows say where)
+        "fit_line_search_failures": sum(int(r["fit"].get("line_search_failures", 0)) for r in rows),
         "mean_stiffness_scale": mean(lambda r: r["stiffness_scale"]),
         # how much ν moves the truth on the observed frames, and the ν change worth the model error
         **({"mean_nu_sensitivity_observed_percent_per_0_05":
