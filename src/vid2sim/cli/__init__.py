@@ -12,7 +12,8 @@ so a second process on the same output stops at once with one line naming the fi
 Errors: vid2sim's input errors (:class:`~vid2sim.runtime.errors.InputError`:
 a file, folder, option or setting that is not what vid2sim can use; the commands' own
 :class:`~vid2sim.cli.common.UserError` is one) and operating-system errors (a missing file, a full
-disk) print one line and exit with 2. Anything else is a bug in vid2sim: a line asking for a report, then Python's traceback
+disk) print one line and exit with 2. Anything else is a bug in vid2sim: a line asking for a report, then Python's
+traceback
 (exit code 1).
 """
 
