@@ -38,6 +38,7 @@ def run(args: argparse.Namespace) -> int:
         gravity_axis=None if args.gravity_axis is None else parse_axis(args.gravity_axis),
         scale=args.scale, floor=args.floor, observed_views=args.observed_views, held_out_views=args.held_out_views,
         held_out_frames=args.held_out_frames, colour_reference=args.colour_reference, layout=args.layout,
+        downscale=args.downscale,
         threads=args.threads, metric=MetricConfig(gravity=args.gravity if args.gravity is not None else 9.81))
     if args.floor is not None and args.gravity_axis is None:
         raise UserError("--floor is a height along the up axis: give --gravity-axis with it")
@@ -75,6 +76,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="scene frames kept for future prediction, comma-separated (default: after the 16th)")
     p.add_argument("--colour-reference", default=None, metavar="CAM",
                    help="the camera whose colours the others are matched to (default: the first observed)")
+    p.add_argument("--downscale", type=int, default=1, metavar="K",
+                   help="keep the frames reduced K times (block averages; masks are found at full size first)")
     p.add_argument("--layout", choices=["rgba", "rgb+mask", "video"], default="rgba", help="scene folder layout")
     p.add_argument("--overwrite", action="store_true", help="replace an existing scene folder")
     p.add_argument("--quiet", action="store_true", help="no progress lines")

@@ -12,7 +12,8 @@ def run(args: argparse.Namespace) -> int:
 
     set_threads(args.threads)
     try:
-        config = CaptureTwinConfig(seed=args.seed, lead_in_frames=args.lead_in, frames_format=args.format,
+        config = CaptureTwinConfig(seed=args.seed, resolution_scale=args.resolution_scale,
+                                   lead_in_frames=args.lead_in, frames_format=args.format,
                                    colmap_format=args.colmap_format, write_transforms=not args.no_transforms)
     except ValueError as exc:
         raise UserError(str(exc)) from exc
@@ -25,7 +26,7 @@ def run(args: argparse.Namespace) -> int:
     truth, _ = read_truth(out)
     lead = truth["lead_in_frames"]
     print(f"wrote {out}; import it with: vid2sim import-capture {out} SCENE --frames {lead}:{truth['frames']} "
-          f"--gravity {abs(truth['gravity_world'][2]):g}")
+          f"--downscale {truth['resolution_scale']} --gravity {abs(truth['gravity_world'][2]):g}")
     return 0
 
 
@@ -36,6 +37,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("scene", help="a folder written by make-scene (or make-benchmark)")
     p.add_argument("out", help="capture folder to write (ground truth in OUT/ground_truth/)")
     p.add_argument("--seed", type=int, default=0, help="seed of the twin's random choices (default 0)")
+    p.add_argument("--resolution-scale", type=int, default=2, metavar="K",
+                   help="film at K times the scene's resolution (import with --downscale K; default 2)")
     p.add_argument("--lead-in", type=int, default=8, metavar="N",
                    help="frames of free flight filmed before the scene's first frame (fewer when the object would "
                         "reach the floor or leave a view; default 8)")

@@ -54,6 +54,9 @@ class CaptureTwinConfig:
 
     Attributes:
         seed: draws every random choice below (distortion, gains, noise, similarity, pose noise, points).
+        resolution_scale: the cameras film at this many times the scene's resolution (a real camera films far more
+            pixels than the scene keeps; ``import-capture --downscale`` brings them back, averaging away most of the
+            compression's damage at the object's outline).
         lead_in_frames: frames of free flight recorded before the scene's first frame (fewer when the object would
             otherwise reach the floor, come within ``lead_in_clearance`` m of it, or leave a camera's view).
         lead_in_clearance: metres the object's lowest point stays above the floor in the lead-in.
@@ -79,6 +82,7 @@ class CaptureTwinConfig:
     """
 
     seed: int = 0
+    resolution_scale: int = 2
     lead_in_frames: int = 8
     lead_in_clearance: float = 0.03
     frames_format: str = "video"
@@ -114,6 +118,9 @@ class CaptureTwinConfig:
                              f"{self.colmap_format!r}")
         if self.colmap_format == "none" and not self.write_transforms:
             raise ValueError("CaptureTwinConfig: write at least one calibration (colmap_format or write_transforms)")
+        if isinstance(self.resolution_scale, bool) or not isinstance(self.resolution_scale, int) or \
+                self.resolution_scale < 1:
+            raise ValueError(f"CaptureTwinConfig.resolution_scale must be an integer >= 1, got {self.resolution_scale!r}")
         if self.lead_in_frames < 0:
             raise ValueError(f"CaptureTwinConfig.lead_in_frames must be >= 0, got {self.lead_in_frames}")
         for name in ("camera_models",):
@@ -335,9 +342,11 @@ def write_capture(motion: CaptureMotion, out: str | Path, config: CaptureTwinCon
     rng = np.random.default_rng([int(config.seed), 48])
     names = [f"c{v:02d}" for v in range(len(motion.cameras))]
     models = [str(rng.choice(config.camera_models)) for _ in names]
+    k = config.resolution_scale
+    filming = [c.resized(c.width * k, c.height * k) for c in motion.cameras]
     true_world = [CaptureCamera(n, c.width, c.height, c.K.double().numpy(), _lens(m, rng, config),
                                 c.world_to_camera.double().numpy(), model=m)
-                  for n, c, m in zip(names, motion.cameras, models)]
+                  for n, c, m in zip(names, filming, models)]
     sensors = [Sensor(rng.uniform(*config.exposure_range) * rng.uniform(*config.white_balance_range, 3),
                       float(rng.uniform(*config.black_level_range)), config.noise_std) for _ in names]
     lo, hi = np.log(config.world_scale_range[0]), np.log(config.world_scale_range[1])
@@ -410,6 +419,7 @@ def write_capture(motion: CaptureMotion, out: str | Path, config: CaptureTwinCon
             "fps": 1.0 / motion.dt,
             "dt": motion.dt,
             "lead_in_frames": motion.lead_in,
+            "resolution_scale": k,
             "scene_frames": [motion.lead_in, T],
             "world_to_calibration": sim.to_json(),
             "units_per_metre": sim.scale,

@@ -21,15 +21,18 @@ import numpy as np
 import torch
 
 
-def _undistorted_alpha(alpha: np.ndarray, truth_cam: dict, K_new: np.ndarray) -> np.ndarray:
-    """True coverage (T, H, W) of a distorted camera resampled onto the imported pinhole camera ``K_new``."""
-    from vid2sim.scene.capture.undistort import to_opencv_K
+def _undistorted_alpha(alpha: np.ndarray, truth_cam: dict, K_new: np.ndarray, downscale: int = 1) -> np.ndarray:
+    """True coverage (T, H, W) of a distorted camera, (T, k·H, k·W) as filmed, resampled onto the imported pinhole
+    camera ``K_new`` (its images reduced ``downscale`` = k times) the way the importer resamples the frames."""
+    from vid2sim.scene.capture.undistort import reduce, to_opencv_K
 
     T, H, W = alpha.shape
+    K_full = np.diag([downscale, downscale, 1.0]) @ K_new
     mx, my = cv2.initUndistortRectifyMap(to_opencv_K(np.array(truth_cam["K"])), np.array(truth_cam["distortion"]),
-                                         None, to_opencv_K(K_new), (W, H), cv2.CV_32FC1)
-    return np.stack([cv2.remap(a, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+                                         None, to_opencv_K(K_full), (W, H), cv2.CV_32FC1)
+    full = np.stack([cv2.remap(a, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
                      for a in alpha.astype(np.float32)])
+    return reduce(full, downscale, False)
 
 
 def soft_iou(a: np.ndarray, b: np.ndarray) -> float:
@@ -57,8 +60,9 @@ def import_figures(capture: str | Path, scene_dir: str | Path) -> dict[str, Any]
     A, B = report["scene_frames"]
     ious = []
     for v, name in enumerate(report["cameras"]):
-        K_new = np.array(report["undistortion"][name]["K"])
-        true = _undistorted_alpha(alpha[v, A:B], truth["true_cameras_calibration"][name], K_new)
+        und = report["undistortion"][name]
+        true = _undistorted_alpha(alpha[v, A:B], truth["true_cameras_calibration"][name], np.array(und["K"]),
+                                  und.get("downscale", 1))
         est = scene.masks[v].numpy()
         ious.append([soft_iou(est[t], true[t]) for t in range(B - A)])
     ious = np.array(ious)
@@ -237,6 +241,7 @@ def capture_scene(name: str, scene_dir: Path, out: Path, index: int, config: Cap
         held = clean_cfg.get("held_out_views") or []
         gravity = config.gravity if config.gravity is not None else float(np.linalg.norm(truth["gravity_world"]))
         icfg = CaptureImportConfig(frames=tuple(truth["scene_frames"]), held_out_views=held or None,
+                                   downscale=int(truth.get("resolution_scale", 1)),
                                    observed_frames=clean_cfg.get("observed_frames"), threads=config.threads,
                                    metric=MetricConfig(gravity=gravity))
         t0 = time.perf_counter()

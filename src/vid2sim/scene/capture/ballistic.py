@@ -7,8 +7,9 @@ fit is robust:
 
 1. the tracking noise σ is measured from the third differences of the track (zero on any parabola);
 2. free-flight windows are grown frame by frame from every start while one parabola still explains them (each
-   new frame within 5σ of the prediction); windows whose acceleration is clearly not zero are candidates (a
-   resting object also fits a parabola, with a ≈ 0), the longest one starts;
+   new frame within tolerance of the prediction); moving windows whose acceleration is clearly not zero are
+   candidates (a resting object also fits a parabola, with a ≈ 0), and the one with the largest acceleration
+   starts: free fall is the largest acceleration an object keeps for several frames;
 3. with a first ``a`` the object's lowest point along the gravity direction tells flight from contact: frames
    above the contact level are in the air, broken into segments where the vertical velocity jumps up (a bounce
    between two frames in the air);
@@ -222,7 +223,10 @@ def find_ballistic(x: np.ndarray, dt: float, lowest_along: Callable[[np.ndarray]
     if not np.isfinite(sigma) or sigma <= 0:
         sigma = 1e-9 * max(1.0, float(np.nanmax(np.abs(x))))
     tol = max(5.0 * np.sqrt(3.0) * sigma, search.tolerance * size)
-    best: BallisticFit | None = None
+    # candidate windows: moving, with a clearly non-zero acceleration; free fall is the largest acceleration an
+    # object keeps over several frames (contact forces act in short impulses, friction and rolling stay below g),
+    # so the candidate with the largest |a| seeds the fit (windows of 4+ frames first, 3-frame ones otherwise)
+    candidates: list[BallisticFit] = []
     for seg in _windows(x, dt, tol, max(search.min_frames, 3)):
         travel = float(np.linalg.norm(x[seg] - x[seg[0]], axis=1).max())
         if travel < search.min_travel * size:  # resting (or nearly): a ≈ 0 fits too
@@ -233,9 +237,10 @@ def find_ballistic(x: np.ndarray, dt: float, lowest_along: Callable[[np.ndarray]
             continue
         if direction is not None and fit.acceleration @ direction <= 0:
             continue
-        if best is None or len(seg) > len(best.frames) or (
-                len(seg) == len(best.frames) and fit.magnitude_sigma() < best.magnitude_sigma()):
-            best = fit
+        candidates.append(fit)
+    long_ones = [c for c in candidates if len(c.frames) >= 4]
+    pool = long_ones or candidates
+    best: BallisticFit | None = max(pool, key=lambda c: np.linalg.norm(c.acceleration)) if pool else None
     if best is None:
         return None
     for _ in range(search.iterations):
@@ -249,7 +254,7 @@ def find_ballistic(x: np.ndarray, dt: float, lowest_along: Callable[[np.ndarray]
         contact = float(np.percentile(finite, 10))
         sigma_h = max(sigma, tol / (5.0 * np.sqrt(3.0)))
         runs = flight_segments(x, low, sigma_h, contact)
-        segs = [s for s in split_bounces(h, runs, np.linalg.norm(a) * dt, sigma_h, dt) if len(s) >= 3]
+        segs = [s for s in split_bounces(h, runs, np.linalg.norm(a) * dt, sigma_h, dt) if len(s) >= 4]
         # keep the seed window's frames if the contact test lost them (e.g. a throw starting at floor level)
         if not segs:
             break

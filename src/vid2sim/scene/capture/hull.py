@@ -65,13 +65,20 @@ class HullFrame:
     """The soft visual hull of one frame on a voxel grid.
 
     Attributes:
-        points: (N, 3) voxel centres (calibration frame); occupancy: (N,) soft hull value in [0, 1].
-        voxel: the voxel edge length.
+        origin: (3,) centre of the grid's first voxel (calibration frame); voxel: the voxel edge length;
+        resolution: voxels per side n; occupancy: (n³,) soft hull value in [0, 1], index (i·n + j)·n + k for the
+            voxel at origin + voxel·(i, j, k).
     """
 
-    points: np.ndarray
-    occupancy: np.ndarray
+    origin: np.ndarray
     voxel: float
+    resolution: int
+    occupancy: np.ndarray
+
+    @property
+    def points(self) -> np.ndarray:
+        """(n³, 3) voxel centres."""
+        return self.origin + self.voxel * _unit_grid(self.resolution).numpy().astype(np.float64)
 
     def centroid(self) -> np.ndarray:
         """(3,) centroid weighted by clip((occ − 0.3) / 0.4, 0, 1) (NaN for an empty hull)."""
@@ -85,8 +92,20 @@ class HullFrame:
         inside = self.occupancy > 0.5
         if not inside.any():
             return 0.0
-        c = self.points[inside].mean(0)
-        return 2.0 * float(np.linalg.norm(self.points[inside] - c, axis=1).max()) + self.voxel
+        p = self.points[inside]
+        c = p.mean(0)
+        return 2.0 * float(np.linalg.norm(p - c, axis=1).max()) + self.voxel
+
+
+_GRIDS: dict[int, torch.Tensor] = {}
+
+
+def _unit_grid(n: int) -> torch.Tensor:
+    """(n³, 3) float32 integer voxel coordinates (i, j, k), cached."""
+    if n not in _GRIDS:
+        ax = torch.arange(n, dtype=torch.float32)
+        _GRIDS[n] = torch.stack(torch.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)
+    return _GRIDS[n]
 
 
 def soft_hull(cameras: Sequence[CaptureCamera], masks: np.ndarray, centre: np.ndarray, half_size: float,
@@ -97,20 +116,24 @@ def soft_hull(cameras: Sequence[CaptureCamera], masks: np.ndarray, centre: np.nd
     V, H, W = masks.shape
     n = int(resolution)
     voxel = 2.0 * half_size / n
-    ax = (np.arange(n) + 0.5) * voxel - half_size
-    g = np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3) + centre
-    pts = torch.as_tensor(g, dtype=torch.float64)
-    cam = torch.einsum("vij,nj->vni", w2c[:, :3, :3], pts) + w2c[:, None, :3, 3]
-    z = cam[..., 2].clamp_min(1e-9)
-    u = K[:, None, 0, 0] * cam[..., 0] / z + K[:, None, 0, 2]
-    v = K[:, None, 1, 1] * cam[..., 1] / z + K[:, None, 1, 2]
+    origin = np.asarray(centre, dtype=np.float64) - half_size + 0.5 * voxel
+    # camera coordinates of every voxel, relative to the grid origin (float32 is plenty at this scale)
+    R = w2c[:, :3, :3]
+    t0 = (R @ torch.as_tensor(origin, dtype=torch.float64) + w2c[:, :3, 3]).to(torch.float32)
+    Rv = (R * voxel).to(torch.float32)
+    cam = torch.einsum("vij,nj->vni", Rv, _unit_grid(n)) + t0[:, None, :]
+    z = cam[..., 2]
+    zs = z.clamp_min(1e-9)
+    Kf = K.to(torch.float32)
+    u = Kf[:, None, 0, 0] * cam[..., 0] / zs + Kf[:, None, 0, 2]
+    v = Kf[:, None, 1, 1] * cam[..., 1] / zs + Kf[:, None, 1, 2]
     # grid_sample's align_corners=False convention: −1 and 1 are the outer edges of the image
-    grid = torch.stack([2 * u / W - 1, 2 * v / H - 1], -1)[:, None].to(torch.float32)
+    grid = torch.stack([2 * u / W - 1, 2 * v / H - 1], -1)[:, None]
     vals = torch.nn.functional.grid_sample(torch.as_tensor(masks, dtype=torch.float32)[:, None], grid,
                                            mode="bilinear", padding_mode="zeros", align_corners=False)[:, 0, 0]
-    vals = torch.where(cam[..., 2] > 1e-9, vals, torch.zeros_like(vals))
+    vals = torch.where(z > 1e-9, vals, torch.zeros_like(vals))
     occ = vals.min(0).values.numpy().astype(np.float64)
-    return HullFrame(g, occ, voxel)
+    return HullFrame(origin, voxel, n, occ)
 
 
 def lowest_point(hull: HullFrame, up: np.ndarray) -> float:

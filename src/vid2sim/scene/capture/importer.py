@@ -43,7 +43,7 @@ from vid2sim.scene.capture.masks import MaskConfig, MaskResult, masks_from_plate
 from vid2sim.scene.capture.metric import MetricConfig, MetricFrame, NoFreeFlight, solve_metric_frame, track_object
 from vid2sim.scene.capture.nerfstudio import read_transforms
 from vid2sim.scene.capture.plate import estimate_plate, image_shift
-from vid2sim.scene.capture.undistort import Undistortion, make_undistortion
+from vid2sim.scene.capture.undistort import make_undistortion, reduce
 from vid2sim.scene.capture.jsonify import jsonable
 
 IMPORT_CONFIG_JSON = "capture_import.json"
@@ -66,6 +66,8 @@ class CaptureImportConfig:
         observed_frames, held_out_frames: scene frame indices (after ``frames``).
         colour_reference: the camera whose colours the others are mapped to (default the first observed).
         undistort_alpha: ``cv2.getOptimalNewCameraMatrix``'s alpha (0: every output pixel sees the scene).
+        downscale: the scene keeps the frames reduced this many times (block averages); masks are found at the full
+            resolution first, so their reduced values are each pixel's coverage.
         max_plate_shift: largest image shift (px) between a clean plate and the first frames.
         max_stray: largest share of the pixels outside the object that may differ from the plate in the first
             frames (more: the camera moved or the light changed).
@@ -86,6 +88,7 @@ class CaptureImportConfig:
     held_out_frames: list[int] | None = None
     colour_reference: str | None = None
     undistort_alpha: float = 0.0
+    downscale: int = 1
     max_plate_shift: float = 2.0
     max_stray: float = 0.2
     masks: MaskConfig = field(default_factory=MaskConfig)
@@ -109,6 +112,8 @@ class CaptureImportConfig:
                 raise ConfigError(f"gravity_axis must be a non-zero 3-vector, got {self.gravity_axis}")
         if self.frames is not None and (len(self.frames) != 2 or self.frames[0] < 0 or self.frames[1] <= self.frames[0]):
             raise ConfigError(f"frames must be A:B with 0 <= A < B, got {self.frames}")
+        if isinstance(self.downscale, bool) or not isinstance(self.downscale, int) or self.downscale < 1:
+            raise ConfigError(f"downscale must be an integer >= 1, got {self.downscale!r}")
         if self.layout not in ("rgba", "rgb+mask", "video"):
             raise ConfigError(f"layout must be 'rgba', 'rgb+mask' or 'video', got {self.layout!r}")
 
@@ -136,11 +141,11 @@ def parse_axis(text: str) -> tuple[float, float, float]:
 
 @dataclass
 class ViewData:
-    """One camera after stages 1–4: its pinhole camera, frames (T, H, W, 3) float32, plate (or None), masks and
-    their report, and where each came from."""
+    """One camera after stages 1–4: its pinhole camera (reduced), frames (T, H, W, 3) float32, plate (or None),
+    masks and their report (all reduced), and where each came from."""
 
     name: str
-    undistortion: Undistortion
+    camera: CaptureCamera
     frames: np.ndarray
     plate: np.ndarray | None
     plate_source: str
@@ -265,6 +270,7 @@ def load_views(layout: CaptureLayout, cameras: dict[str, CaptureCamera], T: int,
     first_frames = list(range(min(3, T)))
     for name, src in layout.cameras.items():
         und = make_undistortion(cameras[name], config.undistort_alpha)
+        out_camera = make_undistortion(cameras[name], config.undistort_alpha, config.downscale).camera
         size = (cameras[name].width, cameras[name].height)
         frames = und.stack(read_frames(src, 0, T)).astype(np.float32) / 255.0
         plate = None
@@ -291,7 +297,13 @@ def load_views(layout: CaptureLayout, cameras: dict[str, CaptureCamera], T: int,
             mask_source = "clean plate" if src.plate is not None else "estimated plate"
             if src.plate is not None:
                 _check_static(name, src.plate, frames, plate, result, first_frames, config)
-        views.append(ViewData(name, und, frames, plate, plate_source, result, mask_source, str(src.source)))
+        k = config.downscale
+        if k > 1:
+            frames = reduce(frames, k, True)
+            plate = None if plate is None else reduce(plate, k, True)
+            result = summarise(reduce(result.masks, k, False), result.confidence, result.noise, result.stray,
+                               config.masks)
+        views.append(ViewData(name, out_camera, frames, plate, plate_source, result, mask_source, str(src.source)))
     return views
 
 
@@ -372,7 +384,7 @@ def import_capture(capture: str | Path, out: str | Path, config: CaptureImportCo
     lap("masks")
     say("masks: " + ", ".join(f"{v.name} {v.mask_source}" for v in views))
 
-    pinholes = [v.undistortion.camera for v in views]
+    pinholes = [v.camera for v in views]
     masks = np.stack([v.masks.masks for v in views])
     usable = np.stack([~v.masks.empty & ~v.masks.border for v in views])
     track = track_object(pinholes, masks, usable, config.metric)
@@ -441,8 +453,9 @@ def import_capture(capture: str | Path, out: str | Path, config: CaptureImportCo
         "fps": fps, "fps_source": fps_source,
         "video_frames": T,
         "scene_frames": [A, B],
-        "undistortion": {v.name: {"model": cameras[v.name].model, "K": v.undistortion.camera.K.tolist(),
-                                  "distortion": cameras[v.name].distortion.tolist()} for v in views},
+        "undistortion": {v.name: {"model": cameras[v.name].model, "K": v.camera.K.tolist(),
+                                  "distortion": cameras[v.name].distortion.tolist(), "downscale": config.downscale}
+                         for v in views},
         "masks": {v.name: {"source": v.mask_source, "plate": v.plate_source,
                            "noise": None if not math.isfinite(v.masks.noise) else v.masks.noise,
                            "area_px": [round(float(a), 1) for a in v.masks.area],

@@ -208,12 +208,15 @@ def clean(mask: np.ndarray, config: MaskConfig, scale: float) -> np.ndarray:
 
 
 def soft_edges(mask: np.ndarray, frame: np.ndarray, plate: np.ndarray, sigma: float, width: float = 1.5,
-               depth: float = 2.0) -> np.ndarray:
+               depth: float = 4.0) -> np.ndarray:
     """Fractional coverage (H, W) float32 in a band of ``width`` px on both sides of a (H, W) bool mask's boundary.
 
-    In the band, α = <I − B, F − B> / |F − B|², with I the frame, B the plate and F the colour of the nearest object
-    pixel at least ``depth`` px inside the boundary (the object's own colour there, unmixed); where F and B are too
-    alike to tell (|F − B| < 6σ) the binary value is kept."""
+    A band pixel's colour I is explained as ``α·F + β·B``: F the colour of the nearest object pixel at least
+    ``depth`` px inside the boundary (the object's own colour, unmixed), B the plate, and β = (1 − α)·(shadow
+    factor) — the background there may lie in the object's shadow, which only scales it. The 2 × 2 least-squares
+    solution gives α; where F and B have nearly the same chromaticity the two cannot be told apart and the plain
+    projection ``<I − B, F − B> / |F − B|²`` is used, and where F and B are too alike altogether (|F − B| < 6σ) the
+    binary value is kept."""
     out = mask.astype(np.float32)
     if not mask.any():
         return out
@@ -221,15 +224,24 @@ def soft_edges(mask: np.ndarray, frame: np.ndarray, plate: np.ndarray, sigma: fl
     outside = ndimage.distance_transform_edt(~mask)
     band = (mask & (inside <= width)) | (~mask & (outside <= width))
     core = inside >= depth
-    if not band.any() or not core.any():
+    if not core.any():
+        core = inside >= max(1.0, float(inside.max()) - 1.0)
+    if not band.any():
         return out
     _, (iy, ix) = ndimage.distance_transform_edt(~core, return_indices=True)
     ys, xs = np.nonzero(band)
-    F = frame[iy[ys, xs], ix[ys, xs]]
-    I, B = frame[ys, xs], plate[ys, xs]
+    F = frame[iy[ys, xs], ix[ys, xs]].astype(np.float64)
+    I, B = frame[ys, xs].astype(np.float64), plate[ys, xs].astype(np.float64)
+    ff, bb, fb = (F * F).sum(-1), (B * B).sum(-1), (F * B).sum(-1)
+    fi, bi = (F * I).sum(-1), (B * I).sum(-1)
+    det = ff * bb - fb * fb
+    a_ls = (fi * bb - bi * fb) / np.maximum(det, 1e-12)
+    b_ls = (ff * bi - fb * fi) / np.maximum(det, 1e-12)
     d = F - B
     dd = (d * d).sum(-1)
-    alpha = np.clip(((I - B) * d).sum(-1) / np.maximum(dd, 1e-12), 0.0, 1.0)
+    a_plain = ((I - B) * d).sum(-1) / np.maximum(dd, 1e-12)
+    separable = (det > 0.01 * ff * bb) & (b_ls >= 0)
+    alpha = np.clip(np.where(separable, a_ls, a_plain), 0.0, 1.0)
     sure = dd > (6.0 * sigma) ** 2
     vals = out[ys, xs]
     vals[sure] = alpha[sure]
@@ -262,8 +274,8 @@ def masks_from_plate(frames: np.ndarray, plate: np.ndarray, config: MaskConfig |
         confidence[t] = supported.sum() / max(m.sum(), 1)
         outside = ~ndimage.binary_dilation(m, iterations=max(1, int(round(2 * scale))))
         stray[t] = (score[t][outside] > config.low).mean() if outside.any() else 0.0
-        masks[t] = soft_edges(m, frames[t].astype(np.float32), plate.astype(np.float32), sigma) if config.soft_edges \
-            else m.astype(np.float32)
+        masks[t] = soft_edges(m, frames[t].astype(np.float32), plate.astype(np.float32), sigma,
+                              depth=4.0 * max(scale, 1.0)) if config.soft_edges else m.astype(np.float32)
     return summarise(masks, confidence, sigma, stray, config)
 
 

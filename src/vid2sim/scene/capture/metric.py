@@ -44,7 +44,7 @@ class MetricConfig:
     """
 
     gravity: float = 9.81
-    hull_resolution: int = 40
+    hull_resolution: int = 32
     hull_margin: float = 1.6
     ballistic: BallisticSearch = field(default_factory=BallisticSearch)
     use_points: bool = True
@@ -98,7 +98,7 @@ def track_object(cameras: Sequence[CaptureCamera], masks: np.ndarray, usable: np
         if len(views) < 2 or not np.isfinite(rough[t]).all():
             continue
         cams = [cameras[v] for v in views]
-        hull = soft_hull(cams, masks[views, t], rough[t], half, config.hull_resolution)
+        hull = soft_hull(cams, masks[views, t], rough[t], half, max(16, config.hull_resolution // 2))
         c = hull.centroid()
         if not np.isfinite(c).all():
             continue

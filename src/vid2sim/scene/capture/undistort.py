@@ -36,43 +36,67 @@ def from_opencv_K(K: np.ndarray) -> np.ndarray:
 
 @dataclass
 class Undistortion:
-    """Resampling of one camera's images onto its pinhole twin.
+    """Resampling of one camera's images onto its pinhole twin, optionally reduced by an integer factor.
 
     Attributes:
-        camera: the pinhole camera the images are resampled to (same pose and size, ``K_new``, no distortion).
-        map_x, map_y: (H, W) float32 source pixel (OpenCV convention) of every output pixel, or None for a
-            camera without distortion (then images pass through unchanged).
+        camera: the pinhole camera the images are resampled to (same pose, ``K_new``, no distortion; its size is
+            the source's divided by ``downscale``).
+        map_x, map_y: (H, W) float32 source pixel (OpenCV convention) of every full-size output pixel, or None for
+            a camera without distortion (then images are only reduced).
+        downscale: the reduction factor (1: none); reductions average whole blocks of pixels (:func:`reduce`, the
+            result is float32), so a mask reduced this way holds each pixel's coverage.
     """
 
     camera: CaptureCamera
     map_x: np.ndarray | None
     map_y: np.ndarray | None
+    downscale: int = 1
 
     def __call__(self, image: np.ndarray) -> np.ndarray:
-        """Undistort one image (H, W), (H, W, C) of uint8 or float32 (bilinear, borders replicated)."""
-        if self.map_x is None:
-            return image
-        return cv2.remap(image, self.map_x, self.map_y, interpolation=cv2.INTER_LINEAR,
-                         borderMode=cv2.BORDER_REPLICATE)
+        """Undistort one image (H, W), (H, W, C) of uint8 or float32 (bilinear, borders replicated), then reduce it."""
+        if self.map_x is not None:
+            image = cv2.remap(image, self.map_x, self.map_y, interpolation=cv2.INTER_LINEAR,
+                              borderMode=cv2.BORDER_REPLICATE)
+        if self.downscale > 1:
+            image = reduce(image.astype(np.float32), self.downscale, image.ndim == 3)
+        return image
 
     def stack(self, images: np.ndarray) -> np.ndarray:
         """Undistort a stack (T, H, W[, C]) image by image."""
-        if self.map_x is None:
+        if self.map_x is None and self.downscale == 1:
             return images
         return np.stack([self(im) for im in images])
 
 
-def make_undistortion(camera: CaptureCamera, alpha: float = 0.0) -> Undistortion:
+def make_undistortion(camera: CaptureCamera, alpha: float = 0.0, downscale: int = 1) -> Undistortion:
     """The :class:`Undistortion` of ``camera`` (``alpha`` as in ``cv2.getOptimalNewCameraMatrix``: 0 keeps only
-    pixels that see the scene, 1 keeps every source pixel)."""
+    pixels that see the scene, 1 keeps every source pixel), reduced ``downscale`` times (the size must divide)."""
+    if camera.width % downscale or camera.height % downscale:
+        raise ValueError(f"camera {camera.name}: {camera.width}x{camera.height} is not divisible by {downscale}")
+    reduce = np.diag([1.0 / downscale, 1.0 / downscale, 1.0])
+    size = (camera.width // downscale, camera.height // downscale)
     if camera.is_pinhole:
-        return Undistortion(camera, None, None)
-    size = (camera.width, camera.height)
+        return Undistortion(replace(camera, K=reduce @ camera.K, width=size[0], height=size[1]), None, None, downscale)
+    full = (camera.width, camera.height)
     K_cv = to_opencv_K(camera.K)
-    new_K, _ = cv2.getOptimalNewCameraMatrix(K_cv, camera.distortion, size, alpha, size)
-    map_x, map_y = cv2.initUndistortRectifyMap(K_cv, camera.distortion, None, new_K, size, cv2.CV_32FC1)
-    pinhole = replace(camera, K=from_opencv_K(new_K), distortion=np.zeros(5), model="PINHOLE")
-    return Undistortion(pinhole, map_x, map_y)
+    new_K, _ = cv2.getOptimalNewCameraMatrix(K_cv, camera.distortion, full, alpha, full)
+    map_x, map_y = cv2.initUndistortRectifyMap(K_cv, camera.distortion, None, new_K, full, cv2.CV_32FC1)
+    # with pixel centres at +0.5, reducing the image scales K (a reduced pixel covers ``downscale`` full ones)
+    pinhole = replace(camera, K=reduce @ from_opencv_K(new_K), distortion=np.zeros(5), model="PINHOLE",
+                      width=size[0], height=size[1])
+    return Undistortion(pinhole, map_x, map_y, downscale)
+
+
+def reduce(images: np.ndarray, factor: int, channels: bool) -> np.ndarray:
+    """Float images (…, H, W, C) (``channels``) or (…, H, W) reduced ``factor`` times by averaging
+    ``factor`` × ``factor`` blocks (H and W must be multiples of it)."""
+    if factor == 1:
+        return images
+    if not channels:
+        return reduce(images[..., None], factor, True)[..., 0]
+    *lead, H, W, C = images.shape
+    blocks = images.reshape(*lead, H // factor, factor, W // factor, factor, C)
+    return blocks.mean(axis=(-4, -2), dtype=np.float32)
 
 
 def distort_normalised(xy: np.ndarray, distortion: np.ndarray) -> np.ndarray:
