@@ -391,7 +391,8 @@ def import_capture(capture: str | Path, out: str | Path, config: CaptureImportCo
     try:
         down = None if config.gravity_axis is None else np.asarray(config.gravity_axis, dtype=np.float64)
         metric = solve_metric_frame(track, 1.0 / fps, config.metric, scene_frames, points=points,
-                                    scale=config.scale, down=down, floor=config.floor)
+                                    scale=config.scale, down=down, floor=config.floor, cameras=pinholes,
+                                    plates=[v.plate for v in views])
     except NoFreeFlight:
         missing = " and ".join(n for n, v in (("--scale", config.scale), ("--gravity-axis", config.gravity_axis))
                                if v is None)

@@ -45,7 +45,8 @@ class MaskConfig:
             band of ``max(shadow_band, 3 MAD)`` below it and everything up to the background's brightness pass
             (``shadow_min_brightness`` bounds it from below; a negative band disables the measurement).
         shadow_min_correlation: the smallest normalised correlation between frame and plate in that window for a
-            darkening to pass as a shadow, where the plate is textured (local std above ``shadow_texture_min`` σ).
+            darkening to pass as a shadow, where the texture it would keep stands out of the noise (the plate's local
+            std times the darkening above ``shadow_texture_min`` σ).
         noise_floor: the smallest noise level σ assumed (a perfectly clean synthetic frame would give 0).
         open_radius, close_radius: radii (px at 128 px image height; scaled with the image) of the opening that
             removes specks and the closing that bridges gaps.
@@ -61,7 +62,7 @@ class MaskConfig:
     shadow_chroma_tolerance: float = 0.02
     shadow_texture_window: int = 5
     shadow_min_correlation: float = 0.5
-    shadow_texture_min: float = 3.0
+    shadow_texture_min: float = 6.0
     shadow_band: float = 0.08
     noise_floor: float = 1.0 / 255.0
     open_radius: float = 1.0
@@ -166,8 +167,9 @@ def object_score(frames: np.ndarray, plate: np.ndarray, sigma: float, config: Ma
     if config.shadow_min_correlation > -1:
         window = max(3, int(round(config.shadow_texture_window * frames.shape[1] / 128.0)) | 1)
         ncc, texture = texture_correlation(frames, plate, window)
-        textured = texture > config.shadow_texture_min * sigma
-        unexplained = textured[None] & (ncc < config.shadow_min_correlation)
+        # the texture a shadow would keep is the plate's, scaled by the darkening: it must stand out of the noise
+        textured = np.clip(a, 0.0, 1.0) * texture[None] > config.shadow_texture_min * sigma
+        unexplained = textured & (ncc < config.shadow_min_correlation)
         score = np.where(unexplained, np.maximum(score, (1.0 - a) * nb / sigma), score)
     return score.astype(np.float32)
 

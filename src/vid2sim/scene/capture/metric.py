@@ -26,6 +26,7 @@ import numpy as np
 
 from vid2sim.scene.capture.ballistic import BallisticFit, BallisticSearch, find_ballistic, fit_segments
 from vid2sim.scene.capture.cameras import CaptureCamera
+from vid2sim.scene.capture.floor import floor_from_plates
 from vid2sim.scene.capture.hull import HullFrame, lowest_point, mask_centroids, soft_hull, triangulate
 
 
@@ -39,6 +40,7 @@ class MetricConfig:
         hull_margin: the grid's half-size relative to the object's largest silhouette radius.
         ballistic: the free-flight search (:class:`~vid2sim.scene.capture.ballistic.BallisticSearch`).
         use_points: use COLMAP's 3D points for the floor.
+        use_plates: without points, find the floor on the clean plates (:mod:`vid2sim.scene.capture.floor`).
         floor_normal_agreement_deg: adopt the point floor's normal as the gravity direction when it is within this
             angle of the parabola's (and within 3 of its standard deviations).
     """
@@ -48,7 +50,8 @@ class MetricConfig:
     hull_margin: float = 1.6
     ballistic: BallisticSearch = field(default_factory=BallisticSearch)
     use_points: bool = True
-    floor_normal_agreement_deg: float = 5.0
+    use_plates: bool = True
+    floor_normal_agreement_deg: float = 10.0
 
     def to_json(self) -> dict:
         return asdict(self)
@@ -127,7 +130,8 @@ class FloorEstimate:
 
 def floor_from_points(points: np.ndarray, up: np.ndarray, near: float, size: float) -> FloorEstimate | None:
     """The dense horizontal layer of points (P, 3) within ±0.5·``size`` of the height ``near`` (along ``up``): its
-    plane (least squares over the inliers after a histogram mode), or None when fewer than 20 points lie there."""
+    plane {x : normal·x = offset} (least squares over the inliers after a histogram mode; the offset is along the
+    plane's own normal), or None when fewer than 20 points lie there."""
     if len(points) < 20 or not np.isfinite(near):
         return None
     h = points @ up
@@ -160,7 +164,7 @@ def floor_from_points(points: np.ndarray, up: np.ndarray, near: float, size: flo
     # a tilt of the plane by θ moves points at distance r by r·θ: std(θ) ≈ σ / (rms(r) √N)
     spread = float(np.sqrt((np.linalg.norm((P - c) - np.outer(resid, n), axis=1) ** 2).mean()))
     normal_sigma = float(np.degrees(resid.std() / max(spread, 1e-12) / np.sqrt(len(P))))
-    return FloorEstimate(float(c @ up), sigma, "colmap points", n, normal_sigma, int(inl.sum()))
+    return FloorEstimate(float(c @ n), sigma, "colmap points", n, normal_sigma, int(inl.sum()))
 
 
 def floor_from_contact(track: Track, up: np.ndarray, flight: Sequence[int]) -> FloorEstimate | None:
@@ -200,7 +204,7 @@ class MetricFrame:
     Attributes:
         scale: metres per calibration unit; scale_sigma: its std; scale_source: ``"free flight"`` or ``"user"``.
         down: (3,) unit gravity direction in the calibration frame; down_sigma_deg: its std (degrees);
-            down_source: ``"free flight"``, ``"floor points"`` or ``"user"``.
+            down_source: ``"free flight"``, ``"floor (colmap points)"``, ``"floor (plates)"`` or ``"user"``.
         floor: the :class:`FloorEstimate` (calibration units along up = −down).
         rotation: (3, 3); translation: (3,): x_scene = scale · rotation @ x_cal + translation.
         ballistic: the free-flight fit, if any.
@@ -265,13 +269,17 @@ class NoFreeFlight(Exception):
 
 def solve_metric_frame(track: Track, dt: float, config: MetricConfig, scene_frames: range,
                        points: np.ndarray | None = None, scale: float | None = None,
-                       down: np.ndarray | None = None, floor: float | None = None) -> MetricFrame:
+                       down: np.ndarray | None = None, floor: float | None = None,
+                       cameras: Sequence[CaptureCamera] | None = None,
+                       plates: Sequence[np.ndarray] | None = None) -> MetricFrame:
     """Measure (or take from the user) scale, gravity direction and floor, and build the similarity.
 
     Args:
         track: the object's track; dt: seconds per frame; scene_frames: the frames the scene keeps (the origin
             goes under the object's mean position over them).
         points: (P, 3) COLMAP points or None.
+        cameras, plates: the undistorted cameras and their clean plates (H, W, 3), for the floor where there are no
+            points (:func:`vid2sim.scene.capture.floor.floor_from_plates`).
         scale, down, floor: the user's metres per unit, gravity direction (3,) and floor offset along −down.
 
     Raises:
@@ -302,23 +310,36 @@ def solve_metric_frame(track: Track, dt: float, config: MetricConfig, scene_fram
         floor_est = FloorEstimate(float(floor), 0.0, "user")
     else:
         contact = floor_from_contact(track, up, fit.frames if fit is not None else [])
+        plane: FloorEstimate | None = None
         if config.use_points and points is not None and len(points) and contact is not None:
-            pts = floor_from_points(points, up, contact.offset, track.size)
-            if pts is not None and pts.normal is not None:
-                angle = float(np.degrees(np.arccos(np.clip(pts.normal @ up, -1, 1))))
-                if down_source == "free flight" and angle <= max(config.floor_normal_agreement_deg, 0.0) and \
-                        angle <= 3.0 * max(down_sigma, 0.1):
-                    down_est = -pts.normal
-                    up = pts.normal
-                    down_sigma = pts.normal_sigma_deg
-                    down_source = "floor points"
-                    notes.append(f"gravity direction from the floor points' normal ({angle:.2f} deg from the "
-                                 "free-flight estimate)")
-                    pts = floor_from_points(points, up, contact.offset, track.size) or pts
-                elif down_source == "free flight":
-                    notes.append(f"the floor points' normal is {angle:.2f} deg from the free-flight gravity direction; "
-                                 "kept the free-flight direction")
-                floor_est = pts
+            plane = floor_from_points(points, up, contact.offset, track.size)
+        if plane is None and config.use_plates and plates is not None and cameras is not None and contact is not None \
+                and all(p is not None for p in plates):
+            centre = np.nanmedian(track.centres, axis=0)
+            found = floor_from_plates(cameras, plates, up, contact.offset, centre, 1.5 * track.size,
+                                      0.15 * track.size)
+            if found is not None:
+                plane = FloorEstimate(found.offset, found.sigma, "plates", found.normal, found.normal_sigma_deg, 0)
+        if plane is not None and plane.normal is not None:
+            angle = float(np.degrees(np.arccos(np.clip(plane.normal @ up, -1, 1))))
+            if down_source == "free flight" and angle <= config.floor_normal_agreement_deg and \
+                    angle <= 3.0 * max(down_sigma, 0.1):
+                down_est, up = -plane.normal, plane.normal
+                down_sigma = plane.normal_sigma_deg
+                down_source = f"floor ({plane.source})"
+                notes.append(f"gravity direction from the floor's normal ({plane.source}; {angle:.2f} deg from the "
+                             "free-flight estimate)")
+            else:
+                if down_source == "free flight":
+                    notes.append(f"the floor's normal ({plane.source}) is {angle:.2f} deg from the free-flight gravity "
+                                 "direction; kept the free-flight direction")
+                # the plane's height along the kept up direction, under the object
+                foot = np.nanmedian(track.centres, axis=0)
+                height = float(foot @ up) + (plane.offset - float(foot @ plane.normal)) / max(float(plane.normal @ up),
+                                                                                            1e-6)
+                plane = FloorEstimate(height, plane.sigma, plane.source, plane.normal, plane.normal_sigma_deg,
+                                      plane.points)
+            floor_est = plane
         if floor_est is None:
             floor_est = contact
         if floor_est is None:
@@ -327,7 +348,7 @@ def solve_metric_frame(track: Track, dt: float, config: MetricConfig, scene_fram
     # the scale (refit along the final direction when it was sharpened by the floor)
     if scale is None:
         assert fit is not None
-        if down_source == "floor points":
+        if down_source.startswith("floor"):
             fit = fit_segments(track.centres, dt, fit.segments, direction=down_est, noise=fit.noise)
         a = float(np.linalg.norm(fit.acceleration))
         scale_val = config.gravity / a
