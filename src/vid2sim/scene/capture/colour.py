@@ -5,9 +5,10 @@ Two cameras film the same floor and walls with different gains and white balance
 a grid on the floor plane around the object (once the floor is known) and COLMAP's 3D points where the model has
 them — are projected into every plate; where a point is inside both the reference camera's plate and camera v's,
 the two colours (after a light blur, so a small misregistration matters little) form one correspondence.
-``c_ref ≈ A c_v + b`` is then fitted by iteratively reweighted least squares (Huber), with a small ridge pulling
-the 3 × 3 part towards a diagonal: gains and white balance are diagonal, cross-talk is rare. A camera with too
-few correspondences keeps the identity (and says so).
+``c_ref ≈ A c_v + b`` is then fitted by iteratively reweighted least squares (Huber), with ridges pulling the
+off-diagonal entries of A and the offset b to zero: gains and white balance are diagonal and multiplicative,
+cross-talk and offsets are small, and the narrow range of colours a floor shows cannot pin down a free offset. A
+camera with too few correspondences keeps the identity (and says so).
 """
 
 from __future__ import annotations
@@ -29,14 +30,16 @@ class ColourConfig:
         enabled: correct colours at all.
         blur_sigma: blur (px at 128 px height) of the plates before sampling.
         min_points: fewest correspondences a camera needs for a fit.
-        ridge: pull of the 3 × 3 part towards its diagonal (relative to the data's weight).
+        ridge: pull of the 3 × 3 part's off-diagonal entries towards zero (relative to the data's weight).
+        offset_ridge: pull of the offset towards zero (relative to the data's weight).
         huber: the Huber loss's threshold (colour units).
     """
 
     enabled: bool = True
     blur_sigma: float = 1.0
     min_points: int = 50
-    ridge: float = 0.05
+    ridge: float = 1.0
+    offset_ridge: float = 0.1
     huber: float = 0.03
 
     def to_json(self) -> dict:
@@ -79,7 +82,13 @@ def _inside(cam: CaptureCamera, points: np.ndarray, margin: float) -> tuple[np.n
 
 
 def fit_affine(src: np.ndarray, dst: np.ndarray, config: ColourConfig) -> ColourMap:
-    """Huber-IRLS fit of dst (N, 3) ≈ A src (N, 3) + b with a ridge towards a diagonal A."""
+    """Huber-IRLS fit of dst (N, 3) ≈ A src (N, 3) + b with ridges pulling A's off-diagonal entries and b to zero.
+
+    The static scene seen by two cameras spans a narrow range of colours, and both cameras' samples are noisy (the
+    texture is sampled at slightly different places): a free offset would trade off against the gain and soak up
+    the regression's attenuation. Gains and white balance are diagonal and multiplicative, so the fit leans on
+    them: the off-diagonal entries and the offset move only when the data ask for it clearly (``ridge``,
+    ``offset_ridge`` relative to the data's weight)."""
     n = len(src)
     X = np.concatenate([src, np.ones((n, 1))], 1)
     w = np.ones(n)
@@ -87,14 +96,14 @@ def fit_affine(src: np.ndarray, dst: np.ndarray, config: ColourConfig) -> Colour
     for _ in range(8):
         Xw = X * w[:, None]
         G = X.T @ Xw
-        lam = config.ridge * w.sum() * 0.05
-        # ridge on the off-diagonal entries of A only
+        total = w.sum()
         sol = np.zeros((4, 3))
         for c in range(3):
             R = np.zeros((4, 4))
             for k in range(3):
                 if k != c:
-                    R[k, k] = lam
+                    R[k, k] = config.ridge * total
+            R[3, 3] = config.offset_ridge * total
             sol[:, c] = np.linalg.solve(G + R + 1e-9 * np.eye(4), Xw.T @ dst[:, c])
         r = np.linalg.norm(X @ sol - dst, axis=1)
         w = np.where(r <= config.huber, 1.0, config.huber / np.maximum(r, 1e-12))
