@@ -294,3 +294,20 @@ def test_calibration_names_matching_no_video(twin: Path, tmp_path: Path, capsys:
 def test_import_error_names_camera_and_file() -> None:
     e = CaptureError("something", camera="c07", file="videos/c07.mp4")
     assert str(e) == "camera 'c07', videos/c07.mp4: something"
+
+
+def test_colours_are_matched_to_the_reference_camera(twin: Path, imported: Path) -> None:
+    """Each camera's colour map undoes its gain and white balance relative to the reference camera's (the twin's
+    sensors are ``gain ⊙ x + black``): within 4 % of full scale over the colour range."""
+    from vid2sim.synthetic.capture import read_truth
+
+    truth, _ = read_truth(twin)
+    report = json.loads((imported / "capture_report.json").read_text())
+    ref = report["colour"]["reference"]
+    g_ref, b_ref = np.array(truth["sensors"][ref]["gain"]), truth["sensors"][ref]["black"]
+    x = np.linspace(0.1, 0.9, 9)[:, None] * np.ones(3)
+    for name, m in report["colour"]["maps"].items():
+        g, b = np.array(truth["sensors"][name]["gain"]), truth["sensors"][name]["black"]
+        expected = g_ref * (x - b) / g + b_ref
+        got = x @ np.array(m["A"]).T + np.array(m["b"])
+        assert np.abs(got - expected).max() < 0.04, (name, m)
