@@ -51,7 +51,9 @@ class MaskConfig:
         open_radius, close_radius: radii (px at 128 px image height; scaled with the image) of the opening that
             removes specks and the closing that bridges gaps.
         fill_holes: fill holes inside the object (an object that truly has holes should give its own masks).
-        soft_edges: estimate fractional coverage in a one-pixel band at the boundary.
+        soft_edges: estimate fractional coverage in a band at the boundary (:func:`soft_edges`).
+        edge_width, edge_depth: that band's half-width and how deep inside the object its colour is taken, in pixels
+            of the frames (an outline's blur is a few pixels whatever the image's size).
         jump_ratio: an area ratio between neighbouring frames beyond this (or its inverse) flags ``jump``.
     """
 
@@ -69,6 +71,8 @@ class MaskConfig:
     close_radius: float = 2.0
     fill_holes: bool = True
     soft_edges: bool = True
+    edge_width: float = 2.0
+    edge_depth: float = 3.0
     jump_ratio: float = 1.5
 
     def to_json(self) -> dict:
@@ -209,8 +213,8 @@ def clean(mask: np.ndarray, config: MaskConfig, scale: float) -> np.ndarray:
     return largest_component(mask)
 
 
-def soft_edges(mask: np.ndarray, frame: np.ndarray, plate: np.ndarray, sigma: float, width: float = 1.5,
-               depth: float = 4.0) -> np.ndarray:
+def soft_edges(mask: np.ndarray, frame: np.ndarray, plate: np.ndarray, sigma: float, width: float = 2.0,
+               depth: float = 3.0) -> np.ndarray:
     """Fractional coverage (H, W) float32 in a band of ``width`` px on both sides of a (H, W) bool mask's boundary.
 
     A band pixel's colour I is explained as ``α·F + β·B``: F the colour of the nearest object pixel at least
@@ -277,7 +281,8 @@ def masks_from_plate(frames: np.ndarray, plate: np.ndarray, config: MaskConfig |
         outside = ~ndimage.binary_dilation(m, iterations=max(1, int(round(2 * scale))))
         stray[t] = (score[t][outside] > config.low).mean() if outside.any() else 0.0
         masks[t] = soft_edges(m, frames[t].astype(np.float32), plate.astype(np.float32), sigma,
-                              depth=4.0 * max(scale, 1.0)) if config.soft_edges else m.astype(np.float32)
+                              width=config.edge_width, depth=config.edge_depth) if config.soft_edges \
+            else m.astype(np.float32)
     return summarise(masks, confidence, sigma, stray, config)
 
 
