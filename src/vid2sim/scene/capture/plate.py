@@ -17,6 +17,7 @@ which it shows. Then plate and masks are refined twice: the plate of a pixel is 
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import cv2
@@ -95,7 +96,8 @@ def estimate_plate(frames: np.ndarray, config: MaskConfig | None = None, rounds:
         count = free.sum(0)
         unknown = count == 0
         masked = np.where(free[..., None], frames, np.nan)
-        with np.errstate(all="ignore"):
+        with warnings.catch_warnings():  # pixels never free give an all-NaN median; they keep the old plate
+            warnings.simplefilter("ignore", RuntimeWarning)
             med = np.nanmedian(masked, axis=0)
         plate = np.where(unknown[..., None], plate, med).astype(np.float32)
     return PlateEstimate(plate, unknown, ghosts)
