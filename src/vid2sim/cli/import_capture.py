@@ -38,7 +38,7 @@ def run(args: argparse.Namespace) -> int:
         gravity_axis=None if args.gravity_axis is None else parse_axis(args.gravity_axis),
         scale=args.scale, floor=args.floor, observed_views=args.observed_views, held_out_views=args.held_out_views,
         held_out_frames=args.held_out_frames, colour_reference=args.colour_reference, layout=args.layout,
-        downscale=args.downscale,
+        downscale=args.downscale, every=args.every,
         threads=args.threads, metric=MetricConfig(gravity=args.gravity if args.gravity is not None else 9.81))
     if args.floor is not None and args.gravity_axis is None:
         raise UserError("--floor is a height along the up axis: give --gravity-axis with it")
@@ -59,6 +59,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--fps", type=float, default=None, help="frame rate, when the videos and capture.json do not say")
     p.add_argument("--frames", type=_frames, default=None, metavar="A:B",
                    help="keep frames A..B-1 in the scene (scale and gravity are measured on all frames)")
+    p.add_argument("--every", type=int, default=1, metavar="N",
+                   help="keep every N-th of those frames (film at 60 fps, keep 20: the free fall is measured on all)")
     p.add_argument("--gravity-axis", default=None, metavar="AXIS",
                    help="the direction gravity points in the calibration's frame: x, -y, +z, ... or gx,gy,gz "
                         "(default: measured from the object's free fall)")

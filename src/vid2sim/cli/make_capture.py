@@ -13,6 +13,7 @@ def run(args: argparse.Namespace) -> int:
     set_threads(args.threads)
     try:
         config = CaptureTwinConfig(seed=args.seed, resolution_scale=args.resolution_scale,
+                                   frame_rate_scale=args.frame_rate_scale,
                                    lead_in_frames=args.lead_in, frames_format=args.format,
                                    colmap_format=args.colmap_format, write_transforms=not args.no_transforms)
     except ValueError as exc:
@@ -26,7 +27,8 @@ def run(args: argparse.Namespace) -> int:
     truth, _ = read_truth(out)
     lead = truth["lead_in_frames"]
     print(f"wrote {out}; import it with: vid2sim import-capture {out} SCENE --frames {lead}:{truth['frames']} "
-          f"--downscale {truth['resolution_scale']} --gravity {abs(truth['gravity_world'][2]):g}")
+          f"--every {truth['frame_step']} --downscale {truth['resolution_scale']} "
+          f"--gravity {abs(truth['gravity_world'][2]):g}")
     return 0
 
 
@@ -39,6 +41,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=0, help="seed of the twin's random choices (default 0)")
     p.add_argument("--resolution-scale", type=int, default=2, metavar="K",
                    help="film at K times the scene's resolution (import with --downscale K; default 2)")
+    p.add_argument("--frame-rate-scale", type=int, default=3, metavar="M",
+                   help="film M frames per scene frame (import with --every M; default 3: 60 fps for a 20 fps scene)")
     p.add_argument("--lead-in", type=int, default=8, metavar="N",
                    help="frames of free flight filmed before the scene's first frame (fewer when the object would "
                         "reach the floor or leave a view; default 8)")

@@ -57,7 +57,10 @@ class CaptureTwinConfig:
         resolution_scale: the cameras film at this many times the scene's resolution (a real camera films far more
             pixels than the scene keeps; ``import-capture --downscale`` brings them back, averaging away most of the
             compression's damage at the object's outline).
-        lead_in_frames: frames of free flight recorded before the scene's first frame (fewer when the object would
+        frame_rate_scale: the cameras film this many frames per scene frame (60 fps for a 20 fps scene; ``import-capture
+            --every`` keeps the scene's): the free flight is measured on them all. Between the FEM's frames the motion is
+            the cubic Hermite interpolation of its positions and velocities (exact for the centre of mass in flight).
+        lead_in_frames: scene frames of free flight recorded before the scene's first frame (fewer when the object would
             otherwise reach the floor, come within ``lead_in_clearance`` m of it, or leave a camera's view).
         lead_in_clearance: metres the object's lowest point stays above the floor in the lead-in.
         frames_format: ``"video"`` (``videos/<cam>.mp4``, H.264 4:2:0) or ``"frames"`` (``frames/<cam>/*.png``
@@ -83,6 +86,7 @@ class CaptureTwinConfig:
 
     seed: int = 0
     resolution_scale: int = 2
+    frame_rate_scale: int = 3
     lead_in_frames: int = 8
     lead_in_clearance: float = 0.03
     frames_format: str = "video"
@@ -121,6 +125,9 @@ class CaptureTwinConfig:
         if isinstance(self.resolution_scale, bool) or not isinstance(self.resolution_scale, int) or \
                 self.resolution_scale < 1:
             raise ValueError(f"CaptureTwinConfig.resolution_scale must be an integer >= 1, got {self.resolution_scale!r}")
+        if isinstance(self.frame_rate_scale, bool) or not isinstance(self.frame_rate_scale, int) or \
+                self.frame_rate_scale < 1:
+            raise ValueError(f"CaptureTwinConfig.frame_rate_scale must be an integer >= 1, got {self.frame_rate_scale!r}")
         if self.lead_in_frames < 0:
             raise ValueError(f"CaptureTwinConfig.lead_in_frames must be >= 0, got {self.lead_in_frames}")
         for name in ("camera_models",):
@@ -303,8 +310,9 @@ class CaptureMotion:
         vertices: (T, Nv, 3) surface positions in the world frame (metres, z up).
         faces: (Nf, 3); uvs: (Nf, 3, 2); texture: (Ht, Wt, 3).
         cameras: the V clean cameras (pinhole, world frame).
-        dt: seconds per frame; floor_height: the floor's z; gravity: (3,) m/s².
-        lead_in: frames before the clean scene's first frame.
+        dt: seconds per video frame; floor_height: the floor's z; gravity: (3,) m/s².
+        lead_in: video frames before the clean scene's first frame.
+        step: video frames per scene frame (the scene's frame i is video frame ``lead_in + step·i``).
         info: extra facts for ``truth.json``.
     """
 
@@ -317,6 +325,7 @@ class CaptureMotion:
     floor_height: float
     gravity: tuple[float, float, float] = (0.0, 0.0, -9.8)
     lead_in: int = 0
+    step: int = 1
     info: dict[str, Any] = field(default_factory=dict)
 
 
@@ -419,6 +428,7 @@ def write_capture(motion: CaptureMotion, out: str | Path, config: CaptureTwinCon
             "fps": 1.0 / motion.dt,
             "dt": motion.dt,
             "lead_in_frames": motion.lead_in,
+            "frame_step": motion.step,
             "resolution_scale": k,
             "scene_frames": [motion.lead_in, T],
             "world_to_calibration": sim.to_json(),
@@ -446,9 +456,17 @@ def write_capture(motion: CaptureMotion, out: str | Path, config: CaptureTwinCon
     return out
 
 
-def scene_motion(scene_dir: str | Path, lead_in_frames: int, clearance: float = 0.03) -> CaptureMotion:
+def hermite(p0: np.ndarray, v0: np.ndarray, p1: np.ndarray, v1: np.ndarray, h: float, s: float) -> np.ndarray:
+    """Cubic Hermite interpolation at s ∈ [0, 1] between positions p0, p1 (N, 3) with velocities v0, v1 over h
+    seconds (exact for a parabola)."""
+    s2, s3 = s * s, s * s * s
+    return (2 * s3 - 3 * s2 + 1) * p0 + (s3 - 2 * s2 + s) * h * v0 + (3 * s2 - 2 * s3) * p1 + (s3 - s2) * h * v1
+
+
+def scene_motion(scene_dir: str | Path, lead_in_frames: int, clearance: float = 0.03, step: int = 1) -> CaptureMotion:
     """The motion of a ``make-scene`` folder (its object's textured surface carried by the FEM tets, its cameras)
-    with up to ``lead_in_frames`` frames of free flight before it (:func:`lead_in`)."""
+    filmed at ``step`` video frames per scene frame (Hermite-interpolated between the FEM's frames), with up to
+    ``lead_in_frames`` scene frames of free flight before it (:func:`lead_in`)."""
     from vid2sim.scene.folder import load_scene
     from vid2sim.synthetic.embedding import apply_embedding, embed_points
     from vid2sim.synthetic.fem import FEMResult
@@ -466,7 +484,16 @@ def scene_motion(scene_dir: str | Path, lead_in_frames: int, clearance: float = 
     result = FEMResult.load(scene_dir / FEM_RESULT_NPZ)
     nv = int(result.tets.max()) + 1
     tet_index, bary = embed_points(mesh.vertices.double(), result.rest_vertices[:nv].double(), result.tets)
-    surface = apply_embedding(result.trajectory, tet_index, bary, result.embedding_elements).double().numpy()
+    traj = result.trajectory.double().numpy()
+    vels = result.velocities.double().numpy()
+    dt_s = scene.config.dt
+    nodes = []
+    for k in range(traj.shape[0]):
+        nodes.append(traj[k])
+        if k + 1 < traj.shape[0]:
+            nodes += [hermite(traj[k], vels[k], traj[k + 1], vels[k + 1], dt_s, j / step) for j in range(1, step)]
+    surface = apply_embedding(torch.as_tensor(np.stack(nodes)), tet_index, bary,
+                              result.embedding_elements).double().numpy()
     x0 = result.trajectory[0, :nv].double().numpy()
     centre = tet_centroid(x0, result.tets.numpy())
     vel, omega = rigid_velocity(x0, result.velocities[0, :nv].double().numpy(), centre)
@@ -474,19 +501,19 @@ def scene_motion(scene_dir: str | Path, lead_in_frames: int, clearance: float = 
     floor = scene.config.floor_height
     cams = [CaptureCamera(f"c{v:02d}", c.width, c.height, c.K.double().numpy(), np.zeros(5),
                           c.world_to_camera.double().numpy()) for v, c in enumerate(scene.cameras)]
-    lead = lead_in(surface[0], centre, vel, omega, gravity, scene.config.dt, lead_in_frames, floor, clearance, cams)
+    lead = lead_in(surface[0], centre, vel, omega, gravity, dt_s / step, lead_in_frames * step, floor, clearance, cams)
     vertices = np.concatenate([lead, surface]) if len(lead) else surface
     info = {"scene": str(scene_dir.resolve()), "scene_seed": syn.seed, "E": scene.config.metadata.get("E"),
             "nu": scene.config.metadata.get("nu"), "initial_velocity": vel.tolist(), "initial_omega": omega.tolist()}
     return CaptureMotion(torch.as_tensor(vertices, dtype=torch.float32), mesh.faces, mesh.uvs, mesh.texture,
-                         scene.cameras, scene.config.dt, float(floor), tuple(gravity.tolist()), len(lead), info)
+                         scene.cameras, dt_s / step, float(floor), tuple(gravity.tolist()), len(lead), step, info)
 
 
 def make_capture_twin(scene_dir: str | Path, out: str | Path, config: CaptureTwinConfig | None = None,
                       overwrite: bool = False, progress: bool = False) -> Path:
     """Write the capture twin of the ``make-scene`` folder ``scene_dir`` at ``out`` (see the module docstring)."""
     config = CaptureTwinConfig() if config is None else config
-    motion = scene_motion(scene_dir, config.lead_in_frames, config.lead_in_clearance)
+    motion = scene_motion(scene_dir, config.lead_in_frames, config.lead_in_clearance, config.frame_rate_scale)
     return write_capture(motion, out, config, overwrite=overwrite, progress=progress)
 
 

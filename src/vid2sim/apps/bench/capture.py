@@ -58,13 +58,14 @@ def import_figures(capture: str | Path, scene_dir: str | Path) -> dict[str, Any]
     report = json.loads((scene_dir / "capture_report.json").read_text())
     scene = load_scene(scene_dir)
     A, B = report["scene_frames"]
+    keep = list(range(A, B, report.get("every", 1)))
     ious = []
     for v, name in enumerate(report["cameras"]):
         und = report["undistortion"][name]
-        true = _undistorted_alpha(alpha[v, A:B], truth["true_cameras_calibration"][name], np.array(und["K"]),
+        true = _undistorted_alpha(alpha[v, keep], truth["true_cameras_calibration"][name], np.array(und["K"]),
                                   und.get("downscale", 1))
         est = scene.masks[v].numpy()
-        ious.append([soft_iou(est[t], true[t]) for t in range(B - A)])
+        ious.append([soft_iou(est[t], true[t]) for t in range(len(keep))])
     ious = np.array(ious)
     metric = report["metric"]
     scale = metric["metres_per_unit"]["value"]
@@ -76,7 +77,8 @@ def import_figures(capture: str | Path, scene_dir: str | Path) -> dict[str, Any]
     M = np.array(metric["calibration_to_scene"])
     sim = truth["world_to_calibration"]
     s, R, t = sim["scale"], np.array(sim["rotation"]), np.array(sim["translation"])
-    track = np.array([c for c in report["track_units"][A:B] if c is not None and all(math.isfinite(x) for x in c)])
+    track = np.array([c for c in (report["track_units"][t] for t in keep)
+                      if c is not None and all(math.isfinite(x) for x in c)])
     centre_cal = track.mean(0)
     centre_world = (R.T @ (centre_cal - t)) / s
     foot_world = np.array([centre_world[0], centre_world[1], truth["floor_height_world"]])
@@ -241,7 +243,7 @@ def capture_scene(name: str, scene_dir: Path, out: Path, index: int, config: Cap
         held = clean_cfg.get("held_out_views") or []
         gravity = config.gravity if config.gravity is not None else float(np.linalg.norm(truth["gravity_world"]))
         icfg = CaptureImportConfig(frames=tuple(truth["scene_frames"]), held_out_views=held or None,
-                                   downscale=int(truth.get("resolution_scale", 1)),
+                                   every=int(truth.get("frame_step", 1)), downscale=int(truth.get("resolution_scale", 1)),
                                    observed_frames=clean_cfg.get("observed_frames"), threads=config.threads,
                                    metric=MetricConfig(gravity=gravity))
         t0 = time.perf_counter()

@@ -73,13 +73,16 @@ def tracking_noise(x: np.ndarray) -> float:
 
 
 def fit_segments(x: np.ndarray, dt: float, segments: list[list[int]], direction: np.ndarray | None = None,
-                 noise: float | None = None) -> BallisticFit:
-    """One parabola per segment with a shared acceleration, by linear least squares.
+                 noise: float | None = None, robust: bool = True) -> BallisticFit:
+    """One parabola per segment with a shared acceleration, by (iteratively reweighted) linear least squares.
 
     Args:
         x: (T, 3) track; dt: seconds per frame; segments: lists of frame indices (≥ 3 each).
         direction: if given (3,), a = α·direction with only α free.
-        noise: the σ to use when the fit has too few degrees of freedom to measure its own.
+        noise: the σ to use when the fit has too few degrees of freedom to measure its own, and the scale of the
+            robust weights.
+        robust: Huber weights per frame (a frame whose residual exceeds 2σ counts less: a deforming object's hull
+            strays from its centre of mass now and then).
     """
     rows = sum(len(s) for s in segments)
     n_acc = 1 if direction is not None else 3
@@ -100,14 +103,22 @@ def fit_segments(x: np.ndarray, dt: float, segments: list[list[int]], direction:
                     A[3 * r + c, 6 * len(segments)] = 0.5 * t * t * direction[c]
                 b[3 * r + c] = x[f, c]
             r += 1
-    sol, *_ = np.linalg.lstsq(A, b, rcond=None)
-    res = A @ sol - b
+    w = np.ones(rows)
+    for _ in range(6 if robust and noise is not None and np.isfinite(noise) and noise > 0 else 1):
+        W = np.repeat(w, 3)
+        sol, *_ = np.linalg.lstsq(A * np.sqrt(W)[:, None], b * np.sqrt(W), rcond=None)
+        res = A @ sol - b
+        per_frame = np.linalg.norm(res.reshape(rows, 3), axis=1)
+        if robust and noise is not None and np.isfinite(noise) and noise > 0:
+            k_h = 2.0 * np.sqrt(3.0) * noise
+            w = np.where(per_frame <= k_h, 1.0, k_h / np.maximum(per_frame, 1e-300))
+    W = np.repeat(w, 3)
     dof = len(b) - n_par
     rms = float(np.sqrt((res ** 2).mean())) if len(b) else 0.0
-    sigma2 = float((res ** 2).sum() / dof) if dof >= 3 else 0.0
+    sigma2 = float((W * res ** 2).sum() / max(W.mean(), 1e-12) / dof) if dof >= 3 else 0.0
     if noise is not None and np.isfinite(noise):
         sigma2 = max(sigma2, noise ** 2)
-    cov_all = sigma2 * np.linalg.pinv(A.T @ A)
+    cov_all = sigma2 * np.linalg.pinv((A * W[:, None]).T @ A / max(W.mean(), 1e-12))
     if direction is None:
         acc = sol[-3:]
         cov = cov_all[-3:, -3:]
@@ -199,6 +210,8 @@ class BallisticSearch:
         min_travel: a candidate window's object must move by at least this share of its size (a resting object fits
             a parabola too, with a ≈ 0).
         significance: a candidate window's |a| must exceed this many standard deviations.
+        max_angle_deg: a candidate's acceleration must lie within this angle of the rough down direction (when one
+            is given: the cameras are assumed upright, give or take this much).
         iterations: rounds of segment finding and joint fitting.
     """
 
@@ -206,17 +219,22 @@ class BallisticSearch:
     tolerance: float = 0.01
     min_travel: float = 0.05
     significance: float = 5.0
+    max_angle_deg: float = 60.0
     iterations: int = 3
 
 
 def find_ballistic(x: np.ndarray, dt: float, lowest_along: Callable[[np.ndarray], np.ndarray], size: float,
-                   search: BallisticSearch | None = None, direction: np.ndarray | None = None) -> BallisticFit | None:
+                   search: BallisticSearch | None = None, direction: np.ndarray | None = None,
+                   rough_down: np.ndarray | None = None) -> BallisticFit | None:
     """The joint free-flight fit of a track (T, 3) (module docstring), or None when no free flight shows.
 
     Args:
         size: the object's size (calibration units), for the tolerance.
         lowest_along: the object's lowest height (T,) along a unit up vector (3,), frame by frame.
         direction: a known gravity direction (3,), unit; then only |a| is fitted.
+        rough_down: a rough down direction (3,), unit (the cameras' mean image-down axis): a candidate window's
+            acceleration must lie within ``search.max_angle_deg`` of it. A bouncing object decelerates upwards over
+            several frames, as steadily as a parabola — this keeps it from passing for free fall.
     """
     search = BallisticSearch() if search is None else search
     sigma = tracking_noise(x)
@@ -236,6 +254,8 @@ def find_ballistic(x: np.ndarray, dt: float, lowest_along: Callable[[np.ndarray]
         if mag < search.significance * max(fit.magnitude_sigma(), 1e-300):
             continue
         if direction is not None and fit.acceleration @ direction <= 0:
+            continue
+        if rough_down is not None and fit.acceleration @ rough_down < mag * np.cos(np.radians(search.max_angle_deg)):
             continue
         candidates.append(fit)
     long_ones = [c for c in candidates if len(c.frames) >= 4]

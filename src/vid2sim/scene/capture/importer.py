@@ -59,6 +59,8 @@ class CaptureImportConfig:
         fps: frames per second, overriding ``capture.json`` and the videos.
         frames: (A, B): the scene keeps frames A … B − 1 (all by default); scale and gravity are measured on every
             frame of the videos.
+        every: the scene keeps every ``every``-th of those frames (film at 60 fps, keep 20 fps: the free fall is
+            measured on all 60).
         gravity_axis: the direction gravity points in the calibration frame (3,), instead of measuring it.
         scale: metres per calibration unit, instead of measuring it.
         floor: the floor's height in calibration units along up (−``gravity_axis``): the plane up·x = floor.
@@ -79,6 +81,7 @@ class CaptureImportConfig:
     calibration: str = "colmap"
     fps: float | None = None
     frames: tuple[int, int] | None = None
+    every: int = 1
     gravity_axis: tuple[float, float, float] | None = None
     scale: float | None = None
     floor: float | None = None
@@ -112,6 +115,8 @@ class CaptureImportConfig:
                 raise ConfigError(f"gravity_axis must be a non-zero 3-vector, got {self.gravity_axis}")
         if self.frames is not None and (len(self.frames) != 2 or self.frames[0] < 0 or self.frames[1] <= self.frames[0]):
             raise ConfigError(f"frames must be A:B with 0 <= A < B, got {self.frames}")
+        if isinstance(self.every, bool) or not isinstance(self.every, int) or self.every < 1:
+            raise ConfigError(f"every must be an integer >= 1, got {self.every!r}")
         if isinstance(self.downscale, bool) or not isinstance(self.downscale, int) or self.downscale < 1:
             raise ConfigError(f"downscale must be an integer >= 1, got {self.downscale!r}")
         if self.layout not in ("rgba", "rgb+mask", "video"):
@@ -142,7 +147,8 @@ def parse_axis(text: str) -> tuple[float, float, float]:
 @dataclass
 class ViewData:
     """One camera after stages 1–4: its pinhole camera (reduced), frames (T, H, W, 3) float32, plate (or None),
-    masks and their report (all reduced), and where each came from."""
+    masks and their report (all reduced), and where each came from; for the object's track, the masks before the
+    reduction (T, k·H, k·W) as uint8 coverage and their camera."""
 
     name: str
     camera: CaptureCamera
@@ -152,6 +158,8 @@ class ViewData:
     masks: MaskResult
     mask_source: str
     source: str
+    track_camera: CaptureCamera
+    track_masks: np.ndarray
 
 
 def _stage_times() -> tuple[dict[str, float], Any]:
@@ -298,12 +306,14 @@ def load_views(layout: CaptureLayout, cameras: dict[str, CaptureCamera], T: int,
             if src.plate is not None:
                 _check_static(name, src.plate, frames, plate, result, first_frames, config)
         k = config.downscale
+        track_masks = np.round(np.clip(result.masks, 0.0, 1.0) * 255).astype(np.uint8)
         if k > 1:
             frames = reduce(frames, k, True)
             plate = None if plate is None else reduce(plate, k, True)
             result = summarise(reduce(result.masks, k, False), result.confidence, result.noise, result.stray,
                                config.masks)
-        views.append(ViewData(name, out_camera, frames, plate, plate_source, result, mask_source, str(src.source)))
+        views.append(ViewData(name, out_camera, frames, plate, plate_source, result, mask_source, str(src.source),
+                              und.camera, track_masks))
     return views
 
 
@@ -374,7 +384,7 @@ def import_capture(capture: str | Path, out: str | Path, config: CaptureImportCo
     A, B = config.frames if config.frames is not None else (0, T)
     if B > T:
         raise ConfigError(f"--frames {A}:{B} goes past the videos' {T} frames")
-    scene_frames = range(A, B)
+    scene_frames = range(A, B, config.every)
     cameras, points, visible, calib_source = read_calibration(layout, config.calibration, sizes)
     lap("read")
     say(f"{len(names)} cameras, {T} frames at {fps:g} fps, calibration {calib_source}")
@@ -385,9 +395,9 @@ def import_capture(capture: str | Path, out: str | Path, config: CaptureImportCo
     say("masks: " + ", ".join(f"{v.name} {v.mask_source}" for v in views))
 
     pinholes = [v.camera for v in views]
-    masks = np.stack([v.masks.masks for v in views])
     usable = np.stack([~v.masks.empty & ~v.masks.border for v in views])
-    track = track_object(pinholes, masks, usable, config.metric)
+    # the track from the masks at the filmed resolution: half the pixel size, half the centroid's noise
+    track = track_object([v.track_camera for v in views], [v.track_masks for v in views], usable, config.metric)
     try:
         down = None if config.gravity_axis is None else np.asarray(config.gravity_axis, dtype=np.float64)
         metric = solve_metric_frame(track, 1.0 / fps, config.metric, scene_frames, points=points,
@@ -429,12 +439,13 @@ def import_capture(capture: str | Path, out: str | Path, config: CaptureImportCo
 
     # the scene
     Tn = len(scene_frames)
+    keep = list(scene_frames)
     H, W = views[0].frames.shape[1:3]
     images = np.empty((len(views), Tn, H, W, 3), np.float32)
     scene_masks = np.empty((len(views), Tn, H, W), np.float32)
     for i, v in enumerate(views):
-        fr = maps[i](v.frames[A:B])
-        m = v.masks.masks[A:B]
+        fr = maps[i](v.frames[keep])
+        m = v.masks.masks[keep]
         if v.plate is not None:
             bg = maps[i](v.plate)[None]
             img = fr + (1.0 - m[..., None]) * (1.0 - bg)
@@ -454,6 +465,7 @@ def import_capture(capture: str | Path, out: str | Path, config: CaptureImportCo
         "fps": fps, "fps_source": fps_source,
         "video_frames": T,
         "scene_frames": [A, B],
+        "every": config.every,
         "undistortion": {v.name: {"model": cameras[v.name].model, "K": v.camera.K.tolist(),
                                   "distortion": cameras[v.name].distortion.tolist(), "downscale": config.downscale}
                          for v in views},
@@ -471,11 +483,11 @@ def import_capture(capture: str | Path, out: str | Path, config: CaptureImportCo
     }
     warnings = _warnings(views, metric, scene_frames, maps, ref)
     report["warnings"] = warnings
-    metadata = {"capture": {k: report[k] for k in ("capture", "cameras", "calibration", "fps", "scene_frames",
+    metadata = {"capture": {k: report[k] for k in ("capture", "cameras", "calibration", "fps", "scene_frames", "every",
                                                     "colour", "metric", "warnings")}}
     metadata["capture"]["report"] = IMPORT_REPORT_JSON
     held_frames = config.held_out_frames
-    scene_config = SceneConfig(dt=1.0 / fps, gravity=(0.0, 0.0, -metric.gravity), floor_height=0.0,
+    scene_config = SceneConfig(dt=config.every / fps, gravity=(0.0, 0.0, -metric.gravity), floor_height=0.0,
                                observed_frames=config.observed_frames, held_out_frames=held_frames,
                                observed_views=obs, held_out_views=held, metadata=jsonable(metadata))
     try:

@@ -41,6 +41,8 @@ class MetricConfig:
         ballistic: the free-flight search (:class:`~vid2sim.scene.capture.ballistic.BallisticSearch`).
         use_points: use COLMAP's 3D points for the floor.
         use_plates: without points, find the floor on the clean plates (:mod:`vid2sim.scene.capture.floor`).
+        upright_cameras: the cameras stand roughly upright (image down within 60° of gravity on average): free fall
+            is then told from a bounce's steady upward deceleration (``--gravity-axis`` for rigs that are not).
         floor_normal_agreement_deg: adopt the point floor's normal as the gravity direction when it is within this
             angle of the parabola's (and within 3 of its standard deviations).
     """
@@ -51,6 +53,7 @@ class MetricConfig:
     ballistic: BallisticSearch = field(default_factory=BallisticSearch)
     use_points: bool = True
     use_plates: bool = True
+    upright_cameras: bool = True
     floor_normal_agreement_deg: float = 10.0
 
     def to_json(self) -> dict:
@@ -76,11 +79,16 @@ class Track:
         return np.array([lowest_point(h, up) if h is not None else np.nan for h in self.hulls])
 
 
-def track_object(cameras: Sequence[CaptureCamera], masks: np.ndarray, usable: np.ndarray,
+def track_object(cameras: Sequence[CaptureCamera], masks: Sequence[np.ndarray], usable: np.ndarray,
                  config: MetricConfig) -> Track:
-    """The object's :class:`Track` from masks (V, T, H, W) and the usable (V, T) views of every frame."""
-    V, T, H, W = masks.shape
-    pix, area = mask_centroids(masks)
+    """The object's :class:`Track` from each view's masks (T, H, W) — float in [0, 1] or uint8 coverage in 0..255 —
+    and the usable (V, T) views of every frame."""
+    scale = [255.0 if m.dtype == np.uint8 else 1.0 for m in masks]
+    V, T = usable.shape
+    pix = np.zeros((V, T, 2))
+    area = np.zeros((V, T))
+    for v, m in enumerate(masks):
+        pix[v], area[v] = mask_centroids(m.astype(np.float32) / scale[v])
     rough = triangulate(cameras, pix, usable)
     # the object's radius in calibration units from its silhouettes' sizes at the rough depth
     radius = 0.0
@@ -101,11 +109,12 @@ def track_object(cameras: Sequence[CaptureCamera], masks: np.ndarray, usable: np
         if len(views) < 2 or not np.isfinite(rough[t]).all():
             continue
         cams = [cameras[v] for v in views]
-        hull = soft_hull(cams, masks[views, t], rough[t], half, max(16, config.hull_resolution // 2))
+        frame = np.stack([masks[v][t].astype(np.float32) / scale[v] for v in views])
+        hull = soft_hull(cams, frame, rough[t], half, max(16, config.hull_resolution // 2))
         c = hull.centroid()
         if not np.isfinite(c).all():
             continue
-        hull = soft_hull(cams, masks[views, t], c, half, config.hull_resolution)  # centred on the object
+        hull = soft_hull(cams, frame, c, half, config.hull_resolution)  # centred on the object
         c = hull.centroid()
         if np.isfinite(c).all():
             centres[t] = c
@@ -263,6 +272,35 @@ class MetricFrame:
         }
 
 
+def trim_contact(track: Track, fit: BallisticFit, dt: float, up: np.ndarray, floor: float) -> list[list[int]]:
+    """The free-flight segments without the frames in which the object would touch the floor: its lowest point,
+    carried along the fitted parabola from where the hull puts it relative to the centre (median over the
+    segment), at or below the floor plane {x : up·x = floor}. The hull's lowest point lies a little below the
+    object's, so this errs on the side of dropping a frame. Segments left with fewer than 4 frames go, unless none
+    would be left."""
+    low = track.lowest_along(up)
+    out = []
+    for seg in fit.segments:
+        f = np.array(seg)
+        offset = np.nanmedian(low[f] - track.centres[f] @ up)
+        t0 = np.mean(seg)
+        ts = (f - t0) * dt
+        y = track.centres[f] - 0.5 * np.outer(ts * ts, fit.acceleration)
+        coef, *_ = np.linalg.lstsq(np.stack([np.ones_like(ts), ts], 1), y, rcond=None)
+        path = coef[0] + np.outer(ts, coef[1]) + 0.5 * np.outer(ts * ts, fit.acceleration)
+        keep = [int(k) for k, p in zip(f, path) if p @ up + offset > floor]
+        out.append(keep)
+    long_enough = [s for s in out if len(s) >= 4]
+    return long_enough or [s for s in out if len(s) >= 3] or fit.segments
+
+
+def cameras_down(cameras: Sequence[CaptureCamera]) -> np.ndarray:
+    """(3,) the cameras' mean image-down axis in the calibration frame (each camera's +y), unit: roughly gravity's
+    direction when the cameras stand upright."""
+    d = np.sum([c.rotation[1] for c in cameras], axis=0)
+    return d / max(np.linalg.norm(d), 1e-12)
+
+
 class NoFreeFlight(Exception):
     """No free-flight frames to measure gravity on."""
 
@@ -292,7 +330,9 @@ def solve_metric_frame(track: Track, dt: float, config: MetricConfig, scene_fram
         down = np.asarray(down, dtype=np.float64)
         down = down / np.linalg.norm(down)
     if need_fit:
-        fit = find_ballistic(track.centres, dt, track.lowest_along, track.size, config.ballistic, direction=down)
+        rough = cameras_down(cameras) if cameras is not None and config.upright_cameras else None
+        fit = find_ballistic(track.centres, dt, track.lowest_along, track.size, config.ballistic, direction=down,
+                             rough_down=rough)
         if fit is None:
             raise NoFreeFlight("no free-flight frames")
     if down is None:
@@ -345,11 +385,18 @@ def solve_metric_frame(track: Track, dt: float, config: MetricConfig, scene_fram
         if floor_est is None:
             floor_est = FloorEstimate(float(np.nanmin(track.centres @ up)), float("nan"), "lowest centre")
             notes.append("no contact frames: the floor is put at the object's lowest centre")
-    # the scale (refit along the final direction when it was sharpened by the floor)
+    # the scale: drop free-flight frames in which the object, on its fitted parabola, would already reach the floor
+    # (a soft object's first contact frames bend its path too little to be told from the parabola), refit along the
+    # final direction
     if scale is None:
         assert fit is not None
-        if down_source.startswith("floor"):
-            fit = fit_segments(track.centres, dt, fit.segments, direction=down_est, noise=fit.noise)
+        segments = trim_contact(track, fit, dt, -down_est, floor_est.offset)
+        if segments != fit.segments or down_source.startswith("floor"):
+            direction = down_est if down_source.startswith("floor") else None
+            if segments != fit.segments:
+                notes.append(f"free-flight frames {sorted(set(fit.frames) - {f for s in segments for f in s})} "
+                             "dropped: the object reaches the floor there")
+            fit = fit_segments(track.centres, dt, segments, direction=direction, noise=fit.noise)
         a = float(np.linalg.norm(fit.acceleration))
         scale_val = config.gravity / a
         scale_sigma = scale_val * fit.magnitude_sigma() / a
