@@ -208,7 +208,7 @@ def simulate_fem_draw(tet: "TetMesh", tet_index: torch.Tensor, bary: torch.Tenso
 # ---- one object -----------------------------------------------------------------------------------------
 
 #: per-draw arrays of an FEM shard, beside the shared ones (docs/training-data.md)
-DRAW_KEYS = ("video", "ring_video", "log10_E", "nu", "damping_ratio", "drop_height", "linear_velocity",
+DRAW_KEYS = ("video", "ring_video", "surface", "log10_E", "nu", "damping_ratio", "drop_height", "linear_velocity",
              "angular_velocity", "max_strain", "converged", "substeps", "time_change_percent", "newton_iterations",
              "min_det_F", "max_penetration", "retries", "border_frames")
 
@@ -236,7 +236,7 @@ def _one_draw(config: "TrainingDataConfig", spec: "ObjectSpec", prepared, tet: "
     t1 = time.perf_counter()
     video, ring, border = render_draw(prepared.mesh, sim.surface, cameras, config.supersample)
     arrays = {
-        "video": video,
+        "video": video, "surface": sim.surface.numpy().astype(np.float32),
         "log10_E": np.float32(math.log10(draw.youngs_modulus)), "nu": np.float32(draw.poisson_ratio),
         "damping_ratio": np.float32(draw.damping_ratio), "drop_height": np.float32(draw.drop_height),
         "linear_velocity": np.asarray(draw.linear_velocity, dtype=np.float32),
