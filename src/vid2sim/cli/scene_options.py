@@ -60,15 +60,23 @@ def add_scene_options(p: argparse.ArgumentParser, material_options: bool, defaul
                         "in time (default: from the material's stiffness)")
     p.add_argument("--damping", type=float, default=None, dest="damping_ratio",
                    help="material damping ratio zeta (Kelvin-Voigt; default 0.05, 0 = undamped)")
-    p.add_argument("--element-order", type=int, choices=[1, 2], default=None,
-                   help="the FEM's tets: 1 linear or 2 quadratic (converged in space, the FEM about 20x slower); default "
-                        f"{default_element_order}"
-                        + ("; a suite's quadratic tets have the small preset's size at every preset"
-                           if default_element_order == 2 else ""))
+    p.add_argument(
+        "--element-order",
+        type=int,
+        choices=[1, 2],
+        default=None,
+        help="the FEM's tets: 1 linear or 2 quadratic (converged in space, the FEM about 20x slower); default "
+        f"{default_element_order}"
+        + (
+            "; a suite's quadratic tets have the small preset's size at every preset"
+            if default_element_order == 2
+            else ""
+        ),
+    )
     p.add_argument("--truth", choices=["fem", "newton"], default=None,
                    help="the engine of the ground truth: fem (ours, the default) or newton (NVIDIA Newton's VBD "
-                        "solver: another energy, contact and damping; needs pip install \"vid2sim[newton]\"; with newton, "
-                        "--element-order 2 splits each tet into 8 linear ones)")
+                        "solver: another energy, contact and damping; needs pip install \"vid2sim[newton]\"; with "
+                        "newton, --element-order 2 splits each tet into 8 linear ones)")
     p.add_argument("--friction", type=float, default=None,
                    help="the floor's Coulomb friction in the newton truth (default 0.5; the fem truth is frictionless)")
     p.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1),

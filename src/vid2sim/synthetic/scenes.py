@@ -1,6 +1,7 @@
 """Synthetic scenes: an object dropped on the floor, simulated by FEM and rendered from a camera ring.
 
-The paper's benchmark (docs/architecture.md, "The paper's numbers"): objects dropped onto a floor, FEM ground truth, 12 views at 448 × 448,
+The paper's benchmark (docs/architecture.md, "The paper's numbers"): objects dropped onto a floor, FEM ground truth, 12
+views at 448 × 448,
 24 frames (16 observed + 8 for future prediction). Google Scanned Objects and Blender are not available
 here, so vid2sim makes its own:
 
@@ -61,8 +62,15 @@ PRESETS: dict[str, dict[str, Any]] = {
     # 12 observed views (the paper's benchmark) + 2 held-out novel views
     "full": {"views": 14, "held_out_views": 2, "resolution": 448, "frames": 24, "observed_frames": 16},
     # a coarser tet mesh (about 3 000 tets instead of about 13 000 for a 3 000-face surface) for CPUs
-    "small": {"views": 6, "held_out_views": 2, "resolution": 128, "frames": 24, "observed_frames": 16, "tet_edge_length": 0.08,
-              "tet_envelope": 5e-3},
+    "small": {
+        "views": 6,
+        "held_out_views": 2,
+        "resolution": 128,
+        "frames": 24,
+        "observed_frames": 16,
+        "tet_edge_length": 0.08,
+        "tet_envelope": 5e-3,
+    },
 }
 
 BENCHMARK_E_RANGE = (1e4, 1e6)
