@@ -127,7 +127,7 @@ def imported(twin: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def test_scene_loads_and_keeps_everything(imported: Path) -> None:
-    from vid2sim.scene.folder import load_scene
+    from vid2sim.scene.reading import load_scene
 
     scene = load_scene(imported)
     assert scene.images.shape[:3] == (6, FRAMES, SIZE) and scene.config.held_out_views == [1]
@@ -147,7 +147,7 @@ def test_masks_follow_the_true_coverage_and_leave_the_shadow(twin: Path, importe
     from scipy import ndimage
 
     from vid2sim.apps.bench.capture import _undistorted_alpha, import_figures
-    from vid2sim.scene.folder import load_scene
+    from vid2sim.scene.reading import load_scene
     from vid2sim.synthetic.capture import read_truth
 
     figures = import_figures(twin, imported)

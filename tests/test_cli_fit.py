@@ -11,7 +11,9 @@ import torch
 from PIL import Image
 
 from vid2sim.cli import main
-from vid2sim.scene.folder import Scene, SceneConfig, load_scene, write_scene
+from vid2sim.scene.folder import Scene, SceneConfig
+from vid2sim.scene.reading import load_scene
+from vid2sim.scene.writing import write_scene
 from vid2sim.splats.cameras import camera_ring
 from vid2sim.splats.losses import psnr
 from vid2sim.splats.ply import load_ply

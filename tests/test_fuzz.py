@@ -85,14 +85,15 @@ def test_a_pickled_torch_file_is_refused_without_running_it(tmp_path):
 @pytest.fixture
 def scene_folder(tmp_path):
     from vid2sim.apps.bench.fuzz.inputs import _tiny_scene
-    from vid2sim.scene.folder import write_scene
+    from vid2sim.scene.writing import write_scene
 
     return write_scene(_tiny_scene("rgba"), tmp_path / "scene")
 
 
 def test_scene_extras_that_are_not_numbers_name_the_file(scene_folder):
     """Found: an extras .npz holding strings escaped as a TypeError traceback."""
-    from vid2sim.scene.folder import SceneFormatError, load_scene
+    from vid2sim.scene.reading import load_scene
+    from vid2sim.scene.validation import SceneFormatError
 
     np.savez(scene_folder / "extras" / "tet_trajectory.npz", vertices=np.array(["a", "b"]))
     with pytest.raises(SceneFormatError, match=r"tet_trajectory\.npz.*vertices \(<U1\) are not numbers"):
@@ -107,7 +108,8 @@ def test_scene_extras_that_are_not_numbers_name_the_file(scene_folder):
 
 
 def test_scene_files_outside_the_folder_are_refused_unless_allowed(scene_folder, monkeypatch):
-    from vid2sim.scene.folder import SceneFormatError, load_scene
+    from vid2sim.scene.reading import load_scene
+    from vid2sim.scene.validation import SceneFormatError
 
     outside = scene_folder.parent / "elsewhere.png"
     doc = json.loads((scene_folder / "transforms.json").read_text())
@@ -125,7 +127,8 @@ def test_scene_files_outside_the_folder_are_refused_unless_allowed(scene_folder,
 
 def test_image_and_archive_bombs_are_refused_with_a_limit_the_user_can_raise(scene_folder, monkeypatch, tmp_path):
     from vid2sim.apps.bench.fuzz.hostile import _png_bomb
-    from vid2sim.scene.folder import SceneFormatError, load_scene
+    from vid2sim.scene.reading import load_scene
+    from vid2sim.scene.validation import SceneFormatError
 
     monkeypatch.setenv("VID2SIM_MAX_IMAGE_PIXELS", "100")  # the scene's 16 x 16 frames are 256 pixels
     with pytest.raises(SceneFormatError, match=r"images/c00_t000\.png.*limit.*VID2SIM_MAX_IMAGE_PIXELS"):

@@ -8,7 +8,7 @@ against physics and against our FEM:
 * the first axial vibration of a free-free bar: the same period as our FEM's on the identical mesh (so the two
   truths have the same stiffness for the same E and ν) and as the rod's π c / L;
 * a drop on the floor comes to rest on it; the eight-way subdivision keeps the volume;
-* a scene folder made with ``truth="newton"`` loads with :func:`vid2sim.scene.folder.load_scene`, with its engine,
+* a scene folder made with ``truth="newton"`` loads with :func:`vid2sim.scene.reading.load_scene`, with its engine,
   version, parameters and time convergence in scene.json.
 
 Newton is optional (``pip install "vid2sim[newton]"``): without it these tests skip, saying so; with another version
@@ -256,7 +256,7 @@ def test_a_newton_scene_folder_loads(tmp_path):
     """A toy scene (a coarse procedural object, 3 frames, 2 views at 24 px) with ``truth="newton"``: a normal scene
     folder with the tet trajectory for evaluation, the engine, its version, parameters and time convergence in
     scene.json, and its result file."""
-    from vid2sim.scene.folder import load_scene
+    from vid2sim.scene.reading import load_scene
     from vid2sim.synthetic.scenes import NEWTON_RESULT_NPZ, SyntheticSceneConfig, make_scene
 
     config = SyntheticSceneConfig(seed=3, truth="newton", youngs_modulus=1e4, views=2, resolution=24, frames=3,

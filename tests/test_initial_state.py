@@ -235,7 +235,7 @@ def test_stops_before_predicted_floor_contact(drop: AnalyticDrop) -> None:
 
 @pytest.fixture(scope="module")
 def small_scene(tmp_path_factory: pytest.TempPathFactory):
-    from vid2sim.scene.folder import load_scene
+    from vid2sim.scene.reading import load_scene
     from vid2sim.synthetic.fem import FEMResult
     from vid2sim.synthetic.scenes import SyntheticSceneConfig, make_scene
 

@@ -21,7 +21,8 @@ from vid2sim.reconstruct.pipeline import (
     ReconstructionError,
     reconstruct,
 )
-from vid2sim.scene.folder import load_scene, write_scene
+from vid2sim.scene.reading import load_scene
+from vid2sim.scene.writing import write_scene
 
 
 def test_reconstruct_writes_a_complete_asset(tiny_asset, tiny_scene):

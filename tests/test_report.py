@@ -95,7 +95,7 @@ def scene_report(tiny_scene, tiny_asset, tmp_path_factory):
 
 def test_evaluate_returns_the_renders_it_scored(scene_report, tiny_scene):
     from vid2sim.metrics.images import image_metrics
-    from vid2sim.scene.folder import load_scene
+    from vid2sim.scene.reading import load_scene
 
     _, evaluation, renders = scene_report
     scene = load_scene(tiny_scene)
@@ -148,7 +148,7 @@ def test_tables_show_the_evaluation_numbers(scene_report, tiny_asset):
 
 def test_videos_hold_every_frame_in_three_panels_matching_the_data(scene_report, tiny_scene):
     from vid2sim.report import media as M
-    from vid2sim.scene.folder import load_scene
+    from vid2sim.scene.reading import load_scene
     from vid2sim.scene.video import read_video
 
     out, _, renders = scene_report

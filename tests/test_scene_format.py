@@ -15,15 +15,11 @@ import pytest
 import torch
 from PIL import Image
 
-import vid2sim.scene.folder as scene_mod
-from vid2sim.scene.folder import (
-    LAYOUTS,
-    Scene,
-    SceneConfig,
-    SceneFormatError,
-    load_scene,
-    write_scene,
-)
+import vid2sim.scene.writing as writing_mod
+from vid2sim.scene.folder import Scene, SceneConfig
+from vid2sim.scene.reading import load_scene
+from vid2sim.scene.validation import SceneFormatError
+from vid2sim.scene.writing import LAYOUTS, write_scene
 from vid2sim.splats.cameras import Camera, camera_ring
 
 V, T, H, W = 3, 5, 12, 16
@@ -477,7 +473,7 @@ def test_alpha_and_mask_path_together_is_ambiguous(written: Path) -> None:
 
 
 def _failing_png_writer(monkeypatch: pytest.MonkeyPatch, fail_at: int) -> list[int]:
-    real = scene_mod._write_png
+    real = writing_mod._write_png
     calls = [0]
     lock = threading.Lock()
 
@@ -489,7 +485,7 @@ def _failing_png_writer(monkeypatch: pytest.MonkeyPatch, fail_at: int) -> list[i
             raise OSError(28, "No space left on device (simulated)")
         real(path, array)
 
-    monkeypatch.setattr(scene_mod, "_write_png", flaky)
+    monkeypatch.setattr(writing_mod, "_write_png", flaky)
     return calls
 
 
@@ -654,7 +650,7 @@ def test_finished_folders_get_the_usual_permissions_not_mkdtemps_private_ones(tm
     import stat
     import tempfile
 
-    from vid2sim.scene.folder import move_into_place
+    from vid2sim.scene.writing import move_into_place
 
     old = os.umask(0o022)
     try:

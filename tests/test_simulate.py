@@ -65,7 +65,7 @@ def test_captured_scenario_reproduces_the_assets_own_rollout(asset, tiny_scene):
             torch.testing.assert_close(sim.positions(contact, a.z.float()), sim.positions(contact, b.z), rtol=0,
                                        atol=1e-3)
     # the scene's cameras, read without decoding its frames, are the loader's cameras
-    from vid2sim.scene.folder import load_scene
+    from vid2sim.scene.reading import load_scene
 
     cams, frames = scene_cameras(tiny_scene)
     scene = load_scene(tiny_scene, dtype=torch.uint8)

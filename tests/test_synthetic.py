@@ -18,7 +18,7 @@ import pytest
 import torch
 
 from vid2sim.cli import main
-from vid2sim.scene.folder import load_scene
+from vid2sim.scene.reading import load_scene
 from vid2sim.synthetic.fem import FEMResult
 from vid2sim.synthetic.scenes import (
     BENCHMARK_E_RANGE,

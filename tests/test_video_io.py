@@ -11,13 +11,9 @@ import pytest
 import torch
 from PIL import Image
 
-from vid2sim.scene.folder import (
-    Scene,
-    SceneConfig,
-    SceneFormatError,
-    load_scene,
-    write_scene,
-)
+from vid2sim.scene.folder import Scene, SceneConfig
+from vid2sim.scene.reading import load_scene
+from vid2sim.scene.validation import SceneFormatError
 from vid2sim.scene.video import (
     VideoError,
     load_video,
@@ -25,6 +21,7 @@ from vid2sim.scene.video import (
     read_video,
     write_video,
 )
+from vid2sim.scene.writing import write_scene
 from vid2sim.splats.cameras import camera_ring
 
 

@@ -18,7 +18,8 @@ from vid2sim.evaluate.scores import evaluate
 from vid2sim.report import ReportConfig, write_report
 from vid2sim.report.inputs import read_evaluation
 from vid2sim.report.scene_report import RingRenders, check_out
-from vid2sim.scene.folder import Scene, load_scene
+from vid2sim.scene.folder import Scene
+from vid2sim.scene.reading import load_scene
 from vid2sim.splats.cameras import camera_ring
 
 

@@ -149,7 +149,7 @@ def _tensor_list(x: Tensor) -> list:
 def save_asset(asset: Asset, folder: str | Path, config: dict[str, Any] | None = None,
                log: dict[str, Any] | None = None) -> Path:
     """Write ``asset`` to ``folder`` (replaced if it exists) atomically; returns the folder."""
-    from vid2sim.scene.folder import move_into_place
+    from vid2sim.scene.writing import move_into_place
     from vid2sim.splats.ply import save_ply
 
     folder = Path(folder)

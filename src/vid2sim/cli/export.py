@@ -14,7 +14,7 @@ from vid2sim.cli.common import UserError, add_threads_option, set_threads
 from vid2sim.export.gltf import export_gltf
 from vid2sim.export.rig import export_rig
 from vid2sim.export.sequence import export_sequence, find_sequence_frames
-from vid2sim.scene.folder import move_into_place
+from vid2sim.scene.writing import move_into_place
 from vid2sim.splats.ply import PlyFormatError, load_ply, save_ply
 
 FORMATS = ("glb", "gltf", "ply", "rig")

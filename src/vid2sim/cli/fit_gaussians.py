@@ -15,7 +15,9 @@ from PIL import Image
 
 from vid2sim.cli.common import UserError, add_threads_option, set_threads
 from vid2sim.runtime.device import resolve_device
-from vid2sim.scene.folder import SceneFormatError, load_scene, move_into_place
+from vid2sim.scene.reading import load_scene
+from vid2sim.scene.validation import SceneFormatError
+from vid2sim.scene.writing import move_into_place
 from vid2sim.splats.fitting import FitConfig, fit_gaussians
 from vid2sim.splats.losses import psnr
 from vid2sim.splats.ply import save_ply

@@ -133,7 +133,7 @@ def evaluate(asset_path: str | Path, scene_path: str | Path, fovvdp: bool = Fals
         surface_chamfer,
     )
     from vid2sim.metrics.trajectory import tet_centre_of_mass
-    from vid2sim.scene.folder import load_scene
+    from vid2sim.scene.reading import load_scene
 
     t0 = time.perf_counter()
     asset = load_asset(asset_path)

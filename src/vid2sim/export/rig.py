@@ -220,7 +220,7 @@ def export_rig(asset, folder: str | Path, *, z_sequence=None) -> Path:
     Returns:
         the folder.
     """
-    from vid2sim.scene.folder import move_into_place
+    from vid2sim.scene.writing import move_into_place
     from vid2sim.splats.ply import save_ply
 
     folder = Path(folder)

@@ -91,7 +91,7 @@ def export_sequence(source: str | Path, out: str | Path, fmt: str = "glb", *,
     from tqdm import tqdm
 
     from vid2sim.export.gltf import export_gltf
-    from vid2sim.scene.folder import move_into_place
+    from vid2sim.scene.writing import move_into_place
     from vid2sim.splats.ply import load_ply
 
     if fmt not in ("glb", "gltf", "ply"):

@@ -30,7 +30,8 @@ from vid2sim.reconstruct.runner import (
 )
 from vid2sim.reconstruct.stages import STAGES, all_stages
 from vid2sim.runtime.device import resolve_device
-from vid2sim.scene.folder import Scene, load_scene
+from vid2sim.scene.folder import Scene
+from vid2sim.scene.reading import load_scene
 
 __all__ = ["ReconstructConfig", "ReconstructionError", "STAGES", "check_scene", "reconstruct"]
 

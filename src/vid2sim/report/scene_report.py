@@ -37,7 +37,9 @@ from vid2sim.report import media as M
 from vid2sim.report.config import ReportConfig, ReportInputError
 from vid2sim.report.inputs import GROUPS, check_evaluation
 from vid2sim.report.plots import optimisation_figure, psnr_figure
-from vid2sim.scene.folder import Scene, load_scene, move_into_place
+from vid2sim.scene.folder import Scene
+from vid2sim.scene.reading import load_scene
+from vid2sim.scene.writing import move_into_place
 
 GROUP_TITLES = {"dynamic": "Dynamic reconstruction", "future": "Future prediction", "novel_views": "Novel views"}
 

@@ -30,7 +30,8 @@ from vid2sim.report.config import ReportConfig
 from vid2sim.report.inputs import check_suite
 from vid2sim.report.plots import material_scatter
 from vid2sim.report.scene_report import check_out
-from vid2sim.scene.folder import load_scene, move_into_place
+from vid2sim.scene.reading import load_scene
+from vid2sim.scene.writing import move_into_place
 
 #: suite means key → (label, unit, decimals, scale of the shown value)
 MEAN_LABELS = {

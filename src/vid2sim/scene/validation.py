@@ -8,7 +8,7 @@ instead of stopping at the first one. Each problem is one line of the form
     transforms.json: frame 4 (camera 1, time index 0): transform_matrix is not a rigid transform: ...
     scene.json: dt must be > 0, got -1
 
-:mod:`vid2sim.scene.folder` reads the pixels and raises :class:`SceneFormatError` with the list.
+:mod:`vid2sim.scene.reading` reads the pixels and raises :class:`SceneFormatError` with the list.
 The format itself is documented in ``docs/scene-format.md``.
 """
 

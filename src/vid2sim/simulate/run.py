@@ -232,8 +232,8 @@ def simulate(asset: "Asset | str | Path", scenario: Scenario | None, out: str | 
 
     from vid2sim.asset.folder import load_asset
     from vid2sim.asset.motion import GaussianRig
-    from vid2sim.scene.folder import move_into_place
     from vid2sim.scene.video import write_video
+    from vid2sim.scene.writing import move_into_place
     from vid2sim.simulate.scenery import concatenate, scenery_gaussians
     from vid2sim.splats.ply import save_ply
 

@@ -343,8 +343,8 @@ def write_capture(motion: CaptureMotion, out: str | Path, config: CaptureTwinCon
         and sensors, and ``ground_truth/alpha.npz`` the true coverage ``alpha`` (V, T, H, W) uint8 of the
         distorted frames.
     """
-    from vid2sim.scene.folder import move_into_place
     from vid2sim.scene.video import write_video
+    from vid2sim.scene.writing import move_into_place
 
     config = CaptureTwinConfig() if config is None else config
     out = Path(out)
@@ -472,7 +472,7 @@ def scene_motion(scene_dir: str | Path, lead_in_frames: int, clearance: float = 
     """The motion of a ``make-scene`` folder (its object's textured surface carried by the FEM tets, its cameras)
     filmed at ``step`` video frames per scene frame (Hermite-interpolated between the FEM's frames), with up to
     ``lead_in_frames`` scene frames of free flight before it (:func:`lead_in`)."""
-    from vid2sim.scene.folder import load_scene
+    from vid2sim.scene.reading import load_scene
     from vid2sim.synthetic.embedding import apply_embedding, embed_points
     from vid2sim.synthetic.fem import FEMResult
     from vid2sim.synthetic.meshes import load_user_mesh

@@ -14,7 +14,7 @@ here, so vid2sim makes its own:
 4. the textured surface carried by the tets (:mod:`vid2sim.synthetic.embedding`) and rendered at every frame
    from every camera (:func:`vid2sim.synthetic.mesh_render.render_textured_mesh`), RGBA on white;
 5. one scene folder, complete or absent (staged next to the target, then renamed): the scene written by
-   :func:`vid2sim.scene.folder.write_scene` with the ground truth (E, ν, density, material, seed, initial
+   :func:`vid2sim.scene.writing.write_scene` with the ground truth (E, ν, density, material, seed, initial
    pose, FEM statistics) in ``scene.json``'s metadata and the tet trajectory as the ``tet_trajectory``
    extra, plus ``fem_result.npz`` (:meth:`vid2sim.synthetic.fem.FEMResult.save`: rest mesh, positions and
    velocities at every frame, energies, solver statistics) and ``synthetic.json`` (this module's
@@ -387,7 +387,8 @@ def make_scene(config: SyntheticSceneConfig, out_dir: str | Path, overwrite: boo
     import uuid
 
     from vid2sim.meshing.tetra import tetrahedralize
-    from vid2sim.scene.folder import Scene, SceneConfig, move_into_place, write_scene
+    from vid2sim.scene.folder import Scene, SceneConfig
+    from vid2sim.scene.writing import move_into_place, write_scene
     from vid2sim.splats.cameras import camera_ring
     from vid2sim.synthetic.embedding import apply_embedding, embed_points
     from vid2sim.synthetic.fem import simulate_fem_converged

@@ -50,7 +50,7 @@ def import_figures(capture: str | Path, scene_dir: str | Path) -> dict[str, Any]
         (angle between measured and true gravity directions), ``floor_error_m`` (height of the true floor below the
         object in the imported scene, whose floor is z = 0), ``seconds`` (the import's stages).
     """
-    from vid2sim.scene.folder import load_scene
+    from vid2sim.scene.reading import load_scene
     from vid2sim.synthetic.capture import read_truth
 
     capture, scene_dir = Path(capture), Path(scene_dir)
@@ -116,7 +116,9 @@ def clean_in_import_frame(clean_dir: str | Path, capture: str | Path, imported: 
     camera is applied to the clean object colours; the white background stays white). Scale or gravity errors of the
     import therefore show in the scores, as they should.
     """
-    from vid2sim.scene.folder import Scene, load_scene, write_scene
+    from vid2sim.scene.folder import Scene
+    from vid2sim.scene.reading import load_scene
+    from vid2sim.scene.writing import write_scene
     from vid2sim.synthetic.capture import read_truth
 
     truth, _ = read_truth(capture)

@@ -98,7 +98,7 @@ def predictability(scene: str | Path, out: str | Path, height_offset: float = 1e
         the twin's and the truth's FEM substeps, and the settings.
     """
     from vid2sim.evaluate.scores import scene_groups
-    from vid2sim.scene.folder import load_scene
+    from vid2sim.scene.reading import load_scene
     from vid2sim.synthetic.scenes import (
         SYNTHETIC_JSON,
         check_existing_scene,

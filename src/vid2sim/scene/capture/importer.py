@@ -364,7 +364,8 @@ def import_capture(capture: str | Path, out: str | Path, config: CaptureImportCo
     import cv2
 
     from vid2sim.runtime.errors import ConfigError
-    from vid2sim.scene.folder import Scene, SceneConfig, move_into_place, write_scene
+    from vid2sim.scene.folder import Scene, SceneConfig
+    from vid2sim.scene.writing import move_into_place, write_scene
     from vid2sim.splats.cameras import Camera
 
     config = CaptureImportConfig() if config is None else config

@@ -68,7 +68,7 @@ def make_seeds(folder: Path, quick: bool = False) -> dict[str, Path]:
     from vid2sim.apps.bench.fuzz.physics import build_asset
     from vid2sim.asset.folder import save_asset
     from vid2sim.export.gltf import export_gltf
-    from vid2sim.scene.folder import write_scene
+    from vid2sim.scene.writing import write_scene
     from vid2sim.splats.ply import save_ply
 
     torch.set_num_threads(1)
