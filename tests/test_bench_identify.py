@@ -12,14 +12,17 @@ import torch
 
 from vid2sim.apps.bench import identify
 from vid2sim.cli import main
+from vid2sim.reconstruct.config import CalibrationConfig, NetworksConfig, SimulatorConfig
+from vid2sim.runtime.errors import ConfigError
 
 pytestmark = pytest.mark.slow  # end to end: scene generation, reconstruction, suites
 
-TINY = dict(scenes=1, frames=10, observed_frames=6, points=400, skinning_points=2000, skinning_iterations=40,
-            cubature=120, fit_iterations=1, sweep_points=3, handles=4, fem_element_order=1,
-            coarse_log10_E=(5.5, 4.0, 5.0),
+TINY = dict(scenes=1, frames=10, observed_frames=6, points=400, skinning_points=2000,
+            networks=NetworksConfig(handles=4, skinning_iterations=40), fit_iterations=1, sweep_points=3,
+            fem_element_order=1, coarse_log10_E=(5.5, 4.0, 5.0),
             # the plain model; each test turns on the calibration, the projected term or the fixed ζ it checks
-            calibrate_stiffness=False, volumetric="pointwise", calibration_nu="two_factor", fit_damping=True)
+            simulator=SimulatorConfig(cubature=120, volumetric="pointwise", mass="moments"),
+            calibration=CalibrationConfig(enabled=False, nu="two_factor"), fit_damping=True)
 
 
 @pytest.fixture(scope="module")
@@ -50,7 +53,7 @@ def test_perfect_geometry_starts_exactly_where_the_fem_starts(report):
     from vid2sim.physics.modes import subspace_frequencies
 
     calibrated = identify.prepare_scene(0, benchmark_parameters(1, 0)[0],
-                                        replace(config, calibrate_stiffness=True, calibration_nu="prior"), workdir)
+                                        replace(config, calibration=CalibrationConfig(nu="prior")), workdir)
     sim = calibrated.simulator
     s = sim.stiffness_scale
     assert s == calibrated.info["stiffness_scale"] and 0.3 < s < 1.0  # the subspace is stiffer than the tets
@@ -61,13 +64,13 @@ def test_perfect_geometry_starts_exactly_where_the_fem_starts(report):
 
     fem = FEMResult.load(workdir / "scene_000" / "fem_result.npz")
     X = fem.rest_vertices[: int(fem.tets.max()) + 1]
-    tets = tet_frequencies(X, fem.tets, 2e5, config.prior_nu, 900.0, k=1, order=2)[0]
-    omega = subspace_frequencies(sim.field, sim.X, sim.vol, 2e5 * s, config.prior_nu, 900.0, k=1,
+    tets = tet_frequencies(X, fem.tets, 2e5, config.prior.nu, 900.0, k=1, order=2)[0]
+    omega = subspace_frequencies(sim.field, sim.X, sim.vol, 2e5 * s, config.prior.nu, 900.0, k=1,
                                  mass_volumes=sim.mass_volumes)[0]
     assert omega == pytest.approx(tets, rel=1e-6)
     # one factor as a curve: s(ν) brings the lowest mode to the tets' at every ν of its grid
     curved = identify.prepare_scene(0, benchmark_parameters(1, 0)[0],
-                                    replace(config, calibrate_stiffness=True, calibration_nu="curve",
+                                    replace(config, calibration=CalibrationConfig(nu="curve"),
                                             calibration_nus=(0.3, 0.45)), workdir)
     curve = curved.simulator.stiffness_scale
     assert isinstance(curve, StiffnessCurve) and curve.nu == (0.3, 0.45)
@@ -79,7 +82,7 @@ def test_perfect_geometry_starts_exactly_where_the_fem_starts(report):
     assert omega == pytest.approx(tets, rel=1e-6)
     # two factors (the default): μ by s(ν), λ by s_λ(ν); the lowest mode still on the tets' (weighted fit)
     two = identify.prepare_scene(0, benchmark_parameters(1, 0)[0],
-                                 replace(config, calibrate_stiffness=True, calibration_nu="two_factor",
+                                 replace(config, calibration=CalibrationConfig(nu="two_factor"),
                                          calibration_nus=(0.3, 0.45)), workdir)
     curve2 = two.simulator.stiffness_scale
     assert curve2.lam_scale is not None and two.info["stiffness_curve"]["lam_scale"] == list(curve2.lam_scale)
@@ -115,7 +118,7 @@ def test_fixed_damping_and_a_contact_layer_reach_the_fit(report):
     fixed = replace(config, fit_damping=False)
     scene = identify.prepare_scene(0, params, fixed, workdir)
     out = identify.fit(scene, fixed)
-    assert all(h["damping_ratio"] == pytest.approx(config.prior_damping, rel=1e-12)
+    assert all(h["damping_ratio"] == pytest.approx(config.prior.damping, rel=1e-12)
                for h in out["history"] if "loss" in h)
     layered = identify.prepare_scene(0, params, replace(config, contact_layer=0.1), workdir)
     assert layered.simulator.contact_layer == pytest.approx(0.1 * layered.size)
@@ -155,8 +158,8 @@ def test_the_projected_volumetric_term_reaches_the_simulator_with_a_one_factor_c
     from vid2sim.synthetic.scenes import benchmark_parameters
 
     _, config, workdir = report
-    projected = replace(config, volumetric="projected", calibrate_stiffness=True, calibration_nu="curve",
-                        calibration_nus=(0.3, 0.45))
+    projected = replace(config, simulator=replace(config.simulator, volumetric="projected"),
+                        calibration=CalibrationConfig(nu="curve"), calibration_nus=(0.3, 0.45))
     scene = identify.prepare_scene(0, benchmark_parameters(1, 0)[0], projected, workdir)
     sim = scene.simulator
     assert sim.volumetric == "projected" and sim.stiffness_scale.lam_scale is None
@@ -168,9 +171,10 @@ def test_the_projected_volumetric_term_reaches_the_simulator_with_a_one_factor_c
     out = identify.fit(scene, replace(projected, fit_iterations=1, fit_damping=False))
     assert math.isfinite(out["log10_E"]) and 0 <= out["nu"] < 0.5
     with pytest.raises(ValueError, match="one factor"):
-        identify.IdentifyConfig(volumetric="projected", calibrate_stiffness=True, calibration_nu="two_factor")
-    with pytest.raises(ValueError, match="volumetric must be"):
-        identify.IdentifyConfig(volumetric="mixed")
+        identify.IdentifyConfig(simulator=SimulatorConfig(volumetric="projected"),
+                                calibration=CalibrationConfig(enabled=True, nu="two_factor"))
+    with pytest.raises(ValueError, match="simulator.volumetric must be"):
+        identify.IdentifyConfig.from_dict({"simulator": {"volumetric": "mixed"}})
 
 
 def test_nu_sensitivity_measures_how_far_nu_moves_the_truth(report):
@@ -238,7 +242,7 @@ def test_report_has_per_scene_figures_and_means(report):
     assert row["fit"]["loss"] == min(losses) <= losses[0]
     start = coarse_minimum(grid, [c["loss"] for c in row["fit_coarse"]])
     assert row["fit_history"][0]["log10_E"] == pytest.approx(start)
-    assert row["fit_history"][0]["nu"] == pytest.approx(config.prior_nu)
+    assert row["fit_history"][0]["nu"] == pytest.approx(config.prior.nu)
     if start in grid:  # the first L-BFGS evaluation repeats the grid's
         assert losses[0] == pytest.approx(row["fit_coarse"][grid.index(start)]["loss"], rel=1e-9)
     assert len(row["e_valley"]["loss"]) == config.sweep_points
@@ -347,10 +351,17 @@ def test_cli_rejects_bad_options_with_the_flag_name(tmp_path, capsys):
         assert "--nu-scan must be a step in (0, 0.25)" in capsys.readouterr().err
 
 
+def _setting(config, path: str):
+    for part in path.split("."):
+        config = getattr(config, part)
+    return config
+
+
 def test_cli_defaults_are_the_configuration_the_readme_reports(tmp_path, monkeypatch):
     """No flags: 30 handles, the projected term calibrated by one factor per ν, moment-matched masses, ζ fixed
     (#10's figures). --volumetric pointwise takes two factors unless --calibration-nu is given; the switches
-    turn the calibration off and the damping fit on."""
+    turn the calibration off and the damping fit on. The flags are generated from IdentifyConfig's tree
+    (--networks.handles), the flat spellings of before are aliases, and --config repeats a report's settings."""
 
     class Stop(Exception):
         pass
@@ -362,17 +373,66 @@ def test_cli_defaults_are_the_configuration_the_readme_reports(tmp_path, monkeyp
         raise Stop
 
     monkeypatch.setattr(identify, "run", fake_run)
-    cases = [([], dict(handles=30, calibrate_stiffness=True, calibration_nu="curve", volumetric="projected",
-                       mass="moments", fit_damping=False)),
-             (["--volumetric", "pointwise"], dict(volumetric="pointwise", calibration_nu="two_factor")),
-             (["--volumetric", "pointwise", "--calibration-nu", "prior"], dict(calibration_nu="prior")),
+    report = tmp_path / "report.json"
+    saved = identify.IdentifyConfig(scenes=3, only=(2,), networks=NetworksConfig(handles=7), fit_damping=True)
+    report.write_text(json.dumps({"config": saved.to_dict(), "summary": {}, "scenes": []}))
+    cases = [([], {"networks.handles": 30, "calibration.enabled": True, "calibration.nu": "curve",
+                   "simulator.volumetric": "projected", "simulator.mass": "moments", "fit_damping": False}),
+             (["--volumetric", "pointwise"], {"simulator.volumetric": "pointwise", "calibration.nu": "two_factor"}),
+             (["--simulator.volumetric", "pointwise"], {"calibration.nu": "two_factor"}),
+             (["--volumetric", "pointwise", "--calibration-nu", "prior"], {"calibration.nu": "prior"}),
              (["--no-calibrate-stiffness", "--fit-damping", "--handles", "12"],
-              dict(calibrate_stiffness=False, fit_damping=True, handles=12))]
+              {"calibration.enabled": False, "fit_damping": True, "networks.handles": 12}),
+             (["--networks.handles", "12", "--prior.nu", "0.25", "--calibration.enabled", "--mass", "cubature"],
+              {"networks.handles": 12, "prior.nu": 0.25, "calibration.enabled": True, "simulator.mass": "cubature"}),
+             (["--n", "8", "--only", "4,5", "--psnr", "--fit-damping", "--fixed-damping", "--nu-scan", "0.1",
+               "--skinning-iterations", "30", "--fem-element-order", "1", "--coarse_log10_E", "5", "4"],
+              {"scenes": 8, "only": (4, 5), "render_psnr": True, "fit_damping": False,
+               "nu_scan": (0.1, 0.2, 0.3, 0.4), "networks.skinning_iterations": 30, "fem_element_order": 1,
+               "coarse_log10_E": (4.0, 5.0)}),
+             (["--only", "0", "1", "--simulator.integration.integrator", "implicit_euler"],
+              {"only": (0, 1), "simulator.integration.integrator": "implicit_euler"}),
+             (["--config", str(report), "--networks.skinning_iterations", "5"],
+              {"scenes": 3, "only": (2,), "networks.handles": 7, "networks.skinning_iterations": 5,
+               "fit_damping": True})]
     for flags, expected in cases:
         with pytest.raises(Stop):
             main(["bench", "identify", "--workdir", str(tmp_path / "w"), "--quiet", *flags])
-        assert {k: getattr(seen[-1], k) for k in expected} == expected, flags
+        assert {k: _setting(seen[-1], k) for k in expected} == expected, flags
     assert identify.IdentifyConfig() == seen[0]
+
+
+def test_the_configuration_saved_in_the_report_loads_back_and_unknown_settings_are_named(tmp_path, capsys):
+    config = identify.IdentifyConfig(only=(1, 3), networks=NetworksConfig(handles=12), nu_scan=(0.2, 0.3),
+                                     simulator=SimulatorConfig(volumetric="pointwise", mass="cubature"),
+                                     calibration=CalibrationConfig(nu="two_factor"), coarse_log10_E=(5.0, 4.0))
+    data = json.loads(json.dumps(config.to_dict()))
+    assert data["networks"]["handles"] == 12 and data["simulator"]["integration"]["dt"] == 0.05
+    assert identify.IdentifyConfig.from_dict(data) == config
+    for bad, name in (({"handels": 3}, "unknown setting handels"),
+                      ({"networks": {"handels": 3}}, "unknown setting networks.handels"),
+                      ({"networks": {"handles": "many"}}, "networks.handles must be an integer"),
+                      ({"networks": {"jacobian": "neural"}}, "jacobian must be 'closed_form'"),
+                      ({"prior": {"nu": 0.0}}, "PriorConfig.nu and PriorConfig.damping must be > 0"),
+                      ({"handles": 3, "networks": {"handles": 4}}, r"handles \(now networks.handles\) is given twice")):
+        with pytest.raises(ConfigError, match=name):
+            identify.IdentifyConfig.from_dict(bad)
+    # a report of before the sections: its flat names move to them
+    old = identify.IdentifyConfig.from_dict({"handles": 12, "prior_nu": 0.25, "calibrate_stiffness": False,
+                                             "calibration_nu": "two_factor", "volumetric": "pointwise",
+                                             "mass": "cubature", "cubature": 300, "skinning_objective": "random_z"})
+    assert (old.networks, old.prior.nu, old.calibration.enabled, old.calibration.nu) == \
+        (NetworksConfig(handles=12, skinning_objective="random_z"), 0.25, False, "two_factor")
+    assert (old.simulator.volumetric, old.simulator.mass, old.simulator.cubature) == ("pointwise", "cubature", 300)
+    # on the command line: the flag or the file named
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({"networks": {"handels": 3}}))
+    assert main(["bench", "identify", "--config", str(bad), "--workdir", str(tmp_path / "w"), "--quiet"]) == 2
+    assert "unknown setting networks.handels" in capsys.readouterr().err
+    assert main(["bench", "identify", "--handles", "0", "--workdir", str(tmp_path / "w"), "--quiet"]) == 2
+    assert "--handles must be >= 1" in capsys.readouterr().err
+    assert main(["bench", "identify", "--prior.nu", "0.7", "--workdir", str(tmp_path / "w"), "--quiet"]) == 2
+    assert "nu=0.7" in capsys.readouterr().err
 
 
 def test_shape_and_centre_loss_is_blind_to_orientation_and_sees_centre_and_shape():

@@ -179,11 +179,11 @@ def test_bad_mass_settings_are_refused():
     from vid2sim.apps.bench.identify import IdentifyConfig
     from vid2sim.reconstruct.config import ReconstructConfig, SimulatorConfig
 
-    with pytest.raises(ValueError, match="IdentifyConfig.mass"):
-        IdentifyConfig(mass="dense")
+    with pytest.raises(ValueError, match="simulator.mass must be"):
+        IdentifyConfig.from_dict({"simulator": {"mass": "dense"}})
     with pytest.raises(ValueError, match="SimulatorConfig.mass"):
         SimulatorConfig(mass="dense")
-    assert IdentifyConfig().mass == "moments" and ReconstructConfig().simulator.mass == "cubature"
+    assert IdentifyConfig().simulator.mass == "moments" and ReconstructConfig().simulator.mass == "cubature"
 
 
 def test_the_stiffness_calibration_uses_the_simulator_s_mass(box_points):

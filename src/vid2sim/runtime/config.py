@@ -218,6 +218,8 @@ def _parser_type(tp: Any, flag: str):
         if optional and text.lower() in ("none", "null"):
             return None
         try:
+            if typing.get_origin(inner) is tuple:  # a list's values: separated by spaces or commas ("4,5")
+                return tuple(base(part) for part in text.split(",") if part.strip())
             return base(text)
         except (TypeError, ValueError):
             raise argparse.ArgumentTypeError(f"expected {_describe(tp)}, got {text!r}") from None
@@ -226,17 +228,23 @@ def _parser_type(tp: Any, flag: str):
 
 
 def add_flags(parser: argparse.ArgumentParser, cls: type, aliases: dict[str, str] | None = None,
-              group_title: str | None = None, defaults: typing.Callable[[str], str] | None = None) -> None:
+              group_title: str | None = None, defaults: typing.Callable[[str], str] | None = None,
+              skip: typing.Collection[str] = ()) -> None:
     """One flag per leaf field of the configuration tree ``cls``: ``--section.field`` (booleans also
-    ``--no-section.field``). ``aliases`` maps a short flag ("--iterations") to the dotted path it sets
-    ("joint.iterations"); ``defaults(path)`` says what the default is, for the help. Defaults are left out of the
-    namespace (argparse.SUPPRESS), so :func:`flag_overrides` returns only what was typed."""
+    ``--no-section.field``; a list takes its values separated by spaces or commas). ``aliases`` maps a short flag
+    ("--iterations") to the dotted path it sets ("joint.iterations"); ``defaults(path)`` says what the default is,
+    for the help; the dotted paths in ``skip`` get no flag (the caller's own, or a setting its command does not
+    use). Defaults are left out of the namespace (argparse.SUPPRESS), so :func:`flag_overrides` returns only what
+    was typed."""
     aliases = aliases or {}
     by_path: dict[str, list[str]] = {}
     for flag, path in aliases.items():
-        by_path.setdefault(path, []).append(flag)
+        if flag != f"--{path}":
+            by_path.setdefault(path, []).append(flag)
     group = parser.add_argument_group(group_title) if group_title else parser
     for path, tp, text in _leaves(cls):
+        if path in skip:
+            continue
         inner, optional = _unwrap_optional(tp)
         flags = [f"--{path}"] + by_path.get(path, [])
         dest = "config:" + path
@@ -263,6 +271,8 @@ def flag_overrides(args: argparse.Namespace) -> dict[str, Any]:
         node = out
         for p in parents:
             node = node.setdefault(p, {})
+        if isinstance(value, list):  # a list flag: each typed value is a tuple of its comma-separated parts
+            value = [v for part in value for v in (part if isinstance(part, tuple) else (part,))]
         node[leaf] = list(value) if isinstance(value, tuple) else value
     return out
 

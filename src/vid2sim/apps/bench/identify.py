@@ -34,57 +34,85 @@ from __future__ import annotations
 import json
 import math
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import torch
 
 from vid2sim.physics.modes import CURVE_NUS
+from vid2sim.reconstruct.config import CalibrationConfig, NetworksConfig, PriorConfig, SimulatorConfig
+from vid2sim.runtime import config as configs
 from vid2sim.runtime.errors import ConfigError, InputError
 
 LOSSES = ("shape_and_centre", "positions")
-#: how ``calibrate_stiffness`` treats ν: a curve s(ν) over a grid, a curve of two factors (on μ and on λ),
-#: or one factor at the prior ν
-CALIBRATIONS = ("curve", "two_factor", "prior")
-#: where the reduced model's lumped masses come from (``IdentifyConfig.mass``)
-MASSES = ("moments", "cubature")
+
+#: The flat settings of IdentifyConfig before it took reconstruct's sections (#49) → their dotted paths now.
+#: :meth:`IdentifyConfig.from_dict` moves them, so the configuration of an older report still loads.
+MOVED = {
+    "handles": "networks.handles", "skinning_iterations": "networks.skinning_iterations",
+    "skinning_objective": "networks.skinning_objective",
+    "cubature": "simulator.cubature", "volumetric": "simulator.volumetric", "mass": "simulator.mass",
+    "prior_E": "prior.E", "prior_nu": "prior.nu", "prior_damping": "prior.damping",
+    "calibrate_stiffness": "calibration.enabled", "calibration_nu": "calibration.nu",
+}
+
+#: The fields of reconstruct's sections that ``bench identify`` does not use (no flag; documented in
+#: :class:`IdentifyConfig`).
+UNUSED = ("networks.jacobian_iterations", "prior.density", "calibration.cells", "calibration.points")
 
 
 @dataclass
 class IdentifyConfig:
     """Settings of ``vid2sim bench identify``.
 
-    The defaults are the configuration whose figures the README reports for #10 (30 handles, the stiffness
-    calibrated with one factor per ν, the projected volumetric term, moment-matched masses, ζ held at the
-    prior). Earlier rows of docs/architecture.md name the flags they were measured with.
+    The settings the experiment shares with the reconstruction are :class:`~vid2sim.reconstruct.config.
+    ReconstructConfig`'s own sections (``networks``, ``simulator``, ``prior``, ``calibration``), so a flag means
+    the same in both (``--networks.handles``); the rest are the experiment's. The defaults are the configuration
+    whose figures the README reports for #10 (30 handles, the stiffness calibrated with one factor per ν, the
+    projected volumetric term, moment-matched masses, ζ held at the prior); they differ from reconstruct's in
+    ``networks.handles``, ``simulator.volumetric``, ``simulator.mass`` and ``calibration.nu``. Earlier rows of
+    docs/architecture.md name the flags they were measured with (their old spellings still work). Saved in the
+    report as ``config`` (:meth:`to_dict`) and loaded back by :meth:`from_dict`.
 
     Attributes:
         scenes: number of scenes (≥ 1; the reported figures use 6).
         only: run just these scene indices of the suite (each in [0, scenes)); empty: all of them. A subset's
             means are not the suite's: use it to rerun or study single scenes from the same cache.
         seed: suite seed (scene i: object/pose seed and material of :func:`benchmark_parameters`).
-        preset: tet resolution and drop of the synthetic preset ("small" or "full").
+        preset: tet resolution and drop of the synthetic preset ("small" or "full"; the scenes', not
+            reconstruct's preset of the same names).
         frames, observed_frames: frames simulated and observed (the rest are the future).
         points: sample points for the loss, the errors and the cubature.
-        skinning_points: a separate, larger sample the skinning field is trained on. With the modal
+        skinning_points: a separate, larger sample of the tets the skinning field is trained on (reconstruct's
+            field trains on its interior points, ``points.num_points``; here those are the loss's). With the modal
             objective a 3 000-point training set is overfitted: the subspace grows soft modes on those points
             that independent quadrature does not see (0.45 × the converged frequency on object 4).
-        handles: learned skinning handles (+ 1 rigid).
-        skinning_iterations: data-free skinning training iterations.
-        skinning_objective: "modal" (the default: its subspace is 1.11 × the converged lowest frequency on
-            average, random z's 1.48 ×) or "random_z" (:class:`~vid2sim.physics.SkinningTrainingConfig`).
-        cubature: cubature points.
-        cubature_weights: "equal" or "voronoi" (:func:`~vid2sim.physics.cubature.sample_cubature`).
-        prior_E, prior_nu, prior_damping: the fit's start.
-        fit_damping: also fit ζ; False (the default) keeps it at ``prior_damping``, as ``reconstruct`` does by
-            default (``JointConfig.fit_damping``). ζ and ν trade off: a fitted ζ lets ν drift.
+        networks: the skinning field, trained data-free on ``skinning_points`` (reconstruct's stage ``networks``):
+            ``handles`` (default 30), ``skinning_iterations``, ``skinning_objective`` ("modal", the default: its
+            subspace is 1.11 × the converged lowest frequency on average, random z's 1.48 ×). dF/dz is always the
+            closed form (``jacobian`` "neural" is refused; ``jacobian_iterations`` is not used).
+        simulator: the reduced model (reconstruct's ``simulator``): ``cubature`` points, the ``volumetric`` term
+            ("projected" by default here, which removes the subspace's volumetric locking; calibrate it with one
+            factor, ``calibration.nu`` "curve"), the lumped ``mass`` ("moments" by default here: the cubature
+            volumes corrected so that the mass, centre of mass and inertia tensor are the tet mesh's exactly,
+            :func:`vid2sim.physics.mass.moment_matched_volumes`; "cubature": ρ times the cubature weights, whose
+            500 random points put the inertia tensor 6–7 % off, and the bounce with it) and its time
+            ``integration``.
+        cubature_weights: "equal" or "voronoi" (:func:`~vid2sim.physics.cubature.sample_cubature`); reconstruct has
+            no such setting (its cubature weights are equal).
+        prior: the fit's start (``E``, ``nu``, ``damping``; ``nu`` and ``damping`` must be > 0, the fit works on
+            their logit and inverse softplus). ``density`` is not used: the scene (the FEM) gives one.
+        fit_damping: also fit ζ; False (the default) keeps it at ``prior.damping``, as ``reconstruct`` does by
+            default (``joint.fit_damping``). ζ and ν trade off: a fitted ζ lets ν drift. Flat, with
+            ``coarse_log10_E``, rather than reconstruct's ``joint`` section: the rest of that section (Adam,
+            windows of frames, learning rates, views) belongs to the image fit and means nothing to this L-BFGS
+            fit of 3-D motion.
         coarse_log10_E: the grid searched over log10 E (at the prior ν and ζ) before L-BFGS, as the video
-            pipeline does (:class:`~vid2sim.reconstruct.stages.joint.JointConfig`); empty: start at ``prior_E``. The
-            loss
-            is not convex in E: with a subspace close to the truth's stiffness, two of the six scenes stopped in
-            a side valley 0.5–0.8 decade below the truth when the descent started at the prior.
+            pipeline does (``joint.coarse_log10_E``); empty: start at ``prior.E``. The loss is not convex in E:
+            with a subspace close to the truth's stiffness, two of the six scenes stopped in a side valley
+            0.5–0.8 decade below the truth when the descent started at the prior.
         fit_iterations: L-BFGS iterations (each takes a few loss evaluations).
         sweep_decades, sweep_points: the log10 E sweep around the fit.
         fem_tolerance: the ground truth's time-convergence tolerance (percent of the size).
@@ -98,19 +126,18 @@ class IdentifyConfig:
             (the plain point distance). The orientation of a stiff object rocking on the frictionless floor
             drifts chaotically from the truth's after its first bounce; the plain distance is dominated by
             that drift and pulls E to whatever value matches the rocking phase.
-        calibrate_stiffness: scale the reduced model's elastic energy (the default) so that its subspace's lowest
-            frequency on its cubature equals that of quadratic tets on the rest mesh, both at the prior ν
-            (:func:`vid2sim.physics.modes.stiffness_calibration`; ``Simulator.stiffness_scale``). The fitted E is then
-            the
-            material's, not the stiffer subspace's.
-        calibration_nu: with ``calibrate_stiffness``, "two_factor" (for the pointwise term) measures a factor on μ and
-            one on λ at each ν of a grid, matched to the six lowest modes, and the simulator uses them at its
-            current ν (:func:`vid2sim.physics.modes.stiffness_calibration_curve` with ``factors=2``: the
-            subspace's locking grows with ν and sits in λ; this also gives the impact's squash the
-            continuum's size); "curve" (the default, for the projected term) one factor on E at each ν of the grid;
-            "prior" one factor measured at
-            the prior ν.
-        calibration_nus: the grid of that curve.
+        calibration: the subspace's stiffness matched to quadratic tets (reconstruct's ``calibration``):
+            ``enabled`` (the default) scales the reduced model's elastic energy so that its subspace's lowest
+            frequencies on its cubature equal those of quadratic tets on the truth's own rest mesh
+            (:func:`vid2sim.physics.modes.stiffness_calibration`; ``Simulator.stiffness_scale``), so the fitted
+            E is the material's, not the stiffer subspace's; ``nu``: "curve" (the default here, for the
+            projected term) one factor on E at each ν of ``calibration_nus``, "two_factor" (for the pointwise
+            term, whose locking grows with ν and sits in λ) a factor on μ and one on λ at each ν matched to the
+            six lowest modes, used at the simulator's current ν, "prior" one factor at the prior ν. ``cells`` and
+            ``points`` are not used: they make reconstruct's reference mesh from the kept voxels, and here the
+            reference is the truth's mesh.
+        calibration_nus: the ν grid of that curve (reconstruct's is fixed, :data:`vid2sim.physics.modes.CURVE_NUS`,
+            the default here).
         contact_layer: the reduced model's contact layer h as a fraction of the object's size
             (``Simulator(contact_layer=)``; 0: none). An experiment: no single value suits every object
             (docs/architecture.md, "The calibration as a function of ν").
@@ -139,31 +166,24 @@ class IdentifyConfig:
             model's images against the truth's by PSNR and SSIM as ``vid2sim evaluate`` does
             (:func:`render_psnr`): the images a video pipeline using this reduced model could reach with perfect
             geometry, appearance and initial state.
-        volumetric: the reduced model's volumetric term, "pointwise" or "projected" (the default) onto the
-            skinning weights' span (``Simulator(volumetric=)``, :mod:`vid2sim.physics.volumetric`), which removes
-            the subspace's volumetric locking; calibrate it with one factor (``calibration_nu`` "curve").
-        mass: where the reduced model's lumped masses come from: "moments" (the default) — the cubature volumes
-            corrected so that the mass, centre of mass and inertia tensor are the tet mesh's exactly
-            (:func:`vid2sim.physics.mass.moment_matched_volumes`) — or "cubature" (ρ times the cubature
-            weights: 500 random points put the inertia tensor 6–7 % off, and the bounce with it).
     """
 
     scenes: int = 6
     only: tuple[int, ...] = ()
     seed: int = 0
-    preset: str = "small"
+    preset: Literal["small", "full"] = "small"
     frames: int = 24
     observed_frames: int = 16
     points: int = 3000
     skinning_points: int = 30000
-    handles: int = 30
-    skinning_iterations: int = 2000
-    skinning_objective: str = "modal"
-    cubature: int = 500
-    cubature_weights: str = "equal"
-    prior_E: float = 1e5
-    prior_nu: float = 0.3
-    prior_damping: float = 0.05
+    networks: NetworksConfig = field(
+        default_factory=lambda: NetworksConfig(handles=30, skinning_iterations=2000, skinning_objective="modal")
+    )
+    simulator: SimulatorConfig = field(
+        default_factory=lambda: SimulatorConfig(cubature=500, volumetric="projected", mass="moments")
+    )
+    cubature_weights: Literal["equal", "voronoi"] = "equal"
+    prior: PriorConfig = field(default_factory=lambda: PriorConfig(E=1e5, nu=0.3, damping=0.05))
     fit_damping: bool = False
     coarse_log10_E: tuple[float, ...] = (4.0, 4.25, 4.5, 4.75, 5.0, 5.25, 5.5, 5.75, 6.0)
     fit_iterations: int = 12
@@ -171,10 +191,9 @@ class IdentifyConfig:
     sweep_points: int = 5
     fem_tolerance: float = 1.0
     fem_element_order: int = 2
-    truth: str = "fem"
-    loss: str = "shape_and_centre"
-    calibrate_stiffness: bool = True
-    calibration_nu: str = "curve"
+    truth: Literal["fem", "reduced"] = "fem"
+    loss: Literal["shape_and_centre", "positions"] = "shape_and_centre"
+    calibration: CalibrationConfig = field(default_factory=lambda: CalibrationConfig(enabled=True, nu="curve"))
     calibration_nus: tuple[float, ...] = CURVE_NUS
     contact_layer: float = 0.0
     fit_contact_layer: bool = False
@@ -183,15 +202,17 @@ class IdentifyConfig:
     nu_sensitivity: float = 0.0
     nu_scan: tuple[float, ...] = ()
     render_psnr: bool = False
-    volumetric: str = "projected"
-    mass: str = "moments"
 
     def __post_init__(self) -> None:
-        for name in ("scenes", "frames", "observed_frames", "points", "skinning_points", "handles", "cubature",
-                     "fit_iterations", "sweep_points", "contact_iterations"):
+        for name in ("scenes", "frames", "observed_frames", "points", "skinning_points", "fit_iterations",
+                     "sweep_points", "contact_iterations"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ConfigError(f"IdentifyConfig.{name} must be an integer >= 1, got {value!r}")
+        for name, cls in (("networks", NetworksConfig), ("simulator", SimulatorConfig), ("prior", PriorConfig),
+                          ("calibration", CalibrationConfig)):
+            if not isinstance(getattr(self, name), cls):
+                raise ConfigError(f"IdentifyConfig.{name} must be a {cls.__name__}, got {getattr(self, name)!r}")
         only = tuple(self.only)
         if any(isinstance(i, bool) or not isinstance(i, int) or not 0 <= i < self.scenes for i in only) \
                 or len(set(only)) != len(only):
@@ -208,29 +229,23 @@ class IdentifyConfig:
         if self.loss not in LOSSES:
             raise ConfigError(f"IdentifyConfig.loss must be one of {LOSSES}, got {self.loss!r}")
         from vid2sim.physics.cubature import CUBATURE_WEIGHTS
-        from vid2sim.physics.skinning_training import OBJECTIVES
 
-        if self.skinning_objective not in OBJECTIVES:
-            raise ConfigError(
-                f"IdentifyConfig.skinning_objective must be one of {OBJECTIVES}, got {self.skinning_objective!r}"
-            )
         if self.cubature_weights not in CUBATURE_WEIGHTS:
             raise ConfigError(
                 f"IdentifyConfig.cubature_weights must be one of {CUBATURE_WEIGHTS}, got {self.cubature_weights!r}"
             )
-        if self.fem_element_order not in (1, 2):
+        if self.fem_element_order not in (1, 2) or isinstance(self.fem_element_order, bool):
             raise ConfigError(f"IdentifyConfig.fem_element_order must be 1 or 2, got {self.fem_element_order!r}")
-        if self.calibration_nu not in CALIBRATIONS:
-            raise ConfigError(
-                f"IdentifyConfig.calibration_nu must be one of {CALIBRATIONS}, got {self.calibration_nu!r}"
-            )
-        if self.volumetric not in ("pointwise", "projected"):
-            raise ConfigError(f"IdentifyConfig.volumetric must be 'pointwise' or 'projected', got {self.volumetric!r}")
-        if self.mass not in MASSES:
-            raise ConfigError(f"IdentifyConfig.mass must be one of {MASSES}, got {self.mass!r}")
-        if self.volumetric == "projected" and self.calibrate_stiffness and self.calibration_nu == "two_factor":
+        if self.networks.jacobian != "closed_form":
+            raise ConfigError("NetworksConfig.jacobian must be 'closed_form' in bench identify (it computes dF/dz "
+                              f"from the skinning field), got {self.networks.jacobian!r}")
+        if not (self.prior.nu > 0 and self.prior.damping > 0):
+            raise ConfigError("PriorConfig.nu and PriorConfig.damping must be > 0 in bench identify (the fit works on "
+                              f"their logit and inverse softplus), got {self.prior.nu}, {self.prior.damping}")
+        if self.simulator.volumetric == "projected" and self.calibration.enabled and \
+                self.calibration.nu == "two_factor":
             raise ConfigError("IdentifyConfig: the projected volumetric term does not lock, so it takes one factor "
-                             "(calibration_nu 'curve' or 'prior'), not 'two_factor'")
+                              "(calibration.nu 'curve' or 'prior'), not 'two_factor'")
         self.calibration_nus = tuple(float(v) for v in self.calibration_nus)
         nus = self.calibration_nus
         if len(nus) < 2 or not all(0 <= v < 0.5 for v in nus) or any(b <= a for a, b in zip(nus, nus[1:])):
@@ -251,6 +266,31 @@ class IdentifyConfig:
         self.coarse_log10_E = tuple(sorted(float(v) for v in self.coarse_log10_E))
         if not all(math.isfinite(v) for v in self.coarse_log10_E):
             raise ConfigError(f"IdentifyConfig.coarse_log10_E must be finite numbers, got {self.coarse_log10_E!r}")
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> "IdentifyConfig":
+        """The configuration of a report's ``config`` (:meth:`to_dict`); missing fields take their defaults. The
+        flat names of reports before #49 (``handles``, ``prior_nu``, …, :data:`MOVED`) are moved to their
+        sections.
+
+        Raises:
+            ConfigError: a setting that does not exist, a value of the wrong type or out of range, naming the
+                dotted path (``unknown setting networks.handels``).
+        """
+        if not isinstance(data, dict):
+            raise ConfigError(f"an identify configuration must be an object, got {type(data).__name__}")
+        data = json.loads(json.dumps(data))  # a deep copy (the moves below edit it)
+        for old, new in MOVED.items():
+            if old in data:
+                section, name = new.split(".")
+                if not isinstance(data.get(section, {}), dict) or name in data.get(section, {}):
+                    raise ConfigError(f"{old} (now {new}) is given twice: as {old} and in {section}")
+                data.setdefault(section, {})[name] = data.pop(old)
+        return configs.from_dict(cls, data)
+
+    def to_dict(self) -> dict[str, Any]:
+        """The JSON-ready nested dict (a report's ``config``)."""
+        return configs.to_dict(self)
 
 
 @dataclass
@@ -322,7 +362,6 @@ def prepare_scene(index: int, params: dict, config: IdentifyConfig, workdir: Pat
         Floor,
         Gravity,
         Material,
-        SimConfig,
         SimState,
         Simulator,
         SkinningField,
@@ -365,46 +404,51 @@ def prepare_scene(index: int, params: dict, config: IdentifyConfig, workdir: Pat
     points, tet_index, bary = sample_points_in_tets(X, T, config.points, seed=index)
     truth = apply_embedding(fem.trajectory, tet_index, bary, fem.embedding_elements)  # (T, P, 3)
 
-    field = SkinningField(num_handles=config.handles, seed=0).double()
-    suffix = "_v2" if config.skinning_objective == "random_z" else f"_{config.skinning_objective}"
+    field = SkinningField(num_handles=config.networks.handles, seed=0).double()
+    networks = config.networks
+    suffix = "_v2" if networks.skinning_objective == "random_z" else f"_{networks.skinning_objective}"
     field_path = (
-        folder / f"skinning_{config.handles}h_{config.skinning_iterations}it_{config.skinning_points}p{suffix}.pt"
+        folder / f"skinning_{networks.handles}h_{networks.skinning_iterations}it_{config.skinning_points}p{suffix}.pt"
     )
     if field_path.is_file():
         field.load_state_dict(torch.load(field_path, weights_only=True))
     else:
         pool, _, _ = sample_points_in_tets(X, T, config.skinning_points, seed=100_000 + index)
-        train_skinning(field, pool, SkinningTrainingConfig(iterations=config.skinning_iterations, seed=index,
-                                                             objective=config.skinning_objective),
+        train_skinning(field, pool, SkinningTrainingConfig(iterations=networks.skinning_iterations, seed=index,
+                                                             objective=networks.skinning_objective),
                        progress=progress, volume=volume)
         torch.save(field.state_dict(), field_path)
     for p in field.parameters():
         p.requires_grad_(False)
-    idx, weights = sample_cubature(points, config.cubature, volume=volume, seed=0, weights=config.cubature_weights)
+    idx, weights = sample_cubature(points, config.simulator.cubature, volume=volume, seed=0,
+                                   weights=config.cubature_weights)
     nodes = fem.rest_vertices
     areas = fem.contact_areas()  # the FEM's own floor weights, per node
     surface = areas > 0
     fc = fem.config
-    material = Material(config.prior_E, config.prior_nu, fc.density, damping_ratio=config.prior_damping)
+    if not math.isclose(config.simulator.integration.dt, fc.dt):
+        raise ConfigError(f"SimConfig.dt must be the ground truth's frame time here, {fc.dt} s, got "
+                          f"{config.simulator.integration.dt} (the reduced model's frames are compared with its)")
+    material = Material(config.prior.E, config.prior.nu, fc.density, damping_ratio=config.prior.damping)
     mass_volumes = None
-    if config.mass == "moments":
+    if config.simulator.mass == "moments":
         from vid2sim.physics.mass import moment_matched_volumes, tet_moments
 
         mass_volumes = moment_matched_volumes(points[idx], weights, tet_moments(X.to(points.dtype), T))
     scale = 1.0
-    if config.calibrate_stiffness:
-        if config.calibration_nu == "prior":
-            scale = stiffness_calibration(field, points[idx], weights, X, T, config.prior_nu, config.volumetric,
-                                          mass_volumes=mass_volumes)
+    if config.calibration.enabled:
+        if config.calibration.nu == "prior":
+            scale = stiffness_calibration(field, points[idx], weights, X, T, config.prior.nu,
+                                          config.simulator.volumetric, mass_volumes=mass_volumes)
         else:
             scale = stiffness_calibration_curve(field, points[idx], weights, X, T, config.calibration_nus,
-                                                factors=2 if config.calibration_nu == "two_factor" else 1,
-                                                volumetric=config.volumetric, mass_volumes=mass_volumes)
+                                                factors=2 if config.calibration.nu == "two_factor" else 1,
+                                                volumetric=config.simulator.volumetric, mass_volumes=mass_volumes)
     sim = Simulator(field, points[idx], weights, material,
-                    [Gravity(fc.gravity), Floor(height=fc.floor_height, stiffness=fc.floor_stiffness)], SimConfig(),
-                    length_scale=fem_length(fem, size), contact_points=nodes[surface], contact_weights=areas[surface],
-                    stiffness_scale=scale, contact_layer=config.contact_layer * size, volumetric=config.volumetric,
-                    mass_volumes=mass_volumes)
+                    [Gravity(fc.gravity), Floor(height=fc.floor_height, stiffness=fc.floor_stiffness)],
+                    config.simulator.integration, length_scale=fem_length(fem, size), contact_points=nodes[surface],
+                    contact_weights=areas[surface], stiffness_scale=scale, contact_layer=config.contact_layer * size,
+                    volumetric=config.simulator.volumetric, mass_volumes=mass_volumes)
     H = field.num_handles_total
     Z0 = np.zeros((H, 3, 4))
     Z0[-1] = _rigid_affine(nodes.numpy(), fem.trajectory[0].numpy()) - np.hstack([np.eye(3), np.zeros((3, 1))])
@@ -420,8 +464,9 @@ def prepare_scene(index: int, params: dict, config: IdentifyConfig, workdir: Pat
             "fem_substeps": fc.substeps,
             "fem_time_convergence_percent": (fem.time_convergence or {}).get("mean_percent"),
             "fem_seconds": (fem.time_convergence or {}).get("wall_time_all_runs", fem.wall_time),
-            "frequencies": lowest_frequencies(X, T, field, points[idx], weights, fc, config.volumetric, mass_volumes),
-            "stiffness_scale": scale if isinstance(scale, float) else scale.at(config.prior_nu),
+            "frequencies": lowest_frequencies(X, T, field, points[idx], weights, fc, config.simulator.volumetric,
+                                              mass_volumes),
+            "stiffness_scale": scale if isinstance(scale, float) else scale.at(config.prior.nu),
             "stiffness_curve": None if isinstance(scale, float) else scale.to_dict()}
     truth_material = {"E": fc.youngs_modulus, "nu": fc.poisson_ratio, "damping_ratio": fc.damping_ratio}
     return PerfectGeometry(sim, start, points, lbs, truth, size, truth_material, info, X, T,
@@ -511,7 +556,7 @@ def calibrate_contact(scene: PerfectGeometry, config: IdentifyConfig, log10_E: f
     )
 
     sim = scene.simulator
-    set_material(sim, log10_E, nu, config.prior_damping)
+    set_material(sim, log10_E, nu, config.prior.damping)
     tet = TetCompliance(scene.tet_vertices, scene.tets, nu)
     scale = sim.stiffness_scale
     s = float(scale.at(nu)) if not isinstance(scale, float) else scale
@@ -538,23 +583,23 @@ def fit(scene: PerfectGeometry, config: IdentifyConfig, progress: bool = False) 
 
     sim = scene.simulator
     start = time.perf_counter()
-    start_log10_E = math.log10(config.prior_E)
+    start_log10_E = math.log10(config.prior.E)
     if config.fit_contact_layer:  # the coarse search runs with the layer the fit starts from
         sim.contact_layer = max(config.contact_layer, 0.005) * scene.size
     coarse = []
     for value in tqdm(config.coarse_log10_E, desc="coarse log10 E", leave=False, disable=not progress):
-        set_material(sim, value, config.prior_nu, config.prior_damping)
+        set_material(sim, value, config.prior.nu, config.prior.damping)
         coarse.append(
             {"log10_E": value, "loss": float(trajectory_loss(scene, config.observed_frames, kind=config.loss))}
         )
     if coarse:
         start_log10_E = coarse_minimum([c["log10_E"] for c in coarse], [c["loss"] for c in coarse])
-    contact = calibrate_contact(scene, config, start_log10_E, config.prior_nu) if config.calibrate_contact else None
+    contact = calibrate_contact(scene, config, start_log10_E, config.prior.nu) if config.calibrate_contact else None
     fit_h = config.fit_contact_layer
     wh = torch.tensor(math.log(math.expm1(max(config.contact_layer, 0.005))), dtype=torch.float64, requires_grad=fit_h)
     logE = torch.tensor(start_log10_E, dtype=torch.float64, requires_grad=True)
-    u = torch.tensor(math.log(config.prior_nu / (0.5 - config.prior_nu)), dtype=torch.float64, requires_grad=True)
-    v = torch.tensor(math.log(math.expm1(config.prior_damping)), dtype=torch.float64, requires_grad=config.fit_damping)
+    u = torch.tensor(math.log(config.prior.nu / (0.5 - config.prior.nu)), dtype=torch.float64, requires_grad=True)
+    v = torch.tensor(math.log(math.expm1(config.prior.damping)), dtype=torch.float64, requires_grad=config.fit_damping)
     history = []
 
     def assign():
@@ -865,7 +910,7 @@ def run(config: IdentifyConfig, workdir: str | Path, progress: bool = True, work
                 pool.shutdown(wait=False, cancel_futures=True)
                 raise
         rows = [done[i] for i, _ in suite]
-    return {"config": asdict(config), **summarise(rows),
+    return {"config": config.to_dict(), **summarise(rows),
             "threads": torch.get_num_threads() if workers == 1 else threads_per_worker, "workers": workers}
 
 

@@ -1,4 +1,8 @@
-"""``vid2sim bench identify``: E, ν and damping from perfect-geometry 3-D motion (the pipeline's upper bound)."""
+"""``vid2sim bench identify``: E, ν and damping from perfect-geometry 3-D motion (the pipeline's upper bound).
+
+Its settings are :class:`~vid2sim.apps.bench.identify.IdentifyConfig`, whose sections are reconstruct's: one flag per
+field, generated as ``reconstruct``'s are (``--networks.handles 30``, ``--simulator.mass cubature``), with the
+spellings of the flat flags before them kept as aliases (``--handles``, ``--mass``, ``--n``, ``--psnr``)."""
 
 from __future__ import annotations
 
@@ -10,18 +14,27 @@ from pathlib import Path
 
 from vid2sim.apps.bench import identify
 from vid2sim.cli.common import UserError, add_threads_option, set_threads
+from vid2sim.cli.reconstruct_options import ALIASES as RECONSTRUCT_ALIASES
 from vid2sim.cli.scene_options import generation_errors
+from vid2sim.runtime import config as configs
+from vid2sim.runtime.errors import ConfigError
+from vid2sim.runtime.files import read_json
 
-
-def _index_list(text: str) -> tuple[int, ...]:
-    """argparse type: comma-separated non-negative integers ("4,5")."""
-    try:
-        values = tuple(int(part) for part in text.split(","))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected comma-separated scene indices, e.g. 4,5; got {text!r}") from None
-    if any(v < 0 for v in values):
-        raise argparse.ArgumentTypeError(f"scene indices must be >= 0, got {text!r}")
-    return values
+#: short flag → the setting it sets: reconstruct's, where identify has the setting (``--handles``, ``--mass``, …),
+#: and the other flat spellings ``bench identify`` had before its flags were generated
+ALIASES = {
+    **{flag: path for flag, path in RECONSTRUCT_ALIASES.items()
+       if path in configs.flag_names(identify.IdentifyConfig)},
+    "--n": "scenes", "--skinning-iterations": "networks.skinning_iterations",
+    "--fit-iterations": "fit_iterations", "--skinning-points": "skinning_points",
+    "--cubature-weights": "cubature_weights", "--fem-element-order": "fem_element_order",
+    "--contact-layer": "contact_layer", "--fit-contact-layer": "fit_contact_layer",
+    "--calibrate-contact": "calibrate_contact", "--nu-sensitivity": "nu_sensitivity", "--psnr": "render_psnr",
+    "--fit-damping": "fit_damping",
+}
+#: settings without a generated flag: ``nu_scan`` (``--nu-scan STEP`` makes its grid), the fields of reconstruct's
+#: sections that identify does not use, and ``networks.jacobian`` (identify takes only the closed form)
+NO_FLAG = ("nu_scan", "networks.jacobian", *identify.UNUSED)
 
 
 def _nu_grid(step: float) -> tuple[float, ...]:
@@ -31,37 +44,33 @@ def _nu_grid(step: float) -> tuple[float, ...]:
     return tuple(round(k * step, 10) for k in range(1, int(0.5 / step) + 1) if k * step < 0.5 - 1e-9)
 
 
+def identify_config(args: argparse.Namespace) -> identify.IdentifyConfig:
+    """The configuration the options describe: the defaults (or ``--config``'s file) with the flags on top.
+    ``--volumetric pointwise`` takes two calibration factors unless ``--calibration-nu`` says otherwise.
+
+    Raises:
+        UserError: a bad value, naming the flag; a ``--config`` file that is not a configuration.
+    """
+    overrides = configs.flag_overrides(args)
+    if args.nu_scan is not None:
+        overrides["nu_scan"] = list(_nu_grid(args.nu_scan))
+    if overrides.get("simulator", {}).get("volumetric") == "pointwise" and "nu" not in overrides.get("calibration", {}):
+        overrides.setdefault("calibration", {})["nu"] = "two_factor"  # the pointwise term locks as ν grows: λ too
+    try:
+        base = identify.IdentifyConfig()
+        if args.config is not None:
+            data = read_json(args.config, "an identify report or its configuration")
+            base = identify.IdentifyConfig.from_dict(data["config"] if "summary" in data else data)
+        return configs.merge(base, overrides)
+    except ConfigError as exc:
+        raise UserError(configs.name_flags(str(exc), identify.IdentifyConfig, ALIASES)) from exc
+
+
 def run(args: argparse.Namespace) -> int:
-
-
     set_threads(args.threads)
     if args.workers < 1:
         raise UserError(f"--workers must be >= 1, got {args.workers}")
-    given = {"scenes": args.n, "only": args.only, "seed": args.seed, "preset": args.preset, "handles": args.handles,
-             "skinning_iterations": args.skinning_iterations, "fit_iterations": args.fit_iterations,
-             "points": args.points, "skinning_points": args.skinning_points, "truth": args.truth,
-             "skinning_objective": args.skinning_objective,
-             "cubature_weights": args.cubature_weights, "fem_element_order": args.fem_element_order,
-             "loss": args.loss, "calibrate_stiffness": args.calibrate_stiffness,
-             "calibration_nu": args.calibration_nu, "contact_layer": args.contact_layer,
-             "calibrate_contact": True if args.calibrate_contact else None,
-             "fit_contact_layer": True if args.fit_contact_layer else None,
-             "fit_damping": args.fit_damping, "nu_sensitivity": args.nu_sensitivity,
-             "nu_scan": _nu_grid(args.nu_scan) if args.nu_scan is not None else None,
-             "render_psnr": True if args.psnr else None, "volumetric": args.volumetric, "mass": args.mass}
-    if args.volumetric == "pointwise" and args.calibration_nu is None:
-        given["calibration_nu"] = "two_factor"  # the pointwise term locks as nu grows: a factor on lambda too
-    flags = {"scenes": "--n", "only": "--only", "seed": "--seed", "preset": "--preset", "handles": "--handles",
-             "skinning_iterations": "--skinning-iterations", "fit_iterations": "--fit-iterations", "points": "--points",
-             "skinning_points": "--skinning-points", "nu_sensitivity": "--nu-sensitivity",
-             "nu_scan": "--nu-scan"}
-    try:
-        config = identify.IdentifyConfig(**{k: v for k, v in given.items() if v is not None})
-    except ValueError as exc:
-        message = str(exc)
-        for field, flag in flags.items():
-            message = message.replace(f"IdentifyConfig.{field} ", f"{flag} ")
-        raise UserError(message) from exc
+    config = identify_config(args)
     try:
         report = identify.run(config, args.workdir, progress=not args.quiet, workers=args.workers,
                               threads_per_worker=args.threads or 1)
@@ -114,75 +123,25 @@ def register(sub: argparse._SubParsersAction) -> None:
     """Add the ``bench identify`` subcommand."""
     ident = sub.add_parser("identify", help="identify E, nu and damping from perfect-geometry 3-D motion "
                                  "(the upper bound of the video pipeline)")
-    ident.add_argument("--n", type=int, default=None, help="scenes (default 6)")
-    ident.add_argument("--only", type=_index_list, default=None, metavar="I,J,...",
-                       help="run just these scenes of the suite (0-based, e.g. 4,5) from the same work folder; "
-                            "the means are then the subset's")
-    ident.add_argument("--seed", type=int, default=None, help="suite seed (default 0)")
-    ident.add_argument("--preset", choices=["small", "full"], default=None, help="tet resolution (default small)")
-    ident.add_argument("--handles", type=int, default=None, help="learned skinning handles (default 30)")
-    ident.add_argument(
-        "--skinning-iterations", type=int, default=None, help="data-free skinning iterations (default 2000)"
-    )
-    ident.add_argument("--fit-iterations", type=int, default=None, help="L-BFGS iterations (default 12)")
-    ident.add_argument("--points", type=int, default=None, help="sample points (default 3000)")
-    ident.add_argument("--skinning-points", type=int, default=None,
-                       help="points the skinning field is trained on (default 30000)")
-    ident.add_argument("--skinning-objective", choices=["random_z", "modal"], default=None,
-                       help="skinning training objective: the subspace's lowest modes (default) or the paper's "
-                            "random handle transforms")
-    ident.add_argument("--cubature-weights", choices=["equal", "voronoi"], default=None,
-                       help="cubature integration weights: the paper's equal weights (default) or Voronoi cell volumes")
-    ident.add_argument("--fem-element-order", type=int, choices=[1, 2], default=None,
-                       help="the ground truth's tets: 2 quadratic (default; converged in space) or 1 linear "
-                            "(10-20x faster, 3-20 %% too stiff)")
-    ident.add_argument("--truth", choices=["fem", "reduced"], default=None,
-                       help="fit the FEM's motion (default) or the reduced model's own motion at the true "
-                            "parameters (identifiability without model error)")
-    ident.add_argument("--loss", choices=["shape_and_centre", "positions"], default=None,
-                       help="the fit's 3-D loss: centre of mass + shape after a rigid alignment per frame "
-                            "(default; blind to the chaotic rocking of the orientation) or the plain point distance")
-    ident.add_argument("--calibrate-stiffness", action=argparse.BooleanOptionalAction, default=None,
-                       help="scale the reduced model's elastic energy so that its lowest mode vibrates at the "
-                            "frequency of quadratic tets on the rest mesh (default on; --no-calibrate-stiffness "
-                            "turns it off): the subspace is stiffer than the continuum, and the fit's E then is the "
-                            "material's")
-    ident.add_argument("--calibration-nu", choices=["curve", "two_factor", "prior"], default=None,
-                       help="with --calibrate-stiffness: one factor on E at a grid of nu, used at the fit's current "
-                            "nu (curve, the default with the projected volumetric term), two factors (on mu and on "
-                            "lambda) matched to the six lowest modes (two_factor, the default with --volumetric "
-                            "pointwise, whose locking grows with nu and sits in lambda), or one factor at the prior nu")
-    ident.add_argument("--volumetric", choices=["pointwise", "projected"], default=None,
-                       help="the reduced model's volumetric term: projected onto the skinning weights' span "
-                            "(default), which removes the subspace's volumetric locking, or pointwise (implies "
-                            "--calibration-nu two_factor unless that is given)")
-    ident.add_argument("--mass", choices=["moments", "cubature"], default=None,
-                       help="the reduced model's lumped masses: the cubature volumes corrected to the tet mesh's mass, "
-                            "centre of mass and inertia tensor (moments, the default) or the cubature volumes as they "
-                            "are (cubature)")
-    ident.add_argument("--fit-contact-layer", action="store_true",
-                       help="also fit the contact layer (a fraction of the size) with E and nu; experimental")
-    damping = ident.add_mutually_exclusive_group()
-    damping.add_argument("--fit-damping", dest="fit_damping", action="store_const", const=True, default=None,
-                         help="also fit the damping ratio (it trades off against nu)")
-    damping.add_argument("--fixed-damping", dest="fit_damping", action="store_const", const=False,
-                         help="keep the damping ratio at the prior (0.05), as reconstruct does (the default)")
-    ident.add_argument("--contact-layer", type=float, default=None,
-                       help="experimental: the reduced model's barriers act through a layer of the body in series, "
-                            "this fraction of the object's size deep (default 0: none)")
-    ident.add_argument("--calibrate-contact", action="store_true",
-                       help="experimental: set that layer from the object's quadratic tets instead, so that the "
-                            "subspace has their compliance under the floor loads of its own simulation (measured: "
-                            "it makes the contact too soft and the fits worse; docs/architecture.md)")
-    ident.add_argument("--nu-sensitivity", type=float, default=None, metavar="DNU",
-                       help="also run the FEM at nu - DNU per scene and report how far that moves the truth "
-                            "against the model error (default off)")
+    ident.add_argument("--config", metavar="FILE", default=None,
+                       help="start from the settings of this report (--out) or its configuration instead of the "
+                            "defaults; the flags below override them")
+    defaults = configs.to_dict(identify.IdentifyConfig())
+
+    def default(path: str) -> str:
+        value = defaults
+        for part in path.split("."):
+            value = value[part]
+        return f"default {value}"
+
+    configs.add_flags(ident, identify.IdentifyConfig, ALIASES, defaults=default, skip=NO_FLAG,
+                      group_title="settings (each --field or --section.field; IdentifyConfig)")
+    ident.add_argument("--fixed-damping", dest="config:fit_damping", action="store_const", const=False,
+                       default=argparse.SUPPRESS,
+                       help="keep the damping ratio at the prior, as reconstruct does (the default; --no-fit-damping)")
     ident.add_argument("--nu-scan", type=float, default=None, metavar="STEP",
                        help="also evaluate the observed-frame loss at the true E over nu = STEP, 2 STEP, ... < 0.5 "
                             "and report its minimum: where the model puts nu when E is right (default off)")
-    ident.add_argument("--psnr", action="store_true",
-                       help="also render the truth's and the model's motion of the textured object in the preset's "
-                            "observed cameras and report PSNR/SSIM: the model's image ceiling")
     ident.add_argument("--workdir", default="vid2sim-identify", help="cache of FEM runs and skinning fields "
                        "(default ./vid2sim-identify)")
     ident.add_argument("--out", default=None, help="write the full JSON report here")
