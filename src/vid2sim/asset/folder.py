@@ -254,13 +254,14 @@ def load_asset(folder: str | Path, device: torch.device | str = "cpu") -> Asset:
     try:
         s = nets["skinning"]
         field_ = SkinningField(s["num_handles"], s["width"], s["hidden_layers"]).to(device=device, dtype=dtype)
-        field_.load_state_dict(torch.load(folder / FILES["skinning"], map_location=device, weights_only=True))
+        # the state dicts are read on the CPU and copied into the networks on ``device`` (load_state_dict)
+        field_.load_state_dict(torch.load(folder / FILES["skinning"], map_location="cpu", weights_only=True))
         jac = None
         if "jacobian" in nets:
             j = nets["jacobian"]
             jac = NeuralJacobian(j["num_handles_total"], j["encoding_dim"], tuple(j["widths"]),
                                  frequency_scale=j["frequency_scale"]).to(device=device, dtype=dtype)
-            jac.load_state_dict(torch.load(folder / FILES["jacobian"], map_location=device, weights_only=True))
+            jac.load_state_dict(torch.load(folder / FILES["jacobian"], map_location="cpu", weights_only=True))
     except (KeyError, FileNotFoundError, RuntimeError) as exc:
         raise AssetFormatError(f"{folder}: cannot load the networks ({type(exc).__name__}: {exc})") from None
     try:
