@@ -5,6 +5,7 @@ prediction, ablation.json, resuming, a Stage I that did not run reported as a fa
 
 from __future__ import annotations
 
+import importlib
 import json
 import math
 import shutil
@@ -111,11 +112,24 @@ def test_variants_apply_to_the_preset_or_the_given_config(tiny_config):
     configs = variant_configs(given, predictor="/x/p.pt")
     assert list(configs) == NAMES
     s1, full, prior = (configs[n].reconstruct_config() for n in NAMES)
-    assert (s1.stage1.enabled, s1.stage1.predictor, s1.joint.iterations, s1.joint.coarse_log10_E) == (True, "/x/p.pt", 0, ())
-    assert (full.stage1.enabled, full.stage1.predictor, full.joint.iterations, full.joint.coarse_log10_E) == (True, "/x/p.pt", 7,
-                                                                                              (4.5, 5.0))
-    assert (prior.stage1.enabled, prior.stage1.predictor, prior.joint.iterations, prior.joint.coarse_log10_E) == (False, None, 7,
-                                                                                                  (4.5, 5.0))
+    assert (s1.stage1.enabled, s1.stage1.predictor, s1.joint.iterations, s1.joint.coarse_log10_E) == (
+        True,
+        "/x/p.pt",
+        0,
+        (),
+    )
+    assert (full.stage1.enabled, full.stage1.predictor, full.joint.iterations, full.joint.coarse_log10_E) == (
+        True,
+        "/x/p.pt",
+        7,
+        (4.5, 5.0),
+    )
+    assert (prior.stage1.enabled, prior.stage1.predictor, prior.joint.iterations, prior.joint.coarse_log10_E) == (
+        False,
+        None,
+        7,
+        (4.5, 5.0),
+    )
     # everything else is the given config's; the given config is untouched
     assert {k: v for k, v in s1.to_dict().items() if k not in ("stage1", "joint")} == \
         {k: v for k, v in base.to_dict().items() if k not in ("stage1", "joint")}
@@ -207,7 +221,7 @@ def test_handles_and_a_missing_predictor_are_refused_before_any_work(fake_suite,
 
 
 def test_a_foreign_results_folder_and_a_missing_ray_are_refused(fake_suite, tmp_path, tiny_config, monkeypatch):
-    pytest.importorskip("transformers")
+    importlib.import_module("transformers")  # a declared test dependency: a broken install fails
     from vid2sim.runtime.ray_runner import RayUnavailable
 
     _no_work(monkeypatch)
@@ -244,7 +258,7 @@ def _tiny_predictor(path: Path) -> Path:
 @pytest.fixture
 def run(tiny_config, tmp_path_factory):
     """The ablation of a 1-scene tiny suite with the tiny ReconstructConfig at 10 handles (run once)."""
-    pytest.importorskip("transformers")
+    importlib.import_module("transformers")  # a declared test dependency: a broken install fails
     if "run" not in _RUNS:
         from vid2sim.synthetic.scenes import make_benchmark
 

@@ -35,6 +35,7 @@ from torch import Tensor
 from vid2sim.physics.solver import SimConfig, SimState, Simulator
 from vid2sim.physics.stiffness_curve import StiffnessCurve
 from vid2sim.runtime.errors import ConfigError, InputError
+from vid2sim.runtime.files import load_torch_file, read_json
 from vid2sim.splats.gaussians import Gaussians
 from vid2sim.splats.shading import Shading
 
@@ -198,13 +199,60 @@ def save_asset(asset: Asset, folder: str | Path, config: dict[str, Any] | None =
 def _read_json(path: Path) -> dict:
     if not path.is_file():
         raise AssetFormatError(f"{path}: missing (an asset folder holds {', '.join(FILES.values())})")
+    return read_json(path, "a JSON object of an asset folder", AssetFormatError)
+
+
+#: points.npz: array → (trailing shape, positive) — the first axis is the count (K, S or N)
+_POINT_ARRAYS = {"cubature_points": ((3,), False), "cubature_weights": ((), True), "contact_points": ((3,), False),
+                 "contact_areas": ((), True), "points": ((3,), False)}
+
+
+def _read_points(path: Path, device: torch.device | str) -> tuple[dict[str, Tensor], float]:
+    """The arrays of an asset's ``points.npz`` (checked: present, numeric, shaped, finite, weights and volume
+    positive) and its volume; raises :class:`AssetFormatError` naming the file and the array."""
+    import zipfile
+    import zlib
+
+    from vid2sim.runtime.limits import npz_size_problem
+
+    if not path.is_file():
+        raise AssetFormatError(f"{path}: missing")
+    too_big = npz_size_problem(path)
+    if too_big is not None:
+        raise AssetFormatError(f"{path}: {too_big}")
     try:
-        value = json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
-        raise AssetFormatError(f"{path}: not valid JSON ({exc})") from None
-    if not isinstance(value, dict):
-        raise AssetFormatError(f"{path}: expected a JSON object")
-    return value
+        with np.load(path, allow_pickle=False) as z:
+            raw = {k: np.asarray(z[k]) for k in z.files}
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
+        raise AssetFormatError(f"{path}: not a readable .npz file ({type(exc).__name__}: {exc})") from None
+    for key in (*_POINT_ARRAYS, "volume"):
+        if key not in raw:
+            raise AssetFormatError(f"{path}: the array {key!r} is missing")
+    expected_len = {"cubature_weights": "cubature_points", "contact_areas": "contact_points",
+                    "mass_volumes": "cubature_points"}
+    arrays: dict[str, Tensor] = {}
+    for key, a in raw.items():
+        if key == "volume":
+            continue
+        trailing, positive = _POINT_ARRAYS.get(key, ((), True))
+        if a.dtype.kind != "f" or a.ndim != 1 + len(trailing) or a.shape[1:] != trailing or a.shape[0] < 1:
+            raise AssetFormatError(
+                f"{path}: {key} must be floats of shape (n{', ' + str(trailing[0]) if trailing else ','}) "
+                f"with n >= 1, got {a.dtype} {a.shape}"
+            )
+        if not np.isfinite(a).all() or (positive and not (a > 0).all()):
+            raise AssetFormatError(f"{path}: {key} must be finite{' and > 0' if positive else ''}")
+        ref = expected_len.get(key)
+        if ref is not None and a.shape[0] != raw[ref].shape[0]:
+            raise AssetFormatError(f"{path}: {key} has {a.shape[0]} entries for {raw[ref].shape[0]} {ref}")
+        arrays[key] = torch.from_numpy(a).to(device)
+    volume = raw["volume"]
+    if volume.dtype.kind not in "fiu" or volume.size != 1 or not (np.isfinite(volume).all() and float(volume) > 0):
+        raise AssetFormatError(f"{path}: volume must be one positive number, got {volume!r}")
+    dtypes = {a.dtype for a in arrays.values()}
+    if len(dtypes) != 1:
+        raise AssetFormatError(f"{path}: the arrays mix precisions {sorted(map(str, dtypes))}")
+    return arrays, float(volume)
 
 
 def load_asset(folder: str | Path, device: torch.device | str = "cpu") -> Asset:
@@ -220,9 +268,18 @@ def load_asset(folder: str | Path, device: torch.device | str = "cpu") -> Asset:
     folder = Path(folder)
     if not folder.is_dir():
         raise AssetFormatError(f"{folder}: not a folder (expected an asset written by `vid2sim reconstruct`)")
+    from vid2sim.runtime.limits import outside
+
+    for name in FILES.values():
+        real = outside(folder, folder / name) if (folder / name).exists() else None
+        if real is not None:
+            raise AssetFormatError(f"{folder / name}: resolves to {real}, outside the asset folder (set "
+                                   "VID2SIM_ALLOW_OUTSIDE_PATHS=1 to allow files elsewhere)")
     meta = _read_json(folder / FILES["asset"])
     if meta.get("format") != ASSET_FORMAT:
-        raise AssetFormatError(f"{folder / FILES['asset']}: format must be {ASSET_FORMAT!r}, got {meta.get('format')!r}")
+        raise AssetFormatError(
+            f"{folder / FILES['asset']}: format must be {ASSET_FORMAT!r}, got {meta.get('format')!r}"
+        )
     if meta.get("version") != ASSET_VERSION:
         raise AssetFormatError(f"{folder / FILES['asset']}: version {meta.get('version')!r} is not supported "
                                f"(this vid2sim reads version {ASSET_VERSION})")
@@ -243,27 +300,29 @@ def load_asset(folder: str | Path, device: torch.device | str = "cpu") -> Asset:
     if material.get("volumetric", "pointwise") not in ("pointwise", "projected"):
         raise AssetFormatError(f"{folder / FILES['material']}: volumetric must be 'pointwise' or 'projected', "
                                f"got {material['volumetric']!r}")
-    pts_path = folder / FILES["points"]
-    if not pts_path.is_file():
-        raise AssetFormatError(f"{pts_path}: missing")
-    with np.load(pts_path) as z:
-        arrays = {k: torch.from_numpy(np.asarray(z[k])).to(device) for k in z.files if k != "volume"}
-        volume = float(z["volume"])
+    arrays, volume = _read_points(folder / FILES["points"], device)
     dtype = arrays["cubature_points"].dtype  # the networks are loaded in the precision they were saved in
     nets = meta.get("networks", {})
     try:
         s = nets["skinning"]
         field_ = SkinningField(s["num_handles"], s["width"], s["hidden_layers"]).to(device=device, dtype=dtype)
         # the state dicts are read on the CPU and copied into the networks on ``device`` (load_state_dict)
-        field_.load_state_dict(torch.load(folder / FILES["skinning"], map_location="cpu", weights_only=True))
+        field_.load_state_dict(load_torch_file(folder / FILES["skinning"], "an asset's skinning weights",
+                                               AssetFormatError))
         jac = None
         if "jacobian" in nets:
             j = nets["jacobian"]
             jac = NeuralJacobian(j["num_handles_total"], j["encoding_dim"], tuple(j["widths"]),
                                  frequency_scale=j["frequency_scale"]).to(device=device, dtype=dtype)
-            jac.load_state_dict(torch.load(folder / FILES["jacobian"], map_location="cpu", weights_only=True))
-    except (KeyError, FileNotFoundError, RuntimeError) as exc:
-        raise AssetFormatError(f"{folder}: cannot load the networks ({type(exc).__name__}: {exc})") from None
+            jac.load_state_dict(load_torch_file(folder / FILES["jacobian"], "an asset's Neural Jacobian weights",
+                                                AssetFormatError))
+    except (KeyError, TypeError, ValueError, AttributeError, RuntimeError) as exc:
+        if isinstance(exc, AssetFormatError):
+            raise
+        raise AssetFormatError(
+            f"{folder / FILES['asset']}: cannot build the networks it describes from "
+            f"{FILES['skinning']} ({type(exc).__name__}: {str(exc).splitlines()[0][:300]})"
+        ) from None
     try:
         sim_config = SimConfig(**meta["sim_config"])
     except (KeyError, TypeError, ValueError) as exc:
@@ -273,7 +332,7 @@ def load_asset(folder: str | Path, device: torch.device | str = "cpu") -> Asset:
     shading_path = folder / FILES["shading"]
     if shading_path.is_file():
         try:
-            with np.load(shading_path) as z:
+            with np.load(shading_path, allow_pickle=False) as z:
                 shading = Shading(*(torch.from_numpy(np.asarray(z[k])).to(device=device, dtype=gaussians.means.dtype)
                                     for k in ("normals", "light", "ambient_logit")))
         except (KeyError, ValueError) as exc:

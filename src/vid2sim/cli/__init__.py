@@ -5,10 +5,15 @@ the module's ``run(args) -> exit code``). Only the module of the command being r
 torch (about 2 s), and ``vid2sim --help`` should answer at once — that is why the table below names modules
 instead of importing them.
 
+Commands that write an output folder for long declare ``lock_output="out"`` (the argument naming it) in their
+parser's defaults; :func:`main` then holds :func:`vid2sim.runtime.locks.output_lock` on it while the command runs,
+so a second process on the same output stops at once with one line naming the first.
+
 Errors: vid2sim's input errors (:class:`~vid2sim.runtime.errors.InputError`:
 a file, folder, option or setting that is not what vid2sim can use; the commands' own
 :class:`~vid2sim.cli.common.UserError` is one) and operating-system errors (a missing file, a full
-disk) print one line and exit with 2. Anything else is a bug in vid2sim: a line asking for a report, then Python's traceback
+disk) print one line and exit with 2. Anything else is a bug in vid2sim: a line asking for a report, then Python's
+traceback
 (exit code 1).
 """
 
@@ -21,6 +26,7 @@ from typing import Callable, Sequence
 
 from vid2sim import __version__
 from vid2sim.runtime.errors import InputError
+from vid2sim.runtime.locks import output_lock
 
 #: subcommand → (module of this package, one-line help for ``vid2sim --help``)
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -36,6 +42,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "fit-gaussians": ("fit_gaussians", "fit 3D Gaussians to one frame of a scene folder"),
     "make-scene": ("make_scene", "simulate (FEM) and render one synthetic scene folder"),
     "make-benchmark": ("make_benchmark", "a deterministic suite of synthetic scenes (E, nu sampled)"),
+    "make-capture": ("make_capture", "the capture twin of a synthetic scene: what real cameras would have filmed"),
+    "import-capture": ("import_capture", "a real capture (videos, calibration, clean plates) in, a scene folder out"),
     "make-training-data": ("make_training_data", "Stage I training samples (simulated, rendered drops)"),
     "train-predictor": ("train_predictor", "train the Stage I predictor"),
     "eval-predictor": ("eval_predictor", "score a Stage I checkpoint on a training-data folder"),
@@ -84,7 +92,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.print_help()
         return 0
     try:
-        return func(args)
+        lock = getattr(args, "lock_output", None)  # long commands hold their output's lock (vid2sim.runtime.locks)
+        if lock is None:
+            return func(args)
+        with output_lock(getattr(args, lock), " ".join(["vid2sim", *argv])[:300]):
+            return func(args)
     except (InputError, OSError) as exc:  # UserError is an InputError
         print(f"vid2sim {args.command}: error: {exc}", file=sys.stderr)
         return 2

@@ -62,4 +62,4 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_device_option(p, "the reconstruction, evaluation, simulation and report")
     add_threads_option(p)
     p.add_argument("--quiet", action="store_true", help="no progress output")
-    p.set_defaults(func=run)
+    p.set_defaults(func=run, lock_output="out")  # one writer per OUT (runtime.locks)

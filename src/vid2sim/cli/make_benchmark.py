@@ -44,5 +44,5 @@ def register(sub: argparse._SubParsersAction) -> None:
                             "address (auto, HOST:6379); OUT must be a path every node sees (needs "
                             "pip install \"vid2sim[ray]\")")
     add_scene_options(suite, material_options=False, default_element_order=2)
-    suite.set_defaults(func=run)
+    suite.set_defaults(func=run, lock_output="out")  # one writer per OUT (runtime.locks)
 

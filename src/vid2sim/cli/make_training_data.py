@@ -94,4 +94,4 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--threads", type=int, default=1,
                    help="torch threads per worker (default 1; shards are reproducible for a given value)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
-    p.set_defaults(func=run)
+    p.set_defaults(func=run, lock_output="out")  # one writer per OUT (runtime.locks)

@@ -46,5 +46,5 @@ def register(sub: argparse._SubParsersAction) -> None:
                      "the asset against the scene, docs/report.md)")
     add_threads_option(rec)
     rec.add_argument("--quiet", action="store_true", help="no progress output")
-    rec.set_defaults(func=run)
+    rec.set_defaults(func=run, lock_output="out")  # one writer per OUT (runtime.locks)
 

@@ -58,11 +58,19 @@ def add_scene_options(p: argparse.ArgumentParser, material_options: bool, defaul
                         "in time (default: from the material's stiffness)")
     p.add_argument("--damping", type=float, default=None, dest="damping_ratio",
                    help="material damping ratio zeta (Kelvin-Voigt; default 0.05, 0 = undamped)")
-    p.add_argument("--element-order", type=int, choices=[1, 2], default=None,
-                   help="the FEM's tets: 1 linear or 2 quadratic (converged in space, the FEM about 20x slower); default "
-                        f"{default_element_order}"
-                        + ("; a suite's quadratic tets have the small preset's size at every preset"
-                           if default_element_order == 2 else ""))
+    p.add_argument(
+        "--element-order",
+        type=int,
+        choices=[1, 2],
+        default=None,
+        help="the FEM's tets: 1 linear or 2 quadratic (converged in space, the FEM about 20x slower); default "
+        f"{default_element_order}"
+        + (
+            "; a suite's quadratic tets have the small preset's size at every preset"
+            if default_element_order == 2
+            else ""
+        ),
+    )
     p.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1),
                    help="processes for the FEM's side-by-side time resolutions (default: 2, or 1 on a 1-CPU machine)")
     p.add_argument("--layout", choices=["rgba", "rgb+mask", "video"], default=None, help="scene folder layout")

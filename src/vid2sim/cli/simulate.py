@@ -204,4 +204,4 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_device_option(g, "the simulation and rendering")
     add_threads_option(g)
     g.add_argument("--quiet", action="store_true", help="no progress output")
-    p.set_defaults(func=run)
+    p.set_defaults(func=run, lock_output="out")  # one writer per OUT (runtime.locks)

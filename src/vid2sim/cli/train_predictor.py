@@ -45,7 +45,9 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as exc:
         raise UserError(str(exc)) from exc
     best, base = record["best"] or {}, record["baselines_constant_mean"]
-    state = "done" if record["complete"] else f"stopped at step {record['steps_done']} of {args.steps} (rerun to resume)"
+    state = (
+        "done" if record["complete"] else f"stopped at step {record['steps_done']} of {args.steps} (rerun to resume)"
+    )
     print(f"{state}: {args.out}/predictor.pt; validation ({record['data']['val_samples']} samples) best step "
           f"{best.get('step')}: MAE log10 E {best.get('mae_log10_E', float('nan')):.3f} (constant mean "
           f"{base.get('mae_log10_E', float('nan')):.3f}), MAE nu {best.get('mae_nu', float('nan')):.4f} "
@@ -100,4 +102,4 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=0, help="seed of the initialisation and batch order (default 0)")
     add_threads_option(p)
     p.add_argument("--quiet", action="store_true", help="no progress bar")
-    p.set_defaults(func=run)
+    p.set_defaults(func=run, lock_output="out")  # one writer per OUT (runtime.locks)

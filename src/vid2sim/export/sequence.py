@@ -60,7 +60,7 @@ def sequence_metadata(folder: str | Path) -> dict[str, object]:
     states = folder / "states.npz"
     if meta["dt"] is None and states.is_file():
         try:
-            with np.load(states) as z:
+            with np.load(states, allow_pickle=False) as z:
                 if "dt" in z.files:
                     meta["dt"] = float(z["dt"])
         except (OSError, ValueError):

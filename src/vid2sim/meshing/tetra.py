@@ -361,7 +361,7 @@ def tetrahedralize(
             raise TetrahedralizationError(f"{name}: fTetWild failed ({cause}): {' | '.join(tail) or 'no message'}")
         if not os.path.exists(out_path):
             raise TetrahedralizationError(f"{name}: fTetWild wrote no output")
-        out = np.load(out_path)
+        out = np.load(out_path, allow_pickle=False)
         tv, tt = out["vertices"], out["tets"]
     if tt.ndim != 2 or tt.shape[0] == 0:
         raise TetrahedralizationError(f"{name}: fTetWild produced no tetrahedra (is the surface empty or flat?)")

@@ -42,7 +42,7 @@ def load_ftetwild_extension():
 
 def run(in_path: str, out_path: str) -> None:
     """Tetrahedralize the surface stored in ``in_path`` and write the tet mesh to ``out_path``."""
-    data = np.load(in_path)
+    data = np.load(in_path, allow_pickle=False)
     ext = load_ftetwild_extension()
     vertices, tets = ext.tetrahedralize_mesh(
         np.ascontiguousarray(data["vertices"], dtype=np.float64),

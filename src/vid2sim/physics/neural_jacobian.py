@@ -1,4 +1,5 @@
-"""Neural Jacobian: a network predicting J(X) = ∂F(X, z)/∂z per point (paper §4.2, supplementary "LBS and Jacobian Network").
+"""Neural Jacobian: a network predicting J(X) = ∂F(X, z)/∂z per point (paper §4.2, supplementary "LBS and Jacobian
+Network").
 
 F is linear in z, so J depends on X only: ``F(X, z).reshape(9) = I.flatten() + J(X) @ z`` with J: (9, 12H) in the
 layout of :func:`vid2sim.physics.skinning.dF_dz`. The network is trained data-free against the exact F of
@@ -41,6 +42,7 @@ from vid2sim.physics.skinning import (
 )
 from vid2sim.physics.skinning_training import sample_handle_transforms
 from vid2sim.runtime.errors import ConfigError
+from vid2sim.runtime.training import Progress, Schedule, optimise
 
 
 def _init_linear(layer: nn.Linear, gen: torch.Generator | None) -> None:
@@ -201,44 +203,29 @@ def train_neural_jacobian(
     if config.iterations == 0:
         return []
     params = [p for p in net.parameters() if p.requires_grad]
-    opt = torch.optim.AdamW(params, lr=config.lr)
-    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=config.iterations)
     gen = torch.Generator(device="cpu")
     gen.manual_seed(int(config.seed))
     H = net.num_handles_total
     eye = torch.eye(3, dtype=points.dtype, device=points.device).reshape(9)
-    losses: list[float] = []
-    iterator = range(config.iterations)
-    if progress:
-        from tqdm.auto import tqdm
 
-        iterator = tqdm(iterator, desc="neural Jacobian (data-free)", unit="it")
+    def step(it: int) -> tuple[Tensor, dict[str, Tensor]]:
+        idx = torch.randint(points.shape[0], (config.points_per_step,), generator=gen).to(points.device)
+        X = points[idx]
+        z = sample_handle_transforms(config.batch_size, H, config.z_std, gen, rigid=True).to(points)
+        with torch.no_grad():
+            w, dw = field.weights_and_gradients(X)
+            F_true = deformation_gradient(gradient_basis(X, w, dw), z).reshape(config.batch_size, X.shape[0], 9)
+        J = net(X)  # (n, 9, 12H)
+        F_pred = eye + torch.einsum("pik,bk->bpi", J, z)
+        return (F_pred - F_true).abs().mean(), {}
+
     was_training = net.training
     net.train()
     try:
-        for it in iterator:
-            idx = torch.randint(points.shape[0], (config.points_per_step,), generator=gen).to(points.device)
-            X = points[idx]
-            z = sample_handle_transforms(config.batch_size, H, config.z_std, gen, rigid=True).to(points)
-            with torch.no_grad():
-                w, dw = field.weights_and_gradients(X)
-                F_true = deformation_gradient(gradient_basis(X, w, dw), z).reshape(config.batch_size, X.shape[0], 9)
-            J = net(X)  # (n, 9, 12H)
-            F_pred = eye + torch.einsum("pik,bk->bpi", J, z)
-            loss = (F_pred - F_true).abs().mean()
-            if not bool(torch.isfinite(loss)):
-                raise FloatingPointError(f"Neural Jacobian training loss became {float(loss)} at iteration {it}")
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
-            sched.step()
-            losses.append(float(loss.detach()))
-            if progress and (it % 50 == 0 or it == config.iterations - 1):
-                iterator.set_postfix(loss=f"{losses[-1]:.4g}")
+        return optimise(params, step, Schedule(config.iterations, config.lr, optimizer="adamw"),
+                        Progress("neural Jacobian (data-free)", progress), "Neural Jacobian training")
     finally:
-        opt.zero_grad(set_to_none=True)
         net.train(was_training)
-    return losses
 
 
 @torch.no_grad()

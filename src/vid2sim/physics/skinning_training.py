@@ -15,7 +15,8 @@ points (the constant rigid column is excluded).
 over every handle direction, including the stiff ones, and leaves the subspace's lowest vibration modes
 9–102 % above the converged ones (quadratic tets; the ``bench identify`` shapes, 500 cubature points).
 Those modes are what a drop excites and what identifies E. The modal objective asks instead for the
-subspace whose lowest Rayleigh–Ritz eigenvalues λ_i of (K, M) are smallest. K is the linear-elastic stiffness and M the mass of the LBS subspace, both at rest
+subspace whose lowest Rayleigh–Ritz eigenvalues λ_i of (K, M) are smallest. K is the linear-elastic stiffness and M the
+mass of the LBS subspace, both at rest
 with E = ρ = 1 and the batch's points as quadrature:
 
     loss = −Σ_i α / (λ_i + α) + modal_trace_weight · Σ_i λ_i / (α n)
@@ -73,6 +74,7 @@ from vid2sim.physics.skinning import (
     gradient_basis_unchecked,
 )
 from vid2sim.runtime.errors import ConfigError
+from vid2sim.runtime.training import Progress, Schedule, optimise
 
 #: training objectives of :func:`train_skinning`
 OBJECTIVES = ("random_z", "modal")
@@ -120,11 +122,15 @@ class SkinningTrainingConfig:
             if not isinstance(v, (int, float)) or not (0 <= float(v) < math.inf):
                 raise ConfigError(f"SkinningTrainingConfig.{name} must be a finite number >= 0, got {v!r}")
         if not isinstance(self.poisson_ratio, (int, float)) or not (-1.0 < float(self.poisson_ratio) < 0.5):
-            raise ConfigError(f"SkinningTrainingConfig.poisson_ratio must satisfy -1 < nu < 0.5, got {self.poisson_ratio!r}")
+            raise ConfigError(
+                f"SkinningTrainingConfig.poisson_ratio must satisfy -1 < nu < 0.5, got {self.poisson_ratio!r}"
+            )
         if self.objective not in OBJECTIVES:
             raise ConfigError(f"SkinningTrainingConfig.objective must be one of {OBJECTIVES}, got {self.objective!r}")
         if not isinstance(self.modal_shift, (int, float)) or not (0 < float(self.modal_shift) < math.inf):
-            raise ConfigError(f"SkinningTrainingConfig.modal_shift must be a finite positive number, got {self.modal_shift!r}")
+            raise ConfigError(
+                f"SkinningTrainingConfig.modal_shift must be a finite positive number, got {self.modal_shift!r}"
+            )
         for name in ("modal_orthogonality_weight", "modal_trace_weight"):
             w = getattr(self, name)
             if not isinstance(w, (int, float)) or not (0 <= float(w) < math.inf):
@@ -297,57 +303,33 @@ def train_skinning(
     params = list(field.last_layer.parameters()) if config.last_layer_only else list(field.parameters())
     if config.iterations == 0:
         return []
-    opt = torch.optim.Adam(params, lr=config.lr, foreach=True)  # one multi-tensor update (the same values)
-    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=config.iterations)
     gen = torch.Generator(device="cpu")
     gen.manual_seed(int(config.seed))
     H = field.num_handles_total
-    n_all = points.shape[0]
     modal = config.objective == "modal"
     size = float((points.max(0).values - points.min(0).values).norm()) if modal else 1.0
     if modal and not size > 0:
         raise ValueError("the modal objective needs points that span a volume (their bounding box is a point)")
     alpha = config.modal_shift / size**2
-    losses: list[float] = []
-    iterator = range(config.iterations)
-    if progress:
-        from tqdm.auto import tqdm
+    draws = _RandomDraws(gen, points.shape[0], config, H, modal, points)
 
-        iterator = tqdm(iterator, desc="skinning (data-free)", unit="it")
+    def step(it: int) -> tuple[Tensor, dict[str, Tensor]]:
+        idx, z = draws.next(it)
+        X = points[idx]
+        w, dw = field._weights_and_gradients(X)  # the points were checked above
+        lo = orthogonality_loss(w[:, :-1])
+        if modal:
+            K, M = subspace_stiffness_and_mass(X, w, dw, float(volume), config.poisson_ratio)
+            le = modal_loss(K, M, alpha, config.modal_trace_weight)
+            return le + config.modal_orthogonality_weight * lo, {"modal": le, "ortho": lo}
+        G = gradient_basis_unchecked(X, w, dw)
+        le = elastic_loss(G, z, mu, lam, float(volume), config.inversion_threshold, trusted=True)
+        return config.elastic_weight * le + config.orthogonality_weight * lo, {"elastic": le, "ortho": lo}
+
     was_training = field.training
     field.train()
-    try:
-        draws = _RandomDraws(gen, n_all, config, H, modal, points)
-        for it in iterator:
-            idx, z = draws.next(it)
-            X = points[idx]
-            w, dw = field._weights_and_gradients(X)  # the points were checked above
-            lo = orthogonality_loss(w[:, :-1])
-            if modal:
-                K, M = subspace_stiffness_and_mass(X, w, dw, float(volume), config.poisson_ratio)
-                le = modal_loss(K, M, alpha, config.modal_trace_weight)
-                loss = le + config.modal_orthogonality_weight * lo
-            else:
-                G = gradient_basis_unchecked(X, w, dw)
-                le = elastic_loss(G, z, mu, lam, float(volume), config.inversion_threshold, trusted=True)
-                loss = config.elastic_weight * le + config.orthogonality_weight * lo
-            value = float(loss.detach())  # the iteration's one synchronisation
-            if not math.isfinite(value):
-                raise FloatingPointError(
-                    f"skinning training loss became {value} at iteration {it} "
-                    f"(elastic {float(le)}, orthogonality {float(lo)}); try a smaller lr or z_std"
-                )
-            grads = torch.autograd.grad(loss, params)
-            for p, g in zip(params, grads):
-                p.grad = g
-            opt.step()
-            sched.step()
-            losses.append(value)
-            if progress and (it % 50 == 0 or it == config.iterations - 1):
-                iterator.set_postfix({"loss": f"{losses[-1]:.4g}", "modal" if modal else "elastic": f"{float(le):.3g}",
-                                      "ortho": f"{float(lo):.3g}"})
+    try:  # foreach: one multi-tensor update (the same values)
+        return optimise(params, step, Schedule(config.iterations, config.lr, foreach=True),
+                        Progress("skinning (data-free)", progress), "skinning training")
     finally:
-        for p in params:
-            p.grad = None
         field.train(was_training)
-    return losses

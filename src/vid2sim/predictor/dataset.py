@@ -19,7 +19,6 @@ read as a fraction of 2⁶⁴, fall below ``val_fraction``.
 from __future__ import annotations
 
 import hashlib
-import json
 from pathlib import Path
 from typing import Any
 
@@ -29,6 +28,8 @@ from torch.utils.data import Dataset
 
 from vid2sim.predictor.data import FORMAT, INDEX
 from vid2sim.runtime.errors import InputError
+from vid2sim.runtime.files import read_json
+from vid2sim.runtime.limits import outside
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -39,6 +40,35 @@ def validation_fraction_of(name: str, seed: int) -> float:
     """The shard's position in [0, 1) that decides its split (SHA-256 of ``"<seed>:<name>"``)."""
     digest = hashlib.sha256(f"{seed}:{name}".encode()).digest()
     return int.from_bytes(digest[:8], "big") / 2.0**64
+
+
+def read_shard(path: Path, draws: int) -> dict[str, np.ndarray]:
+    """The arrays of one shard (``video`` (D, T, H, W, 3) uint8, ``log10_E`` (D,), ``nu`` (D,), ``last_layer``
+    (650,)), checked; raises InputError naming the shard when it is unreadable or not that."""
+    import zipfile
+    import zlib
+
+    from vid2sim.runtime.limits import npz_size_problem
+
+    too_big = npz_size_problem(path)
+    if too_big is not None:
+        raise InputError(f"{path}: {too_big}")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            arrays = {k: z[k] for k in ("video", "log10_E", "nu", "last_layer")}
+    except KeyError as exc:
+        raise InputError(f"{path}: a training-data shard without the array {exc}") from None
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
+        raise InputError(f"{path}: not a readable training-data shard ({type(exc).__name__}: {exc})") from None
+    v, e, n, last = arrays["video"], arrays["log10_E"], arrays["nu"], arrays["last_layer"]
+    if v.dtype != np.uint8 or v.ndim != 5 or v.shape[0] != draws or v.shape[-1] != 3:
+        raise InputError(f"{path}: video must be uint8 of shape ({draws}, T, H, W, 3), got {v.dtype} {v.shape}")
+    for key, a in (("log10_E", e), ("nu", n)):
+        if a.dtype.kind != "f" or a.shape != (draws,) or not np.isfinite(a).all():
+            raise InputError(f"{path}: {key} must be {draws} finite numbers, got {a.dtype} {a.shape}")
+    if last.dtype.kind != "f" or last.ndim != 1 or not np.isfinite(last).all():
+        raise InputError(f"{path}: last_layer must be a vector of finite numbers, got {last.dtype} {last.shape}")
+    return arrays
 
 
 class TrainingData(Dataset):
@@ -63,7 +93,7 @@ class TrainingData(Dataset):
         if not index_path.is_file():
             raise FileNotFoundError(f"{self.folder} has no {INDEX}; it is not a training-data folder "
                                     "(make one with `vid2sim make-training-data`)")
-        self.index: dict[str, Any] = json.loads(index_path.read_text())
+        self.index: dict[str, Any] = read_json(index_path, "a training-data index (vid2sim make-training-data)")
         if self.index.get("format") != FORMAT:
             raise InputError(f"{index_path}: format {self.index.get('format')!r}, expected {FORMAT!r}")
         if split not in SPLITS:
@@ -73,11 +103,23 @@ class TrainingData(Dataset):
         if normalize not in ("imagenet", "unit"):
             raise InputError(f"normalize must be 'imagenet' or 'unit', got {normalize!r}")
         self.split, self.normalize = split, normalize
-        self.draws = int(self.index["config"]["draws_per_object"])
-        names = [s["file"] for s in self.index["shards"]]
+        config, shards = self.index.get("config"), self.index.get("shards")
+        draws = config.get("draws_per_object") if isinstance(config, dict) else None
+        if isinstance(draws, bool) or not isinstance(draws, int) or draws < 1:
+            raise InputError(f"{index_path}: config.draws_per_object must be an integer >= 1, got {draws!r}")
+        if not isinstance(shards, list) or not all(isinstance(e, dict) and isinstance(e.get("file"), str)
+                                                   for e in shards):
+            raise InputError(f"{index_path}: shards must be a list of {{\"file\": NAME, ...}} entries")
+        self.draws = draws
+        names = [e["file"] for e in shards]
         for n in names:
-            if not (self.folder / n).is_file():
+            shard = self.folder / n
+            if not shard.is_file():
                 raise InputError(f"{self.folder}: shard {n} is listed in {INDEX} but missing")
+            real = outside(self.folder, shard)
+            if real is not None:
+                raise InputError(f"{index_path}: shard {n} resolves to {real}, outside the training-data folder "
+                                 "(set VID2SIM_ALLOW_OUTSIDE_PATHS=1 to allow files elsewhere)")
 
         def keep(name: str) -> bool:
             if split == "all":
@@ -95,8 +137,7 @@ class TrainingData(Dataset):
     def _shard(self, name: str) -> dict[str, np.ndarray]:
         if name in self._cache:
             return self._cache[name]
-        with np.load(self.folder / name, allow_pickle=False) as z:
-            arrays = {k: z[k] for k in ("video", "log10_E", "nu", "last_layer")}
+        arrays = read_shard(self.folder / name, self.draws)
         if self._cache_size:
             while len(self._cache) >= self._cache_size:
                 self._cache.pop(next(iter(self._cache)))
@@ -127,10 +168,10 @@ class TrainingData(Dataset):
         {"log10_E": {"mean", "std"}, "nu": {...}, "last_layer": {"mean": (650,), "std": (650,)}}."""
         logs, nus, layers = [], [], []
         for name in self.shards:
-            with np.load(self.folder / name, allow_pickle=False) as z:
-                logs.append(z["log10_E"])
-                nus.append(z["nu"])
-                layers.append(np.repeat(z["last_layer"][None], len(z["log10_E"]), axis=0))
+            z = read_shard(self.folder / name, self.draws)
+            logs.append(z["log10_E"])
+            nus.append(z["nu"])
+            layers.append(np.repeat(z["last_layer"][None], len(z["log10_E"]), axis=0))
         out = {}
         for key, arr in (("log10_E", np.concatenate(logs)), ("nu", np.concatenate(nus)),
                          ("last_layer", np.concatenate(layers))):

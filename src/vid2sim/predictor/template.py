@@ -70,6 +70,7 @@ from vid2sim.physics.skinning_training import (
     sample_handle_transforms,
 )
 from vid2sim.runtime.errors import ConfigError, InputError
+from vid2sim.runtime.training import Progress, Schedule, optimise
 
 #: the shipped template (package data)
 TEMPLATE_PATH = Path(__file__).with_name("template_skinning.pt")
@@ -342,22 +343,17 @@ def fit_last_layer(template: SkinningField, points: Tensor, iterations: int = 0,
     A = A0.clone().requires_grad_(True)
     b = b0.clone().requires_grad_(True)
     gen = torch.Generator(device="cpu").manual_seed(int(seed))
-    if iterations > 0:
-        opt = torch.optim.Adam([A, b], lr=lr)
-        sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=iterations)
-        for it in range(iterations):
-            le, lo = step_loss(feats, A, b, loss, gen, volume)
-            total = loss.elastic_weight * le + loss.orthogonality_weight * lo
-            if not bool(torch.isfinite(total)):
-                raise FloatingPointError(f"last-layer fit: the loss became {float(total)} at iteration {it}")
-            opt.zero_grad(set_to_none=True)
-            total.backward()
-            opt.step()
-            sched.step()
-            if log is not None:
-                log.loss.append(float(total.detach()))
-                log.elastic.append(float(le.detach()))
-                log.orthogonality.append(float(lo.detach()))
+
+    def step(it: int) -> tuple[Tensor, dict[str, Tensor]]:
+        le, lo = step_loss(feats, A, b, loss, gen, volume)
+        if log is not None:
+            log.elastic.append(float(le.detach()))
+            log.orthogonality.append(float(lo.detach()))
+        return loss.elastic_weight * le + loss.orthogonality_weight * lo, {"elastic": le, "ortho": lo}
+
+    losses = optimise([A, b], step, Schedule(iterations, lr), Progress("last-layer fit", False), "last-layer fit")
+    if log is not None:
+        log.loss.extend(losses)
     vec = torch.cat([A.detach().reshape(-1), b.detach()])
     if gauge:
         vec = canonical_gauge(template, vec, points, features=feats)
@@ -411,7 +407,7 @@ class TemplateConfig:
         lr: Adam's learning rate of the trunk (linear warm-up over ``warmup`` steps, then a cosine schedule
             to 0).
         loss: the data-free loss.
-        num_handles, width, hidden_layers: the skinning MLP (DESIGN.md: 10, 64, 8).
+        num_handles, width, hidden_layers: the skinning MLP (the paper's: 10, 64, 8).
         eval_shapes: held-out shapes (seeds ``shape_seed_base + shapes + k``) for the report.
         eval_iterations: iterations of the report's last-layer fits and full trainings.
     """
@@ -529,17 +525,10 @@ def train_template(config: TemplateConfig | None = None, progress: bool = True) 
 
     m, width = cfg.num_handles, cfg.width
     trunk_params = [p for layer in trunk.layers[:-1] for p in layer.parameters()]
-    opt = torch.optim.Adam(trunk_params, lr=cfg.lr)
-    warm, n_it = min(cfg.warmup, cfg.iterations), max(1, cfg.iterations)
-    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda i: min(1.0, (i + 1) / max(1, warm)) * 0.5 * (
-        1.0 + math.cos(math.pi * min(i, n_it) / n_it)))
     gen = torch.Generator(device="cpu").manual_seed(cfg.seed)
     mu, lam = lame_parameters(cfg.loss.youngs_modulus, cfg.loss.poisson_ratio)
 
-    curve: list[float] = []
-    window: list[float] = []
-    it_bar = tqdm(range(cfg.iterations), desc="template training", unit="it", disable=not progress)
-    for it in it_bar:
+    def step(it: int) -> tuple[Tensor, dict[str, Tensor]]:
         picks = torch.randperm(len(shapes), generator=gen)[: cfg.shapes_per_step].tolist()
         total = torch.zeros(())
         for k in picks:
@@ -560,18 +549,11 @@ def train_template(config: TemplateConfig | None = None, progress: bool = True) 
             a = torch.cat([A.T, b[None]], dim=0)
             le = vol * cfg.loss.z_std ** 2 * (2 * mu + lam / 2) * torch.trace(a.T @ K @ a)
             total = total + cfg.loss.elastic_weight * le.float() + cfg.loss.orthogonality_weight * lo
-        total = total / len(picks)
-        if not bool(torch.isfinite(total)):
-            raise FloatingPointError(f"template training: the loss became {float(total)} at step {it}")
-        opt.zero_grad(set_to_none=True)
-        total.backward()
-        opt.step()
-        sched.step()
-        window.append(float(total.detach()))
-        if len(window) == 50 or it == cfg.iterations - 1:
-            curve.append(float(np.mean(window)))
-            window = []
-            it_bar.set_postfix(loss=f"{curve[-1]:.4g}")
+        return total / len(picks), {}
+
+    losses = optimise(trunk_params, step, Schedule(cfg.iterations, cfg.lr, warmup=min(cfg.warmup, cfg.iterations)),
+                      Progress("template training", progress), "template training")
+    curve = [float(np.mean(losses[i:i + 50])) for i in range(0, len(losses), 50)]  # the loss per 50 steps
     t_train = time.perf_counter() - t_start - t_shapes
     trunk.set_last_layer(init_last)
     after = _eval_report(trunk, held_out, cfg, full=False) if held_out else []

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import os
+import pickle
 import tempfile
 from pathlib import Path
 from typing import Any, Callable
@@ -36,6 +37,11 @@ def write_file_atomic(path: str | Path, write: Callable[[str], None]) -> Path:
         write(tmp)
         os.chmod(tmp, 0o666 & ~_umask())
         os.replace(tmp, path)
+    except OSError as exc:
+        Path(tmp).unlink(missing_ok=True)
+        if exc.filename is None:  # a full disk raises ENOSPC without a file name: say which file it was writing
+            raise OSError(exc.errno, f"{exc.strerror or exc} (writing {path})") from exc
+        raise
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
@@ -81,3 +87,29 @@ def read_json(path: str | Path, what: str = "a JSON file", error: type[InputErro
     if not isinstance(value, expect):
         raise error(f"{path}: expected a JSON {expect.__name__} ({what}), got {type(value).__name__}")
     return value
+
+
+def load_torch_file(path: str | Path, what: str = "a torch file", error: type[InputError] = InputError,
+                    map_location: Any = "cpu") -> Any:
+    """``torch.load(path, weights_only=True)`` (tensors and plain containers only: a file from someone else
+    cannot run code), with every way the file can be broken turned into ``error`` naming it.
+
+    Raises:
+        ``error``: missing, a directory, truncated, not a torch file, or holding objects other than tensors and
+        plain containers (a pickle that would run code is refused here, unexecuted).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise error(f"{path}: missing (expected {what})")
+    try:
+        return torch.load(path, map_location=map_location, weights_only=True)
+    except OSError as exc:
+        raise error(f"{path}: cannot read it ({exc}); expected {what}") from None
+    except pickle.UnpicklingError as exc:
+        if "Unsupported global" in str(exc):  # a pickle naming a Python callable (what an exploit needs)
+            raise error(f"{path}: refused: it holds Python objects other than tensors and plain containers, and "
+                        f"loading them could run code (expected {what})") from None
+        raise error(f"{path}: not {what}, or corrupt (UnpicklingError: {str(exc).splitlines()[0][:200]})") from None
+    except Exception as exc:  # noqa: BLE001 - a corrupt or hostile file fails in many ways inside the unpickler
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise error(f"{path}: not {what}, or corrupt ({type(exc).__name__}: {first[:200]})") from None

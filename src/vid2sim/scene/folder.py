@@ -32,6 +32,9 @@ import os
 import shutil
 import threading
 import uuid
+import warnings
+import zipfile
+import zlib
 from collections import Counter
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
@@ -45,6 +48,12 @@ from torch import Tensor
 from tqdm import tqdm
 
 from vid2sim.runtime.errors import ConfigError, InputError
+from vid2sim.runtime.limits import (
+    image_size_problem,
+    max_image_pixels,
+    npz_size_problem,
+    outside,
+)
 from vid2sim.scene.validation import (
     SCENE_FORMAT_NAME,
     SCENE_FORMAT_VERSION,
@@ -176,7 +185,9 @@ class SceneConfig:
                 held = [i for i in range(n) if i not in set(observed)]
             return sorted(observed), sorted(held)
 
-        obs_f, held_f = split(self.observed_frames, self.held_out_frames, num_frames, min(DEFAULT_OBSERVED_FRAMES, num_frames))
+        obs_f, held_f = split(
+            self.observed_frames, self.held_out_frames, num_frames, min(DEFAULT_OBSERVED_FRAMES, num_frames)
+        )
         obs_v, held_v = split(self.observed_views, self.held_out_views, num_views, num_views)
         return replace(
             self,
@@ -240,7 +251,9 @@ class Scene:
             raise ConfigError(f"Scene: cameras must be a non-empty list of Camera, got {type(self.cameras).__name__}")
         for i, cam in enumerate(self.cameras):
             if not isinstance(cam, Camera):
-                raise ConfigError(f"Scene: cameras[{i}] must be a vid2sim.splats.cameras.Camera, got {type(cam).__name__}")
+                raise ConfigError(
+                    f"Scene: cameras[{i}] must be a vid2sim.splats.cameras.Camera, got {type(cam).__name__}"
+                )
         self.cameras = list(self.cameras)
         num_views = len(self.cameras)
         if not isinstance(self.images, Tensor):
@@ -255,7 +268,9 @@ class Scene:
             raise ConfigError(f"Scene: images must be non-empty, got shape {tuple(self.images.shape)}")
         if not isinstance(self.masks, Tensor) or tuple(self.masks.shape) != (num_views, num_frames, height, width):
             got = tuple(self.masks.shape) if isinstance(self.masks, Tensor) else type(self.masks).__name__
-            raise ConfigError(f"Scene: masks must have shape (V, T, H, W) = {(num_views, num_frames, height, width)}, got {got}")
+            raise ConfigError(
+                f"Scene: masks must have shape (V, T, H, W) = {(num_views, num_frames, height, width)}, got {got}"
+            )
         for name in ("images", "masks"):
             _check_pixel_range(getattr(self, name), f"Scene: {name}")
         for i, cam in enumerate(self.cameras):
@@ -335,9 +350,11 @@ class Scene:
         if not views or any(not 0 <= v < self.num_views for v in views) or len(set(views)) != len(views):
             raise InputError(f"Scene.subset: views must be distinct indices in 0..{self.num_views - 1}, got {views}")
         frames = range(self.num_frames) if frames is None else frames
-        if not isinstance(frames, range) or frames.step != 1 or len(frames) == 0 or frames.start < 0 or frames.stop > self.num_frames:
+        contiguous = isinstance(frames, range) and frames.step == 1 and len(frames) > 0
+        if not contiguous or frames.start < 0 or frames.stop > self.num_frames:
             raise InputError(
-                f"Scene.subset: frames must be a non-empty range(start, stop) within 0..{self.num_frames}, got {frames!r}"
+                f"Scene.subset: frames must be a non-empty range(start, stop) within 0..{self.num_frames}, got "
+                f"{frames!r}"
             )
         view_map = {old: new for new, old in enumerate(views)}
         frame_map = {old: new for new, old in enumerate(frames)}
@@ -444,13 +461,32 @@ _INT_DTYPES = (torch.uint8, torch.int8, torch.int16, torch.int32, torch.int64)
 # =============================================================================================
 
 
+def _open_image(path: Path) -> Image.Image:
+    """``Image.open`` with vid2sim's pixel limit (``VID2SIM_MAX_IMAGE_PIXELS``) in place of Pillow's warning and
+    error: raises ValueError naming the limit, before any pixel is decoded."""
+    Image.MAX_IMAGE_PIXELS = max_image_pixels()  # Pillow's error then comes at twice vid2sim's own limit
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+        try:
+            img = Image.open(path)
+        except Image.DecompressionBombError as exc:
+            raise ValueError(f"{exc}; raise vid2sim's limit with the environment variable "
+                             "VID2SIM_MAX_IMAGE_PIXELS") from None
+    problem = image_size_problem(int(img.width), int(img.height))
+    if problem is not None:
+        img.close()
+        raise ValueError(problem)
+    return img
+
+
 def _read_raster(path: Path) -> np.ndarray:
     """Decode an image file into an (H, W, C) array, C in {1, 2, 3, 4}; uint8, uint16 or float32.
 
     Palette images are expanded, 1-bit images become uint8 0/255, 16-bit grey stays uint16.
     Raises OSError/ValueError (with the reason) for unreadable or unsupported files.
     """
-    with Image.open(path) as img:
+    with _open_image(path) as img, warnings.catch_warnings():
+        warnings.simplefilter("ignore", Image.DecompressionBombWarning)
         img.load()
         mode = img.mode
         if mode == "P" or mode == "PA":
@@ -490,8 +526,12 @@ def _unit(arr: np.ndarray, dtype: np.dtype) -> np.ndarray:
 
 
 def _image_size(path: Path) -> tuple[int, int]:
-    """(width, height) from the file header, without decoding the pixels."""
-    with Image.open(path) as img:
+    """(width, height) from the file header, without decoding the pixels.
+
+    Raises:
+        ValueError: more pixels than ``VID2SIM_MAX_IMAGE_PIXELS`` (:mod:`vid2sim.runtime.limits`).
+    """
+    with _open_image(path) as img:
         return int(img.width), int(img.height)
 
 
@@ -501,15 +541,27 @@ def _write_png(path: Path, array: np.ndarray) -> None:
 
 
 def _resolve_file(root: Path, rel: str) -> Path | None:
-    """The file ``rel`` names (relative to ``root``); NeRF-style paths without suffix get ``.png``."""
+    """The file ``rel`` names (relative to ``root``); NeRF-style paths without suffix get ``.png``.
+
+    Raises:
+        SceneFormatError: the file (after following symlinks) lies outside the scene folder, unless
+            ``VID2SIM_ALLOW_OUTSIDE_PATHS=1`` (:mod:`vid2sim.runtime.limits`): a scene from someone else must not
+            make vid2sim read the user's other files.
+    """
     path = Path(rel) if Path(rel).is_absolute() else root / rel
+    found = None
     if path.is_file():
-        return path
-    if not path.suffix:
+        found = path
+    elif not path.suffix:
         with_png = path.with_name(path.name + ".png")
         if with_png.is_file():
-            return with_png
-    return None
+            found = with_png
+    if found is not None:
+        real = outside(root, found)
+        if real is not None:
+            raise SceneFormatError([f"file '{rel}' resolves to {real}, outside the scene folder (set "
+                                    "VID2SIM_ALLOW_OUTSIDE_PATHS=1 to allow files elsewhere)"], root)
+    return found
 
 
 def _composite(rgb: np.ndarray, mask: np.ndarray) -> np.ndarray:
@@ -949,12 +1001,26 @@ def _load_extras(root: Path, paths: dict[str, str], problems: Problems) -> dict[
         if not path.is_file():
             problems.add(f"{SCENE_JSON}: extras '{name}': file '{rel}' not found")
             continue
+        real = outside(root, path)
+        if real is not None:
+            problems.add(f"{SCENE_JSON}: extras '{name}': file '{rel}' resolves to {real}, outside the scene folder "
+                         "(set VID2SIM_ALLOW_OUTSIDE_PATHS=1 to allow files elsewhere)")
+            continue
+        too_big = npz_size_problem(path)
+        if too_big is not None:
+            problems.add(f"{SCENE_JSON}: extras '{name}': '{rel}': {too_big}")
+            continue
         try:
             with np.load(path, allow_pickle=False) as data:
-                arrays = {key: torch.from_numpy(np.array(data[key])) for key in data.files}
-        except (OSError, ValueError, EOFError) as exc:
+                raw = {key: np.array(data[key]) for key in data.files}
+        except (OSError, ValueError, EOFError, zipfile.BadZipFile, KeyError, zlib.error) as exc:
             problems.add(f"{SCENE_JSON}: extras '{name}': cannot read '{rel}' as an .npz file: {exc}")
             continue
+        odd = [f"{key} ({a.dtype})" for key, a in raw.items() if a.dtype.kind not in "biuf"]
+        if odd:
+            problems.add(f"{SCENE_JSON}: extras '{name}': '{rel}': arrays {', '.join(odd)} are not numbers")
+            continue
+        arrays = {key: torch.from_numpy(a) for key, a in raw.items()}
         if not arrays:
             problems.add(f"{SCENE_JSON}: extras '{name}': '{rel}' holds no arrays")
             continue
@@ -1154,7 +1220,9 @@ def _write_contents(
         (folder / "extras").mkdir()
         scene_json["extras"] = {}
         for name, group in scene.extras.items():
-            np.savez_compressed(folder / "extras" / f"{name}.npz", **{k: a.detach().cpu().numpy() for k, a in group.items()})
+            np.savez_compressed(
+                folder / "extras" / f"{name}.npz", **{k: a.detach().cpu().numpy() for k, a in group.items()}
+            )
             scene_json["extras"][name] = f"extras/{name}.npz"
     _write_json(folder / TRANSFORMS_JSON, transforms)
     _write_json(folder / SCENE_JSON, scene_json)  # last: a folder with scene.json is complete

@@ -30,6 +30,7 @@ import torch
 from torch import Tensor
 
 from vid2sim.runtime.errors import InputError
+from vid2sim.runtime.limits import image_size_problem, max_array_bytes
 
 __all__ = ["VideoInfo", "VideoError", "probe_video", "load_video", "read_video", "write_video"]
 
@@ -121,9 +122,20 @@ def load_video(path: str | Path, dtype: torch.dtype = torch.float32) -> tuple[Te
         gen = ff.read_frames(str(path), pix_fmt="rgb24", output_params=list(_SWS_FLAGS))
         meta = next(gen)
         width, height = (int(v) for v in meta["size"])
+        too_big = image_size_problem(width, height)
+        if too_big is not None:
+            gen.close()
+            raise VideoError(f"video '{path}': frames of {too_big}")
+        budget = max_array_bytes()  # the decoded frames, as for an archive's arrays
         for raw in gen:
             frames.append(np.frombuffer(raw, dtype=np.uint8).reshape(height, width, 3))
-    except (OSError, RuntimeError, StopIteration) as exc:
+            if len(frames) * width * height * 3 > budget:
+                gen.close()
+                raise VideoError(f"video '{path}': more than {budget} bytes of decoded frames (the limit; raise it "
+                                 "with the environment variable VID2SIM_MAX_ARRAY_BYTES)")
+    except VideoError:
+        raise
+    except (OSError, RuntimeError, StopIteration, ValueError) as exc:
         raise VideoError(f"cannot read video '{path}': {_first_line(exc)}") from exc
     if not frames:
         raise VideoError(f"video '{path}' contains no frames")

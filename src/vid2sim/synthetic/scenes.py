@@ -1,6 +1,7 @@
 """Synthetic scenes: an object dropped on the floor, simulated by FEM and rendered from a camera ring.
 
-The paper's benchmark (DESIGN.md): objects dropped onto a floor, FEM ground truth, 12 views at 448 × 448,
+The paper's benchmark (docs/architecture.md, "The paper's numbers"): objects dropped onto a floor, FEM ground truth, 12
+views at 448 × 448,
 24 frames (16 observed + 8 for future prediction). Google Scanned Objects and Blender are not available
 here, so vid2sim makes its own:
 
@@ -9,7 +10,7 @@ here, so vid2sim makes its own:
    (:func:`vid2sim.synthetic.meshes.load_user_mesh`), in the canonical frame (half bounding-box diagonal 0.5);
 2. its tetrahedralization (fTetWild, :func:`vid2sim.meshing.tetra.tetrahedralize`);
 3. the FEM drop (:func:`vid2sim.synthetic.fem.simulate_fem`): random rotation, drop height and rigid velocity
-   from the seed, Neo-Hookean with the given E, ν, density, the floor of DESIGN.md;
+   from the seed, Neo-Hookean with the given E, ν, density, the floor of docs/architecture.md;
 4. the textured surface carried by the tets (:mod:`vid2sim.synthetic.embedding`) and rendered at every frame
    from every camera (:func:`vid2sim.synthetic.mesh_render.render_textured_mesh`), RGBA on white;
 5. one scene folder, complete or absent (staged next to the target, then renamed): the scene written by
@@ -58,8 +59,15 @@ PRESETS: dict[str, dict[str, Any]] = {
     # 12 observed views (the paper's benchmark) + 2 held-out novel views
     "full": {"views": 14, "held_out_views": 2, "resolution": 448, "frames": 24, "observed_frames": 16},
     # a coarser tet mesh (about 3 000 tets instead of about 13 000 for a 3 000-face surface) for CPUs
-    "small": {"views": 6, "held_out_views": 2, "resolution": 128, "frames": 24, "observed_frames": 16, "tet_edge_length": 0.08,
-              "tet_envelope": 5e-3},
+    "small": {
+        "views": 6,
+        "held_out_views": 2,
+        "resolution": 128,
+        "frames": 24,
+        "observed_frames": 16,
+        "tet_edge_length": 0.08,
+        "tet_envelope": 5e-3,
+    },
 }
 
 BENCHMARK_E_RANGE = (1e4, 1e6)

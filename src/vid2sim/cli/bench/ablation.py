@@ -58,5 +58,5 @@ def register(sub: argparse._SubParsersAction) -> None:
                       "stage2_prior) and ablation.json (resumed if it holds them)")
     add_reconstruct_options(babl)
     add_suite_run_options(babl)
-    babl.set_defaults(func=run)
+    babl.set_defaults(func=run, lock_output="out")  # one writer per OUT (runtime.locks)
 

@@ -44,4 +44,4 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "(resumed if it holds a suite_config.json)")
     add_reconstruct_options(bsuite)
     add_suite_run_options(bsuite)
-    bsuite.set_defaults(func=run)
+    bsuite.set_defaults(func=run, lock_output="out")  # one writer per OUT (runtime.locks)

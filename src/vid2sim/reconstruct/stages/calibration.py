@@ -82,7 +82,7 @@ def _reference_worker(points_path: str, arguments: dict, path: str) -> None:
     """Child process of :class:`TetReferenceJob`: :func:`tet_reference` of the points saved at ``points_path``
     (.npy) into the JSON file ``path``."""
     torch.set_num_threads(1)
-    points = np.load(points_path)
+    points = np.load(points_path, allow_pickle=False)
     try:
         out = {"ok": True, "reference": tet_reference(points, **arguments)}
     except ValueError as exc:  # a bad input (no surface): reported to the parent as the same error

@@ -6,7 +6,8 @@ rendered in the observed views and compared with the video. Gradients reach log1
 damping ratio), the initial linear and angular velocity, the skinning MLP and the Neural Jacobian through the
 renderer and the simulator's per-substep adjoint.
 
-Paper settings (DESIGN.md): 400 Adam iterations with learning rates (5e-3, 1e-3, 5e-7, 5e-7) on (log10 E, ν,
+Paper settings (docs/architecture.md, "The paper's numbers"): 400 Adam iterations with learning rates (5e-3, 1e-3, 5e-7,
+5e-7) on (log10 E, ν,
 skinning MLP, Jacobian net), windows of Δs = 4 frames starting at a random frame s ∈ [s′, T − Δs], loss = mean
 squared image error over the views. Beyond the paper, so that it converges and fits a CPU budget:
 
@@ -288,7 +289,9 @@ def joint_optimisation(
     t_start = time.perf_counter()
     V, T = observations.images.shape[:2]
     if T < cfg.window + 1:
-        raise ValueError(f"the joint optimisation needs at least window + 1 = {cfg.window + 1} observed frames, got {T}")
+        raise ValueError(
+            f"the joint optimisation needs at least window + 1 = {cfg.window + 1} observed frames, got {T}"
+        )
     dtype = sim.X.dtype
     gen = torch.Generator().manual_seed(cfg.seed)
     rig = GaussianRig(sim, gaussians)
