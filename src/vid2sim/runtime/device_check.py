@@ -15,13 +15,16 @@ storage gets one of two labels, in a weak table keyed by its ``UntypedStorage`` 
   ``cuda``: pass it as the code's ``device`` / ``--device cpu:0``), moved there (``.to(device)``,
   ``nn.Module.to``), made "like" such a tensor (``zeros_like``, ``x.new_zeros``, ``device=x.device``), or
   computed from one;
-- *host*: every tensor that existed when the check started, and every tensor made without ``device=`` or with
+- *host*: every tensor that existed when the check started (except those an earlier check labelled accelerator
+  and that still live, in caches for instance), and every tensor made without ``device=`` or with
   a CPU device (factories, ``torch.from_numpy``, ``torch.tensor`` of Python data), moved to the CPU
   (``.cpu()``, ``.to("cpu")``) or computed from host tensors only.
 
 Reading ``.device`` of an accelerator tensor returns the stand-in device, so ``device=x.device`` follows it
-the way it follows ``cuda`` on a GPU. A tensor that no intercepted call made (``torch.load`` results, tensors
-made by compiled extensions or on other threads) stays unlabelled and never causes a finding.
+the way it follows ``cuda`` on a GPU. ``torch.from_numpy`` and ``torch.frombuffer``, which no
+mode sees, are replaced by labelling wrappers while the check runs (calls through the ``torch`` module; a name
+imported from it before is not). A tensor that no intercepted call made (``torch.load`` results, tensors made by
+compiled extensions or on other threads) stays unlabelled and never causes a finding.
 
 What it flags, each a call that raises on a CUDA device (a :class:`Finding` with the call site and, for a host
 tensor, where it was made):
@@ -68,6 +71,8 @@ _THIS_FILE = os.path.abspath(__file__)
 #: concatenations: no zero-dimensional CPU tensor beside CUDA ones
 _CONCATS = frozenset({"cat", "concat", "concatenate", "stack", "hstack", "vstack", "dstack", "column_stack",
                       "row_stack", "block_diag", "cartesian_prod"})
+#: factories that no TorchFunctionMode sees (replaced by labelling wrappers while a check runs)
+_BYPASSING = ("from_numpy", "frombuffer")
 #: calls that make a tensor on a device of their own: (the device given, else the source's)
 _LIKE = frozenset({"zeros_like", "ones_like", "empty_like", "full_like", "rand_like", "randn_like", "randint_like",
                    "new_zeros", "new_ones", "new_empty", "new_full", "new_tensor", "new_empty_strided", "clone",
@@ -142,8 +147,18 @@ def _name(func: Callable) -> str:
     return getattr(func, "__name__", repr(func))
 
 
-def _is_device(value: Any) -> bool:
-    return isinstance(value, (torch.device, str, int)) and not isinstance(value, bool)
+#: id(UntypedStorage) → a weak reference to it, of every storage that a check labelled accelerator and that is
+#: still alive: a later check starts with them on the accelerator (the entry dropped when the storage dies)
+_ON_ACCELERATOR: dict[int, weakref.ref] = {}
+
+
+def _was_on_accelerator(tensor: torch.Tensor) -> bool:
+    try:
+        storage = tensor.untyped_storage()
+    except (RuntimeError, NotImplementedError, TypeError):
+        return False
+    ref = _ON_ACCELERATOR.get(id(storage))
+    return ref is not None and ref() is storage
 
 
 class DeviceCheck(TorchFunctionMode):
@@ -179,14 +194,45 @@ class DeviceCheck(TorchFunctionMode):
         self._refs: dict[int, weakref.ref] = {}
         self._names: dict[Any, str] = {}
         self._seen: set[tuple[str, str]] = set()
+        self._unwrapped: dict[str, Callable] = {}
 
     # ---- labels -------------------------------------------------------------------------------------------
 
     def __enter__(self) -> "DeviceCheck":
-        for obj in gc.get_objects():  # what exists already was made on the host
-            if issubclass(type(obj), torch.Tensor):
-                self._set(obj, _HOST, None, overwrite=False)
-        return super().__enter__()
+        for obj in gc.get_objects():  # what exists already was made on the host, or on the accelerator of an
+            if issubclass(type(obj), torch.Tensor):  # earlier check (a cache such as fused._index keeps it)
+                self._set(obj, _ACC if _was_on_accelerator(obj) else _HOST, None, overwrite=False)
+        # torch.from_numpy and torch.frombuffer bypass the modes: wrapped while the check runs, so that their
+        # results are host tensors (as on a GPU machine) rather than unlabelled
+        self._unwrapped = {name: getattr(torch, name) for name in _BYPASSING}
+        for name, original in self._unwrapped.items():
+            setattr(torch, name, self._host_factory(original))
+        try:
+            return super().__enter__()
+        except BaseException:
+            self._unwrap()
+            raise
+
+    def __exit__(self, *exc: Any) -> Any:
+        try:
+            return super().__exit__(*exc)
+        finally:
+            self._unwrap()
+
+    def _unwrap(self) -> None:
+        for name, original in self._unwrapped.items():
+            setattr(torch, name, original)
+        self._unwrapped = {}
+
+    def _host_factory(self, original: Callable) -> Callable:
+        def factory(*args: Any, **kwargs: Any) -> torch.Tensor:
+            out = original(*args, **kwargs)
+            self._set(out, _HOST, _caller(), overwrite=False)
+            return out
+
+        factory.__name__ = original.__name__
+        factory.__doc__ = original.__doc__
+        return factory
 
     def label(self, tensor: torch.Tensor) -> str | None:
         """``"accelerator"``, ``"host"`` or ``None`` (never seen) for ``tensor``'s storage."""
@@ -216,6 +262,8 @@ class DeviceCheck(TorchFunctionMode):
         elif not overwrite:
             return
         self._labels[key] = (label, made_at)
+        if label == _ACC and key not in _ON_ACCELERATOR:
+            _ON_ACCELERATOR[key] = weakref.ref(storage, lambda _, key=key: _ON_ACCELERATOR.pop(key, None))
 
     def _target(self, device: Any) -> str:
         return _ACC if torch.device(device) == ACCELERATOR else _HOST
