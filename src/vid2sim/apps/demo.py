@@ -28,6 +28,8 @@ from vid2sim.runtime import config as configs
 from vid2sim.runtime.errors import ConfigError
 
 if TYPE_CHECKING:
+    import torch
+
     from vid2sim.reconstruct.pipeline import ReconstructConfig
     from vid2sim.simulate.scenario import Scenario
     from vid2sim.synthetic.scenes import SyntheticSceneConfig
@@ -135,8 +137,11 @@ def _ball_under(asset_path: Path, drop: float) -> dict[str, Any]:
 
 
 def run_demo(out: str | Path, config: DemoConfig | None = None, progress: bool = True,
-             workers: int = 1) -> DemoResult:
+             workers: int = 1, device: "str | torch.device | None" = None) -> DemoResult:
     """Run the demo into ``out`` (created, or resumed after its last finished step; module docstring).
+
+    ``device`` (None: CUDA when available, else the CPU) runs the reconstruction's optimisations, the
+    evaluation, the simulation and the report's renders; the synthetic scene is made on the CPU.
 
     Returns:
         a :class:`DemoResult`; ``out/demo.json`` holds the same figures.
@@ -181,13 +186,13 @@ def run_demo(out: str | Path, config: DemoConfig | None = None, progress: bool =
         done("scene", t0)
     if not (asset / "asset.json").is_file():
         t0 = step("asset", 2, f"reconstructing it from its observed views and frames into {asset}")
-        reconstruct(scene, asset, cfg.reconstruct_config(), progress=progress)
+        reconstruct(scene, asset, cfg.reconstruct_config(), progress=progress, device=device)
         done("asset", t0)
     evaluation_path = asset / "evaluation.json"
     renders = None
     if not evaluation_path.is_file():
         t0 = step("evaluation", 3, "scoring it on observed, future and held-out views")
-        evaluation, renders = evaluate(asset, scene, progress=progress, return_renders=True)
+        evaluation, renders = evaluate(asset, scene, progress=progress, return_renders=True, device=device)
         write_evaluation(evaluation, evaluation_path)
         done("evaluation", t0)
     evaluation = json.loads(evaluation_path.read_text())
@@ -199,11 +204,11 @@ def run_demo(out: str | Path, config: DemoConfig | None = None, progress: bool =
 
             ball = _ball_under(asset, drop=0.3)
             scenario.obstacles.append(ObstacleSpec(center=tuple(ball["center"]), radius=ball["radius"]))
-        simulate(asset, scenario, sim, progress=progress, overwrite=True)
+        simulate(asset, scenario, sim, progress=progress, overwrite=True, device=device)
         done("simulation", t0)
     t0 = step("report", 5, f"writing the report {report / 'index.html'}")
     asset_report(report, asset, scene=scene, evaluation=evaluation, renders=renders, progress=progress,
-                 simulations=[sim])
+                 simulations=[sim], device=device)
     done("report", t0)
     material = evaluation["material"]
     result = DemoResult(out=out, scene=scene, asset=asset, simulation=sim, report=report,

@@ -18,6 +18,7 @@ from vid2sim.evaluate.scores import evaluate
 from vid2sim.report import ReportConfig, write_report
 from vid2sim.report.inputs import read_evaluation
 from vid2sim.report.scene_report import RingRenders, check_out
+from vid2sim.runtime.device import resolve_device
 from vid2sim.scene.folder import Scene
 from vid2sim.scene.reading import load_scene
 from vid2sim.splats.cameras import camera_ring
@@ -46,21 +47,26 @@ def _same_folder(a: Any, b: Any) -> bool:
         return False
 
 
-def ring_renders(asset_dir: Path, config: ReportConfig, progress: bool) -> RingRenders:
-    """The asset's own drop, ``config.ring_frames`` frames, rendered in a ring of ``config.ring_views`` cameras
-    around its whole trajectory."""
-    asset = load_asset(asset_dir)
+def ring_renders(asset_dir: Path, config: ReportConfig, progress: bool,
+                 device: torch.device | str = "cpu") -> RingRenders:
+    """The asset's own drop, ``config.ring_frames`` frames, simulated and rendered on ``device`` in a ring of
+    ``config.ring_views`` cameras around its whole trajectory (the renders on the CPU)."""
+    asset = load_asset(asset_dir, device)
     frames = simulate_gaussians(asset, config.ring_frames, progress=progress)
     cams, azimuths = ring_cameras(frames, config)
+    cams = [c.to(device) for c in cams]
     observed = asset.extra.get("observed_frames")
-    return RingRenders(render_frames(frames, cams, progress=progress), azimuths, float(asset.dt),
+    return RingRenders(render_frames(frames, cams, progress=progress).cpu(), azimuths, float(asset.dt),
                        int(observed) if isinstance(observed, int) else config.ring_frames)
 
 
 def asset_report(out_dir: str | Path, asset: str | Path, scene: str | Path | Scene | None = None,
                  evaluation: Mapping[str, Any] | None = None, renders: Tensor | None = None, progress: bool = True,
-                 config: ReportConfig | None = None, simulations: Sequence[str | Path] = ()) -> Path:
+                 config: ReportConfig | None = None, simulations: Sequence[str | Path] = (),
+                 device: str | torch.device | None = None) -> Path:
     """:func:`vid2sim.report.write_report` of an asset with what is missing computed first.
+
+    ``device`` (None: CUDA when available, else the CPU) runs the simulation and rendering of what is missing.
 
     With a scene and no ``evaluation``: the asset's ``evaluation.json`` when it was computed on that scene folder,
     else :func:`~vid2sim.evaluate.scores.evaluate` runs (and provides the renders); renders still missing are made
@@ -70,12 +76,13 @@ def asset_report(out_dir: str | Path, asset: str | Path, scene: str | Path | Sce
         ``out_dir`` as a Path.
     """
     config = config or ReportConfig()
+    dev = device if isinstance(device, torch.device) else resolve_device(device)
     asset_dir = Path(asset)
     check_out(Path(out_dir))  # before any work
     timings: dict[str, float] = {}
     if scene is None:
         t0 = time.perf_counter()
-        ring = ring_renders(asset_dir, config, progress) if asset_dir.is_dir() else None
+        ring = ring_renders(asset_dir, config, progress, dev) if asset_dir.is_dir() else None
         timings["simulate and render (ring)"] = time.perf_counter() - t0
         return write_report(out_dir, asset_dir, evaluation=evaluation, ring=ring, progress=progress, config=config,
                             simulations=simulations, timings=timings)
@@ -90,12 +97,13 @@ def asset_report(out_dir: str | Path, asset: str | Path, scene: str | Path | Sce
     if scene_obj is not None and asset_dir.is_dir():
         if renders is None and evaluation is None:
             t0 = time.perf_counter()
-            evaluation, renders = evaluate(asset_dir, scene_path, progress=progress, return_renders=True)
+            evaluation, renders = evaluate(asset_dir, scene_path, progress=progress, return_renders=True,
+                                           device=dev)
             timings["evaluate (simulate, render, score)"] = time.perf_counter() - t0
         elif renders is None:
             t0 = time.perf_counter()
-            frames = simulate_gaussians(load_asset(asset_dir), scene_obj.images.shape[1], progress=progress)
-            renders = render_frames(frames, scene_obj.cameras, progress=progress)
+            frames = simulate_gaussians(load_asset(asset_dir, dev), scene_obj.images.shape[1], progress=progress)
+            renders = render_frames(frames, [c.to(dev) for c in scene_obj.cameras], progress=progress).cpu()
             timings["simulate and render"] = time.perf_counter() - t0
     return write_report(out_dir, asset_dir, scene=scene_obj if scene_obj is not None else scene, evaluation=evaluation,
                         renders=renders, progress=progress, config=config, simulations=simulations, timings=timings)

@@ -306,15 +306,16 @@ def load_asset(folder: str | Path, device: torch.device | str = "cpu") -> Asset:
     try:
         s = nets["skinning"]
         field_ = SkinningField(s["num_handles"], s["width"], s["hidden_layers"]).to(device=device, dtype=dtype)
+        # the state dicts are read on the CPU and copied into the networks on ``device`` (load_state_dict)
         field_.load_state_dict(load_torch_file(folder / FILES["skinning"], "an asset's skinning weights",
-                                               AssetFormatError, device))
+                                               AssetFormatError))
         jac = None
         if "jacobian" in nets:
             j = nets["jacobian"]
             jac = NeuralJacobian(j["num_handles_total"], j["encoding_dim"], tuple(j["widths"]),
                                  frequency_scale=j["frequency_scale"]).to(device=device, dtype=dtype)
             jac.load_state_dict(load_torch_file(folder / FILES["jacobian"], "an asset's Neural Jacobian weights",
-                                                AssetFormatError, device))
+                                                AssetFormatError))
     except (KeyError, TypeError, ValueError, AttributeError, RuntimeError) as exc:
         if isinstance(exc, AssetFormatError):
             raise

@@ -29,6 +29,12 @@ def set_threads(threads: int | None) -> None:
         torch.set_num_threads(threads)
 
 
+def add_device_option(p: argparse.ArgumentParser, what: str) -> None:
+    """``--device DEVICE``: the torch device that runs ``what`` (default: cuda if available, else cpu)."""
+    p.add_argument("--device", default=None,
+                   help=f"torch device of {what} (default: cuda if available, else cpu)")
+
+
 def add_suite_run_options(p: argparse.ArgumentParser) -> None:
     """--ray-address, --threads and --quiet of the commands that run a benchmark suite."""
     p.add_argument("--ray-address", default=None, metavar="ADDR",

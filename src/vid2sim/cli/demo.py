@@ -8,19 +8,21 @@ import math
 import time
 
 from vid2sim.apps.demo import DemoConfig, run_demo
-from vid2sim.cli.common import UserError, add_threads_option, set_threads
+from vid2sim.cli.common import UserError, add_device_option, add_threads_option, set_threads
+from vid2sim.runtime.device import resolve_device
 
 
 def run(args: argparse.Namespace) -> int:
 
     set_threads(args.threads)
+    device = resolve_device(args.device)  # a bad --device fails before any work
     try:
         config = DemoConfig(size=args.size, seed=args.seed)
     except ValueError as exc:
         raise UserError(str(exc).replace("DemoConfig.size", "--size")) from exc
     start = time.perf_counter()
     try:
-        result = run_demo(args.out, config, progress=not args.quiet)
+        result = run_demo(args.out, config, progress=not args.quiet, device=device)
     except FileExistsError as exc:
         raise UserError(str(exc)) from exc
     minutes = (time.perf_counter() - start) / 60.0
@@ -57,6 +59,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="small: the real demo (6 views, 128x128, the small reconstruction preset); tiny: toy sizes "
                         "in about a minute, to check an installation")
     p.add_argument("--seed", type=int, default=0, help="seed of the object, its texture and its drop (default 0)")
+    add_device_option(p, "the reconstruction, evaluation, simulation and report")
     add_threads_option(p)
     p.add_argument("--quiet", action="store_true", help="no progress output")
     p.set_defaults(func=run, lock_output="out")  # one writer per OUT (runtime.locks)

@@ -5,17 +5,19 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from vid2sim.cli.common import add_threads_option, set_threads
+from vid2sim.cli.common import add_device_option, add_threads_option, set_threads
 from vid2sim.cli.report import write_asset_report
 from vid2sim.evaluate.scores import evaluate, write_evaluation
+from vid2sim.runtime.device import resolve_device
 
 
 def run(args: argparse.Namespace) -> int:
 
 
     set_threads(args.threads)
+    device = resolve_device(args.device)  # a bad --device fails before any work
     report, renders = evaluate(args.asset, args.scene, fovvdp=args.fovvdp, progress=not args.quiet,
-                               return_renders=True, true_motion=args.true_motion)
+                               return_renders=True, true_motion=args.true_motion, device=device)
     out = Path(args.out) if args.out else Path(args.asset) / "evaluation.json"
     write_evaluation(report, out)
     lines = []
@@ -40,7 +42,7 @@ def run(args: argparse.Namespace) -> int:
     print("\n".join(lines + [f"wrote {out}"]))
     if not args.no_report:
         write_asset_report(Path(args.asset) / "report", args.asset, args.scene, quiet=args.quiet, evaluation=report,
-                      renders=renders)
+                           renders=renders, device=device)
     return 0
 
 
@@ -56,6 +58,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     ev.add_argument("--true-motion", action="store_true",
                     help="also score the asset's Gaussians moved by the ground truth's motion (needs the "
                          "tet_trajectory extra): the appearance's share of the image error")
+    add_device_option(ev, "the simulation and rendering (the scores are computed on the CPU)")
     add_threads_option(ev)
     ev.add_argument("--quiet", action="store_true", help="no progress output")
     ev.set_defaults(func=run)

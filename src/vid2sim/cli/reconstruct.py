@@ -24,7 +24,7 @@ def run(args: argparse.Namespace) -> int:
     material = json.loads((path / "material.json").read_text())
     print(f"wrote {path}: E = {material['E']:.4g} Pa (log10 E = {material['log10_E']:.3f}), nu = {material['nu']:.3f}")
     if not args.no_report:
-        write_asset_report(path / "report", path, args.scene, quiet=args.quiet)
+        write_asset_report(path / "report", path, args.scene, quiet=args.quiet, device=device)
     return 0
 
 

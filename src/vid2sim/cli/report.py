@@ -13,13 +13,15 @@ from pathlib import Path
 
 from vid2sim.apps.report import asset_report
 from vid2sim.asset.folder import AssetFormatError
-from vid2sim.cli.common import UserError, add_threads_option, set_threads
+from vid2sim.cli.common import UserError, add_device_option, add_threads_option, set_threads
 from vid2sim.report import ReportConfig, ReportInputError
+from vid2sim.runtime.device import resolve_device
 from vid2sim.scene.validation import SceneFormatError
 
 
 def run(args: argparse.Namespace) -> int:
     set_threads(args.threads)
+    device = resolve_device(args.device)  # a bad --device fails before any work
     asset = Path(args.asset)
     if not asset.is_dir():
         raise UserError(f"ASSET {asset}: no such folder (an asset folder written by vid2sim reconstruct)")
@@ -28,7 +30,7 @@ def run(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     try:
         config = ReportConfig(video_format=args.video_format, crop=not args.full_frame)
-        out = asset_report(args.out, asset, scene=args.scene, progress=not args.quiet, config=config)
+        out = asset_report(args.out, asset, scene=args.scene, progress=not args.quiet, config=config, device=device)
     except (ReportInputError, AssetFormatError, SceneFormatError) as exc:
         raise UserError(str(exc)) from exc
     files = [p for p in out.rglob("*") if p.is_file()]
@@ -39,10 +41,12 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def write_asset_report(out, asset, scene, quiet: bool, evaluation=None, renders=None) -> None:
-    """The HTML report of ``asset`` compared with ``scene`` (vid2sim.report), and one line saying where it is."""
+def write_asset_report(out, asset, scene, quiet: bool, evaluation=None, renders=None, device=None) -> None:
+    """The HTML report of ``asset`` compared with ``scene`` (vid2sim.report), and one line saying where it is;
+    what is missing is simulated and rendered on ``device`` (None: CUDA when available)."""
     try:
-        path = asset_report(out, asset, scene=scene, evaluation=evaluation, renders=renders, progress=not quiet)
+        path = asset_report(out, asset, scene=scene, evaluation=evaluation, renders=renders, progress=not quiet,
+                            device=device)
     except ReportInputError as exc:
         raise UserError(f"the report could not be written: {exc}") from exc
     print(f"report: {path / 'index.html'}")
@@ -60,6 +64,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="webm: VP9 videos with synchronised controls (default); webp: animated images")
     p.add_argument("--full-frame", action="store_true", help="show whole frames instead of each view cropped to "
                    "the object's trajectory")
+    add_device_option(p, "the simulation and rendering")
     add_threads_option(p)
     p.add_argument("--quiet", action="store_true", help="no progress output")
     p.set_defaults(func=run)

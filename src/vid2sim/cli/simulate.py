@@ -10,8 +10,9 @@ import argparse
 import json
 from pathlib import Path
 
-from vid2sim.cli.common import UserError, add_threads_option, set_threads
+from vid2sim.cli.common import UserError, add_device_option, add_threads_option, set_threads
 from vid2sim.physics.solver import SimulationError
+from vid2sim.runtime.device import resolve_device
 from vid2sim.simulate.run import OUTPUT_MARKERS, simulate
 from vid2sim.simulate.scenario import Scenario
 
@@ -93,6 +94,7 @@ def run(args: argparse.Namespace) -> int:
 
 
     set_threads(args.threads)
+    device = resolve_device(args.device)  # a bad --device fails before any work
     out = Path(args.out)
     if out.exists() and not args.overwrite:
         raise UserError(f"{out} exists; pass --overwrite to replace it")
@@ -104,7 +106,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         path = simulate(args.asset, scenario, out, progress=not args.quiet, video=not args.no_video,
                         ply=not args.no_ply, overwrite=args.overwrite,
-                        scenery=not args.no_scenery)
+                        scenery=not args.no_scenery, device=device)
     except SimulationError as exc:
         raise UserError(f"the simulation failed ({exc}); nothing was written to {out}") from exc
 
@@ -199,6 +201,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--no-scenery", action="store_true", help="draw the object alone (by default the floor and the "
                    "sphere obstacles are drawn in the frames and videos)")
     g.add_argument("--overwrite", action="store_true", help="replace an earlier output folder")
+    add_device_option(g, "the simulation and rendering")
     add_threads_option(g)
     g.add_argument("--quiet", action="store_true", help="no progress output")
     p.set_defaults(func=run, lock_output="out")  # one writer per OUT (runtime.locks)

@@ -35,6 +35,7 @@ from vid2sim.asset.motion import (
     simulated_centre_of_mass,
     true_motion_gaussians,
 )
+from vid2sim.runtime.device import resolve_device
 from vid2sim.runtime.errors import InputError
 
 
@@ -113,8 +114,11 @@ def start_material(asset_path: str | Path) -> dict[str, Any] | None:
 
 def evaluate(asset_path: str | Path, scene_path: str | Path, fovvdp: bool = False,
              display: str = "standard_4k", progress: bool = True, return_renders: bool = False,
-             true_motion: bool = False) -> Any:
+             true_motion: bool = False, device: str | torch.device | None = None) -> Any:
     """Evaluate the asset at ``asset_path`` on the scene folder ``scene_path`` (see the module docstring).
+
+    ``device`` (None: CUDA when available, else the CPU) runs the simulation and the rendering; the scores are
+    computed on the CPU.
 
     Returns:
         a JSON-ready dict: ``dynamic``, ``future``, ``novel_views`` (each ``psnr``, ``ssim``, per-frame lists,
@@ -136,15 +140,17 @@ def evaluate(asset_path: str | Path, scene_path: str | Path, fovvdp: bool = Fals
     from vid2sim.scene.reading import load_scene
 
     t0 = time.perf_counter()
-    asset = load_asset(asset_path)
+    dev = device if isinstance(device, torch.device) else resolve_device(device)
+    asset = load_asset(asset_path, dev)
     scene = load_scene(scene_path)
+    cameras = [c.to(dev) for c in scene.cameras]
     if abs(float(scene.config.dt) - asset.dt) > 1e-6 * asset.dt:
         raise InputError(f"{scene_path}: frame time {scene.config.dt} s differs from the asset's {asset.dt} s")
     V, T = scene.images.shape[:2]
     sim, states = simulate_states(asset, T, progress=progress)
     deformed = deform_states(asset, sim, states, progress=progress)
-    centres = [d.means for d in deformed]
-    renders = render_frames(deformed, scene.cameras, background=1.0, progress=progress)  # (V, T, H, W, 3)
+    centres = [d.means.cpu() for d in deformed]
+    renders = render_frames(deformed, cameras, background=1.0, progress=progress).cpu()  # (V, T, H, W, 3)
     targets = scene.images.float()
     obs_v, held_v = list(scene.config.observed_views), list(scene.config.held_out_views)
     obs_f, held_f = list(scene.config.observed_frames), list(scene.config.held_out_frames)
@@ -185,7 +191,7 @@ def evaluate(asset_path: str | Path, scene_path: str | Path, fovvdp: bool = Fals
             "future_mean": sum(per_frame[f] for f in held_f) / len(held_f) if held_f else None,
             "units": "m (mean of both directions, simulated Gaussian centres vs the ground-truth surface)",
         }
-        offset = (simulated_centre_of_mass(sim, states)
+        offset = (simulated_centre_of_mass(sim, states).cpu()
                   - tet_centre_of_mass(tet["vertices"][:T], tet["tets"])).norm(dim=1).tolist()
         report["centre_of_mass"] = {
             "per_frame": offset,
@@ -200,7 +206,7 @@ def evaluate(asset_path: str | Path, scene_path: str | Path, fovvdp: bool = Fals
         carried = true_motion_gaussians(asset, tet)
         if len(carried) < T:
             raise InputError(f"{scene_path}: the tet_trajectory extra has {len(carried)} frames, the images {T}")
-        truth_renders = render_frames(carried[:T], scene.cameras, background=1.0, progress=progress)
+        truth_renders = render_frames(carried[:T], cameras, background=1.0, progress=progress).cpu()
         report["true_motion"] = {
             "what": "the asset's Gaussians moved by the ground truth's motion: the appearance's ceiling",
             **scene_groups(truth_renders, targets, scene.config),

@@ -112,13 +112,15 @@ def carry_by_tets(points: Tensor, vertices: Tensor, tets: Tensor, candidates: in
         candidates: nearest tets tried per point.
 
     Returns:
-        x: (T, N, 3) positions; F: (T, N, 3, 3) deformation gradients (identity at frame 0).
+        x: (T, N, 3) positions; F: (T, N, 3, 3) deformation gradients (identity at frame 0), float64 on
+        ``points``' device (the binding, a k-d tree search, runs on the CPU).
     """
     from scipy.spatial import cKDTree
 
-    P = torch.as_tensor(points).detach().to(torch.float64)
-    Vt = torch.as_tensor(vertices).detach().to(torch.float64)
-    T = torch.as_tensor(tets).long()
+    device = points.device if isinstance(points, Tensor) else torch.device("cpu")
+    P = torch.as_tensor(points).detach().to(device="cpu", dtype=torch.float64)
+    Vt = torch.as_tensor(vertices).detach().to(device="cpu", dtype=torch.float64)
+    T = torch.as_tensor(tets).long().cpu()
     if P.ndim != 2 or P.shape[-1] != 3:
         raise ValueError(f"points must have shape (N, 3), got {tuple(P.shape)}")
     if Vt.ndim != 3 or Vt.shape[-1] != 3 or T.ndim != 2 or T.shape[-1] != 4 or len(T) == 0:
@@ -146,7 +148,7 @@ def carry_by_tets(points: Tensor, vertices: Tensor, tets: Tensor, candidates: in
     x = (best_bary[None, :, :, None] * Vt[:, t]).sum(2)
     edges = torch.stack([Vt[:, t[:, q]] - Vt[:, t[:, 0]] for q in (1, 2, 3)], -1)  # (T, N, 3, 3)
     F = edges @ torch.linalg.inv(edges[0])[None]
-    return x, F
+    return x.to(device), F.to(device)
 
 
 def tet_centre_of_mass(vertices: Tensor | np.ndarray, tets: Tensor | np.ndarray) -> Tensor:

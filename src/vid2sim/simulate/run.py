@@ -32,6 +32,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from vid2sim.runtime.device import resolve_device
 from vid2sim.simulate.scenario import (
     ResolvedScenario,
     Scenario,
@@ -122,7 +123,7 @@ def _rigid_residual(reference: Tensor, x: Tensor) -> float:
     a = reference - reference.mean(0)
     b = x - x.mean(0)
     U, _, Vh = torch.linalg.svd(b.T @ a)
-    D = torch.ones(3, dtype=x.dtype)
+    D = torch.ones(3, dtype=x.dtype, device=x.device)
     D[2] = torch.sign(torch.linalg.det(U @ Vh))
     R = (U * D) @ Vh
     return float(((a @ R.T - b) ** 2).sum(1).mean().sqrt())
@@ -218,9 +219,13 @@ def _check_out(out: Path, overwrite: bool) -> None:
 
 
 def simulate(asset: "Asset | str | Path", scenario: Scenario | None, out: str | Path, progress: bool = True, *,
-             video: bool = True, ply: bool = True, overwrite: bool = False, scenery: bool = True) -> Path:
+             video: bool = True, ply: bool = True, overwrite: bool = False, scenery: bool = True,
+             device: str | torch.device | None = None) -> Path:
     """Simulate ``asset`` (an :class:`~vid2sim.asset.folder.Asset` or its folder) in ``scenario`` (None: the
     captured drop) and write the output folder ``out`` (module docstring); returns ``out``.
+
+    ``device`` (None: CUDA when available, else the CPU) is where an asset given as a folder is loaded, and so
+    where it is simulated and rendered; a loaded asset runs on its own device.
 
     ``scenery`` draws the floor and the sphere obstacles in the frames and videos
     (:mod:`vid2sim.simulate.scenery`); the PLY files hold the object alone.
@@ -242,7 +247,7 @@ def simulate(asset: "Asset | str | Path", scenario: Scenario | None, out: str | 
     asset_path = None
     if not hasattr(asset, "simulator"):
         asset_path = str(asset)
-        asset = load_asset(asset)
+        asset = load_asset(asset, device if isinstance(device, torch.device) else resolve_device(device))
     _check_out(out, overwrite)
     resolved = resolve_scenario(asset, scenario if scenario is not None else Scenario())
     timings: dict[str, float] = {"load_and_check": time.perf_counter() - t_start}
@@ -284,7 +289,7 @@ def simulate(asset: "Asset | str | Path", scenario: Scenario | None, out: str | 
                 shown = d
                 if scenery:
                     extra = scenery_gaussians(resolved.externals, float(state.t), patch_centre, patch_half,
-                                              sh_bases=d.sh.shape[1], dtype=d.means.dtype)
+                                              sh_bases=d.sh.shape[1], dtype=d.means.dtype, device=d.means.device)
                     shown = d if extra is None else concatenate([d, extra])
                 images: dict[int, np.ndarray] = {}
                 if fixed:

@@ -883,9 +883,9 @@ def resolve_scenario(asset: "Asset", scenario: Scenario) -> ResolvedScenario:
     s.validate()
     notes: list[str] = []
 
-    # -- the object at t = 0 -----------------------------------------------------------------------
-    points = torch.cat([asset.points, asset.contact_points, asset.cubature_points]).detach().to(torch.float64)
-    centre = asset.points.detach().to(torch.float64).mean(0)
+    # -- the object at t = 0 (checked on the CPU whatever the asset's device) ---------------------------
+    points = torch.cat([asset.points, asset.contact_points, asset.cubature_points]).detach().to("cpu", torch.float64)
+    centre = asset.points.detach().to("cpu", torch.float64).mean(0)
     init = s.initial
     if init.euler_deg is not None:
         R = euler_to_matrix(init.euler_deg)
@@ -1060,7 +1060,7 @@ def _frame(c: CameraSpec, cloud: "Tensor", floor_height: float | None, auto: Seq
     if "target" in auto:
         lo, hi = cloud[:, :2].amin(0), cloud[:, :2].amax(0)
         c.target = (float(lo[0] + hi[0]) / 2, float(lo[1] + hi[1]) / 2, 0.5 * (top + bottom))
-    target = torch.tensor(c.target, dtype=torch.float64)
+    target = torch.tensor(c.target, dtype=torch.float64, device=cloud.device)
     reach = float((cloud[:, :2].to(torch.float64) - target[:2]).norm(dim=1).max())
     half_span = max(0.5 * (top - bottom), reach, 1e-3)
     distance = 1.2 * half_span / math.tan(math.radians(c.fov_deg) / 2) + reach

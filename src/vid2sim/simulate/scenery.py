@@ -92,9 +92,11 @@ def sphere_shell(centre: Sequence[float], radius: float, count: int = 600, sh_ba
 
 
 def scenery_gaussians(externals: Sequence[object], t: float, centre_xy: Sequence[float], half_size: float,
-                      sh_bases: int = 1, dtype: torch.dtype = torch.float32) -> DeformedGaussians | None:
-    """The floor (static or moving) and sphere obstacles among ``externals`` at time ``t`` (s) as Gaussians
-    (None when there are none); the floor patch is centred under ``centre_xy`` with half side ``half_size``."""
+                      sh_bases: int = 1, dtype: torch.dtype = torch.float32,
+                      device: torch.device | str = "cpu") -> DeformedGaussians | None:
+    """The floor (static or moving) and sphere obstacles among ``externals`` at time ``t`` (s) as Gaussians on
+    ``device`` (None when there are none); the floor patch is centred under ``centre_xy`` with half side
+    ``half_size``."""
     from vid2sim.physics.external import Floor, MovingFloor, SphereObstacle
 
     parts: list[DeformedGaussians] = []
@@ -109,7 +111,9 @@ def scenery_gaussians(externals: Sequence[object], t: float, centre_xy: Sequence
             parts.append(sphere_shell(e.center, e.radius, sh_bases=sh_bases, dtype=dtype))
     if not parts:
         return None
-    return concatenate(parts)
+    g = concatenate(parts)
+    return DeformedGaussians(means=g.means.to(device), covars=g.covars.to(device), opacities=g.opacities.to(device),
+                             sh=g.sh.to(device))
 
 
 def concatenate(parts: Sequence[DeformedGaussians]) -> DeformedGaussians:
