@@ -44,7 +44,8 @@ class MetricConfig:
         upright_cameras: the cameras stand roughly upright (image down within 60° of gravity on average): free fall
             is then told from a bounce's steady upward deceleration (``--gravity-axis`` for rigs that are not).
         floor_normal_agreement_deg: adopt the point floor's normal as the gravity direction when it is within this
-            angle of the parabola's (and within 3 of its standard deviations).
+            angle of the parabola's, or within 3 of the parabola's standard deviations (a short free flight's
+            direction is uncertain; the floor's plane, from hundreds of points, is not).
     """
 
     gravity: float = 9.81
@@ -362,8 +363,8 @@ def solve_metric_frame(track: Track, dt: float, config: MetricConfig, scene_fram
                 plane = FloorEstimate(found.offset, found.sigma, "plates", found.normal, found.normal_sigma_deg, 0)
         if plane is not None and plane.normal is not None:
             angle = float(np.degrees(np.arccos(np.clip(plane.normal @ up, -1, 1))))
-            if down_source == "free flight" and angle <= config.floor_normal_agreement_deg and \
-                    angle <= 3.0 * max(down_sigma, 0.1):
+            consistent = angle <= config.floor_normal_agreement_deg or angle <= 3.0 * down_sigma
+            if down_source == "free flight" and consistent:
                 down_est, up = -plane.normal, plane.normal
                 down_sigma = plane.normal_sigma_deg
                 down_source = f"floor ({plane.source})"
