@@ -246,3 +246,20 @@ def test_a_clip_without_contact_says_the_material_is_not_identifiable():
         assert entry["value"] == pytest.approx(prior, abs=1e-3)
         assert entry["sd"] == pytest.approx(entry["prior_sd"], rel=0.02)
     assert result.linear_velocity == pytest.approx([0.1, 0.0, -1.0], abs=2e-3)
+
+
+# ---- what evaluate makes of the record ---------------------------------------------------------------------------
+
+
+def test_evaluate_scores_the_intervals_against_the_truth_and_the_fit_against_its_start():
+    """The interval of a reconstruction holds a truth inside it (1.0) and not one outside (0.0); a parameter
+    without an interval is left out; the joint fit's record says whether the kept state beat the start."""
+    from vid2sim.evaluate.scores import interval_coverage, joint_fit_record
+
+    record = {"log10_E": {"interval": [5.1, 5.6]}, "nu": {"interval": [0.30, 0.36]}}
+    assert interval_coverage(record, {"log10_E": 5.477, "nu": 0.42, "damping_ratio": 0.05}) == \
+        {"log10_E": 1.0, "nu": 0.0}
+    assert joint_fit_record({"start_validation_loss": 2e-3, "validation_loss": 1e-3, "joint_method": "gauss_newton"}) \
+        == {"start_validation_loss": 2e-3, "validation_loss": 1e-3, "improved": 1.0, "method": "gauss_newton"}
+    assert joint_fit_record({"start_validation_loss": 1e-3, "validation_loss": 1e-3})["improved"] == 0.0
+    assert joint_fit_record({"validation_loss": 1e-3}) is None  # an asset made before the start was recorded
