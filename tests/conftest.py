@@ -54,8 +54,8 @@ def tiny_training_data(tmp_path_factory):
     from vid2sim.predictor.data import TrainingDataConfig, make_training_data
 
     out = tmp_path_factory.mktemp("s1data") / "data"
-    cfg = TrainingDataConfig(objects=5, draws_per_object=2, resolution=16, frames=4, points=600, cubature_points=60,
-                             contact_points=100)
+    cfg = TrainingDataConfig(truth="reduced", objects=5, draws_per_object=2, resolution=16, frames=4, points=600,
+                             cubature_points=60, contact_points=100)
     old = torch.get_num_threads()
     torch.set_num_threads(1)
     try:

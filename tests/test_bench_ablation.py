@@ -112,11 +112,24 @@ def test_variants_apply_to_the_preset_or_the_given_config(tiny_config):
     configs = variant_configs(given, predictor="/x/p.pt")
     assert list(configs) == NAMES
     s1, full, prior = (configs[n].reconstruct_config() for n in NAMES)
-    assert (s1.stage1.enabled, s1.stage1.predictor, s1.joint.iterations, s1.joint.coarse_log10_E) == (True, "/x/p.pt", 0, ())
-    assert (full.stage1.enabled, full.stage1.predictor, full.joint.iterations, full.joint.coarse_log10_E) == (True, "/x/p.pt", 7,
-                                                                                              (4.5, 5.0))
-    assert (prior.stage1.enabled, prior.stage1.predictor, prior.joint.iterations, prior.joint.coarse_log10_E) == (False, None, 7,
-                                                                                                  (4.5, 5.0))
+    assert (s1.stage1.enabled, s1.stage1.predictor, s1.joint.iterations, s1.joint.coarse_log10_E) == (
+        True,
+        "/x/p.pt",
+        0,
+        (),
+    )
+    assert (full.stage1.enabled, full.stage1.predictor, full.joint.iterations, full.joint.coarse_log10_E) == (
+        True,
+        "/x/p.pt",
+        7,
+        (4.5, 5.0),
+    )
+    assert (prior.stage1.enabled, prior.stage1.predictor, prior.joint.iterations, prior.joint.coarse_log10_E) == (
+        False,
+        None,
+        7,
+        (4.5, 5.0),
+    )
     # everything else is the given config's; the given config is untouched
     assert {k: v for k, v in s1.to_dict().items() if k not in ("stage1", "joint")} == \
         {k: v for k, v in base.to_dict().items() if k not in ("stage1", "joint")}

@@ -247,7 +247,10 @@ def test_report_has_per_scene_figures_and_means(report):
     assert 0 <= at_truth["observed_nonrigid_percent"] <= at_truth["observed_percent"] + 1e-9
     assert 0 <= at_truth["future_nonrigid_percent"] <= at_truth["future_percent"] + 1e-9
     assert at_truth["peak_deformation_percent"]["truth"] > 0 and at_truth["peak_deformation_percent"]["reduced"] > 0
-    assert row["reduced_time_convergence_at_truth"]["refined_substeps"] == 4 * row["reduced_time_convergence_at_truth"]["substeps"]
+    assert (
+        row["reduced_time_convergence_at_truth"]["refined_substeps"]
+        == 4 * row["reduced_time_convergence_at_truth"]["substeps"]
+    )
     freq = row["frequencies"]
     assert len(freq["quadratic_tets_hz"]) == 6 and all(f > 0 for f in freq["quadratic_tets_hz"])
     assert freq["quadratic_tets_hz"] == sorted(freq["quadratic_tets_hz"])
@@ -257,7 +260,9 @@ def test_report_has_per_scene_figures_and_means(report):
     assert freq["reduced_over_linear_tets"][0] == pytest.approx(ratio)
     summary = result["summary"]
     assert summary["mean_abs_error_log10_E"] == pytest.approx(row["abs_error"]["log10_E"])
-    assert summary["mean_lowest_frequency_linear_tets_over_quadratic"] == pytest.approx(freq["linear_tets_over_quadratic"][0])
+    assert summary["mean_lowest_frequency_linear_tets_over_quadratic"] == pytest.approx(
+        freq["linear_tets_over_quadratic"][0]
+    )
     json.dumps(result)  # JSON-ready
 
 
@@ -283,8 +288,12 @@ def test_workers_give_the_rows_of_one_process(report, one_torch_thread):
     for a, b in zip(one["scenes"], two["scenes"]):
         for key, values in a["frequencies"].items():
             assert b["frequencies"][key] == pytest.approx(values, rel=1e-9)
-    assert two["summary"]["median_abs_error_nu"] == pytest.approx(statistics.median(r["abs_error"]["nu"] for r in one["scenes"]))
-    assert identify.run(identify.IdentifyConfig(**TINY), workdir, progress=False, workers=2)["workers"] == 1  # one scene
+    assert two["summary"]["median_abs_error_nu"] == pytest.approx(
+        statistics.median(r["abs_error"]["nu"] for r in one["scenes"])
+    )
+    assert (
+        identify.run(identify.IdentifyConfig(**TINY), workdir, progress=False, workers=2)["workers"] == 1
+    )  # one scene
     with pytest.raises(ValueError, match="workers"):
         identify.run(config, workdir, progress=False, workers=0)
     # --only reruns a subset from the same cache: its rows are the full suite's rows of those scenes

@@ -171,7 +171,9 @@ def test_resume_skips_finished_scenes_and_refuses_other_settings(local_run, suit
     monkeypatch.setattr(evaluate_module, "evaluate", must_not_run)
     again = run_suite(suite_dir, out, SuiteConfig(reconstruct=tiny_config(), threads=1), progress=False)
     assert again["failed"] == 0 and again["means"] == before["means"]
-    assert [r["evaluation"]["dynamic"] for r in again["scenes"]] == [r["evaluation"]["dynamic"] for r in before["scenes"]]
+    assert [r["evaluation"]["dynamic"] for r in again["scenes"]] == [
+        r["evaluation"]["dynamic"] for r in before["scenes"]
+    ]
     # a finished asset without its evaluation (interrupted during evaluate): only evaluate runs
     (out / "scene_001" / EVALUATION_JSON).unlink()
     monkeypatch.setattr(evaluate_module, "evaluate", real_evaluate)

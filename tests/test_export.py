@@ -48,7 +48,8 @@ const validator = require('gltf-validator');
 if (process.argv[2] === '--probe') process.exit(0);
 const file = process.argv[2];
 const external = (uri) => new Promise((resolve, reject) => fs.readFile(
-    path.resolve(path.dirname(file), decodeURIComponent(uri)), (e, d) => e ? reject(e.toString()) : resolve(new Uint8Array(d))));
+    path.resolve(path.dirname(file), decodeURIComponent(uri)), (e, d) => e ? reject(e.toString()) : resolve(new
+    Uint8Array(d))));
 validator.validateBytes(new Uint8Array(fs.readFileSync(file)),
                         {uri: path.basename(file), maxIssues: 1000, externalResourceFunction: external})
     .then((r) => console.log(JSON.stringify(r)), (e) => { console.error(e); process.exit(3); });

@@ -165,7 +165,9 @@ def test_torque_free_propagation_matches_euler_equations() -> None:
 def test_recovers_velocity_of_tumbling_drop(drop: AnalyticDrop) -> None:
     est = estimate(drop)
     assert est.frames_used == 8 and est.stop_reason == "max_frames"
-    assert est.rotations.shape == (8, 3, 3) and est.translations.shape == (8, 3) and est.frame_residuals_px.shape == (8,)
+    assert (
+        est.rotations.shape == (8, 3, 3) and est.translations.shape == (8, 3) and est.frame_residuals_px.shape == (8,)
+    )
     torch.testing.assert_close(est.centre, drop.points.mean(0))
     dv = float(np.linalg.norm(est.linear.numpy() - V_TRUE))
     dw = float(np.linalg.norm(est.angular.numpy() - W_TRUE))
@@ -262,7 +264,12 @@ def test_matches_ground_truth_of_synthetic_scene(small_scene) -> None:
     vol = torch.linalg.det(corners[:, 1:] - corners[:, :1]).abs() / 6
     com = (vol[:, None] * corners.mean(1)).sum(0) / vol.sum()
     v_true = v_com + torch.linalg.cross(w, est.centre.double() - com)
-    assert float((fem.velocities[0].double() - (v_com + torch.linalg.cross(w.expand_as(x0), x0 - com, dim=-1))).abs().max()) < 1e-6
+    assert (
+        float(
+            (fem.velocities[0].double() - (v_com + torch.linalg.cross(w.expand_as(x0), x0 - com, dim=-1))).abs().max()
+        )
+        < 1e-6
+    )
 
     dv = float((est.linear.double() - v_true).norm())
     dw = float((est.angular.double() - w).norm())

@@ -67,8 +67,12 @@ def test_voxel_moments_are_the_box_s():
     origin = torch.tensor([0.2, -0.3, 0.05], dtype=torch.float64)
     mesh = box_tet_mesh((0.3, 0.2, 0.3), (3, 2, 3))
     corner = origin + torch.tensor([0.1, 0.1, 0.2], dtype=torch.float64)
-    assert torch.allclose(voxel_moments(occupancy, origin, 0.1), tet_moments(mesh.vertices.double() + corner, mesh.tets),
-                          rtol=1e-12, atol=1e-15)
+    assert torch.allclose(
+        voxel_moments(occupancy, origin, 0.1),
+        tet_moments(mesh.vertices.double() + corner, mesh.tets),
+        rtol=1e-12,
+        atol=1e-15,
+    )
 
 
 @pytest.fixture(scope="module")

@@ -263,8 +263,9 @@ def test_fused_neo_hookean_viscous_tangent_equals_the_separate_tangents():
     fused = neo_hookean_viscous_tangent(F, mu, lam, 0.7, 0.3, C_ref)
     separate = 0.7 * neo_hookean_tangent(F, mu, lam) + 0.3 * stvk_tangent(F, mu, lam, C_ref)
     assert torch.allclose(fused, separate, atol=1e-12)
-    assert torch.allclose(neo_hookean_viscous_tangent(F, mu, lam, 0.7, 0.0, None), 0.7 * neo_hookean_tangent(F, mu, lam),
-                          atol=1e-12)
+    assert torch.allclose(
+        neo_hookean_viscous_tangent(F, mu, lam, 0.7, 0.0, None), 0.7 * neo_hookean_tangent(F, mu, lam), atol=1e-12
+    )
     # the viscous tangent is the derivative of the viscous stress (central differences)
     d = torch.randn(40, 3, 3, generator=gen, dtype=torch.float64)
     eps = 1e-6

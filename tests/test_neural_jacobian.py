@@ -119,6 +119,8 @@ def test_cuda_training_step_runs_and_matches_layout():
     field = SkinningField(num_handles=2, width=8, hidden_layers=1, seed=0).cuda()
     net = NeuralJacobian(num_handles_total=3, encoding_dim=16, widths=(16, 16), seed=0).cuda()
     pts = _points(300).cuda()
-    losses = train_neural_jacobian(net, field, pts, NeuralJacobianTrainingConfig(iterations=30, points_per_step=64, batch_size=2), progress=False)
+    losses = train_neural_jacobian(
+        net, field, pts, NeuralJacobianTrainingConfig(iterations=30, points_per_step=64, batch_size=2), progress=False
+    )
     assert losses[-1] < losses[0]
     assert net(pts[:4]).shape == (4, 9, 36)

@@ -88,7 +88,9 @@ def test_object_points_fill_the_object_and_estimate_its_volume():
     inside = ((obj.points / torch.tensor([0.2, 0.14, 0.1])) ** 2).sum(1) <= 1.3 ** 2
     assert float(inside.float().mean()) > 0.97
     assert obj.scale == pytest.approx(2 * (0.2 ** 2 + 0.14 ** 2 + 0.1 ** 2) ** 0.5, rel=0.15)
-    ellipsoid_area = 4 * torch.pi * ((0.2 * 0.14) ** 1.6 + (0.2 * 0.1) ** 1.6 + (0.14 * 0.1) ** 1.6) ** (1 / 1.6) / 3 ** (1 / 1.6)
+    ellipsoid_area = (
+        4 * torch.pi * ((0.2 * 0.14) ** 1.6 + (0.2 * 0.1) ** 1.6 + (0.14 * 0.1) ** 1.6) ** (1 / 1.6) / 3 ** (1 / 1.6)
+    )
     assert float(obj.contact_areas.sum()) == pytest.approx(float(ellipsoid_area), rel=0.35)
     assert obj.canonical(obj.points).abs().max() <= 0.5 + 1e-6
 

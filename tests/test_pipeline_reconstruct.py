@@ -44,7 +44,10 @@ def test_reconstruct_writes_a_complete_asset(tiny_asset, tiny_scene):
     carving = log["carving"]
     assert len(carving["rounds"]) == config["points"]["frame_rounds"] == 2
     last = carving["rounds"][-1]
-    assert set(last["chosen"]).isdisjoint(int(t) for t in last["refused"]) and 0 < last["voxels"] <= carving["frame0_voxels"]
+    assert (
+        set(last["chosen"]).isdisjoint(int(t) for t in last["refused"])
+        and 0 < last["voxels"] <= carving["frame0_voxels"]
+    )
     assert len(last["residuals_px"]) == last["tracked_frames"] == len(load_scene(tiny_scene).config.observed_frames)
     # the simulator runs in the scene's metric frame: the Gaussians sit where the object is at frame 0
     scene = load_scene(tiny_scene)
@@ -348,7 +351,9 @@ def test_a_loss_power_below_one_favours_the_frames_the_motion_explains(tiny_asse
             refine_on_motion(asset.gaussians, motion, images, cameras, observed, FitConfig(), 1, loss_power=bad)
 
 
-def test_an_interrupted_reconstruction_resumes_after_its_last_finished_stage(tiny_scene, tmp_path, monkeypatch, tiny_config):
+def test_an_interrupted_reconstruction_resumes_after_its_last_finished_stage(
+    tiny_scene, tmp_path, monkeypatch, tiny_config
+):
     """An interrupted run resumes after its last finished stage and leaves nothing that looks finished; with the
     centre-of-mass search on, the offset the joint stage found moves the asset's lumped masses."""
     from vid2sim.reconstruct.stages import joint as joint_module
@@ -371,8 +376,15 @@ def test_an_interrupted_reconstruction_resumes_after_its_last_finished_stage(tin
         reconstruct(tiny_scene, out, config, progress=False)
     work = tmp_path / ".asset.work"
     assert not out.exists()  # nothing that looks like a finished asset
-    assert {p.name for p in work.glob("*.done")} == {"gaussians.done", "points.done", "velocity.done", "appearance.done",
-                                                      "stage1.done", "networks.done", "calibration.done"}
+    assert {p.name for p in work.glob("*.done")} == {
+        "gaussians.done",
+        "points.done",
+        "velocity.done",
+        "appearance.done",
+        "stage1.done",
+        "networks.done",
+        "calibration.done",
+    }
     monkeypatch.undo()
 
     def must_not_run(*args, **kwargs):
@@ -436,7 +448,9 @@ def test_presets_and_config_errors():
     with pytest.raises(ValueError, match="volumetric must be 'pointwise' or 'projected'"):
         SimulatorConfig(volumetric="mixed")
     with pytest.raises(ValueError, match="takes one factor"):
-        ReconstructConfig(simulator=SimulatorConfig(volumetric="projected"), calibration=CalibrationConfig(nu="two_factor"))
+        ReconstructConfig(
+            simulator=SimulatorConfig(volumetric="projected"), calibration=CalibrationConfig(nu="two_factor")
+        )
     with pytest.raises(ValueError, match="preset"):
         ReconstructConfig.preset("huge")
     with pytest.raises(ValueError, match="iterations must be >= 0"):
@@ -526,7 +540,11 @@ def test_stage1_sets_the_prior_the_coarse_grid_and_the_skinning_start(tiny_scene
 
     monkeypatch.setattr(networks_stage, "train_skinning", spy)
     cfg = tiny_config()
-    cfg.networks.handles, cfg.stage1.predictor, cfg.stage1.enabled = 10, str(ckpt), True  # Stage I needs the template's 10 handles
+    cfg.networks.handles, cfg.stage1.predictor, cfg.stage1.enabled = (
+        10,
+        str(ckpt),
+        True,
+    )  # Stage I needs the template's 10 handles
     out = reconstruct(tiny_scene, tmp_path / "asset", cfg, progress=False)
     s1 = json.loads((out / "log.json").read_text())["stage1"]
     assert s1["ran"] and s1["checkpoint"] == str(ckpt) and s1["seconds"] > 0
@@ -571,7 +589,13 @@ def test_stage1_is_skipped_with_a_recorded_reason(tiny_asset, tiny_scene, tmp_pa
     V, T = scene.config.observed_views, scene.config.observed_frames
     images, cameras = scene.images[V][:, T].float(), [scene.cameras[v] for v in V]
     full = run_stage1(ReconstructConfig(stage1=Stage1Config(True, str(ckpt))), images, cameras, 0.05, [0, 0, 0])
-    few = run_stage1(ReconstructConfig(stage1=Stage1Config(True, str(ckpt)), networks=NetworksConfig(handles=3)), images, cameras, 0.05, [0, 0, 0])
+    few = run_stage1(
+        ReconstructConfig(stage1=Stage1Config(True, str(ckpt)), networks=NetworksConfig(handles=3)),
+        images,
+        cameras,
+        0.05,
+        [0, 0, 0],
+    )
     assert full["ran"] and full["skinning_start"] and full["last_layer"] is not None
     assert few["ran"] and not few["skinning_start"] and few["last_layer"] is None and "handles" in few["skinning_note"]
     assert few["log10_E"] == full["log10_E"] and few["nu"] == full["nu"]

@@ -25,7 +25,9 @@ def test_solid_surface_is_closed_outward_and_encloses_the_solid():
     edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
     _, counts = np.unique(edges, axis=0, return_counts=True)
     assert set(counts) == {2}  # closed: every edge shared by two triangles
-    assert np.allclose(verts.min(0), -np.array(BAR) / 2, atol=0.03) and np.allclose(verts.max(0), np.array(BAR) / 2, atol=0.03)
+    assert np.allclose(verts.min(0), -np.array(BAR) / 2, atol=0.03) and np.allclose(
+        verts.max(0), np.array(BAR) / 2, atol=0.03
+    )
     assert solid_surface(np.zeros((3, 3))) is None
 
 
@@ -33,8 +35,13 @@ def test_calibration_from_samples_matches_the_one_from_a_mesh_of_the_solid():
     """The factor from 200 000 samples of a bar (surface, fTetWild, quadratic tets) agrees with the one from
     a structured tet mesh of the same bar to a few percent (the smoothed edges and corners are the difference)."""
     field = SkinningField(num_handles=4, seed=0).double()
-    train_skinning(field, _bar(20000, 1), SkinningTrainingConfig(iterations=150, points_per_step=500, objective="modal"),
-                   progress=False, volume=float(np.prod(BAR)))
+    train_skinning(
+        field,
+        _bar(20000, 1),
+        SkinningTrainingConfig(iterations=150, points_per_step=500, objective="modal"),
+        progress=False,
+        volume=float(np.prod(BAR)),
+    )
     cubature = _bar(2000, 2)
     weights = torch.full((2000,), float(np.prod(BAR)) / 2000, dtype=torch.float64)
     mesh = box_tet_mesh(BAR, (12, 4, 4))

@@ -183,7 +183,9 @@ def test_float32_and_parameter_tensors():
 def test_update_plastic_state_keeps_F_equal_to_Fe_Fp(model):
     gen = torch.Generator().manual_seed(17)
     Fp = from_strain(0.1 * torch.randn(25, 3, generator=gen, dtype=DT), seed=18)
-    Fe_trial = from_strain(0.3 * torch.randn(25, 3, generator=gen, dtype=DT) * torch.linspace(0, 1, 25, dtype=DT)[:, None], seed=19)
+    Fe_trial = from_strain(
+        0.3 * torch.randn(25, 3, generator=gen, dtype=DT) * torch.linspace(0, 1, 25, dtype=DT)[:, None], seed=19
+    )
     F, Fp_inv = Fe_trial @ Fp, torch.linalg.inv(Fp)  # trial elastic strains from 0 to large
     new = update_plastic_state(model, F, Fp_inv, MU, LAM)
     Fe = return_map(model, F @ Fp_inv, MU, LAM)

@@ -33,7 +33,7 @@ from vid2sim.predictor.template import (
     trunk_features,
 )
 
-TINY = dict(objects=2, draws_per_object=2, resolution=32, frames=6, points=600, cubature_points=60,
+TINY = dict(truth="reduced", objects=2, draws_per_object=2, resolution=32, frames=6, points=600, cubature_points=60,
             contact_points=100)
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")

@@ -217,7 +217,9 @@ def test_training_decreases_the_loss_resumes_exactly_and_logs_baselines(tiny_tra
         assert (tmp_path / "a" / name).is_file()
     assert read_checkpoint(tmp_path / "a" / "predictor.pt")["state_dict"]["hyper.0.weight"].dtype == torch.float16
     # scoring the shipped-format checkpoint on the held-out objects gives the log's best figures and baselines
-    held_out = evaluate_predictor(tmp_path / "a" / "predictor.pt", tiny_training_data, "val", val_fraction=0.2, split_seed=4)
+    held_out = evaluate_predictor(
+        tmp_path / "a" / "predictor.pt", tiny_training_data, "val", val_fraction=0.2, split_seed=4
+    )
     assert held_out["samples"] == log["data"]["val_samples"]
     assert held_out["mae_log10_E"] == pytest.approx(rec["best"]["mae_log10_E"], rel=0.02, abs=1e-3)
     for k in ("mae_log10_E", "mae_nu", "mse_last_layer_std"):
@@ -385,7 +387,9 @@ def test_decoded_split_is_cached_and_remade_when_its_source_changes(tiny_trainin
         assert torch.equal(again.targets[k], first.targets[k])
     other = Split.cached(data, 16, "object", path)
     assert len(decodes) == 1 and other.videos.shape[-1] == 16
-    assert Split.cached(TrainingData(tiny_training_data, "train", 0.2, 4), 16, "object", path).videos.shape[0] < len(data)
+    assert Split.cached(TrainingData(tiny_training_data, "train", 0.2, 4), 16, "object", path).videos.shape[0] < len(
+        data
+    )
     assert len(decodes) == 2
     path.write_bytes(b"not a torch file")  # torn: decoded again
     assert torch.equal(Split.cached(data, 8, "object", path).videos, first.videos) and len(decodes) == 3

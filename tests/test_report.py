@@ -175,7 +175,14 @@ def test_videos_hold_every_frame_in_three_panels_matching_the_data(scene_report,
         h = gt.shape[0]
         assert np.abs(video[t, top:top + h, :w] - gt).mean() < 0.04
         assert np.abs(video[t, top:top + h, w:2 * w] - rd).mean() < 0.04
-        err = (renders[0, t] - scene.images[0, t]).abs().mean(-1)[y0:y1, x0:x1].numpy().repeat(factor, 0).repeat(factor, 1)
+        err = (
+            (renders[0, t] - scene.images[0, t])
+            .abs()
+            .mean(-1)[y0:y1, x0:x1]
+            .numpy()
+            .repeat(factor, 0)
+            .repeat(factor, 1)
+        )
         heat = video[t, top:top + h, 2 * w:3 * w].mean(-1)  # magma: brightness grows with the error
         assert np.corrcoef(err.ravel(), heat.ravel())[0, 1] > 0.8
 
@@ -310,7 +317,8 @@ def test_bad_inputs_raise_named_errors(scene_report, tiny_asset, tiny_scene, tmp
         ReportConfig(video_format="mp4")
     scene = {"name": "a", "scene": "s", "asset": None, "status": "done", "error": None, "evaluation": None,
              "report": None, "seconds": 1.0}
-    with pytest.raises(ReportInputError, match=r"suite\['scenes'\]\[0\]\['status'\] must be 'ok' or 'failed', got 'done'"):
+    with pytest.raises(ReportInputError, match=r"suite\['scenes'\]\[0\]\['status'\] must be 'ok' or 'failed', got "
+                                               r"'done'"):
         write_suite_report(tmp_path / "s", {"scenes": [scene], "means": {}})
     with pytest.raises(ReportInputError, match=r"suite\['scenes'\] must be a list"):
         write_suite_report(tmp_path / "s", {"means": {}})

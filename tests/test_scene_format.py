@@ -40,7 +40,9 @@ def make_scene(soft: bool = False, seed: int = 0, num_frames: int = T, **config)
     images = colour * mask[..., None] + (1 - mask[..., None])
     if soft:  # keep the images uint8-representable too (the writer then inverts the compositing)
         images = torch.round(images * 255) / 255
-    cfg = SceneConfig(floor_height=-0.7, metadata={"E": 2.5e5, "nu": 0.3, "material": "neo-hookean", "seed": seed}, **config)
+    cfg = SceneConfig(
+        floor_height=-0.7, metadata={"E": 2.5e5, "nu": 0.3, "material": "neo-hookean", "seed": seed}, **config
+    )
     extras = {
         "tet_trajectory": {
             "vertices": torch.randn(num_frames, 9, 3, generator=g, dtype=torch.float64),
@@ -460,7 +462,9 @@ def test_alpha_and_mask_path_together_is_ambiguous(written: Path) -> None:
     message, _ = problems_of(written)
     assert "has a (non-opaque) alpha channel and the frame also has mask_path 'm.png'" in message
     # a colour (non-grey) mask is refused too
-    Image.fromarray(np.dstack([np.zeros((12, 16), np.uint8), np.full((12, 16), 255, np.uint8), np.zeros((12, 16), np.uint8)])).save(written / "m.png")
+    Image.fromarray(
+        np.dstack([np.zeros((12, 16), np.uint8), np.full((12, 16), 255, np.uint8), np.zeros((12, 16), np.uint8)])
+    ).save(written / "m.png")
     rgb = np.asarray(Image.open(written / "images" / "c00_t000.png"))[..., :3]
     Image.fromarray(rgb).save(written / "images" / "c00_t000.png")
     message, _ = problems_of(written)
@@ -553,7 +557,8 @@ def test_scene_rejects_inconsistent_arrays() -> None:
     cams, img, msk = good.cameras, good.images, good.masks
     with pytest.raises(ValueError, match=r"images must have shape \(V, T, H, W, 3\) with V = 3 cameras, got \(2, 5"):
         Scene(cams, img[:2], msk)
-    with pytest.raises(ValueError, match=r"masks must have shape \(V, T, H, W\) = \(3, 5, 12, 16\), got \(3, 5, 12, 15\)"):
+    with pytest.raises(ValueError, match=r"masks must have shape \(V, T, H, W\) = \(3, 5, 12, 16\), got \(3, 5, 12, "
+                                         r"15\)"):
         Scene(cams, img, msk[..., :15])
     with pytest.raises(ValueError, match=r"images must lie in \[0, 1\], got values in \[0, 2\]"):
         Scene(cams, img * 2, msk)
@@ -615,7 +620,15 @@ def test_sixteen_bit_masks_palette_images_and_moving_to_a_device(tmp_path: Path)
     c2w = [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 2], [0, 0, 0, 1]]
     root = _hand_written(
         tmp_path,
-        [{"file_path": "i/p.png", "mask_path": "i/m16.png", "transform_matrix": c2w, "camera_index": 0, "time_index": 0}],
+        [
+            {
+                "file_path": "i/p.png",
+                "mask_path": "i/m16.png",
+                "transform_matrix": c2w,
+                "camera_index": 0,
+                "time_index": 0,
+            }
+        ],
         top={"fl_x": 5.0},
     )
     scene = load_scene(root)

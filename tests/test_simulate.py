@@ -113,7 +113,10 @@ def test_new_pose_and_velocity_are_a_rigid_unstressed_start(asset):
     assert stats["per_frame"]["deformation_rms"][0] < 1e-6
     for k, t in enumerate(stats["per_frame"]["time"]):
         assert still_stats["per_frame"]["deformation_rms"][k] < 1e-5 * asset.length_scale
-        assert stats["per_frame"]["deformation_rms"][k] < still_stats["per_frame"]["deformation_rms"][k] + 0.05 * centrifugal
+        assert (
+            stats["per_frame"]["deformation_rms"][k]
+            < still_stats["per_frame"]["deformation_rms"][k] + 0.05 * centrifugal
+        )
         ballistic = com + torch.tensor([1.0, 0.0, 0.5], dtype=torch.float64) * t + 0.5 * g * t * t
         assert torch.allclose(torch.tensor(stats["per_frame"]["centre_of_mass"][k], dtype=torch.float64), ballistic,
                               atol=5e-3)

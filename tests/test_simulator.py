@@ -444,8 +444,14 @@ def test_contact_dashpot_takes_the_bounce_and_only_dissipates(trained_field):
     field, pts = trained_field
     results = []
     for beta in (0.0, 0.3, 3.0):
-        sim = _sim(field, pts, material=Material(1e5, 0.3, damping_ratio=0.0), externals=[Gravity(), Floor(height=-0.6)],
-                   config=SimConfig(substeps=8), k=80)
+        sim = _sim(
+            field,
+            pts,
+            material=Material(1e5, 0.3, damping_ratio=0.0),
+            externals=[Gravity(), Floor(height=-0.6)],
+            config=SimConfig(substeps=8),
+            k=80,
+        )
         sim.contact_damping.fill_(beta)
         with torch.no_grad():
             states = sim.rollout(sim.rigid_velocity_state([0.0, 0.0, -2.0]), 12)

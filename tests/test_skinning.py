@@ -17,7 +17,9 @@ from vid2sim.physics.skinning import (
 
 def _points(n: int, seed: int = 0) -> torch.Tensor:
     g = torch.Generator().manual_seed(seed)
-    return (torch.rand(n, 3, generator=g, dtype=torch.float64) - 0.5) * torch.tensor([1.0, 0.6, 0.4], dtype=torch.float64)
+    return (torch.rand(n, 3, generator=g, dtype=torch.float64) - 0.5) * torch.tensor(
+        [1.0, 0.6, 0.4], dtype=torch.float64
+    )
 
 
 def _z(H: int, std: float = 0.1, seed: int = 1) -> torch.Tensor:

@@ -21,7 +21,9 @@ MU, LAM = lame_parameters(1e5, 0.3)
 
 def _box(n: int, seed: int = 0, dtype=torch.float64) -> torch.Tensor:
     g = torch.Generator().manual_seed(seed)
-    return ((torch.rand(n, 3, generator=g, dtype=torch.float64) - 0.5) * torch.tensor([1.0, 0.5, 0.5], dtype=torch.float64)).to(dtype)
+    return (
+        (torch.rand(n, 3, generator=g, dtype=torch.float64) - 0.5) * torch.tensor([1.0, 0.5, 0.5], dtype=torch.float64)
+    ).to(dtype)
 
 
 def _diag(s: torch.Tensor) -> torch.Tensor:
@@ -35,7 +37,9 @@ def test_robust_energy_is_exact_above_threshold_and_smooth_finite_below():
     g = torch.Generator().manual_seed(0)
     F = torch.eye(3, dtype=torch.float64) + 0.2 * torch.randn(50, 3, 3, generator=g, dtype=torch.float64)
     assert bool((torch.linalg.det(F) > 0.1).all())
-    assert torch.allclose(robust_neo_hookean_energy(F, MU, LAM, 0.1), neo_hookean_energy_density(F, MU, LAM), rtol=1e-14)
+    assert torch.allclose(
+        robust_neo_hookean_energy(F, MU, LAM, 0.1), neo_hookean_energy_density(F, MU, LAM), rtol=1e-14
+    )
     # along F = diag(s, 1, 1): value and slope continuous at J = s = 0.1; finite, convex, decreasing in s below
     s = torch.tensor([0.1 - 1e-9, 0.1 + 1e-9], dtype=torch.float64, requires_grad=True)
     psi = robust_neo_hookean_energy(_diag(s), MU, LAM, 0.1)
@@ -180,5 +184,9 @@ def test_bad_configuration_and_inputs():
     with pytest.raises(ValueError, match="must match"):
         train_skinning(field, _box(10), SkinningTrainingConfig(iterations=1), progress=False)
     with pytest.raises(ValueError, match="volume"):
-        train_skinning(field, _box(10, dtype=torch.float32), SkinningTrainingConfig(iterations=1), progress=False, volume=-1.0)
-    assert train_skinning(field, _box(10, dtype=torch.float32), SkinningTrainingConfig(iterations=0), progress=False) == []
+        train_skinning(
+            field, _box(10, dtype=torch.float32), SkinningTrainingConfig(iterations=1), progress=False, volume=-1.0
+        )
+    assert (
+        train_skinning(field, _box(10, dtype=torch.float32), SkinningTrainingConfig(iterations=0), progress=False) == []
+    )

@@ -14,9 +14,14 @@ F64 = torch.float64
 def _gaussians(n=30, seed=0, degree=0):
     g = torch.Generator().manual_seed(seed)
     means = (torch.rand(n, 3, generator=g, dtype=F64) - 0.5) * 0.8
-    gs = Gaussians.from_values(means, torch.rand(n, 3, generator=g, dtype=F64) * 0.08 + 0.03,
-                               torch.rand(n, 3, generator=g, dtype=F64), torch.rand(n, generator=g, dtype=F64) * 0.8 + 0.1,
-                               quats=torch.randn(n, 4, generator=g, dtype=F64), sh_degree=degree)
+    gs = Gaussians.from_values(
+        means,
+        torch.rand(n, 3, generator=g, dtype=F64) * 0.08 + 0.03,
+        torch.rand(n, 3, generator=g, dtype=F64),
+        torch.rand(n, generator=g, dtype=F64) * 0.8 + 0.1,
+        quats=torch.randn(n, 4, generator=g, dtype=F64),
+        sh_degree=degree,
+    )
     return gs
 
 
@@ -66,7 +71,9 @@ def test_gradients_flow_to_positions_and_deformation_gradients():
         return (render_gaussians(d, cam, background=0.3).rgb * w).sum()
 
     x = (g.means + 0.01).requires_grad_()
-    F = (torch.eye(3, dtype=F64) + 0.1 * torch.randn(5, 3, 3, generator=torch.Generator().manual_seed(1), dtype=F64)).requires_grad_()
+    F = (
+        torch.eye(3, dtype=F64) + 0.1 * torch.randn(5, 3, 3, generator=torch.Generator().manual_seed(1), dtype=F64)
+    ).requires_grad_()
     assert torch.autograd.gradcheck(f, (x, F), eps=1e-6, atol=1e-6, rtol=1e-4, fast_mode=True)
     gx, gF = torch.autograd.grad(f(x, F), (x, F))
     assert float(gx.abs().max()) > 0 and float(gF.abs().max()) > 0

@@ -33,7 +33,9 @@ def _random_gaussians(n: int, degree: int, seed: int = 0) -> Gaussians:
 def test_quaternion_rotation_matrices():
     q = torch.tensor([[math.cos(math.pi / 4), 0.0, 0.0, math.sin(math.pi / 4)]], dtype=torch.float64)
     R = quat_to_rotmat(q)[0]  # 90° about z: x → y
-    assert torch.allclose(R @ torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64), torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64))
+    assert torch.allclose(
+        R @ torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64), torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64)
+    )
     qs = torch.randn(100, 4, dtype=torch.float64) * 3  # need not be unit
     Rs = quat_to_rotmat(qs)
     assert torch.allclose(Rs @ Rs.transpose(1, 2), torch.eye(3, dtype=torch.float64).expand(100, 3, 3), atol=1e-12)
@@ -99,7 +101,9 @@ def test_gaussians_from_values_and_validation():
     with pytest.raises(ValueError, match="SH"):
         Gaussians(means, torch.zeros(5, 3), torch.zeros(5, 4), torch.zeros(5), torch.zeros(5, 5, 3))
     with pytest.raises(ValueError, match="float64"):
-        Gaussians(means, torch.zeros(5, 3, dtype=torch.float64), torch.zeros(5, 4), torch.zeros(5), torch.zeros(5, 1, 3))
+        Gaussians(
+            means, torch.zeros(5, 3, dtype=torch.float64), torch.zeros(5, 4), torch.zeros(5), torch.zeros(5, 1, 3)
+        )
     with pytest.raises(ValueError, match="positive"):
         Gaussians.from_values(means, -torch.ones(5), torch.rand(5, 3), torch.full((5,), 0.3))
 
@@ -142,7 +146,22 @@ def _write_ply(path, fmt, props, rows, extra_header=""):
     path.write_bytes(head + body)
 
 
-_MIN_PROPS = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+_MIN_PROPS = [
+    "x",
+    "y",
+    "z",
+    "f_dc_0",
+    "f_dc_1",
+    "f_dc_2",
+    "opacity",
+    "scale_0",
+    "scale_1",
+    "scale_2",
+    "rot_0",
+    "rot_1",
+    "rot_2",
+    "rot_3",
+]
 
 
 @pytest.mark.parametrize("fmt", ["ascii", "binary_big_endian"])
@@ -173,7 +192,9 @@ def test_ply_malformed_files_give_clear_errors(tmp_path):
     with pytest.raises(PlyFormatError, match="no such"):
         load_ply(tmp_path / "missing.ply")
     # a point cloud without Gaussian properties
-    _write_ply(tmp_path / "cloud.ply", "binary_little_endian", [("float", "x"), ("float", "y"), ("float", "z")], [[0, 0, 0]])
+    _write_ply(
+        tmp_path / "cloud.ply", "binary_little_endian", [("float", "x"), ("float", "y"), ("float", "z")], [[0, 0, 0]]
+    )
     with pytest.raises(PlyFormatError, match="lacks the 3DGS properties"):
         load_ply(tmp_path / "cloud.ply")
     # f_rest count that matches no SH degree

@@ -35,7 +35,9 @@ def test_identical_images_give_a_black_error_panel():
 
 def test_large_panels_are_averaged_down_in_whole_blocks():
     targets, renders = _pair(v=3, h=45, w=31)
-    picture = comparison_image(targets, renders, max_size=20, headings=False)  # factor ceil(45 / 20) = 3 → 15 × 10 panels
+    picture = comparison_image(
+        targets, renders, max_size=20, headings=False
+    )  # factor ceil(45 / 20) = 3 → 15 × 10 panels
     assert picture.shape == (3 * 15, 3 * 10, 3)
     block = targets[2, 6:9, 3:6].mean(dim=(0, 1))  # panel pixel (2, 1) of view 2
     assert torch.allclose(torch.from_numpy(picture[2 * 15 + 2, 1]).float() / 255, block, atol=0.5 / 255 + 1e-6)

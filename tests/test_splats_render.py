@@ -161,8 +161,9 @@ def test_gradcheck_finite_differences():
         return (torch.cat([out.rgb, out.alpha, out.depth], -1) * w).sum()
 
     inputs = (means, torch.log(scales), quats, torch.logit(ops), cols)
-    assert torch.autograd.gradcheck(f, tuple(t.clone().requires_grad_() for t in inputs), eps=1e-6, atol=1e-6, rtol=1e-4,
-                                    fast_mode=True)
+    assert torch.autograd.gradcheck(
+        f, tuple(t.clone().requires_grad_() for t in inputs), eps=1e-6, atol=1e-6, rtol=1e-4, fast_mode=True
+    )
 
 
 def test_single_gaussian_matches_analytic_ewa_footprint():
@@ -199,8 +200,15 @@ def test_culling_background_and_dtypes():
     means, scales, quats, ops, cols = _scene(20, 8)
     cams = camera_ring(2, 2.5, 0.0, 24, 24)
     behind = torch.tensor([[0.0, 0.0, 0.0]], dtype=F64) + 10 * cams[0].center.to(F64)  # behind camera 0
-    out = render(torch.cat([means, behind]), torch.cat([ops, ops[:1]]), torch.cat([cols, cols[:1]]), cams,
-                 quats=torch.cat([quats, quats[:1]]), scales=torch.cat([scales, scales[:1] * 50]), background=(0.1, 0.2, 0.3))
+    out = render(
+        torch.cat([means, behind]),
+        torch.cat([ops, ops[:1]]),
+        torch.cat([cols, cols[:1]]),
+        cams,
+        quats=torch.cat([quats, quats[:1]]),
+        scales=torch.cat([scales, scales[:1] * 50]),
+        background=(0.1, 0.2, 0.3),
+    )
     ref = render(means, ops, cols, cams, quats=quats, scales=scales, background=(0.1, 0.2, 0.3))
     assert int(out.radii[0, -1].max()) == 0  # culled in the view it is behind
     empty = out.alpha[..., 0] == 0
@@ -215,7 +223,9 @@ def test_culling_background_and_dtypes():
 
 
 def test_render_gaussians_and_validation_errors():
-    g = Gaussians.from_values(torch.zeros(3, 3), torch.full((3,), 0.1), torch.rand(3, 3), torch.full((3,), 0.5), sh_degree=1)
+    g = Gaussians.from_values(
+        torch.zeros(3, 3), torch.full((3,), 0.1), torch.rand(3, 3), torch.full((3,), 0.5), sh_degree=1
+    )
     cams = camera_ring(2, 2.0, 10.0, 8, 8)
     assert render_gaussians(g, cams).rgb.shape == (2, 8, 8, 3)
     m, o, c = g.means, g.opacities, g.colors_dc

@@ -118,8 +118,16 @@ def test_object_falls_and_ends_resting_on_the_floor(small_scene):
 
 def test_reusing_the_tet_mesh_reproduces_the_scene(small_scene, tmp_path):
     """Same settings + the same tet mesh → identical files; and the first frames of the original FEM run."""
-    config = SyntheticSceneConfig.preset("small", seed=3, frames=3, observed_frames=2, resolution=32, views=2, held_out_views=0,
-                                         tet_mesh=str(small_scene / "fem_result.npz"))
+    config = SyntheticSceneConfig.preset(
+        "small",
+        seed=3,
+        frames=3,
+        observed_frames=2,
+        resolution=32,
+        views=2,
+        held_out_views=0,
+        tet_mesh=str(small_scene / "fem_result.npz"),
+    )
     a = make_scene(config, tmp_path / "a", progress=False)
     b = make_scene(config, tmp_path / "b", progress=False)
     files = sorted(p.relative_to(a) for p in a.rglob("*") if p.is_file())
@@ -138,8 +146,16 @@ def test_failure_leaves_nothing_behind(small_scene, tmp_path, monkeypatch):
         raise OSError("disk full (simulated)")
 
     monkeypatch.setattr(FEMResult, "save", broken_save)
-    config = SyntheticSceneConfig.preset("small", seed=3, frames=2, observed_frames=1, resolution=16, views=1, held_out_views=0,
-                                         tet_mesh=str(small_scene / "fem_result.npz"))
+    config = SyntheticSceneConfig.preset(
+        "small",
+        seed=3,
+        frames=2,
+        observed_frames=1,
+        resolution=16,
+        views=1,
+        held_out_views=0,
+        tet_mesh=str(small_scene / "fem_result.npz"),
+    )
     with pytest.raises(OSError, match="disk full"):
         make_scene(config, tmp_path / "s", progress=False)
     assert list(tmp_path.iterdir()) == []

@@ -154,7 +154,10 @@ def video_scene(V: int = 2, T: int = 4, H: int = 24, W: int = 32) -> Scene:
     colour = torch.from_numpy(np.stack([smooth_frames(T, H, W) for _ in range(V)]))
     y, x = torch.meshgrid(torch.arange(H, dtype=torch.float32), torch.arange(W, dtype=torch.float32), indexing="ij")
     masks = torch.stack(
-        [torch.stack([(((x - 12 - 2 * t - 3 * v) ** 2 + (y - 12) ** 2) < 64).float() for t in range(T)]) for v in range(V)]
+        [
+            torch.stack([(((x - 12 - 2 * t - 3 * v) ** 2 + (y - 12) ** 2) < 64).float() for t in range(T)])
+            for v in range(V)
+        ]
     )
     images = colour * masks[..., None] + (1 - masks[..., None])
     cams = camera_ring(V, 2.0, 15.0, W, H)

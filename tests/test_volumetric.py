@@ -105,7 +105,10 @@ def test_gradient_and_hessian_match_finite_differences(box_field, damped, neural
     basis = sim.reduced_basis()
     g = torch.Generator().manual_seed(3)
     D = sim.num_dofs
-    y_prev, ydot_prev = 0.02 * torch.randn(D, generator=g, dtype=torch.float64), 0.1 * torch.randn(D, generator=g, dtype=torch.float64)
+    y_prev, ydot_prev = (
+        0.02 * torch.randn(D, generator=g, dtype=torch.float64),
+        0.1 * torch.randn(D, generator=g, dtype=torch.float64),
+    )
     problem = _problem(sim, basis, y_prev, ydot_prev, sim.retardation_time() if damped else None)
     y = y_prev + 0.02 * torch.randn(D, generator=g, dtype=torch.float64)
     d = torch.randn(D, generator=g, dtype=torch.float64)

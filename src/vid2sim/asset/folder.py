@@ -236,8 +236,10 @@ def _read_points(path: Path, device: torch.device | str) -> tuple[dict[str, Tens
             continue
         trailing, positive = _POINT_ARRAYS.get(key, ((), True))
         if a.dtype.kind != "f" or a.ndim != 1 + len(trailing) or a.shape[1:] != trailing or a.shape[0] < 1:
-            raise AssetFormatError(f"{path}: {key} must be floats of shape (n{', ' + str(trailing[0]) if trailing else ','}) "
-                                   f"with n >= 1, got {a.dtype} {a.shape}")
+            raise AssetFormatError(
+                f"{path}: {key} must be floats of shape (n{', ' + str(trailing[0]) if trailing else ','}) "
+                f"with n >= 1, got {a.dtype} {a.shape}"
+            )
         if not np.isfinite(a).all() or (positive and not (a > 0).all()):
             raise AssetFormatError(f"{path}: {key} must be finite{' and > 0' if positive else ''}")
         ref = expected_len.get(key)
@@ -275,7 +277,9 @@ def load_asset(folder: str | Path, device: torch.device | str = "cpu") -> Asset:
                                    "VID2SIM_ALLOW_OUTSIDE_PATHS=1 to allow files elsewhere)")
     meta = _read_json(folder / FILES["asset"])
     if meta.get("format") != ASSET_FORMAT:
-        raise AssetFormatError(f"{folder / FILES['asset']}: format must be {ASSET_FORMAT!r}, got {meta.get('format')!r}")
+        raise AssetFormatError(
+            f"{folder / FILES['asset']}: format must be {ASSET_FORMAT!r}, got {meta.get('format')!r}"
+        )
     if meta.get("version") != ASSET_VERSION:
         raise AssetFormatError(f"{folder / FILES['asset']}: version {meta.get('version')!r} is not supported "
                                f"(this vid2sim reads version {ASSET_VERSION})")
@@ -314,8 +318,10 @@ def load_asset(folder: str | Path, device: torch.device | str = "cpu") -> Asset:
     except (KeyError, TypeError, ValueError, AttributeError, RuntimeError) as exc:
         if isinstance(exc, AssetFormatError):
             raise
-        raise AssetFormatError(f"{folder / FILES['asset']}: cannot build the networks it describes from "
-                               f"{FILES['skinning']} ({type(exc).__name__}: {str(exc).splitlines()[0][:300]})") from None
+        raise AssetFormatError(
+            f"{folder / FILES['asset']}: cannot build the networks it describes from "
+            f"{FILES['skinning']} ({type(exc).__name__}: {str(exc).splitlines()[0][:300]})"
+        ) from None
     try:
         sim_config = SimConfig(**meta["sim_config"])
     except (KeyError, TypeError, ValueError) as exc:

@@ -12,7 +12,8 @@ so a second process on the same output stops at once with one line naming the fi
 Errors: vid2sim's input errors (:class:`~vid2sim.runtime.errors.InputError`:
 a file, folder, option or setting that is not what vid2sim can use; the commands' own
 :class:`~vid2sim.cli.common.UserError` is one) and operating-system errors (a missing file, a full
-disk) print one line and exit with 2. Anything else is a bug in vid2sim: a line asking for a report, then Python's traceback
+disk) print one line and exit with 2. Anything else is a bug in vid2sim: a line asking for a report, then Python's
+traceback
 (exit code 1).
 """
 
@@ -41,6 +42,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "fit-gaussians": ("fit_gaussians", "fit 3D Gaussians to one frame of a scene folder"),
     "make-scene": ("make_scene", "simulate (FEM) and render one synthetic scene folder"),
     "make-benchmark": ("make_benchmark", "a deterministic suite of synthetic scenes (E, nu sampled)"),
+    "make-capture": ("make_capture", "the capture twin of a synthetic scene: what real cameras would have filmed"),
+    "import-capture": ("import_capture", "a real capture (videos, calibration, clean plates) in, a scene folder out"),
     "make-training-data": ("make_training_data", "Stage I training samples (simulated, rendered drops)"),
     "train-predictor": ("train_predictor", "train the Stage I predictor"),
     "eval-predictor": ("eval_predictor", "score a Stage I checkpoint on a training-data folder"),

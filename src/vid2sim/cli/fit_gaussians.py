@@ -111,7 +111,9 @@ def run(args: argparse.Namespace) -> int:
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add the ``fit-gaussians`` subcommand."""
-    fit = sub.add_parser("fit-gaussians", help="fit 3D Gaussians to one frame of a scene folder (all views, or all but --test-views)")
+    fit = sub.add_parser(
+        "fit-gaussians", help="fit 3D Gaussians to one frame of a scene folder (all views, or all but --test-views)"
+    )
     fit.add_argument("scene", help="scene folder (scene.json + transforms.json)")
     fit.add_argument("out", help="output folder: gaussians.ply (3DGS layout), comparison.png (target | render | "
                      "error per view), fit_config.json, fit_report.json")

@@ -22,11 +22,14 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--n must be >= 1 (the number of scenes), got {args.n}")
     try:
         path = make_benchmark(args.n, args.out, preset=args.preset, seed=args.seed, progress=not args.quiet,
-                              workers=args.workers, ray_address=args.ray_address, **scene_overrides(args))
+                              workers=args.workers, ray_address=args.ray_address, tets_from=args.tets_from,
+                              **scene_overrides(args))
     except RayUnavailable as exc:
         raise UserError(str(exc)) from exc
     except generation_errors() as exc:  # before ValueError, in case one of them is a ValueError
         raise UserError(f"{exc} (finished scenes are kept; run the command again to resume)") from exc
+    except FileNotFoundError as exc:
+        raise UserError(str(exc)) from exc
     except ValueError as exc:
         raise scene_config_error(exc) from exc
     print(f"wrote {path} ({args.n} scene{'s' if args.n != 1 else ''}, index.json)")
@@ -43,6 +46,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                        help="make each scene as a Ray task: 'local' starts Ray on this machine, or a cluster "
                             "address (auto, HOST:6379); OUT must be a path every node sees (needs "
                             "pip install \"vid2sim[ray]\")")
+    suite.add_argument("--tets-from", default=None, metavar="SUITE",
+                       help="reuse the tet mesh of scene i of another suite for scene i (instead of fTetWild, which is "
+                            "not reproducible): e.g. a --truth newton suite of the same drops on the same tets")
     add_scene_options(suite, material_options=False, default_element_order=2)
     suite.set_defaults(func=run, lock_output="out")  # one writer per OUT (runtime.locks)
 

@@ -36,8 +36,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     scene.add_argument("out", help="scene folder to create")
     scene.add_argument("--mesh", default=None, help="a watertight textured mesh (OBJ/GLB/GLTF/PLY) instead of a "
                        "procedural shape")
-    scene.add_argument("--seed", type=int, default=0,
-                       help="seed of the procedural shape and texture (unless --mesh) and of the initial pose (default 0)")
+    scene.add_argument(
+        "--seed",
+        type=int,
+        default=0,
+        help="seed of the procedural shape and texture (unless --mesh) and of the initial pose (default 0)",
+    )
     scene.add_argument("--tet-mesh", default=None, help="reuse the tet mesh of an earlier scene (its fem_result.npz) "
                        "instead of fTetWild, which is not reproducible; same settings then give the same scene")
     scene.add_argument("--overwrite", action="store_true", help="replace an existing scene folder")

@@ -13,7 +13,8 @@ from vid2sim.runtime.ray_runner import RayUnavailable
 
 # TrainingDataConfig fields and the flags that set them (for error messages)
 _FLAGS = {"objects": "--objects", "draws_per_object": "--draws", "resolution": "--resolution", "frames": "--frames",
-          "seed": "--seed", "fit_iterations": "--fit-iterations", "meshes": "--mesh", "template": "--template"}
+          "seed": "--seed", "fit_iterations": "--fit-iterations", "meshes": "--mesh", "template": "--template",
+          "truth": "--truth", "views": "--views"}
 
 
 def _config_error(exc: ValueError) -> UserError:
@@ -24,7 +25,8 @@ def _config_error(exc: ValueError) -> UserError:
 
 
 def run(args: argparse.Namespace) -> int:
-
+    from vid2sim.meshing.tetra import TetrahedralizationError
+    from vid2sim.synthetic.fem import FEMSolverError
 
     if args.threads < 1:
         raise UserError(f"--threads must be >= 1, got {args.threads}")
@@ -39,7 +41,8 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--template {args.template}: no such file")
     given = {"objects": args.objects, "draws_per_object": args.draws, "resolution": args.resolution,
              "frames": args.frames, "seed": args.seed, "meshes": tuple(args.mesh),
-             "fit_iterations": args.fit_iterations, "template": args.template}
+             "fit_iterations": args.fit_iterations, "template": args.template, "truth": args.truth,
+             "views": args.views}
     try:
         config = TrainingDataConfig(**{k: v for k, v in given.items() if v is not None})
     except ValueError as exc:
@@ -50,16 +53,17 @@ def run(args: argparse.Namespace) -> int:
                                    ray_address=args.ray_address, progress=not args.quiet)
     except (FileExistsError, FileNotFoundError, ValueError, RayUnavailable) as exc:  # checked before any work
         raise UserError(str(exc)) from exc
-    except SimulationError as exc:
-        raise UserError(f"{exc} (finished shards are kept; run the command again to resume)") from exc
+    except (SimulationError, FEMSolverError, TetrahedralizationError) as exc:
+        raise UserError(f"{exc} (finished shards and FEM draws are kept; index.json's last_run.failed lists the "
+                        "objects that failed; run the command again to resume)") from exc
     run = index["last_run"]
     line = f"wrote {args.out}: {index['shards_written']} objects, {index['samples']} samples"
-    if run["shards_made"]:
+    if run["samples_made"]:
         per = run["seconds_per_sample"]
-        line += (f"; made {run['shards_made'] * config.draws_per_object} samples in {run['wall_seconds']:.1f} s = "
-                 f"{run['samples_per_second']:.3g} samples/s (per sample, summed over workers: object "
-                 f"{per['object']:.2f} s, last-layer fit {per['fit']:.2f} s, simulation {per['simulate']:.2f} s, "
-                 f"rendering {per['render']:.2f} s)")
+        line += (f"; made {run['samples_made']} samples in {run['wall_seconds']:.1f} s = "
+                 f"{run['samples_per_second']:.3g} samples/s (median {run['median_sample_seconds']:.3g} s a sample, "
+                 f"{run['median_sample_cpu_seconds']:.3g} s of CPU; "
+                 "per sample, summed over workers: " + ", ".join(f"{k} {v:.2f} s" for k, v in per.items()) + ")")
     else:
         line += " (all shards were already there)"
     print(line)
@@ -69,14 +73,22 @@ def run(args: argparse.Namespace) -> int:
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "make-training-data",
-        help="Stage I training data: procedural objects dropped with random E, nu, pose and velocity, simulated "
-             "by the reduced simulator, rendered from the front camera (shards + index.json; resumable)",
+        help="Stage I training data: procedural objects dropped with random E, nu, damping, pose and velocity, "
+             "simulated by the FEM ground truth (or the reduced simulator), rendered from the front camera and "
+             "its ring (shards + index.json; resumable)",
         description="Write Stage I training samples into OUT: one .npz shard per object (videos of D draws, "
-                    "log10 E, nu, the 650 last-layer numbers) and index.json. Deterministic from --seed; run again "
-                    "to resume. Format: docs/training-data.md.")
+                    "log10 E, nu, the 650 last-layer numbers) and index.json. Deterministic from --seed (FEM: given "
+                    "each object's tet mesh, which fTetWild does not reproduce; it is kept); run again to resume. "
+                    "Format: docs/training-data.md.")
     p.add_argument("out", help="dataset folder (created; an existing one is resumed)")
     p.add_argument("--objects", type=int, required=True, help="procedural objects (one shard each)")
-    p.add_argument("--draws", type=int, default=None, help="material/drop draws per object (default 4)")
+    p.add_argument("--truth", choices=["fem", "reduced"], default="fem",
+                   help="what simulates the drops: fem (default; the benchmark's ground truth: quadratic tets, "
+                        "converged in time) or reduced (the reduced simulator: far cheaper, not the truth)")
+    p.add_argument("--views", type=int, default=None,
+                   help="cameras per draw: the front camera and views-1 more on its ring (default: fem 4, "
+                        "reduced 1)")
+    p.add_argument("--draws", type=int, default=None, help="material/drop draws per object (default: fem 2, reduced 4)")
     p.add_argument("--resolution", type=int, default=None, help="video side in pixels (default 224; 64 on a CPU)")
     p.add_argument("--frames", type=int, default=None, help="video frames (default 16)")
     p.add_argument("--seed", type=int, default=None, help="dataset seed (default 0)")

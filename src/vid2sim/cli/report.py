@@ -33,7 +33,9 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(str(exc)) from exc
     files = [p for p in out.rglob("*") if p.is_file()]
     size = sum(p.stat().st_size for p in files)
-    print(f"wrote {out / 'index.html'} ({len(files)} files, {size / 1e6:.2f} MB) in {time.perf_counter() - start:.1f} s")
+    print(
+        f"wrote {out / 'index.html'} ({len(files)} files, {size / 1e6:.2f} MB) in {time.perf_counter() - start:.1f} s"
+    )
     return 0
 
 

@@ -8,12 +8,14 @@ import os
 from vid2sim.cli.common import UserError, add_threads_option
 from vid2sim.meshing.tetra import TetrahedralizationError
 from vid2sim.synthetic.fem import FEMSolverError
+from vid2sim.synthetic.independent import NewtonSolverError
 
 _SCENE_OPTIONS = {  # CLI option → SyntheticSceneConfig field
     "E": "youngs_modulus", "nu": "poisson_ratio", "density": "density", "material": "material",
     "drop_height": "drop_height", "views": "views", "resolution": "resolution", "frames": "frames",
     "observed_frames": "observed_frames", "substeps": "substeps", "layout": "layout",
     "damping_ratio": "damping_ratio", "held_out_views": "held_out_views", "element_order": "element_order",
+    "truth": "truth", "friction": "friction",
 }
 
 
@@ -34,7 +36,7 @@ def scene_config_error(exc: ValueError) -> UserError:
 
 def generation_errors() -> tuple[type[Exception], ...]:
 
-    return (FEMSolverError, TetrahedralizationError)
+    return (FEMSolverError, TetrahedralizationError, NewtonSolverError)
 
 
 def add_scene_options(p: argparse.ArgumentParser, material_options: bool, default_element_order: int = 1) -> None:
@@ -58,11 +60,25 @@ def add_scene_options(p: argparse.ArgumentParser, material_options: bool, defaul
                         "in time (default: from the material's stiffness)")
     p.add_argument("--damping", type=float, default=None, dest="damping_ratio",
                    help="material damping ratio zeta (Kelvin-Voigt; default 0.05, 0 = undamped)")
-    p.add_argument("--element-order", type=int, choices=[1, 2], default=None,
-                   help="the FEM's tets: 1 linear or 2 quadratic (converged in space, the FEM about 20x slower); default "
-                        f"{default_element_order}"
-                        + ("; a suite's quadratic tets have the small preset's size at every preset"
-                           if default_element_order == 2 else ""))
+    p.add_argument(
+        "--element-order",
+        type=int,
+        choices=[1, 2],
+        default=None,
+        help="the FEM's tets: 1 linear or 2 quadratic (converged in space, the FEM about 20x slower); default "
+        f"{default_element_order}"
+        + (
+            "; a suite's quadratic tets have the small preset's size at every preset"
+            if default_element_order == 2
+            else ""
+        ),
+    )
+    p.add_argument("--truth", choices=["fem", "newton"], default=None,
+                   help="the engine of the ground truth: fem (ours, the default) or newton (NVIDIA Newton's VBD "
+                        "solver: another energy, contact and damping; needs pip install \"vid2sim[newton]\"; with "
+                        "newton, --element-order 2 splits each tet into 8 linear ones)")
+    p.add_argument("--friction", type=float, default=None,
+                   help="the floor's Coulomb friction in the newton truth (default 0.5; the fem truth is frictionless)")
     p.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1),
                    help="processes for the FEM's side-by-side time resolutions (default: 2, or 1 on a 1-CPU machine)")
     p.add_argument("--layout", choices=["rgba", "rgb+mask", "video"], default=None, help="scene folder layout")

@@ -45,7 +45,9 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as exc:
         raise UserError(str(exc)) from exc
     best, base = record["best"] or {}, record["baselines_constant_mean"]
-    state = "done" if record["complete"] else f"stopped at step {record['steps_done']} of {args.steps} (rerun to resume)"
+    state = (
+        "done" if record["complete"] else f"stopped at step {record['steps_done']} of {args.steps} (rerun to resume)"
+    )
     print(f"{state}: {args.out}/predictor.pt; validation ({record['data']['val_samples']} samples) best step "
           f"{best.get('step')}: MAE log10 E {best.get('mae_log10_E', float('nan')):.3f} (constant mean "
           f"{base.get('mae_log10_E', float('nan')):.3f}), MAE nu {best.get('mae_nu', float('nan')):.4f} "

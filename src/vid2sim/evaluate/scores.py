@@ -96,9 +96,13 @@ def start_material(asset_path: str | Path) -> dict[str, Any] | None:
             E, nu, source, where = stage1.get("E"), stage1.get("nu"), "stage1", log_path
         elif config_path.is_file():
             config = json.loads(config_path.read_text())
-            prior = config.get("prior") if isinstance(config.get("prior"), dict) else \
-                {"E": config.get("prior_E"), "nu": config.get("prior_nu")} if "prior_E" in config or "prior_nu" in config \
+            prior = (
+                config.get("prior")
+                if isinstance(config.get("prior"), dict)
+                else {"E": config.get("prior_E"), "nu": config.get("prior_nu")}
+                if "prior_E" in config or "prior_nu" in config
                 else None
+            )
             if prior is None:
                 return None
             E, nu, source, where = prior.get("E"), prior.get("nu"), "prior", config_path

@@ -325,7 +325,9 @@ def read_gltf(path: str | os.PathLike) -> tuple[dict[str, Any], list[bytes]]:
                 raise GltfFormatError(f"{path}: buffers[{i}] refers to {bin_path}, which does not exist")
             data = bin_path.read_bytes()
         if len(data) < int(buf.get("byteLength", 0)):
-            raise GltfFormatError(f"{path}: buffers[{i}] has {len(data)} bytes, byteLength says {buf.get('byteLength')}")
+            raise GltfFormatError(
+                f"{path}: buffers[{i}] has {len(data)} bytes, byteLength says {buf.get('byteLength')}"
+            )
         buffers.append(data)
     return doc, buffers
 
@@ -487,7 +489,9 @@ def load_gltf_gaussians(path: str | os.PathLike, *, source_frame: bool = True, d
             warnings.warn(f"{where}colorSpace is {ext.get('colorSpace')!r}; the SH coefficients are returned as "
                           f"stored, vid2sim renders them as {COLOR_SPACE}", stacklevel=2)
         attrs = prim.get("attributes", {})
-        missing = [a for a in ("POSITION", ATTR_ROTATION, ATTR_SCALE, ATTR_OPACITY, sh_attribute(0, 0)) if a not in attrs]
+        missing = [
+            a for a in ("POSITION", ATTR_ROTATION, ATTR_SCALE, ATTR_OPACITY, sh_attribute(0, 0)) if a not in attrs
+        ]
         if missing:
             raise GltfFormatError(f"{where}lacks the required attributes {missing}")
 
@@ -533,7 +537,9 @@ def load_gltf_gaussians(path: str | os.PathLike, *, source_frame: bool = True, d
     info = doc.get("asset", {}).get("extras", {}).get("vid2sim", {})
     if source_frame and "gltf_from_world" in info:
         try:
-            rot = check_rotation(np.asarray(info["gltf_from_world"], dtype=np.float64), "asset.extras.vid2sim.gltf_from_world")
+            rot = check_rotation(
+                np.asarray(info["gltf_from_world"], dtype=np.float64), "asset.extras.vid2sim.gltf_from_world"
+            )
         except ValueError as exc:
             raise GltfFormatError(f"{path}: {exc}") from None
         undone = []

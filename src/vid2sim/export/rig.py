@@ -131,52 +131,61 @@ def rig_document(asset, tensors: dict[str, np.ndarray]) -> dict[str, Any]:
         "files": dict(RIG_FILES),
         "frame": {
             "description": "the scene's world frame, metres; up = -gravity (z up for vid2sim scenes). The glTF "
-                           "export is y-up: p_gltf = gltf_from_world @ p",
+            "export is y-up: p_gltf = gltf_from_world @ p",
             "gltf_from_world": rotation_to_y_up(_up(asset.gravity)).tolist(),
         },
         "skinning": {
             "num_handles_learned": f.num_handles,
             "num_handles_total": h,
             "rigid_handle": "the last handle (index H-1); its weight is identically 1",
-            "input_normalisation": {"formula": "Xc = (X - centre) / scale",
-                                    "centre": [float(v) for v in _np(f.input_centre)],
-                                    "scale": float(f.input_scale),
-                                    "tensors": {"centre": "skinning.input_centre", "scale": "skinning.input_scale"}},
+            "input_normalisation": {
+                "formula": "Xc = (X - centre) / scale",
+                "centre": [float(v) for v in _np(f.input_centre)],
+                "scale": float(f.input_scale),
+                "tensors": {"centre": "skinning.input_centre", "scale": "skinning.input_scale"},
+            },
             "layers": layers,
             "linear": "y = x W^T + b with W (out, in), as torch.nn.Linear",
             "elu": "elu(u) = u if u > 0 else exp(u) - 1",
             "weights": "w(X) = [MLP(Xc), 1] with MLP = layers[-1](elu(layers[-2](... elu(layers[0](Xc)))))",
             "weight_gradients": "dw/dX = (1/scale) dMLP/dXc (chain rule through the layers; elu'(u) = 1 if u > 0 "
-                                "else exp(u)); the rigid column's gradient is 0",
+            "else exp(u)); the rigid column's gradient is 0",
         },
         "state": {
             "size": 12 * h,
             "layout": "z[12 j + 4 a + k] = Z_j[a, k]: handle-major, each handle a 3x4 displacement affine Z_j, "
-                      "row-major",
+            "row-major",
             "rest": "z = 0 is the rest state (the Gaussians as stored in gaussians.ply)",
             "sequence": "states.z (T, 12H), one state per video frame, when present",
         },
         "positions": "x(X) = X + sum_j w_j(X) Z_j [X; 1]",
         "deformation_gradient": "F(X) = I + sum_j Z_j ([I; 0] w_j(X) + [X; 1] dw_j/dX^T), i.e. "
-                                "F[a, c] = delta_ac + sum_j (w_j Z_j[a, c] + (Z_j [X; 1])_a dw_j/dX_c)",
+        "F[a, c] = delta_ac + sum_j (w_j Z_j[a, c] + (Z_j [X; 1])_a dw_j/dX_c)",
         "gaussians": "a Gaussian with rest centre p and covariance Sigma = R S S^T R^T moves to x(p) with covariance "
-                     "F(p) Sigma F(p)^T; opacity and SH colour are unchanged",
-        "shading": None if asset.shading is None else {
+        "F(p) Sigma F(p)^T; opacity and SH colour are unchanged",
+        "shading": None
+        if asset.shading is None
+        else {
             **asset.shading.to_record(),
             "normals": "shading.normals (N, 3): each Gaussian's rest-frame normal N (gaussians.ply order)",
             "colour": "gaussians.ply holds the colours lit at rest, c0 = a s(N); a moved Gaussian shows "
-                      "a s(n) with n = cof(F) N = det(F) F^-T N normalised and "
-                      "s(n) = ambient + (1 - ambient) max(0, n . light), light fixed in the world",
+            "a s(n) with n = cof(F) N = det(F) F^-T N normalised and "
+            "s(n) = ambient + (1 - ambient) max(0, n . light), light fixed in the world",
         },
         "material": mat,
         "simulation": {
             "dt": asset.dt,
             "sim_config": _sim_config(asset.sim_config),
             "gravity": list(map(float, asset.gravity)),
-            "floor": None if asset.floor_height is None else {
-                "height": float(asset.floor_height), "normal": _up(asset.gravity),
+            "floor": None
+            if asset.floor_height is None
+            else {
+                "height": float(asset.floor_height),
+                "normal": _up(asset.gravity),
                 "stiffness": float(asset.floor_stiffness),
-                "meaning": "penalty contact pressure stiffness (Pa per metre of penetration) on the contact points' areas"},
+                "meaning": "penalty contact pressure stiffness (Pa per metre of penetration) on the contact points' "
+                           "areas",
+            },
             "length_scale": asset.length_scale,
             "initial_velocity": asset.initial_velocity,
             "initial_velocity_meaning": "v_i = linear + angular x (x_i - centre) at frame 0 (m/s, rad/s)",

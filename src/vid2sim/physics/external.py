@@ -28,7 +28,8 @@ per-point weights (above), ``t`` time in seconds:
 - ``to_dict() -> dict`` and ``from_dict(d)``; :func:`external_from_dict` dispatches on ``d["type"]``
   ('gravity', 'floor', 'moving_floor', 'sphere').
 
-World frame z-up (docs/architecture.md, "The paper's numbers"). Parameters are plain floats (serialisable); tensors are built on the
+World frame z-up (docs/architecture.md, "The paper's numbers"). Parameters are plain floats (serialisable); tensors are
+built on the
 device/dtype of ``x`` at each call.
 """
 

@@ -318,11 +318,28 @@ class FusedFrame:
         gravity = (-(mass * (X @ acc)).sum(), acc[:, None] * (mass @ b)[None, :])
         contact = [e for e in externals if getattr(e, "kind", "body") == "contact"]
         floors = [(contact_X[:, 2] - e.height, 2.0 * e.stiffness) for e in contact if type(e) is Floor]
-        return cls(G.reshape(3 * K, L), eye.repeat(K, 1), G_soa_cols, G_soa_cols.T.contiguous(), G_soa,
-                   eye.repeat_interleave(K, dim=1), vol, mu.detach(), lam.detach(), None if tau is None else tau.detach(),
-                   mass_block, torch.block_diag(mass_block, mass_block, mass_block), tracked.T.contiguous(), gravity,
-                   contact_X, contact_b, contact_w, contact_b.T.contiguous(), floors,
-                   [e for e in contact if type(e) is not Floor])
+        return cls(
+            G.reshape(3 * K, L),
+            eye.repeat(K, 1),
+            G_soa_cols,
+            G_soa_cols.T.contiguous(),
+            G_soa,
+            eye.repeat_interleave(K, dim=1),
+            vol,
+            mu.detach(),
+            lam.detach(),
+            None if tau is None else tau.detach(),
+            mass_block,
+            torch.block_diag(mass_block, mass_block, mass_block),
+            tracked.T.contiguous(),
+            gravity,
+            contact_X,
+            contact_b,
+            contact_w,
+            contact_b.T.contiguous(),
+            floors,
+            [e for e in contact if type(e) is not Floor],
+        )
 
     @property
     def num_points(self) -> int:
@@ -419,7 +436,11 @@ class FusedStep:
                 self.previous.append(Ft2)
                 self.C_ref.add_(C2, alpha=a2 / a0)
         # Φ's constant parts: Σ ½β₀ (tr C_ref − 3) + k_e e₀ + f·ŷ (the gravity term f·y is written f·(y − ŷ) + f·ŷ)
-        self.constants = [energy_offset(self.C_ref, self.coef), torch.dot(self.force_constant.view(-1), y_pred), constant]
+        self.constants = [
+            energy_offset(self.C_ref, self.coef),
+            torch.dot(self.force_constant.view(-1), y_pred),
+            constant,
+        ]
 
     # ---- Φ and ∇Φ --------------------------------------------------------------------------------
     def _barriers(self, Y: Tensor, grad: Tensor, energy: bool) -> list[tuple[Tensor, float]]:
@@ -569,7 +590,9 @@ def _adjoint_data(steps: Sequence[FusedStep]) -> list[StepAdjoint]:
     if fr.tau is not None:
         maps = []
         for i, ratio in ((0, a1 / a0), (1, a2 / a0)):  # the state one step back and two (C_ref's terms)
-            prev = _soa_stack([(s.previous[i] if i < len(s.previous) else s.previous[0]).transpose(1, 2) for s in steps])
+            prev = _soa_stack(
+                [(s.previous[i] if i < len(s.previous) else s.previous[0]).transpose(1, 2) for s in steps]
+            )
             scale = ratio.repeat_interleave(K)
             maps.append(metric_adjoint_map(F, prev, c["alpha"] * scale, (2.0 * scale) * c["beta1"]))
         maps = torch.stack(maps).view(2, 3, 3, 3, 3, S, K)

@@ -160,5 +160,7 @@ def _moments_in_frame(m: Tensor, centre: Tensor, scale: float) -> Tensor:
     second[iu[0], iu[1]] = m[4:]
     second = second + second.T - torch.diag(second.diagonal())
     # ∫ (x − c)(x − c)ᵀ = S − f cᵀ − c fᵀ + V c cᵀ
-    shifted = second - first[:, None] * centre[None, :] - centre[:, None] * first[None, :] + V * torch.outer(centre, centre)
+    shifted = (
+        second - first[:, None] * centre[None, :] - centre[:, None] * first[None, :] + V * torch.outer(centre, centre)
+    )
     return torch.cat([V[None], (first - V * centre) / scale, shifted[iu[0], iu[1]] / scale**2])

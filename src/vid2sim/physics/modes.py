@@ -188,12 +188,16 @@ def stiffness_calibration_curve(field, points: Tensor, volumes: Tensor, vertices
     k = TWO_FACTOR_MODES if factors == 2 else 1
     if reference is None:
         if vertices is None or tets is None:
-            raise ValueError("stiffness_calibration_curve needs the tet mesh (vertices, tets) or its reference frequencies")
+            raise ValueError(
+                "stiffness_calibration_curve needs the tet mesh (vertices, tets) or its reference frequencies"
+            )
         reference = tet_frequency_curve(vertices, tets, nus, k=k, order=2)
     reference = np.asarray(reference, dtype=float)
     if reference.shape != (len(nus), k):
-        raise ValueError(f"the reference frequencies are {reference.shape}; {factors} factor(s) on {len(nus)} values of "
-                         f"nu need ({len(nus)}, {k})")
+        raise ValueError(
+            f"the reference frequencies are {reference.shape}; {factors} factor(s) on {len(nus)} values of "
+            f"nu need ({len(nus)}, {k})"
+        )
     if factors == 2:
         return _two_factor_curve(field, points, volumes, reference, nus, mass_volumes)
     reference = reference[:, 0]

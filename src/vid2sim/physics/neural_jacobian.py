@@ -1,4 +1,5 @@
-"""Neural Jacobian: a network predicting J(X) = ∂F(X, z)/∂z per point (paper §4.2, supplementary "LBS and Jacobian Network").
+"""Neural Jacobian: a network predicting J(X) = ∂F(X, z)/∂z per point (paper §4.2, supplementary "LBS and Jacobian
+Network").
 
 F is linear in z, so J depends on X only: ``F(X, z).reshape(9) = I.flatten() + J(X) @ z`` with J: (9, 12H) in the
 layout of :func:`vid2sim.physics.skinning.dF_dz`. The network is trained data-free against the exact F of

@@ -163,7 +163,8 @@ class StepProblem:
     With ``contact_damping`` c (a normal dashpot in every barrier's contact, N·s/m per unit contact weight:
     with area weights a pressure per normal velocity) the step adds the dissipation potential
 
-        D(y) = (h / a₀) c Σ_i w_i φ_i ½ (s_i(y) − s_ref,i)²,    s_ref = (a₁ s_i(x_n, t_n) + a₂ s_i(x_{n−1}, t_{n−1})) / a₀,
+        D(y) = (h / a₀) c Σ_i w_i φ_i ½ (s_i(y) − s_ref,i)²,    s_ref = (a₁ s_i(x_n, t_n) + a₂ s_i(x_{n−1}, t_{n−1})) /
+        a₀,
 
     whose gradient is k_E times the dashpot force −c w_i φ_i ṡ_i ∇s_i with the BDF rate ṡ of the signed
     distance s to the barrier (the barrier's own motion included). φ_i = 1 for the points that were in contact

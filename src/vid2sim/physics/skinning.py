@@ -56,7 +56,9 @@ def _check_z(z: Tensor, num_handles_total: int, allow_batch: bool = False) -> No
     ok = (z.ndim == 1 and z.shape[0] == n) or (allow_batch and z.ndim == 2 and z.shape[1] == n)
     if not ok:
         want = f"({n},)" + (f" or (B, {n})" if allow_batch else "")
-        raise ValueError(f"z must have shape {want} for H = {num_handles_total} handles (12 numbers each), got {tuple(z.shape)}")
+        raise ValueError(
+            f"z must have shape {want} for H = {num_handles_total} handles (12 numbers each), got {tuple(z.shape)}"
+        )
     if not bool(torch.isfinite(z).all()):
         raise ValueError("z contains NaN or infinite values")
 
@@ -176,7 +178,9 @@ class SkinningField(InputFrame):
         _check_points(X)
         p = self.last_layer.weight
         if X.dtype != p.dtype:
-            raise ValueError(f"X has dtype {X.dtype} but the skinning field's parameters are {p.dtype}; convert one of them")
+            raise ValueError(
+                f"X has dtype {X.dtype} but the skinning field's parameters are {p.dtype}; convert one of them"
+            )
         if X.device != p.device:
             raise ValueError(f"X is on {X.device} but the skinning field's parameters are on {p.device}")
 
@@ -273,7 +277,10 @@ def gradient_basis_unchecked(X: Tensor, w: Tensor, dw: Tensor) -> Tensor:
     """:func:`gradient_basis` without checking its inputs."""
     n, H = w.shape
     delta = torch.eye(3, 4, dtype=X.dtype, device=X.device)  # delta[c, k] = δ_kc, zero for k = 3
-    G = w[:, None, :, None] * delta[None, :, None, :] + dw.transpose(1, 2)[:, :, :, None] * homogeneous(X)[:, None, None, :]
+    G = (
+        w[:, None, :, None] * delta[None, :, None, :]
+        + dw.transpose(1, 2)[:, :, :, None] * homogeneous(X)[:, None, None, :]
+    )
     return G.reshape(n, 3, 4 * H)
 
 

@@ -15,7 +15,8 @@ points (the constant rigid column is excluded).
 over every handle direction, including the stiff ones, and leaves the subspace's lowest vibration modes
 9–102 % above the converged ones (quadratic tets; the ``bench identify`` shapes, 500 cubature points).
 Those modes are what a drop excites and what identifies E. The modal objective asks instead for the
-subspace whose lowest Rayleigh–Ritz eigenvalues λ_i of (K, M) are smallest. K is the linear-elastic stiffness and M the mass of the LBS subspace, both at rest
+subspace whose lowest Rayleigh–Ritz eigenvalues λ_i of (K, M) are smallest. K is the linear-elastic stiffness and M the
+mass of the LBS subspace, both at rest
 with E = ρ = 1 and the batch's points as quadrature:
 
     loss = −Σ_i α / (λ_i + α) + modal_trace_weight · Σ_i λ_i / (α n)
@@ -121,11 +122,15 @@ class SkinningTrainingConfig:
             if not isinstance(v, (int, float)) or not (0 <= float(v) < math.inf):
                 raise ConfigError(f"SkinningTrainingConfig.{name} must be a finite number >= 0, got {v!r}")
         if not isinstance(self.poisson_ratio, (int, float)) or not (-1.0 < float(self.poisson_ratio) < 0.5):
-            raise ConfigError(f"SkinningTrainingConfig.poisson_ratio must satisfy -1 < nu < 0.5, got {self.poisson_ratio!r}")
+            raise ConfigError(
+                f"SkinningTrainingConfig.poisson_ratio must satisfy -1 < nu < 0.5, got {self.poisson_ratio!r}"
+            )
         if self.objective not in OBJECTIVES:
             raise ConfigError(f"SkinningTrainingConfig.objective must be one of {OBJECTIVES}, got {self.objective!r}")
         if not isinstance(self.modal_shift, (int, float)) or not (0 < float(self.modal_shift) < math.inf):
-            raise ConfigError(f"SkinningTrainingConfig.modal_shift must be a finite positive number, got {self.modal_shift!r}")
+            raise ConfigError(
+                f"SkinningTrainingConfig.modal_shift must be a finite positive number, got {self.modal_shift!r}"
+            )
         for name in ("modal_orthogonality_weight", "modal_trace_weight"):
             w = getattr(self, name)
             if not isinstance(w, (int, float)) or not (0 <= float(w) < math.inf):

@@ -355,7 +355,9 @@ def newton_solve(problem: StepProblem, config: SimConfig, length_scale: float,
         y = problem.y_prev
         phi, g = problem.energy_and_gradient(y)
         if g is None:
-            raise SimulationError(f"state at t = {problem.t - problem.dt:.4g} s has inverted cubature points (det F <= 0)")
+            raise SimulationError(
+                f"state at t = {problem.t - problem.dt:.4g} s has inverted cubature points (det F <= 0)"
+            )
     previous = math.inf
     for it in range(config.newton_max_iters):
         fresh = cache.factor is None or cache.stale or not config.reuse_hessian
@@ -492,7 +494,11 @@ class _ImplicitStep(torch.autograd.Function):
             with torch.no_grad():
                 H = problem.hessian(y.detach(), project=False)
             factor = _factorize(H)  # the exact Hessian may be indefinite (e.g. under compression): then LU
-            adj = torch.cholesky_solve(grad_y[:, None], factor)[:, 0] if factor is not None else torch.linalg.solve(H, grad_y)
+            adj = (
+                torch.cholesky_solve(grad_y[:, None], factor)[:, 0]
+                if factor is not None
+                else torch.linalg.solve(H, grad_y)
+            )
         wanted = [r for r, n in zip(req, needs) if n]
         grads = torch.autograd.grad(g, wanted, grad_outputs=-adj, allow_unused=True) if wanted else ()
         it = iter(grads)
@@ -590,7 +596,9 @@ class Simulator:
         self.contact_layer = float(contact_layer)
         if isinstance(contact_damping, bool) or not isinstance(contact_damping, (int, float)) \
                 or not (0 <= float(contact_damping) < math.inf):
-            raise ValueError(f"contact_damping must be a finite number >= 0 (0 = no contact dashpot), got {contact_damping!r}")
+            raise ValueError(
+                f"contact_damping must be a finite number >= 0 (0 = no contact dashpot), got {contact_damping!r}"
+            )
         if cubature_points.ndim != 2 or cubature_points.shape[1] != 3 or cubature_points.shape[0] == 0:
             raise ValueError(f"cubature_points must have shape (K, 3) with K >= 1, got {tuple(cubature_points.shape)}")
         if cubature_weights.shape != cubature_points.shape[:1]:
@@ -633,7 +641,9 @@ class Simulator:
                 raise ValueError("contact_weights were given without contact_points")
         else:
             if contact_points.ndim != 2 or contact_points.shape[1] != 3 or contact_points.shape[0] == 0:
-                raise ValueError(f"contact_points must have shape (Nc, 3) with Nc >= 1, got {tuple(contact_points.shape)}")
+                raise ValueError(
+                    f"contact_points must have shape (Nc, 3) with Nc >= 1, got {tuple(contact_points.shape)}"
+                )
             if contact_weights is None:
                 contact_weights = torch.ones(contact_points.shape[0], dtype=dtype, device=device)
             if contact_weights.shape != contact_points.shape[:1] or not bool((contact_weights > 0).all()):
@@ -653,7 +663,8 @@ class Simulator:
         """(μ, λ) from the current ``log10_E`` and ``nu`` (validated)."""
         if not bool(torch.isfinite(self.log10_E)) or not bool(torch.isfinite(self.nu)):
             raise ValueError(
-                f"material parameters must be finite, got log10_E={float(self.log10_E.detach())}, nu={float(self.nu.detach())}"
+                f"material parameters must be finite, got log10_E={float(self.log10_E.detach())}, "
+                f"nu={float(self.nu.detach())}"
             )
         mu, lam = lame_parameters(self.effective_youngs_modulus(), self.nu)
         if isinstance(self.stiffness_scale, StiffnessCurve) and self.stiffness_scale.lam_scale is not None:
@@ -715,7 +726,9 @@ class Simulator:
 
         w, dw = self.field.weights_and_gradients(self.X)
         b = lbs_rows(self.X, w)
-        contact_b = None if self.contact_points is None else lbs_rows(self.contact_points, self.field(self.contact_points))
+        contact_b = (
+            None if self.contact_points is None else lbs_rows(self.contact_points, self.field(self.contact_points))
+        )
         volumetric = projection_basis(w, self.vol) if self.volumetric == "projected" else None
         if self.use_neural_jacobian:
             J = self.jacobian(self.X)  # (K, 9, 12H) in z layout
@@ -727,10 +740,16 @@ class Simulator:
         """The rest state z = 0 (optionally with initial velocities zdot: (12H,)) at t = 0."""
         z = torch.zeros(self.num_dofs, dtype=self.X.dtype, device=self.X.device)
         plastic = self.material.plasticity is not None
-        Fp = torch.eye(3, dtype=self.X.dtype, device=self.X.device).expand(self.X.shape[0], 3, 3).clone() if plastic else None
+        Fp = (
+            torch.eye(3, dtype=self.X.dtype, device=self.X.device).expand(self.X.shape[0], 3, 3).clone()
+            if plastic
+            else None
+        )
         return SimState(z, torch.zeros_like(z) if zdot is None else zdot, 0.0, Fp)
 
-    def rigid_velocity_state(self, linear: Sequence[float], angular: Sequence[float] = (0, 0, 0), about: Sequence[float] = (0, 0, 0)) -> SimState:
+    def rigid_velocity_state(
+        self, linear: Sequence[float], angular: Sequence[float] = (0, 0, 0), about: Sequence[float] = (0, 0, 0)
+    ) -> SimState:
         """Rest state moving rigidly: velocity v + ω × (X − c), put on the constant (rigid) handle."""
         state = self.rest_state()
         H = self.num_dofs // 12
@@ -756,7 +775,10 @@ class Simulator:
         ``basis``, ``lame``, ``tau``, ``substeps`` and ``masses`` may be passed precomputed and ``cache`` shared
         between frames (as :meth:`rollout` does); the cache must only be shared by steps with the same inputs."""
         if state.z.shape != (self.num_dofs,) or state.zdot.shape != (self.num_dofs,):
-            raise ValueError(f"state z and zdot must have shape ({self.num_dofs},), got {tuple(state.z.shape)}, {tuple(state.zdot.shape)}")
+            raise ValueError(
+                f"state z and zdot must have shape ({self.num_dofs},), got {tuple(state.z.shape)}, "
+                f"{tuple(state.zdot.shape)}"
+            )
         if (state.z_prev is None) != (state.zdot_prev is None):
             raise ValueError("state.z_prev and state.zdot_prev must be given together (or both None)")
         history = [state.z, state.zdot] + ([state.z_prev, state.zdot_prev] if state.z_prev is not None else [])

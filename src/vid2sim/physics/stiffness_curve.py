@@ -74,7 +74,9 @@ class StiffnessCurve:
         nu = tuple(float(v) for v in self.nu)
         scale = tuple(float(v) for v in self.scale)
         if len(nu) < 2 or len(nu) != len(scale):
-            raise ConfigError(f"StiffnessCurve needs n >= 2 values of nu and as many scales, got {len(nu)} and {len(scale)}")
+            raise ConfigError(
+                f"StiffnessCurve needs n >= 2 values of nu and as many scales, got {len(nu)} and {len(scale)}"
+            )
         if not all(0.0 <= v < 0.5 for v in nu) or any(b <= a for a, b in zip(nu, nu[1:])):
             raise ConfigError(f"StiffnessCurve.nu must increase strictly within [0, 0.5), got {nu}")
         if not all(math.isfinite(s) and s > 0 for s in scale):
@@ -84,7 +86,9 @@ class StiffnessCurve:
         if self.lam_scale is not None:
             lam_scale = tuple(float(v) for v in self.lam_scale)
             if len(lam_scale) != len(nu) or not all(math.isfinite(s) and s > 0 for s in lam_scale):
-                raise ConfigError(f"StiffnessCurve.lam_scale must hold {len(nu)} finite positive values, got {lam_scale}")
+                raise ConfigError(
+                    f"StiffnessCurve.lam_scale must hold {len(nu)} finite positive values, got {lam_scale}"
+                )
             object.__setattr__(self, "lam_scale", lam_scale)
 
     def _tables(self, values: tuple[float, ...] | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -72,10 +72,17 @@ class FrontCamera:
 
     def camera(self, resolution: int) -> Camera:
         """The :class:`~vid2sim.splats.cameras.Camera` rendering ``resolution`` × ``resolution`` images."""
+        return self.ring(1, resolution)[0]
+
+    def ring(self, views: int, resolution: int) -> list[Camera]:
+        """``views`` cameras on this camera's ring (same distance, elevation, field of view and target), at
+        azimuths ``azimuth_deg + 360° k / views``; camera 0 is :meth:`camera`. The training data's other views."""
+        if isinstance(views, bool) or not isinstance(views, int) or views < 1:
+            raise ValueError(f"views must be a positive integer, got {views!r}")
         if isinstance(resolution, bool) or not isinstance(resolution, int) or resolution < 1:
             raise ValueError(f"resolution must be a positive integer, got {resolution!r}")
-        return camera_ring(1, self.radius, self.elevation_deg, resolution, resolution, fov_x_deg=self.fov_deg,
-                           target=self.target, azimuth_offset_deg=self.azimuth_deg)[0]
+        return camera_ring(views, self.radius, self.elevation_deg, resolution, resolution, fov_x_deg=self.fov_deg,
+                           target=self.target, azimuth_offset_deg=self.azimuth_deg)
 
     def direction(self) -> torch.Tensor:
         """(3,) unit vector from the target towards the camera."""

@@ -109,7 +109,9 @@ def sinusoid_table(n: int, dim: int) -> Tensor:
     odd j (float64 computed, float32 returned)."""
     pos = torch.arange(n, dtype=torch.float64)[:, None]
     j = torch.arange(dim, dtype=torch.float64)[None]
-    angle = pos / torch.pow(torch.tensor(10000.0, dtype=torch.float64), 2 * torch.div(j, 2, rounding_mode="floor") / dim)
+    angle = pos / torch.pow(
+        torch.tensor(10000.0, dtype=torch.float64), 2 * torch.div(j, 2, rounding_mode="floor") / dim
+    )
     table = torch.where(j.long() % 2 == 0, torch.sin(angle), torch.cos(angle))
     return table.float()
 
@@ -248,7 +250,7 @@ class PhysicsPredictor(LabelPredictor):
         """(B, width) mean-pooled last hidden states of ``video`` (B, T, 3, H, W), ImageNet-normalised."""
         if video.ndim != 5 or video.shape[2] != 3:
             raise ValueError(f"video must be (B, T, 3, H, W), got {tuple(video.shape)}")
-        if video.shape[1] != self.num_frames or video.shape[-1] != self.image_size or video.shape[-2] != self.image_size:
+        if video.shape[1] != self.num_frames or tuple(video.shape[-2:]) != (self.image_size, self.image_size):
             raise ValueError(f"video must have {self.num_frames} frames of {self.image_size}x{self.image_size}, got "
                              f"{tuple(video.shape)}")
         # the table in use: transformers keeps it as a plain attribute of the embeddings

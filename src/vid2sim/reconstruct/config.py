@@ -66,7 +66,9 @@ class PointsConfig:
             raise ConfigError(f"PointsConfig.frame_rounds must be >= 0 and track_points >= 4, got {self.frame_rounds}, "
                              f"{self.track_points}")
         if not (isinstance(self.carve_margin_px, (int, float)) and 0 <= self.carve_margin_px < math.inf):
-            raise ConfigError(f"PointsConfig.carve_margin_px must be a finite number >= 0, got {self.carve_margin_px!r}")
+            raise ConfigError(
+                f"PointsConfig.carve_margin_px must be a finite number >= 0, got {self.carve_margin_px!r}"
+            )
         for name in ("frame_residual_ratio", "free_flight_tolerance", "coverage_tolerance"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):

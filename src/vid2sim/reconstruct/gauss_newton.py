@@ -216,7 +216,8 @@ def marquardt_step(hessian: Tensor, gradient: Tensor, theta: Sequence[float], pa
         d = torch.linalg.solve(A, -gradient[idx])
         delta.zero_()
         delta[idx] = d
-        blocked = [j for j in free if (theta[j] <= lower[j] and delta[j] < 0) or (theta[j] >= upper[j] and delta[j] > 0)]
+        blocked = [j for j in free
+                   if (theta[j] <= lower[j] and delta[j] < 0) or (theta[j] >= upper[j] and delta[j] > 0)]
         if not blocked:
             break
         free = [j for j in free if j not in blocked]

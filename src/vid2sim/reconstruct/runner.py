@@ -78,7 +78,8 @@ class State:
 
     Attributes:
         gaussians: ``gaussians`` (refined by ``appearance``).
-        obj_cpu, obj: ``points``: the object's interior (:class:`~.stages.points.ObjectPoints`) on the CPU and the device.
+        obj_cpu, obj: ``points``: the object's interior (:class:`~.stages.points.ObjectPoints`) on the CPU and the
+        device.
         carving: ``points``: the record of the carving with the later frames.
         cubature: ``points``: the simulator's cubature points, weights and lumped masses.
         velocity: ``velocity``: the initial-velocity estimate (a JSON dict).

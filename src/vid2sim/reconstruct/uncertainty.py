@@ -74,7 +74,8 @@ def laplace_intervals(lin: Linearisation, parameters: Sequence[Parameter], n: fl
         value, sd = lin.theta[j], float(posterior_sd[j])
         d_sd = float(data_sd[j])
         identifiable = d_sd < q.prior_sd
-        out[q.name] = {"value": value, "sd": sd, "interval": [max(q.lower, value - z * sd), min(q.upper, value + z * sd)],
+        interval = [max(q.lower, value - z * sd), min(q.upper, value + z * sd)]
+        out[q.name] = {"value": value, "sd": sd, "interval": interval,
                        "data_sd": d_sd if math.isfinite(d_sd) else None, "prior_mean": q.prior_mean,
                        "prior_sd": q.prior_sd, "identifiable": identifiable,
                        "note": "found" if identifiable else NOT_IDENTIFIABLE}

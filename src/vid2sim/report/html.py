@@ -149,7 +149,8 @@ td.na { color:#9aa3ad; }
 .video-card video, .video-card img.anim { display:block; width:100%%; height:auto; }
 .figure { margin:6px 0 4px; } .figure img { max-width:100%%; height:auto; display:block; }
 .figure.strip img { border-radius:6px; }
-.gifs { display:flex; flex-wrap:wrap; gap:10px; } .gifs figure { margin:0; } .gifs img { width:256px; height:auto; image-rendering:auto; border-radius:6px; }
+.gifs { display:flex; flex-wrap:wrap; gap:10px; } .gifs figure { margin:0; } .gifs img { width:256px; height:auto;
+image-rendering:auto; border-radius:6px; }
 .gifs figcaption { font-size:12px; color:#555; text-align:center; }
 .bar { height:10px; background:var(--accent); border-radius:3px; min-width:2px; }
 .thumb { border-radius:4px; display:block; height:132px; width:auto; }

@@ -216,7 +216,8 @@ def material_scatter(path: Path, rows: Sequence[Mapping[str, Any]]) -> Path:
                 ax.plot([lo, hi], [lo, hi], color="#999", lw=1, ls="--", label="found = truth")
                 ax.scatter([p[0] for p in pts], [p[1] for p in pts], color=FOUND_COLOUR, s=22, zorder=3,
                            label="scene")
-                bars = [(r["truth"][key], r["found"][key], r["interval"][key], (r.get("identifiable") or {}).get(key, True))
+                bars = [(r["truth"][key], r["found"][key], r["interval"][key],
+                         (r.get("identifiable") or {}).get(key, True))
                         for r in rows if _finite([r.get("truth", {}).get(key), r.get("found", {}).get(key)])
                         and isinstance((r.get("interval") or {}).get(key), (list, tuple))]
                 for x, y, (a, b), known in bars:

@@ -228,7 +228,9 @@ class _Builder:
         future = [t in set(held_f) for t in range(T)]
         self.future, self.dt = future, float(sc.dt)
         meta = sc.metadata or {}
-        self.truth = {k: meta[k] for k in ("E", "nu", "damping_ratio", "density") if isinstance(meta.get(k), (int, float))}
+        self.truth = {
+            k: meta[k] for k in ("E", "nu", "damping_ratio", "density") if isinstance(meta.get(k), (int, float))
+        }
         if isinstance(self.truth.get("E"), (int, float)) and self.truth["E"] > 0:
             self.truth["log10_E"] = math.log10(self.truth["E"])
         name = scene_path.name if scene_path is not None else "scene"
@@ -263,7 +265,9 @@ class _Builder:
             held = v in held_v
             obs_mean = _mean([per_view[v][t] for t in obs_f if t > 0])
             fut_mean = _mean([per_view[v][t] for t in held_f])
-            role = '<span class="tag novel">held-out view</span>' if held else '<span class="tag obs">observed view</span>'
+            role = (
+                '<span class="tag novel">held-out view</span>' if held else '<span class="tag obs">observed view</span>'
+            )
             y0, y1, x0, x1 = boxes[v]
             crop = ("full frame" if (y0, y1, x0, x1) == (0, Hh, 0, Ww)
                     else f"crop x {x0}–{x1 - 1}, y {y0}–{y1 - 1} of {Ww}×{Hh}")
@@ -332,12 +336,23 @@ class _Builder:
                 "keyframes", "Key frames", "".join(strips),
                 f"{len(picks)} frames of the first observed and the first held-out view at a glance "
                 "(green labels: observed frames, orange: future frames).")))
-        self.sections.append(("psnr", "Per-frame PSNR", H.section(
-            "psnr", "PSNR per frame and view",
-            '<div class="figure"><img src="media/psnr_per_frame.svg" alt="PSNR per frame" data-probe="plot:psnr"></div>',
-            "Per-image PSNR of the reconstruction against the ground truth, one line per view (held-out views dashed); "
-            "bold lines are the evaluation's means over views. Frame 0 is the fitted initial state (not part of "
-            "the evaluation's means); the shaded frames were held out and predicted.")))
+        self.sections.append(
+            (
+                "psnr",
+                "Per-frame PSNR",
+                H.section(
+                    "psnr",
+                    "PSNR per frame and view",
+                    '<div class="figure"><img src="media/psnr_per_frame.svg" alt="PSNR per frame" '
+                    'data-probe="plot:psnr"></div>',
+                    "Per-image PSNR of the reconstruction against the ground truth, one line per view (held-out views "
+                    "dashed); "
+                    "bold lines are the evaluation's means over views. Frame 0 is the fitted initial state (not part "
+                    "of "
+                    "the evaluation's means); the shaded frames were held out and predicted.",
+                ),
+            )
+        )
 
     def ring_media(self, ring: RingRenders) -> None:
         cfg = self.config
@@ -394,16 +409,23 @@ class _Builder:
         self.data["material_table"] = {"found": found, "truth": truth, "errors": errors}
         # summary cards
         cards = []
-        for group, label in (("dynamic", "PSNR observed"), ("future", "PSNR future"), ("novel_views", "PSNR novel views")):
+        groups = (("dynamic", "PSNR observed"), ("future", "PSNR future"), ("novel_views", "PSNR novel views"))
+        for group, label in groups:
             g = ev.get(group) or {}
             if _isnum(g.get("psnr")):
                 cards.append(H.card(label, H.fmt(g["psnr"], 2), f"SSIM {H.fmt(g.get('ssim'), 4)}", unit="dB"))
-        cards.append(H.card("Young's modulus E", H.fmt_sci(found["E"]),
-                            f"truth {H.fmt_sci(truth['E'])} Pa" if _isnum(truth.get("E")) else "truth unknown", unit="Pa"))
+        cards.append(
+            H.card(
+                "Young's modulus E",
+                H.fmt_sci(found["E"]),
+                f"truth {H.fmt_sci(truth['E'])} Pa" if _isnum(truth.get("E")) else "truth unknown",
+                unit="Pa",
+            )
+        )
+        nu_known = ((self.material.get("uncertainty") or {}).get("nu") or {}).get("identifiable", True)
         cards.append(H.card("Poisson's ratio ν", H.fmt(found["nu"], 3),
                             (f"truth {H.fmt(truth['nu'], 3)}" if _isnum(truth.get("nu")) else "truth unknown")
-                            + ("" if ((self.material.get("uncertainty") or {}).get("nu") or {}).get("identifiable", True)
-                               else " · not identifiable from this video")))
+                            + ("" if nu_known else " · not identifiable from this video")))
         if _isnum(errors.get("log10_E")):
             cards.append(H.card("|Δ log10 E|", H.fmt(errors["log10_E"], 3), "target ≤ 0.2",
                                 "good" if errors["log10_E"] <= 0.2 else "bad", unit="decades"))
@@ -435,9 +457,12 @@ class _Builder:
                  ("density (kg/m³, not fitted)", "density", lambda x: H.fmt(x, 0), None)]
         for label, key, f, unit in specs:
             st = start.get(key) if key != "E" else (10 ** start["log10_E"] if _isnum(start.get("log10_E")) else None)
-            cells = [f"<td>{H.esc(label)}</td>", H.num_cell(st, f(st) if _isnum(st) else "—", key=f"start.{key}"),
-                     H.num_cell(found.get(key), f(found.get(key)), key=f"found.{key}"),
-                     H.num_cell(truth.get(key), f(truth.get(key)) if _isnum(truth.get(key)) else "—", key=f"truth.{key}")]
+            cells = [
+                f"<td>{H.esc(label)}</td>",
+                H.num_cell(st, f(st) if _isnum(st) else "—", key=f"start.{key}"),
+                H.num_cell(found.get(key), f(found.get(key)), key=f"found.{key}"),
+                H.num_cell(truth.get(key), f(truth.get(key)) if _isnum(truth.get(key)) else "—", key=f"truth.{key}"),
+            ]
             if key == "E" and _isnum(found.get("E")) and _isnum(truth.get("E")):
                 ratio = found["E"] / truth["E"]
                 cells.append(H.num_cell(ratio, f"found / truth = {ratio:.2f}×", key="ratio.E"))

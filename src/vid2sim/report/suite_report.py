@@ -130,8 +130,11 @@ def write_suite_report(out_dir: str | Path, suite: Mapping[str, Any], config: Re
                 link = os.path.relpath(Path(s["report"]).resolve() / "index.html", out.resolve())
             name_html = (f'<a href="{H.esc(Path(link).as_posix())}">{H.esc(s["name"])}</a>' if link
                          else H.esc(s["name"]))
-            thumb_html = (f'<img class="thumb" src="media/{thumb.name}" alt="{H.esc(s["name"])}" data-probe="thumb:{i}">'
-                          if has_thumb else '<span class="note">no picture</span>')
+            thumb_html = (
+                f'<img class="thumb" src="media/{thumb.name}" alt="{H.esc(s["name"])}" data-probe="thumb:{i}">'
+                if has_thumb
+                else '<span class="note">no picture</span>'
+            )
             status = f'<span class="status {s["status"]}">{s["status"]}</span>'
             cells = [f"<td>{i}</td>", f"<td>{name_html}</td>", f"<td>{thumb_html}</td>", f"<td>{status}</td>"]
             if s["status"] == "failed" and not ev:
@@ -171,8 +174,13 @@ def write_suite_report(out_dir: str | Path, suite: Mapping[str, Any], config: Re
         for key in ("chamfer_observed", "centre_of_mass_observed"):
             cm = means.get(key)
             foot_cells.append(H.num_cell(cm, H.fmt(100 * cm, 2) if _isnum(cm) else "", key=key))
-        foot_cells.append(H.num_cell(means.get("seconds"), H.fmt(means.get("seconds"), 0) if _isnum(means.get("seconds"))
-                                     else "", key="seconds"))
+        foot_cells.append(
+            H.num_cell(
+                means.get("seconds"),
+                H.fmt(means.get("seconds"), 0) if _isnum(means.get("seconds")) else "",
+                key="seconds",
+            )
+        )
         headers = ["#", "scene", "frame 0", "status"] + list(METRIC_COLUMNS) + ["seconds"]
         table = H.table(headers, rows, table_id="suite-table", foot=["".join(foot_cells)])
         cards = []

@@ -185,7 +185,9 @@ class SceneConfig:
                 held = [i for i in range(n) if i not in set(observed)]
             return sorted(observed), sorted(held)
 
-        obs_f, held_f = split(self.observed_frames, self.held_out_frames, num_frames, min(DEFAULT_OBSERVED_FRAMES, num_frames))
+        obs_f, held_f = split(
+            self.observed_frames, self.held_out_frames, num_frames, min(DEFAULT_OBSERVED_FRAMES, num_frames)
+        )
         obs_v, held_v = split(self.observed_views, self.held_out_views, num_views, num_views)
         return replace(
             self,
@@ -249,7 +251,9 @@ class Scene:
             raise ConfigError(f"Scene: cameras must be a non-empty list of Camera, got {type(self.cameras).__name__}")
         for i, cam in enumerate(self.cameras):
             if not isinstance(cam, Camera):
-                raise ConfigError(f"Scene: cameras[{i}] must be a vid2sim.splats.cameras.Camera, got {type(cam).__name__}")
+                raise ConfigError(
+                    f"Scene: cameras[{i}] must be a vid2sim.splats.cameras.Camera, got {type(cam).__name__}"
+                )
         self.cameras = list(self.cameras)
         num_views = len(self.cameras)
         if not isinstance(self.images, Tensor):
@@ -264,7 +268,9 @@ class Scene:
             raise ConfigError(f"Scene: images must be non-empty, got shape {tuple(self.images.shape)}")
         if not isinstance(self.masks, Tensor) or tuple(self.masks.shape) != (num_views, num_frames, height, width):
             got = tuple(self.masks.shape) if isinstance(self.masks, Tensor) else type(self.masks).__name__
-            raise ConfigError(f"Scene: masks must have shape (V, T, H, W) = {(num_views, num_frames, height, width)}, got {got}")
+            raise ConfigError(
+                f"Scene: masks must have shape (V, T, H, W) = {(num_views, num_frames, height, width)}, got {got}"
+            )
         for name in ("images", "masks"):
             _check_pixel_range(getattr(self, name), f"Scene: {name}")
         for i, cam in enumerate(self.cameras):
@@ -344,9 +350,11 @@ class Scene:
         if not views or any(not 0 <= v < self.num_views for v in views) or len(set(views)) != len(views):
             raise InputError(f"Scene.subset: views must be distinct indices in 0..{self.num_views - 1}, got {views}")
         frames = range(self.num_frames) if frames is None else frames
-        if not isinstance(frames, range) or frames.step != 1 or len(frames) == 0 or frames.start < 0 or frames.stop > self.num_frames:
+        contiguous = isinstance(frames, range) and frames.step == 1 and len(frames) > 0
+        if not contiguous or frames.start < 0 or frames.stop > self.num_frames:
             raise InputError(
-                f"Scene.subset: frames must be a non-empty range(start, stop) within 0..{self.num_frames}, got {frames!r}"
+                f"Scene.subset: frames must be a non-empty range(start, stop) within 0..{self.num_frames}, got "
+                f"{frames!r}"
             )
         view_map = {old: new for new, old in enumerate(views)}
         frame_map = {old: new for new, old in enumerate(frames)}
@@ -1212,7 +1220,9 @@ def _write_contents(
         (folder / "extras").mkdir()
         scene_json["extras"] = {}
         for name, group in scene.extras.items():
-            np.savez_compressed(folder / "extras" / f"{name}.npz", **{k: a.detach().cpu().numpy() for k, a in group.items()})
+            np.savez_compressed(
+                folder / "extras" / f"{name}.npz", **{k: a.detach().cpu().numpy() for k, a in group.items()}
+            )
             scene_json["extras"][name] = f"extras/{name}.npz"
     _write_json(folder / TRANSFORMS_JSON, transforms)
     _write_json(folder / SCENE_JSON, scene_json)  # last: a folder with scene.json is complete

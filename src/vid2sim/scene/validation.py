@@ -812,7 +812,9 @@ def _parse_videos(entries: list, global_intrinsics: dict, problems: Problems, na
     by_camera: dict[int, VideoEntry] = {}
     for v in videos:
         if v.camera in by_camera:
-            problems.add(f"{name}: videos[{by_camera[v.camera].index}] and videos[{v.index}] are both camera {v.camera}")
+            problems.add(
+                f"{name}: videos[{by_camera[v.camera].index}] and videos[{v.index}] are both camera {v.camera}"
+            )
         else:
             by_camera[v.camera] = v
     num_views = _contiguous(set(by_camera), "camera", problems, name)

@@ -59,7 +59,9 @@ class Camera:
         if self.K.shape != (3, 3):
             raise ConfigError(f"K must be a 3x3 matrix, got shape {tuple(self.K.shape)}")
         if not (self.K[0, 0] > 0 and self.K[1, 1] > 0):
-            raise ConfigError(f"K must have positive focal lengths, got fx={float(self.K[0, 0])}, fy={float(self.K[1, 1])}")
+            raise ConfigError(
+                f"K must have positive focal lengths, got fx={float(self.K[0, 0])}, fy={float(self.K[1, 1])}"
+            )
         if int(self.width) <= 0 or int(self.height) <= 0:
             raise ConfigError(f"image size must be positive, got {self.width}x{self.height}")
         self.width, self.height = int(self.width), int(self.height)
@@ -192,7 +194,9 @@ def camera_ring(
     cams = []
     for i in range(n):
         az = math.radians(azimuth_offset_deg) + 2 * math.pi * i / n
-        eye = tgt + radius * torch.tensor([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)], dtype=torch.float64)
+        eye = tgt + radius * torch.tensor(
+            [math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)], dtype=torch.float64
+        )
         cams.append(Camera(look_at(eye, tgt), K, width, height))
     return cams
 

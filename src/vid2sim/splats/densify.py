@@ -121,7 +121,9 @@ class Densifier:
         grown = n + n_clone + 2 * n_split
         keep = torch.ones(grown, dtype=torch.bool, device=params["means"].device)
         keep[:n][split] = False
-        opac = torch.sigmoid(torch.cat([params["opacity_logits"], new_rows("opacity_logits", params["opacity_logits"])]))
+        opac = torch.sigmoid(
+            torch.cat([params["opacity_logits"], new_rows("opacity_logits", params["opacity_logits"])])
+        )
         prune = opac < cfg.prune_opacity
         if prune_large:
             scales = torch.exp(torch.cat([params["log_scales"], new_rows("log_scales", params["log_scales"])]))

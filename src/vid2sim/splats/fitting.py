@@ -91,7 +91,8 @@ class FitConfig:
             raise ConfigError(f"FitConfig.sh_degree must be 0, 1, 2 or 3, got {self.sh_degree}")
         if not 0 <= self.densify_from <= self.densify_until <= 1:
             raise ConfigError(
-                f"FitConfig needs 0 <= densify_from <= densify_until <= 1, got {self.densify_from}, {self.densify_until}"
+                f"FitConfig needs 0 <= densify_from <= densify_until <= 1, got {self.densify_from}, "
+                f"{self.densify_until}"
             )
         if not 0 <= self.lambda_dssim <= 1:
             raise ConfigError(f"FitConfig.lambda_dssim must be in [0, 1], got {self.lambda_dssim}")

@@ -155,7 +155,8 @@ def _read_vertex_table(path: Path) -> dict[str, np.ndarray]:
             rows = [ln.split() for ln in text_lines[line_no : line_no + count]]
             if len(rows) != count or any(len(r) != len(props) for r in rows):
                 raise PlyFormatError(
-                    f"{path}: ASCII vertex data is truncated or malformed (expected {count} rows of {len(props)} values)"
+                    f"{path}: ASCII vertex data is truncated or malformed (expected {count} rows of {len(props)} "
+                    f"values)"
                 )
             try:
                 table = np.array(rows, dtype=np.float64)
@@ -178,7 +179,9 @@ def _read_vertex_table(path: Path) -> dict[str, np.ndarray]:
     raise AssertionError("unreachable")
 
 
-def load_ply(path: str | os.PathLike, device: torch.device | str = "cpu", dtype: torch.dtype = torch.float32) -> Gaussians:
+def load_ply(
+    path: str | os.PathLike, device: torch.device | str = "cpu", dtype: torch.dtype = torch.float32
+) -> Gaussians:
     """Read Gaussians from a 3DGS-layout PLY file (see module docstring).
 
     The SH degree is inferred from the number of ``f_rest_*`` properties (0, 9, 24 or 45 → degree
@@ -199,7 +202,9 @@ def load_ply(path: str | os.PathLike, device: torch.device | str = "cpu", dtype:
     rest_names = sorted((p for p in cols if p.startswith("f_rest_")), key=lambda s: int(s.split("_")[-1]))
     num_rest = len(rest_names)
     if rest_names != [f"f_rest_{i}" for i in range(num_rest)] or num_rest % 3 != 0:
-        raise PlyFormatError(f"{path}: f_rest_* properties must be f_rest_0..f_rest_{{3(K-1)-1}}, got {num_rest} of them")
+        raise PlyFormatError(
+            f"{path}: f_rest_* properties must be f_rest_0..f_rest_{{3(K-1)-1}}, got {num_rest} of them"
+        )
     try:
         sh_degree_from_bases(num_rest // 3 + 1)
     except ValueError:

@@ -159,7 +159,8 @@ def _check_inputs(
                 f"colors must be SH coefficients of shape (N={n}, K>={k}, 3) for sh_degree={sh_degree}, "
                 f"got {tuple(colors.shape)}"
             )
-    for name, t in [("opacities", opacities), ("colors", colors), ("quats", quats), ("scales", scales), ("covars", covars)]:
+    optional = {"opacities": opacities, "colors": colors, "quats": quats, "scales": scales, "covars": covars}
+    for name, t in optional.items():
         if t is not None and (t.device != means.device or t.dtype != means.dtype):
             raise ValueError(f"{name} is {t.dtype} on {t.device}; expected means' {means.dtype} on {means.device}")
 

@@ -5,7 +5,8 @@ object is assumed fully inside every image). The hull is carved on a coarse voxe
 region all cameras look at, then again on a finer grid fitted to the coarse hull. Gaussians are
 placed on the hull's surface voxels (interior ones could never be seen), with isotropic scales of
 about a voxel, and take the mean colour of the views in which the hull itself does not hide them
-(each pixel's ray is marched through the voxel grid to its first occupied voxel). This replaces LGM's feed-forward prediction in Stage I (its weights cannot
+(each pixel's ray is marched through the voxel grid to its first occupied voxel). This replaces LGM's feed-forward
+prediction in Stage I (its weights cannot
 be downloaded here); any other initialiser with the same call signature can be used instead.
 """
 

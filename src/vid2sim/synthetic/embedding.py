@@ -186,5 +186,7 @@ def apply_embedding(tet_vertices_deformed: Tensor, tet_index: Tensor, bary: Tens
     if tets.shape[1] == 10:
         from vid2sim.physics.tet_modes import TET_EDGES
 
-        bary = torch.cat([bary * (2 * bary - 1)] + [4 * bary[:, a:a + 1] * bary[:, b:b + 1] for a, b in TET_EDGES], dim=1)
+        bary = torch.cat(
+            [bary * (2 * bary - 1)] + [4 * bary[:, a : a + 1] * bary[:, b : b + 1] for a, b in TET_EDGES], dim=1
+        )
     return (x[..., idx, :] * bary[..., None]).sum(dim=-2)

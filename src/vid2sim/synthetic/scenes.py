@@ -1,6 +1,7 @@
 """Synthetic scenes: an object dropped on the floor, simulated by FEM and rendered from a camera ring.
 
-The paper's benchmark (docs/architecture.md, "The paper's numbers"): objects dropped onto a floor, FEM ground truth, 12 views at 448 × 448,
+The paper's benchmark (docs/architecture.md, "The paper's numbers"): objects dropped onto a floor, FEM ground truth, 12
+views at 448 × 448,
 24 frames (16 observed + 8 for future prediction). Google Scanned Objects and Blender are not available
 here, so vid2sim makes its own:
 
@@ -35,7 +36,7 @@ import json
 import math
 import time
 import zipfile
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -50,7 +51,10 @@ from vid2sim.runtime.files import write_json_atomic
 if TYPE_CHECKING:
     from vid2sim.meshing.tetra import TetMesh
     from vid2sim.synthetic.fem import FEMConfig, InitialPose
+    from vid2sim.synthetic.independent import NewtonConfig
 
+#: the engines a scene's ground truth can come from (:attr:`SyntheticSceneConfig.truth`)
+TRUTHS = ("fem", "newton")
 MAX_RESOLUTION = 4096  # the largest image side a synthetic scene renders
 MAX_IMAGE_BYTES = 8 * 2**30  # rendered images of one scene in memory (checked before the FEM runs)
 
@@ -58,8 +62,15 @@ PRESETS: dict[str, dict[str, Any]] = {
     # 12 observed views (the paper's benchmark) + 2 held-out novel views
     "full": {"views": 14, "held_out_views": 2, "resolution": 448, "frames": 24, "observed_frames": 16},
     # a coarser tet mesh (about 3 000 tets instead of about 13 000 for a 3 000-face surface) for CPUs
-    "small": {"views": 6, "held_out_views": 2, "resolution": 128, "frames": 24, "observed_frames": 16, "tet_edge_length": 0.08,
-              "tet_envelope": 5e-3},
+    "small": {
+        "views": 6,
+        "held_out_views": 2,
+        "resolution": 128,
+        "frames": 24,
+        "observed_frames": 16,
+        "tet_edge_length": 0.08,
+        "tet_envelope": 5e-3,
+    },
 }
 
 BENCHMARK_E_RANGE = (1e4, 1e6)
@@ -100,7 +111,12 @@ class SyntheticSceneConfig:
             area (Pa per metre of penetration; :class:`vid2sim.synthetic.fem.FEMConfig`).
         element_order: the FEM's tets: 1 linear (default; 3–20 % too stiff in the lowest frequencies at the
             small preset's mesh) or 2 quadratic (converged in space to < 1 %, the FEM 19–26× slower on small scenes;
-            :class:`vid2sim.synthetic.fem.FEMConfig`).
+            :class:`vid2sim.synthetic.fem.FEMConfig`). With ``truth="newton"`` (linear tets only): 1 simulates the
+            tets as they are, 2 the eight linear tets per tet on the quadratic tets' nodes (twice as fine).
+        truth: the engine of the ground truth: 'fem' (ours, :mod:`vid2sim.synthetic.fem`) or 'newton' (NVIDIA
+            Newton's VBD solver, another energy, contact and damping: :mod:`vid2sim.synthetic.independent`).
+        friction: the floor's Coulomb friction coefficient in the 'newton' truth (ours is frictionless; the 'fem'
+            truth ignores it).
         tet_edge_length: fTetWild's target edge length relative to the bounding-box diagonal.
         tet_envelope: fTetWild's envelope (largest distance of the tet boundary from the surface) relative
             to the bounding-box diagonal; a wider envelope lets it coarsen the surface (fewer tets).
@@ -132,6 +148,8 @@ class SyntheticSceneConfig:
     substeps: int | None = None
     time_tolerance: float = 1.0
     element_order: int = 1
+    truth: str = "fem"
+    friction: float = 0.5
     floor_height: float = -0.7
     floor_stiffness: float = AREA_CONTACT_STIFFNESS
     tet_edge_length: float = 0.06
@@ -162,7 +180,7 @@ class SyntheticSceneConfig:
         for name in ("youngs_modulus", "poisson_ratio", "density", "max_horizontal_speed", "max_downward_speed",
                      "max_angular_speed", "dt", "floor_height", "floor_stiffness", "tet_edge_length",
                      "tet_envelope", "camera_radius", "camera_elevation_deg", "camera_fov_deg", "damping_ratio",
-                     "time_tolerance"):
+                     "time_tolerance", "friction"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
                 raise bad(name, "a finite number")
@@ -174,7 +192,9 @@ class SyntheticSceneConfig:
                      "time_tolerance"):
             if not getattr(self, name) > 0:
                 raise bad(name, "positive")
-        for name in ("max_horizontal_speed", "max_downward_speed", "max_angular_speed", "damping_ratio"):
+        if self.truth not in TRUTHS:
+            raise bad("truth", f"one of {list(TRUTHS)}")
+        for name in ("max_horizontal_speed", "max_downward_speed", "max_angular_speed", "damping_ratio", "friction"):
             if getattr(self, name) < 0:
                 raise bad(name, ">= 0")
         if not 0 < self.camera_fov_deg < 180:
@@ -246,6 +266,19 @@ class SyntheticSceneConfig:
             fields_["substeps"] = self.substeps
         return FEMConfig(**{**fields_, **overrides})
 
+    def newton_config(self) -> "NewtonConfig":
+        """The independent engine's settings for this scene (material, damping, frame time, floor and its stiffness,
+        friction; ``element_order`` 2 → ``subdivide``); its substeps are those of :attr:`substeps` when set."""
+        from vid2sim.synthetic.independent import NewtonConfig
+
+        fields_ = {"youngs_modulus": self.youngs_modulus, "poisson_ratio": self.poisson_ratio,
+                   "density": self.density, "damping_ratio": self.damping_ratio, "dt": self.dt,
+                   "floor_height": self.floor_height, "floor_stiffness": self.floor_stiffness,
+                   "friction": self.friction, "subdivide": self.element_order == 2}
+        if self.substeps is not None:
+            fields_["substeps"] = self.substeps
+        return NewtonConfig(**fields_)
+
     def initial_pose(self) -> "InitialPose":
         """The seeded random drop pose (orientation, height above the floor, rigid velocity)."""
         from vid2sim.synthetic.fem import InitialPose
@@ -277,6 +310,7 @@ class SyntheticSceneConfig:
 
 SYNTHETIC_JSON = "synthetic.json"
 FEM_RESULT_NPZ = "fem_result.npz"
+NEWTON_RESULT_NPZ = "newton_result.npz"
 
 
 def _stage(progress: bool, message: str) -> None:
@@ -344,8 +378,10 @@ def make_scene(config: SyntheticSceneConfig, out_dir: str | Path, overwrite: boo
         FileExistsError: ``out_dir`` exists and is not empty, unless ``overwrite`` and it is a scene folder.
         FileNotFoundError / ValueError: a bad mesh or tet-mesh file (not found, unsupported, not
             watertight, surface outside the tet mesh).
-        vid2sim.meshing.tetra.TetrahedralizationError, vid2sim.synthetic.fem.FEMSolverError: meshing or the
-            FEM failed (nothing is written).
+        vid2sim.meshing.tetra.TetrahedralizationError, vid2sim.synthetic.fem.FEMSolverError,
+            vid2sim.synthetic.independent.NewtonSolverError: meshing or the FEM (or Newton) failed (nothing is
+            written).
+        vid2sim.runtime.errors.ConfigError: ``truth="newton"`` without Newton installed.
     """
     import shutil
     import uuid
@@ -367,6 +403,10 @@ def make_scene(config: SyntheticSceneConfig, out_dir: str | Path, overwrite: boo
         value = getattr(config, name)
         if value is not None and not Path(value).is_file():
             raise FileNotFoundError(f"SyntheticSceneConfig.{name}: file {value} does not exist")
+    if config.truth == "newton":  # the optional engine: a clear error naming its extra, before any work
+        from vid2sim.synthetic.independent import import_newton
+
+        import_newton()
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
 
@@ -397,13 +437,29 @@ def make_scene(config: SyntheticSceneConfig, out_dir: str | Path, overwrite: boo
     lap("tetrahedralize")
 
     pose = config.initial_pose()
-    fem_config = config.fem_config()
-    _stage(progress, f"FEM drop: {len(tet.tets)} tets, {config.frames} frames, substeps refined until the "
-                     f"trajectory changes by <= {config.time_tolerance} % of the size")
-    result = simulate_fem_converged(tet.vertices, tet.tets, fem_config, pose, frames=config.frames,
-                                    tolerance=config.time_tolerance, start_substeps=config.substeps,
-                                    progress=progress, workers=workers)
-    lap("fem")
+    if config.truth == "fem":
+        fem_config = config.fem_config()
+        _stage(progress, f"FEM drop: {len(tet.tets)} tets, {config.frames} frames, substeps refined until the "
+                         f"trajectory changes by <= {config.time_tolerance} % of the size")
+        result = simulate_fem_converged(tet.vertices, tet.tets, fem_config, pose, frames=config.frames,
+                                        tolerance=config.time_tolerance, start_substeps=config.substeps,
+                                        progress=progress, workers=workers)
+        truth_metadata = {"fem": _fem_metadata(config, tet, result)}
+        result_file = FEM_RESULT_NPZ
+    else:
+        from vid2sim.synthetic.independent import newton_metadata, simulate_newton_converged
+
+        _stage(progress, f"Newton (VBD) drop: {len(tet.tets)} tets{' x 8' if config.element_order == 2 else ''}, "
+                         f"{config.frames} frames, steps halved until the trajectory changes by <= "
+                         f"{config.time_tolerance} % of the size")
+        result = simulate_newton_converged(tet.vertices, tet.tets, config.newton_config(), pose, frames=config.frames,
+                                           tolerance=config.time_tolerance, start_substeps=config.substeps,
+                                           progress=progress)
+        truth_metadata = {"newton": newton_metadata(result)}
+        result_file = NEWTON_RESULT_NPZ
+        # the surface rides on the tets Newton simulated (subdivided with element_order 2, renumbered)
+        tet_index, bary = embed_points(mesh.vertices.double(), result.rest_vertices, result.tets)
+    lap(config.truth)
 
     surface = apply_embedding(result.trajectory, tet_index, bary, result.embedding_elements).float()  # (T, Nv, 3)
     cameras = camera_ring(config.views, config.camera_radius, config.camera_elevation_deg, config.resolution,
@@ -416,28 +472,17 @@ def make_scene(config: SyntheticSceneConfig, out_dir: str | Path, overwrite: boo
 
     metadata = {
         "generator": "vid2sim.synthetic.scenes",
+        "truth": config.truth,
         "E": config.youngs_modulus,
         "nu": config.poisson_ratio,
         "density": config.density,
-        "material": config.material,
+        "material": config.material if config.truth == "fem" else "newton_vbd_stable_neo_hookean",
         "seed": config.seed,
         "object": mesh.name,
         "initial_pose": _jsonable(asdict(pose)),
         "damping_ratio": config.damping_ratio,
-        "fem": {
-            "tets": int(len(tet.tets)),
-            "vertices": int(len(tet.vertices)),
-            "element_order": result.config.element_order,
-            "integrator": result.config.integrator,
-            "substeps": result.config.substeps,
-            "time_convergence": {k: result.time_convergence[k] for k in
-                                 ("substeps", "kept", "tolerance_percent", "mean_percent", "max_percent")},
-            "floor_stiffness": config.floor_stiffness,
-            "max_penetration_m": float(result.max_penetration),
-            "min_det_F": float(result.min_det.min()),
-            "newton_iterations_total": int(result.newton_iterations.sum()),
-        },
-        "files": {"config": SYNTHETIC_JSON, "fem_result": FEM_RESULT_NPZ},
+        **truth_metadata,
+        "files": {"config": SYNTHETIC_JSON, f"{config.truth}_result": result_file},
     }
     scene = Scene(
         cameras=cameras,
@@ -447,14 +492,15 @@ def make_scene(config: SyntheticSceneConfig, out_dir: str | Path, overwrite: boo
                            observed_frames=list(range(config.observed_frames)),
                            observed_views=[v for v in range(config.views) if v not in config.held_out_indices],
                            metadata=metadata),
-        extras={"tet_trajectory": {"vertices": result.trajectory.float(), "tets": tet.tets.to(torch.int32)}},
+        extras={"tet_trajectory": {"vertices": result.trajectory.float(),
+                                   "tets": (tet.tets if config.truth == "fem" else result.tets).to(torch.int32)}},
     )
     _stage(progress, f"writing {out}")
     out.parent.mkdir(parents=True, exist_ok=True)
     staging = out.parent / f".{out.name}.making-{uuid.uuid4().hex[:12]}"
     try:
         write_scene(scene, staging, layout=config.layout, progress=progress)
-        result.save(staging / FEM_RESULT_NPZ)
+        result.save(staging / result_file)
         (staging / SYNTHETIC_JSON).write_text(json.dumps(_jsonable(asdict(config)), indent=2) + "\n")
         if out.is_dir() and not any(out.iterdir()):
             out.rmdir()
@@ -466,6 +512,23 @@ def make_scene(config: SyntheticSceneConfig, out_dir: str | Path, overwrite: boo
     _stage(progress, "done in " + ", ".join(f"{k} {v:.1f} s" for k, v in timings.items())
            + f" (total {sum(timings.values()):.1f} s)")
     return out
+
+
+def _fem_metadata(config: SyntheticSceneConfig, tet: "TetMesh", result: Any) -> dict[str, Any]:
+    """scene.json's ``metadata.fem``: the FEM truth's mesh, integrator, time convergence and solver figures."""
+    return {
+        "tets": int(len(tet.tets)),
+        "vertices": int(len(tet.vertices)),
+        "element_order": result.config.element_order,
+        "integrator": result.config.integrator,
+        "substeps": result.config.substeps,
+        "time_convergence": {k: result.time_convergence[k] for k in
+                             ("substeps", "kept", "tolerance_percent", "mean_percent", "max_percent")},
+        "floor_stiffness": config.floor_stiffness,
+        "max_penetration_m": float(result.max_penetration),
+        "min_det_F": float(result.min_det.min()),
+        "newton_iterations_total": int(result.newton_iterations.sum()),
+    }
 
 
 def _jsonable(obj: Any) -> Any:
@@ -517,7 +580,8 @@ def benchmark_overrides(preset: str, overrides: dict[str, Any]) -> dict[str, Any
 
 
 def make_benchmark(n: int, out_dir: str | Path, preset: str = "full", seed: int = 0, progress: bool = True,
-                   workers: int = 1, ray_address: str | None = None, **overrides: Any) -> Path:
+                   workers: int = 1, ray_address: str | None = None, tets_from: str | Path | None = None,
+                   **overrides: Any) -> Path:
     """Write a suite of ``n`` synthetic scenes ``scene_000`` … and an ``index.json`` of their ground truth.
 
     Scene i has the object/pose seed, E and ν of :func:`benchmark_parameters`; ``overrides`` are
@@ -541,10 +605,13 @@ def make_benchmark(n: int, out_dir: str | Path, preset: str = "full", seed: int 
     on a cluster of several machines ``out_dir`` must be on a file system all of them see at the same path.
     A scene whose task fails does not stop the others; the first failure is raised once all have finished.
     fTetWild is not reproducible, so scenes made twice (here or there) differ slightly after meshing.
-    Returns ``out_dir``.
+    With ``tets_from`` (another suite's folder) scene i reuses the tet mesh of that suite's scene i (its
+    ``fem_result.npz`` or ``newton_result.npz``) instead of running fTetWild: a second truth of the same drops on the
+    same tets (``truth="newton"``, docs/benchmarks.md). Returns ``out_dir``.
 
     Raises:
         FileExistsError: ``out_dir`` is a file, or a non-empty folder that is not a benchmark.
+        FileNotFoundError: a scene of ``tets_from`` holds no result file.
         ValueError: bad settings, an existing suite / scene written with other settings, or scene folders
             beyond ``n``.
         vid2sim.runtime.ray_runner.RayUnavailable: ``ray_address`` given but Ray missing or unreachable.
@@ -557,6 +624,12 @@ def make_benchmark(n: int, out_dir: str | Path, preset: str = "full", seed: int 
     if fixed:
         raise ValueError(f"make_benchmark: {fixed} are set per scene by the suite and cannot be overridden")
     configs = [SyntheticSceneConfig.preset(preset, **{**overrides, **p}) for p in params]  # validates up front
+    if any(c.truth == "newton" for c in configs):  # the optional engine, before any work
+        from vid2sim.synthetic.independent import import_newton
+
+        import_newton()
+    if tets_from is not None:
+        configs = [replace(c, tet_mesh=str(_suite_tets(Path(tets_from), i, c))) for i, c in enumerate(configs)]
     if ray_address is not None:  # fail before any work
         from vid2sim.runtime.ray_runner import check_ray
 
@@ -569,6 +642,8 @@ def make_benchmark(n: int, out_dir: str | Path, preset: str = "full", seed: int 
         raise FileExistsError(f"{root} is not empty and holds no index.json: refusing to write a benchmark there")
     header = {"preset": preset, "seed": seed, "overrides": _jsonable(overrides),
               "E_range": list(BENCHMARK_E_RANGE), "nu_range": list(BENCHMARK_NU_RANGE)}
+    if tets_from is not None:
+        header["tets_from"] = str(Path(tets_from).resolve())
     if index_path.is_file():
         previous = json.loads(index_path.read_text())
         if isinstance(previous.get("overrides"), dict):  # written when a suite's tets were linear by default
@@ -632,6 +707,19 @@ def make_benchmark(n: int, out_dir: str | Path, preset: str = "full", seed: int 
             root.rmdir()  # make_scene leaves nothing behind, so the folder is empty
         raise
     return root
+
+
+def _suite_tets(suite: Path, i: int, config: SyntheticSceneConfig) -> Path:
+    """The result file of scene i of another suite (its tets), checked to be the same object and drop."""
+    folder = suite / f"scene_{i:03d}"
+    for name in (FEM_RESULT_NPZ, NEWTON_RESULT_NPZ):
+        if (folder / name).is_file():
+            other = SyntheticSceneConfig.from_json(folder / SYNTHETIC_JSON)
+            if (other.seed, other.mesh) != (config.seed, config.mesh):
+                raise ValueError(f"{folder} is seed {other.seed} (mesh {other.mesh}), not seed {config.seed} (mesh "
+                                 f"{config.mesh}): its tets are another object's")
+            return folder / name
+    raise FileNotFoundError(f"{folder} holds no {FEM_RESULT_NPZ} or {NEWTON_RESULT_NPZ} to take scene {i}'s tets from")
 
 
 def _check_no_scenes_beyond(root: Path, n: int) -> None:

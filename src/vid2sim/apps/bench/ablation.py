@@ -4,8 +4,8 @@ Three variants of the reconstruction (:data:`VARIANTS`, in this order) each run 
 :func:`vid2sim.apps.bench.suite.run_suite` into ``OUT/<variant>``:
 
 * ``stage1_only`` — Stage I alone: the predictor's log10 E and ν are the asset's material and its last layer
-  starts the skinning field; Stage II does nothing (``JointConfig.iterations`` and ``gauss_newton_iterations`` 0, no coarse
-  search over E).
+  starts the skinning field; Stage II does nothing (``JointConfig.iterations`` and ``gauss_newton_iterations`` 0, no
+  coarse search over E).
   The paper's "Ours (Stage I only)" for the physics (its Gaussians are still fitted, as in every variant).
 * ``stage1_stage2`` — Stage I then the preset's Stage II (the paper's full method).
 * ``stage2_prior`` — Stage II alone from ``ReconstructConfig.prior``'s E and ν and a seeded skinning

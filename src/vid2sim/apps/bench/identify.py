@@ -81,7 +81,8 @@ class IdentifyConfig:
         fit_damping: also fit ζ; False (the default) keeps it at ``prior_damping``, as ``reconstruct`` does by
             default (``JointConfig.fit_damping``). ζ and ν trade off: a fitted ζ lets ν drift.
         coarse_log10_E: the grid searched over log10 E (at the prior ν and ζ) before L-BFGS, as the video
-            pipeline does (:class:`~vid2sim.reconstruct.stages.joint.JointConfig`); empty: start at ``prior_E``. The loss
+            pipeline does (:class:`~vid2sim.reconstruct.stages.joint.JointConfig`); empty: start at ``prior_E``. The
+            loss
             is not convex in E: with a subspace close to the truth's stiffness, two of the six scenes stopped in
             a side valley 0.5–0.8 decade below the truth when the descent started at the prior.
         fit_iterations: L-BFGS iterations (each takes a few loss evaluations).
@@ -99,13 +100,15 @@ class IdentifyConfig:
             that drift and pulls E to whatever value matches the rocking phase.
         calibrate_stiffness: scale the reduced model's elastic energy (the default) so that its subspace's lowest
             frequency on its cubature equals that of quadratic tets on the rest mesh, both at the prior ν
-            (:func:`vid2sim.physics.modes.stiffness_calibration`; ``Simulator.stiffness_scale``). The fitted E is then the
+            (:func:`vid2sim.physics.modes.stiffness_calibration`; ``Simulator.stiffness_scale``). The fitted E is then
+            the
             material's, not the stiffer subspace's.
         calibration_nu: with ``calibrate_stiffness``, "two_factor" (for the pointwise term) measures a factor on μ and
             one on λ at each ν of a grid, matched to the six lowest modes, and the simulator uses them at its
             current ν (:func:`vid2sim.physics.modes.stiffness_calibration_curve` with ``factors=2``: the
             subspace's locking grows with ν and sits in λ; this also gives the impact's squash the
-            continuum's size); "curve" (the default, for the projected term) one factor on E at each ν of the grid; "prior" one factor measured at
+            continuum's size); "curve" (the default, for the projected term) one factor on E at each ν of the grid;
+            "prior" one factor measured at
             the prior ν.
         calibration_nus: the grid of that curve.
         contact_layer: the reduced model's contact layer h as a fraction of the object's size
@@ -192,10 +195,14 @@ class IdentifyConfig:
         only = tuple(self.only)
         if any(isinstance(i, bool) or not isinstance(i, int) or not 0 <= i < self.scenes for i in only) \
                 or len(set(only)) != len(only):
-            raise ConfigError(f"IdentifyConfig.only must be distinct scene indices in [0, {self.scenes}), got {self.only!r}")
+            raise ConfigError(
+                f"IdentifyConfig.only must be distinct scene indices in [0, {self.scenes}), got {self.only!r}"
+            )
         self.only = tuple(sorted(only))
         if self.observed_frames >= self.frames:
-            raise ConfigError(f"IdentifyConfig.observed_frames ({self.observed_frames}) must be < frames ({self.frames})")
+            raise ConfigError(
+                f"IdentifyConfig.observed_frames ({self.observed_frames}) must be < frames ({self.frames})"
+            )
         if self.truth not in ("fem", "reduced"):
             raise ConfigError(f"IdentifyConfig.truth must be 'fem' or 'reduced', got {self.truth!r}")
         if self.loss not in LOSSES:
@@ -204,13 +211,19 @@ class IdentifyConfig:
         from vid2sim.physics.skinning_training import OBJECTIVES
 
         if self.skinning_objective not in OBJECTIVES:
-            raise ConfigError(f"IdentifyConfig.skinning_objective must be one of {OBJECTIVES}, got {self.skinning_objective!r}")
+            raise ConfigError(
+                f"IdentifyConfig.skinning_objective must be one of {OBJECTIVES}, got {self.skinning_objective!r}"
+            )
         if self.cubature_weights not in CUBATURE_WEIGHTS:
-            raise ConfigError(f"IdentifyConfig.cubature_weights must be one of {CUBATURE_WEIGHTS}, got {self.cubature_weights!r}")
+            raise ConfigError(
+                f"IdentifyConfig.cubature_weights must be one of {CUBATURE_WEIGHTS}, got {self.cubature_weights!r}"
+            )
         if self.fem_element_order not in (1, 2):
             raise ConfigError(f"IdentifyConfig.fem_element_order must be 1 or 2, got {self.fem_element_order!r}")
         if self.calibration_nu not in CALIBRATIONS:
-            raise ConfigError(f"IdentifyConfig.calibration_nu must be one of {CALIBRATIONS}, got {self.calibration_nu!r}")
+            raise ConfigError(
+                f"IdentifyConfig.calibration_nu must be one of {CALIBRATIONS}, got {self.calibration_nu!r}"
+            )
         if self.volumetric not in ("pointwise", "projected"):
             raise ConfigError(f"IdentifyConfig.volumetric must be 'pointwise' or 'projected', got {self.volumetric!r}")
         if self.mass not in MASSES:
@@ -227,7 +240,9 @@ class IdentifyConfig:
             raise ConfigError(f"IdentifyConfig.contact_layer must be a finite number >= 0, got {self.contact_layer!r}")
         if isinstance(self.nu_sensitivity, bool) or not isinstance(self.nu_sensitivity, (int, float)) \
                 or not 0 <= self.nu_sensitivity < 0.5:
-            raise ConfigError(f"IdentifyConfig.nu_sensitivity must be a number in [0, 0.5), got {self.nu_sensitivity!r}")
+            raise ConfigError(
+                f"IdentifyConfig.nu_sensitivity must be a number in [0, 0.5), got {self.nu_sensitivity!r}"
+            )
         self.nu_scan = tuple(float(v) for v in self.nu_scan)
         if any(not 0 < v < 0.5 for v in self.nu_scan) or any(b <= a for a, b in zip(self.nu_scan, self.nu_scan[1:])):
             raise ConfigError(f"IdentifyConfig.nu_scan must be increasing values in (0, 0.5), got {self.nu_scan!r}")
@@ -332,9 +347,15 @@ def prepare_scene(index: int, params: dict, config: IdentifyConfig, workdir: Pat
         mesh = make_procedural_object(scene_cfg.seed)
         tet = tetrahedralize(mesh.vertices, mesh.faces, edge_length_fac=scene_cfg.tet_edge_length,
                              epsilon=scene_cfg.tet_envelope, name=mesh.name)
-        fem = simulate_fem_converged(tet.vertices, tet.tets, scene_cfg.fem_config(element_order=config.fem_element_order),
-                                     scene_cfg.initial_pose(),
-                                     frames=config.frames, tolerance=config.fem_tolerance, progress=progress)
+        fem = simulate_fem_converged(
+            tet.vertices,
+            tet.tets,
+            scene_cfg.fem_config(element_order=config.fem_element_order),
+            scene_cfg.initial_pose(),
+            frames=config.frames,
+            tolerance=config.fem_tolerance,
+            progress=progress,
+        )
         fem.save(fem_path)
         key_path.write_text(json.dumps(key))
     T = fem.tets
@@ -346,7 +367,9 @@ def prepare_scene(index: int, params: dict, config: IdentifyConfig, workdir: Pat
 
     field = SkinningField(num_handles=config.handles, seed=0).double()
     suffix = "_v2" if config.skinning_objective == "random_z" else f"_{config.skinning_objective}"
-    field_path = folder / f"skinning_{config.handles}h_{config.skinning_iterations}it_{config.skinning_points}p{suffix}.pt"
+    field_path = (
+        folder / f"skinning_{config.handles}h_{config.skinning_iterations}it_{config.skinning_points}p{suffix}.pt"
+    )
     if field_path.is_file():
         field.load_state_dict(torch.load(field_path, weights_only=True))
     else:
@@ -521,7 +544,9 @@ def fit(scene: PerfectGeometry, config: IdentifyConfig, progress: bool = False) 
     coarse = []
     for value in tqdm(config.coarse_log10_E, desc="coarse log10 E", leave=False, disable=not progress):
         set_material(sim, value, config.prior_nu, config.prior_damping)
-        coarse.append({"log10_E": value, "loss": float(trajectory_loss(scene, config.observed_frames, kind=config.loss))})
+        coarse.append(
+            {"log10_E": value, "loss": float(trajectory_loss(scene, config.observed_frames, kind=config.loss))}
+        )
     if coarse:
         start_log10_E = coarse_minimum([c["log10_E"] for c in coarse], [c["loss"] for c in coarse])
     contact = calibrate_contact(scene, config, start_log10_E, config.prior_nu) if config.calibrate_contact else None
@@ -561,7 +586,9 @@ def fit(scene: PerfectGeometry, config: IdentifyConfig, progress: bool = False) 
         except Exception as exc:  # a line search that pushed E or ν to where the simulation fails
             history.append({"error": str(exc).splitlines()[0][:200]})
             break
-        bar.set_postfix(log10_E=f"{history[-1].get('log10_E', float('nan')):.3f}", loss=f"{history[-1].get('loss', 0):.2e}")
+        bar.set_postfix(
+            log10_E=f"{history[-1].get('log10_E', float('nan')):.3f}", loss=f"{history[-1].get('loss', 0):.2e}"
+        )
     seconds = time.perf_counter() - start
     best = min((h for h in history if "loss" in h), key=lambda h: h["loss"])
     # restore plain tensors at the best point
@@ -857,33 +884,58 @@ def summarise(rows: list[dict]) -> dict:
         "median_abs_error_nu": float(np.median([r["abs_error"]["nu"] for r in rows])),
         "mean_model_error_observed_percent": mean(lambda r: r["model_error_at_truth_percent"]["observed_percent"]),
         "mean_model_error_future_percent": mean(lambda r: r["model_error_at_truth_percent"]["future_percent"]),
-        "mean_model_error_observed_nonrigid_percent":
-            mean(lambda r: r["model_error_at_truth_percent"]["observed_nonrigid_percent"]),
-        "mean_model_error_future_nonrigid_percent":
-            mean(lambda r: r["model_error_at_truth_percent"]["future_nonrigid_percent"]),
+        "mean_model_error_observed_nonrigid_percent": mean(
+            lambda r: r["model_error_at_truth_percent"]["observed_nonrigid_percent"]
+        ),
+        "mean_model_error_future_nonrigid_percent": mean(
+            lambda r: r["model_error_at_truth_percent"]["future_nonrigid_percent"]
+        ),
         "mean_fitted_error_observed_percent": mean(lambda r: r["trajectory_error_fitted_percent"]["observed_percent"]),
         "mean_fitted_error_future_percent": mean(lambda r: r["trajectory_error_fitted_percent"]["future_percent"]),
-        "mean_valley_depth_at_half_decade": mean(lambda r: min(r["e_valley"]["depth_at_minus"], r["e_valley"]["depth_at_plus"])),
-        "max_reduced_time_convergence_percent": max(r["reduced_time_convergence_at_truth"]["mean_percent"] for r in rows),
+        "mean_valley_depth_at_half_decade": mean(
+            lambda r: min(r["e_valley"]["depth_at_minus"], r["e_valley"]["depth_at_plus"])
+        ),
+        "max_reduced_time_convergence_percent": max(
+            r["reduced_time_convergence_at_truth"]["mean_percent"] for r in rows
+        ),
         "mean_fit_seconds": mean(lambda r: r["fit"]["seconds"]),
         # fits that a failed line search ended early (their scenes' rows say where)
         "fit_line_search_failures": sum(int(r["fit"].get("line_search_failures", 0)) for r in rows),
         "mean_stiffness_scale": mean(lambda r: r["stiffness_scale"]),
         # how much ν moves the truth on the observed frames, and the ν change worth the model error
-        **({"mean_nu_sensitivity_observed_percent_per_0_05":
-            mean(lambda r: r["nu_sensitivity"]["observed_percent_per_0_05"]),
-            "median_nu_equivalent_of_model_error":
-            float(np.median([r["nu_sensitivity"]["nu_equivalent_of_model_error"] for r in rows]))}
-           if rows and all(r.get("nu_sensitivity") for r in rows) else {}),
+        **(
+            {
+                "mean_nu_sensitivity_observed_percent_per_0_05": mean(
+                    lambda r: r["nu_sensitivity"]["observed_percent_per_0_05"]
+                ),
+                "median_nu_equivalent_of_model_error": float(
+                    np.median([r["nu_sensitivity"]["nu_equivalent_of_model_error"] for r in rows])
+                ),
+            }
+            if rows and all(r.get("nu_sensitivity") for r in rows)
+            else {}
+        ),
         # where the observed frames put ν at the true E: the fit's floor set by the model error
-        **({"mean_abs_nu_scan_argmin_error": mean(lambda r: abs(r["nu_scan"]["argmin_error"]))}
-           if rows and all(r.get("nu_scan") for r in rows) else {}),
+        **(
+            {"mean_abs_nu_scan_argmin_error": mean(lambda r: abs(r["nu_scan"]["argmin_error"]))}
+            if rows and all(r.get("nu_scan") for r in rows)
+            else {}
+        ),
         # images with perfect geometry, appearance and initial state: the reduced model's own ceiling
-        **({f"mean_{which}_{group}_{metric}": mean(lambda r, w=which, g=group, m=metric: r[f"images_{w}"][g][m])
-            for which in ("at_truth", "fitted") for group in ("dynamic", "future") for metric in ("psnr", "ssim")}
-           if rows and all(r.get("images_at_truth") for r in rows) else {}),
+        **(
+            {
+                f"mean_{which}_{group}_{metric}": mean(lambda r, w=which, g=group, m=metric: r[f"images_{w}"][g][m])
+                for which in ("at_truth", "fitted")
+                for group in ("dynamic", "future")
+                for metric in ("psnr", "ssim")
+            }
+            if rows and all(r.get("images_at_truth") for r in rows)
+            else {}
+        ),
         # lowest elastic frequency as a ratio to quadratic tets: the FEM truth's and the reduced model's stiffening
-        **{f"mean_lowest_frequency_{key}": mean(lambda r, key=key: r["frequencies"][key][0])
-           for key in ("linear_tets_over_quadratic", "reduced_over_quadratic", "reduced_over_linear_tets")},
+        **{
+            f"mean_lowest_frequency_{key}": mean(lambda r, key=key: r["frequencies"][key][0])
+            for key in ("linear_tets_over_quadratic", "reduced_over_quadratic", "reduced_over_linear_tets")
+        },
     }
     return {"summary": summary, "scenes": rows}

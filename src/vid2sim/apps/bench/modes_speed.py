@@ -55,6 +55,13 @@ def run(device: torch.device | None = None, quick: bool = False, edge: float | N
     baseline = np.sort(spla.eigsh(K, k=18, M=M, sigma=sigma, which="LM", ncv=40, return_eigenvectors=False))[6:12]
     old = time.perf_counter() - t
     difference = np.abs(np.sqrt(np.clip(w2, 0, None)) / np.sqrt(np.clip(baseline, 1e-300, None)) - 1.0)
-    return {"modes_tets": int(len(mesh.tets)), "modes_dof": int(K.shape[0]), "modes_edge": edge, "modes_envelope": envelope,
-            "modes_seconds": new, "modes_seconds_superlu_mmd": old, "modes_speedup": old / new,
-            "modes_max_relative_difference": float(difference.max())}
+    return {
+        "modes_tets": int(len(mesh.tets)),
+        "modes_dof": int(K.shape[0]),
+        "modes_edge": edge,
+        "modes_envelope": envelope,
+        "modes_seconds": new,
+        "modes_seconds_superlu_mmd": old,
+        "modes_speedup": old / new,
+        "modes_max_relative_difference": float(difference.max()),
+    }

@@ -87,7 +87,9 @@ def time_render(
 def run(device: torch.device, quick: bool = False) -> dict[str, float | str]:
     """Renderer timings (see module docstring). ``device`` is ignored for ``render_ms`` (always CPU)."""
     repeats = 3 if quick else 7
-    result: dict[str, float | str] = {"render_ms": time_render(20_000, 4, 128, torch.device("cpu"), backend="torch", repeats=repeats)}
+    result: dict[str, float | str] = {
+        "render_ms": time_render(20_000, 4, 128, torch.device("cpu"), backend="torch", repeats=repeats)
+    }
     if torch.cuda.is_available():
         cuda = device if device.type == "cuda" else torch.device("cuda")
         result["render_ms_cuda_448"] = time_render(100_000, 12, 448, cuda, backend="auto", repeats=repeats)

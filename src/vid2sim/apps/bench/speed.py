@@ -30,7 +30,9 @@ def run_speed_benchmark(
         raise ConfigError(f"unknown benchmark section(s) {unknown}; expected some of {sorted(available)}")
     result: dict[str, Any] = {
         "device": str(dev),
-        "device_name": torch.cuda.get_device_name(dev) if dev.type == "cuda" else platform.processor() or platform.machine(),
+        "device_name": torch.cuda.get_device_name(dev)
+        if dev.type == "cuda"
+        else platform.processor() or platform.machine(),
         "torch": torch.__version__,
         "threads": torch.get_num_threads(),
     }

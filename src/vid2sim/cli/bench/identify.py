@@ -75,7 +75,10 @@ def run(args: argparse.Namespace) -> int:
         tmp.write_text(text + "\n")
         tmp.replace(out)
     summary = report["summary"]
-    rows = ["scene  object           log10E true/fit    nu true/fit     zeta true/fit   model err obs/fut %  fitted err obs/fut %"]
+    rows = [
+        "scene  object           log10E true/fit    nu true/fit     zeta true/fit   model err obs/fut %  fitted err "
+        "obs/fut %"
+    ]
     for r in report["scenes"]:
         t, f, m, e = r["true"], r["fitted"], r["model_error_at_truth_percent"], r["trajectory_error_fitted_percent"]
         rows.append(f"{r['scene']:5d}  {r['object']:15s}  {t['log10_E']:5.2f} / {f['log10_E']:5.2f}     "
@@ -86,8 +89,10 @@ def run(args: argparse.Namespace) -> int:
         rows.append("scene  truth moved by dnu obs/fut %   per 0.05 obs %   nu worth the model error")
         for r in report["scenes"]:
             n = r["nu_sensitivity"]
-            rows.append(f"{r['scene']:5d}  dnu {n['dnu']:+.3f}: {n['observed_percent']:5.2f} / {n['future_percent']:5.2f}"
-                        f"      {n['observed_percent_per_0_05']:5.2f}            {n['nu_equivalent_of_model_error']:.3f}")
+            rows.append(
+                f"{r['scene']:5d}  dnu {n['dnu']:+.3f}: {n['observed_percent']:5.2f} / {n['future_percent']:5.2f}"
+                f"      {n['observed_percent_per_0_05']:5.2f}            {n['nu_equivalent_of_model_error']:.3f}"
+            )
     if any(r.get("nu_scan") for r in report["scenes"]):
         rows.append("scene  nu true   loss minimum over nu at the true E   (error)")
         for r in report["scenes"]:
@@ -116,7 +121,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     ident.add_argument("--seed", type=int, default=None, help="suite seed (default 0)")
     ident.add_argument("--preset", choices=["small", "full"], default=None, help="tet resolution (default small)")
     ident.add_argument("--handles", type=int, default=None, help="learned skinning handles (default 30)")
-    ident.add_argument("--skinning-iterations", type=int, default=None, help="data-free skinning iterations (default 2000)")
+    ident.add_argument(
+        "--skinning-iterations", type=int, default=None, help="data-free skinning iterations (default 2000)"
+    )
     ident.add_argument("--fit-iterations", type=int, default=None, help="L-BFGS iterations (default 12)")
     ident.add_argument("--points", type=int, default=None, help="sample points (default 3000)")
     ident.add_argument("--skinning-points", type=int, default=None,

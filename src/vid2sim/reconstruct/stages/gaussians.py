@@ -1,4 +1,7 @@
-"""Stage ``gaussians``: 3D Gaussians fitted to frame 0 of the observed views (3DGS; :func:`vid2sim.splats.fit_gaussians`)."""
+"""Stage ``gaussians``: 3D Gaussians fitted to frame 0 of the observed views.
+
+3DGS; :func:`vid2sim.splats.fit_gaussians`.
+"""
 
 from __future__ import annotations
 

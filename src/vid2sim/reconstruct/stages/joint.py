@@ -483,8 +483,8 @@ def _full_resolution_validation(clip: ClipResiduals, rig: GaussianRig, observati
 def _gauss_newton(clip: ClipResiduals, parameters: list[Parameter], start: list[float], n: float, rig: GaussianRig,
                   observations: Observations, cfg: JointConfig, progress: bool,
                   on_iteration: Callable[[dict[str, Any]], None] | None) -> FitResult:
-    """Levenberg–Marquardt from the coarse search's start (:func:`~vid2sim.reconstruct.gauss_newton.levenberg_marquardt`),
-    kept by the full-resolution validation loss."""
+    """Levenberg–Marquardt from the coarse search's start
+    (:func:`~vid2sim.reconstruct.gauss_newton.levenberg_marquardt`), kept by the full-resolution validation loss."""
     from tqdm.auto import tqdm
 
     bar = tqdm(total=cfg.gauss_newton_iterations, desc="Gauss-Newton fit of the material and velocity",

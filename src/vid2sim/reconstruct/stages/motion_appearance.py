@@ -133,7 +133,9 @@ def initial_shading(gaussians: Any, interior: Tensor, volume: float, gravity: Se
     """
     g = torch.as_tensor(list(gravity), dtype=gaussians.means.dtype, device=gaussians.means.device)
     if not float(g.norm()) > 0:
-        raise ValueError(f"initial_shading: gravity must be non-zero to say where the light starts, got {list(gravity)}")
+        raise ValueError(
+            f"initial_shading: gravity must be non-zero to say where the light starts, got {list(gravity)}"
+        )
     spacing = (float(volume) / max(1, interior.shape[0])) ** (1.0 / 3.0)
     normals = outward_normals(gaussians.means.detach(), interior.to(gaussians.means), 2.0 * spacing)
     return Shading.create(normals, -g / g.norm(), INITIAL_AMBIENT)

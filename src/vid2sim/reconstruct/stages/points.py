@@ -12,7 +12,8 @@
 The object's canonical frame (centred on its bounding box, scaled so that half the box diagonal is 0.5) is
 recorded for the skinning network's input; physics stays in the scene's metric frame.
 
-**Carving with the later frames** (:func:`carve_with_frames`). The object's hull carved again with the silhouettes of its later frames 
+**Carving with the later frames** (:func:`carve_with_frames`). The object's hull carved again with the silhouettes of
+its later frames
 
 Four views of frame 0 leave the visual hull far too large wherever no camera sees the object in profile. The
 worst of it is where the simulator's contact happens. On the small suite's scene 4 the frame-0 hull (after

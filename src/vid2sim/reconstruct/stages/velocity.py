@@ -263,7 +263,8 @@ def _check_inputs(points: Tensor, masks: Tensor, cameras: Sequence[Camera], dt: 
     if gravity.shape != (3,) or not bool(torch.isfinite(gravity).all()):
         raise ValueError(f"{name}: gravity must be a finite (3,) vector, got shape {tuple(gravity.shape)}")
     if floor_height is not None:
-        if isinstance(floor_height, bool) or not isinstance(floor_height, (int, float)) or not math.isfinite(floor_height):
+        number = isinstance(floor_height, (int, float)) and not isinstance(floor_height, bool)
+        if not number or not math.isfinite(floor_height):
             raise ValueError(f"{name}: floor_height must be a finite number or None, got {floor_height!r}")
         if float(gravity.norm()) == 0.0:
             raise ValueError(f"{name}: a floor needs a non-zero gravity (-gravity defines 'up')")
@@ -379,8 +380,10 @@ def estimate_initial_velocity(
                              f"into its {width}x{height} image")
         matched = float(((masks_np[v, 0][row[v], col[v]] > 0.25) & in_image[v]).mean())
         if matched < 0.5:
-            raise ValueError(f"{name}: the points do not match the frame-0 mask of view {v}: only {100 * matched:.0f} % "
-                             "of them project inside it (are they the object at frame 0, in the cameras' world frame?)")
+            raise ValueError(
+                f"{name}: the points do not match the frame-0 mask of view {v}: only {100 * matched:.0f} % "
+                "of them project inside it (are they the object at frame 0, in the cameras' world frame?)"
+            )
     metres_per_px = float(z.mean()) / float(Ks[:, [0, 1], [0, 1]].mean())
     surface = surface_samples(P, max_points, rng) if shape_model == "surface" else None
     Xc = subset if surface is None else surface - centre  # the points the silhouettes are fitted with
@@ -455,8 +458,10 @@ def estimate_initial_velocity(
         model = trial
     K = len(rotations)
     if model is None:
-        raise TooFewBallisticFrames(f"{name}: fewer than 2 usable frames ({stop}); the velocity needs frames 0 and 1 before "
-                         "any contact with the floor")
+        raise TooFewBallisticFrames(
+            f"{name}: fewer than 2 usable frames ({stop}); the velocity needs frames 0 and 1 before "
+            "any contact with the floor"
+        )
 
     Rs, ps = np.stack(rotations), np.stack(centroids)
     times = np.arange(K) * dt

@@ -1,5 +1,6 @@
 """Finite-element ground truth for the synthetic benchmark: linear tetrahedra, the paper's Neo-Hookean
-energy, gravity, the floor penalty of docs/architecture.md and Kelvin–Voigt damping, integrated in time (BDF2 or implicit
+energy, gravity, the floor penalty of docs/architecture.md and Kelvin–Voigt damping, integrated in time (BDF2 or
+implicit
 Euler) with Newton's method.
 
 Model

@@ -159,7 +159,9 @@ def _as_matrix3(rotation) -> np.ndarray:
         K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
         return np.eye(3) + math.sin(angle) * K + (1 - math.cos(angle)) * K @ K
     if r.shape != (3, 3):
-        raise ValueError(f"InitialPose.rotation must be a (3, 3) matrix or a (3,) axis-angle vector, got shape {r.shape}")
+        raise ValueError(
+            f"InitialPose.rotation must be a (3, 3) matrix or a (3,) axis-angle vector, got shape {r.shape}"
+        )
     if not np.allclose(r.T @ r, np.eye(3), atol=1e-6) or np.linalg.det(r) < 0:
         raise ValueError(f"InitialPose.rotation must be a proper rotation (RᵀR = I, det R = +1), got {r.tolist()}")
     return r

@@ -96,7 +96,8 @@ def contact_areas(X: np.ndarray, tets: np.ndarray, elements: np.ndarray, num_nod
 
 
 class TetFEM:
-    """Tet-mesh FEM model (linear or quadratic tets): rest geometry, lumped masses, energies, gradients, sparse Hessians,
+    """Tet-mesh FEM model (linear or quadratic tets): rest geometry, lumped masses, energies, gradients, sparse
+    Hessians,
     and the Newton minimiser shared by :func:`simulate_fem` and :func:`static_solve`.
 
     Args:
@@ -286,7 +287,9 @@ class TetFEM:
         data = np.bincount(self._scatter, weights=Ke.ravel(), minlength=self._nnz)
         diag = np.zeros((self.num_vertices, 3))
         if self.config.floor_height is not None:
-            diag[:, 2] += 2.0 * self.config.floor_stiffness * self.contact_areas * (self.config.floor_height - x[:, 2] > 0)
+            diag[:, 2] += (
+                2.0 * self.config.floor_stiffness * self.contact_areas * (self.config.floor_height - x[:, 2] > 0)
+            )
         if inertia:
             diag += inertia * self.masses[:, None]
         data[self._diag_pos] += diag.ravel()
@@ -405,9 +408,11 @@ class TetFEM:
                     factor.stale = True
                     continue
                 raise FEMSolverError(
-                    f"line search found no valid step after {cfg.line_search_max_halvings} halvings at Newton iteration "
+                    f"line search found no valid step after {cfg.line_search_max_halvings} halvings at Newton "
+                    f"iteration "
                     f"{it} (min det F along the step: {self.min_det(x + alpha * step):.3g}, max step "
-                    f"{np.abs(step).max():.3g} m)")
+                    f"{np.abs(step).max():.3g} m)"
+                )
             stats.line_search_halvings += halvings
             if halvings > 0 or (not fresh and size > cfg.reuse_rate * previous):
                 factor.stale = True  # far from converged or slow contraction: refactorise at the next iteration

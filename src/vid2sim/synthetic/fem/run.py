@@ -112,15 +112,24 @@ class FEMResult:
             cfg = json.loads(str(z["config"]))
             cfg["gravity"] = tuple(cfg["gravity"])
             t = lambda k: torch.from_numpy(z[k].copy())  # noqa: E731
-            return cls(rest_vertices=t("rest_vertices"), tets=t("tets"), trajectory=t("trajectory"),
-                       velocities=t("velocities"), times=t("times"),
-                       energies={k[len("energy_"):]: t(k) for k in z.files if k.startswith("energy_")},
-                       min_det=t("min_det"), newton_iterations=t("newton_iterations"),
-                       line_search_halvings=t("line_search_halvings"), inverted_rejections=t("inverted_rejections"),
-                       config=FEMConfig(**cfg), pose=InitialPose(**json.loads(str(z["pose"]))),
-                       fixed=t("fixed"), wall_time=float(z["wall_time"]),
-                       time_convergence=json.loads(str(z["time_convergence"])) if "time_convergence" in z.files else None,
-                       elements=t("elements") if "elements" in z.files else None)
+            return cls(
+                rest_vertices=t("rest_vertices"),
+                tets=t("tets"),
+                trajectory=t("trajectory"),
+                velocities=t("velocities"),
+                times=t("times"),
+                energies={k[len("energy_") :]: t(k) for k in z.files if k.startswith("energy_")},
+                min_det=t("min_det"),
+                newton_iterations=t("newton_iterations"),
+                line_search_halvings=t("line_search_halvings"),
+                inverted_rejections=t("inverted_rejections"),
+                config=FEMConfig(**cfg),
+                pose=InitialPose(**json.loads(str(z["pose"]))),
+                fixed=t("fixed"),
+                wall_time=float(z["wall_time"]),
+                time_convergence=json.loads(str(z["time_convergence"])) if "time_convergence" in z.files else None,
+                elements=t("elements") if "elements" in z.files else None,
+            )
 
 
 def _fixed_mask(fixed, num_vertices: int) -> np.ndarray:
@@ -128,7 +137,9 @@ def _fixed_mask(fixed, num_vertices: int) -> np.ndarray:
         return np.zeros(num_vertices, dtype=bool)
     f = np.asarray(fixed.detach().cpu() if isinstance(fixed, Tensor) else fixed)
     if f.shape != (num_vertices,) or f.dtype != bool:
-        raise ValueError(f"fixed must be a boolean mask of shape ({num_vertices},), got shape {f.shape}, dtype {f.dtype}")
+        raise ValueError(
+            f"fixed must be a boolean mask of shape ({num_vertices},), got shape {f.shape}, dtype {f.dtype}"
+        )
     return f
 
 

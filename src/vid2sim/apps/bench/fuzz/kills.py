@@ -5,8 +5,10 @@ Each command runs at a toy size, in a fresh interpreter (``python -m vid2sim``: 
 
 | command | looks finished when | compared with the uninterrupted run |
 |---|---|---|
-| ``make-training-data`` (2 objects × 2 draws, 16 px, 4 frames) | ``index.json`` says ``complete`` | every shard bit for bit, ``index.json`` except its timings |
-| ``train-predictor`` (6 steps on that data, checkpoint every 2) | ``predictor.pt`` exists | the final weights within 1e-5 (one torch thread) |
+| ``make-training-data`` (2 objects × 2 draws, 16 px, 4 frames) | ``index.json`` says ``complete`` | every shard bit for
+bit, ``index.json`` except its timings |
+| ``train-predictor`` (6 steps on that data, checkpoint every 2) | ``predictor.pt`` exists | the final weights within
+1e-5 (one torch thread) |
 
 Case i draws the command and the moment (uniform between 0.3 s and the uninterrupted run's duration) from
 ``seed + i``. Two processes on one output (:mod:`vid2sim.runtime.locks`) are checked on every other case: while
@@ -76,8 +78,13 @@ def same_result(command: str, a: Path, b: Path) -> tuple[bool, str]:
         ia, ib = (json.loads((p / "index.json").read_text()) for p in (a, b))
 
         def core(d: dict) -> dict:  # all but the wall-clock timings
-            return {"config": d.get("config"), "complete": d.get("complete"),
-                    "shards": [{k: v for k, v in e.items() if k not in ("seconds", "timings")} for e in d.get("shards", [])]}
+            return {
+                "config": d.get("config"),
+                "complete": d.get("complete"),
+                "shards": [
+                    {k: v for k, v in e.items() if k not in ("seconds", "timings")} for e in d.get("shards", [])
+                ],
+            }
 
         if core(ia) != core(ib):
             return False, "index.json differs beyond its timings"

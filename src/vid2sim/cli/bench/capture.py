@@ -1,0 +1,45 @@
+"""``vid2sim bench capture``: capture twins of a suite's scenes, imported, reconstructed and compared with the clean
+scenes (docs/capture.md)."""
+
+from __future__ import annotations
+
+import argparse
+import os
+
+from vid2sim.cli.common import UserError
+
+
+def run(args: argparse.Namespace) -> int:
+    from vid2sim.apps.bench.capture import BENCH_JSON, CaptureBenchConfig, format_capture_table, run_capture_bench
+    from vid2sim.synthetic.capture import CaptureTwinConfig
+
+    if args.threads is not None and args.threads < 1:
+        raise UserError(f"--threads must be >= 1, got {args.threads}")
+    if args.iterations is not None and args.iterations < 0:
+        raise UserError(f"--iterations must be >= 0, got {args.iterations}")
+    config = CaptureBenchConfig(twin=CaptureTwinConfig(seed=args.seed, lead_in_frames=args.lead_in),
+                                reconstruct=not args.import_only, preset=args.preset, iterations=args.iterations,
+                                threads=args.threads, clean_results=args.clean)
+    result = run_capture_bench(args.suite, args.out, config, progress=not args.quiet)
+    print(format_capture_table(result))
+    print(f"wrote {os.path.join(args.out, BENCH_JSON)}")
+    return 0 if all(r.get("status") == "ok" for r in result["scenes"]) else 1
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    """Add the ``bench capture`` subcommand."""
+    p = sub.add_parser("capture", help="capture twins of a suite: import (mask IoU, scale, gravity, floor errors), "
+                       "reconstruct, evaluate against the clean scenes; capture_bench.json (resumable)")
+    p.add_argument("suite", help="benchmark folder written by make-benchmark")
+    p.add_argument("out", help="results folder: NAME/capture, NAME/imported, NAME/import.json, NAME/asset, "
+                   "NAME/evaluation.json, capture_bench.json")
+    p.add_argument("--import-only", action="store_true", help="only the twins and their import's figures")
+    p.add_argument("--clean", default=None, metavar="RESULTS",
+                   help="a bench suite output folder whose NAME/evaluation.json are the clean runs (default: run them)")
+    p.add_argument("--preset", choices=["small", "full"], default="small", help="reconstruct preset (default small)")
+    p.add_argument("--iterations", type=int, default=None, help="joint-optimisation iterations (default: preset's)")
+    p.add_argument("--seed", type=int, default=0, help="first twin seed (scene i uses seed + i)")
+    p.add_argument("--lead-in", type=int, default=8, help="free-flight frames filmed before each scene (default 8)")
+    p.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
+    p.add_argument("--quiet", action="store_true", help="no progress lines")
+    p.set_defaults(func=run)

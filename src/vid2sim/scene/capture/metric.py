@@ -1,0 +1,412 @@
+"""The capture's metric, gravity-aligned frame: metres per calibration unit, the gravity direction and the floor,
+measured on the object's motion (and on COLMAP's points, where the model has them), then the similarity that
+takes the calibration frame to the scene format's SI, z-up frame.
+
+1. **Track.** Per frame, the object's centre from the views where it is whole (not empty, not touching the
+   border): silhouette centroids triangulated, then the centroid of the soft visual hull around it
+   (:mod:`vid2sim.scene.capture.hull`).
+2. **Gravity and scale.** The free-flight frames' parabola (:mod:`vid2sim.scene.capture.ballistic`): a is gravity
+   in calibration units; direction ``â``, metres per unit ``|g| / |a|``.
+3. **Floor.** The plane normal to gravity that the object rests on: with COLMAP points, the dense layer of points
+   near the object's lowest contact height (a plane fit; its normal also sharpens the gravity direction when it
+   agrees with the parabola's within ``floor_normal_agreement_deg``); without, the object's lowest point over the
+   contact frames (the hull's, the median over those frames).
+4. **Transform.** ``x_scene = s·R·x_cal + t``: R the smallest rotation taking â to −z, s the metres per unit, t
+   putting the floor at z = 0 and the object's mean position over the scene's frames above the origin.
+
+``--scale``, ``--gravity-axis`` and ``--floor`` replace the matching estimate.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+from typing import Any, Sequence
+
+import numpy as np
+
+from vid2sim.scene.capture.ballistic import BallisticFit, BallisticSearch, find_ballistic, fit_segments
+from vid2sim.scene.capture.cameras import CaptureCamera
+from vid2sim.scene.capture.floor import floor_from_plates
+from vid2sim.scene.capture.hull import HullFrame, lowest_point, mask_centroids, soft_hull, triangulate
+
+
+@dataclass
+class MetricConfig:
+    """Settings of the metric-frame estimate.
+
+    Attributes:
+        gravity: |g| in m/s² (9.81 at sea level; a synthetic world may use another value).
+        hull_resolution: voxels per side of each frame's hull grid.
+        hull_margin: the grid's half-size relative to the object's largest silhouette radius.
+        ballistic: the free-flight search (:class:`~vid2sim.scene.capture.ballistic.BallisticSearch`).
+        use_points: use COLMAP's 3D points for the floor.
+        use_plates: without points, find the floor on the clean plates (:mod:`vid2sim.scene.capture.floor`).
+        upright_cameras: the cameras stand roughly upright (image down within 60° of gravity on average): free fall
+            is then told from a bounce's steady upward deceleration (``--gravity-axis`` for rigs that are not).
+        floor_normal_agreement_deg: adopt the point floor's normal as the gravity direction when it is within this
+            angle of the parabola's (and within 3 of its standard deviations).
+    """
+
+    gravity: float = 9.81
+    hull_resolution: int = 32
+    hull_margin: float = 1.6
+    ballistic: BallisticSearch = field(default_factory=BallisticSearch)
+    use_points: bool = True
+    use_plates: bool = True
+    upright_cameras: bool = True
+    floor_normal_agreement_deg: float = 10.0
+
+    def to_json(self) -> dict:
+        return asdict(self)
+
+
+@dataclass
+class Track:
+    """The object's track in the calibration frame.
+
+    Attributes:
+        centres: (T, 3) hull centroids (NaN where fewer than two views see the whole object).
+        hulls: per frame its :class:`HullFrame` (None where not tracked).
+        size: the object's diameter (calibration units; the median hull extent).
+    """
+
+    centres: np.ndarray
+    hulls: list[HullFrame | None]
+    size: float
+
+    def lowest_along(self, up: np.ndarray) -> np.ndarray:
+        """(T,) the object's lowest height along ``up`` (NaN where not tracked)."""
+        return np.array([lowest_point(h, up) if h is not None else np.nan for h in self.hulls])
+
+
+def track_object(cameras: Sequence[CaptureCamera], masks: Sequence[np.ndarray], usable: np.ndarray,
+                 config: MetricConfig) -> Track:
+    """The object's :class:`Track` from each view's masks (T, H, W) — float in [0, 1] or uint8 coverage in 0..255 —
+    and the usable (V, T) views of every frame."""
+    scale = [255.0 if m.dtype == np.uint8 else 1.0 for m in masks]
+    V, T = usable.shape
+    pix = np.zeros((V, T, 2))
+    area = np.zeros((V, T))
+    for v, m in enumerate(masks):
+        pix[v], area[v] = mask_centroids(m.astype(np.float32) / scale[v])
+    rough = triangulate(cameras, pix, usable)
+    # the object's radius in calibration units from its silhouettes' sizes at the rough depth
+    radius = 0.0
+    for t in range(T):
+        if not np.isfinite(rough[t]).all():
+            continue
+        for v in range(V):
+            if usable[v, t]:
+                depth = (cameras[v].world_to_camera[:3, :3] @ rough[t] + cameras[v].world_to_camera[:3, 3])[2]
+                f = 0.5 * (cameras[v].K[0, 0] + cameras[v].K[1, 1])
+                radius = max(radius, np.sqrt(area[v, t] / np.pi) * depth / f)
+    half = config.hull_margin * radius
+    centres = np.full((T, 3), np.nan)
+    hulls: list[HullFrame | None] = [None] * T
+    extents = []
+    for t in range(T):
+        views = np.flatnonzero(usable[:, t])
+        if len(views) < 2 or not np.isfinite(rough[t]).all():
+            continue
+        cams = [cameras[v] for v in views]
+        frame = np.stack([masks[v][t].astype(np.float32) / scale[v] for v in views])
+        hull = soft_hull(cams, frame, rough[t], half, max(16, config.hull_resolution // 2))
+        c = hull.centroid()
+        if not np.isfinite(c).all():
+            continue
+        hull = soft_hull(cams, frame, c, half, config.hull_resolution)  # centred on the object
+        c = hull.centroid()
+        if np.isfinite(c).all():
+            centres[t] = c
+            hulls[t] = hull
+            extents.append(hull.extent())
+    size = float(np.median(extents)) if extents else float("nan")
+    return Track(centres, hulls, size)
+
+
+@dataclass
+class FloorEstimate:
+    """The floor plane {x : up·x = offset} in calibration units: its offset, std and where it came from; for a point
+    floor also its own normal, that normal's std (degrees) and the number of points."""
+
+    offset: float
+    sigma: float
+    source: str
+    normal: np.ndarray | None = None
+    normal_sigma_deg: float = float("nan")
+    points: int = 0
+
+
+def floor_from_points(points: np.ndarray, up: np.ndarray, near: float, size: float) -> FloorEstimate | None:
+    """The dense horizontal layer of points (P, 3) within ±0.5·``size`` of the height ``near`` (along ``up``): its
+    plane {x : normal·x = offset} (least squares over the inliers after a histogram mode; the offset is along the
+    plane's own normal), or None when fewer than 20 points lie there."""
+    if len(points) < 20 or not np.isfinite(near):
+        return None
+    h = points @ up
+    sel = np.abs(h - near) < 0.5 * size
+    if sel.sum() < 20:
+        return None
+    hs = h[sel]
+    bins = max(10, int(sel.sum() ** 0.5))
+    counts, edges = np.histogram(hs, bins=bins)
+    k = int(np.argmax(counts))
+    mode = 0.5 * (edges[k] + edges[k + 1])
+    width = edges[1] - edges[0]
+    inl = sel & (np.abs(h - mode) < 2 * width)
+    for _ in range(3):
+        P = points[inl]
+        c = P.mean(0)
+        _, _, vt = np.linalg.svd(P - c)
+        n = vt[2] * np.sign(vt[2] @ up)
+        d = (points - c) @ n
+        mad = 1.4826 * np.median(np.abs(d[inl])) + 1e-12
+        inl = sel & (np.abs(d) < 3 * mad)
+        if inl.sum() < 20:
+            return None
+    P = points[inl]
+    c = P.mean(0)
+    _, _, vt = np.linalg.svd(P - c)
+    n = vt[2] * np.sign(vt[2] @ up)
+    resid = (P - c) @ n
+    sigma = float(resid.std() / np.sqrt(len(P)))
+    # a tilt of the plane by θ moves points at distance r by r·θ: std(θ) ≈ σ / (rms(r) √N)
+    spread = float(np.sqrt((np.linalg.norm((P - c) - np.outer(resid, n), axis=1) ** 2).mean()))
+    normal_sigma = float(np.degrees(resid.std() / max(spread, 1e-12) / np.sqrt(len(P))))
+    return FloorEstimate(float(c @ n), sigma, "colmap points", n, normal_sigma, int(inl.sum()))
+
+
+def floor_from_contact(track: Track, up: np.ndarray, flight: Sequence[int]) -> FloorEstimate | None:
+    """The object's lowest height (along ``up``) over the tracked frames not in free flight, at and after its first
+    contact: the median, and its spread as the std."""
+    low = track.lowest_along(up)
+    tracked = np.flatnonzero(np.isfinite(low))
+    if len(tracked) == 0:
+        return None
+    flight = set(flight)
+    contact = [t for t in tracked if t not in flight and t > min(flight, default=-1)] or \
+              [t for t in tracked if t not in flight] or list(tracked)
+    vals = low[contact]
+    # only the frames near the lowest level (the object resting or pressed on the floor)
+    level = np.percentile(vals, 25)
+    near = vals[vals <= level + 0.05 * track.size]
+    return FloorEstimate(float(np.median(near)), float(1.4826 * np.median(np.abs(near - np.median(near))) /
+                                                       np.sqrt(max(len(near), 1)) + 1e-12), "object contact")
+
+
+def rotation_to_down(direction: np.ndarray) -> np.ndarray:
+    """The smallest rotation (3, 3) taking the unit vector ``direction`` to (0, 0, −1)."""
+    a = direction / np.linalg.norm(direction)
+    b = np.array([0.0, 0.0, -1.0])
+    v = np.cross(a, b)
+    c = float(a @ b)
+    if np.linalg.norm(v) < 1e-12:
+        return np.eye(3) if c > 0 else np.diag([1.0, -1.0, -1.0])
+    K = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+    return np.eye(3) + K + K @ K / (1 + c)
+
+
+@dataclass
+class MetricFrame:
+    """The calibration → scene similarity and the estimates behind it.
+
+    Attributes:
+        scale: metres per calibration unit; scale_sigma: its std; scale_source: ``"free flight"`` or ``"user"``.
+        down: (3,) unit gravity direction in the calibration frame; down_sigma_deg: its std (degrees);
+            down_source: ``"free flight"``, ``"floor (colmap points)"``, ``"floor (plates)"`` or ``"user"``.
+        floor: the :class:`FloorEstimate` (calibration units along up = −down).
+        rotation: (3, 3); translation: (3,): x_scene = scale · rotation @ x_cal + translation.
+        ballistic: the free-flight fit, if any.
+        gravity: |g| used (m/s²).
+    """
+
+    scale: float
+    scale_sigma: float
+    scale_source: str
+    down: np.ndarray
+    down_sigma_deg: float
+    down_source: str
+    floor: FloorEstimate
+    rotation: np.ndarray
+    translation: np.ndarray
+    ballistic: BallisticFit | None
+    gravity: float
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def matrix(self) -> np.ndarray:
+        """(4, 4) x_scene = M @ [x_cal, 1]."""
+        M = np.eye(4)
+        M[:3, :3] = self.scale * self.rotation
+        M[:3, 3] = self.translation
+        return M
+
+    def points(self, x: np.ndarray) -> np.ndarray:
+        """Calibration points (N, 3) → scene points (N, 3)."""
+        return self.scale * x @ self.rotation.T + self.translation
+
+    def camera(self, world_to_camera: np.ndarray) -> np.ndarray:
+        """A calibration-frame world-to-camera (4, 4) → the scene frame's (metres)."""
+        R = world_to_camera[:3, :3] @ self.rotation.T
+        M = np.eye(4)
+        M[:3, :3] = R
+        M[:3, 3] = self.scale * world_to_camera[:3, 3] - R @ self.translation
+        return M
+
+    def to_json(self) -> dict[str, Any]:
+        b = self.ballistic
+        return {
+            "calibration_to_scene": self.matrix.tolist(),
+            "metres_per_unit": {"value": self.scale, "sigma": self.scale_sigma, "source": self.scale_source},
+            "gravity_direction_calibration": {"value": self.down.tolist(), "sigma_deg": self.down_sigma_deg,
+                                              "source": self.down_source},
+            "floor_calibration": {"offset": self.floor.offset, "sigma": self.floor.sigma, "source": self.floor.source,
+                                  "normal": None if self.floor.normal is None else self.floor.normal.tolist(),
+                                  "points": self.floor.points, "normal_sigma_deg": self.floor.normal_sigma_deg,
+                                  "sigma_m": self.floor.sigma * self.scale},
+            "gravity_m_s2": self.gravity,
+            "free_flight": None if b is None else {
+                "segments": b.segments, "frames": len(b.frames), "acceleration_units": b.acceleration.tolist(),
+                "residual_units": b.residual, "noise_units": b.noise, "direction_fixed": b.direction_fixed},
+            "notes": self.notes,
+        }
+
+
+def trim_contact(track: Track, fit: BallisticFit, dt: float, up: np.ndarray, floor: float) -> list[list[int]]:
+    """The free-flight segments without the frames in which the object would touch the floor: its lowest point,
+    carried along the fitted parabola from where the hull puts it relative to the centre (median over the
+    segment), at or below the floor plane {x : up·x = floor}. The hull's lowest point lies a little below the
+    object's, so this errs on the side of dropping a frame. Segments left with fewer than 4 frames go, unless none
+    would be left."""
+    low = track.lowest_along(up)
+    out = []
+    for seg in fit.segments:
+        f = np.array(seg)
+        offset = np.nanmedian(low[f] - track.centres[f] @ up)
+        t0 = np.mean(seg)
+        ts = (f - t0) * dt
+        y = track.centres[f] - 0.5 * np.outer(ts * ts, fit.acceleration)
+        coef, *_ = np.linalg.lstsq(np.stack([np.ones_like(ts), ts], 1), y, rcond=None)
+        path = coef[0] + np.outer(ts, coef[1]) + 0.5 * np.outer(ts * ts, fit.acceleration)
+        keep = [int(k) for k, p in zip(f, path) if p @ up + offset > floor]
+        out.append(keep)
+    long_enough = [s for s in out if len(s) >= 4]
+    return long_enough or [s for s in out if len(s) >= 3] or fit.segments
+
+
+def cameras_down(cameras: Sequence[CaptureCamera]) -> np.ndarray:
+    """(3,) the cameras' mean image-down axis in the calibration frame (each camera's +y), unit: roughly gravity's
+    direction when the cameras stand upright."""
+    d = np.sum([c.rotation[1] for c in cameras], axis=0)
+    return d / max(np.linalg.norm(d), 1e-12)
+
+
+class NoFreeFlight(Exception):
+    """No free-flight frames to measure gravity on."""
+
+
+def solve_metric_frame(track: Track, dt: float, config: MetricConfig, scene_frames: range,
+                       points: np.ndarray | None = None, scale: float | None = None,
+                       down: np.ndarray | None = None, floor: float | None = None,
+                       cameras: Sequence[CaptureCamera] | None = None,
+                       plates: Sequence[np.ndarray] | None = None) -> MetricFrame:
+    """Measure (or take from the user) scale, gravity direction and floor, and build the similarity.
+
+    Args:
+        track: the object's track; dt: seconds per frame; scene_frames: the frames the scene keeps (the origin
+            goes under the object's mean position over them).
+        points: (P, 3) COLMAP points or None.
+        cameras, plates: the undistorted cameras and their clean plates (H, W, 3), for the floor where there are no
+            points (:func:`vid2sim.scene.capture.floor.floor_from_plates`).
+        scale, down, floor: the user's metres per unit, gravity direction (3,) and floor offset along −down.
+
+    Raises:
+        NoFreeFlight: the scale or the direction has to be measured and no free flight shows.
+    """
+    notes: list[str] = []
+    fit: BallisticFit | None = None
+    need_fit = scale is None or down is None
+    if down is not None:
+        down = np.asarray(down, dtype=np.float64)
+        down = down / np.linalg.norm(down)
+    if need_fit:
+        rough = cameras_down(cameras) if cameras is not None and config.upright_cameras else None
+        fit = find_ballistic(track.centres, dt, track.lowest_along, track.size, config.ballistic, direction=down,
+                             rough_down=rough)
+        if fit is None:
+            raise NoFreeFlight("no free-flight frames")
+    if down is None:
+        assert fit is not None
+        a = fit.acceleration
+        down_est = a / np.linalg.norm(a)
+        down_sigma = fit.direction_sigma_deg()
+        down_source = "free flight"
+    else:
+        down_est, down_sigma, down_source = down, 0.0, "user"
+    up = -down_est
+    # the floor (and possibly a sharper gravity direction from it)
+    floor_est: FloorEstimate | None = None
+    if floor is not None:
+        floor_est = FloorEstimate(float(floor), 0.0, "user")
+    else:
+        contact = floor_from_contact(track, up, fit.frames if fit is not None else [])
+        plane: FloorEstimate | None = None
+        if config.use_points and points is not None and len(points) and contact is not None:
+            plane = floor_from_points(points, up, contact.offset, track.size)
+        if plane is None and config.use_plates and plates is not None and cameras is not None and contact is not None \
+                and all(p is not None for p in plates):
+            centre = np.nanmedian(track.centres, axis=0)
+            found = floor_from_plates(cameras, plates, up, contact.offset, centre, 1.5 * track.size,
+                                      0.15 * track.size)
+            if found is not None:
+                plane = FloorEstimate(found.offset, found.sigma, "plates", found.normal, found.normal_sigma_deg, 0)
+        if plane is not None and plane.normal is not None:
+            angle = float(np.degrees(np.arccos(np.clip(plane.normal @ up, -1, 1))))
+            if down_source == "free flight" and angle <= config.floor_normal_agreement_deg and \
+                    angle <= 3.0 * max(down_sigma, 0.1):
+                down_est, up = -plane.normal, plane.normal
+                down_sigma = plane.normal_sigma_deg
+                down_source = f"floor ({plane.source})"
+                notes.append(f"gravity direction from the floor's normal ({plane.source}; {angle:.2f} deg from the "
+                             "free-flight estimate)")
+            else:
+                if down_source == "free flight":
+                    notes.append(f"the floor's normal ({plane.source}) is {angle:.2f} deg from the free-flight gravity "
+                                 "direction; kept the free-flight direction")
+                # the plane's height along the kept up direction, under the object
+                foot = np.nanmedian(track.centres, axis=0)
+                height = float(foot @ up) + (plane.offset - float(foot @ plane.normal)) / max(float(plane.normal @ up),
+                                                                                            1e-6)
+                plane = FloorEstimate(height, plane.sigma, plane.source, plane.normal, plane.normal_sigma_deg,
+                                      plane.points)
+            floor_est = plane
+        if floor_est is None:
+            floor_est = contact
+        if floor_est is None:
+            floor_est = FloorEstimate(float(np.nanmin(track.centres @ up)), float("nan"), "lowest centre")
+            notes.append("no contact frames: the floor is put at the object's lowest centre")
+    # the scale: drop free-flight frames in which the object, on its fitted parabola, would already reach the floor
+    # (a soft object's first contact frames bend its path too little to be told from the parabola), refit along the
+    # final direction
+    if scale is None:
+        assert fit is not None
+        segments = trim_contact(track, fit, dt, -down_est, floor_est.offset)
+        if segments != fit.segments or down_source.startswith("floor"):
+            direction = down_est if down_source.startswith("floor") else None
+            if segments != fit.segments:
+                notes.append(f"free-flight frames {sorted(set(fit.frames) - {f for s in segments for f in s})} "
+                             "dropped: the object reaches the floor there")
+            fit = fit_segments(track.centres, dt, segments, direction=direction, noise=fit.noise)
+        a = float(np.linalg.norm(fit.acceleration))
+        scale_val = config.gravity / a
+        scale_sigma = scale_val * fit.magnitude_sigma() / a
+        scale_source = "free flight"
+    else:
+        scale_val, scale_sigma, scale_source = float(scale), 0.0, "user"
+    R = rotation_to_down(down_est)
+    centres = track.centres[[t for t in scene_frames if np.isfinite(track.centres[t]).all()]]
+    centre = centres.mean(0) if len(centres) else np.nanmean(track.centres, axis=0)
+    rc = scale_val * R @ centre
+    translation = np.array([-rc[0], -rc[1], -scale_val * floor_est.offset])
+    return MetricFrame(scale_val, scale_sigma, scale_source, down_est, down_sigma, down_source, floor_est, R,
+                       translation, fit, config.gravity, notes)
