@@ -178,7 +178,8 @@ def test_joint_optimisation_recovers_E_from_images_of_the_same_model():
     assert float(images.std()) > 0.05  # the object is in view
     with torch.no_grad():
         sim.log10_E.fill_(5.0)
-    cfg = JointConfig(iterations=6, coarse_log10_E=(4.0, 4.4, 4.8, 5.2, 5.6), coarse_scale=1.0, validate_every=3,
+    cfg = JointConfig(method="windows", iterations=6, coarse_log10_E=(4.0, 4.4, 4.8, 5.2, 5.6), coarse_scale=1.0,
+                      validate_every=3,
                       lr_log10_E=0.02, lr_velocity=0.0, lr_skinning=0.0)
     result = joint_optimisation(sim, gaussians, Observations(images, cams), [0.1, 0.0, -1.0], [0.0, 1.0, 0.0],
                                 [0.0, 0.0, 0.0], cfg, progress=False)
@@ -238,7 +239,7 @@ def test_networks_that_are_not_optimised_stay_out_of_the_graph():
 
     sim.reduced_basis = spy
     images = torch.ones(2, 6, 32, 32, 3)
-    cfg = JointConfig(iterations=2, coarse_log10_E=(), validate_every=2, lr_skinning=0.0)
+    cfg = JointConfig(method="windows", iterations=2, coarse_log10_E=(), validate_every=2, lr_skinning=0.0)
     joint_optimisation(sim, gaussians, Observations(images, cams), [0.0, 0.0, -1.0], [0.0, 0.0, 0.0],
                        [0.0, 0.0, 0.0], cfg, progress=False)
     assert seen and not any(seen)

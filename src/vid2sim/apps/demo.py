@@ -41,7 +41,8 @@ TINY = {"gaussians": {"iterations": 30}, "points": {"resolution": 24, "num_point
         "appearance": {"iterations": 5}, "motion_appearance": {"iterations": 5},
         "networks": {"handles": 3, "skinning_iterations": 10}, "simulator": {"cubature": 60},
         "calibration": {"enabled": False},
-        "joint": {"iterations": 2, "coarse_log10_E": [4.5, 5.0], "validate_every": 1, "window": 2}}
+        "joint": {"iterations": 2, "gauss_newton_iterations": 2, "coarse_log10_E": [4.5, 5.0], "validate_every": 1,
+                  "window": 2}}
 
 
 @dataclass

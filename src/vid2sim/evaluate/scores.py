@@ -13,7 +13,11 @@ rendered in every camera. Reported (means, and per frame):
   distance (m) between the simulated body's centre of mass and the truth's per frame (``centre_of_mass``: the
   part of the motion error a wrong start or bounce leaves, whatever the shape);
 * the material Stage II started from (the documented prior, or Stage I's prediction) with its own errors
-  (``material.start``, :func:`start_material`): the baseline that says whether the fit improved on its start.
+  (``material.start``, :func:`start_material`): the baseline that says whether the fit improved on its start;
+* the material's intervals and identifiability as ``reconstruct`` reported them (``material.uncertainty``, from
+  ``material.json``), with the truth: whether each interval holds it (``material.interval_covers_truth``, 1.0 or
+  0.0, so that a suite's mean is the intervals' coverage); and the joint optimisation's validation loss at its
+  start and at the kept state (``material.fit``, :func:`joint_fit_record`).
 
 The simulation and the rendering are two reusable steps, :func:`simulate_gaussians` (the asset's captured
 drop as deformed Gaussians per frame) and :func:`render_frames` (those in any cameras); ``evaluate(...,
@@ -23,6 +27,7 @@ return_renders=True)`` also hands back the renders it scored, so that ``vid2sim 
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 from typing import Any
 
@@ -112,6 +117,30 @@ def start_material(asset_path: str | Path) -> dict[str, Any] | None:
     return {"E": float(E), "log10_E": math.log10(float(E)), "nu": float(nu), "source": source}
 
 
+def interval_coverage(uncertainty: dict[str, Any], truth: dict[str, float]) -> dict[str, float]:
+    """1.0 where the material's interval (``material.json`` ``uncertainty``, docs/asset-format.md) holds the true
+    value, 0.0 where it does not, for each of ``truth``'s keys the record has an interval for (numbers, so that a
+    suite's mean is the coverage)."""
+    out = {}
+    for name, value in truth.items():
+        entry = uncertainty.get(name)
+        interval = entry.get("interval") if isinstance(entry, dict) else None
+        if isinstance(interval, (list, tuple)) and len(interval) == 2:
+            out[name] = float(interval[0] <= value <= interval[1])
+    return out
+
+
+def joint_fit_record(extra: dict[str, Any]) -> dict[str, Any] | None:
+    """The joint optimisation's validation losses from an asset's ``extra`` (asset.json): ``start_validation_loss``
+    (the coarse search's start), ``validation_loss`` (the kept state's) and ``improved`` (1.0 when the kept state is
+    lower than the start, 0.0 otherwise), or None for an asset that does not record both."""
+    start, kept = extra.get("start_validation_loss"), extra.get("validation_loss")
+    if not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in (start, kept)):
+        return None
+    return {"start_validation_loss": float(start), "validation_loss": float(kept), "improved": float(kept < start),
+            "method": extra.get("joint_method")}
+
+
 def evaluate(asset_path: str | Path, scene_path: str | Path, fovvdp: bool = False,
              display: str = "standard_4k", progress: bool = True, return_renders: bool = False,
              true_motion: bool = False, device: str | torch.device | None = None) -> Any:
@@ -123,7 +152,8 @@ def evaluate(asset_path: str | Path, scene_path: str | Path, fovvdp: bool = Fals
     Returns:
         a JSON-ready dict: ``dynamic``, ``future``, ``novel_views`` (each ``psnr``, ``ssim``, per-frame lists,
         optionally ``fovvdp``), ``material`` (fitted, truth, errors when known; ``start``: Stage II's starting
-        material and its errors, :func:`start_material`), ``chamfer`` and ``centre_of_mass`` (per
+        material and its errors, :func:`start_material`; ``uncertainty``, ``interval_covers_truth`` and ``fit``
+        when the asset records them), ``chamfer`` and ``centre_of_mass`` (per
         frame and means over observed and future frames, when the scene has a ``tet_trajectory``), ``timing``.
         With ``return_renders=True``: the pair (that dict, the renders (V, T, H, W, 3) in [0, 1] it scored,
         every scene camera and frame).
@@ -171,6 +201,12 @@ def evaluate(asset_path: str | Path, scene_path: str | Path, fovvdp: bool = Fals
     fitted = {"E": asset.material["E"], "nu": asset.material["nu"]}
     material: dict[str, Any] = {"fitted": {**fitted, "log10_E": asset.material.get("log10_E"),
                                            "damping_ratio": asset.material.get("damping_ratio")}}
+    uncertainty = asset.material.get("uncertainty")
+    if isinstance(uncertainty, dict):
+        material["uncertainty"] = uncertainty
+    fit = joint_fit_record(asset.extra)
+    if fit is not None:
+        material["fit"] = fit
     start = start_material(asset_path)
     if start is not None:
         material["start"] = start
@@ -179,6 +215,9 @@ def evaluate(asset_path: str | Path, scene_path: str | Path, fovvdp: bool = Fals
         material.update(material_errors(fitted, material["truth"]))
         if start is not None:
             start.update(material_errors(start, material["truth"]))
+        if isinstance(uncertainty, dict) and meta["E"] > 0:
+            material["interval_covers_truth"] = interval_coverage(uncertainty, {"log10_E": math.log10(meta["E"]),
+                                                                                 "nu": meta["nu"]})
     report["material"] = material
     tet = scene.extras.get("tet_trajectory")
     if tet is not None:

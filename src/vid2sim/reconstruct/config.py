@@ -244,11 +244,31 @@ class JointConfig:
     """Settings of :func:`joint_optimisation` (defaults: the paper's, plus the CPU measures above).
 
     Attributes:
-        iterations: Adam iterations.
+        method: "windows" (the default, the paper's): Adam on random windows of ``window`` frames
+            (``iterations``, the learning rates; the networks too where their learning rates are > 0).
+            "gauss_newton" (beyond the paper, opt-in): Levenberg–Marquardt on the physical parameters (log10 E, ν,
+            ζ, the initial linear and angular velocity) over the whole observed clip, with a Gaussian prior on the
+            material (:mod:`vid2sim.reconstruct.gauss_newton`); the networks stay as trained. Not the default: on
+            two small-suite scenes it kept the coarse start on one and moved E away from the truth on the other
+            (docs/results.md, "Gauss–Newton joint fit"). Either method reports the material's intervals.
+        gauss_newton_iterations: at most this many Gauss–Newton Jacobians (each p + 1 rollouts of the clip at
+            ``coarse_scale``).
+        gauss_newton_tolerance: stop when an accepted step lowers the posterior objective by less than this.
+        gauss_newton_patience: stop when the validation loss has not improved for this many accepted steps.
+        prior_sd_log10_E, prior_sd_nu, prior_sd_damping: standard deviations of the Gaussian prior on log10 E, ν
+            and ζ, centred on the start material (``prior``, or Stage I's prediction): the Gauss–Newton fit's
+            regulariser, and the yardstick of identifiability (a parameter the images constrain less tightly than
+            this is reported as not identifiable from the video).
+        interval_level: probability of the material's reported intervals (``material.json`` ``uncertainty``;
+            a Laplace approximation at the fit, :mod:`vid2sim.reconstruct.uncertainty`).
+        log10_E_bounds: log10 E is kept in this interval by the Gauss–Newton fit.
+        iterations: Adam iterations (``method`` "windows").
         window: frames per window (Δs).
         lr_log10_E, lr_nu, lr_skinning, lr_jacobian: the paper's learning rates.
         lr_velocity: learning rate of the initial linear (m/s) and angular (rad/s) velocity.
-        fit_damping: also fit the damping ratio (learning rate ``lr_damping``); otherwise it stays at its prior.
+        fit_damping: also fit the damping ratio ζ (beyond the paper: the damping is a property of the object,
+            and held at its prior the bounce's energy loss is absorbed by E); otherwise (the default) it stays at
+            its prior. ``windows`` fits it with the learning rate ``lr_damping``.
         coarse_log10_E: grid of the coarse search (empty: skip it).
         coarse_scale: image scale of the coarse search and the first ``coarse_fraction`` of the iterations.
         coarse_fraction: fraction of the iterations rendered at ``coarse_scale`` (then full resolution).
@@ -267,6 +287,15 @@ class JointConfig:
         seed: seeds the windows and view subsets.
     """
 
+    method: Literal["gauss_newton", "windows"] = "windows"
+    gauss_newton_iterations: int = 8
+    gauss_newton_tolerance: float = 1e-3
+    gauss_newton_patience: int = 2
+    prior_sd_log10_E: float = 1.0
+    prior_sd_nu: float = 0.1
+    prior_sd_damping: float = 0.05
+    interval_level: float = 0.68
+    log10_E_bounds: tuple[float, float] = (3.0, 7.0)
     iterations: int = 400
     window: int = 4
     lr_log10_E: float = 5e-3
@@ -289,6 +318,20 @@ class JointConfig:
     seed: int = 0
 
     def __post_init__(self) -> None:
+        if self.method not in ("gauss_newton", "windows"):
+            raise ConfigError(f"JointConfig.method must be 'gauss_newton' or 'windows', got {self.method!r}")
+        if self.gauss_newton_iterations < 0 or self.gauss_newton_patience < 1:
+            raise ConfigError("JointConfig.gauss_newton_iterations must be >= 0 and gauss_newton_patience >= 1, got "
+                              f"{self.gauss_newton_iterations}, {self.gauss_newton_patience}")
+        for name in ("gauss_newton_tolerance", "prior_sd_log10_E", "prior_sd_nu", "prior_sd_damping"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < float(value) < math.inf:
+                raise ConfigError(f"JointConfig.{name} must be a finite number > 0, got {value!r}")
+        if not 0 < self.interval_level < 1:
+            raise ConfigError(f"JointConfig.interval_level must lie in (0, 1), got {self.interval_level}")
+        lo, hi = self.log10_E_bounds
+        if not lo < hi:
+            raise ConfigError(f"JointConfig.log10_E_bounds must satisfy lo < hi, got {self.log10_E_bounds}")
         if self.iterations < 0:
             raise ConfigError(f"JointConfig.iterations must be >= 0, got {self.iterations}")
         if self.window < 1:

@@ -80,7 +80,7 @@ def optimisation_figure(path: Path, log: Mapping[str, Any], found: Mapping[str, 
         if train or val:
             if train:
                 ax.plot([e["iteration"] for e in train], [e["loss"] for e in train], color="#9aa3ad", lw=0.8,
-                        marker=".", ms=3, alpha=0.8, label="training window loss")
+                        marker=".", ms=3, alpha=0.8, label="training loss")
             if val:
                 ax.plot([e["iteration"] for e in val], [e["validation_loss"] for e in val], color=FOUND_COLOUR,
                         lw=1.6, marker="o", ms=3.5, label="validation loss (all frames)")
@@ -200,7 +200,8 @@ def psnr_figure(path: Path, per_view: Mapping[str, Sequence[float | None]], held
 
 def material_scatter(path: Path, rows: Sequence[Mapping[str, Any]]) -> Path:
     """Found against true log10 E and ν of a suite's scenes (``rows``: ``name``, ``truth``, ``found`` dicts
-    with ``log10_E`` and ``nu``)."""
+    with ``log10_E`` and ``nu``; optional ``interval`` dict: ``log10_E`` / ``nu`` → [lo, hi], the reconstruction's
+    own interval, drawn as an error bar, hollow where the parameter was not identifiable (``identifiable`` dict))."""
     import matplotlib
 
     with matplotlib.rc_context(_RC):
@@ -215,6 +216,15 @@ def material_scatter(path: Path, rows: Sequence[Mapping[str, Any]]) -> Path:
                 ax.plot([lo, hi], [lo, hi], color="#999", lw=1, ls="--", label="found = truth")
                 ax.scatter([p[0] for p in pts], [p[1] for p in pts], color=FOUND_COLOUR, s=22, zorder=3,
                            label="scene")
+                bars = [(r["truth"][key], r["found"][key], r["interval"][key],
+                         (r.get("identifiable") or {}).get(key, True))
+                        for r in rows if _finite([r.get("truth", {}).get(key), r.get("found", {}).get(key)])
+                        and isinstance((r.get("interval") or {}).get(key), (list, tuple))]
+                for x, y, (a, b), known in bars:
+                    ax.errorbar([x], [y], yerr=[[max(0.0, y - a)], [max(0.0, b - y)]], color=FOUND_COLOUR,
+                                lw=1.0, capsize=2, ls="none", alpha=1.0 if known else 0.4)
+                    if not known:
+                        ax.scatter([x], [y], s=60, facecolors="none", edgecolors="#666", zorder=4)
                 ax.set_xlim(lo, hi)
                 ax.set_ylim(lo, hi)
                 ax.legend(loc="upper left")

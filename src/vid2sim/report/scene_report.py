@@ -424,8 +424,10 @@ class _Builder:
                 unit="Pa",
             )
         )
+        nu_known = ((self.material.get("uncertainty") or {}).get("nu") or {}).get("identifiable", True)
         cards.append(H.card("Poisson's ratio ν", H.fmt(found["nu"], 3),
-                            f"truth {H.fmt(truth['nu'], 3)}" if _isnum(truth.get("nu")) else "truth unknown"))
+                            (f"truth {H.fmt(truth['nu'], 3)}" if _isnum(truth.get("nu")) else "truth unknown")
+                            + ("" if nu_known else " · not identifiable from this video")))
         if _isnum(errors.get("log10_E")):
             cards.append(H.card("|Δ log10 E|", H.fmt(errors["log10_E"], 3), "target ≤ 0.2",
                                 "good" if errors["log10_E"] <= 0.2 else "bad", unit="decades"))
@@ -471,13 +473,19 @@ class _Builder:
                                         key=f"error.{key}"))
             else:
                 cells.append('<td class="na">—</td>')
+            cells.append(self._interval_cell(key, f))
             rows.append("".join(cells))
+        level = (self.material.get("uncertainty") or {}).get("level")
+        interval_head = f"{100 * level:.0f} % interval" if _isnum(level) else "interval"
         self.sections.append(("material", "Material", H.section(
             "material", "Material found vs truth",
-            H.table(["", "start (after the coarse search)", "found", "truth", "absolute error"], rows,
+            H.table(["", "start (after the coarse search)", "found", "truth", "absolute error", interval_head], rows,
                     table_id="material-table"),
             "“Found” is the asset's material (the joint optimisation's best validation iterate); “truth” is the "
-            "synthetic scene's ground truth when it is known.")))
+            "synthetic scene's ground truth when it is known. The interval is the reconstruction's own (a Laplace "
+            "approximation of the whole clip's loss at the fit, material.json <code>uncertainty</code>); a parameter "
+            "the images constrain less than the prior does is marked not identifiable from this video: its value "
+            "is the prior's.")))
         # metrics
         has_fov = any(_isnum((ev.get(g) or {}).get("fovvdp_jod")) for g in GROUPS)
         headers = ["", "views", "frames", "PSNR (dB)", "SSIM"] + (["FoVVDP (JOD)"] if has_fov else []) \
@@ -517,6 +525,17 @@ class _Builder:
             note, body = "", '<p class="note">No evaluation: no metrics.</p>'
         self.sections.append(("metrics", "Metrics", H.section("metrics", "Metrics", body, note)))
 
+    def _interval_cell(self, key: str, f: Any) -> str:
+        """The material table's interval cell of ``key`` (log10 E: also in Pa) from material.json's uncertainty."""
+        entry = (self.material.get("uncertainty") or {}).get("log10_E" if key == "E" else key)
+        if not isinstance(entry, dict) or not isinstance(entry.get("interval"), list):
+            return '<td class="na">—</td>'
+        lo, hi = entry["interval"]
+        text = f"{H.fmt_sci(10 ** lo)} … {H.fmt_sci(10 ** hi)}" if key == "E" else f"{f(lo)} … {f(hi)}"
+        if not entry.get("identifiable", True):
+            text += " · not identifiable from this video"
+        return H.num_cell(hi - lo, text, key=f"interval.{key}")
+
     def _optimisation_section(self) -> None:
 
         if not self.log:
@@ -529,7 +548,8 @@ class _Builder:
             "optimisation", "Joint optimisation of the material and the motion",
             '<div class="figure"><img src="media/optimisation.svg" alt="optimisation curves" '
             'data-probe="plot:optimisation"></div>',
-            f"{n} joint iterations. The image loss of each iteration's random window of frames and views (grey) "
+            f"{n} joint iterations. The training loss of each iteration (grey: the paper's random window of frames "
+            "and views, or with the default Gauss–Newton fit the whole clip at the fit's resolution) "
             "and of the validation rollout over all observed frames (blue; the asset keeps the best, ★); "
             "log10 E, ν and ζ per iteration against the value found (blue dotted) and the truth (red dashed); "
             "the coarse grid search of E that picks the start; the wall time of each iteration.")))

@@ -44,6 +44,9 @@ MEAN_LABELS = {
     "chamfer_observed": ("Chamfer observed", "cm", 2, 100.0), "chamfer_future": ("Chamfer future", "cm", 2, 100.0),
     "centre_of_mass_observed": ("centre of mass off, observed", "cm", 2, 100.0),
     "centre_of_mass_future": ("centre of mass off, future", "cm", 2, 100.0),
+    "interval_covers_log10_E": ("scenes whose log10 E interval holds the truth", "", 2, 1.0),
+    "interval_covers_nu": ("scenes whose ν interval holds the truth", "", 2, 1.0),
+    "joint_improved": ("scenes where the joint fit beats its start on validation", "", 2, 1.0),
     "seconds": ("time per scene", "s", 0, 1.0),
 }
 
@@ -116,7 +119,11 @@ def write_suite_report(out_dir: str | Path, suite: Mapping[str, Any], config: Re
                 if _isnum(d.get("E")) and d["E"] > 0 and not _isnum(d.get("log10_E")):
                     d["log10_E"] = math.log10(d["E"])
             if found and truth:
-                scatter.append({"name": s["name"], "found": found, "truth": truth})
+                unc = mat.get("uncertainty") or {}
+                scatter.append({"name": s["name"], "found": found, "truth": truth,
+                                "interval": {k: (unc.get(k) or {}).get("interval") for k in ("log10_E", "nu")},
+                                "identifiable": {k: (unc.get(k) or {}).get("identifiable", True)
+                                                 for k in ("log10_E", "nu")}})
             thumb = tmp / "media" / f"thumb_{i:03d}.png"
             has_thumb = _thumbnail(s, thumb, config)
             link = None

@@ -4,7 +4,8 @@ Three variants of the reconstruction (:data:`VARIANTS`, in this order) each run 
 :func:`vid2sim.apps.bench.suite.run_suite` into ``OUT/<variant>``:
 
 * ``stage1_only`` — Stage I alone: the predictor's log10 E and ν are the asset's material and its last layer
-  starts the skinning field; Stage II does nothing (``JointConfig.iterations = 0``, no coarse search over E).
+  starts the skinning field; Stage II does nothing (``JointConfig.iterations`` and ``gauss_newton_iterations`` 0, no
+  coarse search over E).
   The paper's "Ours (Stage I only)" for the physics (its Gaussians are still fitted, as in every variant).
 * ``stage1_stage2`` — Stage I then the preset's Stage II (the paper's full method).
 * ``stage2_prior`` — Stage II alone from ``ReconstructConfig.prior``'s E and ν and a seeded skinning
@@ -60,7 +61,8 @@ class Variant:
         name: the variant's folder under OUT and its key in ablation.json.
         label: the paper's name for it.
         stage1: Stage I runs (``ReconstructConfig.stage1.enabled``).
-        stage2: Stage II runs with the preset's settings; False: no coarse search, 0 iterations.
+        stage2: Stage II runs with the preset's settings; False: no coarse search, 0 iterations (of either
+            method; the material keeps its start and gets its intervals there).
     """
 
     name: str
@@ -76,7 +78,7 @@ class Variant:
         if self.stage1 and predictor is not None:
             cfg.stage1.predictor = predictor
         if not self.stage2:
-            cfg.joint = dataclasses.replace(cfg.joint, iterations=0, coarse_log10_E=())
+            cfg.joint = dataclasses.replace(cfg.joint, iterations=0, gauss_newton_iterations=0, coarse_log10_E=())
         return cfg
 
 

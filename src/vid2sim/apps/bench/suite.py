@@ -59,6 +59,9 @@ METRICS: dict[str, tuple[str, ...]] = {
     "chamfer_future": ("chamfer", "future_mean"),
     "centre_of_mass_observed": ("centre_of_mass", "observed_mean"),
     "centre_of_mass_future": ("centre_of_mass", "future_mean"),
+    "interval_covers_log10_E": ("material", "interval_covers_truth", "log10_E"),
+    "interval_covers_nu": ("material", "interval_covers_truth", "nu"),
+    "joint_improved": ("material", "fit", "improved"),
     "seconds": (),
 }
 
@@ -397,6 +400,9 @@ TABLE_ROWS: list[tuple[str, str, str, float, int]] = [
     ("", "future", "chamfer_future", 100.0, 2),
     ("centre of mass (cm)", "observed", "centre_of_mass_observed", 100.0, 2),
     ("", "future", "centre_of_mass_future", 100.0, 2),
+    ("interval holds truth", "log10 E", "interval_covers_log10_E", 1.0, 2),
+    ("", "nu", "interval_covers_nu", 1.0, 2),
+    ("joint beats start", "validation", "joint_improved", 1.0, 2),
     ("time (s)", "", "seconds", 1.0, 0),
 ]
 

@@ -2,25 +2,32 @@
 
 The simulator starts from the object's frame-0 configuration (its rest shape) with a rigid initial velocity;
 each frame's state z moves the Gaussians fitted at frame 0 (centres by LBS, covariances by F Σ Fᵀ), they are
-rendered in the observed views and compared with the video. Gradients reach log10 E, ν (and optionally the
-damping ratio), the initial linear and angular velocity, the skinning MLP and the Neural Jacobian through the
-renderer and the simulator's per-substep adjoint.
+rendered in the observed views and compared with the video.
 
-Paper settings (docs/architecture.md, "The paper's numbers"): 400 Adam iterations with learning rates (5e-3, 1e-3, 5e-7,
-5e-7) on (log10 E, ν,
-skinning MLP, Jacobian net), windows of Δs = 4 frames starting at a random frame s ∈ [s′, T − Δs], loss = mean
-squared image error over the views. Beyond the paper, so that it converges and fits a CPU budget:
+First, for either method, a coarse search over log10 E (the loss is not convex in E: the wrong bounce phase is a
+local minimum): whole observed rollouts at a grid of E, rendered at ``coarse_scale``; its parabola vertex is the
+start. The whole-clip losses weight frame t by exp(−(t − 1)/4) (``frame_decay``): the first contact, where E acts
+most directly, counts more than the late frames, where a stiff object's rocking on the floor drifts chaotically
+from any model's. Then ``JointConfig.method``:
 
-* a coarse search over log10 E before gradient descent (the loss is not convex in E: the wrong bounce phase is
-  a local minimum): whole observed rollouts at a grid of E, rendered at a reduced resolution;
-* a window starts from the state at frame s of the latest whole rollout (no gradients before s), refreshed
-  every ``refresh_every`` iterations; windows at s = 0 carry gradients to the initial velocity;
-* views subsampled per iteration (``views_per_iteration``) and a coarse-to-fine resolution schedule;
-* every ``validate_every`` iterations the whole observed clip is rendered in all observed views; the best
-  state by that validation loss is kept;
-* the coarse search's and the validation's whole-clip losses weight frame t by exp(−(t − 1)/4)
-  (``frame_decay``): the first contact, where E acts most directly, counts more than the late frames, where
-  a stiff object's rocking on the floor drifts chaotically from any model's.
+* "gauss_newton" (the default, beyond the paper): Levenberg–Marquardt on the few physical parameters — log10 E,
+  ν, the damping ratio ζ, the initial linear and angular velocity — over the whole observed clip at
+  ``coarse_scale``, with a Gaussian prior on the material (:mod:`vid2sim.reconstruct.gauss_newton`). The
+  Jacobian comes from forward differences of whole rollouts, so every frame's error informs every parameter;
+  every step is accepted only if it lowers the posterior objective; the kept state is the best by the
+  full-resolution validation loss, the start included, and the fit stops when that has not improved for
+  ``gauss_newton_patience`` steps. The networks stay as trained data-free.
+* "windows": the paper's Adam on (log10 E, ν, skinning MLP, Jacobian net) with learning rates (5e-3, 1e-3, 5e-7,
+  5e-7) and the initial velocity, windows of Δs = 4 frames starting at a random frame s ∈ [s′, T − Δs], loss =
+  mean squared image error over the views (docs/architecture.md, "The paper's numbers"). Beyond the paper: a
+  window starts from the state at frame s of the latest whole rollout (no gradients before s), refreshed every
+  ``refresh_every`` iterations, and windows at s = 0 carry gradients to the initial velocity; views subsampled
+  per iteration (``views_per_iteration``) and a coarse-to-fine resolution schedule; every ``validate_every``
+  iterations the whole observed clip is validated and the best state kept.
+
+At the kept state the Gauss–Newton curvature of the whole clip gives the material's Laplace intervals and says
+whether each parameter is identifiable from the video at all, and which frames inform it
+(:mod:`vid2sim.reconstruct.uncertainty`).
 """
 
 from __future__ import annotations
@@ -41,9 +48,17 @@ from vid2sim.physics.mass import centre_shifted_volumes
 from vid2sim.physics.solver import Material, SimState, Simulator
 from vid2sim.physics.stiffness_curve import StiffnessCurve
 from vid2sim.reconstruct.config import JointConfig
+from vid2sim.reconstruct.gauss_newton import (
+    FitResult,
+    Parameter,
+    effective_images,
+    levenberg_marquardt,
+    linearise,
+)
 from vid2sim.reconstruct.runner import Context, State
 from vid2sim.reconstruct.stages.networks import cpu_state
 from vid2sim.reconstruct.stages.stage1 import prior_material
+from vid2sim.reconstruct.uncertainty import information_by_frame, laplace_intervals
 from vid2sim.runtime.files import read_json, save_torch_atomic, write_json_atomic
 from vid2sim.splats.cameras import Camera
 from vid2sim.splats.gaussians import Gaussians
@@ -88,9 +103,18 @@ class JointResult:
         centre_of_mass_offset: (3,) m, how far the search moved the lumped masses' centre (zeros: no search, or
             none of its candidates did better); the simulator's ``mass_volumes`` carry it.
         centre_of_mass_search: the search, one ``{"offset", "loss"}`` per candidate.
-        log: one dict per iteration (``iteration``, ``loss``, ``log10_E``, ``nu``, ``damping_ratio``,
-            ``window_start``, ``scale``, ``ms``) and per validation (``validation_loss``).
+        log: one dict per iteration: "windows": ``iteration``, ``loss`` (the window's), ``log10_E``, ``nu``,
+            ``damping_ratio``, ``window_start``, ``scale``, ``ms``, and ``validation_loss`` where validated;
+            "gauss_newton": ``iteration``, ``loss`` (the whole clip's at ``coarse_scale``), ``objective``, the
+            parameters by name, ``damping`` (Marquardt's), ``accepted``, ``rollouts``, ``ms``, ``validation_loss``.
         seconds: wall time.
+        method: ``JointConfig.method``.
+        start_validation_loss: the validation loss of the start (the coarse search's material, the velocity
+            estimate); the kept state's is at most this.
+        uncertainty: the material's Laplace intervals (:func:`~vid2sim.reconstruct.uncertainty.laplace_intervals`).
+        information_by_frame: per parameter, the share of its information each observed frame 1 … T−1 gives
+            (:func:`~vid2sim.reconstruct.uncertainty.information_by_frame`).
+        stop: why the fit stopped.
     """
 
     log10_E: float
@@ -104,6 +128,11 @@ class JointResult:
     centre_of_mass_search: list[dict[str, Any]] = field(default_factory=list)
     log: list[dict[str, float]] = field(default_factory=list)
     seconds: float = 0.0
+    method: str = "gauss_newton"
+    start_validation_loss: float | None = None
+    uncertainty: dict[str, Any] = field(default_factory=dict)
+    information_by_frame: dict[str, list[float]] = field(default_factory=dict)
+    stop: str = ""
 
 
 def coarse_minimum(values: Sequence[float], losses: Sequence[float]) -> float:
@@ -259,6 +288,86 @@ def first_moving_frame(images: Tensor, threshold: float = 1e-3) -> int:
     return 1
 
 
+#: forward-difference steps of the Gauss–Newton Jacobian: log10 E (decades), ν, ζ, and the initial velocity as a
+#: fraction of the object's size per frame (linear, m/s per m/frame) and radians per frame (angular). Each moves
+#: the observed frames by a fraction of a pixel to a few pixels at the small preset: large enough that the
+#: rasteriser's cutoffs and Newton's tolerance are noise, small enough for a secant of a smooth loss.
+DIFFERENCE_STEPS = {"log10_E": 0.01, "nu": 0.01, "damping_ratio": 0.005, "linear": 0.002, "angular": 0.002}
+
+
+def physical_parameters(sim: Simulator, cfg: JointConfig, prior: dict[str, float], dt: float) -> list[Parameter]:
+    """The Gauss–Newton fit's parameters: log10 E, ν, ζ (with ``cfg.fit_damping``), each with the prior of
+    ``cfg`` centred on ``prior`` (the start material), then the initial linear (m/s) and angular (rad/s) velocity
+    without a prior."""
+    L = sim.length_scale
+    out = [Parameter("log10_E", *cfg.log10_E_bounds, DIFFERENCE_STEPS["log10_E"], prior["log10_E"],
+                     cfg.prior_sd_log10_E),
+           Parameter("nu", *cfg.nu_bounds, DIFFERENCE_STEPS["nu"], prior["nu"], cfg.prior_sd_nu)]
+    if cfg.fit_damping:
+        out.append(Parameter("damping_ratio", 0.0, 1.0, DIFFERENCE_STEPS["damping_ratio"], prior["damping_ratio"],
+                             cfg.prior_sd_damping))
+    v, w = DIFFERENCE_STEPS["linear"] * L / dt, DIFFERENCE_STEPS["angular"] / dt
+    out += [Parameter(f"linear_velocity_{a}", -math.inf, math.inf, v) for a in "xyz"]
+    out += [Parameter(f"angular_velocity_{a}", -math.inf, math.inf, w) for a in "xyz"]
+    return out
+
+
+class ClipResiduals:
+    """The whole observed clip as a function of the physical parameters θ (a
+    :class:`~vid2sim.reconstruct.gauss_newton.ClipModel`): θ sets the simulator's material and the initial rigid
+    velocity about ``centre``; block t is frame t + 1 rendered in every view of ``obs``, minus the video, times
+    √(w_t / (V·H·W·3)) (``frame_weights``), so that the blocks' squared norms sum to :func:`clip_loss`.
+
+    Args:
+        names: the parameters' names in θ's order (:func:`physical_parameters`).
+    """
+
+    def __init__(self, sim: Simulator, rig: GaussianRig, obs: Observations, centre: Sequence[float],
+                 decay: float | None, names: Sequence[str]) -> None:
+        self.sim, self.rig, self.obs, self.centre, self.names = sim, rig, obs, [float(c) for c in centre], list(names)
+        V, T = obs.images.shape[:2]
+        self.frames = T - 1
+        pixels = V * obs.images[0, 0].numel()
+        self.scales = [math.sqrt(w / pixels) for w in frame_weights(T, decay)]
+        with torch.no_grad():
+            self.basis = rig.basis()
+
+    def apply(self, theta: Sequence[float]) -> SimState:
+        """Set the simulator's material from θ; returns the initial state θ's velocity gives."""
+        values = dict(zip(self.names, (float(x) for x in theta)))
+        with torch.no_grad():
+            self.sim.log10_E.fill_(values["log10_E"])
+            self.sim.nu.fill_(values["nu"])
+            if "damping_ratio" in values:
+                self.sim.damping_ratio.fill_(values["damping_ratio"])
+        v = [values[f"linear_velocity_{a}"] for a in "xyz"]
+        w = [values[f"angular_velocity_{a}"] for a in "xyz"]
+        return self.sim.rigid_velocity_state(v, w, self.centre)
+
+    def substeps(self, theta: Sequence[float]) -> int:
+        self.apply(theta)
+        return self.sim.substeps()
+
+    def simulate(self, theta: Sequence[float], substeps: int | None = None) -> list[SimState]:
+        """Frames 0 … T−1 at θ (frame 0 the initial state), ``substeps`` per frame (None: the automatic count)."""
+        start = self.apply(theta)
+        config = self.sim.config
+        if substeps is not None:
+            self.sim.config = replace(config, substeps=substeps)
+        try:
+            with torch.no_grad():
+                return [start] + self.sim.rollout(start, self.frames)
+        finally:
+            self.sim.config = config
+
+    def residuals(self, trajectories: Sequence[list[SimState]], frame: int) -> Tensor:
+        with torch.no_grad():
+            renders = render_states(self.rig, [s[frame + 1] for s in trajectories], self.obs,
+                                    range(len(self.obs.cameras)), self.basis)  # (K, V, H, W, 3)
+            target = self.obs.images[:, frame + 1].to(renders)
+            return ((renders - target) * self.scales[frame]).reshape(len(trajectories), -1)
+
+
 def joint_optimisation(
     sim: Simulator,
     gaussians: Gaussians,
@@ -270,64 +379,148 @@ def joint_optimisation(
     progress: bool = True,
     on_iteration: Callable[[dict[str, float]], None] | None = None,
 ) -> JointResult:
-    """Fit the material, the initial velocity and the networks of ``sim`` to the observed video.
+    """Fit the material, the initial velocity (and, with ``method`` "windows", the networks) of ``sim`` to the
+    observed video; report how well the video determines the material.
+
+    A coarse search over log10 E picks the start (and optionally a search over the centre of mass), then
+    ``config.method`` fits: Gauss–Newton on the physical parameters over the whole clip (:func:`_gauss_newton`), or
+    the paper's Adam on windows (:func:`_windowed_adam`). Either way the kept state is the best by the whole-clip
+    validation loss, the coarse search's start included, and the material's uncertainty is the Laplace
+    approximation at it (:func:`vid2sim.reconstruct.uncertainty.laplace_intervals`).
 
     Args:
-        sim: the simulator built on the object's points (its material is the prior; it is updated in place
-            to the best state found, as are its field and Neural Jacobian).
+        sim: the simulator built on the object's points (its material is the prior, the prior's mean; it is
+            updated in place to the kept state, as are its field and Neural Jacobian).
         gaussians: (N Gaussians) fitted to frame 0.
-        observations: :class:`Observations` of frames 0 … T−1 (T ≥ window + 1).
+        observations: :class:`Observations` of frames 0 … T−1 (T ≥ window + 1 for "windows", T ≥ 2 otherwise).
         linear_velocity, angular_velocity: (3,) initial rigid velocity estimate about ``centre`` (3,).
         config: :class:`JointConfig`.
         on_iteration: called with each log entry.
     Returns:
         :class:`JointResult`.
     """
-    from tqdm.auto import tqdm
-
     cfg = config or JointConfig()
     t_start = time.perf_counter()
-    V, T = observations.images.shape[:2]
-    if T < cfg.window + 1:
-        raise ValueError(
-            f"the joint optimisation needs at least window + 1 = {cfg.window + 1} observed frames, got {T}"
-        )
-    dtype = sim.X.dtype
-    gen = torch.Generator().manual_seed(cfg.seed)
+    T = observations.images.shape[1]
+    needed = cfg.window + 1 if cfg.method == "windows" else 2
+    if T < needed:
+        raise ValueError(f"the joint optimisation ({cfg.method}) needs at least {needed} observed frames, got {T}")
+    prior = {"log10_E": float(sim.log10_E), "nu": float(sim.nu), "damping_ratio": float(sim.damping_ratio)}
     rig = GaussianRig(sim, gaussians)
-    device = sim.X.device
-    v_lin = torch.as_tensor(linear_velocity, dtype=dtype, device=device).clone().requires_grad_(True)
-    v_ang = torch.as_tensor(angular_velocity, dtype=dtype, device=device).clone().requires_grad_(True)
     c = [float(x) for x in centre]
-
-    def initial_state() -> SimState:
-        return sim.rigid_velocity_state(v_lin, v_ang, c)
-
     coarse_obs = observations.at_scale(cfg.coarse_scale)
-    log: list[dict[str, float]] = []
 
-    # ---- coarse search over log10 E ------------------------------------------------------------------
-    coarse: list[dict[str, float]] = []
-    if cfg.coarse_log10_E:
-        bar = tqdm(cfg.coarse_log10_E, desc="coarse search over log10 E", disable=not progress, leave=False)
-        for value in bar:
-            with torch.no_grad():
-                sim.log10_E.fill_(value)
-            loss, _ = clip_loss(sim, rig, _detached(initial_state()), coarse_obs, cfg.frame_decay)
-            coarse.append({"log10_E": value, "loss": loss})
-            bar.set_postfix(log10_E=value, loss=f"{loss:.2e}")
-        value = coarse_minimum([r["log10_E"] for r in coarse], [r["loss"] for r in coarse])
-        with torch.no_grad():
-            sim.log10_E.fill_(value)
+    def start_state() -> SimState:
+        return sim.rigid_velocity_state(linear_velocity, angular_velocity, c)
 
-    # ---- search over the centre of mass (optional) -----------------------------------------------------
+    coarse = coarse_search(sim, rig, start_state, coarse_obs, cfg, progress)
     com_offset, com_records = [0.0, 0.0, 0.0], []
     if cfg.centre_of_mass_step > 0:
-        com_offset, com_records = centre_of_mass_search(sim, rig, initial_state, coarse_obs,
+        com_offset, com_records = centre_of_mass_search(sim, rig, start_state, coarse_obs,
                                                         cfg.centre_of_mass_step * sim.length_scale,
                                                         cfg.centre_of_mass_rounds, cfg.frame_decay, progress)
+    parameters = physical_parameters(sim, cfg, prior, float(sim.config.dt))
+    clip = ClipResiduals(sim, rig, coarse_obs, c, cfg.frame_decay, [q.name for q in parameters])
+    start = [float(sim.log10_E), float(sim.nu)] + ([float(sim.damping_ratio)] if cfg.fit_damping else []) \
+        + [float(x) for x in linear_velocity] + [float(x) for x in angular_velocity]
+    n = effective_images(frame_weights(T, cfg.frame_decay), len(observations.cameras))
+    if cfg.method == "gauss_newton":
+        fit = _gauss_newton(clip, parameters, start, n, rig, observations, cfg, progress, on_iteration)
+    else:
+        fit = _windowed_adam(sim, rig, observations, coarse_obs, start, c, cfg, clip, parameters, progress,
+                             on_iteration)
+    theta = dict(zip(clip.names, fit.theta))
+    clip.apply(fit.theta)  # the simulator holds the kept material
+    uncertainty = laplace_intervals(fit.linearisation, parameters, n, cfg.interval_level)
+    return JointResult(log10_E=theta["log10_E"], nu=theta["nu"], damping_ratio=float(sim.damping_ratio),
+                       linear_velocity=[theta[f"linear_velocity_{a}"] for a in "xyz"],
+                       angular_velocity=[theta[f"angular_velocity_{a}"] for a in "xyz"],
+                       validation_loss=fit.validation_loss, coarse=coarse, centre_of_mass_offset=com_offset,
+                       centre_of_mass_search=com_records, log=fit.log, seconds=time.perf_counter() - t_start,
+                       method=cfg.method, start_validation_loss=fit.start_validation_loss, uncertainty=uncertainty,
+                       information_by_frame=information_by_frame(fit.linearisation, parameters), stop=fit.stop)
 
-    # ---- gradient descent ----------------------------------------------------------------------------
+
+def coarse_search(sim: Simulator, rig: GaussianRig, start: Callable[[], SimState], obs: Observations,
+                  cfg: JointConfig, progress: bool = False) -> list[dict[str, float]]:
+    """The coarse search over log10 E (``cfg.coarse_log10_E``; none when empty): the whole clip's
+    :func:`clip_loss` at each grid value from ``start()``; the simulator is left at :func:`coarse_minimum`.
+    Returns one ``{"log10_E", "loss"}`` per grid value."""
+    from tqdm.auto import tqdm
+
+    coarse: list[dict[str, float]] = []
+    if not cfg.coarse_log10_E:
+        return coarse
+    bar = tqdm(cfg.coarse_log10_E, desc="coarse search over log10 E", disable=not progress, leave=False)
+    for value in bar:
+        with torch.no_grad():
+            sim.log10_E.fill_(value)
+        loss, _ = clip_loss(sim, rig, _detached(start()), obs, cfg.frame_decay)
+        coarse.append({"log10_E": value, "loss": loss})
+        bar.set_postfix(log10_E=value, loss=f"{loss:.2e}")
+    with torch.no_grad():
+        sim.log10_E.fill_(coarse_minimum([r["log10_E"] for r in coarse], [r["loss"] for r in coarse]))
+    return coarse
+
+
+def _full_resolution_validation(clip: ClipResiduals, rig: GaussianRig, observations: Observations,
+                                decay: float | None) -> Callable[[list[float], list[SimState]], float]:
+    """θ, its trajectory → the whole clip's loss in every observed view at full resolution (the trajectory's
+    states re-rendered; at ``coarse_scale`` 1 the fit's own loss)."""
+    def validate(theta: list[float], trajectory: list[SimState]) -> float:
+        T = observations.images.shape[1]
+        weights = frame_weights(T, decay)
+        total = 0.0
+        with torch.no_grad():
+            basis = clip.basis
+            for t in range(1, T):
+                r = render_states(rig, [trajectory[t]], observations, range(len(observations.cameras)), basis)[0]
+                total += weights[t - 1] * float(image_loss(r, observations.images[:, t].to(r)))
+        return total
+    return validate
+
+
+def _gauss_newton(clip: ClipResiduals, parameters: list[Parameter], start: list[float], n: float, rig: GaussianRig,
+                  observations: Observations, cfg: JointConfig, progress: bool,
+                  on_iteration: Callable[[dict[str, Any]], None] | None) -> FitResult:
+    """Levenberg–Marquardt from the coarse search's start
+    (:func:`~vid2sim.reconstruct.gauss_newton.levenberg_marquardt`), kept by the full-resolution validation loss."""
+    from tqdm.auto import tqdm
+
+    bar = tqdm(total=cfg.gauss_newton_iterations, desc="Gauss-Newton fit of the material and velocity",
+               disable=not progress)
+
+    def report(entry: dict[str, Any]) -> None:
+        bar.update(1)
+        bar.set_postfix(loss=f"{entry['loss']:.3e}", log10_E=f"{entry['log10_E']:.3f}", nu=f"{entry['nu']:.3f}")
+        if on_iteration is not None:
+            on_iteration(entry)
+
+    try:
+        return levenberg_marquardt(clip, parameters, start, n, cfg.gauss_newton_iterations, cfg.gauss_newton_tolerance,
+                                   cfg.gauss_newton_patience,
+                                   _full_resolution_validation(clip, rig, observations, cfg.frame_decay), report)
+    finally:
+        bar.close()
+
+
+def _windowed_adam(sim: Simulator, rig: GaussianRig, observations: Observations, coarse_obs: Observations,
+                   start: list[float], centre: list[float], cfg: JointConfig, clip: ClipResiduals,
+                   parameters: list[Parameter], progress: bool,
+                   on_iteration: Callable[[dict[str, Any]], None] | None) -> FitResult:
+    """The paper's Adam on random windows of ``cfg.window`` frames (module docstring), from the coarse search's
+    start; the best state by the whole-clip validation is kept and linearised for the uncertainty."""
+    from tqdm.auto import tqdm
+
+    V, T = observations.images.shape[:2]
+    dtype, device = sim.X.dtype, sim.X.device
+    gen = torch.Generator().manual_seed(cfg.seed)
+    v_lin = torch.tensor(start[-6:-3], dtype=dtype, device=device).requires_grad_(True)
+    v_ang = torch.tensor(start[-3:], dtype=dtype, device=device).requires_grad_(True)
+
+    def initial_state() -> SimState:
+        return sim.rigid_velocity_state(v_lin, v_ang, centre)
+
     net_params = [p for p in sim.field.parameters()]
     groups = [{"params": [sim.log10_E], "lr": cfg.lr_log10_E}, {"params": [sim.nu], "lr": cfg.lr_nu},
               {"params": [v_lin, v_ang], "lr": cfg.lr_velocity}]
@@ -351,11 +544,13 @@ def joint_optimisation(
         p.requires_grad_(False)
     opt = torch.optim.Adam(groups)
 
+    def theta() -> list[float]:
+        return [float(sim.log10_E.detach()), float(sim.nu.detach())] \
+            + ([float(sim.damping_ratio.detach())] if cfg.fit_damping else []) \
+            + [float(x) for x in v_lin.detach()] + [float(x) for x in v_ang.detach()]
+
     def snapshot() -> dict:
-        return {"log10_E": float(sim.log10_E.detach()), "nu": float(sim.nu.detach()),
-                "damping_ratio": float(sim.damping_ratio.detach()),
-                "v": v_lin.detach().clone(), "w": v_ang.detach().clone(),
-                "field": copy.deepcopy(sim.field.state_dict()),
+        return {"theta": theta(), "field": copy.deepcopy(sim.field.state_dict()),
                 "jacobian": copy.deepcopy(sim.jacobian.state_dict()) if sim.jacobian is not None else None}
 
     def validate() -> tuple[float, list[SimState]]:
@@ -368,8 +563,9 @@ def joint_optimisation(
         with torch.no_grad():
             fixed_basis = rig.basis()
     best_loss, states = validate()
-    best = snapshot()
-    log.append({"iteration": 0, "validation_loss": best_loss, "log10_E": best["log10_E"], "nu": best["nu"]})
+    start_loss, best = best_loss, snapshot()
+    log: list[dict[str, Any]] = [{"iteration": 0, "validation_loss": best_loss, "log10_E": best["theta"][0],
+                                  "nu": best["theta"][1]}]
     s_first = first_moving_frame(observations.images)
     # windows start at s ∈ [s′ − 1, T − 1 − Δs] and compare frames s + 1 … s + Δs; s = 0 reaches the initial velocity
     s_hi = T - 1 - cfg.window
@@ -383,9 +579,9 @@ def joint_optimisation(
             obs = coarse_obs if scale != 1.0 else observations
             s = int(torch.randint(s_lo, s_hi + 1, (1,), generator=gen))
             views = sorted(torch.randperm(V, generator=gen)[:n_views].tolist())
-            start = initial_state() if s == 0 else _detached(states[s])
+            start_state = initial_state() if s == 0 else _detached(states[s])
             opt.zero_grad(set_to_none=True)
-            window_states = sim.rollout(start, cfg.window)
+            window_states = sim.rollout(start_state, cfg.window)
             renders = render_states(rig, window_states, obs, views, fixed_basis)
             target = obs.images[views][:, s + 1: s + 1 + cfg.window].transpose(0, 1).to(renders)
             loss = image_loss(renders, target)
@@ -415,16 +611,14 @@ def joint_optimisation(
         for p, flag in zip(toggled, was):
             p.requires_grad_(flag)
     with torch.no_grad():
-        sim.log10_E.fill_(best["log10_E"])
-        sim.nu.fill_(best["nu"])
-        sim.damping_ratio.fill_(best["damping_ratio"])
         sim.field.load_state_dict(best["field"])
         if best["jacobian"] is not None:
             sim.jacobian.load_state_dict(best["jacobian"])
-    return JointResult(log10_E=best["log10_E"], nu=best["nu"], damping_ratio=best["damping_ratio"],
-                       linear_velocity=best["v"].tolist(), angular_velocity=best["w"].tolist(),
-                       validation_loss=best_loss, coarse=coarse, centre_of_mass_offset=com_offset,
-                       centre_of_mass_search=com_records, log=log, seconds=time.perf_counter() - t_start)
+    kept = [min(max(x, q.lower), q.upper) for x, q in zip(best["theta"], parameters)]
+    with torch.no_grad():
+        clip.basis = rig.basis()  # the kept networks' quantities at the Gaussians
+    return FitResult(kept, linearise(clip, parameters, kept), math.nan, best_loss, start_loss, log,
+                     f"{cfg.iterations} iterations")
 
 
 # ---- the stage -------------------------------------------------------------------------------------------------
@@ -487,7 +681,11 @@ class JointStage:
         if state.jacobian is not None:
             state.jacobian.load_state_dict(torch.load(ctx.path("jacobian_joint.pt"), weights_only=True))
         state.log.update(coarse_search=result["coarse"], centre_of_mass_search=result.get("centre_of_mass_search", []),
-                         iterations=result["log"])
+                         iterations=result["log"],
+                         joint_fit={"method": result.get("method", "windows"), "stop": result.get("stop", ""),
+                                    "start_validation_loss": result.get("start_validation_loss"),
+                                    "validation_loss": result["validation_loss"],
+                                    "information_by_frame": result.get("information_by_frame", {})})
         state.asset = assemble_asset(ctx, state)
 
 
@@ -508,6 +706,8 @@ def assemble_asset(ctx: Context, state: State) -> Asset:
                 "volumetric": cfg.simulator.volumetric}
     if isinstance(stiffness, StiffnessCurve):
         material["stiffness_curve"] = stiffness.to_dict()
+    if result.get("uncertainty"):
+        material["uncertainty"] = result["uncertainty"]
     index = cub.index.cpu()
     return Asset(gaussians=state.gaussians.to("cpu"), field=copy.deepcopy(state.skinning).to("cpu"),
                  jacobian=copy.deepcopy(state.jacobian).to("cpu") if state.jacobian is not None else None,
@@ -525,4 +725,6 @@ def assemble_asset(ctx: Context, state: State) -> Asset:
                         "scene": str(ctx.scene.root), "observed_views": list(o.views), "observed_frames": o.frames,
                         "scene_frames": int(ctx.scene.images.shape[1]), "volume_m3": obj.volume,
                         "gaussians": state.gaussians.num, "initial_velocity_estimate": state.velocity,
-                        "validation_loss": result["validation_loss"], "centre_of_mass_offset": offset.tolist()})
+                        "validation_loss": result["validation_loss"],
+                        "start_validation_loss": result.get("start_validation_loss"),
+                        "joint_method": result.get("method", "windows"), "centre_of_mass_offset": offset.tolist()})

@@ -1,0 +1,347 @@
+"""Levenberg–Marquardt over the few physical parameters of a simulated clip (the joint stage's default fit).
+
+The joint optimisation's unknowns that decide the motion are few: log10 E, ν, the damping ratio ζ and the initial
+linear and angular velocity (p = 8 or 9 numbers). Their residuals are many: every pixel of every observed view in
+every observed frame. For such a problem Gauss–Newton is the natural method. The Jacobian J of the residuals
+(p columns) comes from p + 1 rollouts of the whole observed clip (forward differences at a fixed substep count,
+so that every column differentiates one discrete problem), which costs about as much as three adjoint gradients
+and gives the curvature JᵀJ besides: the step, the uncertainty (:mod:`vid2sim.reconstruct.uncertainty`) and what
+each frame says about each parameter all come from it.
+
+The fit minimises a posterior, not the bare image loss:
+
+    Φ(θ) = n/2 · log L(θ) + ½ Σ_j ((θ_j − μ_j) / σ_j)²
+
+where L is the weighted mean squared image error of the whole clip (``Σ_t ‖r_t‖²``, the residual blocks of
+:class:`ClipModel`), n the number of independent measurements it holds (the effective number of images,
+:func:`effective_images`) and (μ_j, σ_j) a Gaussian prior on the material (none on the velocities). The
+logarithm profiles out the unknown image noise variance (σ̂² = L/n at the optimum). A direction the images do
+not constrain stays at the prior instead of wandering along a flat valley, and
+:func:`vid2sim.reconstruct.uncertainty.laplace_intervals` then says so.
+
+Every step is accepted only if it lowers Φ, evaluated on a fresh rollout at the automatic substep count;
+otherwise the Marquardt damping grows and the step shrinks. Parameters stay inside their bounds (a step that
+would leave the box along a coordinate at its bound holds that coordinate).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable, Protocol, Sequence
+
+import torch
+from torch import Tensor
+
+from vid2sim.physics.solver import SimulationError
+
+
+@dataclass(frozen=True)
+class Parameter:
+    """One fitted parameter.
+
+    Attributes:
+        name: its name (``log10_E``, ``nu``, ``damping_ratio``, ``linear_velocity_x`` …).
+        lower, upper: its bounds.
+        step: the forward-difference step of the Jacobian (in the parameter's units).
+        prior_mean, prior_sd: the Gaussian prior's mean and standard deviation, or None (no prior).
+    """
+
+    name: str
+    lower: float
+    upper: float
+    step: float
+    prior_mean: float | None = None
+    prior_sd: float | None = None
+
+    def __post_init__(self) -> None:
+        if not (self.lower < self.upper and self.step > 0):
+            raise ValueError(f"parameter {self.name}: needs lower < upper and step > 0, got {self.lower}, "
+                             f"{self.upper}, {self.step}")
+        if (self.prior_mean is None) != (self.prior_sd is None) or (self.prior_sd is not None and self.prior_sd <= 0):
+            raise ValueError(f"parameter {self.name}: a prior needs a mean and a standard deviation > 0")
+
+
+class ClipModel(Protocol):
+    """The observed clip as a function of the parameters θ (p numbers, in the order of the parameter list).
+
+    ``frames`` residual blocks, one per observed frame 1 … T−1: block t is the frame's image error over every
+    view, weighted so that Σ_t ‖r_t‖² is the clip's loss L."""
+
+    frames: int
+
+    def substeps(self, theta: Sequence[float]) -> int:
+        """The automatic substep count at θ."""
+
+    def simulate(self, theta: Sequence[float], substeps: int | None = None) -> Any:
+        """The trajectory at θ (opaque to the fit; None substeps: the automatic count). Raises
+        :class:`~vid2sim.physics.solver.SimulationError` where the simulation fails."""
+
+    def residuals(self, trajectories: Sequence[Any], frame: int) -> Tensor:
+        """(len(trajectories), n_t) weighted residuals of block ``frame`` (0 … frames−1) of each trajectory."""
+
+
+@dataclass
+class Linearisation:
+    """The clip's residuals and their Jacobian at θ, reduced to per-frame Gauss–Newton blocks.
+
+    Attributes:
+        theta: (p,) where it was taken.
+        substeps: the substep count every rollout of it used.
+        frame_loss: (F,) ‖r_t‖² per frame block (their sum is the loss L).
+        frame_hessian: (F, p, p) J_tᵀ J_t per frame block, float64.
+        frame_gradient: (F, p) J_tᵀ r_t per frame block, float64.
+        steps: (p,) the difference steps used (negative where a step up would have left the bounds or failed).
+    """
+
+    theta: list[float]
+    substeps: int
+    frame_loss: Tensor
+    frame_hessian: Tensor
+    frame_gradient: Tensor
+    steps: list[float]
+
+    @property
+    def loss(self) -> float:
+        """L = Σ_t ‖r_t‖²."""
+        return float(self.frame_loss.sum())
+
+    @property
+    def hessian(self) -> Tensor:
+        """(p, p) JᵀJ."""
+        return self.frame_hessian.sum(0)
+
+    @property
+    def gradient(self) -> Tensor:
+        """(p,) Jᵀr (half the gradient of L)."""
+        return self.frame_gradient.sum(0)
+
+
+def _perturbed(model: ClipModel, theta: list[float], j: int, parameter: Parameter,
+               substeps: int) -> tuple[Any, float]:
+    """The trajectory with θ_j moved by ± its step (down when up would leave the bounds or fail), and the step."""
+    up = theta[j] + parameter.step <= parameter.upper
+    for h in ((parameter.step, -parameter.step) if up else (-parameter.step,)):
+        moved = list(theta)
+        moved[j] += h
+        try:
+            return model.simulate(moved, substeps), h
+        except SimulationError:
+            continue
+    raise SimulationError(f"the simulation fails on both sides of {parameter.name} = {theta[j]:.6g}")
+
+
+def linearise(model: ClipModel, parameters: Sequence[Parameter], theta: Sequence[float],
+              base: Any | None = None) -> Linearisation:
+    """The per-frame Gauss–Newton blocks at θ by forward differences (p + 1 rollouts of the clip, all at the
+    automatic substep count of θ; ``base``: θ's own trajectory at that count, when already simulated).
+
+    The p perturbed trajectories are simulated first, then each frame's p + 1 renders are compared at once, so
+    the Jacobian is never held whole: memory is one frame's (p + 1) × n_t residuals."""
+    theta = [float(x) for x in theta]
+    n = model.substeps(theta)
+    base = model.simulate(theta, n) if base is None else base
+    variants, steps = [], []
+    for j, parameter in enumerate(parameters):
+        trajectory, h = _perturbed(model, theta, j, parameter, n)
+        variants.append(trajectory)
+        steps.append(h)
+    p, F = len(parameters), model.frames
+    step_t = torch.tensor(steps, dtype=torch.float64)
+    frame_loss = torch.zeros(F, dtype=torch.float64)
+    frame_hessian = torch.zeros(F, p, p, dtype=torch.float64)
+    frame_gradient = torch.zeros(F, p, dtype=torch.float64)
+    for t in range(F):
+        with torch.no_grad():
+            R = model.residuals([base] + variants, t)  # (p + 1, n_t)
+            r = R[0]
+            J = (R[1:] - r) / step_t.to(R)[:, None]  # (p, n_t)
+            frame_loss[t] = float(r.double() @ r.double())
+            frame_hessian[t] = (J @ J.T).double()
+            frame_gradient[t] = (J @ r).double()
+    return Linearisation(theta, n, frame_loss, frame_hessian, frame_gradient, steps)
+
+
+def effective_images(frame_weights: Sequence[float], views: int) -> float:
+    """n: the number of independent measurements a whole-clip loss holds, counting each (view, frame) image as
+    one (the image errors of a model that is off are correlated over a whole image, not pixel by pixel): the
+    Kish effective sample size of the images' weights, views × (Σ w)² / Σ w²."""
+    total = sum(frame_weights)
+    squares = sum(w * w for w in frame_weights)
+    return views * total * total / squares if squares > 0 else 0.0
+
+
+def prior_precision(parameters: Sequence[Parameter]) -> tuple[Tensor, Tensor]:
+    """(p,) the prior's precisions 1/σ² (0 where a parameter has no prior) and (p,) its means (0 there)."""
+    precision = torch.tensor([0.0 if q.prior_sd is None else q.prior_sd ** -2 for q in parameters],
+                             dtype=torch.float64)
+    mean = torch.tensor([0.0 if q.prior_mean is None else q.prior_mean for q in parameters], dtype=torch.float64)
+    return precision, mean
+
+
+def objective(loss: float, theta: Sequence[float], parameters: Sequence[Parameter], n: float) -> float:
+    """Φ(θ) = n/2 · log L + ½ Σ_j ((θ_j − μ_j)/σ_j)² (module docstring); +inf for a non-finite loss."""
+    if not math.isfinite(loss):
+        return math.inf
+    precision, mean = prior_precision(parameters)
+    d = torch.tensor(list(theta), dtype=torch.float64) - mean
+    return 0.5 * n * math.log(max(loss, 1e-300)) + 0.5 * float((precision * d * d).sum())
+
+
+def posterior_curvature(lin: Linearisation, parameters: Sequence[Parameter], n: float) -> tuple[Tensor, Tensor]:
+    """The Gauss–Newton Hessian (p, p) and gradient (p,) of Φ at ``lin.theta``: n JᵀJ / L + P and
+    n Jᵀr / L + P (θ − μ)."""
+    precision, mean = prior_precision(parameters)
+    scale = n / max(lin.loss, 1e-300)
+    theta = torch.tensor(lin.theta, dtype=torch.float64)
+    hessian = scale * lin.hessian + torch.diag(precision)
+    gradient = scale * lin.gradient + precision * (theta - mean)
+    return hessian, gradient
+
+
+def marquardt_step(hessian: Tensor, gradient: Tensor, theta: Sequence[float], parameters: Sequence[Parameter],
+                   damping: float) -> list[float]:
+    """θ + Δ with (H + damping · diag H) Δ = −g, kept in the bounds: a coordinate at a bound whose step points out
+    of the box is held there and the step solved again without it; the rest is clipped to the bounds."""
+    p = len(parameters)
+    free = list(range(p))
+    lower = [q.lower for q in parameters]
+    upper = [q.upper for q in parameters]
+    delta = torch.zeros(p, dtype=torch.float64)
+    for _ in range(p):
+        idx = torch.tensor(free, dtype=torch.long)
+        H = hessian[idx][:, idx]
+        A = H + damping * torch.diag(torch.diagonal(H).clamp_min(1e-12))
+        d = torch.linalg.solve(A, -gradient[idx])
+        delta.zero_()
+        delta[idx] = d
+        blocked = [j for j in free
+                   if (theta[j] <= lower[j] and delta[j] < 0) or (theta[j] >= upper[j] and delta[j] > 0)]
+        if not blocked:
+            break
+        free = [j for j in free if j not in blocked]
+        if not free:
+            delta.zero_()
+            break
+    return [min(max(float(theta[j] + delta[j]), lower[j]), upper[j]) for j in range(p)]
+
+
+@dataclass
+class FitResult:
+    """What :func:`levenberg_marquardt` found.
+
+    Attributes:
+        theta: (p,) the kept parameters (the best by ``validate``, or by Φ without it).
+        linearisation: the Gauss–Newton blocks at ``theta`` (for the uncertainty and the information by frame).
+        objective: Φ at ``theta``.
+        validation_loss: ``validate(theta)`` (None without ``validate``).
+        start_validation_loss: ``validate`` of the start (None without it).
+        log: one dict per iteration: ``iteration``, ``loss`` (L), ``objective`` (Φ), ``damping`` (Marquardt's λ),
+            ``accepted``, ``rollouts``, ``ms``, the parameters by name, and ``validation_loss`` when validated.
+        stop: why it stopped.
+    """
+
+    theta: list[float]
+    linearisation: Linearisation
+    objective: float
+    validation_loss: float | None
+    start_validation_loss: float | None
+    log: list[dict[str, Any]] = field(default_factory=list)
+    stop: str = ""
+
+
+def levenberg_marquardt(model: ClipModel, parameters: Sequence[Parameter], theta0: Sequence[float], n: float,
+                        iterations: int = 8, tolerance: float = 1e-3, patience: int = 2,
+                        validate: Callable[[list[float], Any], float] | None = None,
+                        on_iteration: Callable[[dict[str, Any]], None] | None = None) -> FitResult:
+    """Minimise Φ (module docstring) from θ0 by Levenberg–Marquardt with forward-difference Jacobians.
+
+    Args:
+        model: the clip (:class:`ClipModel`).
+        parameters: the p parameters (bounds, difference steps, priors); θ0 must lie in the bounds.
+        n: the effective number of measurements (:func:`effective_images`).
+        iterations: at most this many Jacobians (each p + 1 rollouts, plus the trial steps).
+        tolerance: stop when an accepted step lowers Φ by less than this (Φ is in units of log-likelihood, so
+            1e-3 is a change of the loss of 2e-3 / n of itself).
+        patience: stop when ``validate`` has not improved on its best for this many accepted steps.
+        validate: θ, its trajectory → the validation loss (e.g. the clip at full resolution); the kept θ is
+            the best by it, the start included. None: the last accepted θ is kept.
+    Returns:
+        :class:`FitResult`; the model's simulator is left at an arbitrary θ (set it from ``theta``).
+    """
+    p = len(parameters)
+    theta = [float(x) for x in theta0]
+    for q, x in zip(parameters, theta):
+        if not q.lower <= x <= q.upper:
+            raise ValueError(f"the start of {q.name} ({x}) lies outside its bounds [{q.lower}, {q.upper}]")
+    trajectory = model.simulate(theta)
+    loss = _clip_loss(model, trajectory)
+    phi = objective(loss, theta, parameters, n)
+    best_val = validate(theta, trajectory) if validate is not None else None
+    start_val, best_theta, best_phi, since_best = best_val, list(theta), phi, 0
+    log: list[dict[str, Any]] = [{"iteration": 0, "loss": loss, "objective": phi, "accepted": True, "rollouts": 1,
+                                  **dict(zip((q.name for q in parameters), theta)),
+                                  **({"validation_loss": best_val} if best_val is not None else {})}]
+    damping, stop, lin = 1e-2, f"{iterations} iterations", None
+    for it in range(1, iterations + 1):
+        t0 = time.perf_counter()
+        lin = linearise(model, parameters, theta, trajectory)  # the trajectory used θ's automatic substeps
+        hessian, gradient = posterior_curvature(lin, parameters, n)
+        rollouts, accepted = p + 1, False
+        for _ in range(6):
+            trial = marquardt_step(hessian, gradient, theta, parameters, damping)
+            if trial == theta:
+                break
+            try:
+                trial_trajectory = model.simulate(trial)
+                trial_loss = _clip_loss(model, trial_trajectory)
+            except SimulationError:
+                trial_loss = math.inf
+            rollouts += 1
+            trial_phi = objective(trial_loss, trial, parameters, n)
+            if trial_phi < phi:
+                accepted = True
+                break
+            damping *= 4.0
+        entry: dict[str, Any] = {"iteration": it, "damping": damping, "accepted": accepted, "rollouts": rollouts}
+        if not accepted:
+            entry.update(loss=loss, objective=phi, **dict(zip((q.name for q in parameters), theta)),
+                         ms=1000 * (time.perf_counter() - t0))
+            log.append(entry)
+            if on_iteration is not None:
+                on_iteration(entry)
+            stop = "no step lowers the objective"
+            break
+        decrease = phi - trial_phi
+        theta, trajectory, loss, phi = trial, trial_trajectory, trial_loss, trial_phi
+        damping = max(damping / 3.0, 1e-6)
+        entry.update(loss=loss, objective=phi, **dict(zip((q.name for q in parameters), theta)))
+        if validate is not None:
+            value = validate(theta, trajectory)
+            entry["validation_loss"] = value
+            if value < best_val:
+                best_val, best_theta, best_phi, since_best = value, list(theta), phi, 0
+            else:
+                since_best += 1
+        else:
+            best_theta, best_phi = list(theta), phi
+        entry["ms"] = 1000 * (time.perf_counter() - t0)
+        log.append(entry)
+        if on_iteration is not None:
+            on_iteration(entry)
+        if decrease < tolerance:
+            stop = "converged: the last step lowered the objective by less than the tolerance"
+            break
+        if validate is not None and since_best >= patience:
+            stop = f"the validation loss has not improved for {patience} steps"
+            break
+    final = lin if lin is not None and lin.theta == best_theta else \
+        linearise(model, parameters, best_theta, trajectory if theta == best_theta else None)
+    return FitResult(best_theta, final, best_phi, best_val, start_val, log, stop)
+
+
+def _clip_loss(model: ClipModel, trajectory: Any) -> float:
+    """L = Σ_t ‖r_t‖² of one trajectory."""
+    with torch.no_grad():
+        return float(sum(float((model.residuals([trajectory], t)[0].double() ** 2).sum()) for t in range(model.frames)))

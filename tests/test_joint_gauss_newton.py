@@ -1,0 +1,270 @@
+"""The joint stage's Gauss–Newton fit of the physical parameters and its uncertainty.
+
+Physics against physics: the finite-difference Jacobian of the whole clip's image residuals against the adjoint
+gradient of the same loss; the fit on the model's own motion recovers E, ν and ζ from a start off in all three;
+a clip that carries no information about the material (free flight) says so instead of returning the prior as
+found; on a linear model with independent Gaussian noise the intervals hold the truth at their stated rate.
+"""
+
+import dataclasses
+import math
+
+import pytest
+import torch
+from test_pipeline_joint import _scene_setup
+
+from vid2sim.asset.motion import GaussianRig
+from vid2sim.reconstruct.config import JointConfig
+from vid2sim.reconstruct.gauss_newton import (
+    Parameter,
+    effective_images,
+    levenberg_marquardt,
+    linearise,
+    marquardt_step,
+)
+from vid2sim.reconstruct.stages.joint import (
+    ClipResiduals,
+    Observations,
+    frame_weights,
+    joint_optimisation,
+    physical_parameters,
+    render_states,
+)
+from vid2sim.reconstruct.uncertainty import NOT_IDENTIFIABLE, information_by_frame, laplace_intervals
+
+# ---- the method on models whose answer is known ------------------------------------------------------------------
+
+
+class LinearClip:
+    """r_t(θ) = A_t θ − b_t: a clip model whose Jacobian is exact and whose posterior is Gaussian."""
+
+    def __init__(self, A: torch.Tensor, b: torch.Tensor) -> None:
+        self.A, self.b, self.frames = A, b, A.shape[0]  # (F, m, p), (F, m)
+
+    def substeps(self, theta):
+        return 1
+
+    def simulate(self, theta, substeps=None):
+        return torch.tensor(list(theta), dtype=torch.float64)
+
+    def residuals(self, trajectories, frame):
+        return torch.stack([self.A[frame] @ th - self.b[frame] for th in trajectories])
+
+
+class DecayClip:
+    """r_t(a, k) = a·exp(−k t) − y_t, one residual per frame: a nonlinear least-squares problem."""
+
+    frames = 12
+
+    def __init__(self, a: float, k: float) -> None:
+        self.y = [a * math.exp(-k * t) for t in range(self.frames)]
+
+    def substeps(self, theta):
+        return 1
+
+    def simulate(self, theta, substeps=None):
+        return list(theta)
+
+    def residuals(self, trajectories, frame):
+        return torch.tensor([[th[0] * math.exp(-th[1] * frame) - self.y[frame]] for th in trajectories],
+                            dtype=torch.float64)
+
+
+def test_effective_images_count_images_by_their_weights():
+    assert effective_images([0.25] * 4, 3) == pytest.approx(12.0)  # equal weights: every image counts
+    assert effective_images([1.0, 0.0, 0.0], 4) == pytest.approx(4.0)  # one frame carries all the weight
+    w = frame_weights(16, 4.0)  # the joint stage's decayed weights over 15 frames: about 7.7 frames' worth
+    assert 7.0 < effective_images(w, 1) < 8.5
+
+
+def test_levenberg_marquardt_solves_a_nonlinear_fit_and_holds_a_bound():
+    """Noise-free exponential decay: the fit from far off lands on (a, k); with k's upper bound below the truth
+    it ends on the bound, with a the best amplitude there."""
+    clip = DecayClip(2.0, 0.3)
+    params = [Parameter("a", 0.0, 10.0, 1e-6), Parameter("k", 0.0, 2.0, 1e-6)]
+    fit = levenberg_marquardt(clip, params, [1.0, 0.8], n=12.0, iterations=40, tolerance=1e-12)
+    assert fit.theta == pytest.approx([2.0, 0.3], abs=1e-5)
+    assert fit.linearisation.loss < 1e-10 and fit.log[-1]["accepted"] in (True, False)
+    bounded = [params[0], Parameter("k", 0.0, 0.2, 1e-6)]
+    fit = levenberg_marquardt(clip, bounded, [1.0, 0.1], n=12.0, iterations=40, tolerance=1e-12)
+    assert fit.theta[1] == pytest.approx(0.2, abs=1e-9)
+    # the best a at k = 0.2 in closed form: Σ y e / Σ e² with e_t = exp(−0.2 t)
+    e = [math.exp(-0.2 * t) for t in range(12)]
+    assert fit.theta[0] == pytest.approx(sum(y * x for y, x in zip(clip.y, e)) / sum(x * x for x in e), rel=1e-4)
+
+
+def test_marquardt_step_holds_a_coordinate_at_its_bound_and_solves_for_the_rest():
+    H = torch.tensor([[2.0, 1.0], [1.0, 2.0]], dtype=torch.float64)
+    g = torch.tensor([2.0, -1.0], dtype=torch.float64)  # the unconstrained step: Δ = (−5/3, 4/3)
+    params = [Parameter("x", 0.0, 1.0, 1e-3), Parameter("y", -5.0, 5.0, 1e-3)]
+    step = marquardt_step(H, g, [0.0, 0.0], params, damping=0.0)
+    assert step[0] == 0.0  # x sits at its lower bound and the step points out: held
+    assert step[1] == pytest.approx(0.5)  # y solved alone: 2 Δy = 1
+
+
+def test_laplace_intervals_hold_the_truth_at_their_level_on_a_linear_gaussian_model():
+    """40 measurements with independent Gaussian noise, 2 parameters, 400 noisy draws: the 68 % and 95 %
+    intervals of the fit (the residual variance estimated from the fit's own residuals) hold the truth about as
+    often as they say (the maximum-likelihood variance is biased low by (F − p)/F, so slightly less)."""
+    g = torch.Generator().manual_seed(0)
+    F, truth = 40, torch.tensor([1.5, -0.5], dtype=torch.float64)
+    A = torch.randn(F, 1, 2, generator=g, dtype=torch.float64)
+    params = [Parameter("a", -100.0, 100.0, 1e-3, 0.0, 1e4), Parameter("b", -100.0, 100.0, 1e-3, 0.0, 1e4)]
+    hits = {0.68: 0, 0.95: 0}
+    draws = 400
+    n = effective_images([1.0 / F] * F, 1)
+    for _ in range(draws):
+        y = (A @ truth) + 0.3 * torch.randn(F, 1, generator=g, dtype=torch.float64)
+        clip = LinearClip(A / math.sqrt(F), y / math.sqrt(F))  # weighted residuals: Σ_t ‖r_t‖² is the mean
+        lin = linearise(clip, params, torch.linalg.lstsq(A[:, 0], y[:, 0]).solution.tolist())
+        for level in hits:
+            record = laplace_intervals(lin, params, n, level)
+            lo, hi = record["a"]["interval"]
+            hits[level] += lo <= 1.5 <= hi
+    assert 0.60 <= hits[0.68] / draws <= 0.72
+    assert 0.90 <= hits[0.95] / draws <= 0.97
+
+
+def test_a_direction_the_clip_does_not_see_is_not_identifiable_and_keeps_the_prior():
+    """A linear model whose second parameter has no effect: its interval is the prior's, it is flagged, and
+    the first parameter's interval is the data's."""
+    g = torch.Generator().manual_seed(1)
+    A = torch.zeros(10, 3, 2, dtype=torch.float64)
+    A[:, :, 0] = torch.randn(10, 3, generator=g, dtype=torch.float64)
+    b = A[:, :, 0] * 2.0 + 0.1 * torch.randn(10, 3, generator=g, dtype=torch.float64)
+    params = [Parameter("seen", -10, 10, 1e-3, 0.0, 5.0), Parameter("unseen", 0.0, 0.49, 1e-3, 0.3, 0.1)]
+    fit = levenberg_marquardt(LinearClip(A, b), params, [0.0, 0.3], n=10.0, iterations=20, tolerance=1e-10)
+    record = laplace_intervals(fit.linearisation, params, 10.0, 0.68)
+    assert record["unseen"]["identifiable"] is False and record["unseen"]["note"] == NOT_IDENTIFIABLE
+    assert record["unseen"]["data_sd"] is None and record["unseen"]["sd"] == pytest.approx(0.1, rel=1e-6)
+    assert record["unseen"]["value"] == pytest.approx(0.3) and record["unseen"]["interval"] == pytest.approx(
+        [0.3 - 0.1 * 0.9944578832097535, 0.3 + 0.1 * 0.9944578832097535])
+    assert record["seen"]["identifiable"] is True and record["seen"]["value"] == pytest.approx(2.0, abs=0.05)
+    assert information_by_frame(fit.linearisation, params)["unseen"] == [0.0] * 10
+
+
+# ---- the joint stage on the reduced model's own motion ------------------------------------------------------------
+
+
+def _own_motion(frames: int, log10_E: float, nu: float, zeta: float, linear, angular, floor: bool = True):
+    """The test drop (tests/test_pipeline_joint.py) simulated at the given material and rendered in its 2 views;
+    returns the simulator (at that material), its Gaussians, cameras and images (2, frames, 32, 32, 3)."""
+    sim, gaussians, cams = _scene_setup()
+    if not floor:
+        sim.externals = sim.externals[:1]  # gravity only: free flight
+    with torch.no_grad():
+        sim.log10_E.fill_(log10_E)
+        sim.nu.fill_(nu)
+        sim.damping_ratio.fill_(zeta)
+    start = sim.rigid_velocity_state(linear, angular, [0.0, 0.0, 0.0])
+    with torch.no_grad():
+        states = [start] + sim.rollout(start, frames - 1)
+        images = render_states(GaussianRig(sim, gaussians), states, Observations(torch.zeros(2, frames, 32, 32, 3),
+                                                                                 cams), [0, 1]).transpose(0, 1).float()
+    return sim, gaussians, cams, images
+
+
+def test_the_clip_jacobian_agrees_with_the_adjoint_gradient():
+    """2 Jᵀr of the forward-difference Jacobian (small steps, one substep count, Newton to round-off) equals the
+    gradient of the whole clip's weighted image loss by the simulator's adjoint and the renderer, for log10 E, ν,
+    ζ and the initial velocity."""
+    sim, gaussians, cams, images = _own_motion(6, 4.6, 0.35, 0.08, [0.1, 0.0, -1.0], [0.0, 1.0, 0.0])
+    sim.config = dataclasses.replace(sim.config, substeps=8, newton_tol=1e-13, newton_rtol=1e-12,
+                                     newton_max_iters=50, reuse_hessian=False)
+    gaussians = gaussians.to(dtype=torch.float64)
+    rig = GaussianRig(sim, gaussians)
+    target = (images.double() + 0.05 * torch.rand(images.shape, generator=torch.Generator().manual_seed(0),
+                                                  dtype=torch.float64)).clamp(0, 1)
+    obs = Observations(target, cams)
+    cfg = JointConfig(method="gauss_newton", fit_damping=True, frame_decay=3.0)
+    prior = {"log10_E": 5.0, "nu": 0.3, "damping_ratio": 0.05}
+    params = [dataclasses.replace(q, step=1e-6) for q in physical_parameters(sim, cfg, prior, 0.05)]
+    clip = ClipResiduals(sim, rig, obs, [0.0, 0.0, 0.0], cfg.frame_decay, [q.name for q in params])
+    theta = [4.5, 0.3, 0.05, 0.12, 0.01, -0.95, 0.05, 0.9, -0.02]
+    fd = 2 * linearise(clip, params, theta).gradient
+
+    clip.apply(theta)
+    leaves = [sim.log10_E, sim.nu, sim.damping_ratio]
+    for p in leaves:
+        p.requires_grad_(True)
+    v = torch.tensor(theta[3:6], dtype=torch.float64, requires_grad=True)
+    w = torch.tensor(theta[6:9], dtype=torch.float64, requires_grad=True)
+    states = sim.rollout(sim.rigid_velocity_state(v, w, [0.0, 0.0, 0.0]), 5)
+    weights = frame_weights(6, 3.0)
+    loss = sum(wt * ((render_states(rig, [s], obs, [0, 1])[0] - target[:, t + 1]) ** 2).mean()
+               for t, (wt, s) in enumerate(zip(weights, states)))
+    grads = torch.autograd.grad(loss, leaves + [v, w])
+    for p in leaves:
+        p.requires_grad_(False)
+    adjoint = torch.cat([g.reshape(-1) for g in grads])
+    assert torch.allclose(fd, adjoint, rtol=2e-3, atol=1e-4 * float(adjoint.abs().max()))
+
+
+@pytest.mark.slow
+def test_gauss_newton_recovers_E_nu_and_damping_of_the_models_own_motion():
+    """Images of the model's own drop at log10 E = 4.5, ν = 0.42, ζ = 0.1 (off the prior 5, 0.3, 0.05 in all
+    three, the initial velocity off by 5 %): the coarse search and the Gauss–Newton fit recover all three, with
+    intervals that hold them, say they are identifiable, and a validation loss far below the start's."""
+    sim, gaussians, cams, images = _own_motion(8, 4.5, 0.42, 0.1, [0.1, 0.0, -1.0], [0.0, 1.0, 0.0])
+    with torch.no_grad():
+        sim.log10_E.fill_(5.0)
+        sim.nu.fill_(0.3)
+        sim.damping_ratio.fill_(0.05)
+    cfg = JointConfig(
+        method="gauss_newton", fit_damping=True, coarse_log10_E=(4.0, 4.4, 4.8, 5.2, 5.6), coarse_scale=1.0,
+        gauss_newton_iterations=8,
+    )
+    result = joint_optimisation(sim, gaussians, Observations(images, cams), [0.12, 0.0, -0.95], [0.0, 0.9, 0.0],
+                                [0.0, 0.0, 0.0], cfg, progress=False)
+    assert result.method == "gauss_newton"
+    assert abs(result.log10_E - 4.5) < 0.01 and abs(result.nu - 0.42) < 0.01
+    assert abs(result.damping_ratio - 0.1) < 0.005
+    assert result.validation_loss < 0.01 * result.start_validation_loss
+    for name in ("log10_E", "nu", "damping_ratio"):
+        entry = result.uncertainty[name]
+        assert entry["identifiable"] and entry["note"] == "found"
+        assert entry["sd"] < 0.2 * entry["prior_sd"]
+    assert float(sim.log10_E) == pytest.approx(result.log10_E) and float(sim.nu) == pytest.approx(result.nu)
+    # before the first contact the images say nothing about the material: its information comes after it
+    info = result.information_by_frame
+    assert sum(info["log10_E"]) == pytest.approx(1.0) and info["log10_E"][0] < 1e-3
+
+
+@pytest.mark.slow
+def test_a_clip_without_contact_says_the_material_is_not_identifiable():
+    """Free flight without spin (no floor): nothing deforms the body, so the images carry no information about E,
+    ν or ζ. They stay at the prior, flagged "not identifiable from this video" with the prior's width, while the
+    initial velocity is fitted."""
+    sim, gaussians, cams, images = _own_motion(5, 4.5, 0.42, 0.1, [0.1, 0.0, -1.0], [0.0, 0.0, 0.0], floor=False)
+    with torch.no_grad():
+        sim.log10_E.fill_(5.0)
+        sim.nu.fill_(0.3)
+        sim.damping_ratio.fill_(0.05)
+    cfg = JointConfig(
+        method="gauss_newton", fit_damping=True, coarse_log10_E=(), coarse_scale=1.0, gauss_newton_iterations=3
+    )
+    result = joint_optimisation(sim, gaussians, Observations(images, cams), [0.12, 0.0, -0.95], [0.0, 0.0, 0.0],
+                                [0.0, 0.0, 0.0], cfg, progress=False)
+    for name, prior in (("log10_E", 5.0), ("nu", 0.3), ("damping_ratio", 0.05)):
+        entry = result.uncertainty[name]
+        assert not entry["identifiable"] and entry["note"] == NOT_IDENTIFIABLE
+        assert entry["value"] == pytest.approx(prior, abs=1e-3)
+        assert entry["sd"] == pytest.approx(entry["prior_sd"], rel=0.02)
+    assert result.linear_velocity == pytest.approx([0.1, 0.0, -1.0], abs=2e-3)
+
+
+# ---- what evaluate makes of the record ---------------------------------------------------------------------------
+
+
+def test_evaluate_scores_the_intervals_against_the_truth_and_the_fit_against_its_start():
+    """The interval of a reconstruction holds a truth inside it (1.0) and not one outside (0.0); a parameter
+    without an interval is left out; the joint fit's record says whether the kept state beat the start."""
+    from vid2sim.evaluate.scores import interval_coverage, joint_fit_record
+
+    record = {"log10_E": {"interval": [5.1, 5.6]}, "nu": {"interval": [0.30, 0.36]}}
+    assert interval_coverage(record, {"log10_E": 5.477, "nu": 0.42, "damping_ratio": 0.05}) == \
+        {"log10_E": 1.0, "nu": 0.0}
+    assert joint_fit_record({"start_validation_loss": 2e-3, "validation_loss": 1e-3, "joint_method": "gauss_newton"}) \
+        == {"start_validation_loss": 2e-3, "validation_loss": 1e-3, "improved": 1.0, "method": "gauss_newton"}
+    assert joint_fit_record({"start_validation_loss": 1e-3, "validation_loss": 1e-3})["improved"] == 0.0
+    assert joint_fit_record({"validation_loss": 1e-3}) is None  # an asset made before the start was recorded
