@@ -39,8 +39,8 @@ def test_demo_prints_true_and_recovered_material_and_the_report(tiny_demo, capsy
     def must_not_run(*args, **kwargs):
         raise AssertionError("a finished step ran again")
 
-    monkeypatch.setattr("vid2sim.reconstruct.pipeline.reconstruct", must_not_run)
-    monkeypatch.setattr("vid2sim.synthetic.scenes.make_scene", must_not_run)
+    monkeypatch.setattr("vid2sim.apps.demo.reconstruct", must_not_run)  # the names the demo calls
+    monkeypatch.setattr("vid2sim.apps.demo.make_scene", must_not_run)
     assert main(["demo", str(tiny_demo), "--size", "tiny", "--quiet"]) == 0  # resumes: only the report again
     out = capsys.readouterr().out
     assert "Young's modulus E: true 2e+05 Pa, recovered" in out and "nu: true 0.400" in out

@@ -254,7 +254,7 @@ def test_output_folder_ply_sequence_and_rerun_of_the_saved_scenario(asset, tiny_
 
 
 def test_output_is_complete_or_absent(asset, tiny_asset, tmp_path, monkeypatch):
-    import vid2sim.splats.ply as ply
+    import vid2sim.simulate.run as ply  # where simulate looks save_ply up
 
     s = Scenario(frames=3, resolution=16, cameras=_cams("orbit"))
     calls = {"n": 0}

@@ -24,8 +24,15 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from vid2sim.apps.report import asset_report
+from vid2sim.asset.folder import load_asset
+from vid2sim.evaluate.scores import evaluate, write_evaluation
+from vid2sim.reconstruct.pipeline import ReconstructConfig, reconstruct
 from vid2sim.runtime import config as configs
 from vid2sim.runtime.errors import ConfigError
+from vid2sim.simulate.run import simulate
+from vid2sim.simulate.scenario import ObstacleSpec, Scenario
+from vid2sim.synthetic.scenes import SyntheticSceneConfig, make_scene
 
 if TYPE_CHECKING:
     import torch
@@ -72,7 +79,6 @@ class DemoConfig:
 
     def scene_config(self) -> "SyntheticSceneConfig":
         """The synthetic scene: the small preset (6 views, 128², 24 frames) or a toy version of it."""
-        from vid2sim.synthetic.scenes import SyntheticSceneConfig
 
         toy = {"frames": 6, "observed_frames": 5, "resolution": 40, "views": 4, "held_out_views": 1,
                "substeps": 4} if self.size == "tiny" else {}
@@ -81,7 +87,6 @@ class DemoConfig:
 
     def reconstruct_config(self) -> "ReconstructConfig":
         """The reconstruction: the small preset, or toy sizes."""
-        from vid2sim.reconstruct.pipeline import ReconstructConfig
 
         if self.size == "small":
             return ReconstructConfig.preset("small", {"seed": self.seed})
@@ -90,7 +95,6 @@ class DemoConfig:
     def new_scenario(self) -> "Scenario":
         """The new situation: the object lifted 30 cm and dropped onto a ball lying on the floor, filmed by a
         camera orbiting it (``scenario`` fields override)."""
-        from vid2sim.simulate.scenario import Scenario
 
         frames = 8 if self.size == "tiny" else 36
         resolution = 32 if self.size == "tiny" else 160
@@ -123,7 +127,6 @@ STEPS = ("scene", "asset", "evaluation", "simulation", "report")
 def _ball_under(asset_path: Path, drop: float) -> dict[str, Any]:
     """A ball on the floor under the asset's frame-0 centre (radius a third of the object's size), clear of
     the object lifted by ``drop`` metres."""
-    from vid2sim.asset.folder import load_asset
 
     asset = load_asset(asset_path)
     pts = asset.points
@@ -149,11 +152,6 @@ def run_demo(out: str | Path, config: DemoConfig | None = None, progress: bool =
     Raises:
         FileExistsError: ``out`` holds something other than an earlier demo with the same settings.
     """
-    from vid2sim.apps.report import asset_report
-    from vid2sim.evaluate.scores import evaluate, write_evaluation
-    from vid2sim.reconstruct.pipeline import reconstruct
-    from vid2sim.simulate.run import simulate
-    from vid2sim.synthetic.scenes import make_scene
 
     cfg = config or DemoConfig()
     out = Path(out)
@@ -201,7 +199,6 @@ def run_demo(out: str | Path, config: DemoConfig | None = None, progress: bool =
         t0 = step("simulation", 4, f"simulating it in a new situation (dropped onto a ball) into {sim}")
         scenario = cfg.new_scenario()
         if "obstacles" not in cfg.scenario:
-            from vid2sim.simulate.scenario import ObstacleSpec
 
             ball = _ball_under(asset, drop=0.3)
             scenario.obstacles.append(ObstacleSpec(center=tuple(ball["center"]), radius=ball["radius"]))

@@ -32,11 +32,17 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from vid2sim.physics.solver import SimConfig, SimState, Simulator
+from vid2sim.physics.external import Floor, Gravity
+from vid2sim.physics.neural_jacobian import NeuralJacobian
+from vid2sim.physics.skinning import SkinningField
+from vid2sim.physics.solver import Material, SimConfig, SimState, Simulator
 from vid2sim.physics.stiffness_curve import StiffnessCurve
 from vid2sim.runtime.errors import ConfigError, InputError
 from vid2sim.runtime.files import load_torch_file, read_json
+from vid2sim.runtime.limits import npz_size_problem, outside
+from vid2sim.scene.writing import move_into_place
 from vid2sim.splats.gaussians import Gaussians
+from vid2sim.splats.ply import load_ply, save_ply
 from vid2sim.splats.shading import Shading
 
 ASSET_FORMAT = "vid2sim-asset"
@@ -114,8 +120,6 @@ class Asset:
         """A ready :class:`Simulator` for this asset (the captured floor and gravity unless ``externals``
         is given; ``material_overrides`` replace E (``youngs_modulus``), ``poisson_ratio``, ``density``,
         ``damping_ratio``, ``plasticity``)."""
-        from vid2sim.physics.external import Floor, Gravity
-        from vid2sim.physics.solver import Material
 
         values = {"youngs_modulus": float(self.material["E"]), "poisson_ratio": float(self.material["nu"]),
                   "density": float(self.material["density"]), "damping_ratio": float(self.material["damping_ratio"])}
@@ -149,8 +153,6 @@ def _tensor_list(x: Tensor) -> list:
 def save_asset(asset: Asset, folder: str | Path, config: dict[str, Any] | None = None,
                log: dict[str, Any] | None = None) -> Path:
     """Write ``asset`` to ``folder`` (replaced if it exists) atomically; returns the folder."""
-    from vid2sim.scene.writing import move_into_place
-    from vid2sim.splats.ply import save_ply
 
     folder = Path(folder)
     folder.parent.mkdir(parents=True, exist_ok=True)
@@ -213,7 +215,6 @@ def _read_points(path: Path, device: torch.device | str) -> tuple[dict[str, Tens
     import zipfile
     import zlib
 
-    from vid2sim.runtime.limits import npz_size_problem
 
     if not path.is_file():
         raise AssetFormatError(f"{path}: missing")
@@ -261,14 +262,10 @@ def load_asset(folder: str | Path, device: torch.device | str = "cpu") -> Asset:
     Raises:
         AssetFormatError: a missing file or invalid value, named.
     """
-    from vid2sim.physics.neural_jacobian import NeuralJacobian
-    from vid2sim.physics.skinning import SkinningField
-    from vid2sim.splats.ply import load_ply
 
     folder = Path(folder)
     if not folder.is_dir():
         raise AssetFormatError(f"{folder}: not a folder (expected an asset written by `vid2sim reconstruct`)")
-    from vid2sim.runtime.limits import outside
 
     for name in FILES.values():
         real = outside(folder, folder / name) if (folder / name).exists() else None

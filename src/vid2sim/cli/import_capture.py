@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 
 from vid2sim.cli.common import UserError, add_threads_option, set_threads
+from vid2sim.scene.capture import CaptureImportConfig, import_capture, parse_axis
+from vid2sim.scene.capture.metric import MetricConfig
 
 
 def _frames(text: str) -> tuple[int, int]:
@@ -27,8 +29,6 @@ def _ints(text: str) -> list[int]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from vid2sim.scene.capture import CaptureImportConfig, import_capture, parse_axis
-    from vid2sim.scene.capture.metric import MetricConfig
 
     set_threads(args.threads)
     if args.gravity is not None and not args.gravity > 0:

@@ -5,10 +5,10 @@ from __future__ import annotations
 import argparse
 
 from vid2sim.cli.common import UserError, add_threads_option, set_threads
+from vid2sim.synthetic.capture import CaptureTwinConfig, make_capture_twin, read_truth
 
 
 def run(args: argparse.Namespace) -> int:
-    from vid2sim.synthetic.capture import CaptureTwinConfig, make_capture_twin
 
     set_threads(args.threads)
     try:
@@ -22,7 +22,6 @@ def run(args: argparse.Namespace) -> int:
         out = make_capture_twin(args.scene, args.out, config, overwrite=args.overwrite, progress=not args.quiet)
     except (FileNotFoundError, FileExistsError) as exc:
         raise UserError(str(exc)) from exc
-    from vid2sim.synthetic.capture import read_truth
 
     truth, _ = read_truth(out)
     lead = truth["lead_in_frames"]

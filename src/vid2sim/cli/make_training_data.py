@@ -7,9 +7,11 @@ import re
 from pathlib import Path
 
 from vid2sim.cli.common import UserError
+from vid2sim.meshing.tetra import TetrahedralizationError
 from vid2sim.physics import SimulationError
 from vid2sim.predictor.data import TrainingDataConfig, make_training_data
 from vid2sim.runtime.ray_runner import RayUnavailable
+from vid2sim.synthetic.fem import FEMSolverError
 
 # TrainingDataConfig fields and the flags that set them (for error messages)
 _FLAGS = {"objects": "--objects", "draws_per_object": "--draws", "resolution": "--resolution", "frames": "--frames",
@@ -25,8 +27,6 @@ def _config_error(exc: ValueError) -> UserError:
 
 
 def run(args: argparse.Namespace) -> int:
-    from vid2sim.meshing.tetra import TetrahedralizationError
-    from vid2sim.synthetic.fem import FEMSolverError
 
     if args.threads < 1:
         raise UserError(f"--threads must be >= 1, got {args.threads}")

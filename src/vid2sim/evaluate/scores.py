@@ -33,6 +33,7 @@ from typing import Any
 
 import torch
 
+from vid2sim.asset.folder import load_asset
 from vid2sim.asset.motion import (
     deform_states,
     render_frames,
@@ -40,12 +41,16 @@ from vid2sim.asset.motion import (
     simulated_centre_of_mass,
     true_motion_gaussians,
 )
+from vid2sim.metrics.fvvdp import fovvdp as fovvdp_score
+from vid2sim.metrics.geometry import boundary_faces, material_errors, surface_chamfer
+from vid2sim.metrics.images import image_metrics
+from vid2sim.metrics.trajectory import tet_centre_of_mass
 from vid2sim.runtime.device import resolve_device
 from vid2sim.runtime.errors import InputError
+from vid2sim.scene.reading import load_scene
 
 
 def _group(renders: torch.Tensor, targets: torch.Tensor, views: list[int], frames: list[int]) -> dict[str, Any]:
-    from vid2sim.metrics.images import image_metrics
 
     if not views or not frames:
         return {}
@@ -160,14 +165,6 @@ def evaluate(asset_path: str | Path, scene_path: str | Path, fovvdp: bool = Fals
     """
     import time
 
-    from vid2sim.asset.folder import load_asset
-    from vid2sim.metrics.geometry import (
-        boundary_faces,
-        material_errors,
-        surface_chamfer,
-    )
-    from vid2sim.metrics.trajectory import tet_centre_of_mass
-    from vid2sim.scene.reading import load_scene
 
     t0 = time.perf_counter()
     dev = device if isinstance(device, torch.device) else resolve_device(device)
@@ -187,7 +184,6 @@ def evaluate(asset_path: str | Path, scene_path: str | Path, fovvdp: bool = Fals
     report: dict[str, Any] = {"asset": str(asset_path), "scene": str(scene_path),
                               **scene_groups(renders, targets, scene.config)}
     if fovvdp:
-        from vid2sim.metrics.fvvdp import fovvdp as fovvdp_score
 
         fps = 1.0 / float(scene.config.dt)
         for key, views, frames in (("dynamic", obs_v, obs_f), ("future", obs_v, held_f),

@@ -32,6 +32,8 @@ import numpy as np
 from vid2sim import __version__
 from vid2sim.export.transform import rotation_to_y_up
 from vid2sim.runtime.errors import InputError
+from vid2sim.scene.writing import move_into_place
+from vid2sim.splats.ply import save_ply
 
 RIG_FORMAT = "vid2sim-rig"
 RIG_VERSION = 1
@@ -220,8 +222,6 @@ def export_rig(asset, folder: str | Path, *, z_sequence=None) -> Path:
     Returns:
         the folder.
     """
-    from vid2sim.scene.writing import move_into_place
-    from vid2sim.splats.ply import save_ply
 
     folder = Path(folder)
     folder.parent.mkdir(parents=True, exist_ok=True)

@@ -18,7 +18,10 @@ from typing import Iterable
 
 import numpy as np
 
+from vid2sim.export.gltf import export_gltf
 from vid2sim.runtime.errors import InputError
+from vid2sim.scene.writing import move_into_place
+from vid2sim.splats.ply import load_ply
 
 SEQUENCE_FORMAT = "vid2sim-sequence"
 SEQUENCE_VERSION = 1
@@ -90,9 +93,6 @@ def export_sequence(source: str | Path, out: str | Path, fmt: str = "glb", *,
     """
     from tqdm import tqdm
 
-    from vid2sim.export.gltf import export_gltf
-    from vid2sim.scene.writing import move_into_place
-    from vid2sim.splats.ply import load_ply
 
     if fmt not in ("glb", "gltf", "ply"):
         raise InputError(f"sequence format must be 'glb', 'gltf' or 'ply', got {fmt!r}")

@@ -31,6 +31,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from vid2sim.physics.external import Floor
 from vid2sim.physics.modes import subspace_stiffness_and_mass
 from vid2sim.physics.reduced import lbs_rows
 from vid2sim.physics.sparse_lu import SymmetricLU, nested_dissection
@@ -193,7 +194,6 @@ def simulated_contact_loads(sim, states) -> list[tuple[np.ndarray, np.ndarray]]:
     Returns:
         per state with contact: (indices (P,) of the touching contact points, forces (P, 3)).
     """
-    from vid2sim.physics.external import Floor
 
     floors = [e for e in sim.externals if isinstance(e, Floor)]
     if len(floors) != 1 or sim.contact_points is None:

@@ -45,6 +45,7 @@ from torch import Tensor
 
 from vid2sim.physics.external import Floor, Gravity, energy_and_gradient
 from vid2sim.physics.integrators import BDFStep
+from vid2sim.physics.reduced import reduced_point_hessian
 
 #: Temporary memory (bytes) one batch of adjoint data may take; longer rollouts are done in several batches.
 ADJOINT_BATCH_BYTES = 1 << 27
@@ -642,7 +643,6 @@ def _assemble_hessians(steps: Sequence[FusedStep], Y: Tensor, T: Tensor) -> Tens
 
 def _add_barrier_hessians(steps: Sequence[FusedStep], Y: Tensor, H: Tensor) -> None:
     """Add k_e ∇²E_contact of each step at its state (Y: (S, 3, L)) to H: (S, D, D) in place."""
-    from vid2sim.physics.reduced import reduced_point_hessian
 
     fr = steps[0].frame
     S, _, L = Y.shape

@@ -19,6 +19,8 @@ from vid2sim.physics.materials import lame_parameters
 from vid2sim.physics.reduced import lbs_rows
 from vid2sim.physics.skinning import gradient_basis
 from vid2sim.physics.stiffness_curve import StiffnessCurve
+from vid2sim.physics.tet_modes import tet_frequencies, tet_frequency_curve
+from vid2sim.physics.volumetric import projection_basis
 
 
 def subspace_stiffness_and_mass(X: Tensor, w: Tensor, dw: Tensor, volume: float, poisson_ratio: float,
@@ -47,7 +49,6 @@ def subspace_stiffness_parts(X: Tensor, w: Tensor, dw: Tensor, volume: float, we
                              volumetric: str = "pointwise") -> tuple[Tensor, Tensor, Tensor]:
     """(K_μ, K_λ, M), each (3L, 3L): the subspace's stiffness at rest is μ K_μ + λ K_λ
     (:func:`subspace_stiffness_and_mass`, whose arguments these are)."""
-    from vid2sim.physics.volumetric import projection_basis
 
     if volumetric not in ("pointwise", "projected"):
         raise ValueError(f"volumetric must be 'pointwise' or 'projected', got {volumetric!r}")
@@ -122,7 +123,6 @@ def stiffness_calibration(field, points: Tensor, volumes: Tensor, vertices: Tens
     Returns:
         s ∈ (0, ∞); it does not depend on E or ρ; s < 1 when the subspace is stiffer than the tets.
     """
-    from vid2sim.physics.tet_modes import tet_frequencies
 
     reference = tet_frequencies(vertices, tets, 1.0, poisson_ratio, 1.0, k=1, order=2)[0]
     reduced = subspace_frequencies(field, points, volumes, 1.0, poisson_ratio, 1.0, k=1, volumetric=volumetric,
@@ -179,7 +179,6 @@ def stiffness_calibration_curve(field, points: Tensor, volumes: Tensor, vertices
         a :class:`~vid2sim.physics.stiffness_curve.StiffnessCurve` (s, and s_λ with two factors, interpolated
         between the grid's ν).
     """
-    from vid2sim.physics.tet_modes import tet_frequency_curve
 
     if factors not in (1, 2) or isinstance(factors, bool):
         raise ValueError(f"factors must be 1 (one factor on E) or 2 (on mu and lambda), got {factors!r}")

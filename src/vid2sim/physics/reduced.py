@@ -34,8 +34,11 @@ from vid2sim.physics.materials import (
     det3,
     elastic_model,
     energy_and_pk1,
+    neo_hookean_tangent,
     neo_hookean_viscous_energy_and_pk1,
     neo_hookean_viscous_tangent,
+    project_psd,
+    project_tangent_psd,
     stvk_energy_and_pk1,
 )
 from vid2sim.physics.volumetric import project as project_volumetric
@@ -474,7 +477,6 @@ class StepProblem:
     def hessian(self, y: Tensor, project: bool = True) -> Tensor:
         """∇²Φ(y): (D, D); per-point elastic, viscous and external blocks projected to PSD when ``project``
         (Newton), exact when not (the adjoint)."""
-        from vid2sim.physics.materials import project_tangent_psd
 
         if self.fused is not None and not project:
             return self.fused.hessian(y)
@@ -499,7 +501,6 @@ class StepProblem:
         """:meth:`hessian` with the projected volumetric term (:mod:`vid2sim.physics.volumetric`): per point
         the Neo-Hookean tangent without its λ term plus −λ ℓ̄_p ∂F⁻ᵀ/∂F (PSD-projected per point for Newton),
         and the non-local λ (Woᵀ V B)ᵀ (Woᵀ V B) with B_p = ∂ ln J_p / ∂y."""
-        from vid2sim.physics.materials import neo_hookean_tangent, project_psd
 
         J = torch.linalg.det(F)
         l_bar = project_volumetric(self.volumetric, self.vol, torch.log(J))

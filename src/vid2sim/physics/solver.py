@@ -34,6 +34,7 @@ from vid2sim.physics.damping import (
 from vid2sim.physics.fused import AdjointBatch, FusedFrame, FusedStep, fused_supported
 from vid2sim.physics.integrators import INTEGRATORS, BDFStep, auto_substeps, bdf_step
 from vid2sim.physics.materials import ELASTIC_MODELS, lame_parameters
+from vid2sim.physics.plasticity import DruckerPrager, VonMises, plasticity_from_dict, update_plastic_state
 from vid2sim.physics.reduced import (
     ElasticBasis,
     StepProblem,
@@ -42,6 +43,7 @@ from vid2sim.physics.reduced import (
     y_to_z_index,
     z_to_y_index,
 )
+from vid2sim.physics.skinning import deform, deformation_gradient, gradient_basis
 from vid2sim.physics.stiffness_curve import StiffnessCurve
 from vid2sim.physics.volumetric import check_volumetric, projection_basis
 from vid2sim.runtime.errors import ConfigError
@@ -161,7 +163,6 @@ def _check_plasticity(value: object) -> object:
     """None, a return-map model, or its ``to_dict()`` form (converted); anything else is a named error."""
     from collections.abc import Mapping
 
-    from vid2sim.physics.plasticity import DruckerPrager, VonMises, plasticity_from_dict
 
     if value is None or isinstance(value, (VonMises, DruckerPrager)):
         return value
@@ -722,7 +723,6 @@ class Simulator:
 
     def reduced_basis(self) -> "ReducedBasis":
         """The skinning quantities of the cubature (and contact) points from the field (differentiable)."""
-        from vid2sim.physics.skinning import gradient_basis
 
         w, dw = self.field.weights_and_gradients(self.X)
         b = lbs_rows(self.X, w)
@@ -840,7 +840,6 @@ class Simulator:
                         y2[self._inv], ydot2[self._inv], h)
 
     def _update_plastic(self, Fp_inv: Tensor, z: Tensor, mu, lam) -> Tensor:
-        from vid2sim.physics.plasticity import update_plastic_state
 
         F_total = self.deformation_gradients_at_cubature(z)
         return update_plastic_state(self.material.plasticity, F_total, Fp_inv,
@@ -870,13 +869,11 @@ class Simulator:
     # ---- outputs -------------------------------------------------------------------------------
     def positions(self, points: Tensor, z: Tensor) -> Tensor:
         """World positions x: (N, 3) of rest points ``points: (N, 3)`` for the state z: (12H,)."""
-        from vid2sim.physics.skinning import deform
 
         return deform(points, self.field(points), z)
 
     def deformation_gradients(self, points: Tensor, z: Tensor) -> Tensor:
         """Deformation gradients F: (N, 3, 3) at rest points ``points: (N, 3)`` (exact, from the field)."""
-        from vid2sim.physics.skinning import deformation_gradient, gradient_basis
 
         w, dw = self.field.weights_and_gradients(points)
         return deformation_gradient(gradient_basis(points, w, dw), z)

@@ -57,10 +57,22 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
-from vid2sim.predictor.fem_truth import FEMTruth
+from vid2sim.meshing.tetra import TetrahedralizationError
+from vid2sim.physics import Floor, Gravity, Material, SimConfig, SimulationError, Simulator
+from vid2sim.physics.cubature import sample_cubature
+from vid2sim.physics.external import AREA_CONTACT_STIFFNESS
+from vid2sim.physics.skinning import deform, deformation_gradient, gradient_basis
+from vid2sim.predictor.fem_truth import FEMTruth, make_fem_shard
 from vid2sim.predictor.front_view import FrontCamera
+from vid2sim.predictor.solid import sample_solid
+from vid2sim.predictor.template import TEMPLATE_PATH, field_from_last_layer, fit_last_layer, load_template
 from vid2sim.runtime.errors import ConfigError
 from vid2sim.runtime.files import write_file_atomic, write_json_atomic
+from vid2sim.runtime.ray_runner import import_ray
+from vid2sim.synthetic.fem import FEMSolverError, InitialPose
+from vid2sim.synthetic.mesh_render import render_textured_mesh
+from vid2sim.synthetic.meshes import load_user_mesh, normalize_to_canonical
+from vid2sim.synthetic.shapes import make_procedural_object, random_rotation
 
 FORMAT = "vid2sim-training-data/1"
 TRUTHS = ("fem", "reduced")
@@ -264,7 +276,6 @@ def file_sha256(path: str | Path) -> str:
 
 
 def template_path(config: TrainingDataConfig) -> Path:
-    from vid2sim.predictor.template import TEMPLATE_PATH
 
     return Path(config.template) if config.template is not None else TEMPLATE_PATH
 
@@ -286,7 +297,6 @@ class Draw:
 def draw_sample(config: TrainingDataConfig, rng: np.random.Generator, damping_rng: np.random.Generator) -> Draw:
     """The next draw of an object's streams: E, ν and the drop from ``rng`` (stream 1), ζ from ``damping_rng``
     (stream 2; a fixed ratio draws nothing, so ``rng``'s draws are those of datasets made before ζ varied)."""
-    from vid2sim.synthetic.fem import InitialPose
 
     lo, hi = (math.log10(x) for x in config.E_range)
     log_e = rng.uniform(lo, hi)
@@ -302,8 +312,6 @@ def draw_sample(config: TrainingDataConfig, rng: np.random.Generator, damping_rn
 
 
 def _load_object(spec: ObjectSpec):
-    from vid2sim.synthetic.meshes import load_user_mesh
-    from vid2sim.synthetic.shapes import make_procedural_object
 
     return make_procedural_object(int(spec.source)) if spec.kind == "procedural" else load_user_mesh(spec.source)
 
@@ -327,9 +335,6 @@ def simulate_draw(field_, vertices: torch.Tensor, cubature: torch.Tensor, cubatu
     input frame, scale 1: the canonical frame has diagonal 1). Returns the skinned vertices at frames
     0 … frames − 1 and the largest Green strain ‖½(FᵀF − I)‖_F over cubature points and frames.
     """
-    from vid2sim.physics import Floor, Gravity, Material, SimConfig, Simulator
-    from vid2sim.physics.external import AREA_CONTACT_STIFFNESS
-    from vid2sim.physics.skinning import deform, deformation_gradient, gradient_basis
 
     dtype = torch.float64  # in float32 Newton cannot meet the simulator's tolerance (and is no faster)
     field_ = field_.to(dtype)
@@ -394,10 +399,6 @@ def prepare_object(config: TrainingDataConfig, spec: ObjectSpec, template=None) 
         template: the template :class:`~vid2sim.physics.SkinningField` (default: loaded from ``config.template``
             or the shipped file).
     """
-    from vid2sim.predictor.solid import sample_solid
-    from vid2sim.predictor.template import field_from_last_layer, fit_last_layer, load_template
-    from vid2sim.synthetic.meshes import normalize_to_canonical
-    from vid2sim.synthetic.shapes import random_rotation
 
     t0 = time.perf_counter()
     if template is None:
@@ -427,7 +428,6 @@ def render_draw(mesh, vertices: torch.Tensor, cameras: list, supersample: int
         (front video (T, R, R, 3) uint8, the other views (V − 1, T, R, R, 3) uint8 or None when V = 1, the
         fraction of frames whose front silhouette touches the image border).
     """
-    from vid2sim.synthetic.mesh_render import render_textured_mesh
 
     rgb, alpha = render_textured_mesh(mesh, cameras, vertices=vertices, supersample=supersample)
     video = (rgb.clamp(0, 1) * 255.0).round().to(torch.uint8).numpy()  # (V, T, R, R, 3)
@@ -454,7 +454,6 @@ def make_object_shard(config: TrainingDataConfig, spec: ObjectSpec, template=Non
         (:func:`~vid2sim.predictor.fem_truth.make_fem_shard`).
     """
     if config.truth == "fem":
-        from vid2sim.predictor.fem_truth import make_fem_shard
 
         return make_fem_shard(config, spec, template, work_dir=work_dir, threads=threads)
     return make_reduced_shard(config, spec, template)
@@ -463,8 +462,6 @@ def make_object_shard(config: TrainingDataConfig, spec: ObjectSpec, template=Non
 def make_reduced_shard(config: TrainingDataConfig, spec: ObjectSpec,
                        template=None) -> tuple[dict[str, np.ndarray], dict]:
     """:func:`make_object_shard` with the reduced simulator's drops (module docstring)."""
-    from vid2sim.physics import SimulationError
-    from vid2sim.physics.cubature import sample_cubature
 
     t_all, cpu_all = time.perf_counter(), time.process_time()
     prepared = prepare_object(config, spec, template)
@@ -574,7 +571,6 @@ def shard_task(config_dict: dict, spec_fields: tuple, out_dir: str, threads: int
     spec = ObjectSpec(*spec_fields)
     work_dir = work_dir_of(out_dir, spec) if config.truth == "fem" else None
     if config.truth == "fem":
-        from vid2sim.predictor.fem_truth import make_fem_shard
 
         on_draw = _print_draw if verbose else None
         arrays, timings = make_fem_shard(config, spec, work_dir=work_dir, threads=torch.get_num_threads(),
@@ -689,7 +685,6 @@ def make_training_data(config: TrainingDataConfig, out_dir: str | Path, workers:
         if not Path(m).is_file():
             raise FileNotFoundError(f"mesh file {m} does not exist")
     if ray_address is not None:
-        from vid2sim.runtime.ray_runner import import_ray
 
         import_ray()  # RayUnavailable before anything is written
     tpath = template_path(config)
@@ -843,9 +838,6 @@ def make_training_data(config: TrainingDataConfig, out_dir: str | Path, workers:
 def _shard_failures() -> tuple[type[BaseException], ...]:
     """What makes one object fail without stopping the others: a simulation that failed every retry, fTetWild,
     a surface that is not watertight or does not fit its tets (ValueError)."""
-    from vid2sim.meshing.tetra import TetrahedralizationError
-    from vid2sim.physics import SimulationError
-    from vid2sim.synthetic.fem import FEMSolverError
 
     return (SimulationError, FEMSolverError, TetrahedralizationError, ValueError)
 

@@ -29,7 +29,7 @@ from torch.utils.data import Dataset
 from vid2sim.predictor.data import FORMAT, INDEX
 from vid2sim.runtime.errors import InputError
 from vid2sim.runtime.files import read_json
-from vid2sim.runtime.limits import outside
+from vid2sim.runtime.limits import npz_size_problem, outside
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -48,7 +48,6 @@ def read_shard(path: Path, draws: int) -> dict[str, np.ndarray]:
     import zipfile
     import zlib
 
-    from vid2sim.runtime.limits import npz_size_problem
 
     too_big = npz_size_problem(path)
     if too_big is not None:

@@ -28,6 +28,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from vid2sim.physics.cubature import farthest_point_sampling
+
 _OFFSET = (math.sqrt(2.0) - 1.0) * 1e-4, (math.sqrt(3.0) - 1.0) * 1e-4  # cells; breaks grid-aligned ties
 
 
@@ -122,7 +124,6 @@ def sample_solid(vertices: Tensor, faces: Tensor, num_points: int = 5000, column
     Raises:
         ValueError: a surface with an odd number of crossings on some line (not watertight) or no inside.
     """
-    from vid2sim.physics.cubature import farthest_point_sampling
 
     if num_points < 1 or columns < 2 or max_contact_points < 1:
         raise ValueError(f"num_points >= 1, columns >= 2 and max_contact_points >= 1 are needed, got "

@@ -65,12 +65,17 @@ from torch.nn import functional as Fn
 from vid2sim.physics.materials import lame_parameters
 from vid2sim.physics.skinning import SkinningField, gradient_basis
 from vid2sim.physics.skinning_training import (
+    SkinningTrainingConfig,
     elastic_loss,
     orthogonality_loss,
     sample_handle_transforms,
+    train_skinning,
 )
+from vid2sim.predictor.solid import sample_solid
 from vid2sim.runtime.errors import ConfigError, InputError
 from vid2sim.runtime.training import Progress, Schedule, optimise
+from vid2sim.synthetic.meshes import normalize_to_canonical
+from vid2sim.synthetic.shapes import ProceduralShapeConfig, make_procedural_object, random_rotation
 
 #: the shipped template (package data)
 TEMPLATE_PATH = Path(__file__).with_name("template_skinning.pt")
@@ -450,13 +455,6 @@ def procedural_shape_points(seed: int, rotation_seed: Sequence[int] | int, num_p
                             sample_seed: int = 0) -> tuple[Tensor, float]:
     """Interior points of ``make_procedural_object(seed)`` turned by a random rotation (from ``rotation_seed``)
     and re-normalised to the canonical frame; returns (points (N, 3) float32, volume in that frame)."""
-    from vid2sim.predictor.solid import sample_solid
-    from vid2sim.synthetic.meshes import normalize_to_canonical
-    from vid2sim.synthetic.shapes import (
-        ProceduralShapeConfig,
-        make_procedural_object,
-        random_rotation,
-    )
 
     mesh = make_procedural_object(seed, ProceduralShapeConfig(texture_size=8))
     R = torch.from_numpy(random_rotation(np.random.default_rng(rotation_seed)))
@@ -470,7 +468,6 @@ def _eval_report(trunk: SkinningField, shapes: list[tuple[Tensor, float]], confi
                  full: bool) -> list[dict[str, float]]:
     """Per held-out shape: the data-free loss of the spectral start, of the last-layer fit with
     ``eval_iterations``, and (``full``) of a full data-free training of a fresh field with as many iterations."""
-    from vid2sim.physics.skinning_training import SkinningTrainingConfig, train_skinning
 
     out = []
     for k, (pts, vol) in enumerate(shapes):

@@ -35,6 +35,7 @@ import numpy as np
 import torch
 
 from vid2sim.predictor.dataset import IMAGENET_MEAN, IMAGENET_STD, TrainingData
+from vid2sim.predictor.ensemble import ENSEMBLE_FORMAT, PredictorEnsemble
 from vid2sim.predictor.model import (
     LabelPredictor,
     LossWeights,
@@ -42,6 +43,8 @@ from vid2sim.predictor.model import (
     PredictorConfig,
     predictor_loss,
 )
+from vid2sim.predictor.predict import frame_for_model
+from vid2sim.predictor.pretrain import pretrain_backbone
 from vid2sim.runtime.errors import ConfigError, InputError
 from vid2sim.runtime.files import load_torch_file, save_torch_atomic
 
@@ -147,7 +150,6 @@ class Split:
     ``framing`` says and resized to side ``size`` by area averaging, as :func:`frame_for_model` does)."""
 
     def __init__(self, data: TrainingData, size: int | None = None, framing: str = "full") -> None:
-        from vid2sim.predictor.predict import frame_for_model
 
         n = len(data)
         mean = torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1)
@@ -340,7 +342,6 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"predictor checkpoint {path} does not exist")
-    from vid2sim.predictor.ensemble import ENSEMBLE_FORMAT
 
     payload = load_torch_file(path, "a vid2sim predictor checkpoint")
     if not isinstance(payload, dict) or payload.get("format") not in (CHECKPOINT_FORMAT, ENSEMBLE_FORMAT):
@@ -363,7 +364,6 @@ def load_predictor(path: str | Path) -> LabelPredictor:
     :class:`~vid2sim.predictor.ensemble.PredictorEnsemble` for an ensemble checkpoint — (float32, CPU, eval
     mode), with the checkpoint's ``metrics`` and ``data_config`` (an ensemble's: its first member's) as
     attributes of the same names."""
-    from vid2sim.predictor.ensemble import ENSEMBLE_FORMAT, PredictorEnsemble
 
     payload = read_checkpoint(path)
     try:
@@ -474,7 +474,6 @@ def train_predictor(data_folder: str | Path, out: str | Path, config: TrainConfi
                    "train_objects": len(train_data.shards), "val_objects": len(val_data.shards),
                    "data_config": data_cfg, "seconds_loading": t_data}
     if cfg.pretrain_steps and not last_path.is_file():
-        from vid2sim.predictor.pretrain import pretrain_backbone
 
         log["pretrain"] = pretrain_backbone(model, train, cfg, out, deadline, progress)
         if not log["pretrain"]["complete"]:

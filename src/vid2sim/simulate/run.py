@@ -32,13 +32,22 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from vid2sim import __version__
+from vid2sim.asset.folder import load_asset
+from vid2sim.asset.motion import GaussianRig
+from vid2sim.physics.external import Floor, MovingFloor, SphereObstacle
 from vid2sim.runtime.device import resolve_device
+from vid2sim.scene.video import write_video
+from vid2sim.scene.writing import move_into_place
 from vid2sim.simulate.scenario import (
     ResolvedScenario,
     Scenario,
     reframe,
     resolve_scenario,
 )
+from vid2sim.simulate.scenery import concatenate, scenery_gaussians
+from vid2sim.splats.ply import save_ply
+from vid2sim.splats.render import render_gaussians
 
 if TYPE_CHECKING:
     from vid2sim.asset.folder import Asset
@@ -138,7 +147,6 @@ def trajectory_stats(asset: "Asset", run: ScenarioRun) -> dict[str, Any]:
     ``floor_distance`` (m, the contact points' smallest signed distance to the floor, negative = penetration;
     None without a floor), ``obstacle_distance`` (the same per obstacle), ``newton_iterations``.
     """
-    from vid2sim.physics.external import Floor, MovingFloor, SphereObstacle
 
     sim, states = run.sim, run.states
     floor = next((e for e in run.resolved.externals if isinstance(e, (Floor, MovingFloor))), None)
@@ -197,7 +205,6 @@ def _in_view(means: Tensor, camera: "Camera") -> bool:
 def _render(d: Any, cameras: list["Camera"], background: Any) -> list[np.ndarray]:
     """uint8 images (H, W, 3) of the deformed Gaussians ``d`` in ``cameras`` (one size); a camera the object
     has left shows the background."""
-    from vid2sim.splats.render import render_gaussians
 
     return list(_to_uint8(render_gaussians(d, cameras, background=background, near_plane=NEAR_PLANE).rgb))
 
@@ -235,12 +242,6 @@ def simulate(asset: "Asset | str | Path", scenario: Scenario | None, out: str | 
     """
     from tqdm.auto import tqdm
 
-    from vid2sim.asset.folder import load_asset
-    from vid2sim.asset.motion import GaussianRig
-    from vid2sim.scene.video import write_video
-    from vid2sim.scene.writing import move_into_place
-    from vid2sim.simulate.scenery import concatenate, scenery_gaussians
-    from vid2sim.splats.ply import save_ply
 
     t_start = time.perf_counter()
     out = Path(out)
@@ -352,7 +353,6 @@ def simulate(asset: "Asset | str | Path", scenario: Scenario | None, out: str | 
 
 def _summary(asset: "Asset", asset_path: str | None, resolved: ResolvedScenario, run: ScenarioRun,
              stats: dict[str, Any], timings: dict[str, float], video: bool, ply: bool) -> dict[str, Any]:
-    from vid2sim import __version__
 
     m = resolved.material
     plasticity = m["plasticity"]

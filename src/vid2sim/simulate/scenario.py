@@ -31,7 +31,12 @@ from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Mapping, Sequence
 
+from vid2sim.physics.external import Floor, Gravity, MovingFloor, SphereObstacle
+from vid2sim.physics.plasticity import DruckerPrager, VonMises
 from vid2sim.runtime.errors import InputError
+from vid2sim.scene.validation import Problems, SceneFormatError, parse_transforms, read_json, resolve_intrinsics
+from vid2sim.scene.video import VideoError, probe_video
+from vid2sim.splats.cameras import Camera, look_at
 
 if TYPE_CHECKING:  # heavy imports only where used
     from torch import Tensor
@@ -815,15 +820,6 @@ def scene_cameras(path: str | Path) -> tuple[list["Camera"], int]:
     import torch
     from PIL import Image
 
-    from vid2sim.scene.validation import (
-        Problems,
-        SceneFormatError,
-        parse_transforms,
-        read_json,
-        resolve_intrinsics,
-    )
-    from vid2sim.scene.video import VideoError, probe_video
-    from vid2sim.splats.cameras import Camera
 
     root = Path(path)
     problems = Problems()
@@ -874,8 +870,6 @@ def resolve_scenario(asset: "Asset", scenario: Scenario) -> ResolvedScenario:
     """
     import torch
 
-    from vid2sim.physics.external import Floor, Gravity, MovingFloor, SphereObstacle
-    from vid2sim.physics.plasticity import DruckerPrager, VonMises
 
     s = replace(scenario, floor=replace(scenario.floor), obstacles=[replace(o) for o in scenario.obstacles],
                 initial=replace(scenario.initial), material=replace(scenario.material),
@@ -1075,7 +1069,6 @@ def orbital_tracks(s: Scenario) -> list[CameraTrack]:
     """The ring or orbit cameras of a scenario whose camera fields are all set (target, radius, height)."""
     import torch
 
-    from vid2sim.splats.cameras import Camera, look_at
 
     c = s.cameras
     target = torch.tensor(c.target, dtype=torch.float64)

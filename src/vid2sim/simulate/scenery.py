@@ -18,6 +18,7 @@ from typing import Sequence
 import torch
 from torch import Tensor
 
+from vid2sim.physics.external import Floor, MovingFloor, SphereObstacle
 from vid2sim.splats.deform import DeformedGaussians
 from vid2sim.splats.sh import C0
 
@@ -97,7 +98,6 @@ def scenery_gaussians(externals: Sequence[object], t: float, centre_xy: Sequence
     """The floor (static or moving) and sphere obstacles among ``externals`` at time ``t`` (s) as Gaussians on
     ``device`` (None when there are none); the floor patch is centred under ``centre_xy`` with half side
     ``half_size``."""
-    from vid2sim.physics.external import Floor, MovingFloor, SphereObstacle
 
     parts: list[DeformedGaussians] = []
     for e in externals:

@@ -17,6 +17,7 @@ import torch
 from torch import Tensor
 
 from vid2sim.splats.gaussians import Gaussians, quat_to_rotmat, rotmat_to_quat
+from vid2sim.splats.sh import sh_degree_from_bases
 from vid2sim.splats.shading import Shading
 
 
@@ -38,7 +39,6 @@ class DeformedGaussians:
 
     @property
     def sh_degree(self) -> int:
-        from vid2sim.splats.sh import sh_degree_from_bases
 
         return sh_degree_from_bases(self.sh.shape[1])
 

@@ -26,7 +26,9 @@ import torch
 from torch import Tensor
 
 from vid2sim.splats.cameras import Camera, stack_cameras
+from vid2sim.splats.deform import DeformedGaussians
 from vid2sim.splats.gaussians import Gaussians, covariances_from_scales_quats
+from vid2sim.splats.gsplat_backend import render_gsplat
 from vid2sim.splats.projection import project_gaussians
 from vid2sim.splats.rasterize import RasterOptions, bin_gaussians, composite, untile
 from vid2sim.splats.sh import eval_sh, num_sh_bases, sh_basis
@@ -229,7 +231,6 @@ def render(
     bg = _backgrounds(background, n_views, channels, means)
     chosen = resolve_backend(backend, means.device, means.dtype)
     if chosen == "gsplat":
-        from vid2sim.splats.gsplat_backend import render_gsplat
 
         rgb, alpha, depth, means2d, radii = render_gsplat(
             means, quats, scales, covars, opacities, colors, sh_degree, viewmats, Ks, width, height, bg,
@@ -291,7 +292,6 @@ def render_gaussians(
     Uses the set's full SH degree unless ``sh_degree`` is given. Keyword arguments go to
     :func:`render` (background, backend, …).
     """
-    from vid2sim.splats.deform import DeformedGaussians
 
     deg = gaussians.sh_degree if sh_degree is None else sh_degree
     if isinstance(gaussians, DeformedGaussians):

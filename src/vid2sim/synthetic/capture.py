@@ -39,9 +39,17 @@ from vid2sim.scene.capture.cameras import CaptureCamera, rigid
 from vid2sim.scene.capture.colmap import write_colmap
 from vid2sim.scene.capture.jsonify import jsonable
 from vid2sim.scene.capture.nerfstudio import write_transforms
+from vid2sim.scene.reading import load_scene
+from vid2sim.scene.video import write_video
+from vid2sim.scene.writing import move_into_place
 from vid2sim.splats.cameras import Camera
 from vid2sim.synthetic.capture_render import Sensor, ShadowMaps, make_room, render_view
+from vid2sim.synthetic.embedding import apply_embedding, embed_points
+from vid2sim.synthetic.fem import FEMResult
 from vid2sim.synthetic.mesh_render import DEFAULT_LIGHT_DIR
+from vid2sim.synthetic.meshes import load_user_mesh
+from vid2sim.synthetic.scenes import FEM_RESULT_NPZ, SYNTHETIC_JSON, SyntheticSceneConfig
+from vid2sim.synthetic.shapes import make_procedural_object
 
 TRUTH_DIR = "ground_truth"
 TRUTH_JSON = "truth.json"
@@ -343,8 +351,6 @@ def write_capture(motion: CaptureMotion, out: str | Path, config: CaptureTwinCon
         and sensors, and ``ground_truth/alpha.npz`` the true coverage ``alpha`` (V, T, H, W) uint8 of the
         distorted frames.
     """
-    from vid2sim.scene.video import write_video
-    from vid2sim.scene.writing import move_into_place
 
     config = CaptureTwinConfig() if config is None else config
     out = Path(out)
@@ -472,12 +478,6 @@ def scene_motion(scene_dir: str | Path, lead_in_frames: int, clearance: float = 
     """The motion of a ``make-scene`` folder (its object's textured surface carried by the FEM tets, its cameras)
     filmed at ``step`` video frames per scene frame (Hermite-interpolated between the FEM's frames), with up to
     ``lead_in_frames`` scene frames of free flight before it (:func:`lead_in`)."""
-    from vid2sim.scene.reading import load_scene
-    from vid2sim.synthetic.embedding import apply_embedding, embed_points
-    from vid2sim.synthetic.fem import FEMResult
-    from vid2sim.synthetic.meshes import load_user_mesh
-    from vid2sim.synthetic.scenes import FEM_RESULT_NPZ, SYNTHETIC_JSON, SyntheticSceneConfig
-    from vid2sim.synthetic.shapes import make_procedural_object
 
     scene_dir = Path(scene_dir)
     for name in (SYNTHETIC_JSON, FEM_RESULT_NPZ):

@@ -19,6 +19,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from vid2sim.physics.tet_modes import TET_EDGES
+
 
 def _barycentric(points: np.ndarray, tet_points: np.ndarray) -> np.ndarray:
     """Barycentric coordinates (M, 4) of points (M, 3) w.r.t. tetrahedra (M, 4, 3)."""
@@ -184,7 +186,6 @@ def apply_embedding(tet_vertices_deformed: Tensor, tet_index: Tensor, bary: Tens
         raise ValueError(f"tets index vertex {int(tets.max())} but tet_vertices_deformed has {x.shape[-2]} vertices")
     idx = tets[tet_index]  # (P, 4) or (P, 10)
     if tets.shape[1] == 10:
-        from vid2sim.physics.tet_modes import TET_EDGES
 
         bary = torch.cat(
             [bary * (2 * bary - 1)] + [4 * bary[:, a : a + 1] * bary[:, b : b + 1] for a, b in TET_EDGES], dim=1

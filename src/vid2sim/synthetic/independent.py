@@ -41,9 +41,13 @@ import torch
 from torch import Tensor
 from tqdm.auto import tqdm
 
+from vid2sim.meshing.tetra import surface_vertex_areas
+from vid2sim.metrics.trajectory import trajectory_distance
 from vid2sim.physics.damping import DEFAULT_DAMPING_RATIO, check_damping_ratio, retardation_time
 from vid2sim.physics.external import AREA_CONTACT_STIFFNESS
+from vid2sim.physics.integrators import auto_substeps
 from vid2sim.physics.materials import lame_parameters
+from vid2sim.physics.tet_modes import quadratic_tet_nodes
 from vid2sim.runtime.errors import ConfigError
 from vid2sim.synthetic.fem import InitialPose
 
@@ -178,7 +182,6 @@ def subdivide_quadratic(vertices: Tensor | np.ndarray, tets: Tensor | np.ndarray
         (vertices first, then one per edge) and positively oriented linear tets (the inner octahedron cut along the
         diagonal between the midpoints of edges 0–2 and 1–3).
     """
-    from vid2sim.physics.tet_modes import quadratic_tet_nodes
 
     nodes, elements = quadratic_tet_nodes(vertices, tets)
     a, b, c, d, ab, bc, ac, ad, bd, cd = elements.T  # corners, then the midpoints in TET_EDGES order
@@ -304,7 +307,6 @@ def simulate_newton(vertices: Tensor | np.ndarray, tets: Tensor | np.ndarray, co
     Raises:
         ConfigError: Newton is not installed.
     """
-    from vid2sim.meshing.tetra import surface_vertex_areas
 
     config = config or NewtonConfig()
     if not (isinstance(frames, int) and frames >= 1):
@@ -412,7 +414,6 @@ def default_start_substeps(config: NewtonConfig, size: float) -> int:
     """The first substep count of :func:`simulate_newton_converged`: 4 × the automatic count of our BDF2 FEM for the
     material (:func:`vid2sim.physics.integrators.auto_substeps`), at least 16: implicit Euler damps a mode of angular
     frequency ω by a ratio ≈ ωh/2, which must stay well below the material's damping."""
-    from vid2sim.physics.integrators import auto_substeps
 
     length = config.damping_length if config.damping_length is not None else size
     return max(16, 4 * auto_substeps(config.dt, config.youngs_modulus, config.density, length))
@@ -434,7 +435,6 @@ def simulate_newton_converged(vertices: Tensor | np.ndarray, tets: Tensor | np.n
         max_substeps: give up (:class:`NewtonSolverError`) rather than go beyond this.
         progress: show a progress bar.
     """
-    from vid2sim.metrics.trajectory import trajectory_distance
 
     config = config or NewtonConfig()
     X = _as_numpy(vertices, np.float64)

@@ -43,10 +43,22 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import torch
 
+from vid2sim.meshing.tetra import TetMesh, TetrahedralizationError, clean_tet_mesh, tetrahedralize
 from vid2sim.physics.damping import DEFAULT_DAMPING_RATIO
 from vid2sim.physics.external import AREA_CONTACT_STIFFNESS
+from vid2sim.physics.materials import ELASTIC_MODELS, lame_parameters
 from vid2sim.runtime.errors import ConfigError
 from vid2sim.runtime.files import write_json_atomic
+from vid2sim.runtime.ray_runner import check_ray
+from vid2sim.scene.folder import Scene, SceneConfig
+from vid2sim.scene.writing import move_into_place, write_scene
+from vid2sim.splats.cameras import camera_ring
+from vid2sim.synthetic.embedding import apply_embedding, embed_points
+from vid2sim.synthetic.fem import FEMConfig, InitialPose, simulate_fem_converged
+from vid2sim.synthetic.independent import NewtonConfig, import_newton, newton_metadata, simulate_newton_converged
+from vid2sim.synthetic.mesh_render import render_textured_mesh
+from vid2sim.synthetic.meshes import load_user_mesh
+from vid2sim.synthetic.shapes import make_procedural_object
 
 if TYPE_CHECKING:
     from vid2sim.meshing.tetra import TetMesh
@@ -163,7 +175,6 @@ class SyntheticSceneConfig:
     layout: str = "rgba"
 
     def __post_init__(self) -> None:
-        from vid2sim.physics.materials import ELASTIC_MODELS, lame_parameters
 
         def bad(name: str, expected: str) -> ConfigError:
             return ConfigError(f"SyntheticSceneConfig.{name} must be {expected}, got {getattr(self, name)!r}")
@@ -256,7 +267,6 @@ class SyntheticSceneConfig:
     def fem_config(self, **overrides: Any) -> "FEMConfig":
         """The FEM settings of this scene (material, damping, frame time, floor), with ``overrides``; the
         substeps are those of :attr:`substeps` when set (the converged run chooses its own)."""
-        from vid2sim.synthetic.fem import FEMConfig
 
         fields_ = {"youngs_modulus": self.youngs_modulus, "poisson_ratio": self.poisson_ratio,
                    "density": self.density, "material": self.material, "dt": self.dt,
@@ -269,7 +279,6 @@ class SyntheticSceneConfig:
     def newton_config(self) -> "NewtonConfig":
         """The independent engine's settings for this scene (material, damping, frame time, floor and its stiffness,
         friction; ``element_order`` 2 → ``subdivide``); its substeps are those of :attr:`substeps` when set."""
-        from vid2sim.synthetic.independent import NewtonConfig
 
         fields_ = {"youngs_modulus": self.youngs_modulus, "poisson_ratio": self.poisson_ratio,
                    "density": self.density, "damping_ratio": self.damping_ratio, "dt": self.dt,
@@ -281,7 +290,6 @@ class SyntheticSceneConfig:
 
     def initial_pose(self) -> "InitialPose":
         """The seeded random drop pose (orientation, height above the floor, rigid velocity)."""
-        from vid2sim.synthetic.fem import InitialPose
 
         height = (0.05, 0.3) if self.drop_height is None else (self.drop_height, self.drop_height)
         return InitialPose.random(self.seed, drop_height=height, max_horizontal_speed=self.max_horizontal_speed,
@@ -342,7 +350,6 @@ def load_tet_mesh(path: str | Path) -> "TetMesh":
     Raises:
         FileNotFoundError: no such file. ValueError: not an npz with those arrays, or degenerate tets.
     """
-    from vid2sim.meshing.tetra import TetMesh, TetrahedralizationError, clean_tet_mesh
 
     path = Path(path)
     if not path.is_file():
@@ -386,15 +393,6 @@ def make_scene(config: SyntheticSceneConfig, out_dir: str | Path, overwrite: boo
     import shutil
     import uuid
 
-    from vid2sim.meshing.tetra import tetrahedralize
-    from vid2sim.scene.folder import Scene, SceneConfig
-    from vid2sim.scene.writing import move_into_place, write_scene
-    from vid2sim.splats.cameras import camera_ring
-    from vid2sim.synthetic.embedding import apply_embedding, embed_points
-    from vid2sim.synthetic.fem import simulate_fem_converged
-    from vid2sim.synthetic.mesh_render import render_textured_mesh
-    from vid2sim.synthetic.meshes import load_user_mesh
-    from vid2sim.synthetic.shapes import make_procedural_object
 
     if not isinstance(config, SyntheticSceneConfig):
         raise TypeError(f"config must be a SyntheticSceneConfig, got {type(config).__name__}")
@@ -405,7 +403,6 @@ def make_scene(config: SyntheticSceneConfig, out_dir: str | Path, overwrite: boo
         if value is not None and not Path(value).is_file():
             raise FileNotFoundError(f"SyntheticSceneConfig.{name}: file {value} does not exist")
     if config.truth == "newton":  # the optional engine: a clear error naming its extra, before any work
-        from vid2sim.synthetic.independent import import_newton
 
         import_newton()
     timings: dict[str, float] = {}
@@ -448,7 +445,6 @@ def make_scene(config: SyntheticSceneConfig, out_dir: str | Path, overwrite: boo
         truth_metadata = {"fem": _fem_metadata(config, tet, result)}
         result_file = FEM_RESULT_NPZ
     else:
-        from vid2sim.synthetic.independent import newton_metadata, simulate_newton_converged
 
         _stage(progress, f"Newton (VBD) drop: {len(tet.tets)} tets{' x 8' if config.element_order == 2 else ''}, "
                          f"{config.frames} frames, steps halved until the trajectory changes by <= "
@@ -626,13 +622,11 @@ def make_benchmark(n: int, out_dir: str | Path, preset: str = "full", seed: int 
         raise ValueError(f"make_benchmark: {fixed} are set per scene by the suite and cannot be overridden")
     configs = [SyntheticSceneConfig.preset(preset, **{**overrides, **p}) for p in params]  # validates up front
     if any(c.truth == "newton" for c in configs):  # the optional engine, before any work
-        from vid2sim.synthetic.independent import import_newton
 
         import_newton()
     if tets_from is not None:
         configs = [replace(c, tet_mesh=str(_suite_tets(Path(tets_from), i, c))) for i, c in enumerate(configs)]
     if ray_address is not None:  # fail before any work
-        from vid2sim.runtime.ray_runner import check_ray
 
         check_ray(ray_address)
     root = Path(out_dir)

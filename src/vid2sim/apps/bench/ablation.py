@@ -42,8 +42,12 @@ from vid2sim.apps.bench.suite import (
     run_suite,
     suite_summary,
 )
+from vid2sim.predictor.predict import DEFAULT_PREDICTOR
+from vid2sim.predictor.template import load_template
+from vid2sim.report import write_suite_report
 from vid2sim.runtime.errors import InputError
 from vid2sim.runtime.files import write_json_atomic
+from vid2sim.runtime.ray_runner import check_ray
 
 if TYPE_CHECKING:
     from vid2sim.reconstruct.pipeline import ReconstructConfig
@@ -178,8 +182,6 @@ def variant_configs(config: SuiteConfig | None = None, predictor: str | None = N
 
 def _check_stage1_possible(config: SuiteConfig, predictor: str | None) -> str:
     """Raise ValueError when Stage I could not run with these settings; returns the checkpoint's path."""
-    from vid2sim.predictor.predict import DEFAULT_PREDICTOR
-    from vid2sim.predictor.template import load_template
 
     base = config.reconstruct_config()
     handles = load_template().num_handles
@@ -292,7 +294,6 @@ def run_ablation(suite_dir: str | Path, out_dir: str | Path, config: SuiteConfig
         raise FileExistsError(f"{out} is not empty and holds no ablation run ({', '.join(configs)}): refusing to "
                               "write one there")
     if ray_address is not None:
-        from vid2sim.runtime.ray_runner import check_ray
 
         check_ray(ray_address)
     for name, cfg in configs.items():  # a resumed variant with other settings: refused before any work
@@ -311,7 +312,6 @@ def run_ablation(suite_dir: str | Path, out_dir: str | Path, config: SuiteConfig
             plain = suite_summary(result["suite"], result["preset"],
                                   [{k: r[k] for k in before} for r, before in zip(records, result["scenes"])])
             write_json_atomic(out / variant.name / SUITE_JSON, plain)
-            from vid2sim.report import write_suite_report
 
             write_suite_report(out / variant.name / "report", plain)
             if progress:

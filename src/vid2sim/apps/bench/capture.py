@@ -20,11 +20,23 @@ import cv2
 import numpy as np
 import torch
 
+from vid2sim.apps.bench.suite import EVALUATION_JSON, SceneTask, SuiteConfig, read_index, run_scene
+from vid2sim.evaluate.scores import evaluate, write_evaluation
+from vid2sim.reconstruct.pipeline import reconstruct
+from vid2sim.runtime.files import write_json_atomic
+from vid2sim.scene.capture import CaptureImportConfig, import_capture
+from vid2sim.scene.capture.metric import MetricConfig
+from vid2sim.scene.capture.undistort import reduce, to_opencv_K
+from vid2sim.scene.folder import Scene
+from vid2sim.scene.reading import load_scene
+from vid2sim.scene.writing import write_scene
+from vid2sim.splats.cameras import Camera
+from vid2sim.synthetic.capture import CaptureTwinConfig, make_capture_twin, read_truth
+
 
 def _undistorted_alpha(alpha: np.ndarray, truth_cam: dict, K_new: np.ndarray, downscale: int = 1) -> np.ndarray:
     """True coverage (T, H, W) of a distorted camera, (T, k·H, k·W) as filmed, resampled onto the imported pinhole
     camera ``K_new`` (its images reduced ``downscale`` = k times) the way the importer resamples the frames."""
-    from vid2sim.scene.capture.undistort import reduce, to_opencv_K
 
     T, H, W = alpha.shape
     K_full = np.diag([downscale, downscale, 1.0]) @ K_new
@@ -50,8 +62,6 @@ def import_figures(capture: str | Path, scene_dir: str | Path) -> dict[str, Any]
         (angle between measured and true gravity directions), ``floor_error_m`` (height of the true floor below the
         object in the imported scene, whose floor is z = 0), ``seconds`` (the import's stages).
     """
-    from vid2sim.scene.reading import load_scene
-    from vid2sim.synthetic.capture import read_truth
 
     capture, scene_dir = Path(capture), Path(scene_dir)
     truth, alpha = read_truth(capture)
@@ -116,10 +126,6 @@ def clean_in_import_frame(clean_dir: str | Path, capture: str | Path, imported: 
     camera is applied to the clean object colours; the white background stays white). Scale or gravity errors of the
     import therefore show in the scores, as they should.
     """
-    from vid2sim.scene.folder import Scene
-    from vid2sim.scene.reading import load_scene
-    from vid2sim.scene.writing import write_scene
-    from vid2sim.synthetic.capture import read_truth
 
     truth, _ = read_truth(capture)
     report = json.loads((Path(imported) / "capture_report.json").read_text())
@@ -134,7 +140,6 @@ def clean_in_import_frame(clean_dir: str | Path, capture: str | Path, imported: 
     a = float(np.cbrt(np.linalg.det(A)))
     Q = A / a
     cams = []
-    from vid2sim.splats.cameras import Camera
 
     for cam in clean.cameras:
         w2c = cam.world_to_camera.double().numpy()
@@ -225,10 +230,6 @@ def capture_scene(name: str, scene_dir: Path, out: Path, index: int, config: Cap
     reconstruction of the import scored on the clean scene, and the clean run."""
     import time
 
-    from vid2sim.runtime.files import write_json_atomic
-    from vid2sim.scene.capture import CaptureImportConfig, import_capture
-    from vid2sim.scene.capture.metric import MetricConfig
-    from vid2sim.synthetic.capture import CaptureTwinConfig, make_capture_twin, read_truth
 
     out.mkdir(parents=True, exist_ok=True)
     record: dict[str, Any] = {"name": name, "scene": str(scene_dir)}
@@ -262,9 +263,6 @@ def capture_scene(name: str, scene_dir: Path, out: Path, index: int, config: Cap
     record["import"] = json.loads(import_json.read_text())
     if not config.reconstruct:
         return record
-    from vid2sim.apps.bench.suite import EVALUATION_JSON, SceneTask, SuiteConfig, run_scene
-    from vid2sim.evaluate.scores import evaluate, write_report
-    from vid2sim.reconstruct.pipeline import reconstruct
 
     suite_cfg = SuiteConfig(preset=config.preset, iterations=config.iterations, threads=config.threads)
     evaluation = out / EVALUATION_JSON
@@ -274,7 +272,7 @@ def capture_scene(name: str, scene_dir: Path, out: Path, index: int, config: Cap
             reconstruct(imported, asset, suite_cfg.reconstruct_config(), progress=progress)
         gauge = clean_in_import_frame(scene_dir, capture, imported, out / "clean_in_import_frame")
         report = evaluate(asset, gauge, progress=progress)
-        write_report(report, evaluation)
+        write_evaluation(report, evaluation)
     record["capture_run"] = json.loads(evaluation.read_text())
     clean_eval: dict | None = None
     if config.clean_results is not None and (Path(config.clean_results) / name / EVALUATION_JSON).is_file():
@@ -304,8 +302,6 @@ def run_capture_bench(suite_dir: str | Path, out_dir: str | Path, config: Captur
     resumes each scene after its last finished stage."""
     import traceback
 
-    from vid2sim.apps.bench.suite import read_index
-    from vid2sim.runtime.files import write_json_atomic
 
     config = CaptureBenchConfig() if config is None else config
     suite_dir, out = Path(suite_dir), Path(out_dir)

@@ -15,6 +15,11 @@ from __future__ import annotations
 
 from typing import Any
 
+from vid2sim.meshing.tetra import tetrahedralize
+from vid2sim.synthetic.fem import simulate_fem
+from vid2sim.synthetic.scenes import SyntheticSceneConfig
+from vid2sim.synthetic.shapes import make_procedural_object
+
 
 def run(preset: str = "small", seed: int = 0, frames: int | None = None, progress: bool = True) -> dict[str, Any]:
     """Mesh the preset's object for ``seed`` and time its drop with both Hessian strategies.
@@ -28,10 +33,6 @@ def run(preset: str = "small", seed: int = 0, frames: int | None = None, progres
     Returns:
         A JSON-ready dict of the figures in the module docstring plus the mesh size and settings.
     """
-    from vid2sim.meshing.tetra import tetrahedralize
-    from vid2sim.synthetic.fem import simulate_fem
-    from vid2sim.synthetic.scenes import SyntheticSceneConfig
-    from vid2sim.synthetic.shapes import make_procedural_object
 
     config = SyntheticSceneConfig.preset(preset, seed=seed)
     if frames is not None:  # the observed/held-out split does not matter to the FEM

@@ -41,10 +41,28 @@ from typing import Any, Literal
 import numpy as np
 import torch
 
-from vid2sim.physics.modes import CURVE_NUS
+from vid2sim.meshing.tetra import sample_points_in_tets, tet_volumes, tetrahedralize
+from vid2sim.metrics import deformation, nonrigid_distance, rigidly_aligned, trajectory_distance
+from vid2sim.metrics.images import image_metrics
+from vid2sim.physics import Floor, Gravity, Material, SimState, Simulator, SkinningField
+from vid2sim.physics.contact_compliance import TetCompliance, contact_layer_from_simulation
+from vid2sim.physics.cubature import CUBATURE_WEIGHTS, sample_cubature
+from vid2sim.physics.mass import moment_matched_volumes, tet_moments
+from vid2sim.physics.modes import CURVE_NUS, stiffness_calibration, stiffness_calibration_curve, subspace_frequencies
+from vid2sim.physics.reduced import lbs_rows
+from vid2sim.physics.skinning_training import SkinningTrainingConfig, train_skinning
+from vid2sim.physics.tet_modes import tet_frequencies
 from vid2sim.reconstruct.config import CalibrationConfig, NetworksConfig, PriorConfig, SimulatorConfig
+from vid2sim.reconstruct.stages.joint import coarse_minimum
 from vid2sim.runtime import config as configs
 from vid2sim.runtime.errors import ConfigError, InputError
+from vid2sim.runtime.workers import process_pool
+from vid2sim.splats.cameras import camera_ring
+from vid2sim.synthetic.embedding import apply_embedding, embed_points
+from vid2sim.synthetic.fem import FEMResult, simulate_fem, simulate_fem_converged
+from vid2sim.synthetic.mesh_render import render_textured_mesh
+from vid2sim.synthetic.scenes import SyntheticSceneConfig, benchmark_parameters
+from vid2sim.synthetic.shapes import make_procedural_object
 
 LOSSES = ("shape_and_centre", "positions")
 
@@ -228,7 +246,6 @@ class IdentifyConfig:
             raise ConfigError(f"IdentifyConfig.truth must be 'fem' or 'reduced', got {self.truth!r}")
         if self.loss not in LOSSES:
             raise ConfigError(f"IdentifyConfig.loss must be one of {LOSSES}, got {self.loss!r}")
-        from vid2sim.physics.cubature import CUBATURE_WEIGHTS
 
         if self.cubature_weights not in CUBATURE_WEIGHTS:
             raise ConfigError(
@@ -357,22 +374,6 @@ def _rigid_affine(rest: np.ndarray, posed: np.ndarray) -> np.ndarray:
 def prepare_scene(index: int, params: dict, config: IdentifyConfig, workdir: Path, progress: bool = False
                   ) -> PerfectGeometry:
     """Build (or load from ``workdir``) scene ``index`` of the suite: FEM ground truth and perfect geometry."""
-    from vid2sim.meshing.tetra import sample_points_in_tets, tet_volumes, tetrahedralize
-    from vid2sim.physics import (
-        Floor,
-        Gravity,
-        Material,
-        SimState,
-        Simulator,
-        SkinningField,
-    )
-    from vid2sim.physics.cubature import sample_cubature
-    from vid2sim.physics.modes import stiffness_calibration, stiffness_calibration_curve
-    from vid2sim.physics.skinning_training import SkinningTrainingConfig, train_skinning
-    from vid2sim.synthetic.embedding import apply_embedding
-    from vid2sim.synthetic.fem import FEMResult, simulate_fem_converged
-    from vid2sim.synthetic.scenes import SyntheticSceneConfig
-    from vid2sim.synthetic.shapes import make_procedural_object
 
     folder = workdir / f"scene_{index:03d}"
     folder.mkdir(parents=True, exist_ok=True)
@@ -432,7 +433,6 @@ def prepare_scene(index: int, params: dict, config: IdentifyConfig, workdir: Pat
     material = Material(config.prior.E, config.prior.nu, fc.density, damping_ratio=config.prior.damping)
     mass_volumes = None
     if config.simulator.mass == "moments":
-        from vid2sim.physics.mass import moment_matched_volumes, tet_moments
 
         mass_volumes = moment_matched_volumes(points[idx], weights, tet_moments(X.to(points.dtype), T))
     scale = 1.0
@@ -457,7 +457,6 @@ def prepare_scene(index: int, params: dict, config: IdentifyConfig, workdir: Pat
     start = SimState(torch.from_numpy(Z0.reshape(-1)), torch.from_numpy(Zd.reshape(-1)))
     with torch.no_grad():
         w = field(points)
-    from vid2sim.physics.reduced import lbs_rows
 
     lbs = lbs_rows(points, w)
     info = {"object": f"procedural-{scene_cfg.seed}", "tets": int(len(T)), "fem_element_order": fc.element_order,
@@ -479,8 +478,6 @@ def lowest_frequencies(X: torch.Tensor, T: torch.Tensor, field, cubature: torch.
     reference, :mod:`vid2sim.physics.tet_modes`), and as ratios to them, linear tets with lumped mass on that
     mesh (the FEM truth when ``fem_element_order`` is 1) and the reduced model's subspace on its cubature
     (:mod:`vid2sim.physics.modes`)."""
-    from vid2sim.physics.modes import subspace_frequencies
-    from vid2sim.physics.tet_modes import tet_frequencies
 
     E, nu, rho = fc.youngs_modulus, fc.poisson_ratio, fc.density
     reference = tet_frequencies(X, T, E, nu, rho, k=6, order=2)
@@ -513,7 +510,6 @@ def trajectory_loss(scene: PerfectGeometry, frames: int, grad: bool = False, kin
     distance after moving each frame rigidly onto the truth (:func:`vid2sim.metrics.rigidly_aligned`,
     differentiable): the motion of the centre and the deformation, without the orientation.
     """
-    from vid2sim.metrics import rigidly_aligned
 
     if kind not in LOSSES:
         raise InputError(f"trajectory_loss: kind must be one of {LOSSES}, got {kind!r}")
@@ -531,7 +527,6 @@ def model_errors(scene: PerfectGeometry, config: IdentifyConfig) -> dict:
     after aligning each frame rigidly onto the truth (``*_nonrigid_percent``: the shape error, without the
     pose error); and the largest deformation over the frames (distance from the best rigid motion of the
     rest shape) of the truth and of the reduced model."""
-    from vid2sim.metrics import deformation, nonrigid_distance, trajectory_distance
 
     traj = scene.trajectory(config.frames)
     observed, future = slice(1, config.observed_frames), slice(config.observed_frames, config.frames)
@@ -550,10 +545,6 @@ def model_errors(scene: PerfectGeometry, config: IdentifyConfig) -> dict:
 def calibrate_contact(scene: PerfectGeometry, config: IdentifyConfig, log10_E: float, nu: float) -> list[dict]:
     """Set the simulator's contact layer from the continuum at (log10 E, ν) and the prior ζ (see
     ``IdentifyConfig.calibrate_contact``); returns each iteration's :class:`ContactCalibration` as a dict."""
-    from vid2sim.physics.contact_compliance import (
-        TetCompliance,
-        contact_layer_from_simulation,
-    )
 
     sim = scene.simulator
     set_material(sim, log10_E, nu, config.prior.damping)
@@ -579,7 +570,6 @@ def fit(scene: PerfectGeometry, config: IdentifyConfig, progress: bool = False) 
     unconstrained; the substep count follows the current E (:meth:`Simulator.substeps`)."""
     from tqdm.auto import tqdm
 
-    from vid2sim.reconstruct.stages.joint import coarse_minimum
 
     sim = scene.simulator
     start = time.perf_counter()
@@ -671,7 +661,6 @@ def time_convergence(scene: PerfectGeometry, config: IdentifyConfig) -> dict:
     """The reduced simulation's default substeps against 4× as many, at the current material (percent)."""
     from dataclasses import replace
 
-    from vid2sim.metrics import trajectory_distance
 
     sim = scene.simulator
     n = sim.substeps()
@@ -723,10 +712,6 @@ def nu_sensitivity(index: int, params: dict, scene: PerfectGeometry, config: Ide
     """
     from dataclasses import replace
 
-    from vid2sim.meshing.tetra import sample_points_in_tets
-    from vid2sim.metrics import trajectory_distance
-    from vid2sim.synthetic.embedding import apply_embedding
-    from vid2sim.synthetic.fem import FEMResult, simulate_fem
 
     folder = workdir / f"scene_{index:03d}"
     dnu = float(config.nu_sensitivity)
@@ -778,14 +763,6 @@ def render_psnr(index: int, params: dict, scene: PerfectGeometry, config: Identi
     Returns:
         {"views", "resolution", "dynamic": {"psnr", "ssim", "psnr_per_frame"}, "future": {...}}.
     """
-    from vid2sim.metrics.images import image_metrics
-    from vid2sim.physics.reduced import lbs_rows
-    from vid2sim.splats.cameras import camera_ring
-    from vid2sim.synthetic.embedding import apply_embedding, embed_points
-    from vid2sim.synthetic.fem import FEMResult
-    from vid2sim.synthetic.mesh_render import render_textured_mesh
-    from vid2sim.synthetic.scenes import SyntheticSceneConfig
-    from vid2sim.synthetic.shapes import make_procedural_object
 
     sc = SyntheticSceneConfig.preset(config.preset, frames=config.frames, observed_frames=config.observed_frames,
                                      **params)
@@ -875,7 +852,6 @@ def run(config: IdentifyConfig, workdir: str | Path, progress: bool = True, work
     """
     from tqdm.auto import tqdm
 
-    from vid2sim.synthetic.scenes import benchmark_parameters
 
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
         raise InputError(f"workers must be an integer >= 1, got {workers!r}")
@@ -893,7 +869,6 @@ def run(config: IdentifyConfig, workdir: str | Path, progress: bool = True, work
     else:
         from concurrent.futures import as_completed
 
-        from vid2sim.runtime.workers import process_pool
 
         with process_pool(workers) as pool, \
                 tqdm(total=len(suite), desc=f"identify scenes ({workers} workers)", unit="scene",

@@ -25,19 +25,19 @@ from vid2sim.apps.bench.physics_speed import (
     build_standard_simulator,
 )
 from vid2sim.apps.bench.timing import time_ms
+from vid2sim.physics.neural_jacobian import (
+    NeuralJacobian,
+    NeuralJacobianTrainingConfig,
+    jacobian_error,
+    train_neural_jacobian,
+)
+from vid2sim.physics.solver import Simulator
 from vid2sim.runtime.errors import ConfigError
 
 
 def run(device: torch.device, iterations: int = 1000, progress: bool = True, quick: bool = False) -> dict[str, Any]:
     """Train for ``iterations`` and return the figures above (plus the training time per iteration). ``quick``: a
     smaller object (2 000 points, 100 cubature points) and a 3-frame rollout, for the test suite."""
-    from vid2sim.physics.neural_jacobian import (
-        NeuralJacobian,
-        NeuralJacobianTrainingConfig,
-        jacobian_error,
-        train_neural_jacobian,
-    )
-    from vid2sim.physics.solver import Simulator
 
     if isinstance(iterations, bool) or not isinstance(iterations, int) or iterations < 1:
         raise ConfigError(f"iterations must be a positive integer, got {iterations!r}")

@@ -25,6 +25,10 @@ import numpy as np
 import scipy.sparse.linalg as spla
 import torch
 
+from vid2sim.meshing.tetra import tetrahedralize
+from vid2sim.physics.tet_modes import lowest_elastic_modes, tet_stiffness_and_mass
+from vid2sim.synthetic.shapes import make_procedural_object
+
 
 def run(device: torch.device | None = None, quick: bool = False, edge: float | None = None) -> dict[str, Any]:
     """Time the lowest six elastic modes of a quadratic-tet mesh, new solver against the SuperLU baseline.
@@ -37,9 +41,6 @@ def run(device: torch.device | None = None, quick: bool = False, edge: float | N
     Returns:
         the figures in the module docstring plus ``modes_tets`` and ``modes_dof``.
     """
-    from vid2sim.meshing.tetra import tetrahedralize
-    from vid2sim.physics.tet_modes import lowest_elastic_modes, tet_stiffness_and_mass
-    from vid2sim.synthetic.shapes import make_procedural_object
 
     edge = edge if edge is not None else (0.12 if quick else 0.05)
     envelope = 5e-3 if quick else 1e-3

@@ -34,7 +34,15 @@ from typing import Any
 
 import torch
 
+from vid2sim.apps.bench.op_count import count_aten_ops
 from vid2sim.apps.bench.timing import time_ms
+from vid2sim.metrics import trajectory_distance
+from vid2sim.physics.cubature import sample_cubature
+from vid2sim.physics.external import Floor, Gravity
+from vid2sim.physics.neural_jacobian import NeuralJacobian, NeuralJacobianTrainingConfig, train_neural_jacobian
+from vid2sim.physics.skinning import SkinningField, deform
+from vid2sim.physics.skinning_training import SkinningTrainingConfig, train_skinning
+from vid2sim.physics.solver import Material, SimConfig, Simulator
 
 
 @dataclass
@@ -65,11 +73,6 @@ def box_points(n: int, seed: int, device: torch.device, dtype: torch.dtype = tor
 
 def build_standard_simulator(settings: PhysicsBenchSettings, device: torch.device, pretrain: bool = True):
     """(simulator, object points (N, 3)) of the standard setting; the field is briefly data-free trained."""
-    from vid2sim.physics.cubature import sample_cubature
-    from vid2sim.physics.external import Floor, Gravity
-    from vid2sim.physics.skinning import SkinningField
-    from vid2sim.physics.skinning_training import SkinningTrainingConfig, train_skinning
-    from vid2sim.physics.solver import Material, SimConfig, Simulator
 
     pts = box_points(settings.num_points, settings.seed, device)
     field = SkinningField(num_handles=settings.num_handles, seed=settings.seed).to(device)
@@ -90,8 +93,6 @@ def skinning_iteration_ops(field, points: torch.Tensor, seed: int = 0) -> float:
     those of an 11-iteration run less those of a 1-iteration run, over 10 (the set-up cancels)."""
     import copy
 
-    from vid2sim.apps.bench.op_count import count_aten_ops
-    from vid2sim.physics.skinning_training import SkinningTrainingConfig, train_skinning
 
     field = copy.deepcopy(field)
 
@@ -103,12 +104,6 @@ def skinning_iteration_ops(field, points: torch.Tensor, seed: int = 0) -> float:
 
 def run(device: torch.device, quick: bool = False, settings: PhysicsBenchSettings | None = None) -> dict[str, Any]:
     """The figures of the module docstring, plus skinning/Neural Jacobian training ms per iteration."""
-    from vid2sim.physics.neural_jacobian import (
-        NeuralJacobian,
-        NeuralJacobianTrainingConfig,
-        train_neural_jacobian,
-    )
-    from vid2sim.physics.skinning_training import SkinningTrainingConfig, train_skinning
 
     s = settings or PhysicsBenchSettings()
     if quick:
@@ -134,7 +129,6 @@ def run(device: torch.device, quick: bool = False, settings: PhysicsBenchSetting
     projected_ms, _ = timed_rollout(replace(one_step, hessian_projection="always"))
     _, refined = timed_rollout(replace(default, substeps=4 * n)) if not quick else (0.0, states)
     sim.config = default
-    from vid2sim.metrics import trajectory_distance
 
     probe = pts[::20]
 
@@ -164,7 +158,6 @@ def run(device: torch.device, quick: bool = False, settings: PhysicsBenchSetting
         def run_window() -> None:
             out = sim.rollout(start, s.window)
             if points:
-                from vid2sim.physics.skinning import deform
 
                 w = sim.field(pts)
                 loss = sum(((deform(pts, w, st.z) - pts) ** 2).mean() for st in out)

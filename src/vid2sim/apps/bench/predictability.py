@@ -26,7 +26,17 @@ import os
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from vid2sim.evaluate.scores import scene_groups
+from vid2sim.metrics.geometry import boundary_faces
 from vid2sim.runtime.errors import InputError
+from vid2sim.scene.reading import load_scene
+from vid2sim.synthetic.scenes import (
+    FEM_RESULT_NPZ,
+    SYNTHETIC_JSON,
+    SyntheticSceneConfig,
+    check_existing_scene,
+    make_scene,
+)
 
 if TYPE_CHECKING:
     from vid2sim.synthetic.scenes import SyntheticSceneConfig
@@ -40,11 +50,6 @@ def twin_config(scene: str | Path, height_offset: float) -> "SyntheticSceneConfi
     and tet mesh, the drop height raised by ``height_offset`` (m, ≥ 0)."""
     from dataclasses import replace
 
-    from vid2sim.synthetic.scenes import (
-        FEM_RESULT_NPZ,
-        SYNTHETIC_JSON,
-        SyntheticSceneConfig,
-    )
 
     root = Path(scene)
     if not (isinstance(height_offset, (int, float)) and math.isfinite(height_offset) and height_offset >= 0):
@@ -72,7 +77,6 @@ def _surface_offsets(truth: dict, twin: dict) -> list[float]:
     """Per frame, the mean distance (m) between the two runs' boundary vertices (the same mesh)."""
     import torch
 
-    from vid2sim.metrics.geometry import boundary_faces
 
     faces = boundary_faces(truth["tets"])
     surface = torch.unique(faces.reshape(-1))
@@ -97,13 +101,6 @@ def predictability(scene: str | Path, out: str | Path, height_offset: float = 1e
         ``surface_offset_m`` (per frame), ``observed_mean_surface_offset_m``, ``future_mean_surface_offset_m``,
         the twin's and the truth's FEM substeps, and the settings.
     """
-    from vid2sim.evaluate.scores import scene_groups
-    from vid2sim.scene.reading import load_scene
-    from vid2sim.synthetic.scenes import (
-        SYNTHETIC_JSON,
-        check_existing_scene,
-        make_scene,
-    )
 
     root, out = Path(scene), Path(out)
     config = twin_config(root, height_offset)

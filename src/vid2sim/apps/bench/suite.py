@@ -30,8 +30,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from vid2sim.evaluate.scores import evaluate, write_evaluation
+from vid2sim.reconstruct.pipeline import ReconstructConfig, reconstruct
+from vid2sim.report import write_report, write_suite_report
 from vid2sim.runtime.errors import ConfigError, InputError
 from vid2sim.runtime.files import write_json_atomic
+from vid2sim.runtime.ray_runner import check_ray
 
 if TYPE_CHECKING:
     from vid2sim.reconstruct.pipeline import ReconstructConfig
@@ -102,14 +106,12 @@ class SuiteConfig:
     def preset_name(self) -> str:
         """The preset as suite.json names it: the preset, or "custom" for a ReconstructConfig other than the
         preset's."""
-        from vid2sim.reconstruct.pipeline import ReconstructConfig
 
         differs = self.reconstruct is not None and self.reconstruct != ReconstructConfig.preset(self.preset)
         return "custom" if differs else self.preset
 
     def reconstruct_config(self) -> "ReconstructConfig":
         """The ReconstructConfig every scene uses (a fresh copy)."""
-        from vid2sim.reconstruct.pipeline import ReconstructConfig
 
         cfg = copy.deepcopy(self.reconstruct) if self.reconstruct is not None else ReconstructConfig.preset(self.preset)
         if self.iterations is not None:
@@ -144,9 +146,6 @@ def run_scene(task: SceneTask, progress: bool = False) -> dict[str, Any]:
     """
     import torch
 
-    from vid2sim.evaluate.scores import evaluate, write_evaluation
-    from vid2sim.reconstruct.pipeline import reconstruct
-    from vid2sim.report import write_report
 
     out = Path(task.out)
     asset = out / "asset"
@@ -281,7 +280,6 @@ def run_suite(suite_dir: str | Path, out_dir: str | Path, config: SuiteConfig | 
 
     config = config or SuiteConfig()
     if ray_address is not None:  # fail before writing anything
-        from vid2sim.runtime.ray_runner import check_ray
 
         check_ray(ray_address)
     suite = Path(suite_dir).resolve()
@@ -329,7 +327,6 @@ def run_suite(suite_dir: str | Path, out_dir: str | Path, config: SuiteConfig | 
         bar.close()
     result = suite_summary(str(suite), config.preset_name, [r for r in records if r is not None])
     write_json_atomic(out / SUITE_JSON, result)
-    from vid2sim.report import write_suite_report
 
     write_suite_report(out / REPORT_DIR, result)
     return result

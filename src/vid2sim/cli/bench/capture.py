@@ -6,12 +6,12 @@ from __future__ import annotations
 import argparse
 import os
 
+from vid2sim.apps.bench.capture import BENCH_JSON, CaptureBenchConfig, format_capture_table, run_capture_bench
 from vid2sim.cli.common import UserError
+from vid2sim.synthetic.capture import CaptureTwinConfig
 
 
 def run(args: argparse.Namespace) -> int:
-    from vid2sim.apps.bench.capture import BENCH_JSON, CaptureBenchConfig, format_capture_table, run_capture_bench
-    from vid2sim.synthetic.capture import CaptureTwinConfig
 
     if args.threads is not None and args.threads < 1:
         raise UserError(f"--threads must be >= 1, got {args.threads}")

@@ -6,12 +6,12 @@ from __future__ import annotations
 import argparse
 import json
 
+from vid2sim.apps.bench.fuzz import FuzzConfig, run_fuzz
 from vid2sim.cli.common import UserError
+from vid2sim.runtime.locks import output_lock
 
 
 def run(args: argparse.Namespace) -> int:
-    from vid2sim.apps.bench.fuzz import FuzzConfig, run_fuzz
-    from vid2sim.runtime.locks import output_lock
 
     chosen = {"physics": args.physics, "inputs": args.inputs, "kills": args.kills}
     values = {k: v for k, v in chosen.items() if v is not None}

@@ -33,6 +33,7 @@ from typing import Any, Sequence
 import numpy as np
 import torch
 
+from vid2sim.runtime.errors import ConfigError
 from vid2sim.scene.capture.cameras import CaptureCamera
 from vid2sim.scene.capture.colmap import colmap_cameras, points_by_camera, read_colmap
 from vid2sim.scene.capture.colour import ColourConfig, ColourMap, colour_maps, floor_grid
@@ -45,6 +46,9 @@ from vid2sim.scene.capture.metric import MetricConfig, MetricFrame, NoFreeFlight
 from vid2sim.scene.capture.nerfstudio import read_transforms
 from vid2sim.scene.capture.plate import estimate_plate, image_shift
 from vid2sim.scene.capture.undistort import make_undistortion, reduce
+from vid2sim.scene.folder import Scene, SceneConfig
+from vid2sim.scene.writing import move_into_place, write_scene
+from vid2sim.splats.cameras import Camera
 
 IMPORT_CONFIG_JSON = "capture_import.json"
 IMPORT_REPORT_JSON = "capture_report.json"
@@ -101,7 +105,6 @@ class CaptureImportConfig:
     threads: int | None = None
 
     def __post_init__(self) -> None:
-        from vid2sim.runtime.errors import ConfigError
 
         if self.calibration not in CALIBRATIONS:
             raise ConfigError(f"calibration must be one of {', '.join(CALIBRATIONS)}, got {self.calibration!r}")
@@ -129,7 +132,6 @@ class CaptureImportConfig:
 
 def parse_axis(text: str) -> tuple[float, float, float]:
     """A gravity axis from the command line: ``x``, ``-y``, ``+z`` or ``gx,gy,gz``."""
-    from vid2sim.runtime.errors import ConfigError
 
     t = text.strip().lower()
     axes = {"x": (1.0, 0.0, 0.0), "y": (0.0, 1.0, 0.0), "z": (0.0, 0.0, 1.0)}
@@ -256,7 +258,6 @@ def _check_frames(layout: CaptureLayout, config: CaptureImportConfig
 def _view_indices(names: list[str], values: Sequence[str | int] | None, what: str) -> list[int] | None:
     if values is None:
         return None
-    from vid2sim.runtime.errors import ConfigError
 
     out = []
     for v in values:
@@ -363,10 +364,6 @@ def import_capture(capture: str | Path, out: str | Path, config: CaptureImportCo
     """
     import cv2
 
-    from vid2sim.runtime.errors import ConfigError
-    from vid2sim.scene.folder import Scene, SceneConfig
-    from vid2sim.scene.writing import move_into_place, write_scene
-    from vid2sim.splats.cameras import Camera
 
     config = CaptureImportConfig() if config is None else config
     if config.threads is not None:

@@ -11,6 +11,7 @@ import scipy.sparse as sp
 import torch
 from torch import Tensor
 
+from vid2sim.meshing.tetra import boundary_faces, surface_vertex_areas
 from vid2sim.physics.damping import (
     reference_metric,
     retardation_time,
@@ -24,6 +25,7 @@ from vid2sim.physics.materials import (
     stvk_energy_and_pk1,
 )
 from vid2sim.physics.sparse_lu import SymmetricLU, nested_dissection
+from vid2sim.physics.tet_modes import TET_EDGES, quadratic_tet_nodes, quadrature_points
 from vid2sim.synthetic.fem.config import FEMConfig, FEMSolverError
 
 # ---- the discrete model ---------------------------------------------------------------------------
@@ -59,7 +61,6 @@ def _quadratic_gradients(gradL: np.ndarray) -> np.ndarray:
     """(Nt, 4, 10, 3) gradients of the 10-node shape functions at the 4 quadrature points of the degree-2
     rule, from the barycentric gradients gradL (Nt, 4, 3): ∇N_a = (4L_a − 1)∇L_a at the vertices and
     ∇N_ab = 4(L_a ∇L_b + L_b ∇L_a) at the midpoints of :data:`vid2sim.physics.tet_modes.TET_EDGES`."""
-    from vid2sim.physics.tet_modes import TET_EDGES, quadrature_points
 
     out = np.empty((gradL.shape[0], 4, 10, 3))
     for q, L in enumerate(quadrature_points()):
@@ -74,11 +75,9 @@ def contact_areas(X: np.ndarray, tets: np.ndarray, elements: np.ndarray, num_nod
     """(N,) lumped rest boundary area per node: a third of each boundary triangle's area to each vertex
     (linear tets), or for quadratic tets HRZ on the 6-node triangle: A/19 per vertex and 16A/57 per edge
     midpoint."""
-    from vid2sim.meshing.tetra import boundary_faces, surface_vertex_areas
 
     if elements.shape[1] == 4:
         return surface_vertex_areas(torch.from_numpy(X), torch.from_numpy(tets)).numpy()
-    from vid2sim.physics.tet_modes import TET_EDGES
 
     faces = boundary_faces(torch.from_numpy(tets)).numpy()
     area = 0.5 * np.linalg.norm(np.cross(X[faces[:, 1]] - X[faces[:, 0]], X[faces[:, 2]] - X[faces[:, 0]]), axis=1)
@@ -120,7 +119,6 @@ class TetFEM:
         self.order = config.element_order
         self._orders: dict[int, np.ndarray] = {}  # the Hessian's fill-reducing order per size (_factorize)
         if self.order == 2:
-            from vid2sim.physics.tet_modes import quadratic_tet_nodes
 
             nodes, self.elements = quadratic_tet_nodes(X, self.tets)
         else:

@@ -15,6 +15,9 @@ import torch
 from torch import Tensor
 from tqdm.auto import tqdm
 
+from vid2sim.metrics.trajectory import trajectory_distance
+from vid2sim.physics.integrators import auto_substeps
+from vid2sim.runtime.workers import process_pool
 from vid2sim.synthetic.fem.config import FEMConfig, FEMSolverError, InitialPose
 from vid2sim.synthetic.fem.model import FactorCache, NewtonStats, TetFEM, contact_areas
 
@@ -283,8 +286,6 @@ def simulate_fem_converged(vertices: Tensor | np.ndarray, tets: Tensor | np.ndar
     Raises:
         FEMSolverError: a step failed, or the tolerance was not met with ``max_substeps``.
     """
-    from vid2sim.metrics.trajectory import trajectory_distance
-    from vid2sim.physics.integrators import auto_substeps
 
     config = config or FEMConfig()
     X = np.asarray(vertices.detach().cpu() if isinstance(vertices, Tensor) else vertices, dtype=np.float64)
@@ -336,7 +337,6 @@ def _simulate_each(vertices: np.ndarray, tets: np.ndarray, configs: list[FEMConf
     import multiprocessing as mp
     from concurrent.futures import wait
 
-    from vid2sim.runtime.workers import process_pool
 
     with mp.get_context("spawn").Manager() as manager:
         queue = manager.Queue()

@@ -31,6 +31,8 @@ from typing import Any
 
 import numpy as np
 
+from vid2sim.apps.bench.fuzz.records import RecordFile, read_records
+
 COMMANDS = ("make-training-data", "train-predictor")
 
 
@@ -113,7 +115,6 @@ def _run_to_end(argv: list[str], threads: int, timeout: float) -> tuple[int, flo
 
 def run(config, records_path: str | Path | None, progress: bool = False) -> dict[str, Any]:
     """``config.kills`` kill-and-resume cases (resumed from ``records_path``); returns the figures."""
-    from vid2sim.apps.bench.fuzz.records import RecordFile, read_records
 
     done = read_records(records_path) if records_path is not None else {}
     sink = RecordFile(records_path)

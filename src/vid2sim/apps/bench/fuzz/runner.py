@@ -22,6 +22,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
+from vid2sim.cli import main
+from vid2sim.runtime.errors import InputError
+
 
 @dataclass
 class ChildResult:
@@ -125,7 +128,6 @@ def cli_call(argv: Sequence[str]) -> Callable[[], int]:
         import torch
 
         torch.set_num_threads(1)
-        from vid2sim.cli import main
 
         return main(list(argv))
 
@@ -138,7 +140,6 @@ def reader_call(what: str, fn: Callable[[], Any]) -> Callable[[], int]:
     (a traceback, exit code 1)."""
 
     def call() -> int:
-        from vid2sim.runtime.errors import InputError
 
         try:
             fn()
