@@ -68,7 +68,8 @@ from vid2sim.predictor.solid import sample_solid
 from vid2sim.predictor.template import TEMPLATE_PATH, field_from_last_layer, fit_last_layer, load_template
 from vid2sim.runtime.errors import ConfigError
 from vid2sim.runtime.files import write_file_atomic, write_json_atomic
-from vid2sim.runtime.ray_runner import import_ray
+from vid2sim.runtime.ray_runner import import_ray, ray_map
+from vid2sim.runtime.workers import process_pool
 from vid2sim.synthetic.fem import FEMSolverError, InitialPose
 from vid2sim.synthetic.mesh_render import render_textured_mesh
 from vid2sim.synthetic.meshes import load_user_mesh, normalize_to_canonical
@@ -781,7 +782,6 @@ def make_training_data(config: TrainingDataConfig, out_dir: str | Path, workers:
     errors: list[BaseException] = []
     try:
         if ray_address is not None:
-            from vid2sim.runtime.ray_runner import ray_map
 
             def gathered(i: int, result: Any) -> None:
                 if isinstance(result, BaseException):
@@ -809,7 +809,6 @@ def make_training_data(config: TrainingDataConfig, out_dir: str | Path, workers:
         else:
             from concurrent.futures import FIRST_COMPLETED, wait
 
-            from vid2sim.runtime.workers import process_pool
 
             with process_pool(min(workers, len(calls))) as pool:
                 names = {pool.submit(shard_task, *c): spec.name for spec, c in zip(todo, calls)}

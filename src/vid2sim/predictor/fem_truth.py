@@ -36,7 +36,11 @@ from typing import TYPE_CHECKING, Any, Callable
 import numpy as np
 import torch
 
+from vid2sim.meshing.tetra import TetMesh, tetrahedralize
+from vid2sim.physics.external import AREA_CONTACT_STIFFNESS
 from vid2sim.runtime.errors import ConfigError
+from vid2sim.synthetic.embedding import apply_embedding, embed_points
+from vid2sim.synthetic.fem import FEMConfig, FEMSolverError, InitialPose, TetFEM, simulate_fem_converged
 from vid2sim.synthetic.scenes import BENCHMARK_ELEMENT_ORDER, BENCHMARK_QUADRATIC_TETS, SyntheticSceneConfig
 
 if TYPE_CHECKING:
@@ -103,7 +107,6 @@ def object_tet_mesh(vertices: torch.Tensor, faces: torch.Tensor, fem: FEMTruth, 
     Raises:
         vid2sim.meshing.tetra.TetrahedralizationError: fTetWild failed.
     """
-    from vid2sim.meshing.tetra import TetMesh, tetrahedralize
 
     path = None if work_dir is None else work_dir / TET_MESH_FILE
     if path is not None and path.is_file():
@@ -149,8 +152,6 @@ class FEMDraw:
 def fem_config_of(draw: "Draw", config: "TrainingDataConfig") -> "FEMConfig":
     """The FEM settings of one draw: its material and damping, the dataset's frame time and floor, the
     reduced model's contact law (:data:`~vid2sim.physics.external.AREA_CONTACT_STIFFNESS`)."""
-    from vid2sim.physics.external import AREA_CONTACT_STIFFNESS
-    from vid2sim.synthetic.fem import FEMConfig
 
     return FEMConfig(youngs_modulus=draw.youngs_modulus, poisson_ratio=draw.poisson_ratio, density=config.density,
                      dt=config.dt, damping_ratio=draw.damping_ratio, floor_height=config.floor_height,
@@ -160,7 +161,6 @@ def fem_config_of(draw: "Draw", config: "TrainingDataConfig") -> "FEMConfig":
 def initial_pose_of(draw: "Draw") -> "InitialPose":
     """The draw's drop as an FEM :class:`~vid2sim.synthetic.fem.InitialPose`. No rotation: the rest mesh is
     already the posed object, as Stage II sees it at frame 0."""
-    from vid2sim.synthetic.fem import InitialPose
 
     return InitialPose(drop_height=draw.drop_height, linear_velocity=draw.linear_velocity,
                        angular_velocity=draw.angular_velocity)
@@ -168,7 +168,6 @@ def initial_pose_of(draw: "Draw") -> "InitialPose":
 
 def max_green_strain(result: "FEMResult") -> float:
     """Largest ‖½(FᵀF − I)‖_F over the FEM's quadrature points and frames of ``result``."""
-    from vid2sim.synthetic.fem import TetFEM
 
     model = TetFEM(result.rest_vertices[: int(result.tets.max()) + 1], result.tets, result.config)
     worst = 0.0
@@ -191,8 +190,6 @@ def simulate_fem_draw(tet: "TetMesh", tet_index: torch.Tensor, bary: torch.Tenso
     Raises:
         vid2sim.synthetic.fem.FEMSolverError: a step failed or the tolerance needs more than ``max_substeps``.
     """
-    from vid2sim.synthetic.embedding import apply_embedding
-    from vid2sim.synthetic.fem import simulate_fem_converged
 
     t0 = time.perf_counter()
     result = simulate_fem_converged(tet.vertices, tet.tets, fem_config_of(draw, config), initial_pose_of(draw),
@@ -224,7 +221,6 @@ def _one_draw(config: "TrainingDataConfig", spec: "ObjectSpec", prepared, tet: "
         wall time of the stages and of the FEM runs, and this process's CPU time for the whole draw).
     """
     from vid2sim.predictor.data import draw_sample, render_draw
-    from vid2sim.synthetic.fem import FEMSolverError
 
     t0, cpu0 = time.perf_counter(), time.process_time()
     for attempt in range(config.max_retries + 1):
@@ -288,7 +284,6 @@ def make_fem_shard(config: "TrainingDataConfig", spec: "ObjectSpec", template=No
         surface does not fit its tet mesh).
     """
     from vid2sim.predictor.data import draw_sample, object_rng, prepare_object, write_npz
-    from vid2sim.synthetic.embedding import embed_points
 
     if config.truth != "fem" or config.fem is None:
         raise ValueError(f"make_fem_shard needs a config with truth 'fem', got {config.truth!r}")

@@ -49,7 +49,7 @@ from vid2sim.physics.external import AREA_CONTACT_STIFFNESS
 from vid2sim.physics.materials import ELASTIC_MODELS, lame_parameters
 from vid2sim.runtime.errors import ConfigError
 from vid2sim.runtime.files import write_json_atomic
-from vid2sim.runtime.ray_runner import check_ray
+from vid2sim.runtime.ray_runner import check_ray, ray_map
 from vid2sim.scene.folder import Scene, SceneConfig
 from vid2sim.scene.writing import move_into_place, write_scene
 from vid2sim.splats.cameras import camera_ring
@@ -680,7 +680,6 @@ def make_benchmark(n: int, out_dir: str | Path, preset: str = "full", seed: int 
                     finished(i)
                     bar.update(1)
             else:
-                from vid2sim.runtime.ray_runner import ray_map
 
                 failures: list[BaseException] = []
 

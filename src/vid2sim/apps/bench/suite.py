@@ -35,7 +35,7 @@ from vid2sim.reconstruct.pipeline import ReconstructConfig, reconstruct
 from vid2sim.report import write_report, write_suite_report
 from vid2sim.runtime.errors import ConfigError, InputError
 from vid2sim.runtime.files import write_json_atomic
-from vid2sim.runtime.ray_runner import check_ray
+from vid2sim.runtime.ray_runner import check_ray, ray_map
 
 if TYPE_CHECKING:
     from vid2sim.reconstruct.pipeline import ReconstructConfig
@@ -308,7 +308,6 @@ def run_suite(suite_dir: str | Path, out_dir: str | Path, config: SuiteConfig | 
                 bar.set_postfix_str(f"{names[i]} running" + (f", {len(failed)} failed" if failed else ""))
                 done(i, run_scene(tasks[i]))
         else:
-            from vid2sim.runtime.ray_runner import ray_map
 
             def gathered(i: int, result: Any) -> None:
                 if isinstance(result, BaseException):  # the worker or its node died: the task never returned
