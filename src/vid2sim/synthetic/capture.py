@@ -526,7 +526,7 @@ def read_truth(capture: str | Path) -> tuple[dict, np.ndarray]:
     """A twin's ``truth.json`` and its true coverage (V, T, H, W) float32 in [0, 1]."""
     capture = Path(capture)
     truth = json.loads((capture / TRUTH_DIR / TRUTH_JSON).read_text())
-    with np.load(capture / TRUTH_DIR / ALPHA_NPZ) as z:
+    with np.load(capture / TRUTH_DIR / ALPHA_NPZ, allow_pickle=False) as z:
         alpha = z["alpha"].astype(np.float32) / 255.0
     return truth, alpha
 

@@ -32,6 +32,7 @@ from typing import Any
 import numpy as np
 
 from vid2sim.apps.bench.fuzz.records import RecordFile, read_records
+from vid2sim.runtime.locks import lock_path, read_owner
 
 COMMANDS = ("make-training-data", "train-predictor")
 
@@ -45,6 +46,20 @@ def _argv(command: str, out: Path, data: Path | None, quick: bool = False) -> li
     return ["train-predictor", str(data), str(out), "--steps", "6", "--batch-size", "2", "--eval-every", "2",
             "--image-size", "16", "--patch-size", "8", "--tubelet-size", "2", "--width", "32", "--layers", "1",
             "--heads", "1", "--val-fraction", "0.5", "--quiet"]
+
+
+def _wait_for_owner(proc: subprocess.Popen, out: Path, timeout: float) -> None:
+    """Return once ``proc`` owns ``out``'s lock file (:func:`vid2sim.runtime.locks.lock_path`), has exited, or
+    ``timeout`` seconds have passed: a second process started earlier could take the lock first."""
+    path = lock_path(out)
+    t0 = time.perf_counter()
+    while proc.poll() is None and time.perf_counter() - t0 < timeout:
+        try:
+            if read_owner(path).get("pid") == proc.pid:
+                return
+        except (OSError, ValueError):
+            pass
+        time.sleep(0.05)
 
 
 def _env(threads: int) -> dict[str, str]:
@@ -147,7 +162,7 @@ def run(config, records_path: str | Path | None, progress: bool = False) -> dict
                 proc = _start(argv, config.threads)
                 second = None
                 if i % 2 == 0:  # every other case: a second process on the same output first (it takes a few s)
-                    time.sleep(0.2)
+                    _wait_for_owner(proc, out, 60.0)  # once the first holds the lock (a loaded machine is slow)
                     second = _run_to_end(argv, config.threads, 120.0) if proc.poll() is None else None
                     time.sleep(max(0.0, moment - 0.2 - (second[1] if second else 0.0)))
                 else:  # the others are killed at the drawn moment exactly
