@@ -127,6 +127,11 @@ NESTED = {
     ("vid2sim.predictor.pretrain", "vid2sim.predictor.train"):
         "train runs pre-training first (pretrain_steps), and pre-training reuses train's split, schedule and video",
 }
+#: packages whose modules import the project inside functions, with the reason
+NESTED_PACKAGES = {
+    "vid2sim.apps.bench.fuzz": "the campaign's own process stays free of torch, SciPy and their thread pools until "
+    "it has forked its children (a fork after OpenBLAS or OpenMP threads started can hang the child)",
+}
 
 
 def _function_level_imports(path: Path) -> list[str]:
@@ -148,7 +153,8 @@ def _function_level_imports(path: Path) -> list[str]:
 
 def test_project_imports_sit_at_the_top_of_their_module():
     """An import inside a function hides a cycle or an upward arrow from the tests above; the few that break a
-    cycle are listed with their reason."""
+    cycle, and the fuzz campaign's, are listed with their reason."""
     hidden = [f"{m} imports {target} inside a function" for m, p in _modules().items()
-              for target in _function_level_imports(p) if (m, target) not in NESTED]
+              for target in _function_level_imports(p)
+              if (m, target) not in NESTED and not any(m.startswith(k) for k in NESTED_PACKAGES)]
     assert not hidden, hidden

@@ -22,9 +22,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
-from vid2sim.apps.bench.fuzz import hostile, inputs, kills, physics
 from vid2sim.runtime.errors import ConfigError
-from vid2sim.runtime.files import write_json_atomic
 
 SECTIONS = ("physics", "inputs", "hostile", "kills")
 
@@ -82,6 +80,7 @@ def run_fuzz(config: FuzzConfig, out: str | Path | None = None, progress: bool =
     """Run the campaign of ``config``; returns its figures (one JSON-ready dict, a key per section run).
 
     ``out``: the records folder (resumable; None keeps nothing)."""
+    from vid2sim.runtime.files import write_json_atomic
 
     folder = None if out is None else Path(out)
     if folder is not None:
@@ -93,6 +92,7 @@ def run_fuzz(config: FuzzConfig, out: str | Path | None = None, progress: bool =
     if config.inputs or config.hostile:  # forked cases first, while this process has run no torch threads
         import tempfile
 
+        from vid2sim.apps.bench.fuzz import hostile, inputs
 
         with tempfile.TemporaryDirectory(prefix="vid2sim-fuzz-seeds-") as tmp:
             seeds = inputs.seeds_in_child(Path(tmp) / "seeds", config.quick)
@@ -101,9 +101,11 @@ def run_fuzz(config: FuzzConfig, out: str | Path | None = None, progress: bool =
             if config.hostile:
                 figures["hostile"] = hostile.run(config, record("hostile"), seeds, progress)
     if config.kills:
+        from vid2sim.apps.bench.fuzz import kills
 
         figures["kills"] = kills.run(config, record("kills"), progress)
     if config.physics:
+        from vid2sim.apps.bench.fuzz import physics
 
         figures["physics"] = physics.run(config, record("physics"), progress)
     figures["seconds"] = round(time.perf_counter() - t0, 1)

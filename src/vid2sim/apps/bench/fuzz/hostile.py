@@ -34,7 +34,6 @@ from typing import Any, Callable
 
 import numpy as np
 
-from vid2sim.apps.bench.fuzz.records import RecordFile, read_records
 from vid2sim.apps.bench.fuzz.runner import cli_call, judge, run_in_child
 
 #: what the injected script does when it runs: an element the DOM dump would show
@@ -218,6 +217,7 @@ CHECKS = ("pickle_asset_weights", "pickle_checkpoint", "pickle_npz_object", "out
 def run(config, records_path: str | Path | None, seeds: dict[str, Path], progress: bool = False) -> dict[str, Any]:
     """Every hostile check on ``seeds`` (:func:`~vid2sim.apps.bench.fuzz.inputs.seeds_in_child`), resumed from
     ``records_path``; returns the figures."""
+    from vid2sim.apps.bench.fuzz.records import RecordFile, read_records
 
     done = read_records(records_path) if records_path is not None else {}
     sink = RecordFile(records_path)

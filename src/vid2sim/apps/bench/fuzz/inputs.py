@@ -30,8 +30,6 @@ from typing import Any, Callable
 import numpy as np
 
 from vid2sim.apps.bench.fuzz import mutations
-from vid2sim.apps.bench.fuzz.physics import build_asset
-from vid2sim.apps.bench.fuzz.records import RecordFile, read_records, todo
 from vid2sim.apps.bench.fuzz.runner import (
     ChildResult,
     cli_call,
@@ -39,14 +37,6 @@ from vid2sim.apps.bench.fuzz.runner import (
     reader_call,
     run_in_child,
 )
-from vid2sim.asset.folder import save_asset
-from vid2sim.export.gltf import export_gltf, load_gltf_gaussians
-from vid2sim.predictor.data import TrainingDataConfig, make_training_data
-from vid2sim.predictor.predict import DEFAULT_PREDICTOR
-from vid2sim.scene.folder import Scene, SceneConfig
-from vid2sim.scene.writing import write_scene
-from vid2sim.splats.cameras import camera_ring
-from vid2sim.splats.ply import save_ply
 
 KINDS = ("scene_rgba", "scene_mask", "scene_video", "asset", "scenario", "ply", "glb", "checkpoint", "data")
 
@@ -56,6 +46,8 @@ KINDS = ("scene_rgba", "scene_mask", "scene_video", "asset", "scenario", "ply", 
 def _tiny_scene(layout: str):
     import torch
 
+    from vid2sim.scene.folder import Scene, SceneConfig
+    from vid2sim.splats.cameras import camera_ring
 
     V, T, H, W = 3, 4, 16, 16
     g = torch.Generator().manual_seed(0)
@@ -73,6 +65,11 @@ def make_seeds(folder: Path, quick: bool = False) -> dict[str, Path]:
     """Write the valid seed files into ``folder``; returns kind → path."""
     import torch
 
+    from vid2sim.apps.bench.fuzz.physics import build_asset
+    from vid2sim.asset.folder import save_asset
+    from vid2sim.export.gltf import export_gltf
+    from vid2sim.scene.writing import write_scene
+    from vid2sim.splats.ply import save_ply
 
     torch.set_num_threads(1)
     folder.mkdir(parents=True, exist_ok=True)
@@ -94,9 +91,12 @@ def make_seeds(folder: Path, quick: bool = False) -> dict[str, Path]:
         "material: {preset: elastic, youngs_modulus: 1.0e+5, poisson_ratio: 0.3}\n"
         "cameras: {type: ring, views: 1}\nresolution: 8\n", encoding="utf-8")
     seeds["scenario"] = folder / "scenario.yaml"
+    from vid2sim.predictor.data import TrainingDataConfig, make_training_data
+    from vid2sim.predictor.predict import DEFAULT_PREDICTOR
 
-    cfg = TrainingDataConfig(objects=1, draws_per_object=2, resolution=16, frames=16, points=400, cubature_points=40,
-                             contact_points=60)
+    # the reduced truth: seconds, where the FEM truth takes minutes a draw
+    cfg = TrainingDataConfig(truth="reduced", objects=1, draws_per_object=2, resolution=16, frames=16, points=400,
+                             cubature_points=40, contact_points=60)
     make_training_data(cfg, folder / "data", workers=1, threads=1, progress=False)
     seeds["data"] = folder / "data"
     shutil.copyfile(DEFAULT_PREDICTOR, folder / "predictor.pt")
@@ -143,6 +143,7 @@ def _command(kind: str, target: Path, seeds: dict[str, Path], work: Path, rng: n
         glb = work / "out.glb"
         return cli_call(["export", str(target), str(glb), "--quiet"]), glb, lambda o: o.is_file()
     if kind == "glb":
+        from vid2sim.export.gltf import load_gltf_gaussians
 
         return reader_call("glTF reader", lambda: load_gltf_gaussians(target)), None, lambda o: True
     if kind in ("checkpoint", "data"):
@@ -218,6 +219,7 @@ def seeds_in_child(folder: Path, quick: bool = False) -> dict[str, Path]:
 def run(config, records_path: str | Path | None, seeds: dict[str, Path], progress: bool = False) -> dict[str, Any]:
     """``config.inputs`` cases on ``seeds`` (:func:`seeds_in_child`), resumed from ``records_path``; returns the
     figures."""
+    from vid2sim.apps.bench.fuzz.records import RecordFile, read_records, todo
 
     done = read_records(records_path) if records_path is not None else {}
     sink = RecordFile(records_path)

@@ -39,31 +39,6 @@ from typing import Any
 import numpy as np
 import torch
 
-from vid2sim.apps.bench.fuzz.records import RecordFile, read_records, todo
-from vid2sim.asset.folder import Asset
-from vid2sim.physics.cubature import sample_cubature
-from vid2sim.physics.external import AREA_CONTACT_STIFFNESS
-from vid2sim.physics.materials import det3, energy_and_pk1
-from vid2sim.physics.skinning import SkinningField
-from vid2sim.physics.skinning_training import SkinningTrainingConfig, train_skinning
-from vid2sim.physics.solver import SimConfig, SimulationError
-from vid2sim.predictor.solid import sample_solid
-from vid2sim.runtime.errors import InputError
-from vid2sim.runtime.workers import process_pool
-from vid2sim.simulate.run import resolve_scenario, run_scenario, simulate
-from vid2sim.simulate.scenario import (
-    CameraSpec,
-    FloorSpec,
-    InitialSpec,
-    MaterialSpec,
-    ObstacleSpec,
-    Scenario,
-    axis_angle_to_matrix,
-)
-from vid2sim.splats.gaussians import Gaussians
-from vid2sim.synthetic.meshes import load_user_mesh
-from vid2sim.synthetic.shapes import ProceduralShapeConfig, make_procedural_object
-
 #: energy rise allowed without external work, as a fraction of the case's energy scale
 ENERGY_TOLERANCE = 0.02
 #: kinetic energy (less the motions a frictionless floor cannot stop) at rest, fraction of the energy scale
@@ -221,8 +196,13 @@ def rest_time(case: PhysicsCase) -> float:
 
 def _mesh(shape: str, workdir: Path):
     """(vertices (V, 3), faces (F, 3)) of ``shape`` in the canonical frame."""
+    from vid2sim.synthetic.meshes import load_user_mesh
 
     if shape.startswith("procedural:"):
+        from vid2sim.synthetic.shapes import (
+            ProceduralShapeConfig,
+            make_procedural_object,
+        )
 
         mesh = make_procedural_object(int(shape.split(":")[1]), ProceduralShapeConfig(target_faces=800,
                                                                                       texture_size=8))
@@ -253,6 +233,14 @@ def build_asset(shape: str, handles: int, cubature: int, seed: int, workdir: Pat
     """An in-memory :class:`~vid2sim.asset.folder.Asset` of ``shape`` (canonical frame, floor at
     :data:`FLOOR_HEIGHT`), a skinning field of ``handles`` learned handles trained data-free for
     ``skinning_iterations`` steps, ``cubature`` cubature points."""
+    from vid2sim.asset.folder import Asset
+    from vid2sim.physics.cubature import sample_cubature
+    from vid2sim.physics.external import AREA_CONTACT_STIFFNESS
+    from vid2sim.physics.skinning import SkinningField
+    from vid2sim.physics.skinning_training import SkinningTrainingConfig, train_skinning
+    from vid2sim.physics.solver import SimConfig
+    from vid2sim.predictor.solid import sample_solid
+    from vid2sim.splats.gaussians import Gaussians
 
     V, Fc = _mesh(shape, workdir)
     solid = sample_solid(torch.as_tensor(V), torch.as_tensor(Fc), num_points=2000, max_contact_points=200, seed=seed)
@@ -281,6 +269,15 @@ def build_asset(shape: str, handles: int, cubature: int, seed: int, workdir: Pat
 def scenario_of(case: PhysicsCase, asset) -> "Any":
     """The :class:`~vid2sim.simulate.scenario.Scenario` of ``case`` on ``asset`` (the object posed, then lifted so
     that its lowest point is ``drop_height`` above the floor's highest point under it)."""
+    from vid2sim.simulate.scenario import (
+        CameraSpec,
+        FloorSpec,
+        InitialSpec,
+        MaterialSpec,
+        ObstacleSpec,
+        Scenario,
+        axis_angle_to_matrix,
+    )
 
     pts = torch.cat([asset.points, asset.contact_points]).double()
     c = asset.points.double().mean(0)
@@ -344,6 +341,7 @@ def _break(s, path: str, value: Any) -> None:
 def energies(sim, state, t: float) -> dict[str, float]:
     """Kinetic, gravity, elastic and barrier energies (J) of ``state`` (from the simulator's own points and
     weights: the quantities its incremental potential uses)."""
+    from vid2sim.physics.materials import energy_and_pk1
 
     X = sim.X
     with torch.no_grad():
@@ -397,6 +395,7 @@ def check_run(case: PhysicsCase, run) -> dict[str, Any]:
 
     The energy scale is M g L + the largest kinetic energy of the run (M the mass, L the object's size): the
     energy the integrator moves around."""
+    from vid2sim.physics.materials import det3
 
     sim, states = run.sim, run.states
     problems: list[str] = []
@@ -441,6 +440,9 @@ def run_case(case: PhysicsCase, workdir: str | Path | None = None, skinning_iter
     (an invalid case refused as it should be), ``refused_badly`` (an invalid case simulated, refused without
     naming the parameter, or leaving output), ``stopped`` (:class:`SimulationError`) or ``crashed`` (any other
     exception: a bug)."""
+    from vid2sim.physics.solver import SimulationError
+    from vid2sim.runtime.errors import InputError
+    from vid2sim.simulate.run import resolve_scenario, run_scenario, simulate
 
     t0 = time.perf_counter()
     record: dict[str, Any] = {"seed": case.seed, "case": asdict(case)}
@@ -522,6 +524,7 @@ def summarize(records: list[dict[str, Any]]) -> dict[str, Any]:
 
 def run(config, records_path: str | Path | None, progress: bool = False) -> dict[str, Any]:
     """``config.physics`` cases (seeds ``config.seed`` …), resumed from ``records_path``; returns the figures."""
+    from vid2sim.apps.bench.fuzz.records import RecordFile, read_records, todo
 
     done = read_records(records_path) if records_path is not None else {}
     sink = RecordFile(records_path)
@@ -543,6 +546,7 @@ def run(config, records_path: str | Path | None, progress: bool = False) -> dict
     else:
         from concurrent.futures import as_completed
 
+        from vid2sim.runtime.workers import process_pool
 
         with process_pool(config.workers) as pool:
             futures = {pool.submit(_worker, config.seed + i, config.quick, config.threads): i for i in indices}

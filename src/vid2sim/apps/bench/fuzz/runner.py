@@ -22,9 +22,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
-from vid2sim.cli import main
-from vid2sim.runtime.errors import InputError
-
 
 @dataclass
 class ChildResult:
@@ -128,6 +125,7 @@ def cli_call(argv: Sequence[str]) -> Callable[[], int]:
         import torch
 
         torch.set_num_threads(1)
+        from vid2sim.cli import main
 
         return main(list(argv))
 
@@ -140,6 +138,7 @@ def reader_call(what: str, fn: Callable[[], Any]) -> Callable[[], int]:
     (a traceback, exit code 1)."""
 
     def call() -> int:
+        from vid2sim.runtime.errors import InputError
 
         try:
             fn()
