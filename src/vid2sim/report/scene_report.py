@@ -549,7 +549,7 @@ class _Builder:
             '<div class="figure"><img src="media/optimisation.svg" alt="optimisation curves" '
             'data-probe="plot:optimisation"></div>',
             f"{n} joint iterations. The training loss of each iteration (grey: the paper's random window of frames "
-            "and views, or with the default Gauss–Newton fit the whole clip at the fit's resolution) "
+            "and views, the default, or with the Gauss–Newton fit the whole clip at the fit's resolution) "
             "and of the validation rollout over all observed frames (blue; the asset keeps the best, ★); "
             "log10 E, ν and ζ per iteration against the value found (blue dotted) and the truth (red dashed); "
             "the coarse grid search of E that picks the start; the wall time of each iteration.")))
