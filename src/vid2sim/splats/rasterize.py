@@ -55,12 +55,15 @@ class RasterOptions:
         tile_size: tile edge in pixels (power of two ≤ 32).
         chunk: Gaussians per tile taken in one depth step.
         max_elements: cap on (tile × Gaussian × pixel) triples evaluated at once; peak extra memory
-            is about 12 such float tensors.
+            is about 12 such float tensors (2^20: ≈ 50 MB in float32). 2^20 dispatches 38 % fewer operators
+            than 2^18 in a joint iteration (7 241 → 4 505 for the 16 renders of ``bench speed``'s joint
+            setting) at the same speed on a CPU (1 905 against 1 921 ms per iteration, median of 5 alternating
+            runs, 1 thread, loaded 2-core machine).
     """
 
     tile_size: int = 4
     chunk: int = 16
-    max_elements: int = 1 << 18
+    max_elements: int = 1 << 20
 
     def __post_init__(self) -> None:
         ts = self.tile_size
