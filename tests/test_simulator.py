@@ -287,6 +287,24 @@ def test_plasticine_keeps_permanent_deformation_elastic_recovers(trained_field):
     assert finals["plastic"] < finals["elastic"] - 0.15
 
 
+
+def test_a_point_crushed_flat_in_the_plastic_update_stops_the_simulation(trained_field, monkeypatch):
+    """A point whose elastic det F comes out of the step at -7e-14 (found by `bench fuzz`, seed 119: a soft
+    plasticine object spun onto the floor) is a failed simulation (SimulationError naming the point and time), not
+    a ValueError from inside the return map."""
+    from vid2sim.physics.plasticity import VonMises
+
+    field, pts = trained_field
+    sim = _sim(field, pts, material=Material(2e3, 0.49, model="stvk", plasticity=VonMises(yield_stress=66.0)))
+    n = sim.X.shape[0]
+    flat = torch.diag(torch.tensor([1.0, 1.0, 1.0], dtype=torch.float64)).repeat(n, 1, 1)
+    flat[3, 2, 2] = -7e-14
+    monkeypatch.setattr(sim, "deformation_gradients_at_cubature", lambda z: flat)
+    mu, lam = sim.lame()
+    eye = torch.eye(3, dtype=torch.float64).repeat(n, 1, 1)
+    with pytest.raises(SimulationError, match=r"cubature point 3 is crushed flat at t = 0\.25 s"):
+        sim._update_plastic(eye, torch.zeros(sim.num_dofs, dtype=torch.float64), mu, lam, 0.25)
+
 def _window_loss(sim, pts, steps=5):
     state = sim.rigid_velocity_state([0.2, 0.0, -2.0], [0.0, 6.0, 2.0])
     states = sim.rollout(state, steps)

@@ -835,13 +835,24 @@ class Simulator:
             y2, ydot2, y, ydot = y, ydot, y_new, ydot_new
             h_prev = h
             if self.material.plasticity is not None:
-                Fp_inv = self._update_plastic(Fp_inv, y.detach()[self._inv], mu, lam)
+                Fp_inv = self._update_plastic(Fp_inv, y.detach()[self._inv], mu, lam, t_next)
         return SimState(y[self._inv], ydot[self._inv], state.t + cfg.dt, Fp_inv, iterations, converged,
                         y2[self._inv], ydot2[self._inv], h)
 
-    def _update_plastic(self, Fp_inv: Tensor, z: Tensor, mu, lam) -> Tensor:
+    def _update_plastic(self, Fp_inv: Tensor, z: Tensor, mu, lam, t: float) -> Tensor:
+        """The plastic state after the step to time ``t``: (C, 3, 3) inverse plastic deformation gradients.
 
+        The step's line search accepts only states whose elastic F = F_total Fp⁻¹ has det > 0, but a point crushed
+        flat (det ≈ 0, which StVK does not resist) can come out of the return map's own arithmetic at det ≤ 0 by
+        round-off; that is the simulation failing, reported as a :class:`SimulationError`, not a bad argument."""
         F_total = self.deformation_gradients_at_cubature(z)
+        det = torch.linalg.det(F_total.detach() @ Fp_inv.detach())
+        if not bool((det > 0).all()):
+            bad = int((det <= 0).nonzero()[0, 0])
+            raise SimulationError(
+                f"cubature point {bad} is crushed flat at t = {t:.4g} s (elastic det F = {float(det[bad]):.3g}): "
+                "the material may be too soft for this impact (StVK offers no resistance to inversion) — use a "
+                "stiffer material or a smaller dt")
         return update_plastic_state(self.material.plasticity, F_total, Fp_inv,
                                     torch.as_tensor(mu).detach(), torch.as_tensor(lam).detach())
 
