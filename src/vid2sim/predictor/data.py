@@ -50,6 +50,7 @@ import shutil
 import sys
 import time
 import zipfile
+from concurrent.futures import FIRST_COMPLETED, wait
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any, Callable
@@ -677,38 +678,80 @@ def make_training_data(config: TrainingDataConfig, out_dir: str | Path, workers:
     from tqdm.auto import tqdm
 
     out = Path(out_dir)
+    index_path = out / INDEX
+    _check_dataset_folder(out, index_path)
+    header = _dataset_header(config, ray_address)
+    previous = _previous_index(index_path, config, header) if index_path.is_file() else {}
+    out.mkdir(parents=True, exist_ok=True)
+    specs = object_specs(config)
+    entries, todo = _shards_present(out, specs, previous)
+    workers = _worker_count(workers)
+    run = _DatasetRun(config, specs, header, index_path, entries, workers, threads, ray_address, on_shard)
+    cfg_dict = config.to_dict()
+    calls = [(cfg_dict, (s.kind, s.index, s.source, s.name), str(out), threads, progress) for s in todo]
+    run.bar = tqdm(total=len(specs), initial=len(specs) - len(todo), desc="training data", unit="object",
+                   disable=not progress)
+    index = run.write_index()
+    try:
+        if ray_address is not None:
+            _make_shards_on_ray(run, todo, calls, ray_address, threads)
+        elif workers == 1 or len(calls) <= 1:
+            _make_shards_here(run, todo, calls, threads, progress)
+        else:
+            _make_shards_in_pool(run, todo, calls, workers)
+        index = run.write_index()
+    finally:
+        run.bar.close()
+    if run.errors:
+        raise run.errors[0]
+    return index
+
+
+def _check_dataset_folder(out: Path, index_path: Path) -> None:
+    """Refuse an ``out`` that is a file, or a non-empty folder without ``index.json`` (FileExistsError)."""
     if out.exists() and not out.is_dir():
         raise FileExistsError(f"{out} exists and is not a folder")
-    index_path = out / INDEX
     if out.exists() and any(out.iterdir()) and not index_path.is_file():
         raise FileExistsError(f"{out} is not empty and holds no {INDEX}: refusing to write a training dataset there")
+
+
+def _dataset_header(config: TrainingDataConfig, ray_address: str | None) -> dict[str, Any]:
+    """``index.json``'s format, config and template hash, once the user meshes, Ray (when asked for) and the
+    template file are checked (FileNotFoundError, RayUnavailable) before anything is written."""
     for m in config.meshes:
         if not Path(m).is_file():
             raise FileNotFoundError(f"mesh file {m} does not exist")
     if ray_address is not None:
-
         import_ray()  # RayUnavailable before anything is written
     tpath = template_path(config)
     if not tpath.is_file():
         raise FileNotFoundError(f"template skinning network {tpath} does not exist")
-    header = {"format": FORMAT, "config": config.to_dict(), "template_sha256": file_sha256(tpath)}
-    previous: dict[str, Any] = {}
-    if index_path.is_file():
-        previous = json.loads(index_path.read_text())
-        # A dataset grows: every object's shape and draws depend on (seed, its index) only, so a rerun with a
-        # larger ``objects`` keeps the shards already made and adds the new ones. Shrinking is refused.
-        prev_config = _normalised_config(previous.get("config", {}))
-        grown = (isinstance(prev_config.get("objects"), int) and config.objects >= prev_config["objects"])
-        if grown:
-            prev_config["objects"] = config.objects
-        differ = sorted(k for k in ("format", "config", "template_sha256")
-                        if (prev_config if k == "config" else previous.get(k)) != header[k])
-        if differ:
-            diff = _config_diff(previous.get("config", {}), header["config"])
-            raise ValueError(f"{index_path} was written with other settings ({', '.join(differ)}"
-                             + (f": {diff}" if diff else "") + "); resume with the same settings or use another folder")
-    out.mkdir(parents=True, exist_ok=True)
-    specs = object_specs(config)
+    return {"format": FORMAT, "config": config.to_dict(), "template_sha256": file_sha256(tpath)}
+
+
+def _previous_index(index_path: Path, config: TrainingDataConfig, header: dict[str, Any]) -> dict[str, Any]:
+    """The ``index.json`` already in the folder, checked to be the same dataset as ``header`` (or a smaller
+    one of it, which grows); ValueError naming the settings that differ otherwise."""
+    previous = json.loads(index_path.read_text())
+    # A dataset grows: every object's shape and draws depend on (seed, its index) only, so a rerun with a
+    # larger ``objects`` keeps the shards already made and adds the new ones. Shrinking is refused.
+    prev_config = _normalised_config(previous.get("config", {}))
+    grown = (isinstance(prev_config.get("objects"), int) and config.objects >= prev_config["objects"])
+    if grown:
+        prev_config["objects"] = config.objects
+    differ = sorted(k for k in ("format", "config", "template_sha256")
+                    if (prev_config if k == "config" else previous.get(k)) != header[k])
+    if differ:
+        diff = _config_diff(previous.get("config", {}), header["config"])
+        raise ValueError(f"{index_path} was written with other settings ({', '.join(differ)}"
+                         + (f": {diff}" if diff else "") + "); resume with the same settings or use another folder")
+    return previous
+
+
+def _shards_present(out: Path, specs: list[ObjectSpec], previous: dict[str, Any]
+                    ) -> tuple[dict[str, dict], list[ObjectSpec]]:
+    """The ``index.json`` entries of the shards already written (by file name; read back from the shard when the
+    previous index does not list it yet) and the objects still to make, in order."""
     old = {s["file"]: s for s in previous.get("shards", [])}
     entries: dict[str, dict] = {}
     todo = []
@@ -721,21 +764,45 @@ def make_training_data(config: TrainingDataConfig, out_dir: str | Path, workers:
             shutil.rmtree(work_dir_of(out, spec), ignore_errors=True)  # left by a kill between write and clean-up
         else:
             todo.append(spec)
+    return entries, todo
+
+
+def _worker_count(workers: int | None) -> int:
+    """``workers``, or all the cores this process may use when None; ValueError below 1."""
     if workers is None:
         workers = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
     if workers < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
-    t_start = time.perf_counter()
-    made: list[dict] = []
-    failed: list[dict[str, str]] = []
+    return workers
 
-    def write_index() -> dict[str, Any]:
-        shards = [entries[s.name] for s in specs if s.name in entries]
-        wall = time.perf_counter() - t_start
+
+class _DatasetRun:
+    """One run of :func:`make_training_data`: the shards listed so far, those this run made or failed, the
+    progress bar, and ``index.json`` written from them."""
+
+    def __init__(self, config: TrainingDataConfig, specs: list[ObjectSpec], header: dict[str, Any],
+                 index_path: Path, entries: dict[str, dict], workers: int, threads: int | None,
+                 ray_address: str | None, on_shard: Callable[[str], None] | None) -> None:
+        self.config, self.specs, self.header, self.index_path = config, specs, header, index_path
+        self.entries = entries
+        self.workers, self.threads, self.ray_address, self.on_shard = workers, threads, ray_address, on_shard
+        self.by_name = {s.name: s for s in specs}
+        self.t_start = time.perf_counter()
+        self.made: list[dict] = []
+        self.failed: list[dict[str, str]] = []
+        self.errors: list[BaseException] = []
+        self.bar: Any = None  # the tqdm bar, set before any shard is made
+        self.last_write = time.perf_counter()
+
+    def write_index(self) -> dict[str, Any]:
+        """Write ``index.json`` (atomically) from the shards listed so far; its content."""
+        config, specs, made = self.config, self.specs, self.made
+        shards = [self.entries[s.name] for s in specs if s.name in self.entries]
+        wall = time.perf_counter() - self.t_start
         seconds = _run_seconds(made, config.draws_per_object)
         made_samples = seconds["samples_made"]
-        index = {**header, "complete": len(shards) == len(specs), "objects": len(specs), "shards_written": len(shards),
-                 "samples": len(shards) * config.draws_per_object,
+        index = {**self.header, "complete": len(shards) == len(specs), "objects": len(specs),
+                 "shards_written": len(shards), "samples": len(shards) * config.draws_per_object,
                  "label_layout": {"log10_E": "()", "nu": "()", "last_layer": "(650,): skinning last layer, weights "
                                   "row-major (10, 64) then 10 biases, canonical gauge"},
                  "video_layout": f"(draws, {config.frames}, {config.resolution}, {config.resolution}, 3) uint8 RGB "
@@ -743,95 +810,90 @@ def make_training_data(config: TrainingDataConfig, out_dir: str | Path, workers:
                                  f"; ring_video (draws, {config.views - 1}, {config.frames}, {config.resolution}, "
                                  f"{config.resolution}, 3), the ring's other views at azimuth + 360°·k/{config.views}"),
                  "stats": _stats(shards),
-                 "last_run": {"workers": workers if ray_address is None else None, "threads": threads,
-                              "ray_address": ray_address, "shards_made": len(made), "wall_seconds": wall,
+                 "last_run": {"workers": self.workers if self.ray_address is None else None, "threads": self.threads,
+                              "ray_address": self.ray_address, "shards_made": len(made), "wall_seconds": wall,
                               "samples_per_second": made_samples / wall if made_samples and wall > 0 else None,
-                              **seconds, "failed": failed},
+                              **seconds, "failed": self.failed},
                  "shards": shards}
-        write_json_atomic(index_path, index)
+        write_json_atomic(self.index_path, index)
         return index
 
-    by_name = {s.name: s for s in specs}
-    last_write = [time.perf_counter()]
-
-    def finished(result: dict) -> None:
-        spec = by_name[result["name"]]
+    def finished(self, result: dict) -> None:
+        """Record a shard :func:`shard_task` wrote (``index.json`` at most every ``INDEX_EVERY_SECONDS``)."""
+        spec = self.by_name[result["name"]]
         entry = {"file": spec.name, "kind": spec.kind, "source": spec.source, "seconds": result["timings"],
                  "summary": result["summary"]}
-        entries[spec.name] = entry
-        made.append(entry)
-        if time.perf_counter() - last_write[0] >= INDEX_EVERY_SECONDS:  # O(N) each: not after every shard at scale
-            write_index()
-            last_write[0] = time.perf_counter()
-        bar.update(1)
-        bar.set_postfix(samples_per_s=f"{len(made) * config.draws_per_object / (time.perf_counter() - t_start):.3g}")
-        if on_shard is not None:
-            on_shard(spec.name)
+        self.entries[spec.name] = entry
+        self.made.append(entry)
+        if time.perf_counter() - self.last_write >= INDEX_EVERY_SECONDS:  # O(N) each: not after every shard at scale
+            self.write_index()
+            self.last_write = time.perf_counter()
+        self.bar.update(1)
+        rate = len(self.made) * self.config.draws_per_object / (time.perf_counter() - self.t_start)
+        self.bar.set_postfix(samples_per_s=f"{rate:.3g}")
+        if self.on_shard is not None:
+            self.on_shard(spec.name)
 
-    def failure(name: str, exc: BaseException) -> None:
-        errors.append(exc)
-        failed.append({"file": name, "error": f"{type(exc).__name__}: {exc}"})
-        bar.write(f"[make-training-data] {name} failed: {type(exc).__name__}: {exc}")
-        write_index()
+    def failure(self, name: str, exc: BaseException) -> None:
+        """Record a shard that failed (raised once all have run) and rewrite ``index.json``."""
+        self.errors.append(exc)
+        self.failed.append({"file": name, "error": f"{type(exc).__name__}: {exc}"})
+        self.bar.write(f"[make-training-data] {name} failed: {type(exc).__name__}: {exc}")
+        self.write_index()
 
-    cfg_dict = config.to_dict()
-    calls = [(cfg_dict, (s.kind, s.index, s.source, s.name), str(out), threads, progress) for s in todo]
-    bar = tqdm(total=len(specs), initial=len(specs) - len(todo), desc="training data", unit="object",
-               disable=not progress)
-    index = write_index()
-    errors: list[BaseException] = []
-    try:
-        if ray_address is not None:
 
-            def gathered(i: int, result: Any) -> None:
-                if isinstance(result, BaseException):
-                    failure(todo[i].name, result)
-                else:
-                    finished(result)
+def _make_shards_on_ray(run: _DatasetRun, todo: list[ObjectSpec], calls: list[tuple], ray_address: str,
+                        threads: int | None) -> None:
+    """Make the ``todo`` shards as Ray tasks of ``threads`` CPUs each (``calls``: :func:`shard_task`'s arguments)."""
 
-            ray_map(shard_task, [(c, {}) for c in calls], ray_address, num_cpus=max(1, threads or 1),
-                    on_done=gathered)
-        elif workers == 1 or len(calls) <= 1:
-            if threads is not None:
-                old_threads = torch.get_num_threads()
-                torch.set_num_threads(threads)
-            try:
-                for spec, c in zip(todo, calls):
-                    try:
-                        result = shard_task(*c[:3], None, progress)
-                    except _shard_failures() as exc:  # the next objects still run; raised at the end
-                        failure(spec.name, exc)
-                    else:
-                        finished(result)
-            finally:
-                if threads is not None:
-                    torch.set_num_threads(old_threads)
+    def gathered(i: int, result: Any) -> None:
+        if isinstance(result, BaseException):
+            run.failure(todo[i].name, result)
         else:
-            from concurrent.futures import FIRST_COMPLETED, wait
+            run.finished(result)
+
+    ray_map(shard_task, [(c, {}) for c in calls], ray_address, num_cpus=max(1, threads or 1), on_done=gathered)
 
 
-            with process_pool(min(workers, len(calls))) as pool:
-                names = {pool.submit(shard_task, *c): spec.name for spec, c in zip(todo, calls)}
-                pending = set(names)
-                try:
-                    while pending:
-                        done, pending = wait(pending, return_when=FIRST_COMPLETED)
-                        for fut in done:
-                            exc = fut.exception()
-                            if exc is not None:
-                                failure(names[fut], exc)
-                            else:
-                                finished(fut.result())
-                except KeyboardInterrupt:
-                    for fut in pending:
-                        fut.cancel()
-                    raise
-        index = write_index()
+def _make_shards_here(run: _DatasetRun, todo: list[ObjectSpec], calls: list[tuple], threads: int | None,
+                      progress: bool) -> None:
+    """Make the ``todo`` shards one after the other in this process, with ``threads`` torch threads (restored
+    after); an object that fails does not stop the next ones."""
+    if threads is not None:
+        old_threads = torch.get_num_threads()
+        torch.set_num_threads(threads)
+    try:
+        for spec, c in zip(todo, calls):
+            try:
+                result = shard_task(*c[:3], None, progress)
+            except _shard_failures() as exc:  # the next objects still run; raised at the end
+                run.failure(spec.name, exc)
+            else:
+                run.finished(result)
     finally:
-        bar.close()
-    if errors:
-        raise errors[0]
-    return index
+        if threads is not None:
+            torch.set_num_threads(old_threads)
+
+
+def _make_shards_in_pool(run: _DatasetRun, todo: list[ObjectSpec], calls: list[tuple], workers: int) -> None:
+    """Make the ``todo`` shards in a pool of ``workers`` processes, recording each as it finishes (an interrupt
+    cancels those not started)."""
+    with process_pool(min(workers, len(calls))) as pool:
+        names = {pool.submit(shard_task, *c): spec.name for spec, c in zip(todo, calls)}
+        pending = set(names)
+        try:
+            while pending:
+                done, pending = wait(pending, return_when=FIRST_COMPLETED)
+                for fut in done:
+                    exc = fut.exception()
+                    if exc is not None:
+                        run.failure(names[fut], exc)
+                    else:
+                        run.finished(fut.result())
+        except KeyboardInterrupt:
+            for fut in pending:
+                fut.cancel()
+            raise
 
 
 def _shard_failures() -> tuple[type[BaseException], ...]:

@@ -438,6 +438,60 @@ def train_predictor(data_folder: str | Path, out: str | Path, config: TrainConfi
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     t_start = time.perf_counter()
+    train_data, val_data, stats, train, val = _training_splits(data_folder, cfg, out)
+    data_cfg = train_data.index.get("config")
+    t_data = time.perf_counter() - t_start
+
+    model = PhysicsPredictor(cfg.model)
+    model.set_label_statistics(stats)
+    opt = torch.optim.Adam(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    last_path = out / "last.pt"
+    cfg_dict = config_dict(cfg)
+    step, log = _resume(model, opt, last_path, cfg_dict)
+    baselines = constant_baselines(stats, val)
+    deadline = None if cfg.max_minutes is None else time.perf_counter() + 60.0 * cfg.max_minutes
+    data_record = {"folder": str(data_folder), "train_samples": len(train), "val_samples": len(val),
+                   "train_objects": len(train_data.shards), "val_objects": len(val_data.shards),
+                   "data_config": data_cfg, "seconds_loading": t_data}
+    if cfg.pretrain_steps and not last_path.is_file():
+        log["pretrain"] = pretrain_backbone(model, train, cfg, out, deadline, progress)
+        if not log["pretrain"]["complete"]:
+            record = {"config": cfg_dict, "data": data_record, "baselines_constant_mean": baselines,
+                      "pretrain": log["pretrain"], "train_curve": [], "val_curve": [], "best": None, "final": None,
+                      "steps_done": 0, "complete": False, "seconds_training": 0.0,
+                      "threads": torch.get_num_threads(), "torch": str(torch.__version__)}
+            return _write_train_log(out, record)
+    info = {"label_stats": stats, "data_config": data_cfg, "train_config": cfg_dict}
+    run = _TrainingRun(model, opt, cfg, train, val, log, step, info, out)
+    run.bar = tqdm(total=cfg.steps, initial=step, desc="train-predictor", unit="step", disable=not progress)
+    stopped_early = run.train(deadline, stop_at_step)
+    run.bar.close()
+    if stopped_early and (not log["val_curve"] or log["val_curve"][-1]["step"] != run.step):
+        run.validate_when_stopped()
+    step = run.step
+    complete = step >= cfg.steps
+    _ship_predictor(run, baselines, complete)
+    record = {"config": cfg_dict, "data": data_record, "pretrain": log.get("pretrain"),
+              "label_stats": _plain({k: {"mean": v["mean"], "std": v["std"]} for k, v in stats.items()
+                                     if k != "last_layer"}),
+              "baselines_constant_mean": baselines, "train_curve": log["train_curve"], "val_curve": log["val_curve"],
+              "best": log["best"], "final": log["val_curve"][-1] if log["val_curve"] else None, "steps_done": step,
+              "complete": complete, "seconds_training": log.get("seconds_training", 0.0),
+              "threads": torch.get_num_threads(), "torch": str(torch.__version__)}
+    return _write_train_log(out, record)
+
+
+def _write_train_log(out: Path, record: dict[str, Any]) -> dict[str, Any]:
+    """Write the training log ``record`` to ``OUT/train_log.json``; returns it."""
+    (out / "train_log.json").write_text(json.dumps(record, indent=1))
+    return record
+
+
+def _training_splits(data_folder: str | Path, cfg: TrainConfig, out: Path
+                     ) -> tuple[TrainingData, TrainingData, dict[str, dict[str, torch.Tensor]], Split, Split]:
+    """The training and validation data of ``data_folder`` (checked: at least one batch, the model's frame count),
+    the label statistics of the training data, and both splits decoded once into ``out`` (``OUT/split_*.pt``,
+    memory-mapped on a resume)."""
     train_data = TrainingData(data_folder, "train", cfg.val_fraction, cfg.split_seed)
     val_data = TrainingData(data_folder, "val", cfg.val_fraction, cfg.split_seed)
     if len(train_data) < cfg.batch_size:
@@ -448,16 +502,15 @@ def train_predictor(data_folder: str | Path, out: str | Path, config: TrainConfi
         raise InputError(f"{data_folder}: videos of {data_cfg['frames']} frames, the model takes "
                          f"{cfg.model.num_frames}")
     stats = train_data.label_statistics()
-    # decoded once into OUT (OUT/split_*.pt, memory-mapped on a resume)
     train = Split.cached(train_data, cfg.model.image_size, cfg.model.framing, out / "split_train.pt")
     val = Split.cached(val_data, cfg.model.image_size, cfg.model.framing, out / "split_val.pt")
-    t_data = time.perf_counter() - t_start
+    return train_data, val_data, stats, train, val
 
-    model = PhysicsPredictor(cfg.model)
-    model.set_label_statistics(stats)
-    opt = torch.optim.Adam(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
-    last_path, best_path = out / "last.pt", out / "best.pt"
-    cfg_dict = config_dict(cfg)
+
+def _resume(model: PhysicsPredictor, opt: torch.optim.Optimizer, last_path: Path, cfg_dict: dict[str, Any]
+            ) -> tuple[int, dict[str, Any]]:
+    """The step and training log to start from: those of ``last_path`` (whose weights and optimiser state are
+    loaded into ``model`` and ``opt``; InputError if it was written with other settings), else 0 and a new log."""
     log: dict[str, Any] = {"train_curve": [], "val_curve": [], "best": None, "seconds_training": 0.0}
     step = 0
     if last_path.is_file():
@@ -468,102 +521,109 @@ def train_predictor(data_folder: str | Path, out: str | Path, config: TrainConfi
         model.load_state_dict(ck["state_dict"])
         opt.load_state_dict(ck["optimizer"])
         step, log = int(ck["step"]), ck["log"]
-    baselines = constant_baselines(stats, val)
-    deadline = None if cfg.max_minutes is None else time.perf_counter() + 60.0 * cfg.max_minutes
-    data_record = {"folder": str(data_folder), "train_samples": len(train), "val_samples": len(val),
-                   "train_objects": len(train_data.shards), "val_objects": len(val_data.shards),
-                   "data_config": data_cfg, "seconds_loading": t_data}
-    if cfg.pretrain_steps and not last_path.is_file():
+    return step, log
 
-        log["pretrain"] = pretrain_backbone(model, train, cfg, out, deadline, progress)
-        if not log["pretrain"]["complete"]:
-            record = {"config": cfg_dict, "data": data_record, "baselines_constant_mean": baselines,
-                      "pretrain": log["pretrain"], "train_curve": [], "val_curve": [], "best": None, "final": None,
-                      "steps_done": 0, "complete": False, "seconds_training": 0.0,
-                      "threads": torch.get_num_threads(), "torch": str(torch.__version__)}
-            (out / "train_log.json").write_text(json.dumps(record, indent=1))
-            return record
-    steps_per_epoch = max(1, len(train) // cfg.batch_size)
-    info = {"label_stats": stats, "data_config": data_cfg, "train_config": cfg_dict}
 
-    def checkpoint(metrics: dict) -> None:
-        log["seconds_training"] = log.get("seconds_training", 0.0) + (time.perf_counter() - t_mark[0])
-        t_mark[0] = time.perf_counter()
-        if metrics and (log["best"] is None or metrics["loss"] < log["best"]["loss"]):
-            log["best"] = dict(metrics, step=step)
-            save_predictor(model, best_path, metrics=dict(metrics, step=step), **info)
-        payload = checkpoint_payload(model, metrics=metrics, **info)
-        payload.update(optimizer=opt.state_dict(), step=step, log=log)
-        save_torch_atomic(payload, last_path)
+class _TrainingRun:
+    """One run of :func:`train_predictor`'s loop: the model, its optimiser, the step, the log and the checkpoints
+    (``OUT/last.pt`` at every evaluation, ``OUT/best.pt`` when the validation loss improves)."""
 
-    t_mark = [time.perf_counter()]
-    bar = tqdm(total=cfg.steps, initial=step, desc="train-predictor", unit="step", disable=not progress)
-    window: list[float] = []
-    stopped_early = False
-    perm, perm_epoch = None, -1
-    while step < cfg.steps:
-        if (deadline is not None and time.perf_counter() > deadline) or (
-                stop_at_step is not None and step >= stop_at_step):
-            stopped_early = True
-            break
-        epoch, pos = divmod(step, steps_per_epoch)
-        if epoch != perm_epoch:
-            perm = torch.randperm(len(train), generator=torch.Generator().manual_seed(cfg.seed + 1000 * epoch))
-            perm_epoch = epoch
-        idx = perm[pos * cfg.batch_size:(pos + 1) * cfg.batch_size]
-        model.train()
-        for g in opt.param_groups:
+    def __init__(self, model: PhysicsPredictor, opt: torch.optim.Optimizer, cfg: TrainConfig, train: Split,
+                 val: Split, log: dict[str, Any], step: int, info: dict[str, Any], out: Path) -> None:
+        self.model, self.opt, self.cfg, self.train_split, self.val = model, opt, cfg, train, val
+        self.log, self.step, self.info = log, step, info
+        self.last_path, self.best_path = out / "last.pt", out / "best.pt"
+        self.steps_per_epoch = max(1, len(train) // cfg.batch_size)
+        self.t_mark = time.perf_counter()
+        self.bar: Any = None  # the tqdm bar, set before training
+        self.window: list[float] = []  # the training losses since the last evaluation
+        self.perm: torch.Tensor | None = None  # the epoch's order of the training samples
+        self.perm_epoch = -1
+
+    def train(self, deadline: float | None, stop_at_step: int | None) -> bool:
+        """Train until ``cfg.steps`` (evaluating and checkpointing every ``eval_every``), the deadline or
+        ``stop_at_step``; whether it stopped early."""
+        cfg = self.cfg
+        while self.step < cfg.steps:
+            if (deadline is not None and time.perf_counter() > deadline) or (
+                    stop_at_step is not None and self.step >= stop_at_step):
+                return True
+            self.train_step()
+            self.bar.update(1)
+            if self.step % cfg.eval_every == 0 or self.step == cfg.steps:
+                self.log["train_curve"].append({"step": self.step, "loss": float(np.mean(self.window))})
+                self.window = []
+                metrics = evaluate(self.model, self.val, cfg.loss)
+                if metrics:
+                    self.log["val_curve"].append(dict(metrics, step=self.step))
+                    self.bar.set_postfix(val_mae_logE=f"{metrics['mae_log10_E']:.3f}",
+                                         val_mae_nu=f"{metrics['mae_nu']:.4f}")
+                self.checkpoint(metrics)
+        return False
+
+    def train_step(self) -> None:
+        """One optimiser step on the step's batch: the epoch's seeded order, the scheduled learning rate, seeded
+        colour permutations and mirroring (its loss goes to ``window``)."""
+        cfg, step = self.cfg, self.step
+        epoch, pos = divmod(step, self.steps_per_epoch)
+        if epoch != self.perm_epoch:
+            self.perm = torch.randperm(len(self.train_split),
+                                       generator=torch.Generator().manual_seed(cfg.seed + 1000 * epoch))
+            self.perm_epoch = epoch
+        idx = self.perm[pos * cfg.batch_size:(pos + 1) * cfg.batch_size]
+        self.model.train()
+        for g in self.opt.param_groups:
             g["lr"] = cfg.lr * lr_factor(step, cfg.steps, cfg.warmup, cfg.final_lr_fraction)
         orders = None
         if cfg.colour_permute:
             orders = random_channel_orders(len(idx), torch.Generator().manual_seed(cfg.seed * 1_000_003 + step + 7919))
-        video, targets = train.batch(idx, orders)
+        video, targets = self.train_split.batch(idx, orders)  # (B, T, 3, R, R)
         mask = None
         if cfg.mirror:
             flip = torch.rand(len(idx), generator=torch.Generator().manual_seed(cfg.seed * 1_000_003 + step)) < 0.5
             video = torch.where(flip.view(-1, 1, 1, 1, 1), video.flip(-1), video)
             mask = ~flip
-        loss, _ = predictor_loss(model, model(video), targets, cfg.loss, last_layer_mask=mask)
-        window.append(optimiser_step(opt, loss, "train-predictor", step))
-        step += 1
-        bar.update(1)
-        if step % cfg.eval_every == 0 or step == cfg.steps:
-            log["train_curve"].append({"step": step, "loss": float(np.mean(window))})
-            window = []
-            metrics = evaluate(model, val, cfg.loss)
-            if metrics:
-                log["val_curve"].append(dict(metrics, step=step))
-                bar.set_postfix(val_mae_logE=f"{metrics['mae_log10_E']:.3f}", val_mae_nu=f"{metrics['mae_nu']:.4f}")
-            checkpoint(metrics)
-    bar.close()
-    if stopped_early and (not log["val_curve"] or log["val_curve"][-1]["step"] != step):
-        if window:
-            log["train_curve"].append({"step": step, "loss": float(np.mean(window))})
-        metrics = evaluate(model, val, cfg.loss)
+        loss, _ = predictor_loss(self.model, self.model(video), targets, cfg.loss, last_layer_mask=mask)
+        self.window.append(optimiser_step(self.opt, loss, "train-predictor", step))
+        self.step += 1
+
+    def validate_when_stopped(self) -> None:
+        """Close the curves at the step where training stopped early, evaluate and checkpoint."""
+        if self.window:
+            self.log["train_curve"].append({"step": self.step, "loss": float(np.mean(self.window))})
+        metrics = evaluate(self.model, self.val, self.cfg.loss)
         if metrics:
-            log["val_curve"].append(dict(metrics, step=step))
-        checkpoint(metrics)
-    complete = step >= cfg.steps
-    final = log["val_curve"][-1] if log["val_curve"] else None
-    best_metrics = log["best"]
-    if best_path.is_file():
-        best_model = load_predictor(best_path)
-        shipped = dict(best_metrics or {}, **{f"baseline_{k}": v for k, v in baselines.items()},
+            self.log["val_curve"].append(dict(metrics, step=self.step))
+        self.checkpoint(metrics)
+
+    def checkpoint(self, metrics: dict) -> None:
+        """Add the seconds since the last checkpoint to the log, save ``best.pt`` if ``metrics`` improve on the best
+        loss, and ``last.pt`` (weights, optimiser, step and log) always."""
+        log = self.log
+        log["seconds_training"] = log.get("seconds_training", 0.0) + (time.perf_counter() - self.t_mark)
+        self.t_mark = time.perf_counter()
+        if metrics and (log["best"] is None or metrics["loss"] < log["best"]["loss"]):
+            log["best"] = dict(metrics, step=self.step)
+            save_predictor(self.model, self.best_path, metrics=dict(metrics, step=self.step), **self.info)
+        payload = checkpoint_payload(self.model, metrics=metrics, **self.info)
+        payload.update(optimizer=self.opt.state_dict(), step=self.step, log=log)
+        save_torch_atomic(payload, self.last_path)
+
+
+def _ship_predictor(run: _TrainingRun, baselines: dict[str, float], complete: bool) -> None:
+    """Write ``OUT/predictor.pt`` (half precision): the best checkpoint, or the trained model when a complete run
+    had no validation split (so no best); nothing otherwise."""
+    train, val, info = run.train_split, run.val, run.info
+    out = run.best_path.parent
+    if run.best_path.is_file():
+        best_model = load_predictor(run.best_path)
+        shipped = dict(run.log["best"] or {}, **{f"baseline_{k}": v for k, v in baselines.items()},
                        val_samples=len(val), train_samples=len(train))
         save_predictor(best_model, out / "predictor.pt", half=True, metrics=shipped, **info)
     elif complete and len(val) == 0:  # no validation split, so no best: the trained model is the one to ship
         # (before, a run whose --val-fraction held out no object printed "done: OUT/predictor.pt" and wrote none;
         # found by vid2sim bench fuzz --kills)
-        save_predictor(model, out / "predictor.pt", half=True,
+        save_predictor(run.model, out / "predictor.pt", half=True,
                        metrics={f"baseline_{k}": v for k, v in baselines.items()} | {"val_samples": 0,
                                                                                      "train_samples": len(train)},
                        **info)
-    record = {"config": cfg_dict, "data": data_record, "pretrain": log.get("pretrain"),
-              "label_stats": _plain({k: {"mean": v["mean"], "std": v["std"]} for k, v in stats.items()
-                                     if k != "last_layer"}),
-              "baselines_constant_mean": baselines, "train_curve": log["train_curve"], "val_curve": log["val_curve"],
-              "best": best_metrics, "final": final, "steps_done": step, "complete": complete,
-              "seconds_training": log.get("seconds_training", 0.0), "threads": torch.get_num_threads(),
-              "torch": str(torch.__version__)}
-    (out / "train_log.json").write_text(json.dumps(record, indent=1))
-    return record

@@ -218,12 +218,39 @@ class _Builder:
         return f'<img class="anim" src="{H.esc(rel)}" {wh} alt="{H.esc(path.stem)}" data-probe="{probe}">'
 
     def scene_media(self, scene: Any, scene_path: Path | None, renders: Tensor) -> None:
-        from tqdm.auto import tqdm
+        """The media and sections of a report with a scene: per view a video of ground truth | reconstruction |
+        error, key-frame strips, the thumbnail, the per-frame PSNR plot, then the summary and tables.
 
-
-        cfg = self.config
+        Args:
+            scene: the loaded scene (images (V, T, H, W, 3)). scene_path: its folder, or None.
+            renders: (V, T, H, W, 3) float in [0, 1], the asset rendered in the scene's cameras.
+        """
         targets = scene.float_images() if hasattr(scene, "float_images") else scene.images.float()
         V, T, Hh, Ww, _ = targets.shape
+        obs_v, held_v, obs_f, held_f = self._scene_facts(scene, scene_path, V, T, Hh, Ww)
+        # per-view, per-frame PSNR (the same per-image PSNR as the evaluation's means)
+        per_view = [[psnr(renders[v, t], targets[v, t]) for t in range(T)] for v in range(V)]
+        self.data["psnr_per_view_frame"] = per_view
+        panels = _view_panels(scene, targets, renders, self.config)
+        self.data["crop_boxes_y0_y1_x0_x1"] = panels.boxes
+        cards, videos = self._view_videos(panels, per_view, held_v, obs_f, held_f, (Hh, Ww))
+        self.video_count = len(videos)
+        self.data["videos"] = videos
+        # key-frame strips of the first observed and first held-out view
+        picks = _keyframes(T, held_f[0] if held_f else None, self.config.filmstrip_frames)
+        strips = [self._keyframe_strip(panels, v, picks, held_v)
+                  for v in ([obs_v[0]] if obs_v else []) + ([held_v[0]] if held_v else [])]
+        # thumbnail: frame 0 of the first observed view, ground truth | reconstruction
+        gt_t, rd_t, _ = panels(obs_v[0] if obs_v else 0, [0], self.config.thumb_size)
+        M.save_png(self.media / "thumb.png", M.titled_panels([gt_t[0], rd_t[0]], ["ground truth", "reconstruction"]))
+        self._psnr_plot(per_view, held_v, T)
+        self._summary_and_tables()
+        self._scene_sections(T, cards, videos, strips, len(picks))
+
+    def _scene_facts(self, scene: Any, scene_path: Path | None, V: int, T: int, Hh: int, Ww: int
+                     ) -> tuple[list[int], list[int], list[int], list[int]]:
+        """Record what the report says of the scene (future frames, Δt, its truth, its description; report.json's
+        scene entries); its observed and held-out views and frames."""
         sc = scene.config.resolved(V, T)
         obs_v, held_v = list(sc.observed_views), list(sc.held_out_views)
         obs_f, held_f = list(sc.observed_frames), list(sc.held_out_frames)
@@ -242,25 +269,21 @@ class _Builder:
         self.data.update({"scene": None if scene_path is None else str(scene_path), "views": V, "frames": T,
                           "observed_views": obs_v, "held_out_views": held_v, "observed_frames": obs_f,
                           "held_out_frames": held_f, "dt": sc.dt, "truth": self.truth})
-        # per-view, per-frame PSNR (the same per-image PSNR as the evaluation's means)
-        per_view = [[psnr(renders[v, t], targets[v, t]) for t in range(T)] for v in range(V)]
-        self.data["psnr_per_view_frame"] = per_view
-        gt8, rd8 = M.to_uint8(targets), M.to_uint8(renders)
-        err8 = np.stack([M.error_heatmap(renders[v], targets[v], cfg.error_max, cfg.error_cmap) for v in range(V)])
-        masks = scene.float_masks() if hasattr(scene, "float_masks") else scene.masks.float()
-        boxes = [M.crop_box(masks[v], renders[v]) if cfg.crop else (0, Hh, 0, Ww) for v in range(V)]
-        self.data["crop_boxes_y0_y1_x0_x1"] = boxes
+        return obs_v, held_v, obs_f, held_f
 
-        def panels(v: int, frames: Any, target: int) -> list[np.ndarray]:
-            y0, y1, x0, x1 = boxes[v]
-            f = M.scale_factor(max(y1 - y0, x1 - x0), target)
-            return [M.rescale(x[v][frames, y0:y1, x0:x1], f) for x in (gt8, rd8, err8)]
+    def _view_videos(self, panels: "_ViewPanels", per_view: list[list[float]], held_v: list[int], obs_f: list[int],
+                     held_f: list[int], size: tuple[int, int]) -> tuple[list[str], list[str]]:
+        """Encode every view's video (ground truth | reconstruction | error, with its PSNR per frame); the views'
+        cards (HTML) and the videos' file names. ``size``: the scene's (H, W)."""
+        from tqdm.auto import tqdm
 
+        cfg = self.config
+        Hh, Ww = size
         headings = [("ground truth", "scene frames"), ("reconstruction", "simulated + rendered"), ("|error|", "")]
         cards = []
         videos = []
-        for v in tqdm(range(V), desc="report videos", disable=not self.progress, leave=False):
-            frames = M.compose_video(panels(v, slice(None), cfg.panel_size), headings, future, self.dt,
+        for v in tqdm(range(len(per_view)), desc="report videos", disable=not self.progress, leave=False):
+            frames = M.compose_video(panels(v, slice(None), cfg.panel_size), headings, self.future, self.dt,
                                      psnr=per_view[v], error_panel=2, error_max=cfg.error_max, cmap=cfg.error_cmap)
             path = self._encode(f"view_{v:02d}", frames)
             videos.append(path.name)
@@ -270,7 +293,7 @@ class _Builder:
             role = (
                 '<span class="tag novel">held-out view</span>' if held else '<span class="tag obs">observed view</span>'
             )
-            y0, y1, x0, x1 = boxes[v]
+            y0, y1, x0, x1 = panels.boxes[v]
             crop = ("full frame" if (y0, y1, x0, x1) == (0, Hh, 0, Ww)
                     else f"crop x {x0}–{x1 - 1}, y {y0}–{y1 - 1} of {Ww}×{Hh}")
             cards.append(
@@ -279,26 +302,24 @@ class _Builder:
                 f'<span>PSNR <span class="tag obs">observed frames</span> {H.fmt(obs_mean)} dB · '
                 f'<span class="tag fut">future</span> {H.fmt(fut_mean)} dB</span></div>'
                 f'{self._video_html(path, f"video:{v}", (frames.shape[2], frames.shape[1]))}</div>')
-        self.video_count = len(videos)
-        self.data["videos"] = videos
-        # key-frame strips of the first observed and first held-out view
-        strips = []
-        picks = _keyframes(T, held_f[0] if held_f else None, cfg.filmstrip_frames)
-        for v in ([obs_v[0]] if obs_v else []) + ([held_v[0]] if held_v else []):
-            rows = panels(v, picks, 128)
-            kind = "held-out view" if v in held_v else "observed view"
-            grid = M.labelled_grid(rows, ["ground truth", "reconstruction", f"|error|\n0 … {cfg.error_max:g}"],
-                                   [f"frame {t}" for t in picks],
-                                   [H.FUTURE_COLOUR if future[t] else H.OBSERVED_COLOUR for t in picks])
-            path = M.save_png(self.media / f"keyframes_view_{v:02d}.png", grid)
-            strips.append(f'<h3>View {v} ({kind})</h3><div class="figure strip">'
-                          f'<img src="media/{path.name}" alt="key frames of view {v}" data-probe="strip:{v}"></div>')
-        # thumbnail: frame 0 of the first observed view, ground truth | reconstruction
-        tv = obs_v[0] if obs_v else 0
-        gt_t, rd_t, _ = panels(tv, [0], cfg.thumb_size)
-        M.save_png(self.media / "thumb.png", M.titled_panels([gt_t[0], rd_t[0]], ["ground truth", "reconstruction"]))
-        # per-frame PSNR plot
+        return cards, videos
 
+    def _keyframe_strip(self, panels: "_ViewPanels", v: int, picks: list[int], held_v: list[int]) -> str:
+        """Save view ``v``'s key frames ``picks`` (ground truth, reconstruction and error rows) as a PNG; its HTML."""
+        cfg = self.config
+        rows = panels(v, picks, 128)
+        kind = "held-out view" if v in held_v else "observed view"
+        grid = M.labelled_grid(rows, ["ground truth", "reconstruction", f"|error|\n0 … {cfg.error_max:g}"],
+                               [f"frame {t}" for t in picks],
+                               [H.FUTURE_COLOUR if self.future[t] else H.OBSERVED_COLOUR for t in picks])
+        path = M.save_png(self.media / f"keyframes_view_{v:02d}.png", grid)
+        return (f'<h3>View {v} ({kind})</h3><div class="figure strip">'
+                f'<img src="media/{path.name}" alt="key frames of view {v}" data-probe="strip:{v}"></div>')
+
+    def _psnr_plot(self, per_view: list[list[float]], held_v: list[int], T: int) -> None:
+        """The per-frame PSNR plot: one line per view, and the evaluation's means over the observed and the
+        held-out views."""
+        V = len(per_view)
         labels = {v: f"view {v}" + (" (held out)" if v in held_v else "") for v in range(V)}
         means = []
         ev = self.evaluation or {}
@@ -318,9 +339,11 @@ class _Builder:
         if any(x is not None for x in novel_curve):
             means.append(("mean, held-out views (evaluation)", novel_curve, True))
         psnr_figure(self.media / "psnr_per_frame.svg", {labels[v]: per_view[v] for v in range(V)},
-                    [labels[v] for v in held_v], future, means)
-        # sections
-        self._summary_and_tables()
+                    [labels[v] for v in held_v], self.future, means)
+
+    def _scene_sections(self, T: int, cards: list[str], videos: list[str], strips: list[str], picks: int) -> None:
+        """The videos, key-frames (``picks`` frames a strip) and per-frame PSNR sections of a report with a scene."""
+        cfg = self.config
         controls = _controls(T, self.config, videos and videos[0].endswith(".webm"))
         crop_note = (" Each view is cropped to the square around everything that appears in it over the video "
                      "(named above the video)." if cfg.crop else "")
@@ -336,7 +359,7 @@ class _Builder:
         if strips:
             self.sections.append(("keyframes", "Key frames", H.section(
                 "keyframes", "Key frames", "".join(strips),
-                f"{len(picks)} frames of the first observed and the first held-out view at a glance "
+                f"{picks} frames of the first observed and the first held-out view at a glance "
                 "(green labels: observed frames, orange: future frames).")))
         self.sections.append(
             (
@@ -394,7 +417,17 @@ class _Builder:
     # ---- sections ----------------------------------------------------------------------------------
 
     def _summary_and_tables(self) -> None:
+        """The summary cards, the material table (found vs truth) and the metrics table, from the asset's material
+        and the evaluation."""
         ev = self.evaluation or {}
+        found, truth, errors = self._material_comparison(ev)
+        self._summary_section(ev, found, truth, errors)
+        self._material_section(found, truth, errors)
+        self._metrics_section(ev)
+
+    def _material_comparison(self, ev: dict[str, Any]) -> tuple[dict[str, Any], dict[str, Any], dict[str, Any]]:
+        """The material found, the truth (the scene's, completed by the evaluation's) and their absolute errors
+        (the evaluation's, else computed), each by parameter; kept for the later sections and report.json."""
         mat_ev = ev.get("material") or {}
         found = {"E": self.material.get("E"), "log10_E": self.material.get("log10_E"), "nu": self.material.get("nu"),
                  "damping_ratio": self.material.get("damping_ratio"), "density": self.material.get("density")}
@@ -409,7 +442,12 @@ class _Builder:
                 errors[key] = abs(found[key] - truth[key])
         self.found, self.truth = found, truth
         self.data["material_table"] = {"found": found, "truth": truth, "errors": errors}
-        # summary cards
+        return found, truth, errors
+
+    def _summary_section(self, ev: dict[str, Any], found: dict[str, Any], truth: dict[str, Any],
+                         errors: dict[str, Any]) -> None:
+        """The summary cards: PSNR per group, E and ν against the truth, their errors against the targets,
+        Chamfer and centre-of-mass distances."""
         cards = []
         groups = (("dynamic", "PSNR observed"), ("future", "PSNR future"), ("novel_views", "PSNR novel views"))
         for group, label in groups:
@@ -449,7 +487,9 @@ class _Builder:
                             "<code>--scene</code>): only the material found is shown.")
         self.sections.append(("summary", "Summary", H.section("summary", "Summary",
                                                                f'<div class="cards">{"".join(cards)}</div>', intro)))
-        # material
+
+    def _material_section(self, found: dict[str, Any], truth: dict[str, Any], errors: dict[str, Any]) -> None:
+        """The material table: each parameter at the start, found, truth, error and interval."""
         start = next((e for e in self.log.get("iterations", []) if isinstance(e, dict) and e.get("iteration") == 0), {})
         rows = []
         specs = [("Young's modulus E (Pa)", "E", H.fmt_sci, None),
@@ -486,7 +526,11 @@ class _Builder:
             "approximation of the whole clip's loss at the fit, material.json <code>uncertainty</code>); a parameter "
             "the images constrain less than the prior does is marked not identifiable from this video: its value "
             "is the prior's.")))
-        # metrics
+
+    def _metrics_section(self, ev: dict[str, Any]) -> None:
+        """The metrics table: PSNR, SSIM (FoVVDP when evaluated), Chamfer and centre of mass per group."""
+        ch = ev.get("chamfer") or {}
+        com = ev.get("centre_of_mass") or {}
         has_fov = any(_isnum((ev.get(g) or {}).get("fovvdp_jod")) for g in GROUPS)
         headers = ["", "views", "frames", "PSNR (dB)", "SSIM"] + (["FoVVDP (JOD)"] if has_fov else []) \
             + ["Chamfer (cm)", "centre of mass off (cm)"]
@@ -656,6 +700,35 @@ class _Builder:
 # ---------------------------------------------------------------------------------------------------------
 # helpers
 # ---------------------------------------------------------------------------------------------------------
+
+@dataclass
+class _ViewPanels:
+    """A report's three panels per view, uint8 (V, T, H, W, 3): the scene's frames, the renders and their error
+    heat maps, with each view's crop box (y0, y1, x0, x1) in pixels."""
+
+    gt8: np.ndarray
+    rd8: np.ndarray
+    err8: np.ndarray
+    boxes: list[tuple[int, int, int, int]]
+
+    def __call__(self, v: int, frames: Any, target: int) -> list[np.ndarray]:
+        """View ``v``'s ``frames`` (a slice or indices) of the three panels, cropped and scaled towards side
+        ``target``."""
+        y0, y1, x0, x1 = self.boxes[v]
+        f = M.scale_factor(max(y1 - y0, x1 - x0), target)
+        return [M.rescale(x[v][frames, y0:y1, x0:x1], f) for x in (self.gt8, self.rd8, self.err8)]
+
+
+def _view_panels(scene: Any, targets: Tensor, renders: Tensor, cfg: ReportConfig) -> _ViewPanels:
+    """The panels of the scene's frames ``targets`` and the ``renders`` (V, T, H, W, 3) float in [0, 1]; each view
+    cropped to the box around everything its masks and renders show when ``cfg.crop``."""
+    V, _, Hh, Ww, _ = targets.shape
+    gt8, rd8 = M.to_uint8(targets), M.to_uint8(renders)
+    err8 = np.stack([M.error_heatmap(renders[v], targets[v], cfg.error_max, cfg.error_cmap) for v in range(V)])
+    masks = scene.float_masks() if hasattr(scene, "float_masks") else scene.masks.float()
+    boxes = [M.crop_box(masks[v], renders[v]) if cfg.crop else (0, Hh, 0, Ww) for v in range(V)]
+    return _ViewPanels(gt8, rd8, err8, boxes)
+
 
 def _isnum(x: Any) -> bool:
     return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)

@@ -112,99 +112,15 @@ def write_suite_report(out_dir: str | Path, suite: Mapping[str, Any], config: Re
     try:
         rows, scatter = [], []
         for i, s in enumerate(data["scenes"]):
-            ev = s.get("evaluation") or {}
-            mat = ev.get("material") or {}
-            found, truth = dict(mat.get("fitted") or {}), dict(mat.get("truth") or {})
-            for d in (found, truth):
-                if _isnum(d.get("E")) and d["E"] > 0 and not _isnum(d.get("log10_E")):
-                    d["log10_E"] = math.log10(d["E"])
-            if found and truth:
-                unc = mat.get("uncertainty") or {}
-                scatter.append({"name": s["name"], "found": found, "truth": truth,
-                                "interval": {k: (unc.get(k) or {}).get("interval") for k in ("log10_E", "nu")},
-                                "identifiable": {k: (unc.get(k) or {}).get("identifiable", True)
-                                                 for k in ("log10_E", "nu")}})
-            thumb = tmp / "media" / f"thumb_{i:03d}.png"
-            has_thumb = _thumbnail(s, thumb, config)
-            link = None
-            if s.get("report") is not None and (Path(s["report"]) / "index.html").is_file():
-                link = os.path.relpath(Path(s["report"]).resolve() / "index.html", out.resolve())
-            name_html = (f'<a href="{H.esc(Path(link).as_posix())}">{H.esc(s["name"])}</a>' if link
-                         else H.esc(s["name"]))
-            thumb_html = (
-                f'<img class="thumb" src="media/{thumb.name}" alt="{H.esc(s["name"])}" data-probe="thumb:{i}">'
-                if has_thumb
-                else '<span class="note">no picture</span>'
-            )
-            status = f'<span class="status {s["status"]}">{s["status"]}</span>'
-            cells = [f"<td>{i}</td>", f"<td>{name_html}</td>", f"<td>{thumb_html}</td>", f"<td>{status}</td>"]
-            if s["status"] == "failed" and not ev:
-                cells.append(f'<td colspan="{len(METRIC_COLUMNS)}" class="error-text">'
-                             f'{H.esc(s.get("error") or "failed (no error message)")}</td>')
-            else:
-                for group, key in (("dynamic", "dynamic"), ("future", "future"), ("novel_views", "novel")):
-                    g = ev.get(group) or {}
-                    cells.append('<td class="pair">' + H.num_span(g.get("psnr"), H.fmt(g.get("psnr"), 2, "dB"),
-                                                                 key=f"{key}_psnr")
-                                 + H.num_span(g.get("ssim"), H.fmt(g.get("ssim"), 4), key=f"{key}_ssim") + "</td>")
-                for key, label, f in (("E", "E", H.fmt_sci), ("nu", "ν", lambda x: H.fmt(x, 3))):
-                    cells.append('<td class="pair material">'
-                                 + f'<span class="v"><span class="lbl">truth</span>{H.esc(f(truth.get(key)))}</span>'
-                                 + H.num_span(found.get(key), "found " + f(found.get(key)), key=f"found_{key}")
-                                 + "</td>")
-                cells.append(H.num_cell(mat.get("abs_error_log10_E"), digits=3, key="abs_error_log10_E"))
-                cells.append(H.num_cell(mat.get("abs_error_nu"), digits=3, key="abs_error_nu"))
-                for group, key in (("chamfer", "chamfer_observed"), ("centre_of_mass", "centre_of_mass_observed")):
-                    cm = (ev.get(group) or {}).get("observed_mean")
-                    cells.append(H.num_cell(cm, H.fmt(100 * cm, 2) if _isnum(cm) else "—", key=key))
-            cells.append(H.num_cell(s.get("seconds"), H.fmt(s.get("seconds"), 0), key="seconds"))
-            rows.append("".join(cells))
-            if s.get("error") and (s["status"] != "failed" or ev):
-                rows.append(f'<td></td><td colspan="{3 + len(METRIC_COLUMNS) + 1}" class="error-text">'
-                            f'{H.esc(s["error"])}</td>')
-        means = data["means"]
-        foot_cells = ['<td></td><td>mean</td><td></td>',
-                      f"<td>{sum(s['status'] == 'ok' for s in data['scenes'])} ok</td>"]
-        for key in ("dynamic", "future", "novel"):
-            psnr, ssim = means.get(f"{key}_psnr"), means.get(f"{key}_ssim")
-            foot_cells.append('<td class="pair">' + H.num_span(psnr, H.fmt(psnr, 2, "dB"), key=f"{key}_psnr")
-                              + H.num_span(ssim, H.fmt(ssim, 4), key=f"{key}_ssim") + "</td>")
-        foot_cells.append("<td></td><td></td>")
-        foot_cells.append(H.num_cell(means.get("abs_error_log10_E"), digits=3, key="abs_error_log10_E"))
-        foot_cells.append(H.num_cell(means.get("abs_error_nu"), digits=3, key="abs_error_nu"))
-        for key in ("chamfer_observed", "centre_of_mass_observed"):
-            cm = means.get(key)
-            foot_cells.append(H.num_cell(cm, H.fmt(100 * cm, 2) if _isnum(cm) else "", key=key))
-        foot_cells.append(
-            H.num_cell(
-                means.get("seconds"),
-                H.fmt(means.get("seconds"), 0) if _isnum(means.get("seconds")) else "",
-                key="seconds",
-            )
-        )
+            found, truth, point = _scene_material(s)
+            if point is not None:
+                scatter.append(point)
+            rows += _scene_rows(i, s, found, truth, tmp / "media" / f"thumb_{i:03d}.png", out, config)
         headers = ["#", "scene", "frame 0", "status"] + list(METRIC_COLUMNS) + ["seconds"]
-        table = H.table(headers, rows, table_id="suite-table", foot=["".join(foot_cells)])
-        cards = []
-        for key, value in means.items():
-            label, unit, digits, scale = MEAN_LABELS.get(key, (key, "", 3, 1.0))
-            shown = H.fmt(scale * value, digits) if _isnum(value) else "—"
-            cards.append(H.card(label, shown, "mean over the scenes that ran", unit=unit if _isnum(value) else ""))
-        n_ok = sum(s["status"] == "ok" for s in data["scenes"])
-        n_failed = len(data["scenes"]) - n_ok
+        table = H.table(headers, rows, table_id="suite-table", foot=[_means_row(data)])
+        cards = _mean_cards(data["means"])
         material_scatter(tmp / "media" / "material.svg", scatter)
-        sections = [
-            ("means", "Means", H.section("means", "Means", f'<div class="cards">{"".join(cards)}</div>',
-                                         f"{n_ok} of {len(data['scenes'])} scenes ran"
-                                         + (f"; {n_failed} failed (their rows say why)." if n_failed else "."))),
-            ("scenes", "Scenes", H.section("scenes", "Scenes", table,
-                                           "One row per scene; the name links to the scene's own report. Chamfer and "
-                                           "centre of mass: means over the observed frames; E in Pa; the footer "
-                                           "holds the suite's means.")),
-            ("material", "Material", H.section(
-                "material", "Material found vs truth",
-                '<div class="figure"><img src="media/material.svg" alt="material found vs truth" '
-                'data-probe="plot:material"></div>')),
-        ]
+        sections = _suite_sections(data, cards, table)
         date = _dt.datetime.now().astimezone().strftime("%Y-%m-%d %H:%M %Z")
         suite_name = Path(str(data.get("suite") or "suite")).name
         subtitle = (f"suite <b>{H.esc(suite_name)}</b> ({H.esc(data.get('suite'))}) · preset "
@@ -220,3 +136,127 @@ def write_suite_report(out_dir: str | Path, suite: Mapping[str, Any], config: Re
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     return out
+
+
+def _scene_material(s: Mapping[str, Any]) -> tuple[dict[str, Any], dict[str, Any], dict[str, Any] | None]:
+    """A scene's material found and truth (with log10 E where only E is given), and its point of the material
+    plot (None unless both are known)."""
+    ev = s.get("evaluation") or {}
+    mat = ev.get("material") or {}
+    found, truth = dict(mat.get("fitted") or {}), dict(mat.get("truth") or {})
+    for d in (found, truth):
+        if _isnum(d.get("E")) and d["E"] > 0 and not _isnum(d.get("log10_E")):
+            d["log10_E"] = math.log10(d["E"])
+    if not (found and truth):
+        return found, truth, None
+    unc = mat.get("uncertainty") or {}
+    return found, truth, {"name": s["name"], "found": found, "truth": truth,
+                          "interval": {k: (unc.get(k) or {}).get("interval") for k in ("log10_E", "nu")},
+                          "identifiable": {k: (unc.get(k) or {}).get("identifiable", True) for k in ("log10_E", "nu")}}
+
+
+def _scene_rows(i: int, s: Mapping[str, Any], found: dict[str, Any], truth: dict[str, Any], thumb: Path, out: Path,
+                config: ReportConfig) -> list[str]:
+    """Scene ``i``'s table row (its thumbnail written to ``thumb``, its name linking to its report relative to
+    ``out``), and a second row with its error when it has one the first does not show."""
+    ev = s.get("evaluation") or {}
+    has_thumb = _thumbnail(s, thumb, config)
+    link = None
+    if s.get("report") is not None and (Path(s["report"]) / "index.html").is_file():
+        link = os.path.relpath(Path(s["report"]).resolve() / "index.html", out.resolve())
+    name_html = (f'<a href="{H.esc(Path(link).as_posix())}">{H.esc(s["name"])}</a>' if link
+                 else H.esc(s["name"]))
+    thumb_html = (
+        f'<img class="thumb" src="media/{thumb.name}" alt="{H.esc(s["name"])}" data-probe="thumb:{i}">'
+        if has_thumb
+        else '<span class="note">no picture</span>'
+    )
+    status = f'<span class="status {s["status"]}">{s["status"]}</span>'
+    cells = [f"<td>{i}</td>", f"<td>{name_html}</td>", f"<td>{thumb_html}</td>", f"<td>{status}</td>"]
+    if s["status"] == "failed" and not ev:
+        cells.append(f'<td colspan="{len(METRIC_COLUMNS)}" class="error-text">'
+                     f'{H.esc(s.get("error") or "failed (no error message)")}</td>')
+    else:
+        cells += _metric_cells(ev, found, truth)
+    cells.append(H.num_cell(s.get("seconds"), H.fmt(s.get("seconds"), 0), key="seconds"))
+    rows = ["".join(cells)]
+    if s.get("error") and (s["status"] != "failed" or ev):
+        rows.append(f'<td></td><td colspan="{3 + len(METRIC_COLUMNS) + 1}" class="error-text">'
+                    f'{H.esc(s["error"])}</td>')
+    return rows
+
+
+def _metric_cells(ev: Mapping[str, Any], found: dict[str, Any], truth: dict[str, Any]) -> list[str]:
+    """A scene row's :data:`METRIC_COLUMNS` cells from its evaluation ``ev``."""
+    mat = ev.get("material") or {}
+    cells = []
+    for group, key in (("dynamic", "dynamic"), ("future", "future"), ("novel_views", "novel")):
+        g = ev.get(group) or {}
+        cells.append('<td class="pair">' + H.num_span(g.get("psnr"), H.fmt(g.get("psnr"), 2, "dB"),
+                                                     key=f"{key}_psnr")
+                     + H.num_span(g.get("ssim"), H.fmt(g.get("ssim"), 4), key=f"{key}_ssim") + "</td>")
+    for key, label, f in (("E", "E", H.fmt_sci), ("nu", "ν", lambda x: H.fmt(x, 3))):
+        cells.append('<td class="pair material">'
+                     + f'<span class="v"><span class="lbl">truth</span>{H.esc(f(truth.get(key)))}</span>'
+                     + H.num_span(found.get(key), "found " + f(found.get(key)), key=f"found_{key}")
+                     + "</td>")
+    cells.append(H.num_cell(mat.get("abs_error_log10_E"), digits=3, key="abs_error_log10_E"))
+    cells.append(H.num_cell(mat.get("abs_error_nu"), digits=3, key="abs_error_nu"))
+    for group, key in (("chamfer", "chamfer_observed"), ("centre_of_mass", "centre_of_mass_observed")):
+        cm = (ev.get(group) or {}).get("observed_mean")
+        cells.append(H.num_cell(cm, H.fmt(100 * cm, 2) if _isnum(cm) else "—", key=key))
+    return cells
+
+
+def _means_row(data: Mapping[str, Any]) -> str:
+    """The table's footer: the suite's means (and how many scenes ran)."""
+    means = data["means"]
+    foot_cells = ['<td></td><td>mean</td><td></td>',
+                  f"<td>{sum(s['status'] == 'ok' for s in data['scenes'])} ok</td>"]
+    for key in ("dynamic", "future", "novel"):
+        psnr, ssim = means.get(f"{key}_psnr"), means.get(f"{key}_ssim")
+        foot_cells.append('<td class="pair">' + H.num_span(psnr, H.fmt(psnr, 2, "dB"), key=f"{key}_psnr")
+                          + H.num_span(ssim, H.fmt(ssim, 4), key=f"{key}_ssim") + "</td>")
+    foot_cells.append("<td></td><td></td>")
+    foot_cells.append(H.num_cell(means.get("abs_error_log10_E"), digits=3, key="abs_error_log10_E"))
+    foot_cells.append(H.num_cell(means.get("abs_error_nu"), digits=3, key="abs_error_nu"))
+    for key in ("chamfer_observed", "centre_of_mass_observed"):
+        cm = means.get(key)
+        foot_cells.append(H.num_cell(cm, H.fmt(100 * cm, 2) if _isnum(cm) else "", key=key))
+    foot_cells.append(
+        H.num_cell(
+            means.get("seconds"),
+            H.fmt(means.get("seconds"), 0) if _isnum(means.get("seconds")) else "",
+            key="seconds",
+        )
+    )
+    return "".join(foot_cells)
+
+
+def _mean_cards(means: Mapping[str, Any]) -> list[str]:
+    """A card per suite mean (:data:`MEAN_LABELS` names and scales it)."""
+    cards = []
+    for key, value in means.items():
+        label, unit, digits, scale = MEAN_LABELS.get(key, (key, "", 3, 1.0))
+        shown = H.fmt(scale * value, digits) if _isnum(value) else "—"
+        cards.append(H.card(label, shown, "mean over the scenes that ran", unit=unit if _isnum(value) else ""))
+    return cards
+
+
+def _suite_sections(data: Mapping[str, Any], cards: list[str], table: str) -> list[tuple[str, str, str]]:
+    """The page's sections (anchor, navigation label, HTML): the means, the scenes' table, the material plot."""
+    n_ok = sum(s["status"] == "ok" for s in data["scenes"])
+    n_failed = len(data["scenes"]) - n_ok
+    return [
+        ("means", "Means", H.section("means", "Means", f'<div class="cards">{"".join(cards)}</div>',
+                                     f"{n_ok} of {len(data['scenes'])} scenes ran"
+                                     + (f"; {n_failed} failed (their rows say why)." if n_failed else "."))),
+        ("scenes", "Scenes", H.section("scenes", "Scenes", table,
+                                       "One row per scene; the name links to the scene's own report. Chamfer and "
+                                       "centre of mass: means over the observed frames; E in Pa; the footer "
+                                       "holds the suite's means.")),
+        ("material", "Material", H.section(
+            "material", "Material found vs truth",
+            '<div class="figure"><img src="media/material.svg" alt="material found vs truth" '
+            'data-probe="plot:material"></div>')),
+    ]

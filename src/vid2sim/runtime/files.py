@@ -3,18 +3,23 @@
 Every output vid2sim writes goes through :func:`write_json_atomic`, :func:`write_text_atomic` or
 :func:`save_torch_atomic`: the data is written to a hidden temporary file beside the target and renamed onto it,
 so a reader (or a run killed halfway) never sees half a file. The permissions are the umask's, as for a file
-opened normally (``mkstemp`` would make it private).
+opened normally (``mkstemp`` would make it private). A folder is written whole the same way by
+:func:`write_folder_atomic`, and :func:`jsonable` makes the JSON-ready copy of a record holding numpy values.
 """
 
 from __future__ import annotations
 
 import json
+import math
 import os
 import pickle
+import shutil
 import tempfile
+import uuid
 from pathlib import Path
 from typing import Any, Callable
 
+import numpy as np
 import torch
 
 from vid2sim.runtime.errors import InputError
@@ -56,6 +61,70 @@ def write_text_atomic(path: str | Path, text: str) -> Path:
 def write_json_atomic(path: str | Path, obj: Any, indent: int | None = 2) -> Path:
     """Write ``obj`` as JSON (with a final newline) to ``path`` atomically; returns the path."""
     return write_text_atomic(path, json.dumps(obj, indent=indent) + "\n")
+
+
+def write_folder_atomic(path: str | Path, write: Callable[[Path], None], create: bool = False) -> Path:
+    """Call ``write(staging)`` (it fills the folder ``staging``) on a hidden folder ``.NAME.making-<id>`` beside
+    ``path``, then move it into place (:func:`move_folder_into_place`); returns the path.
+
+    ``create`` makes the staging folder before ``write`` is called (else ``write`` creates it). An empty folder
+    at ``path`` is removed first; any other folder there is replaced only at the last moment, so the caller
+    decides beforehand whether it may be. On any error (or an interrupt) the staging folder is removed and
+    ``path`` is left as it was.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    staging = path.parent / f".{path.name}.making-{uuid.uuid4().hex[:12]}"
+    if create:
+        staging.mkdir()
+    try:
+        write(staging)
+        if path.is_dir() and not any(path.iterdir()):
+            path.rmdir()
+        move_folder_into_place(staging, path)
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+    return path
+
+
+def move_folder_into_place(tmp: Path, target: Path) -> None:
+    """Rename the finished folder ``tmp`` to ``target``, replacing an existing ``target`` only at the last moment
+    (it is restored if the rename fails). Both must be on the same file system; ``tmp`` is first given the
+    permissions a folder made with ``mkdir`` would have (0777 minus the umask)."""
+    os.chmod(tmp, 0o777 & ~_umask())
+    if not target.exists():
+        os.replace(tmp, target)
+        return
+    old = target.parent / f".{target.name}.old-{uuid.uuid4().hex[:12]}"
+    os.replace(target, old)
+    try:
+        os.replace(tmp, target)
+    except BaseException:
+        os.replace(old, target)
+        raise
+    shutil.rmtree(old, ignore_errors=True)
+
+
+def jsonable(obj: Any, nan_to_null: bool = True) -> Any:
+    """A copy of ``obj`` that ``json.dumps`` writes: dict keys as strings, tuples as lists, numpy arrays as
+    (nested) lists and numpy scalars as Python numbers.
+
+    Args:
+        nan_to_null: non-finite floats (NaN, ±inf; JSON has none) become None. With False they are kept, and
+            ``json.dumps`` writes them as ``NaN`` / ``Infinity`` (as Python's ``json`` reads back).
+    """
+    if isinstance(obj, dict):
+        return {str(k): jsonable(v, nan_to_null) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [jsonable(v, nan_to_null) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return jsonable(obj.tolist(), nan_to_null)
+    if isinstance(obj, np.generic):
+        return jsonable(obj.item(), nan_to_null)
+    if nan_to_null and isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    return obj
 
 
 def save_torch_atomic(obj: Any, path: str | Path) -> Path:

@@ -300,9 +300,44 @@ def _make_cameras(
 def _load_frames(
     root: Path, plan: TransformsPlan, config: SceneConfig, dtype: torch.dtype, progress: bool, workers: int | None
 ) -> tuple[list[Camera], Tensor, Tensor, Tensor]:
+    """A scene in the frames layout: cameras, images (V, T, H, W, 3) composited on white, masks (V, T, H, W) and
+    frame times (T,). The files are found, their sizes checked from the headers, the cameras and times made, then
+    the pixels decoded on ``workers`` threads; each stage raises SceneFormatError listing all its problems."""
     problems = Problems()
     V, T = plan.num_views, plan.num_frames
     assert T is not None
+    files = _frame_files(root, plan, problems)
+    problems.raise_if_any(root)
+    sizes = _frame_sizes(plan, files, problems)
+    problems.raise_if_any(root)
+    cam_sizes = _camera_sizes(plan, sizes, problems)
+    cameras = _make_cameras(plan, cam_sizes, [f"'{plan.grid[v][0].file_path}'" for v in range(V)], problems)
+    usual = Counter(cam_sizes).most_common(1)[0][0]
+    for v in range(V):
+        if cam_sizes[v] != usual:
+            problems.add(
+                f"{TRANSFORMS_JSON}: camera {v} has {cam_sizes[v][0]}x{cam_sizes[v][1]} images but the other "
+                f"cameras have {usual[0]}x{usual[1]}; all cameras must have the same image size"
+            )
+    times = _frame_times(plan, config, problems)
+    problems.raise_if_any(root)
+
+    W, H = usual
+    np_dtype = {torch.uint8: np.uint8, torch.float32: np.float32, torch.float64: np.float64}[dtype]
+    images_np = np.empty((V, T, H, W, 3), dtype=np_dtype)
+    masks_np = np.empty((V, T, H, W), dtype=np_dtype)
+    work = np.float64 if dtype == torch.float64 else np.float32
+    decode = _FrameDecoder(plan, files, images_np, masks_np, np.dtype(work), problems)
+    jobs = [lambda v=v, t=t: decode(v, t) for v in range(V) for t in range(T)]
+    run_parallel(jobs, workers, progress, "loading scene")
+    problems.raise_if_any(root)
+    return cameras, torch.from_numpy(images_np), torch.from_numpy(masks_np), times
+
+
+def _frame_files(root: Path, plan: TransformsPlan, problems: Problems
+                 ) -> dict[tuple[int, int], tuple[Path, Path | None]]:
+    """The image and mask file (None: the image's alpha) of every (camera, frame) whose files are all found; a
+    problem names each file that is not."""
     files: dict[tuple[int, int], tuple[Path, Path | None]] = {}
     for row in plan.grid:
         for e in row:
@@ -317,9 +352,13 @@ def _load_frames(
                     problems.add(f"{where}: mask file '{e.mask_path}' not found")
             if img is not None and (e.mask_path is None or msk is not None):
                 files[(e.camera, e.time_index)] = (img, msk)
-    problems.raise_if_any(root)
+    return files
 
-    # header pass: sizes agree per camera, between cameras, and between image and mask
+
+def _frame_sizes(plan: TransformsPlan, files: dict[tuple[int, int], tuple[Path, Path | None]], problems: Problems
+                 ) -> dict[tuple[int, int], tuple[int, int]]:
+    """The (width, height) of every (camera, frame) image, read from the headers; a problem for each image or mask
+    that cannot be read and each mask of another size than its image."""
     sizes: dict[tuple[int, int], tuple[int, int]] = {}
     for (v, t), (img, msk) in files.items():
         e = plan.grid[v][t]
@@ -340,11 +379,16 @@ def _load_frames(
                     f"{where}: mask '{e.mask_path}' is {msize[0]}x{msize[1]} but image '{e.file_path}' is "
                     f"{sizes[(v, t)][0]}x{sizes[(v, t)][1]}"
                 )
-    problems.raise_if_any(root)
-    # the reference size is the most common one (per camera, then between cameras), so one odd image is
-    # named as the odd one instead of every good image being blamed for differing from it
+    return sizes
+
+
+def _camera_sizes(plan: TransformsPlan, sizes: dict[tuple[int, int], tuple[int, int]], problems: Problems
+                  ) -> list[tuple[int, int]]:
+    """Each camera's image size: the most common of its frames' (so one odd image is named as the odd one instead
+    of every good image being blamed for differing from it); a problem for each image of another size."""
+    T = plan.num_frames
     cam_sizes = []
-    for v in range(V):
+    for v in range(plan.num_views):
         usual = Counter(sizes[(v, t)] for t in range(T)).most_common(1)[0][0]
         cam_sizes.append(usual)
         for t in range(T):
@@ -354,68 +398,56 @@ def _load_frames(
                     f"{TRANSFORMS_JSON}: {e.where}: image '{e.file_path}' is {sizes[(v, t)][0]}x{sizes[(v, t)][1]} "
                     f"but camera {v}'s other images are {usual[0]}x{usual[1]}"
                 )
-    cameras = _make_cameras(plan, cam_sizes, [f"'{plan.grid[v][0].file_path}'" for v in range(V)], problems)
-    usual = Counter(cam_sizes).most_common(1)[0][0]
-    for v in range(V):
-        if cam_sizes[v] != usual:
-            problems.add(
-                f"{TRANSFORMS_JSON}: camera {v} has {cam_sizes[v][0]}x{cam_sizes[v][1]} images but the other "
-                f"cameras have {usual[0]}x{usual[1]}; all cameras must have the same image size"
-            )
-    times = _frame_times(plan, config, problems)
-    problems.raise_if_any(root)
+    return cam_sizes
 
-    W, H = usual
-    np_dtype = {torch.uint8: np.uint8, torch.float32: np.float32, torch.float64: np.float64}[dtype]
-    images_np = np.empty((V, T, H, W, 3), dtype=np_dtype)
-    masks_np = np.empty((V, T, H, W), dtype=np_dtype)
-    work = np.float64 if dtype == torch.float64 else np.float32
-    lock = threading.Lock()
 
-    def decode(v: int, t: int) -> None:
-        e = plan.grid[v][t]
-        img_path, msk_path = files[(v, t)]
+class _FrameDecoder:
+    """Decodes one (camera, frame) of the frames layout into ``images`` (V, T, H, W, 3) composited on white and
+    ``masks`` (V, T, H, W), from an RGBA image or an RGB(A) image with a mask file; thread-safe (a problem is added
+    under a lock)."""
+
+    def __init__(self, plan: TransformsPlan, files: dict[tuple[int, int], tuple[Path, Path | None]],
+                 images: np.ndarray, masks: np.ndarray, work: np.dtype, problems: Problems) -> None:
+        self.plan, self.files, self.images, self.masks, self.work = plan, files, images, masks, work
+        self.problems = problems
+        self.lock = threading.Lock()
+
+    def _problem(self, message: str) -> None:
+        with self.lock:
+            self.problems.add(message)
+
+    def __call__(self, v: int, t: int) -> None:
+        e = self.plan.grid[v][t]
+        img_path, msk_path = self.files[(v, t)]
         where = f"{TRANSFORMS_JSON}: {e.where}"
+        work = self.work
         try:
             raster = _read_raster(img_path)
         except (OSError, UnidentifiedImageError, ValueError) as exc:
-            with lock:
-                problems.add(f"{where}: cannot read image '{e.file_path}': {exc}")
-            return
+            return self._problem(f"{where}: cannot read image '{e.file_path}': {exc}")
         channels = raster.shape[2]
         alpha = raster[..., -1] if channels in (2, 4) else None
         colour = raster[..., :3] if channels >= 3 else np.repeat(raster[..., :1], 3, axis=2)
         if msk_path is None:
             if alpha is None:
-                with lock:
-                    problems.add(
-                        f"{where}: image '{e.file_path}' has no alpha channel and the frame has no mask_path; "
-                        "give an RGBA image (alpha = object mask) or a mask_path"
-                    )
-                return
-            mask = _unit(alpha, np.dtype(work))
+                return self._problem(
+                    f"{where}: image '{e.file_path}' has no alpha channel and the frame has no mask_path; "
+                    "give an RGBA image (alpha = object mask) or a mask_path"
+                )
+            mask = _unit(alpha, work)
         else:
             if alpha is not None and alpha.min() < np.iinfo(alpha.dtype).max:
-                with lock:
-                    problems.add(
-                        f"{where}: image '{e.file_path}' has a (non-opaque) alpha channel and the frame also has "
-                        f"mask_path '{e.mask_path}'; give the mask one way only"
-                    )
-                return
+                return self._problem(
+                    f"{where}: image '{e.file_path}' has a (non-opaque) alpha channel and the frame also has "
+                    f"mask_path '{e.mask_path}'; give the mask one way only"
+                )
             try:
                 mask = _read_mask(msk_path)
             except (OSError, UnidentifiedImageError, ValueError) as exc:
-                with lock:
-                    problems.add(f"{where}: cannot use mask '{e.mask_path}': {exc}")
-                return
-            mask = _unit(mask, np.dtype(work))
-        _store(images_np, (v, t), _composite(_unit(colour, np.dtype(work)), mask))
-        _store(masks_np, (v, t), mask)
-
-    jobs = [lambda v=v, t=t: decode(v, t) for v in range(V) for t in range(T)]
-    run_parallel(jobs, workers, progress, "loading scene")
-    problems.raise_if_any(root)
-    return cameras, torch.from_numpy(images_np), torch.from_numpy(masks_np), times
+                return self._problem(f"{where}: cannot use mask '{e.mask_path}': {exc}")
+            mask = _unit(mask, work)
+        _store(self.images, (v, t), _composite(_unit(colour, work), mask))
+        _store(self.masks, (v, t), mask)
 
 
 def _read_mask(path: Path) -> np.ndarray:

@@ -24,8 +24,6 @@ from __future__ import annotations
 
 import json
 import math
-import shutil
-import uuid
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
@@ -35,15 +33,14 @@ import torch
 from PIL import Image
 from torch import Tensor
 
+from vid2sim.runtime.files import jsonable, write_folder_atomic
 from vid2sim.scene.capture.cameras import CaptureCamera, rigid
 from vid2sim.scene.capture.colmap import write_colmap
-from vid2sim.scene.capture.jsonify import jsonable
 from vid2sim.scene.capture.nerfstudio import write_transforms
 from vid2sim.scene.reading import load_scene
 from vid2sim.scene.video import write_video
-from vid2sim.scene.writing import move_into_place
 from vid2sim.splats.cameras import Camera
-from vid2sim.synthetic.capture_render import Sensor, ShadowMaps, make_room, render_view
+from vid2sim.synthetic.capture_render import Room, Sensor, ShadowMaps, make_room, render_view
 from vid2sim.synthetic.embedding import apply_embedding, embed_points
 from vid2sim.synthetic.fem import FEMResult
 from vid2sim.synthetic.mesh_render import DEFAULT_LIGHT_DIR
@@ -360,6 +357,34 @@ def write_capture(motion: CaptureMotion, out: str | Path, config: CaptureTwinCon
         if not (out / TRUTH_DIR / TRUTH_JSON).is_file():
             raise FileExistsError(f"{out} is not a capture twin (no {TRUTH_DIR}/{TRUTH_JSON}); refusing to replace it")
     rng = np.random.default_rng([int(config.seed), 48])
+    rig = _capture_rig(motion, config, rng)
+    room = make_room(motion.floor_height, config.room_half_size, config.wall_height, seed=config.seed)
+    shadows = ShadowMaps(motion.vertices, motion.faces, motion.floor_height, DEFAULT_LIGHT_DIR,
+                         softness=config.shadow_softness_m)
+
+    def write(staging: Path) -> None:
+        alphas = _film(staging, motion, rig, room, shadows, config, rng, progress)
+        true_cal = _write_calibrations(staging, motion, rig, config, rng)
+        _write_truth(staging / TRUTH_DIR, motion, rig, config, true_cal, alphas)
+
+    return write_folder_atomic(out, write, create=True)
+
+
+@dataclass
+class _CaptureRig:
+    """The capture's cameras as drawn: names, COLMAP models, the cameras filming in the world frame (scaled by
+    ``resolution_scale``, with their true lenses), their sensors, and the similarity to the calibration frame."""
+
+    names: list[str]
+    models: list[str]
+    true_world: list[CaptureCamera]
+    sensors: list[Sensor]
+    sim: Similarity
+
+
+def _capture_rig(motion: CaptureMotion, config: CaptureTwinConfig, rng: np.random.Generator) -> _CaptureRig:
+    """Draw the rig from ``rng`` (in this order: every camera's model, then every lens, every sensor, and the
+    similarity)."""
     names = [f"c{v:02d}" for v in range(len(motion.cameras))]
     models = [str(rng.choice(config.camera_models)) for _ in names]
     k = config.resolution_scale
@@ -371,100 +396,107 @@ def write_capture(motion: CaptureMotion, out: str | Path, config: CaptureTwinCon
                       float(rng.uniform(*config.black_level_range)), config.noise_std) for _ in names]
     lo, hi = np.log(config.world_scale_range[0]), np.log(config.world_scale_range[1])
     sim = Similarity(float(np.exp(rng.uniform(lo, hi))), _random_rotation(rng), rng.normal(0.0, 3.0, 3))
-    room = make_room(motion.floor_height, config.room_half_size, config.wall_height, seed=config.seed)
-    shadows = ShadowMaps(motion.vertices, motion.faces, motion.floor_height, DEFAULT_LIGHT_DIR,
-                         softness=config.shadow_softness_m)
+    return _CaptureRig(names, models, true_world, sensors, sim)
+
+
+def _film(staging: Path, motion: CaptureMotion, rig: _CaptureRig, room: Room, shadows: ShadowMaps,
+          config: CaptureTwinConfig, rng: np.random.Generator, progress: bool) -> list[np.ndarray]:
+    """Render every camera's frames (through its sensor: noise from ``rng``) as a video or PNG frames, and its clean
+    plate; the cameras' true coverage, each (T, H, W) uint8."""
     T = motion.vertices.shape[0]
-    out.parent.mkdir(parents=True, exist_ok=True)
-    staging = out.parent / f".{out.name}.making-{uuid.uuid4().hex[:12]}"
-    staging.mkdir()
-    try:
-        alphas = []
-        for v, cam in enumerate(true_world):
-            if progress:
-                print(f"[capture twin] camera {cam.name}: rendering {T} frames", flush=True)
-            frames, plate, alpha = render_view(cam, room, motion.vertices, motion.faces, motion.uvs, motion.texture,
-                                               shadows, config.shadow_light, config.supersample)
-            noisy = sensors[v](frames, rng)
-            if config.frames_format == "video":
-                (staging / "videos").mkdir(exist_ok=True)
-                write_video(staging / "videos" / f"{cam.name}.mp4", noisy, 1.0 / motion.dt,
-                            quality=config.video_quality)
-            else:
-                folder = staging / "frames" / cam.name
-                folder.mkdir(parents=True)
-                for t, f in enumerate(noisy):
-                    Image.fromarray(f).save(folder / f"{t:05d}.png", compress_level=1)
-            (staging / "background").mkdir(exist_ok=True)
-            Image.fromarray(sensors[v](plate, rng)).save(staging / "background" / f"{cam.name}.png")
-            alphas.append(np.round(alpha * 255).astype(np.uint8))
-        if config.frames_format == "frames":
-            (staging / "capture.json").write_text(json.dumps({"fps": 1.0 / motion.dt}) + "\n")
-        # calibrations
-        true_cal = [CaptureCamera(c.name, c.width, c.height, c.K, c.distortion,
-                                  sim.world_to_camera(c.world_to_camera), model=c.model) for c in true_world]
-        noisy_cal = [_perturbed(c, rng, config, sim.scale) for c in true_cal]
-        points_world = _room_points(config, motion.floor_height, rng)
-        visible = []
-        keep = []
-        for p in points_world:
-            seen = [v for v, c in enumerate(true_world) if _in_view(p[None], [c], 0.0)]
-            if len(seen) >= 2:
-                keep.append(p)
-                visible.append(seen)
-        points_world = np.array(keep).reshape(-1, 3)
-        points_cal = sim.points(points_world + rng.normal(0.0, config.point_noise_m, points_world.shape))
-        colours = np.full((len(points_cal), 3), 128, np.uint8)
-        if config.colmap_format in ("text", "both"):
-            write_colmap(noisy_cal, models, staging / "colmap", binary=False, points=points_cal, colours=colours,
-                         visible=visible)
-        if config.colmap_format in ("binary", "both"):
-            write_colmap(noisy_cal, models, staging / "colmap", binary=True, points=points_cal, colours=colours,
-                         visible=visible)
-        if config.write_transforms:
-            write_transforms(noisy_cal, staging / "transforms.json")
-        # the truth
-        truth_dir = staging / TRUTH_DIR
-        truth_dir.mkdir()
-        np.savez_compressed(truth_dir / ALPHA_NPZ, alpha=np.stack(alphas))
-        g = np.asarray(motion.gravity, dtype=np.float64)
-        up_world = -g / np.linalg.norm(g)
-        up_cal = sim.R @ up_world
-        floor_point_cal = sim.points(np.array([[0.0, 0.0, motion.floor_height]]))[0]
-        truth = {
-            "generator": "vid2sim.synthetic.capture",
-            "config": jsonable(asdict(config)),
-            "cameras": names,
-            "frames": T,
-            "fps": 1.0 / motion.dt,
-            "dt": motion.dt,
-            "lead_in_frames": motion.lead_in,
-            "frame_step": motion.step,
-            "resolution_scale": k,
-            "scene_frames": [motion.lead_in, T],
-            "world_to_calibration": sim.to_json(),
-            "units_per_metre": sim.scale,
-            "metres_per_unit": 1.0 / sim.scale,
-            "gravity_world": g.tolist(),
-            "gravity_direction_calibration": (-up_cal).tolist(),
-            "floor_height_world": motion.floor_height,
-            "floor_calibration": {"normal": up_cal.tolist(), "offset": float(up_cal @ floor_point_cal)},
-            "true_cameras_calibration": {c.name: {"model": c.model, "K": c.K.tolist(),
-                                                  "distortion": c.distortion.tolist(),
-                                                  "world_to_camera": c.world_to_camera.tolist()} for c in true_cal},
-            "sensors": {n: {"gain": s.gain.tolist(), "black": s.black, "noise": s.noise}
-                        for n, s in zip(names, sensors)},
-            "alpha": f"{TRUTH_DIR}/{ALPHA_NPZ}",
-            **motion.info,
-        }
-        (truth_dir / TRUTH_JSON).write_text(json.dumps(jsonable(truth), indent=2) + "\n")
-        if out.is_dir() and not any(out.iterdir()):
-            out.rmdir()
-        move_into_place(staging, out)
-    except BaseException:
-        shutil.rmtree(staging, ignore_errors=True)
-        raise
-    return out
+    alphas = []
+    for v, cam in enumerate(rig.true_world):
+        if progress:
+            print(f"[capture twin] camera {cam.name}: rendering {T} frames", flush=True)
+        frames, plate, alpha = render_view(cam, room, motion.vertices, motion.faces, motion.uvs, motion.texture,
+                                           shadows, config.shadow_light, config.supersample)
+        noisy = rig.sensors[v](frames, rng)
+        if config.frames_format == "video":
+            (staging / "videos").mkdir(exist_ok=True)
+            write_video(staging / "videos" / f"{cam.name}.mp4", noisy, 1.0 / motion.dt,
+                        quality=config.video_quality)
+        else:
+            folder = staging / "frames" / cam.name
+            folder.mkdir(parents=True)
+            for t, f in enumerate(noisy):
+                Image.fromarray(f).save(folder / f"{t:05d}.png", compress_level=1)
+        (staging / "background").mkdir(exist_ok=True)
+        Image.fromarray(rig.sensors[v](plate, rng)).save(staging / "background" / f"{cam.name}.png")
+        alphas.append(np.round(alpha * 255).astype(np.uint8))
+    if config.frames_format == "frames":
+        (staging / "capture.json").write_text(json.dumps({"fps": 1.0 / motion.dt}) + "\n")
+    return alphas
+
+
+def _write_calibrations(staging: Path, motion: CaptureMotion, rig: _CaptureRig, config: CaptureTwinConfig,
+                        rng: np.random.Generator) -> list[CaptureCamera]:
+    """Write the calibrations as structure from motion would give them (cameras perturbed, and 3D points on the
+    floor and walls seen by two cameras or more, with noise from ``rng``): COLMAP and/or ``transforms.json``.
+    Returns the true cameras in the calibration frame."""
+    sim, models = rig.sim, rig.models
+    true_cal = [CaptureCamera(c.name, c.width, c.height, c.K, c.distortion,
+                              sim.world_to_camera(c.world_to_camera), model=c.model) for c in rig.true_world]
+    noisy_cal = [_perturbed(c, rng, config, sim.scale) for c in true_cal]
+    points_world = _room_points(config, motion.floor_height, rng)
+    visible = []
+    keep = []
+    for p in points_world:
+        seen = [v for v, c in enumerate(rig.true_world) if _in_view(p[None], [c], 0.0)]
+        if len(seen) >= 2:
+            keep.append(p)
+            visible.append(seen)
+    points_world = np.array(keep).reshape(-1, 3)
+    points_cal = sim.points(points_world + rng.normal(0.0, config.point_noise_m, points_world.shape))
+    colours = np.full((len(points_cal), 3), 128, np.uint8)
+    if config.colmap_format in ("text", "both"):
+        write_colmap(noisy_cal, models, staging / "colmap", binary=False, points=points_cal, colours=colours,
+                     visible=visible)
+    if config.colmap_format in ("binary", "both"):
+        write_colmap(noisy_cal, models, staging / "colmap", binary=True, points=points_cal, colours=colours,
+                     visible=visible)
+    if config.write_transforms:
+        write_transforms(noisy_cal, staging / "transforms.json")
+    return true_cal
+
+
+def _write_truth(truth_dir: Path, motion: CaptureMotion, rig: _CaptureRig, config: CaptureTwinConfig,
+                 true_cal: list[CaptureCamera], alphas: list[np.ndarray]) -> None:
+    """Write ``ground_truth/``: the true coverage ``alpha.npz`` (V, T, H, W) uint8 and ``truth.json`` (the
+    similarity, scale, gravity, floor, true cameras and sensors)."""
+    truth_dir.mkdir()
+    np.savez_compressed(truth_dir / ALPHA_NPZ, alpha=np.stack(alphas))
+    sim = rig.sim
+    g = np.asarray(motion.gravity, dtype=np.float64)
+    up_world = -g / np.linalg.norm(g)
+    up_cal = sim.R @ up_world
+    floor_point_cal = sim.points(np.array([[0.0, 0.0, motion.floor_height]]))[0]
+    truth = {
+        "generator": "vid2sim.synthetic.capture",
+        "config": jsonable(asdict(config)),
+        "cameras": rig.names,
+        "frames": motion.vertices.shape[0],
+        "fps": 1.0 / motion.dt,
+        "dt": motion.dt,
+        "lead_in_frames": motion.lead_in,
+        "frame_step": motion.step,
+        "resolution_scale": config.resolution_scale,
+        "scene_frames": [motion.lead_in, motion.vertices.shape[0]],
+        "world_to_calibration": sim.to_json(),
+        "units_per_metre": sim.scale,
+        "metres_per_unit": 1.0 / sim.scale,
+        "gravity_world": g.tolist(),
+        "gravity_direction_calibration": (-up_cal).tolist(),
+        "floor_height_world": motion.floor_height,
+        "floor_calibration": {"normal": up_cal.tolist(), "offset": float(up_cal @ floor_point_cal)},
+        "true_cameras_calibration": {c.name: {"model": c.model, "K": c.K.tolist(),
+                                              "distortion": c.distortion.tolist(),
+                                              "world_to_camera": c.world_to_camera.tolist()} for c in true_cal},
+        "sensors": {n: {"gain": s.gain.tolist(), "black": s.black, "noise": s.noise}
+                    for n, s in zip(rig.names, rig.sensors)},
+        "alpha": f"{TRUTH_DIR}/{ALPHA_NPZ}",
+        **motion.info,
+    }
+    (truth_dir / TRUTH_JSON).write_text(json.dumps(jsonable(truth), indent=2) + "\n")
 
 
 def hermite(p0: np.ndarray, v0: np.ndarray, p1: np.ndarray, v1: np.ndarray, h: float, s: float) -> np.ndarray:

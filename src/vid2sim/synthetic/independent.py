@@ -312,20 +312,54 @@ def simulate_newton(vertices: Tensor | np.ndarray, tets: Tensor | np.ndarray, co
     if not (isinstance(frames, int) and frames >= 1):
         raise ValueError(f"frames must be an integer >= 1, got {frames!r}")
     newton, wp = import_newton()
-    X = _as_numpy(vertices, np.float64)
-    T = _as_numpy(tets, np.int64)
-    if config.subdivide:
-        X, T = subdivide_quadratic(X, T)
-    else:
-        used = np.unique(T)
-        remap = np.full(len(X), -1, dtype=np.int64)
-        remap[used] = np.arange(len(used))
-        X, T = X[used], _positively_oriented(X[used], remap[T])
+    X, T = _simulated_tets(vertices, tets, config)
     size = float(np.linalg.norm(X.max(0) - X.min(0)))
     material = config.newton_material(size)
     areas = surface_vertex_areas(torch.from_numpy(X), torch.from_numpy(T)).numpy()
     ke = config.floor_stiffness * float(areas[areas > 0].mean())
+    model = _newton_model(newton, wp, X, T, config, material, ke)
+    masses = model.particle_mass.numpy().astype(np.float64)
+    dm_inv = model.tet_poses.numpy().astype(np.float64)
+    volume = 1.0 / (6.0 * np.linalg.det(dm_inv))
+    rest = torch.from_numpy(X)
+    x0, v0, pose = _initial_state(rest, masses, pose, initial_velocity, config)
+    stepper = _VBDStepper(newton, model, config, x0, v0)
+    frames_ = _NewtonFrames(T, dm_inv, volume, material, masses, ke, config)
+    frames_.record(stepper.positions(), stepper.velocities())
+    start = time.perf_counter()
+    for _ in tqdm(range(frames - 1), desc="Newton frames", disable=not progress):
+        stepper.advance()
+        x = stepper.positions()
+        if not np.isfinite(x).all():
+            raise NewtonSolverError(f"Newton's state is not finite after frame {len(frames_.traj)}")
+        frames_.record(x, stepper.velocities())
+        if on_frame is not None:
+            on_frame()
+    wall = time.perf_counter() - start
+    engine = {"name": "newton", "version": newton.__version__, "warp": wp.__version__,
+              "solver": f"SolverVBD, {config.iterations} iterations per step, implicit Euler",
+              "device": str(config.device)}
+    return frames_.result(rest, pose, engine, wall)
 
+
+def _simulated_tets(vertices: Tensor | np.ndarray, tets: Tensor | np.ndarray, config: NewtonConfig
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """The nodes (N, 3) float64 and linear tets (Nt, 4) int64 Newton simulates: the tets split eight ways with
+    ``subdivide``, else the vertices the tets use, renumbered, with every tet positively oriented."""
+    X = _as_numpy(vertices, np.float64)
+    T = _as_numpy(tets, np.int64)
+    if config.subdivide:
+        return subdivide_quadratic(X, T)
+    used = np.unique(T)
+    remap = np.full(len(X), -1, dtype=np.int64)
+    remap[used] = np.arange(len(used))
+    return X[used], _positively_oriented(X[used], remap[T])
+
+
+def _newton_model(newton: Any, wp: Any, X: np.ndarray, T: np.ndarray, config: NewtonConfig,
+                  material: dict[str, float], ke: float) -> Any:
+    """Newton's model of the soft mesh (nodes X (N, 3), tets T (Nt, 4)) with ``material``'s moduli and damping,
+    the ground plane (friction μ) when there is a floor, and the soft-contact stiffness ``ke`` (N/m)."""
     builder = newton.ModelBuilder(up_axis=newton.Axis.Z, gravity=config.gravity)
     builder.add_soft_mesh(pos=(0.0, 0.0, 0.0), rot=wp.quat_identity(), scale=1.0, vel=(0.0, 0.0, 0.0),
                           vertices=X.tolist(), indices=T.reshape(-1).tolist(), density=config.density,
@@ -339,11 +373,14 @@ def simulate_newton(vertices: Tensor | np.ndarray, tets: Tensor | np.ndarray, co
     model.soft_contact_ke = ke
     model.soft_contact_kd = config.contact_damping
     model.soft_contact_mu = config.friction  # mixed with the plane's μ as √(μ·μ) = μ
-    masses = model.particle_mass.numpy().astype(np.float64)
-    dm_inv = model.tet_poses.numpy().astype(np.float64)
-    volume = 1.0 / (6.0 * np.linalg.det(dm_inv))
+    return model
 
-    rest = torch.from_numpy(X)
+
+def _initial_state(rest: Tensor, masses: np.ndarray, pose: InitialPose | None,
+                   initial_velocity: Tensor | np.ndarray | None, config: NewtonConfig
+                   ) -> tuple[Tensor, Tensor, InitialPose]:
+    """The start positions and velocities (N, 3) float64 (``pose`` applied to ``rest``, at rest where the nodes
+    are without one; ``initial_velocity`` (N, 3) replacing the velocities), and the pose recorded."""
     if pose is None:
         x0, v0 = rest.clone(), torch.zeros_like(rest)
         pose = InitialPose(drop_height=0.0)
@@ -353,61 +390,83 @@ def simulate_newton(vertices: Tensor | np.ndarray, tets: Tensor | np.ndarray, co
         v0 = torch.from_numpy(_as_numpy(initial_velocity, np.float64))
         if v0.shape != x0.shape or not torch.isfinite(v0).all():
             raise ValueError(f"initial_velocity must be a finite {tuple(x0.shape)} array, got shape {tuple(v0.shape)}")
+    return x0, v0, pose
 
-    solver = newton.solvers.SolverVBD(model, iterations=config.iterations, friction_epsilon=config.friction_velocity,
-                                      particle_enable_self_contact=False, particle_enable_tile_solve=False)
-    state, state_next, control = model.state(), model.state(), model.control()
-    state.particle_q.assign(x0.numpy().astype(np.float32))
-    state.particle_qd.assign(v0.numpy().astype(np.float32))
-    pipeline = newton.CollisionPipeline(model, soft_contact_gap=config.contact_gap) \
-        if config.floor_height is not None else None
-    contacts = pipeline.contacts() if pipeline is not None else None
-    g = np.asarray(config.gravity)
-    h = config.dt / config.substeps
 
-    def record(x: np.ndarray, v: np.ndarray) -> None:
-        elastic, det = _elastic_energy(x, T, dm_inv, volume, material)
+class _VBDStepper:
+    """Newton's VBD solver on ``model`` from the start state x0, v0 (N, 3), with the floor's collision pipeline when
+    there is a floor; it advances a video frame at a time (``substeps`` implicit Euler steps)."""
+
+    def __init__(self, newton: Any, model: Any, config: NewtonConfig, x0: Tensor, v0: Tensor) -> None:
+        self.solver = newton.solvers.SolverVBD(model, iterations=config.iterations,
+                                               friction_epsilon=config.friction_velocity,
+                                               particle_enable_self_contact=False, particle_enable_tile_solve=False)
+        self.state, self.state_next, self.control = model.state(), model.state(), model.control()
+        self.state.particle_q.assign(x0.numpy().astype(np.float32))
+        self.state.particle_qd.assign(v0.numpy().astype(np.float32))
+        self.pipeline = newton.CollisionPipeline(model, soft_contact_gap=config.contact_gap) \
+            if config.floor_height is not None else None
+        self.contacts = self.pipeline.contacts() if self.pipeline is not None else None
+        self.substeps = config.substeps
+        self.h = config.dt / config.substeps
+
+    def advance(self) -> None:
+        """One video frame: ``substeps`` solver steps of h seconds (contacts found before each)."""
+        for _ in range(self.substeps):
+            self.state.clear_forces()
+            if self.pipeline is not None:
+                self.pipeline.collide(self.state, self.contacts)
+            self.solver.step(self.state, self.state_next, self.control, self.contacts, self.h)
+            self.state, self.state_next = self.state_next, self.state
+
+    def positions(self) -> np.ndarray:
+        """(N, 3) float64 positions now."""
+        return self.state.particle_q.numpy().astype(np.float64)
+
+    def velocities(self) -> np.ndarray:
+        """(N, 3) float64 velocities now."""
+        return self.state.particle_qd.numpy().astype(np.float64)
+
+
+class _NewtonFrames:
+    """The frames of a Newton run as they come: positions, velocities (N, 3), smallest det F and energies."""
+
+    def __init__(self, tets: np.ndarray, dm_inv: np.ndarray, volume: np.ndarray, material: dict[str, float],
+                 masses: np.ndarray, ke: float, config: NewtonConfig) -> None:
+        self.tets, self.dm_inv, self.volume, self.material = tets, dm_inv, volume, material
+        self.masses, self.ke, self.config = masses, ke, config
+        self.g = np.asarray(config.gravity)
+        self.traj: list[np.ndarray] = []
+        self.vels: list[np.ndarray] = []
+        self.dets: list[float] = []
+        self.energies: dict[str, list[float]] = {}
+
+    def record(self, x: np.ndarray, v: np.ndarray) -> None:
+        """Add a frame: positions x and velocities v (N, 3) float64."""
+        config, masses = self.config, self.masses
+        elastic, det = _elastic_energy(x, self.tets, self.dm_inv, self.volume, self.material)
         floor = 0.0
         if config.floor_height is not None:
-            floor = 0.5 * ke * float((np.maximum(0.0, config.floor_height - x[:, 2]) ** 2).sum())
+            floor = 0.5 * self.ke * float((np.maximum(0.0, config.floor_height - x[:, 2]) ** 2).sum())
         parts = {"kinetic": 0.5 * float(masses @ (v * v).sum(1)), "elastic": elastic,
-                 "gravity": -float(masses @ (x @ g)), "floor": floor}
+                 "gravity": -float(masses @ (x @ self.g)), "floor": floor}
         parts["total"] = sum(parts.values())
         for k, val in parts.items():
-            energies.setdefault(k, []).append(val)
-        traj.append(x)
-        vels.append(v)
-        dets.append(det)
+            self.energies.setdefault(k, []).append(val)
+        self.traj.append(x)
+        self.vels.append(v)
+        self.dets.append(det)
 
-    traj: list[np.ndarray] = []
-    vels: list[np.ndarray] = []
-    dets: list[float] = []
-    energies: dict[str, list[float]] = {}
-    record(state.particle_q.numpy().astype(np.float64), state.particle_qd.numpy().astype(np.float64))
-    start = time.perf_counter()
-    for _ in tqdm(range(frames - 1), desc="Newton frames", disable=not progress):
-        for _ in range(config.substeps):
-            state.clear_forces()
-            if pipeline is not None:
-                pipeline.collide(state, contacts)
-            solver.step(state, state_next, control, contacts, h)
-            state, state_next = state_next, state
-        x = state.particle_q.numpy().astype(np.float64)
-        if not np.isfinite(x).all():
-            raise NewtonSolverError(f"Newton's state is not finite after frame {len(traj)}")
-        record(x, state.particle_qd.numpy().astype(np.float64))
-        if on_frame is not None:
-            on_frame()
-    wall = time.perf_counter() - start
-    engine = {"name": "newton", "version": newton.__version__, "warp": wp.__version__,
-              "solver": f"SolverVBD, {config.iterations} iterations per step, implicit Euler",
-              "device": str(config.device)}
-    return NewtonResult(
-        rest_vertices=rest, tets=torch.from_numpy(T), trajectory=torch.from_numpy(np.stack(traj)),
-        velocities=torch.from_numpy(np.stack(vels)), times=torch.arange(frames, dtype=torch.float64) * config.dt,
-        energies={k: torch.tensor(v, dtype=torch.float64) for k, v in energies.items()},
-        min_det=torch.tensor(dets, dtype=torch.float64), masses=torch.from_numpy(masses), contact_stiffness=ke,
-        config=config, pose=pose, engine=engine, wall_time=wall)
+    def result(self, rest: Tensor, pose: InitialPose, engine: dict[str, str], wall: float) -> NewtonResult:
+        """The run's :class:`NewtonResult` from the frames recorded."""
+        frames = len(self.traj)
+        return NewtonResult(
+            rest_vertices=rest, tets=torch.from_numpy(self.tets), trajectory=torch.from_numpy(np.stack(self.traj)),
+            velocities=torch.from_numpy(np.stack(self.vels)),
+            times=torch.arange(frames, dtype=torch.float64) * self.config.dt,
+            energies={k: torch.tensor(v, dtype=torch.float64) for k, v in self.energies.items()},
+            min_det=torch.tensor(self.dets, dtype=torch.float64), masses=torch.from_numpy(self.masses),
+            contact_stiffness=self.ke, config=self.config, pose=pose, engine=engine, wall_time=wall)
 
 
 def default_start_substeps(config: NewtonConfig, size: float) -> int:

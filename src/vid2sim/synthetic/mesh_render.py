@@ -231,21 +231,10 @@ def _rasterize(
 
 @torch.no_grad()
 def render_mesh(
-    mesh_vertices: Tensor,
-    faces: Tensor,
-    uvs: Tensor,
-    texture: Tensor,
-    cameras: Sequence[Camera],
-    supersample: int = 2,
-    light_dir: Sequence[float] | Tensor = DEFAULT_LIGHT_DIR,
-    ambient: float = 0.3,
-    shading: str = "smooth",
-    near: float = 0.01,
-    cull_backfaces: bool = True,
-    wrap: str = "repeat",
-    chunk_size: int = 1 << 21,
-    batch_samples: int = 1 << 23,
-    progress: bool = False,
+    mesh_vertices: Tensor, faces: Tensor, uvs: Tensor, texture: Tensor, cameras: Sequence[Camera],
+    supersample: int = 2, light_dir: Sequence[float] | Tensor = DEFAULT_LIGHT_DIR, ambient: float = 0.3,
+    shading: str = "smooth", near: float = 0.01, cull_backfaces: bool = True, wrap: str = "repeat",
+    chunk_size: int = 1 << 21, batch_samples: int = 1 << 23, progress: bool = False,
 ) -> tuple[Tensor, Tensor]:
     """Render a textured triangle mesh (optionally a sequence of deformed copies) from cameras.
 
@@ -274,6 +263,47 @@ def render_mesh(
     """
     from tqdm.auto import tqdm
 
+    verts, faces, uvs, texture, light = _checked_inputs(mesh_vertices, faces, uvs, texture, cameras, supersample,
+                                                        light_dir, ambient, shading, near, wrap, chunk_size,
+                                                        batch_samples)
+    dev, dtype = verts.device, verts.dtype
+    s = int(supersample)
+    single = verts.ndim == 2
+    frames = verts[None] if single else verts
+    n_t, n_v, nf = frames.shape[0], len(cameras), faces.shape[0]
+    width, height = cameras[0].width, cameras[0].height
+    sw, sh = width * s, height * s
+    _check_face_ids(n_t, n_v, nf)
+    normals = _world_normals(frames, faces, shading)
+    w2c, ks = _camera_matrices(cameras, s, dtype, dev)
+    rgb = torch.ones(n_v, n_t, height, width, 3, dtype=dtype, device=dev)
+    alpha = torch.zeros(n_v, n_t, height, width, dtype=dtype, device=dev)
+    per_batch = max(1, min(batch_samples // (sw * sh), (1 << 22) // max(nf, 1)))
+    image_t = torch.arange(n_t, device=dev).repeat_interleave(n_v)  # images ordered frame-major
+    image_v = torch.arange(n_v, device=dev).repeat(n_t)
+    bar = tqdm(total=n_t * n_v, desc="render mesh", disable=not progress)
+    for b0 in range(0, n_t * n_v, per_batch):
+        tb, vb = image_t[b0 : b0 + per_batch], image_v[b0 : b0 + per_batch]
+        rot, trans = w2c[vb, :3, :3], w2c[vb, :3, 3]
+        cam_xyz = torch.einsum("bij,bnj->bni", rot, frames[tb]) + trans[:, None, :]
+        r = _rasterize(cam_xyz, faces, ks[vb], sw, sh, s, near, cull_backfaces, chunk_size)
+        colour = _shade_samples(r, tb, faces, uvs, texture, normals, light, ambient, shading, wrap, cull_backfaces)
+        _resolve_pixels(rgb, alpha, r, colour, tb, vb, s)
+        bar.update(len(tb))
+    bar.close()
+    if single:
+        return rgb[:, 0], alpha[:, 0]
+    return rgb, alpha
+
+
+def _checked_inputs(
+    mesh_vertices: Tensor, faces: Tensor, uvs: Tensor, texture: Tensor, cameras: Sequence[Camera],
+    supersample: int, light_dir: Sequence[float] | Tensor, ambient: float, shading: str, near: float, wrap: str,
+    chunk_size: int, batch_samples: int,
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """:func:`render_mesh`'s inputs checked (ValueError) and converted: vertices (Nv, 3) or (T, Nv, 3) floating
+    (float32 unless already floating), faces (Nf, 3) long, uvs (Nf, 3, 2) and texture (Ht, Wt, 3) in the vertices'
+    dtype on their device, and the unit light direction (3,)."""
     verts = torch.as_tensor(mesh_vertices)
     if not verts.is_floating_point():
         verts = verts.to(torch.float32)
@@ -297,87 +327,100 @@ def render_mesh(
     light = torch.as_tensor(light_dir, dtype=dtype, device=dev).reshape(-1)
     if light.shape != (3,) or float(light.norm()) == 0.0:
         raise ValueError(f"light_dir must be a non-zero 3-vector, got {light_dir!r}")
-    light = light / light.norm()
-    s = int(supersample)
-    single = verts.ndim == 2
-    frames = verts[None] if single else verts
-    n_t, n_v, nf = frames.shape[0], len(cameras), faces.shape[0]
-    width, height = cameras[0].width, cameras[0].height
-    sw, sh = width * s, height * s
+    return verts, faces, uvs, texture, light / light.norm()
+
+
+def _check_face_ids(n_t: int, n_v: int, nf: int) -> None:
+    """ValueError unless every face of every image (``n_t`` frames × ``n_v`` views × ``nf`` faces) has a 32-bit
+    id (the z-buffer packs it below the depth)."""
     if n_t * n_v * max(nf, 1) >= 2**31:
         raise ValueError(
             f"too many frames × views × faces ({n_t} × {n_v} × {nf}) for 32-bit face ids; render in parts"
         )
 
-    # per frame: normals in world space (the light is fixed in the world)
-    if shading == "smooth":
-        normals = torch.stack([vertex_normals(v, faces) for v in frames])  # (T, Nv, 3)
-    else:
-        tri = frames[:, faces]
-        fn = torch.linalg.cross(tri[:, :, 1] - tri[:, :, 0], tri[:, :, 2] - tri[:, :, 0])
-        normals = fn / fn.norm(dim=-1, keepdim=True).clamp_min(1e-30)  # (T, Nf, 3)
+
+def _camera_matrices(cameras: Sequence[Camera], s: int, dtype: torch.dtype, dev: torch.device
+                     ) -> tuple[Tensor, Tensor]:
+    """The cameras' world-to-camera matrices (V, 4, 4) and intrinsics (V, 3, 3) scaled to the s× sample grid."""
     w2c = torch.stack([c.world_to_camera.to(device=dev, dtype=dtype) for c in cameras])  # (V, 4, 4)
     ks = torch.stack([c.K.to(device=dev, dtype=dtype) for c in cameras])
-    ks = ks * torch.tensor([s, s, 1.0], dtype=dtype, device=dev)[None, :, None]
+    return w2c, ks * torch.tensor([s, s, 1.0], dtype=dtype, device=dev)[None, :, None]
 
-    rgb = torch.ones(n_v, n_t, height, width, 3, dtype=dtype, device=dev)
-    alpha = torch.zeros(n_v, n_t, height, width, dtype=dtype, device=dev)
-    per_batch = max(1, min(batch_samples // (sw * sh), (1 << 22) // max(nf, 1)))
-    image_t = torch.arange(n_t, device=dev).repeat_interleave(n_v)  # images ordered frame-major
-    image_v = torch.arange(n_v, device=dev).repeat(n_t)
-    bar = tqdm(total=n_t * n_v, desc="render mesh", disable=not progress)
-    for b0 in range(0, n_t * n_v, per_batch):
-        tb, vb = image_t[b0 : b0 + per_batch], image_v[b0 : b0 + per_batch]
-        rot, trans = w2c[vb, :3, :3], w2c[vb, :3, 3]
-        cam_xyz = torch.einsum("bij,bnj->bni", rot, frames[tb]) + trans[:, None, :]
-        r = _rasterize(cam_xyz, faces, ks[vb], sw, sh, s, near, cull_backfaces, chunk_size)
-        colour = torch.ones(r.face.shape[0], 3, dtype=dtype, device=dev)
-        hit = torch.nonzero(r.face >= 0).squeeze(1)
-        if hit.numel():
-            g = r.face.index_select(0, hit)
-            img = torch.div(g, nf, rounding_mode="floor")
-            f = g - img * nf
-            crop = r.crop.index_select(0, img)
-            x0, y0, cw = crop[:, 0], crop[:, 1], crop[:, 2]
-            li = hit - r.offset.index_select(0, img)
-            ly = torch.div(li, cw, rounding_mode="floor")
-            sx = (x0 + li - ly * cw).to(dtype) + 0.5
-            sy = (y0 + ly).to(dtype) + 0.5
-            c = r.coef.index_select(0, g)
-            bary = (c[:, :, 0] * sx[:, None] + c[:, :, 1] * sy[:, None] + c[:, :, 2]).clamp_min(0)
-            wp = bary * r.inv_z.index_select(0, g)
-            wp = wp / wp.sum(dim=1, keepdim=True)  # perspective-correct barycentrics
-            uv = (wp[:, :, None] * uvs.index_select(0, f)).sum(dim=1)
-            tex = sample_texture(texture, uv, wrap)
-            frame = tb.index_select(0, img)
-            if shading == "smooth":
-                corner = (frame[:, None] * normals.shape[1] + faces.index_select(0, f)).reshape(-1)
-                vn = normals.reshape(-1, 3).index_select(0, corner).reshape(-1, 3, 3)
-                n = (wp[:, :, None] * vn).sum(dim=1)
-                n = n / n.norm(dim=1, keepdim=True).clamp_min(1e-30)
-            else:
-                n = normals.reshape(-1, 3).index_select(0, frame * nf + f)
-            if not cull_backfaces:
-                n = torch.where(r.front.index_select(0, g)[:, None], n, -n)
-            shade = ambient + (1.0 - ambient) * (n @ light).clamp_min(0)
-            colour.index_copy_(0, hit, tex * shade[:, None])
-        cover = (r.face >= 0).to(dtype)
-        crops = r.crop.tolist()
-        offsets = r.offset.tolist()
-        for i, ((x0, y0, cw, ch), off) in enumerate(zip(crops, offsets)):
-            if cw == 0:
-                continue
-            t_i, v_i = int(tb[i]), int(vb[i])
-            px0, py0, pw, ph = x0 // s, y0 // s, cw // s, ch // s
-            block = colour[off : off + cw * ch].reshape(ph, s, pw, s, 3).mean(dim=(1, 3))
-            rgb[v_i, t_i, py0 : py0 + ph, px0 : px0 + pw] = block
-            cov = cover[off : off + cw * ch].reshape(ph, s, pw, s).mean(dim=(1, 3))
-            alpha[v_i, t_i, py0 : py0 + ph, px0 : px0 + pw] = cov
-        bar.update(len(tb))
-    bar.close()
-    if single:
-        return rgb[:, 0], alpha[:, 0]
-    return rgb, alpha
+
+def _world_normals(frames: Tensor, faces: Tensor, shading: str) -> Tensor:
+    """Per frame, the unit normals in world space (the light is fixed in the world): (T, Nv, 3) vertex normals
+    for ``"smooth"`` shading, (T, Nf, 3) face normals for ``"flat"``, of ``frames`` (T, Nv, 3)."""
+    if shading == "smooth":
+        return torch.stack([vertex_normals(v, faces) for v in frames])  # (T, Nv, 3)
+    tri = frames[:, faces]
+    fn = torch.linalg.cross(tri[:, :, 1] - tri[:, :, 0], tri[:, :, 2] - tri[:, :, 0])
+    return fn / fn.norm(dim=-1, keepdim=True).clamp_min(1e-30)  # (T, Nf, 3)
+
+
+def _shade_samples(
+    r: _Raster, tb: Tensor, faces: Tensor, uvs: Tensor, texture: Tensor, normals: Tensor, light: Tensor,
+    ambient: float, shading: str, wrap: str, cull_backfaces: bool,
+) -> Tensor:
+    """The shaded colour (S, 3) of every crop sample of the raster ``r`` of B images (white where no face won):
+    perspective-correct UVs, the texture looked up bilinearly, Lambert light on the interpolated (or face) normal.
+
+    Args:
+        tb: (B,) long, the frame of each image.
+        normals: (T, Nv, 3) or (T, Nf, 3) from :func:`_world_normals`.
+        light: (3,) unit direction towards the light.
+    """
+    dtype, dev = texture.dtype, texture.device
+    nf = faces.shape[0]
+    colour = torch.ones(r.face.shape[0], 3, dtype=dtype, device=dev)
+    hit = torch.nonzero(r.face >= 0).squeeze(1)
+    if not hit.numel():
+        return colour
+    g = r.face.index_select(0, hit)
+    img = torch.div(g, nf, rounding_mode="floor")
+    f = g - img * nf
+    crop = r.crop.index_select(0, img)
+    x0, y0, cw = crop[:, 0], crop[:, 1], crop[:, 2]
+    li = hit - r.offset.index_select(0, img)
+    ly = torch.div(li, cw, rounding_mode="floor")
+    sx = (x0 + li - ly * cw).to(dtype) + 0.5
+    sy = (y0 + ly).to(dtype) + 0.5
+    c = r.coef.index_select(0, g)
+    bary = (c[:, :, 0] * sx[:, None] + c[:, :, 1] * sy[:, None] + c[:, :, 2]).clamp_min(0)
+    wp = bary * r.inv_z.index_select(0, g)
+    wp = wp / wp.sum(dim=1, keepdim=True)  # perspective-correct barycentrics
+    uv = (wp[:, :, None] * uvs.index_select(0, f)).sum(dim=1)
+    tex = sample_texture(texture, uv, wrap)
+    frame = tb.index_select(0, img)
+    if shading == "smooth":
+        corner = (frame[:, None] * normals.shape[1] + faces.index_select(0, f)).reshape(-1)
+        vn = normals.reshape(-1, 3).index_select(0, corner).reshape(-1, 3, 3)
+        n = (wp[:, :, None] * vn).sum(dim=1)
+        n = n / n.norm(dim=1, keepdim=True).clamp_min(1e-30)
+    else:
+        n = normals.reshape(-1, 3).index_select(0, frame * nf + f)
+    if not cull_backfaces:
+        n = torch.where(r.front.index_select(0, g)[:, None], n, -n)
+    shade = ambient + (1.0 - ambient) * (n @ light).clamp_min(0)
+    colour.index_copy_(0, hit, tex * shade[:, None])
+    return colour
+
+
+def _resolve_pixels(rgb: Tensor, alpha: Tensor, r: _Raster, colour: Tensor, tb: Tensor, vb: Tensor, s: int) -> None:
+    """Box-filter the s × s samples of each image's crop into its pixels of ``rgb`` (V, T, H, W, 3) and ``alpha``
+    (V, T, H, W), in place; ``colour`` (S, 3) holds the samples' colours, ``tb`` / ``vb`` (B,) each image's frame
+    and view."""
+    cover = (r.face >= 0).to(rgb.dtype)
+    crops = r.crop.tolist()
+    offsets = r.offset.tolist()
+    for i, ((x0, y0, cw, ch), off) in enumerate(zip(crops, offsets)):
+        if cw == 0:
+            continue
+        t_i, v_i = int(tb[i]), int(vb[i])
+        px0, py0, pw, ph = x0 // s, y0 // s, cw // s, ch // s
+        block = colour[off : off + cw * ch].reshape(ph, s, pw, s, 3).mean(dim=(1, 3))
+        rgb[v_i, t_i, py0 : py0 + ph, px0 : px0 + pw] = block
+        cov = cover[off : off + cw * ch].reshape(ph, s, pw, s).mean(dim=(1, 3))
+        alpha[v_i, t_i, py0 : py0 + ph, px0 : px0 + pw] = cov
 
 
 def render_textured_mesh(

@@ -48,16 +48,22 @@ from vid2sim.physics.damping import DEFAULT_DAMPING_RATIO
 from vid2sim.physics.external import AREA_CONTACT_STIFFNESS
 from vid2sim.physics.materials import ELASTIC_MODELS, lame_parameters
 from vid2sim.runtime.errors import ConfigError
-from vid2sim.runtime.files import write_json_atomic
+from vid2sim.runtime.files import jsonable, write_folder_atomic, write_json_atomic
 from vid2sim.runtime.ray_runner import check_ray, ray_map
 from vid2sim.scene.folder import Scene, SceneConfig
-from vid2sim.scene.writing import move_into_place, write_scene
+from vid2sim.scene.writing import write_scene
 from vid2sim.splats.cameras import camera_ring
 from vid2sim.synthetic.embedding import apply_embedding, embed_points
-from vid2sim.synthetic.fem import FEMConfig, InitialPose, simulate_fem_converged
-from vid2sim.synthetic.independent import NewtonConfig, import_newton, newton_metadata, simulate_newton_converged
+from vid2sim.synthetic.fem import FEMConfig, FEMResult, InitialPose, simulate_fem_converged
+from vid2sim.synthetic.independent import (
+    NewtonConfig,
+    NewtonResult,
+    import_newton,
+    newton_metadata,
+    simulate_newton_converged,
+)
 from vid2sim.synthetic.mesh_render import render_textured_mesh
-from vid2sim.synthetic.meshes import load_user_mesh
+from vid2sim.synthetic.meshes import TexturedMesh, load_user_mesh
 from vid2sim.synthetic.shapes import make_procedural_object
 
 if TYPE_CHECKING:
@@ -390,84 +396,140 @@ def make_scene(config: SyntheticSceneConfig, out_dir: str | Path, overwrite: boo
             written).
         vid2sim.runtime.errors.ConfigError: ``truth="newton"`` without Newton installed.
     """
-    import shutil
-    import uuid
-
-
     if not isinstance(config, SyntheticSceneConfig):
         raise TypeError(f"config must be a SyntheticSceneConfig, got {type(config).__name__}")
     out = Path(out_dir)
     _check_target(out, overwrite)
-    for name in ("mesh", "tet_mesh"):  # fail before any work
+    _check_scene_inputs(config)
+    lap = _Laps()
+    mesh = _scene_object(config, progress)
+    lap("object")
+    tet = _scene_tets(config, mesh, progress)
+    tet_index, bary = _embed_surface(mesh, tet)
+    lap("tetrahedralize")
+    pose = config.initial_pose()
+    if config.truth == "fem":
+        result, truth_metadata, result_file = _fem_truth(config, tet, pose, progress, workers)
+    else:
+        result, truth_metadata, result_file = _newton_truth(config, tet, pose, progress)
+        # the surface rides on the tets Newton simulated (subdivided with element_order 2, renumbered)
+        tet_index, bary = embed_points(mesh.vertices.double(), result.rest_vertices, result.tets)
+    lap(config.truth)
+    surface = apply_embedding(result.trajectory, tet_index, bary, result.embedding_elements).float()  # (T, Nv, 3)
+    cameras, rgb, alpha = _render_scene(config, mesh, surface, progress)
+    lap("render")
+    metadata = _scene_metadata(config, mesh, pose, truth_metadata, result_file)
+    scene = _scene_of(config, cameras, rgb, alpha, metadata, result, tet)
+    _stage(progress, f"writing {out}")
+
+    def write(staging: Path) -> None:
+        write_scene(scene, staging, layout=config.layout, progress=progress)
+        result.save(staging / result_file)
+        (staging / SYNTHETIC_JSON).write_text(json.dumps(jsonable(asdict(config), nan_to_null=False), indent=2)
+                                              + "\n")
+
+    write_folder_atomic(out, write)
+    lap("write")
+    _stage(progress, "done in " + ", ".join(f"{k} {v:.1f} s" for k, v in lap.timings.items())
+           + f" (total {sum(lap.timings.values()):.1f} s)")
+    return out
+
+
+class _Laps:
+    """The seconds of :func:`make_scene`'s stages, in order: each call ends the stage it names."""
+
+    def __init__(self) -> None:
+        self.timings: dict[str, float] = {}
+        self.t0 = time.perf_counter()
+
+    def __call__(self, name: str) -> None:
+        now = time.perf_counter()
+        self.timings[name] = now - self.t0
+        self.t0 = now
+
+
+def _check_scene_inputs(config: SyntheticSceneConfig) -> None:
+    """Fail before any work: the mesh and tet-mesh files exist (FileNotFoundError), and Newton is installed when
+    it makes the truth (ConfigError naming its extra)."""
+    for name in ("mesh", "tet_mesh"):
         value = getattr(config, name)
         if value is not None and not Path(value).is_file():
             raise FileNotFoundError(f"SyntheticSceneConfig.{name}: file {value} does not exist")
     if config.truth == "newton":  # the optional engine: a clear error naming its extra, before any work
-
         import_newton()
-    timings: dict[str, float] = {}
-    t0 = time.perf_counter()
 
-    def lap(name: str) -> None:
-        nonlocal t0
-        now = time.perf_counter()
-        timings[name] = now - t0
-        t0 = now
 
+def _scene_object(config: SyntheticSceneConfig, progress: bool) -> TexturedMesh:
+    """The scene's textured surface: the user mesh, or the seed's procedural object."""
     if config.mesh is not None:
         _stage(progress, f"loading {config.mesh}")
-        mesh = load_user_mesh(config.mesh)
-    else:
-        _stage(progress, f"procedural object, seed {config.seed}")
-        mesh = make_procedural_object(config.seed)
-    lap("object")
+        return load_user_mesh(config.mesh)
+    _stage(progress, f"procedural object, seed {config.seed}")
+    return make_procedural_object(config.seed)
+
+
+def _scene_tets(config: SyntheticSceneConfig, mesh: TexturedMesh, progress: bool) -> "TetMesh":
+    """The object's tet mesh: an earlier scene's (``config.tet_mesh``), or fTetWild's of ``mesh``."""
     if config.tet_mesh is not None:
         _stage(progress, f"tet mesh from {config.tet_mesh}")
-        tet = load_tet_mesh(config.tet_mesh)
-    else:
-        _stage(progress, f"tetrahedralizing {len(mesh.faces)} faces (fTetWild)")
-        tet = tetrahedralize(mesh.vertices, mesh.faces, edge_length_fac=config.tet_edge_length,
-                             epsilon=config.tet_envelope, name=mesh.name)
+        return load_tet_mesh(config.tet_mesh)
+    _stage(progress, f"tetrahedralizing {len(mesh.faces)} faces (fTetWild)")
+    return tetrahedralize(mesh.vertices, mesh.faces, edge_length_fac=config.tet_edge_length,
+                          epsilon=config.tet_envelope, name=mesh.name)
+
+
+def _embed_surface(mesh: TexturedMesh, tet: "TetMesh") -> tuple[torch.Tensor, torch.Tensor]:
+    """The tet holding each surface vertex (Nv,) and its barycentric coordinates there (Nv, 4); ValueError naming
+    the object when the surface does not fit the tet mesh."""
     try:
-        tet_index, bary = embed_points(mesh.vertices.double(), tet.vertices, tet.tets)
+        return embed_points(mesh.vertices.double(), tet.vertices, tet.tets)
     except ValueError as exc:
         raise ValueError(f"the surface of {mesh.name} does not fit the tet mesh {tet.name or ''}: {exc}") from None
-    lap("tetrahedralize")
 
-    pose = config.initial_pose()
-    if config.truth == "fem":
-        fem_config = config.fem_config()
-        _stage(progress, f"FEM drop: {len(tet.tets)} tets, {config.frames} frames, substeps refined until the "
-                         f"trajectory changes by <= {config.time_tolerance} % of the size")
-        result = simulate_fem_converged(tet.vertices, tet.tets, fem_config, pose, frames=config.frames,
-                                        tolerance=config.time_tolerance, start_substeps=config.substeps,
-                                        progress=progress, workers=workers)
-        truth_metadata = {"fem": _fem_metadata(config, tet, result)}
-        result_file = FEM_RESULT_NPZ
-    else:
 
-        _stage(progress, f"Newton (VBD) drop: {len(tet.tets)} tets{' x 8' if config.element_order == 2 else ''}, "
-                         f"{config.frames} frames, steps halved until the trajectory changes by <= "
-                         f"{config.time_tolerance} % of the size")
-        result = simulate_newton_converged(tet.vertices, tet.tets, config.newton_config(), pose, frames=config.frames,
-                                           tolerance=config.time_tolerance, start_substeps=config.substeps,
-                                           progress=progress)
-        truth_metadata = {"newton": newton_metadata(result)}
-        result_file = NEWTON_RESULT_NPZ
-        # the surface rides on the tets Newton simulated (subdivided with element_order 2, renumbered)
-        tet_index, bary = embed_points(mesh.vertices.double(), result.rest_vertices, result.tets)
-    lap(config.truth)
+def _fem_truth(config: SyntheticSceneConfig, tet: "TetMesh", pose: "InitialPose", progress: bool, workers: int
+               ) -> tuple[FEMResult, dict[str, Any], str]:
+    """The FEM drop, converged in time: its result, scene.json's ``metadata.fem`` and the result's file name."""
+    fem_config = config.fem_config()
+    _stage(progress, f"FEM drop: {len(tet.tets)} tets, {config.frames} frames, substeps refined until the "
+                     f"trajectory changes by <= {config.time_tolerance} % of the size")
+    result = simulate_fem_converged(tet.vertices, tet.tets, fem_config, pose, frames=config.frames,
+                                    tolerance=config.time_tolerance, start_substeps=config.substeps,
+                                    progress=progress, workers=workers)
+    return result, {"fem": _fem_metadata(config, tet, result)}, FEM_RESULT_NPZ
 
-    surface = apply_embedding(result.trajectory, tet_index, bary, result.embedding_elements).float()  # (T, Nv, 3)
+
+def _newton_truth(config: SyntheticSceneConfig, tet: "TetMesh", pose: "InitialPose", progress: bool
+                  ) -> tuple[NewtonResult, dict[str, Any], str]:
+    """Newton's (VBD) drop, converged in time: its result, scene.json's ``metadata.newton`` and the result's file
+    name."""
+    _stage(progress, f"Newton (VBD) drop: {len(tet.tets)} tets{' x 8' if config.element_order == 2 else ''}, "
+                     f"{config.frames} frames, steps halved until the trajectory changes by <= "
+                     f"{config.time_tolerance} % of the size")
+    result = simulate_newton_converged(tet.vertices, tet.tets, config.newton_config(), pose, frames=config.frames,
+                                       tolerance=config.time_tolerance, start_substeps=config.substeps,
+                                       progress=progress)
+    return result, {"newton": newton_metadata(result)}, NEWTON_RESULT_NPZ
+
+
+def _render_scene(config: SyntheticSceneConfig, mesh: TexturedMesh, surface: torch.Tensor, progress: bool
+                  ) -> tuple[list, torch.Tensor, torch.Tensor]:
+    """The camera ring and the textured ``surface`` (T, Nv, 3) rendered from it: cameras (V), RGB (V, T, H, W, 3)
+    on white and alpha (V, T, H, W)."""
     cameras = camera_ring(config.views, config.camera_radius, config.camera_elevation_deg, config.resolution,
                           config.resolution, fov_x_deg=config.camera_fov_deg, target=config.camera_target)
     _stage(progress, f"rendering {config.views} views x {config.frames} frames at {config.resolution}x"
                      f"{config.resolution}")
     rgb, alpha = render_textured_mesh(mesh, cameras, vertices=surface, supersample=config.supersample,
                                       progress=progress)
-    lap("render")
+    return cameras, rgb, alpha
 
-    metadata = {
+
+def _scene_metadata(config: SyntheticSceneConfig, mesh: TexturedMesh, pose: "InitialPose",
+                    truth_metadata: dict[str, Any], result_file: str) -> dict[str, Any]:
+    """scene.json's ``metadata``: the ground truth (engine, material, seed, object, initial pose, the truth's own
+    figures) and the names of the scene's extra files."""
+    return {
         "generator": "vid2sim.synthetic.scenes",
         "truth": config.truth,
         "E": config.youngs_modulus,
@@ -476,12 +538,18 @@ def make_scene(config: SyntheticSceneConfig, out_dir: str | Path, overwrite: boo
         "material": config.material if config.truth == "fem" else "newton_vbd_stable_neo_hookean",
         "seed": config.seed,
         "object": mesh.name,
-        "initial_pose": _jsonable(asdict(pose)),
+        "initial_pose": jsonable(asdict(pose), nan_to_null=False),
         "damping_ratio": config.damping_ratio,
         **truth_metadata,
         "files": {"config": SYNTHETIC_JSON, f"{config.truth}_result": result_file},
     }
-    scene = Scene(
+
+
+def _scene_of(config: SyntheticSceneConfig, cameras: list, rgb: torch.Tensor, alpha: torch.Tensor,
+              metadata: dict[str, Any], result: FEMResult | NewtonResult, tet: "TetMesh") -> Scene:
+    """The scene: the rendered images (V, T, H, W, 3) and masks (V, T, H, W), its config (observed frames and
+    views, ``metadata``), and the truth's tet trajectory (T, N, 3) with its tets as the ``tet_trajectory`` extra."""
+    return Scene(
         cameras=cameras,
         images=rgb,
         masks=alpha,
@@ -492,23 +560,6 @@ def make_scene(config: SyntheticSceneConfig, out_dir: str | Path, overwrite: boo
         extras={"tet_trajectory": {"vertices": result.trajectory.float(),
                                    "tets": (tet.tets if config.truth == "fem" else result.tets).to(torch.int32)}},
     )
-    _stage(progress, f"writing {out}")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    staging = out.parent / f".{out.name}.making-{uuid.uuid4().hex[:12]}"
-    try:
-        write_scene(scene, staging, layout=config.layout, progress=progress)
-        result.save(staging / result_file)
-        (staging / SYNTHETIC_JSON).write_text(json.dumps(_jsonable(asdict(config)), indent=2) + "\n")
-        if out.is_dir() and not any(out.iterdir()):
-            out.rmdir()
-        move_into_place(staging, out)
-    except BaseException:
-        shutil.rmtree(staging, ignore_errors=True)
-        raise
-    lap("write")
-    _stage(progress, "done in " + ", ".join(f"{k} {v:.1f} s" for k, v in timings.items())
-           + f" (total {sum(timings.values()):.1f} s)")
-    return out
 
 
 def _fem_metadata(config: SyntheticSceneConfig, tet: "TetMesh", result: Any) -> dict[str, Any]:
@@ -526,17 +577,6 @@ def _fem_metadata(config: SyntheticSceneConfig, tet: "TetMesh", result: Any) -> 
         "min_det_F": float(result.min_det.min()),
         "newton_iterations_total": int(result.newton_iterations.sum()),
     }
-
-
-def _jsonable(obj: Any) -> Any:
-    """Tuples to lists, numpy scalars to Python numbers (for scene.json metadata)."""
-    if isinstance(obj, dict):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
-    if isinstance(obj, np.generic):
-        return obj.item()
-    return obj
 
 
 def benchmark_parameters(n: int, seed: int = 0) -> list[dict[str, float | int]]:
@@ -617,90 +657,146 @@ def make_benchmark(n: int, out_dir: str | Path, preset: str = "full", seed: int 
 
     params = benchmark_parameters(n, seed)
     overrides = benchmark_overrides(preset, overrides)
+    configs = _suite_configs(preset, params, overrides, tets_from, ray_address)
+    root = Path(out_dir)
+    index_path = root / "index.json"
+    _check_suite_folder(root, index_path)
+    header = _suite_header(preset, seed, overrides, tets_from)
+    if index_path.is_file():
+        _check_previous_suite(index_path, header)
+        _check_no_scenes_beyond(root, n)
+    names = [f"scene_{i:03d}" for i in range(n)]
+    todo = _scenes_to_make(root, names, configs)
+    created = not root.exists()
+    root.mkdir(parents=True, exist_ok=True)
+    index = _SuiteIndex(index_path, header, configs, names)
+    try:
+        with tqdm(total=n, desc="benchmark scenes", unit="scene", disable=not progress) as bar:
+            _make_suite_scenes(index, root, todo, workers, ray_address, bar)
+    except BaseException:
+        if created and not index.entries and not any(root.iterdir()):
+            root.rmdir()  # make_scene leaves nothing behind, so the folder is empty
+        raise
+    return root
+
+
+def _suite_configs(preset: str, params: list[dict[str, float | int]], overrides: dict[str, Any],
+                   tets_from: str | Path | None, ray_address: str | None) -> list[SyntheticSceneConfig]:
+    """The settings of every scene of a suite, validated up front (ValueError for an override the suite sets
+    per scene), each with its tets from ``tets_from``'s scene when given; Newton and Ray are checked when they
+    will be needed, before any work."""
     fixed = sorted({"seed", "youngs_modulus", "poisson_ratio", "mesh", "tet_mesh"} & set(overrides))
     if fixed:
         raise ValueError(f"make_benchmark: {fixed} are set per scene by the suite and cannot be overridden")
     configs = [SyntheticSceneConfig.preset(preset, **{**overrides, **p}) for p in params]  # validates up front
     if any(c.truth == "newton" for c in configs):  # the optional engine, before any work
-
         import_newton()
     if tets_from is not None:
         configs = [replace(c, tet_mesh=str(_suite_tets(Path(tets_from), i, c))) for i, c in enumerate(configs)]
     if ray_address is not None:  # fail before any work
-
         check_ray(ray_address)
-    root = Path(out_dir)
-    index_path = root / "index.json"
+    return configs
+
+
+def _check_suite_folder(root: Path, index_path: Path) -> None:
+    """Refuse a ``root`` that is a file, or a non-empty folder without ``index.json`` (FileExistsError)."""
     if root.exists() and not root.is_dir():
         raise FileExistsError(f"{root} exists and is not a folder")
     if root.exists() and any(root.iterdir()) and not index_path.is_file():
         raise FileExistsError(f"{root} is not empty and holds no index.json: refusing to write a benchmark there")
-    header = {"preset": preset, "seed": seed, "overrides": _jsonable(overrides),
+
+
+def _suite_header(preset: str, seed: int, overrides: dict[str, Any], tets_from: str | Path | None
+                  ) -> dict[str, Any]:
+    """What a suite's ``index.json`` records of its settings (and a resume must match)."""
+    header = {"preset": preset, "seed": seed, "overrides": jsonable(overrides, nan_to_null=False),
               "E_range": list(BENCHMARK_E_RANGE), "nu_range": list(BENCHMARK_NU_RANGE)}
     if tets_from is not None:
         header["tets_from"] = str(Path(tets_from).resolve())
-    if index_path.is_file():
-        previous = json.loads(index_path.read_text())
-        if isinstance(previous.get("overrides"), dict):  # written when a suite's tets were linear by default
-            previous["overrides"].setdefault("element_order", 1)
-        differ = {k: (previous.get(k), v) for k, v in header.items() if previous.get(k) != v}
-        if differ:
-            raise ValueError(f"{index_path} was written with other settings {differ} (found, asked); resume with "
-                             "the same settings or use another folder")
-        _check_no_scenes_beyond(root, n)
-    names = [f"scene_{i:03d}" for i in range(n)]
+    return header
+
+
+def _scenes_to_make(root: Path, names: list[str], configs: list[SyntheticSceneConfig]) -> list[int]:
+    """The indices of the scenes not yet in ``root``; every existing scene is checked (ValueError if made with
+    other settings) before any work."""
     todo = []
     for i, config in enumerate(configs):  # every existing scene is checked before any work
         if (root / names[i]).exists():
             check_existing_scene(root / names[i], config)
         else:
             todo.append(i)
-    created = not root.exists()
-    root.mkdir(parents=True, exist_ok=True)
-    entries: dict[int, dict[str, Any]] = {}
+    return todo
 
-    def finished(i: int) -> None:
-        c = configs[i]
-        entries[i] = {"name": names[i], "seed": c.seed, "E": c.youngs_modulus, "nu": c.poisson_ratio,
-                      "density": c.density, "material": c.material}
-        write_json_atomic(index_path, {**header, "n": n, "complete": len(entries) == n,
-                                        "scenes": [entries[k] for k in sorted(entries)]})
 
-    try:
-        bar = tqdm(total=n, desc="benchmark scenes", unit="scene", disable=not progress)
-        with bar:
-            waiting = set(todo)
-            for i in range(n):
-                if i not in waiting:
-                    finished(i)
-                    bar.update(1)
-            if ray_address is None:
-                for i in todo:
-                    make_scene(configs[i], root / names[i], progress=False, workers=workers)
-                    finished(i)
-                    bar.update(1)
-            else:
+def _check_previous_suite(index_path: Path, header: dict[str, Any]) -> None:
+    """ValueError unless the suite's ``index.json`` was written with the settings of ``header`` (a suite written
+    when a suite's tets were linear by default has no ``element_order`` override: 1)."""
+    previous = json.loads(index_path.read_text())
+    if isinstance(previous.get("overrides"), dict):  # written when a suite's tets were linear by default
+        previous["overrides"].setdefault("element_order", 1)
+    differ = {k: (previous.get(k), v) for k, v in header.items() if previous.get(k) != v}
+    if differ:
+        raise ValueError(f"{index_path} was written with other settings {differ} (found, asked); resume with "
+                         "the same settings or use another folder")
 
-                failures: list[BaseException] = []
 
-                def gathered(k: int, result: Any) -> None:
-                    if isinstance(result, BaseException):
-                        failures.append(result)
-                        bar.write(f"[make-benchmark] {names[todo[k]]} failed: {type(result).__name__}: {result}")
-                    else:
-                        finished(todo[k])
-                    bar.update(1)
+class _SuiteIndex:
+    """A suite's ``index.json``, rewritten (atomically) after every finished scene: the scenes finished so far, in
+    order, and ``complete`` once all are."""
 
-                calls = [((configs[i], str((root / names[i]).resolve())), {"progress": False, "workers": workers})
-                         for i in todo]
-                ray_map(make_scene, calls, ray_address, num_cpus=max(1, workers), on_done=gathered)
-                if failures:
-                    raise failures[0]
-    except BaseException:
-        if created and not entries and not any(root.iterdir()):
-            root.rmdir()  # make_scene leaves nothing behind, so the folder is empty
-        raise
-    return root
+    def __init__(self, path: Path, header: dict[str, Any], configs: list[SyntheticSceneConfig],
+                 names: list[str]) -> None:
+        self.path, self.header, self.configs, self.names = path, header, configs, names
+        self.entries: dict[int, dict[str, Any]] = {}
+
+    def finished(self, i: int) -> None:
+        """Add scene ``i`` and rewrite the index."""
+        c = self.configs[i]
+        self.entries[i] = {"name": self.names[i], "seed": c.seed, "E": c.youngs_modulus, "nu": c.poisson_ratio,
+                           "density": c.density, "material": c.material}
+        n = len(self.configs)
+        write_json_atomic(self.path, {**self.header, "n": n, "complete": len(self.entries) == n,
+                                      "scenes": [self.entries[k] for k in sorted(self.entries)]})
+
+
+def _make_suite_scenes(index: _SuiteIndex, root: Path, todo: list[int], workers: int, ray_address: str | None,
+                       bar: Any) -> None:
+    """List the scenes already made, then make the scenes ``todo`` (here one after the other, or as Ray tasks),
+    updating the index and the bar as each finishes."""
+    waiting = set(todo)
+    for i in range(len(index.configs)):
+        if i not in waiting:
+            index.finished(i)
+            bar.update(1)
+    if ray_address is None:
+        for i in todo:
+            make_scene(index.configs[i], root / index.names[i], progress=False, workers=workers)
+            index.finished(i)
+            bar.update(1)
+    else:
+        _make_scenes_on_ray(index, root, todo, workers, ray_address, bar)
+
+
+def _make_scenes_on_ray(index: _SuiteIndex, root: Path, todo: list[int], workers: int, ray_address: str,
+                        bar: Any) -> None:
+    """Make the scenes ``todo`` as Ray tasks of ``workers`` CPUs each; a scene that fails does not stop the others,
+    and the first failure is raised once all have finished."""
+    configs, names = index.configs, index.names
+    failures: list[BaseException] = []
+
+    def gathered(k: int, result: Any) -> None:
+        if isinstance(result, BaseException):
+            failures.append(result)
+            bar.write(f"[make-benchmark] {names[todo[k]]} failed: {type(result).__name__}: {result}")
+        else:
+            index.finished(todo[k])
+        bar.update(1)
+
+    calls = [((configs[i], str((root / names[i]).resolve())), {"progress": False, "workers": workers})
+             for i in todo]
+    ray_map(make_scene, calls, ray_address, num_cpus=max(1, workers), on_done=gathered)
+    if failures:
+        raise failures[0]
 
 
 def _suite_tets(suite: Path, i: int, config: SyntheticSceneConfig) -> Path:

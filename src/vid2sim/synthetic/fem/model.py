@@ -322,56 +322,22 @@ class TetFEM:
         x = np.array(x_start, dtype=np.float64)
         if not self.min_det(x) > 0:
             raise FEMSolverError(f"the start state has an inverted tet (min det F = {self.min_det(x):.3g})")
-        free_dofs = None if free is None else np.repeat(np.asarray(free, dtype=bool), 3)
-        stats = NewtonStats()
-        use_cg = cfg.linear_solver == "cg"
-        reuse = factor is not None and not use_cg
-        factor = factor if reuse else FactorCache()
-        always_project = cfg.hessian_projection == "always"
-
-        def restrict(H: sp.csr_matrix) -> sp.csr_matrix:
-            return H if free_dofs is None else H[free_dofs][:, free_dofs]
-
-        def refresh(x: np.ndarray, F: Tensor) -> None:
-            """Factorise (direct) or store (CG) the Hessian at x: exact when it is positive definite
-            (``on_demand``), else with projected element tangents."""
-            if not always_project:
-                H = restrict(self._hessian(x, inertia, F, False, viscous))
-                if use_cg:
-                    factor.set(H, None, self._centred(x, free))
-                    return
-                lu = self._factorize(H, stats, exact=True)
-                if lu is not None:
-                    factor.set(H, lu, self._centred(x, free))
-                    return
-                stats.projected_solves += 1
-            H = restrict(self._hessian(x, inertia, F, True, viscous))
-            factor.set(H, None if use_cg else self._factorize(H, stats, exact=False), self._centred(x, free))
-
+        run = _NewtonRun(self, x_start, x_tilde, inertia, free, viscous, factor)
+        stats = run.stats
         phi, g, F, slack = self._evaluate(x, x_tilde, inertia, x_start, viscous)
         absolute = cfg.newton_tol * self.bbox_diagonal
         previous = math.inf
         step = np.zeros_like(x)
         for it in range(cfg.newton_max_iters):
-            fresh = factor.stale or not reuse
+            fresh = run.factor.stale or not run.reuse
             if fresh:
-                refresh(x, F)
+                run.refresh(x, F)
                 stats.factorizations += 1
-            p = self._direction(factor, g, x, free, free_dofs, use_cg, stats)
-            gp = float(g @ p) if p is not None else math.nan
-            if use_cg and not always_project and not gp < 0:  # CG found the exact Hessian indefinite: project
-                stats.projected_solves += 1
-                H = restrict(self._hessian(x, inertia, F, True, viscous))
-                factor.set(H, None, self._centred(x, free))
-                p = self._direction(factor, g, x, free, free_dofs, use_cg, stats)
-                gp = float(g @ p)
+            p, gp = run.direction(x, g, F)
             stats.iterations = it + 1
             step = p.reshape(-1, 3)
             size = float(np.abs(step).max())
-            tol = absolute
-            if step_origin is not None:  # a time step: also relative to how far it moves the vertices
-                motion = float(np.abs(x + step - step_origin).max())
-                tol = max(1e-12 * self.bbox_diagonal, min(absolute, cfg.newton_rtol * motion))
+            tol = self._step_tolerance(absolute, x, step, step_origin)
             if size <= tol:
                 x_try = x + step
                 if self.min_det(x_try) > 0:
@@ -380,45 +346,43 @@ class TetFEM:
                 return x, stats
             if not gp < 0:
                 if not fresh:
-                    factor.stale = True
+                    run.factor.stale = True
                     continue
                 raise FEMSolverError(f"Newton direction is not a descent direction (gᵀp = {gp:.3g}) at iteration {it}")
-            alpha = 1.0
-            halvings = 0
-            accepted = False
-            for _ in range(cfg.line_search_max_halvings):
-                x_try = x + alpha * step
-                phi_try, g_try, F_try, slack_try = self._evaluate(x_try, x_tilde, inertia, x_start, viscous)
-                if phi_try <= phi + cfg.armijo * alpha * gp + slack:  # changes of Φ below its round-off pass
-                    accepted = True
-                    break
-                stats.inverted_rejections += int(math.isinf(phi_try))
+            alpha, halvings, accepted = run.line_search(x, step, phi, gp, slack, fresh)
+            if accepted is None:
                 if not fresh:
-                    # A reused factorisation whose full step fails is not searched along: it was formed at
-                    # another state, possibly with another floor-contact set (the penalty's Hessian jumps where
-                    # a vertex crosses the floor), and its halved steps can cycle with the fresh step of that
-                    # other set. Refactorise here instead.
-                    break
-                alpha *= 0.5
-                halvings += 1
-            if not accepted:
-                if not fresh:
-                    factor.stale = True
+                    run.factor.stale = True
                     continue
-                raise FEMSolverError(
-                    f"line search found no valid step after {cfg.line_search_max_halvings} halvings at Newton "
-                    f"iteration "
-                    f"{it} (min det F along the step: {self.min_det(x + alpha * step):.3g}, max step "
-                    f"{np.abs(step).max():.3g} m)"
-                )
+                raise self._line_search_failure(it, x, alpha, step)
             stats.line_search_halvings += halvings
             if halvings > 0 or (not fresh and size > cfg.reuse_rate * previous):
-                factor.stale = True  # far from converged or slow contraction: refactorise at the next iteration
+                run.factor.stale = True  # far from converged or slow contraction: refactorise at the next iteration
             previous = size
-            x, phi, g, F, slack = x_try, phi_try, g_try, F_try, slack_try
+            x, phi, g, F, slack = accepted
         raise FEMSolverError(
             f"Newton did not converge in {cfg.newton_max_iters} iterations (last step "
             f"{np.abs(step).max():.3g} m > tolerance {tol:.3g} m); raise FEMConfig.newton_max_iters or substeps")
+
+    def _step_tolerance(self, absolute: float, x: np.ndarray, step: np.ndarray, step_origin: np.ndarray | None
+                        ) -> float:
+        """The Newton step size (m) below which :meth:`minimize` has converged: ``absolute``, and in a time step
+        (``step_origin`` (Nv, 3) given) also ``newton_rtol`` times the step's largest vertex move from x + step
+        (Nv, 3), but not below 1e-12 of the size."""
+        if step_origin is None:
+            return absolute
+        motion = float(np.abs(x + step - step_origin).max())  # a time step: how far it moves the vertices
+        return max(1e-12 * self.bbox_diagonal, min(absolute, self.config.newton_rtol * motion))
+
+    def _line_search_failure(self, it: int, x: np.ndarray, alpha: float, step: np.ndarray) -> FEMSolverError:
+        """The error of a line search from x (Nv, 3) along ``step`` (Nv, 3) that found no valid step (``alpha``: the
+        last fraction tried) at Newton iteration ``it``."""
+        return FEMSolverError(
+            f"line search found no valid step after {self.config.line_search_max_halvings} halvings at Newton "
+            f"iteration "
+            f"{it} (min det F along the step: {self.min_det(x + alpha * step):.3g}, max step "
+            f"{np.abs(step).max():.3g} m)"
+        )
 
     def _centred(self, x: np.ndarray, free: np.ndarray | None) -> np.ndarray | None:
         """Mass-centred positions (for the rotation fit of a reused factorisation); None with fixed vertices
@@ -520,6 +484,89 @@ class TetFEM:
         if free is not None:
             v_new[~free] = 0.0
         return x_new, v_new, stats
+
+
+class _NewtonRun:
+    """The linear algebra of one :meth:`TetFEM.minimize` call: the Hessian restricted to the free dofs, factorised
+    (direct solver) or kept (CG) in ``factor`` (reused between iterations and calls when one is given), the Newton
+    direction from it, and the backtracking line search along that direction."""
+
+    def __init__(self, fem: TetFEM, x_start: np.ndarray, x_tilde: np.ndarray | None, inertia: float,
+                 free: np.ndarray | None, viscous: "ViscousTerm | None", factor: "FactorCache | None") -> None:
+        cfg = fem.config
+        self.fem, self.x_start, self.x_tilde, self.inertia, self.free, self.viscous = (
+            fem, x_start, x_tilde, inertia, free, viscous)
+        #: (3Nv,) bool, the free degrees of freedom (None: all)
+        self.free_dofs = None if free is None else np.repeat(np.asarray(free, dtype=bool), 3)
+        self.stats = NewtonStats()
+        self.use_cg = cfg.linear_solver == "cg"
+        self.reuse = factor is not None and not self.use_cg
+        self.factor = factor if self.reuse else FactorCache()
+        self.always_project = cfg.hessian_projection == "always"
+
+    def restrict(self, H: sp.csr_matrix) -> sp.csr_matrix:
+        """The Hessian (3Nv × 3Nv) restricted to the free dofs."""
+        return H if self.free_dofs is None else H[self.free_dofs][:, self.free_dofs]
+
+    def refresh(self, x: np.ndarray, F: Tensor) -> None:
+        """Factorise (direct) or store (CG) the Hessian at x (Nv, 3) from the element F (Nt, 3, 3): exact when it
+        is positive definite (``on_demand``), else with projected element tangents."""
+        fem, stats, factor = self.fem, self.stats, self.factor
+        if not self.always_project:
+            H = self.restrict(fem._hessian(x, self.inertia, F, False, self.viscous))
+            if self.use_cg:
+                factor.set(H, None, fem._centred(x, self.free))
+                return
+            lu = fem._factorize(H, stats, exact=True)
+            if lu is not None:
+                factor.set(H, lu, fem._centred(x, self.free))
+                return
+            stats.projected_solves += 1
+        H = self.restrict(fem._hessian(x, self.inertia, F, True, self.viscous))
+        factor.set(H, None if self.use_cg else fem._factorize(H, stats, exact=False), fem._centred(x, self.free))
+
+    def direction(self, x: np.ndarray, g: np.ndarray, F: Tensor) -> tuple[np.ndarray, float]:
+        """The Newton direction p (3Nv,) at x (Nv, 3) for the gradient g (3Nv,), and gᵀp; with CG, an exact
+        Hessian found indefinite is replaced by the projected one and the direction solved again."""
+        fem, stats = self.fem, self.stats
+        p = fem._direction(self.factor, g, x, self.free, self.free_dofs, self.use_cg, stats)
+        gp = float(g @ p) if p is not None else math.nan
+        if self.use_cg and not self.always_project and not gp < 0:  # CG found the exact Hessian indefinite: project
+            stats.projected_solves += 1
+            H = self.restrict(fem._hessian(x, self.inertia, F, True, self.viscous))
+            self.factor.set(H, None, fem._centred(x, self.free))
+            p = fem._direction(self.factor, g, x, self.free, self.free_dofs, self.use_cg, stats)
+            gp = float(g @ p)
+        return p, gp
+
+    def line_search(self, x: np.ndarray, step: np.ndarray, phi: float, gp: float, slack: float, fresh: bool
+                    ) -> tuple[float, int, tuple | None]:
+        """Backtrack from the full ``step`` (Nv, 3) until Armijo's condition holds (a change of Φ below its
+        round-off ``slack`` passes); a reused (not ``fresh``) factorisation tries the full step only.
+
+        Returns:
+            the last step fraction tried, the halvings, and the accepted ``(x, Φ, gradient, F, slack)`` at the
+            new positions, or None when no step was accepted.
+        """
+        cfg = self.fem.config
+        alpha = 1.0
+        halvings = 0
+        for _ in range(cfg.line_search_max_halvings):
+            x_try = x + alpha * step
+            phi_try, g_try, F_try, slack_try = self.fem._evaluate(x_try, self.x_tilde, self.inertia, self.x_start,
+                                                                  self.viscous)
+            if phi_try <= phi + cfg.armijo * alpha * gp + slack:  # changes of Φ below its round-off pass
+                return alpha, halvings, (x_try, phi_try, g_try, F_try, slack_try)
+            self.stats.inverted_rejections += int(math.isinf(phi_try))
+            if not fresh:
+                # A reused factorisation whose full step fails is not searched along: it was formed at
+                # another state, possibly with another floor-contact set (the penalty's Hessian jumps where
+                # a vertex crosses the floor), and its halved steps can cycle with the fresh step of that
+                # other set. Refactorise here instead.
+                break
+            alpha *= 0.5
+            halvings += 1
+        return alpha, halvings, None
 
 
 @dataclass

@@ -1,0 +1,108 @@
+"""vid2sim.runtime.files's shared helpers: the JSON-ready copy of a record (both ways of treating NaN, byte for byte
+as the two helpers it replaced wrote them) and the folder written whole or not at all."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import stat
+
+import numpy as np
+import pytest
+
+from vid2sim.runtime.files import jsonable, write_folder_atomic
+from vid2sim.scene.capture import jsonify
+
+RECORD = {"a": (1, 2.5, np.float32(0.25)), 3: [np.int64(7), np.bool_(True), None, "x"], "nan": float("nan"),
+          "inf": -math.inf, "np_nan": np.float64("nan"), "nested": {"t": ((1, 2), [3, (4,)])},
+          "array": np.array([[1.0, np.nan], [np.inf, 2.0]]), "ints": np.arange(3, dtype=np.int32)}
+
+
+def test_jsonable_turns_non_finite_floats_to_null_by_default_as_the_capture_importer_wrote_them():
+    out = jsonable(RECORD)
+    assert jsonify.jsonable is jsonable  # the importer's name for it
+    text = json.dumps(out, indent=2, allow_nan=False)  # standard JSON: no NaN left
+    assert json.loads(text) == {
+        "a": [1, 2.5, 0.25], "3": [7, True, None, "x"], "nan": None, "inf": None, "np_nan": None,
+        "nested": {"t": [[1, 2], [3, [4]]]}, "array": [[1.0, None], [None, 2.0]], "ints": [0, 1, 2]}
+    assert type(out["a"][2]) is float and type(out["3"][0]) is int and type(out["3"][1]) is bool
+
+
+def test_jsonable_keeps_non_finite_floats_when_asked_as_the_synthetic_scenes_wrote_them():
+    record = {k: v for k, v in RECORD.items() if not isinstance(v, np.ndarray)}  # the scenes' records hold none
+    out = jsonable(record, nan_to_null=False)
+    text = json.dumps(out, indent=2)
+    assert '"nan": NaN' in text and '"inf": -Infinity' in text and '"np_nan": NaN' in text
+    assert text == json.dumps(_scenes_jsonable_before(record), indent=2)  # byte for byte as before
+    assert json.dumps(jsonable(RECORD), indent=2) == json.dumps(_importer_jsonable_before(RECORD), indent=2)
+    assert math.isnan(jsonable(RECORD["array"], nan_to_null=False)[0][1])  # arrays: lists, NaN kept
+
+
+def _scenes_jsonable_before(obj):
+    """vid2sim.synthetic.scenes._jsonable as it was (tuples to lists, numpy scalars to Python numbers)."""
+    if isinstance(obj, dict):
+        return {str(k): _scenes_jsonable_before(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_scenes_jsonable_before(v) for v in obj]
+    if isinstance(obj, np.generic):
+        return obj.item()
+    return obj
+
+
+def _importer_jsonable_before(obj):
+    """vid2sim.scene.capture.jsonify.jsonable as it was."""
+    if isinstance(obj, dict):
+        return {str(k): _importer_jsonable_before(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_importer_jsonable_before(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _importer_jsonable_before(obj.tolist())
+    if isinstance(obj, np.generic):
+        return _importer_jsonable_before(obj.item())
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    return obj
+
+
+def test_a_folder_is_written_whole_replacing_an_empty_or_an_old_one(tmp_path):
+    out = tmp_path / "deep" / "out"
+
+    def fill(folder, text):
+        def write(staging):
+            assert staging.parent == out.parent and staging.name.startswith(".out.making-")
+            (staging / "a.txt").write_text(text)
+        return write
+
+    assert write_folder_atomic(out, fill(out, "one"), create=True) == out
+    assert (out / "a.txt").read_text() == "one"
+    mode = stat.S_IMODE(os.stat(out).st_mode)
+    umask = os.umask(0)
+    os.umask(umask)
+    assert mode == 0o777 & ~umask
+    write_folder_atomic(out, fill(out, "two"), create=True)  # an existing folder is replaced
+    assert (out / "a.txt").read_text() == "two" and sorted(p.name for p in out.parent.iterdir()) == ["out"]
+    empty = tmp_path / "empty"
+    empty.mkdir()
+
+    def makes_it(staging):
+        staging.mkdir()
+        (staging / "b").write_text("b")
+
+    write_folder_atomic(empty, makes_it)  # without create, write makes the folder
+    assert (empty / "b").read_text() == "b"
+
+
+def test_a_failed_folder_write_leaves_nothing_and_the_old_folder_as_it_was(tmp_path):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "keep").write_text("old")
+
+    def fails(staging):
+        (staging / "half").write_text("x")
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        write_folder_atomic(out, fails, create=True)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+    assert [p.name for p in out.iterdir()] == ["keep"] and (out / "keep").read_text() == "old"
