@@ -2,14 +2,14 @@
 
 :func:`write_scene` writes a :class:`~vid2sim.scene.folder.Scene` into a temporary folder next to the
 target (PNG frames or per-camera videos, ``transforms.json``, ``scene.json`` last, extras) and renames it into
-place with :func:`move_into_place`, so a failed write never leaves a partial scene. Other folder writers
-(assets, exports, reports) use :func:`move_into_place` for the same guarantee.
+place with :func:`move_into_place` (:func:`vid2sim.runtime.files.move_folder_into_place`, re-exported here), so a
+failed write never leaves a partial scene. Other folder writers (assets, exports, reports) use it for the same
+guarantee.
 """
 
 from __future__ import annotations
 
 import json
-import os
 import shutil
 import uuid
 from pathlib import Path
@@ -21,6 +21,7 @@ from PIL import Image
 from torch import Tensor
 
 from vid2sim.runtime.errors import InputError
+from vid2sim.runtime.files import move_folder_into_place as move_into_place
 from vid2sim.scene.folder import SCENE_JSON, TRANSFORMS_JSON, Scene
 from vid2sim.scene.reading import run_parallel
 from vid2sim.scene.video import write_video
@@ -96,32 +97,6 @@ def write_scene(
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     return target
-
-
-def move_into_place(tmp: Path, target: Path) -> None:
-    """Rename the finished folder ``tmp`` to ``target``, replacing an existing ``target`` only at the
-    last moment (it is restored if the rename fails). Both must be on the same file system.
-
-    ``tmp`` usually comes from :func:`tempfile.mkdtemp`, which makes it private (mode 0700); it is given the
-    permissions a folder made with ``mkdir`` would have (0777 minus the umask) before it takes its name."""
-    _apply_umask(tmp)
-    if not target.exists():
-        os.replace(tmp, target)
-        return
-    old = target.parent / f".{target.name}.old-{uuid.uuid4().hex[:12]}"
-    os.replace(target, old)
-    try:
-        os.replace(tmp, target)
-    except BaseException:
-        os.replace(old, target)
-        raise
-    shutil.rmtree(old, ignore_errors=True)
-
-
-def _apply_umask(folder: Path) -> None:
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(folder, 0o777 & ~umask)
 
 
 def _f32(x: float | Tensor) -> float:
