@@ -1,7 +1,7 @@
 """``vid2sim simulate ASSET OUT``: simulate a reconstructed asset in a :class:`~vid2sim.simulate.scenario.Scenario`
 and write what it looks like.
 
-The scenario is checked against the asset first (:func:`~vid2sim.simulate.scenario.resolve_scenario`), so a
+The scenario is checked against the asset first (:func:`~vid2sim.simulate.resolve.resolve_scenario`), so a
 scenario that makes no sense fails before any simulation. Then the asset is simulated (``frames − 1`` video
 frames after the initial state), its Gaussians are moved with the simulated state and rendered in every
 camera, and the output folder is written (docs/scenarios.md)::
@@ -39,12 +39,8 @@ from vid2sim.physics.external import Floor, MovingFloor, SphereObstacle
 from vid2sim.runtime.device import resolve_device
 from vid2sim.scene.video import write_video
 from vid2sim.scene.writing import move_into_place
-from vid2sim.simulate.scenario import (
-    ResolvedScenario,
-    Scenario,
-    reframe,
-    resolve_scenario,
-)
+from vid2sim.simulate.resolve import ResolvedScenario, reframe, resolve_scenario
+from vid2sim.simulate.scenario import Scenario
 from vid2sim.simulate.scenery import concatenate, scenery_gaussians
 from vid2sim.splats.ply import save_ply
 from vid2sim.splats.render import render_gaussians
