@@ -573,9 +573,11 @@ class _AdamFit:
         self.v_ang = torch.tensor(start[-3:], dtype=dtype, device=device).requires_grad_(True)
 
     def initial_state(self) -> SimState:
+        """The state at t = 0: the rest shape moving rigidly with (v, ω) about ``centre`` (with their graph)."""
         return self.sim.rigid_velocity_state(self.v_lin, self.v_ang, self.centre)
 
     def theta(self) -> list[float]:
+        """θ = [log10 E, ν, (damping ratio,) v (3), ω (3)] now, as numbers."""
         sim = self.sim
         return [float(sim.log10_E.detach()), float(sim.nu.detach())] \
             + ([float(sim.damping_ratio.detach())] if self.cfg.fit_damping else []) \

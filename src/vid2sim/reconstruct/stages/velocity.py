@@ -476,6 +476,7 @@ class _Flight:
         return fitter.fit(R, p, self.metres_per_px, self.radius, self.iterations)
 
     def say(self, message: str) -> None:
+        """Print one progress line (with ``progress``)."""
         if self.progress:
             print(f"[initial velocity] {message}", flush=True)
 
