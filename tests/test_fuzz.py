@@ -205,7 +205,8 @@ def test_a_float32_asset_that_stalled_newton_now_simulates(tmp_path):
         draw_case,
         scenario_of,
     )
-    from vid2sim.simulate.run import resolve_scenario, run_scenario
+    from vid2sim.simulate.resolve import resolve_scenario
+    from vid2sim.simulate.run import run_scenario
 
     case = draw_case(2)
     assert (case.shape, case.handles) == ("capsule", 16) and case.youngs_modulus < 1.2e3

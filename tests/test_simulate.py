@@ -13,17 +13,11 @@ import torch
 
 from vid2sim.asset.folder import load_asset
 from vid2sim.cli import main
+from vid2sim.simulate.cameras import scene_cameras
+from vid2sim.simulate.resolve import resolve_scenario
+from vid2sim.simulate.rotations import axis_angle_to_matrix, euler_to_matrix
 from vid2sim.simulate.run import run_scenario, simulate, trajectory_stats
-from vid2sim.simulate.scenario import (
-    InitialSpec,
-    ObstacleSpec,
-    Scenario,
-    ScenarioError,
-    axis_angle_to_matrix,
-    euler_to_matrix,
-    resolve_scenario,
-    scene_cameras,
-)
+from vid2sim.simulate.scenario import InitialSpec, ObstacleSpec, Scenario, ScenarioError
 
 
 @pytest.fixture(scope="module")

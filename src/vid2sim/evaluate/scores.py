@@ -28,12 +28,14 @@ from __future__ import annotations
 
 import json
 import math
+import time
 from pathlib import Path
 from typing import Any
 
 import torch
+from torch import Tensor
 
-from vid2sim.asset.folder import load_asset
+from vid2sim.asset.folder import Asset, load_asset
 from vid2sim.asset.motion import (
     deform_states,
     render_frames,
@@ -45,9 +47,12 @@ from vid2sim.metrics.fvvdp import fovvdp as fovvdp_score
 from vid2sim.metrics.geometry import boundary_faces, material_errors, surface_chamfer
 from vid2sim.metrics.images import image_metrics
 from vid2sim.metrics.trajectory import tet_centre_of_mass
+from vid2sim.physics.solver import SimState, Simulator
 from vid2sim.runtime.device import resolve_device
 from vid2sim.runtime.errors import InputError
+from vid2sim.scene.folder import SceneConfig
 from vid2sim.scene.reading import load_scene
+from vid2sim.splats.cameras import Camera
 
 
 def _group(renders: torch.Tensor, targets: torch.Tensor, views: list[int], frames: list[int]) -> dict[str, Any]:
@@ -163,9 +168,6 @@ def evaluate(asset_path: str | Path, scene_path: str | Path, fovvdp: bool = Fals
         With ``return_renders=True``: the pair (that dict, the renders (V, T, H, W, 3) in [0, 1] it scored,
         every scene camera and frame).
     """
-    import time
-
-
     t0 = time.perf_counter()
     dev = device if isinstance(device, torch.device) else resolve_device(device)
     asset = load_asset(asset_path, dev)
@@ -173,27 +175,47 @@ def evaluate(asset_path: str | Path, scene_path: str | Path, fovvdp: bool = Fals
     cameras = [c.to(dev) for c in scene.cameras]
     if abs(float(scene.config.dt) - asset.dt) > 1e-6 * asset.dt:
         raise InputError(f"{scene_path}: frame time {scene.config.dt} s differs from the asset's {asset.dt} s")
-    V, T = scene.images.shape[:2]
+    T = scene.images.shape[1]
     sim, states = simulate_states(asset, T, progress=progress)
     deformed = deform_states(asset, sim, states, progress=progress)
     centres = [d.means.cpu() for d in deformed]
     renders = render_frames(deformed, cameras, background=1.0, progress=progress).cpu()  # (V, T, H, W, 3)
     targets = scene.images.float()
-    obs_v, held_v = list(scene.config.observed_views), list(scene.config.held_out_views)
-    obs_f, held_f = list(scene.config.observed_frames), list(scene.config.held_out_frames)
     report: dict[str, Any] = {"asset": str(asset_path), "scene": str(scene_path),
                               **scene_groups(renders, targets, scene.config)}
     if fovvdp:
+        _add_fovvdp(report, renders, targets, scene.config, display)
+    report["material"] = _material_record(asset, asset_path, scene.config.metadata)
+    tet = scene.extras.get("tet_trajectory")
+    if tet is not None:
+        report.update(_motion_errors(tet, centres, sim, states, scene.config))
+    if true_motion:
+        report["true_motion"] = _true_motion(asset, tet, targets, cameras, scene.config, scene_path, progress)
+    report["timing"] = {"seconds": time.perf_counter() - t0}
+    if return_renders:
+        return report, renders
+    return report
 
-        fps = 1.0 / float(scene.config.dt)
-        for key, views, frames in (("dynamic", obs_v, obs_f), ("future", obs_v, held_f),
-                                   ("novel_views", held_v, list(range(T)))):
-            if report[key] and frames:
-                scores = [fovvdp_score(renders[v, frames], targets[v, frames], fps=fps, display=display)
-                          for v in views]
-                report[key]["fovvdp_jod"] = sum(s["jod"] for s in scores) / len(scores)
-                report[key]["fovvdp_display"] = scores[0]["display"]
-    meta = scene.config.metadata
+
+def _add_fovvdp(report: dict[str, Any], renders: Tensor, targets: Tensor, config: SceneConfig, display: str) -> None:
+    """Add FoVVDP (``fovvdp_jod``, mean over the group's views, and ``fovvdp_display``) to the ``dynamic``,
+    ``future`` and ``novel_views`` groups of ``report``; ``renders`` and ``targets`` (V, T, H, W, 3) in [0, 1]."""
+    T = targets.shape[1]
+    obs_v, held_v = list(config.observed_views), list(config.held_out_views)
+    obs_f, held_f = list(config.observed_frames), list(config.held_out_frames)
+    fps = 1.0 / float(config.dt)
+    for key, views, frames in (("dynamic", obs_v, obs_f), ("future", obs_v, held_f),
+                               ("novel_views", held_v, list(range(T)))):
+        if report[key] and frames:
+            scores = [fovvdp_score(renders[v, frames], targets[v, frames], fps=fps, display=display)
+                      for v in views]
+            report[key]["fovvdp_jod"] = sum(s["jod"] for s in scores) / len(scores)
+            report[key]["fovvdp_display"] = scores[0]["display"]
+
+
+def _material_record(asset: Asset, asset_path: str | Path, meta: dict[str, Any]) -> dict[str, Any]:
+    """The report's ``material``: the fitted material, the asset's uncertainty and joint fit record, Stage II's
+    start, and with the truth in the scene's ``meta``data the errors and whether the intervals hold it."""
     fitted = {"E": asset.material["E"], "nu": asset.material["nu"]}
     material: dict[str, Any] = {"fitted": {**fitted, "log10_E": asset.material.get("log10_E"),
                                            "damping_ratio": asset.material.get("damping_ratio")}}
@@ -214,42 +236,53 @@ def evaluate(asset_path: str | Path, scene_path: str | Path, fovvdp: bool = Fals
         if isinstance(uncertainty, dict) and meta["E"] > 0:
             material["interval_covers_truth"] = interval_coverage(uncertainty, {"log10_E": math.log10(meta["E"]),
                                                                                  "nu": meta["nu"]})
-    report["material"] = material
-    tet = scene.extras.get("tet_trajectory")
-    if tet is not None:
-        faces = boundary_faces(tet["tets"])
-        per_frame = [surface_chamfer(centres[t].double(), tet["vertices"][t].double(), faces, seed=t)
-                     for t in range(T)]
-        report["chamfer"] = {
+    return material
+
+
+def _motion_errors(tet: dict[str, Tensor], centres: list[Tensor], sim: Simulator, states: list[SimState],
+                   config: SceneConfig) -> dict[str, Any]:
+    """The report's ``chamfer`` (the simulated Gaussian centres, T × (N, 3), against the ground-truth surface of
+    ``tet``) and ``centre_of_mass`` (the simulated body's, of ``states``, against the truth's), per frame and as
+    means over the observed and held-out frames."""
+    T = len(centres)
+    obs_f, held_f = list(config.observed_frames), list(config.held_out_frames)
+    faces = boundary_faces(tet["tets"])
+    per_frame = [surface_chamfer(centres[t].double(), tet["vertices"][t].double(), faces, seed=t)
+                 for t in range(T)]
+    offset = (simulated_centre_of_mass(sim, states).cpu()
+              - tet_centre_of_mass(tet["vertices"][:T], tet["tets"])).norm(dim=1).tolist()
+    return {
+        "chamfer": {
             "per_frame": per_frame,
             "observed_mean": sum(per_frame[f] for f in obs_f) / len(obs_f),
             "future_mean": sum(per_frame[f] for f in held_f) / len(held_f) if held_f else None,
             "units": "m (mean of both directions, simulated Gaussian centres vs the ground-truth surface)",
-        }
-        offset = (simulated_centre_of_mass(sim, states).cpu()
-                  - tet_centre_of_mass(tet["vertices"][:T], tet["tets"])).norm(dim=1).tolist()
-        report["centre_of_mass"] = {
+        },
+        "centre_of_mass": {
             "per_frame": offset,
             "observed_mean": sum(offset[f] for f in obs_f) / len(obs_f),
             "future_mean": sum(offset[f] for f in held_f) / len(held_f) if held_f else None,
             "units": "m (distance between the simulated body's centre of mass and the ground truth's)",
-        }
-    if true_motion:
-        if tet is None:
-            raise InputError(f"{scene_path}: true_motion needs the ground-truth motion (the tet_trajectory extra), "
-                             "which this scene does not have")
-        carried = true_motion_gaussians(asset, tet)
-        if len(carried) < T:
-            raise InputError(f"{scene_path}: the tet_trajectory extra has {len(carried)} frames, the images {T}")
-        truth_renders = render_frames(carried[:T], cameras, background=1.0, progress=progress).cpu()
-        report["true_motion"] = {
-            "what": "the asset's Gaussians moved by the ground truth's motion: the appearance's ceiling",
-            **scene_groups(truth_renders, targets, scene.config),
-        }
-    report["timing"] = {"seconds": time.perf_counter() - t0}
-    if return_renders:
-        return report, renders
-    return report
+        },
+    }
+
+
+def _true_motion(asset: Asset, tet: dict[str, Tensor] | None, targets: Tensor, cameras: list[Camera],
+                 config: SceneConfig, scene_path: str | Path, progress: bool) -> dict[str, Any]:
+    """The report's ``true_motion``: the asset's Gaussians moved by the ground truth's motion (``tet``), rendered
+    and scored against ``targets`` (V, T, H, W, 3) like the simulation: the appearance's ceiling."""
+    T = targets.shape[1]
+    if tet is None:
+        raise InputError(f"{scene_path}: true_motion needs the ground-truth motion (the tet_trajectory extra), "
+                         "which this scene does not have")
+    carried = true_motion_gaussians(asset, tet)
+    if len(carried) < T:
+        raise InputError(f"{scene_path}: the tet_trajectory extra has {len(carried)} frames, the images {T}")
+    truth_renders = render_frames(carried[:T], cameras, background=1.0, progress=progress).cpu()
+    return {
+        "what": "the asset's Gaussians moved by the ground truth's motion: the appearance's ceiling",
+        **scene_groups(truth_renders, targets, config),
+    }
 
 
 def write_evaluation(report: dict[str, Any], path: str | Path) -> Path:

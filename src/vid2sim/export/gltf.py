@@ -479,74 +479,109 @@ def load_gltf_gaussians(path: str | os.PathLike, *, source_frame: bool = True, d
         raise GltfFormatError(f"{path}: no mesh primitive with the {EXTENSION} extension in the default scene")
     parts = []
     for prim, mat, where in prims:
-        where = f"{path}: {where}"
-        ext = prim["extensions"][EXTENSION]
-        if prim.get("mode", 4) != POINTS:
-            raise GltfFormatError(f"{where}mode must be POINTS (0) for {EXTENSION}, got {prim.get('mode', 4)}")
-        if ext.get("kernel") != "ellipse":
-            raise GltfFormatError(f"{where}kernel {ext.get('kernel')!r} is not supported (only 'ellipse')")
-        if ext.get("colorSpace") != COLOR_SPACE:
-            warnings.warn(f"{where}colorSpace is {ext.get('colorSpace')!r}; the SH coefficients are returned as "
-                          f"stored, vid2sim renders them as {COLOR_SPACE}", stacklevel=2)
-        attrs = prim.get("attributes", {})
-        missing = [
-            a for a in ("POSITION", ATTR_ROTATION, ATTR_SCALE, ATTR_OPACITY, sh_attribute(0, 0)) if a not in attrs
-        ]
-        if missing:
-            raise GltfFormatError(f"{where}lacks the required attributes {missing}")
-
-        def get(attr: str, comps: int) -> np.ndarray:
-            values = read_accessor(doc, buffers, attrs[attr], where)
-            if values.shape[1] != comps:
-                raise GltfFormatError(f"{where}{attr} must have {comps} components, got {values.shape[1]}")
-            if not np.all(np.isfinite(values)):
-                raise GltfFormatError(f"{where}{attr} holds NaN or infinite values")
-            return values
-
-        means = get("POSITION", 3)
-        n = means.shape[0]
-        rot_xyzw, scales, opac = get(ATTR_ROTATION, 4), get(ATTR_SCALE, 3), get(ATTR_OPACITY, 1)[:, 0]
-        degree = 0
-        for lvl in (1, 2, 3):
-            present = [sh_attribute(lvl, c) in attrs for c in range(2 * lvl + 1)]
-            if any(present) and not all(present):
-                raise GltfFormatError(f"{where}SH degree {lvl} is partially defined ({sum(present)} of {2 * lvl + 1} "
-                                      f"coefficients); the spec requires all or none")
-            if all(present):
-                if degree != lvl - 1:
-                    raise GltfFormatError(f"{where}SH degree {lvl} is present without degree {lvl - 1}")
-                degree = lvl
-        sh = np.zeros((n, num_sh_bases(degree), 3))
-        for lvl in range(degree + 1):
-            for c in range(2 * lvl + 1):
-                sh[:, lvl * lvl + c] = get(sh_attribute(lvl, c), 3)
-        for attr, values in (("rotation", rot_xyzw), ("scale", scales), ("opacity", opac), ("SH", sh)):
-            if values.shape[0] != n:
-                raise GltfFormatError(f"{where}the {attr} accessor has {values.shape[0]} elements, POSITION has {n}")
-        if np.any(scales < 0):
-            raise GltfFormatError(f"{where}{ATTR_SCALE} has negative values (the spec requires linear scales >= 0)")
-        if np.any((opac < 0) | (opac > 1)):
-            raise GltfFormatError(f"{where}{ATTR_OPACITY} has values outside [0, 1] (the spec stores linear opacity)")
-        quats = rot_xyzw[:, [3, 0, 1, 2]]
-        if np.any(np.linalg.norm(quats, axis=1) == 0):
-            raise GltfFormatError(f"{where}{ATTR_ROTATION} has zero quaternions")
-        log_scales = np.log(np.maximum(scales, 1e-30))
-        means, quats, log_scales, sh = _apply_node_transform(means, quats, log_scales, sh, mat)
-        p = np.clip(opac, 1e-12, 1 - 1e-12)
-        parts.append((means, quats, log_scales, np.log(p) - np.log1p(-p), sh))
+        parts.append(_read_splat_primitive(doc, buffers, prim, mat, f"{path}: {where}"))
     info = doc.get("asset", {}).get("extras", {}).get("vid2sim", {})
     if source_frame and "gltf_from_world" in info:
-        try:
-            rot = check_rotation(
-                np.asarray(info["gltf_from_world"], dtype=np.float64), "asset.extras.vid2sim.gltf_from_world"
-            )
-        except ValueError as exc:
-            raise GltfFormatError(f"{path}: {exc}") from None
-        undone = []
-        for means, quats, log_scales, logits, sh in parts:
-            means, quats, sh = rotate_gaussian_arrays(means, quats, sh, rot.T)
-            undone.append((means, quats, log_scales, logits, sh))
-        parts = undone
+        parts = _undo_gltf_from_world(parts, info["gltf_from_world"], path)
+    return _concatenate_parts(parts).to(device=device, dtype=dtype)
+
+
+#: one primitive's Gaussians as arrays: means (N, 3), quats (N, 4) (w, x, y, z), log scales (N, 3), opacity logits
+#: (N,), SH (N, K, 3)
+_SplatArrays = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+
+
+def _read_splat_primitive(doc: dict[str, Any], buffers: list[bytes], prim: dict[str, Any], mat: np.ndarray,
+                          where: str) -> _SplatArrays:
+    """The Gaussians of one ``KHR_gaussian_splatting`` primitive, checked, with its node transform ``mat`` (4, 4)
+    applied; ``where`` (the file and primitive) starts every message. Called by :func:`load_gltf_gaussians` only
+    (its colour-space warning names that function's caller)."""
+    ext = prim["extensions"][EXTENSION]
+    if prim.get("mode", 4) != POINTS:
+        raise GltfFormatError(f"{where}mode must be POINTS (0) for {EXTENSION}, got {prim.get('mode', 4)}")
+    if ext.get("kernel") != "ellipse":
+        raise GltfFormatError(f"{where}kernel {ext.get('kernel')!r} is not supported (only 'ellipse')")
+    if ext.get("colorSpace") != COLOR_SPACE:
+        warnings.warn(f"{where}colorSpace is {ext.get('colorSpace')!r}; the SH coefficients are returned as "
+                      f"stored, vid2sim renders them as {COLOR_SPACE}", stacklevel=3)
+    attrs = prim.get("attributes", {})
+    missing = [
+        a for a in ("POSITION", ATTR_ROTATION, ATTR_SCALE, ATTR_OPACITY, sh_attribute(0, 0)) if a not in attrs
+    ]
+    if missing:
+        raise GltfFormatError(f"{where}lacks the required attributes {missing}")
+
+    def get(attr: str, comps: int) -> np.ndarray:
+        return _read_attribute(doc, buffers, attrs, attr, comps, where)
+
+    means = get("POSITION", 3)
+    n = means.shape[0]
+    rot_xyzw, scales, opac = get(ATTR_ROTATION, 4), get(ATTR_SCALE, 3), get(ATTR_OPACITY, 1)[:, 0]
+    sh = _read_sh(doc, buffers, attrs, n, where)
+    for attr, values in (("rotation", rot_xyzw), ("scale", scales), ("opacity", opac), ("SH", sh)):
+        if values.shape[0] != n:
+            raise GltfFormatError(f"{where}the {attr} accessor has {values.shape[0]} elements, POSITION has {n}")
+    if np.any(scales < 0):
+        raise GltfFormatError(f"{where}{ATTR_SCALE} has negative values (the spec requires linear scales >= 0)")
+    if np.any((opac < 0) | (opac > 1)):
+        raise GltfFormatError(f"{where}{ATTR_OPACITY} has values outside [0, 1] (the spec stores linear opacity)")
+    quats = rot_xyzw[:, [3, 0, 1, 2]]
+    if np.any(np.linalg.norm(quats, axis=1) == 0):
+        raise GltfFormatError(f"{where}{ATTR_ROTATION} has zero quaternions")
+    log_scales = np.log(np.maximum(scales, 1e-30))
+    means, quats, log_scales, sh = _apply_node_transform(means, quats, log_scales, sh, mat)
+    p = np.clip(opac, 1e-12, 1 - 1e-12)
+    return means, quats, log_scales, np.log(p) - np.log1p(-p), sh
+
+
+def _read_attribute(doc: dict[str, Any], buffers: list[bytes], attrs: dict[str, int], attr: str, comps: int,
+                    where: str) -> np.ndarray:
+    """The (count, ``comps``) values of the primitive's attribute ``attr``, finite."""
+    values = read_accessor(doc, buffers, attrs[attr], where)
+    if values.shape[1] != comps:
+        raise GltfFormatError(f"{where}{attr} must have {comps} components, got {values.shape[1]}")
+    if not np.all(np.isfinite(values)):
+        raise GltfFormatError(f"{where}{attr} holds NaN or infinite values")
+    return values
+
+
+def _read_sh(doc: dict[str, Any], buffers: list[bytes], attrs: dict[str, int], n: int, where: str) -> np.ndarray:
+    """The SH coefficients (n, K, 3) of the primitive, to the highest degree whose coefficients are all present
+    (every lower degree must be too)."""
+    degree = 0
+    for lvl in (1, 2, 3):
+        present = [sh_attribute(lvl, c) in attrs for c in range(2 * lvl + 1)]
+        if any(present) and not all(present):
+            raise GltfFormatError(f"{where}SH degree {lvl} is partially defined ({sum(present)} of {2 * lvl + 1} "
+                                  f"coefficients); the spec requires all or none")
+        if all(present):
+            if degree != lvl - 1:
+                raise GltfFormatError(f"{where}SH degree {lvl} is present without degree {lvl - 1}")
+            degree = lvl
+    sh = np.zeros((n, num_sh_bases(degree), 3))
+    for lvl in range(degree + 1):
+        for c in range(2 * lvl + 1):
+            sh[:, lvl * lvl + c] = _read_attribute(doc, buffers, attrs, sh_attribute(lvl, c), 3, where)
+    return sh
+
+
+def _undo_gltf_from_world(parts: list[_SplatArrays], gltf_from_world: Any, path: Path) -> list[_SplatArrays]:
+    """``parts`` rotated back from glTF's y-up frame by the recorded ``gltf_from_world`` (3, 3) rotation."""
+    try:
+        rot = check_rotation(
+            np.asarray(gltf_from_world, dtype=np.float64), "asset.extras.vid2sim.gltf_from_world"
+        )
+    except ValueError as exc:
+        raise GltfFormatError(f"{path}: {exc}") from None
+    undone = []
+    for means, quats, log_scales, logits, sh in parts:
+        means, quats, sh = rotate_gaussian_arrays(means, quats, sh, rot.T)
+        undone.append((means, quats, log_scales, logits, sh))
+    return undone
+
+
+def _concatenate_parts(parts: list[_SplatArrays]) -> Gaussians:
+    """One float64 :class:`Gaussians` of all ``parts``, their SH zero-padded to the highest degree."""
     max_k = max(p[4].shape[1] for p in parts)
     tensors = []
     for means, quats, log_scales, logits, sh in parts:
@@ -554,4 +589,4 @@ def load_gltf_gaussians(path: str | os.PathLike, *, source_frame: bool = True, d
         t = [torch.from_numpy(np.ascontiguousarray(a)) for a in
              (means, quats, log_scales, logits, np.concatenate([sh, pad], axis=1))]
         tensors.append(Gaussians(means=t[0], quats=t[1], log_scales=t[2], opacity_logits=t[3], sh=t[4]))
-    return Gaussians.cat(tensors).to(device=device, dtype=dtype)
+    return Gaussians.cat(tensors)

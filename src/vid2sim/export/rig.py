@@ -30,10 +30,14 @@ from typing import Any
 import numpy as np
 
 from vid2sim import __version__
+from vid2sim.asset.folder import Asset
 from vid2sim.export.transform import rotation_to_y_up
+from vid2sim.physics.neural_jacobian import NeuralJacobian
+from vid2sim.physics.skinning import SkinningField
 from vid2sim.runtime.errors import InputError
 from vid2sim.scene.writing import move_into_place
 from vid2sim.splats.ply import save_ply
+from vid2sim.splats.shading import Shading
 
 RIG_FORMAT = "vid2sim-rig"
 RIG_VERSION = 1
@@ -80,14 +84,88 @@ def rig_tensors(asset, z_sequence=None) -> dict[str, np.ndarray]:
 
 def rig_document(asset, tensors: dict[str, np.ndarray]) -> dict[str, Any]:
     """The ``rig.json`` document for ``asset`` whose tensors are ``tensors``."""
-    f = asset.field
-    h = f.num_handles_total
+    h = asset.field.num_handles_total
+    return {
+        "format": RIG_FORMAT,
+        "version": RIG_VERSION,
+        "generator": f"vid2sim {__version__}",
+        "units": "SI (m, s, kg, Pa)",
+        "files": dict(RIG_FILES),
+        "frame": {
+            "description": "the scene's world frame, metres; up = -gravity (z up for vid2sim scenes). The glTF "
+            "export is y-up: p_gltf = gltf_from_world @ p",
+            "gltf_from_world": rotation_to_y_up(_up(asset.gravity)).tolist(),
+        },
+        "skinning": _skinning_record(asset.field),
+        "state": {
+            "size": 12 * h,
+            "layout": "z[12 j + 4 a + k] = Z_j[a, k]: handle-major, each handle a 3x4 displacement affine Z_j, "
+            "row-major",
+            "rest": "z = 0 is the rest state (the Gaussians as stored in gaussians.ply)",
+            "sequence": "states.z (T, 12H), one state per video frame, when present",
+        },
+        "positions": "x(X) = X + sum_j w_j(X) Z_j [X; 1]",
+        "deformation_gradient": "F(X) = I + sum_j Z_j ([I; 0] w_j(X) + [X; 1] dw_j/dX^T), i.e. "
+        "F[a, c] = delta_ac + sum_j (w_j Z_j[a, c] + (Z_j [X; 1])_a dw_j/dX_c)",
+        "gaussians": "a Gaussian with rest centre p and covariance Sigma = R S S^T R^T moves to x(p) with covariance "
+        "F(p) Sigma F(p)^T; opacity and SH colour are unchanged",
+        "shading": None if asset.shading is None else _shading_record(asset.shading),
+        "material": _material_record(asset),
+        "simulation": _simulation_record(asset),
+        "points": {
+            "points.cubature": "(K, 3) m: the simulator's quadrature points (rest positions)",
+            "points.cubature_weights": "(K,) m^3: their volumes",
+            "points.contact": "(S, 3) m: where floor and obstacles push (rest positions)",
+            "points.contact_areas": "(S,) m^2: their areas",
+            "points.interior": "(N, 3) m: interior samples of the object",
+            "volume": float(asset.volume),
+        },
+        "jacobian": None if asset.jacobian is None else _jacobian_record(asset.jacobian),
+        "tensors": {name: {"shape": list(a.shape), "dtype": str(a.dtype)} for name, a in tensors.items()},
+    }
+
+
+def _skinning_record(f: SkinningField) -> dict[str, Any]:
+    """``rig.json``'s ``skinning``: how the weights w(X) (N, H) follow from the field's tensors."""
     n_layers = len(f.layers)
     layers = []
     for i, layer in enumerate(f.layers):
         layers.append({"weight": f"skinning.layers.{i}.weight", "bias": f"skinning.layers.{i}.bias",
                        "in": layer.in_features, "out": layer.out_features,
                        "activation": "elu" if i < n_layers - 1 else None})
+    return {
+        "num_handles_learned": f.num_handles,
+        "num_handles_total": f.num_handles_total,
+        "rigid_handle": "the last handle (index H-1); its weight is identically 1",
+        "input_normalisation": {
+            "formula": "Xc = (X - centre) / scale",
+            "centre": [float(v) for v in _np(f.input_centre)],
+            "scale": float(f.input_scale),
+            "tensors": {"centre": "skinning.input_centre", "scale": "skinning.input_scale"},
+        },
+        "layers": layers,
+        "linear": "y = x W^T + b with W (out, in), as torch.nn.Linear",
+        "elu": "elu(u) = u if u > 0 else exp(u) - 1",
+        "weights": "w(X) = [MLP(Xc), 1] with MLP = layers[-1](elu(layers[-2](... elu(layers[0](Xc)))))",
+        "weight_gradients": "dw/dX = (1/scale) dMLP/dXc (chain rule through the layers; elu'(u) = 1 if u > 0 "
+        "else exp(u)); the rigid column's gradient is 0",
+    }
+
+
+def _shading_record(shading: Shading) -> dict[str, Any]:
+    """``rig.json``'s ``shading``: the light and how a moved Gaussian's colour follows from its normal."""
+    return {
+        **shading.to_record(),
+        "normals": "shading.normals (N, 3): each Gaussian's rest-frame normal N (gaussians.ply order)",
+        "colour": "gaussians.ply holds the colours lit at rest, c0 = a s(N); a moved Gaussian shows "
+        "a s(n) with n = cof(F) N = det(F) F^-T N normalised and "
+        "s(n) = ambient + (1 - ambient) max(0, n . light), light fixed in the world",
+    }
+
+
+def _material_record(asset: Asset) -> dict[str, Any]:
+    """``rig.json``'s ``material``: the asset's material with the Lamé parameters the simulation uses, its energy
+    and its damping in words."""
     mat = dict(asset.material)
     # the Lamé parameters the simulation uses: E times the subspace's stiffness calibration at ν (1 when absent)
     stiffness = asset.stiffness()
@@ -105,103 +183,48 @@ def rig_document(asset, tensors: dict[str, np.ndarray]) -> dict[str, Any]:
                          "of the skinning weights (the constant handle included)")
     mat["damping"] = ("Kelvin-Voigt material damping with ratio zeta = damping_ratio at omega_ref = sqrt(E/density)"
                       " / length_scale (retardation time tau = 2 zeta length_scale sqrt(density/E))")
-    jac = None
-    if asset.jacobian is not None:
-        j = asset.jacobian
-        blocks = []
-        dims = (j.encoding_dim,) + tuple(j.widths)
-        for i, (a, b) in enumerate(zip(dims[:-1], dims[1:])):
-            blocks.append({"fc1": f"jacobian.blocks.{i}.fc1", "fc2": f"jacobian.blocks.{i}.fc2",
-                           "proj": f"jacobian.blocks.{i}.proj.weight" if a != b else None, "in": a, "out": b})
-        jac = {
-            "num_handles_total": j.num_handles_total, "encoding_dim": j.encoding_dim, "widths": list(j.widths),
-            "frequency_scale": j.frequency_scale,
-            "input_normalisation": "Xc = (X - jacobian.input_centre) / jacobian.input_scale",
-            "encoding": "gamma = [sin(2 pi Xc B^T), cos(2 pi Xc B^T)], B = jacobian.frequencies (encoding_dim/2, 3)",
-            "blocks": blocks,
-            "block": "y = gelu(P x + fc2(gelu(fc1(x)))), P = proj (no bias) when in != out, else identity; "
-                     "gelu(u) = u/2 (1 + erf(u / sqrt 2)); fcK(x) = x W^T + b with W = <name>.weight, b = <name>.bias",
-            "output": "J = (h W^T + b).reshape(N, 9, 12H), W = jacobian.output.weight, b = jacobian.output.bias",
-            "meaning": "J(X) = dF/dz: F(X, z).reshape(9) = I.flatten() + J(X) z (row-major F); the simulator uses it "
-                       "instead of the closed form at the cubature points when the asset was built with it",
-        }
+    return mat
+
+
+def _simulation_record(asset: Asset) -> dict[str, Any]:
+    """``rig.json``'s ``simulation``: frame time, solver settings, gravity, floor and initial velocity."""
     return {
-        "format": RIG_FORMAT,
-        "version": RIG_VERSION,
-        "generator": f"vid2sim {__version__}",
-        "units": "SI (m, s, kg, Pa)",
-        "files": dict(RIG_FILES),
-        "frame": {
-            "description": "the scene's world frame, metres; up = -gravity (z up for vid2sim scenes). The glTF "
-            "export is y-up: p_gltf = gltf_from_world @ p",
-            "gltf_from_world": rotation_to_y_up(_up(asset.gravity)).tolist(),
-        },
-        "skinning": {
-            "num_handles_learned": f.num_handles,
-            "num_handles_total": h,
-            "rigid_handle": "the last handle (index H-1); its weight is identically 1",
-            "input_normalisation": {
-                "formula": "Xc = (X - centre) / scale",
-                "centre": [float(v) for v in _np(f.input_centre)],
-                "scale": float(f.input_scale),
-                "tensors": {"centre": "skinning.input_centre", "scale": "skinning.input_scale"},
-            },
-            "layers": layers,
-            "linear": "y = x W^T + b with W (out, in), as torch.nn.Linear",
-            "elu": "elu(u) = u if u > 0 else exp(u) - 1",
-            "weights": "w(X) = [MLP(Xc), 1] with MLP = layers[-1](elu(layers[-2](... elu(layers[0](Xc)))))",
-            "weight_gradients": "dw/dX = (1/scale) dMLP/dXc (chain rule through the layers; elu'(u) = 1 if u > 0 "
-            "else exp(u)); the rigid column's gradient is 0",
-        },
-        "state": {
-            "size": 12 * h,
-            "layout": "z[12 j + 4 a + k] = Z_j[a, k]: handle-major, each handle a 3x4 displacement affine Z_j, "
-            "row-major",
-            "rest": "z = 0 is the rest state (the Gaussians as stored in gaussians.ply)",
-            "sequence": "states.z (T, 12H), one state per video frame, when present",
-        },
-        "positions": "x(X) = X + sum_j w_j(X) Z_j [X; 1]",
-        "deformation_gradient": "F(X) = I + sum_j Z_j ([I; 0] w_j(X) + [X; 1] dw_j/dX^T), i.e. "
-        "F[a, c] = delta_ac + sum_j (w_j Z_j[a, c] + (Z_j [X; 1])_a dw_j/dX_c)",
-        "gaussians": "a Gaussian with rest centre p and covariance Sigma = R S S^T R^T moves to x(p) with covariance "
-        "F(p) Sigma F(p)^T; opacity and SH colour are unchanged",
-        "shading": None
-        if asset.shading is None
+        "dt": asset.dt,
+        "sim_config": _sim_config(asset.sim_config),
+        "gravity": list(map(float, asset.gravity)),
+        "floor": None
+        if asset.floor_height is None
         else {
-            **asset.shading.to_record(),
-            "normals": "shading.normals (N, 3): each Gaussian's rest-frame normal N (gaussians.ply order)",
-            "colour": "gaussians.ply holds the colours lit at rest, c0 = a s(N); a moved Gaussian shows "
-            "a s(n) with n = cof(F) N = det(F) F^-T N normalised and "
-            "s(n) = ambient + (1 - ambient) max(0, n . light), light fixed in the world",
+            "height": float(asset.floor_height),
+            "normal": _up(asset.gravity),
+            "stiffness": float(asset.floor_stiffness),
+            "meaning": "penalty contact pressure stiffness (Pa per metre of penetration) on the contact points' "
+                       "areas",
         },
-        "material": mat,
-        "simulation": {
-            "dt": asset.dt,
-            "sim_config": _sim_config(asset.sim_config),
-            "gravity": list(map(float, asset.gravity)),
-            "floor": None
-            if asset.floor_height is None
-            else {
-                "height": float(asset.floor_height),
-                "normal": _up(asset.gravity),
-                "stiffness": float(asset.floor_stiffness),
-                "meaning": "penalty contact pressure stiffness (Pa per metre of penetration) on the contact points' "
-                           "areas",
-            },
-            "length_scale": asset.length_scale,
-            "initial_velocity": asset.initial_velocity,
-            "initial_velocity_meaning": "v_i = linear + angular x (x_i - centre) at frame 0 (m/s, rad/s)",
-        },
-        "points": {
-            "points.cubature": "(K, 3) m: the simulator's quadrature points (rest positions)",
-            "points.cubature_weights": "(K,) m^3: their volumes",
-            "points.contact": "(S, 3) m: where floor and obstacles push (rest positions)",
-            "points.contact_areas": "(S,) m^2: their areas",
-            "points.interior": "(N, 3) m: interior samples of the object",
-            "volume": float(asset.volume),
-        },
-        "jacobian": jac,
-        "tensors": {name: {"shape": list(a.shape), "dtype": str(a.dtype)} for name, a in tensors.items()},
+        "length_scale": asset.length_scale,
+        "initial_velocity": asset.initial_velocity,
+        "initial_velocity_meaning": "v_i = linear + angular x (x_i - centre) at frame 0 (m/s, rad/s)",
+    }
+
+
+def _jacobian_record(j: NeuralJacobian) -> dict[str, Any]:
+    """``rig.json``'s ``jacobian``: how the Neural Jacobian J(X) (N, 9, 12H) follows from its tensors."""
+    blocks = []
+    dims = (j.encoding_dim,) + tuple(j.widths)
+    for i, (a, b) in enumerate(zip(dims[:-1], dims[1:])):
+        blocks.append({"fc1": f"jacobian.blocks.{i}.fc1", "fc2": f"jacobian.blocks.{i}.fc2",
+                       "proj": f"jacobian.blocks.{i}.proj.weight" if a != b else None, "in": a, "out": b})
+    return {
+        "num_handles_total": j.num_handles_total, "encoding_dim": j.encoding_dim, "widths": list(j.widths),
+        "frequency_scale": j.frequency_scale,
+        "input_normalisation": "Xc = (X - jacobian.input_centre) / jacobian.input_scale",
+        "encoding": "gamma = [sin(2 pi Xc B^T), cos(2 pi Xc B^T)], B = jacobian.frequencies (encoding_dim/2, 3)",
+        "blocks": blocks,
+        "block": "y = gelu(P x + fc2(gelu(fc1(x)))), P = proj (no bias) when in != out, else identity; "
+                 "gelu(u) = u/2 (1 + erf(u / sqrt 2)); fcK(x) = x W^T + b with W = <name>.weight, b = <name>.bias",
+        "output": "J = (h W^T + b).reshape(N, 9, 12H), W = jacobian.output.weight, b = jacobian.output.bias",
+        "meaning": "J(X) = dF/dz: F(X, z).reshape(9) = I.flatten() + J(X) z (row-major F); the simulator uses it "
+                   "instead of the closed form at the cubature points when the asset was built with it",
     }
 
 

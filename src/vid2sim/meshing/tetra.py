@@ -307,6 +307,31 @@ def tetrahedralize(
     Raises:
         TetrahedralizationError: bad input, mesher crash / timeout / failure, empty or invalid output.
     """
+    v, f = _surface_arrays(vertices, faces, name)
+    if not 0.0 < edge_length_fac <= 1.0:
+        raise ValueError(f"edge_length_fac must be in (0, 1], got {edge_length_fac}")
+    if edge_length_abs is not None and not edge_length_abs > 0:
+        raise ValueError(f"edge_length_abs must be positive, got {edge_length_abs}")
+    surface_volume, closed = _surface_volume(v, f, require_closed, name)
+    settings = {"edge_length_fac": edge_length_fac,
+                "edge_length_abs": 0.0 if edge_length_abs is None else edge_length_abs, "epsilon": epsilon,
+                "stop_energy": stop_energy, "optimize": optimize, "num_opt_iter": num_opt_iter,
+                "num_threads": num_threads}
+    tv, tt = _run_tetwild(v, f, settings, timeout, name)
+    if tt.ndim != 2 or tt.shape[0] == 0:
+        raise TetrahedralizationError(f"{name}: fTetWild produced no tetrahedra (is the surface empty or flat?)")
+    tv_clean, tt_clean, _ = clean_tet_mesh(tv, tt, name=f"{name} (fTetWild output)")
+    mesh = TetMesh(tv_clean, tt_clean, surface_volume=surface_volume if closed else None, name=name)
+    if closed and mesh.volume_error > max_volume_error:
+        raise TetrahedralizationError(
+            f"{name}: tet volume {mesh.volume:.5g} m^3 differs from the surface volume {surface_volume:.5g} m^3 "
+            f"by {100 * mesh.volume_error:.2f} % (> max_volume_error {100 * max_volume_error:.2f} %)")
+    return mesh
+
+
+def _surface_arrays(vertices: Tensor | np.ndarray, faces: Tensor | np.ndarray, name: str
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """The surface as numpy: vertices (Nv, 3) float64 and faces (Nf, 3) integer indices, checked."""
     v = np.asarray(vertices.detach().cpu() if isinstance(vertices, Tensor) else vertices, dtype=np.float64)
     f = np.asarray(faces.detach().cpu() if isinstance(faces, Tensor) else faces)
     if v.ndim != 2 or v.shape[1] != 3 or v.shape[0] < 4:
@@ -320,10 +345,12 @@ def tetrahedralize(
     if f.min() < 0 or f.max() >= v.shape[0]:
         raise TetrahedralizationError(
             f"{name}: face indices must lie in [0, {v.shape[0] - 1}], got range [{f.min()}, {f.max()}]")
-    if not 0.0 < edge_length_fac <= 1.0:
-        raise ValueError(f"edge_length_fac must be in (0, 1], got {edge_length_fac}")
-    if edge_length_abs is not None and not edge_length_abs > 0:
-        raise ValueError(f"edge_length_abs must be positive, got {edge_length_abs}")
+    return v, f
+
+
+def _surface_volume(v: np.ndarray, f: np.ndarray, require_closed: bool, name: str) -> tuple[float, bool]:
+    """The volume (m³) the surface (vertices (Nv, 3), faces (Nf, 3)) encloses and whether it is closed; with
+    ``require_closed``, an open, inconsistently oriented or inside-out surface is refused."""
     surface_volume, closed = _surface_volume_and_closed(v, f.astype(np.int64))
     if require_closed:
         if not closed:
@@ -335,12 +362,17 @@ def tetrahedralize(
             raise TetrahedralizationError(
                 f"{name}: the closed surface encloses a non-positive volume ({surface_volume:.4g} m^3); "
                 "are its faces wound inside-out?")
+    return surface_volume, closed
 
+
+def _run_tetwild(v: np.ndarray, f: np.ndarray, settings: dict[str, float | bool | int], timeout: float, name: str
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """fTetWild's tet mesh of the surface (vertices (Nv, 3), faces (Nf, 3)) with ``settings``, run in a child
+    process (:mod:`vid2sim.meshing.tetwild_worker`) killed after ``timeout`` s: vertices (M, 3) and tets (K, 4)
+    as written by the worker. Ctrl-C in the mesher is re-raised as :class:`KeyboardInterrupt`."""
     with tempfile.TemporaryDirectory(prefix="vid2sim_tetwild_") as tmp:
         in_path, out_path = os.path.join(tmp, "in.npz"), os.path.join(tmp, "out.npz")
-        np.savez(in_path, vertices=v, faces=f.astype(np.uint32), edge_length_fac=edge_length_fac,
-                 edge_length_abs=0.0 if edge_length_abs is None else edge_length_abs, epsilon=epsilon,
-                 stop_energy=stop_energy, optimize=optimize, num_opt_iter=num_opt_iter, num_threads=num_threads)
+        np.savez(in_path, vertices=v, faces=f.astype(np.uint32), **settings)
         src_root = str(Path(__file__).resolve().parents[2])
         env = dict(os.environ)
         env["PYTHONPATH"] = src_root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
@@ -362,13 +394,4 @@ def tetrahedralize(
         if not os.path.exists(out_path):
             raise TetrahedralizationError(f"{name}: fTetWild wrote no output")
         out = np.load(out_path, allow_pickle=False)
-        tv, tt = out["vertices"], out["tets"]
-    if tt.ndim != 2 or tt.shape[0] == 0:
-        raise TetrahedralizationError(f"{name}: fTetWild produced no tetrahedra (is the surface empty or flat?)")
-    tv_clean, tt_clean, _ = clean_tet_mesh(tv, tt, name=f"{name} (fTetWild output)")
-    mesh = TetMesh(tv_clean, tt_clean, surface_volume=surface_volume if closed else None, name=name)
-    if closed and mesh.volume_error > max_volume_error:
-        raise TetrahedralizationError(
-            f"{name}: tet volume {mesh.volume:.5g} m^3 differs from the surface volume {surface_volume:.5g} m^3 "
-            f"by {100 * mesh.volume_error:.2f} % (> max_volume_error {100 * max_volume_error:.2f} %)")
-    return mesh
+        return out["vertices"], out["tets"]

@@ -1,7 +1,7 @@
 """``vid2sim simulate ASSET OUT``: simulate a reconstructed asset in a :class:`~vid2sim.simulate.scenario.Scenario`
 and write what it looks like.
 
-The scenario is checked against the asset first (:func:`~vid2sim.simulate.scenario.resolve_scenario`), so a
+The scenario is checked against the asset first (:func:`~vid2sim.simulate.resolve.resolve_scenario`), so a
 scenario that makes no sense fails before any simulation. Then the asset is simulated (``frames − 1`` video
 frames after the initial state), its Gaussians are moved with the simulated state and rendered in every
 camera, and the output folder is written (docs/scenarios.md)::
@@ -39,13 +39,11 @@ from vid2sim.physics.external import Floor, MovingFloor, SphereObstacle
 from vid2sim.runtime.device import resolve_device
 from vid2sim.scene.video import write_video
 from vid2sim.scene.writing import move_into_place
-from vid2sim.simulate.scenario import (
-    ResolvedScenario,
-    Scenario,
-    reframe,
-    resolve_scenario,
-)
+from vid2sim.simulate.cameras import CameraTrack
+from vid2sim.simulate.resolve import ResolvedScenario, reframe, resolve_scenario
+from vid2sim.simulate.scenario import Scenario
 from vid2sim.simulate.scenery import concatenate, scenery_gaussians
+from vid2sim.splats.deform import DeformedGaussians
 from vid2sim.splats.ply import save_ply
 from vid2sim.splats.render import render_gaussians
 
@@ -240,9 +238,6 @@ def simulate(asset: "Asset | str | Path", scenario: Scenario | None, out: str | 
     Everything about the scenario is checked before any simulation (:class:`ScenarioError`); an existing
     ``out`` is replaced only with ``overwrite`` and only if it is an earlier output.
     """
-    from tqdm.auto import tqdm
-
-
     t_start = time.perf_counter()
     out = Path(out)
     asset_path = None
@@ -255,87 +250,21 @@ def simulate(asset: "Asset | str | Path", scenario: Scenario | None, out: str | 
 
     run = run_scenario(asset, resolved, progress=progress)
     timings["simulate"] = run.seconds
-    cloud = _motion_cloud(asset, run)
-    if resolved.auto_framing:  # automatic ring/orbit cameras follow the whole motion, not only t = 0
-        t0 = time.perf_counter()
-        reframe(resolved, cloud)
-        timings["frame_cameras"] = time.perf_counter() - t0
-    lo, hi = cloud.min(0).values, cloud.max(0).values
-    patch_centre = (0.5 * (lo + hi))[:2].tolist()
-    patch_half = 1.5 * float((hi - lo)[:2].max()) + 0.5 * float((hi - lo).norm())  # the floor drawn around the motion
+    patch = _frame_the_motion(asset, run, timings)
 
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
     try:
-        tracks = resolved.tracks
-        fixed = [k for k, tr in enumerate(tracks) if len(tr.cameras) == 1]
-        moving = [k for k, tr in enumerate(tracks) if len(tr.cameras) > 1]
-        for tr in tracks:
-            (tmp / "frames" / tr.name).mkdir(parents=True)
-        if ply:
-            (tmp / "ply").mkdir()
-        frames: list[list[np.ndarray]] = [[] for _ in tracks]
-        out_of_view: dict[str, list[int]] = {tr.name: [] for tr in tracks}
-        t_render = t_png = t_ply = 0.0
-        from PIL import Image
-
-        with torch.no_grad():
-            rig = GaussianRig(run.sim, asset.gaussians, asset.shading)
-            basis = rig.basis()
-            bg = resolved.background if isinstance(resolved.background, float) else list(resolved.background)
-            for t, state in enumerate(tqdm(run.states, desc="render", unit="frame", disable=not progress,
-                                           leave=False)):
-                t0 = time.perf_counter()
-                d = rig.deformed(state.z, basis)
-                shown = d
-                if scenery:
-                    extra = scenery_gaussians(resolved.externals, float(state.t), patch_centre, patch_half,
-                                              sh_bases=d.sh.shape[1], dtype=d.means.dtype, device=d.means.device)
-                    shown = d if extra is None else concatenate([d, extra])
-                images: dict[int, np.ndarray] = {}
-                if fixed:
-                    images.update(zip(fixed, _render(shown, [tracks[k].at(t) for k in fixed], bg)))
-                for k in moving:
-                    images[k] = _render(shown, [tracks[k].at(t)], bg)[0]
-                for k, tr in enumerate(tracks):
-                    if not _in_view(d.means, tr.at(t)):
-                        out_of_view[tr.name].append(t)
-                t1 = time.perf_counter()
-                for k, tr in enumerate(tracks):
-                    Image.fromarray(images[k]).save(tmp / "frames" / tr.name / f"{t:04d}.png",
-                                                    compress_level=PNG_COMPRESS_LEVEL)
-                    if video:
-                        frames[k].append(images[k])
-                t2 = time.perf_counter()
-                if ply:
-                    save_ply(d.to_gaussians(), tmp / "ply" / f"{t:04d}.ply")
-                t3 = time.perf_counter()
-                t_render += t1 - t0
-                t_png += t2 - t1
-                t_ply += t3 - t2
-        for name, lost in out_of_view.items():
-            if lost:
-                resolved.notes.append(f"camera {name}: no Gaussian centre in view in {len(lost)} of "
-                                      f"{len(run.states)} frames (first {lost[0]}); set the cameras' radius / "
-                                      "target to follow the object")
-        timings["render"] = t_render
-        timings["write_frames"] = t_png
-        timings["write_ply"] = t_ply
+        frames, out_of_view = _write_frames(tmp, asset, run, patch if scenery else None, progress, video, ply,
+                                            timings)
+        _note_out_of_view(resolved, out_of_view, len(run.states))
         t0 = time.perf_counter()
         if video:
-            (tmp / "videos").mkdir()
-            for k, tr in enumerate(tracks):
-                write_video(tmp / "videos" / f"{tr.name}.mp4", np.stack(frames[k]), fps=1.0 / resolved.dt)
-                _write_gif(tmp / "videos" / f"{tr.name}.gif", frames[k], resolved.dt)
+            _write_videos(tmp, resolved.tracks, frames, resolved.dt)
         timings["write_videos"] = time.perf_counter() - t0
 
         t0 = time.perf_counter()
-        arrays = {"z": torch.stack([s.z for s in run.states]).cpu().numpy(),
-                  "zdot": torch.stack([s.zdot for s in run.states]).cpu().numpy(),
-                  "times": np.array([s.t for s in run.states], dtype=np.float64)}
-        if run.states[0].Fp_inv is not None:
-            arrays["Fp_inv"] = torch.stack([s.Fp_inv for s in run.states]).cpu().numpy()
-        np.savez(tmp / "states.npz", **arrays)
+        _write_states(tmp / "states.npz", run.states)
         resolved.scenario.to_yaml(tmp / "scenario.yaml")
         stats = trajectory_stats(asset, run)
         timings["write_states_and_stats"] = time.perf_counter() - t0
@@ -349,6 +278,126 @@ def simulate(asset: "Asset | str | Path", scenario: Scenario | None, out: str | 
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     return out
+
+
+def _frame_the_motion(asset: "Asset", run: ScenarioRun, timings: dict[str, float]) -> tuple[list[float], float]:
+    """Re-place automatic ring/orbit cameras to follow the whole motion, not only t = 0 (timed in ``timings``),
+    and return where the floor is drawn: the patch's centre (x, y) and half side (m) around the motion."""
+    cloud = _motion_cloud(asset, run)
+    if run.resolved.auto_framing:  # automatic ring/orbit cameras follow the whole motion, not only t = 0
+        t0 = time.perf_counter()
+        reframe(run.resolved, cloud)
+        timings["frame_cameras"] = time.perf_counter() - t0
+    lo, hi = cloud.min(0).values, cloud.max(0).values
+    patch_centre = (0.5 * (lo + hi))[:2].tolist()
+    patch_half = 1.5 * float((hi - lo)[:2].max()) + 0.5 * float((hi - lo).norm())  # the floor drawn around the motion
+    return patch_centre, patch_half
+
+
+def _write_frames(tmp: Path, asset: "Asset", run: ScenarioRun, patch: tuple[list[float], float] | None,
+                  progress: bool, video: bool, ply: bool, timings: dict[str, float]
+                  ) -> tuple[list[list[np.ndarray]], dict[str, list[int]]]:
+    """Render every state of ``run`` in every camera track and write ``tmp``/frames/<camera>/<t:04d>.png (and,
+    with ``ply``, ``tmp``/ply/<t:04d>.ply of the object alone).
+
+    ``patch`` (the floor's centre (x, y) and half side, :func:`_frame_the_motion`) draws the floor and obstacles
+    too; None draws the object alone. Adds the render / write_frames / write_ply times to ``timings``.
+
+    Returns:
+        the uint8 images (H, W, 3) of each track, frame by frame (kept only with ``video``), and per camera name
+        the frames where no Gaussian centre of the object is in view.
+    """
+    from PIL import Image
+    from tqdm.auto import tqdm
+
+    resolved = run.resolved
+    tracks = resolved.tracks
+    for tr in tracks:
+        (tmp / "frames" / tr.name).mkdir(parents=True)
+    if ply:
+        (tmp / "ply").mkdir()
+    frames: list[list[np.ndarray]] = [[] for _ in tracks]
+    out_of_view: dict[str, list[int]] = {tr.name: [] for tr in tracks}
+    t_render = t_png = t_ply = 0.0
+    with torch.no_grad():
+        rig = GaussianRig(run.sim, asset.gaussians, asset.shading)
+        basis = rig.basis()
+        bg = resolved.background if isinstance(resolved.background, float) else list(resolved.background)
+        for t, state in enumerate(tqdm(run.states, desc="render", unit="frame", disable=not progress,
+                                       leave=False)):
+            t0 = time.perf_counter()
+            d = rig.deformed(state.z, basis)
+            shown = d if patch is None else _with_scenery(d, resolved.externals, float(state.t), patch)
+            images = _render_tracks(shown, tracks, t, bg)
+            for tr in tracks:
+                if not _in_view(d.means, tr.at(t)):
+                    out_of_view[tr.name].append(t)
+            t1 = time.perf_counter()
+            for k, tr in enumerate(tracks):
+                Image.fromarray(images[k]).save(tmp / "frames" / tr.name / f"{t:04d}.png",
+                                                compress_level=PNG_COMPRESS_LEVEL)
+                if video:
+                    frames[k].append(images[k])
+            t2 = time.perf_counter()
+            if ply:
+                save_ply(d.to_gaussians(), tmp / "ply" / f"{t:04d}.ply")
+            t3 = time.perf_counter()
+            t_render += t1 - t0
+            t_png += t2 - t1
+            t_ply += t3 - t2
+    timings["render"] = t_render
+    timings["write_frames"] = t_png
+    timings["write_ply"] = t_ply
+    return frames, out_of_view
+
+
+def _with_scenery(d: DeformedGaussians, externals: list, t: float, patch: tuple[list[float], float]
+                  ) -> DeformedGaussians:
+    """The object's Gaussians ``d`` with the floor (a patch centred at ``patch[0]`` (x, y), half side ``patch[1]``)
+    and the sphere obstacles among ``externals`` at time ``t`` (s) drawn as surface Gaussians."""
+    extra = scenery_gaussians(externals, t, patch[0], patch[1], sh_bases=d.sh.shape[1], dtype=d.means.dtype,
+                              device=d.means.device)
+    return d if extra is None else concatenate([d, extra])
+
+
+def _render_tracks(shown: DeformedGaussians, tracks: list[CameraTrack], t: int, bg: Any) -> dict[int, np.ndarray]:
+    """uint8 images (H, W, 3) of ``shown`` at frame ``t``, by track index: the fixed cameras in one batch, then
+    each moving (orbit) camera."""
+    fixed = [k for k, tr in enumerate(tracks) if len(tr.cameras) == 1]
+    moving = [k for k, tr in enumerate(tracks) if len(tr.cameras) > 1]
+    images: dict[int, np.ndarray] = {}
+    if fixed:
+        images.update(zip(fixed, _render(shown, [tracks[k].at(t) for k in fixed], bg)))
+    for k in moving:
+        images[k] = _render(shown, [tracks[k].at(t)], bg)[0]
+    return images
+
+
+def _note_out_of_view(resolved: ResolvedScenario, out_of_view: dict[str, list[int]], frames: int) -> None:
+    """Note in ``resolved.notes`` each camera that lost the object (``out_of_view``: its frames without it)."""
+    for name, lost in out_of_view.items():
+        if lost:
+            resolved.notes.append(f"camera {name}: no Gaussian centre in view in {len(lost)} of "
+                                  f"{frames} frames (first {lost[0]}); set the cameras' radius / "
+                                  "target to follow the object")
+
+
+def _write_videos(tmp: Path, tracks: list[CameraTrack], frames: list[list[np.ndarray]], dt: float) -> None:
+    """``tmp``/videos/<camera>.mp4 and .gif of each track's images (H, W, 3) uint8, ``dt`` s per frame."""
+    (tmp / "videos").mkdir()
+    for k, tr in enumerate(tracks):
+        write_video(tmp / "videos" / f"{tr.name}.mp4", np.stack(frames[k]), fps=1.0 / dt)
+        _write_gif(tmp / "videos" / f"{tr.name}.gif", frames[k], dt)
+
+
+def _write_states(path: Path, states: list["SimState"]) -> None:
+    """``states.npz``: z (T, 12H), zdot (T, 12H), times (T,) [, Fp_inv (T, K, 3, 3) when plastic]."""
+    arrays = {"z": torch.stack([s.z for s in states]).cpu().numpy(),
+              "zdot": torch.stack([s.zdot for s in states]).cpu().numpy(),
+              "times": np.array([s.t for s in states], dtype=np.float64)}
+    if states[0].Fp_inv is not None:
+        arrays["Fp_inv"] = torch.stack([s.Fp_inv for s in states]).cpu().numpy()
+    np.savez(path, **arrays)
 
 
 def _summary(asset: "Asset", asset_path: str | None, resolved: ResolvedScenario, run: ScenarioRun,

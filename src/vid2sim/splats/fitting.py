@@ -30,7 +30,7 @@ from vid2sim.splats.densify import Densifier, DensifyConfig
 from vid2sim.splats.gaussians import Gaussians
 from vid2sim.splats.losses import photometric_loss, psnr
 from vid2sim.splats.rasterize import RasterOptions
-from vid2sim.splats.render import BACKENDS, render
+from vid2sim.splats.render import BACKENDS, RenderOutput, render
 from vid2sim.splats.visual_hull import Initializer, VisualHullInitializer
 
 
@@ -175,13 +175,78 @@ def fit_gaussians(
     cams = [c.to(dev) for c in cameras]
     masks = masks.to(dt)
     gen = torch.Generator().manual_seed(cfg.seed)
+    g0 = _initial_gaussians(images, masks, cams, cfg, initializer, gen)
+    extent = scene_extent(cams)
+    params, optimizer = _adam(g0, cfg, extent)
+    means_group = next(gr for gr in optimizer.param_groups if gr["name"] == "means")
+    densifier = Densifier(cfg.densify, extent)
+    every, start, stop, reset, band = _schedule(cfg)
+    bg = torch.tensor(cfg.background, dtype=dt, device=dev)
+    V = images.shape[0]
+    decay = math.log(cfg.lr_means_final / cfg.lr_means)
+    reset_done = False
+
+    bar = tqdm(range(1, cfg.iterations + 1), disable=not progress, desc="fit Gaussians", leave=False)
+    for step in bar:
+        frac = (step - 1) / max(1, cfg.iterations - 1)
+        means_group["lr"] = cfg.lr_means * extent * math.exp(decay * frac)
+        degree = min(cfg.sh_degree, (step - 1) // band)
+        views = _step_views(V, cfg, gen)
+        densifying = start <= step < stop
+        out, loss = _render_loss(params, [cams[i] for i in views], images[views], masks[views], degree, bg, cfg,
+                                 densifying)
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        if densifying:
+            densifier.accumulate(out.means2d.grad, out.radii, images.shape[2], images.shape[1])
+        optimizer.step()
+        densified = densifying and step > start and step % every == 0
+        if densified:
+            densifier.densify_and_prune(params, optimizer, gen, prune_large=reset_done)
+        opacity_reset = densifying and step % reset == 0
+        if opacity_reset:
+            densifier.reset_opacity(params, optimizer)
+            reset_done = True
+        if history is not None or (progress and step % 10 == 0):
+            stats = _step_stats(step, loss, psnr(out.rgb, images[views]), params, densified, opacity_reset)
+            if history is not None:
+                history.append(stats)
+            if progress and step % 10 == 0:
+                bar.set_postfix(loss=f"{stats['loss']:.4f}", psnr=f"{stats['psnr']:.1f}", n=int(stats["gaussians"]))
+    bar.close()
+    return _detached_gaussians(params)
+
+
+def _step_views(V: int, cfg: FitConfig, gen: torch.Generator) -> list[int]:
+    """The views rendered in a step: all V, or ``cfg.views_per_step`` of them drawn with ``gen``."""
+    if cfg.views_per_step is None or cfg.views_per_step >= V:
+        return list(range(V))
+    return torch.randperm(V, generator=gen)[: cfg.views_per_step].tolist()
+
+
+def _step_stats(step: int, loss: Tensor, step_psnr: float, params: dict[str, Tensor], densified: bool,
+                opacity_reset: bool) -> dict[str, float]:
+    """One entry of ``fit_gaussians``' history (see its docstring)."""
+    return {"step": float(step), "loss": float(loss.detach()), "psnr": step_psnr,
+            "gaussians": float(params["means"].shape[0]), "densified": float(densified),
+            "opacity_reset": float(opacity_reset)}
+
+
+def _initial_gaussians(images: Tensor, masks: Tensor, cams: list[Camera], cfg: FitConfig,
+                       initializer: Initializer | None, gen: torch.Generator) -> Gaussians:
+    """The initializer's Gaussians (default :class:`VisualHullInitializer`) for ``images`` (V, H, W, 3) and
+    ``masks`` (V, H, W), in their device and dtype with ``cfg.sh_degree``; refused when there are none."""
     init = initializer if initializer is not None else VisualHullInitializer()
     g0 = init(images, masks, cams, cfg.sh_degree, gen)
     if not isinstance(g0, Gaussians) or g0.num == 0:
         raise ValueError("the initializer returned no Gaussians")
-    g0 = g0.to(device=dev, dtype=dt).with_sh_degree(cfg.sh_degree)
-    extent = scene_extent(cams)
+    return g0.to(device=images.device, dtype=images.dtype).with_sh_degree(cfg.sh_degree)
 
+
+def _adam(g0: Gaussians, cfg: FitConfig, extent: float) -> tuple[dict[str, Tensor], torch.optim.Adam]:
+    """The optimised tensors of ``g0`` (means (N, 3), log_scales (N, 3), quats (N, 4), opacity_logits (N,),
+    sh_dc (N, 1, 3), sh_rest (N, B − 1, 3)) and their Adam, one named group each at ``cfg``'s learning rate (the
+    means' scaled by the scene ``extent``)."""
     params = {
         "means": g0.means.detach().clone(),
         "log_scales": g0.log_scales.detach().clone(),
@@ -203,64 +268,37 @@ def fit_gaussians(
     optimizer = torch.optim.Adam(
         [{"params": [params[k]], "lr": lrs[k], "name": k} for k in params], lr=0.0, eps=1e-15
     )
-    means_group = next(gr for gr in optimizer.param_groups if gr["name"] == "means")
-    densifier = Densifier(cfg.densify, extent)
-    every, start, stop, reset, band = _schedule(cfg)
-    bg = torch.tensor(cfg.background, dtype=dt, device=dev)
-    V = images.shape[0]
-    decay = math.log(cfg.lr_means_final / cfg.lr_means)
-    reset_done = False
+    return params, optimizer
 
-    bar = tqdm(range(1, cfg.iterations + 1), disable=not progress, desc="fit Gaussians", leave=False)
-    for step in bar:
-        frac = (step - 1) / max(1, cfg.iterations - 1)
-        means_group["lr"] = lrs["means"] * math.exp(decay * frac)
-        degree = min(cfg.sh_degree, (step - 1) // band)
-        if cfg.views_per_step is None or cfg.views_per_step >= V:
-            views = list(range(V))
-        else:
-            views = torch.randperm(V, generator=gen)[: cfg.views_per_step].tolist()
-        sh = torch.cat([params["sh_dc"], params["sh_rest"]], dim=1)
-        out = render(
-            params["means"],
-            torch.sigmoid(params["opacity_logits"]),
-            sh,
-            [cams[i] for i in views],
-            quats=params["quats"],
-            scales=torch.exp(params["log_scales"]),
-            sh_degree=degree,
-            background=bg,
-            backend=cfg.backend,
-            raster_options=cfg.raster_options,
-        )
-        densifying = start <= step < stop
-        if densifying:
-            out.means2d.retain_grad()
-        target = images[views]
-        loss = photometric_loss(out.rgb, target, cfg.lambda_dssim)
-        if cfg.mask_weight > 0:
-            loss = loss + cfg.mask_weight * (out.alpha[..., 0] - masks[views]).abs().mean()
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        if densifying:
-            densifier.accumulate(out.means2d.grad, out.radii, images.shape[2], images.shape[1])
-        optimizer.step()
-        densified = densifying and step > start and step % every == 0
-        if densified:
-            densifier.densify_and_prune(params, optimizer, gen, prune_large=reset_done)
-        opacity_reset = densifying and step % reset == 0
-        if opacity_reset:
-            densifier.reset_opacity(params, optimizer)
-            reset_done = True
-        if history is not None or (progress and step % 10 == 0):
-            stats = {"step": float(step), "loss": float(loss.detach()), "psnr": psnr(out.rgb, target),
-                     "gaussians": float(params["means"].shape[0]), "densified": float(densified),
-                     "opacity_reset": float(opacity_reset)}
-            if history is not None:
-                history.append(stats)
-            if progress and step % 10 == 0:
-                bar.set_postfix(loss=f"{stats['loss']:.4f}", psnr=f"{stats['psnr']:.1f}", n=int(stats["gaussians"]))
-    bar.close()
+
+def _render_loss(params: dict[str, Tensor], cams: list[Camera], target: Tensor, masks: Tensor, degree: int,
+                 bg: Tensor, cfg: FitConfig, densifying: bool) -> tuple[RenderOutput, Tensor]:
+    """The Gaussians of ``params`` rendered in ``cams`` with SH degree ``degree`` over ``bg`` (3,), and the loss
+    against ``target`` (V', H, W, 3) and ``masks`` (V', H, W): photometric, plus the mask term when weighted.
+    While ``densifying`` the screen-space means keep their gradient for the density control."""
+    sh = torch.cat([params["sh_dc"], params["sh_rest"]], dim=1)
+    out = render(
+        params["means"],
+        torch.sigmoid(params["opacity_logits"]),
+        sh,
+        cams,
+        quats=params["quats"],
+        scales=torch.exp(params["log_scales"]),
+        sh_degree=degree,
+        background=bg,
+        backend=cfg.backend,
+        raster_options=cfg.raster_options,
+    )
+    if densifying:
+        out.means2d.retain_grad()
+    loss = photometric_loss(out.rgb, target, cfg.lambda_dssim)
+    if cfg.mask_weight > 0:
+        loss = loss + cfg.mask_weight * (out.alpha[..., 0] - masks).abs().mean()
+    return out, loss
+
+
+def _detached_gaussians(params: dict[str, Tensor]) -> Gaussians:
+    """The fitted :class:`Gaussians` of the optimised tensors, detached."""
     sh = torch.cat([params["sh_dc"], params["sh_rest"]], dim=1)
     return Gaussians(
         means=params["means"].detach(),

@@ -42,7 +42,7 @@ from vid2sim.physics.external import Floor, Gravity
 from vid2sim.physics.neural_jacobian import NeuralJacobian, NeuralJacobianTrainingConfig, train_neural_jacobian
 from vid2sim.physics.skinning import SkinningField, deform
 from vid2sim.physics.skinning_training import SkinningTrainingConfig, train_skinning
-from vid2sim.physics.solver import Material, SimConfig, Simulator
+from vid2sim.physics.solver import Material, SimConfig, SimState, Simulator
 
 
 @dataclass
@@ -110,24 +110,48 @@ def run(device: torch.device, quick: bool = False, settings: PhysicsBenchSetting
         s.skinning_pretrain_iters, s.train_timing_iters = 20, 2
     repeats = 1 if quick else 7  # medians over several runs: a shared 2-core machine is noisy
     sim, pts = build_standard_simulator(s, device)
-    rest = sim.rest_state()
+    timer = _Timer(sim, sim.rest_state(), s, device, repeats)
     default = sim.config
-    n = sim.substeps()
     one_step = replace(default, substeps=1, integrator="implicit_euler")
-    size = float((pts.max(0).values - pts.min(0).values).norm())
+    frames, states, ie_states = _frame_figures(timer, pts, default, one_step, quick)
+    windows = _window_figures(timer, pts, default, one_step, states, ie_states)
+    training = _training_figures(sim, pts, s, device)
+    return {**frames, **windows, **training, "physics_settings": asdict(s)}
 
-    def timed_rollout(config) -> tuple[float, list]:
+
+@dataclass
+class _Timer:
+    """Times ``sim`` from its ``rest`` state on ``device``: medians over ``repeats`` runs."""
+
+    sim: Simulator
+    rest: SimState
+    settings: PhysicsBenchSettings
+    device: torch.device
+    repeats: int
+
+    def rollout(self, config: SimConfig) -> tuple[float, list[SimState]]:
+        """ms per frame of the ``settings.steps`` frames from rest with ``config``, without gradients, and those
+        frames' states (the simulator keeps ``config``)."""
+        sim, s = self.sim, self.settings
         sim.config = config
         with torch.no_grad():
-            states = sim.rollout(rest, s.steps)
-            ms = time_ms(lambda: sim.rollout(rest, s.steps), device, repeats)
+            states = sim.rollout(self.rest, s.steps)
+            ms = time_ms(lambda: sim.rollout(self.rest, s.steps), self.device, self.repeats)
         return ms / s.steps, states
 
-    frame_ms, states = timed_rollout(default)
-    plain_ms, _ = timed_rollout(replace(default, reuse_hessian=False))
-    step_ms, ie_states = timed_rollout(one_step)
-    projected_ms, _ = timed_rollout(replace(one_step, hessian_projection="always"))
-    _, refined = timed_rollout(replace(default, substeps=4 * n)) if not quick else (0.0, states)
+
+def _frame_figures(timer: _Timer, pts: torch.Tensor, default: SimConfig, one_step: SimConfig, quick: bool
+                   ) -> tuple[dict[str, Any], list[SimState], list[SimState]]:
+    """The ``sim_frame_*``, ``sim_step_*`` and ``sim_floor_penetration_m`` figures of the drop of the object points
+    ``pts`` (N, 3), and the states of the default and the one-step-per-frame drops."""
+    sim, s = timer.sim, timer.settings
+    n = sim.substeps()
+    size = float((pts.max(0).values - pts.min(0).values).norm())
+    frame_ms, states = timer.rollout(default)
+    plain_ms, _ = timer.rollout(replace(default, reuse_hessian=False))
+    step_ms, ie_states = timer.rollout(one_step)
+    projected_ms, _ = timer.rollout(replace(one_step, hessian_projection="always"))
+    _, refined = timer.rollout(replace(default, substeps=4 * n)) if not quick else (0.0, states)
     sim.config = default
 
     probe = pts[::20]
@@ -140,55 +164,7 @@ def run(device: torch.device, quick: bool = False, settings: PhysicsBenchSetting
     with torch.no_grad():  # the deepest any object point goes below the floor over the drop
         lowest = min(float(sim.positions(pts, st.z)[:, 2].min()) for st in states)
     penetration = max(0.0, s.floor_height - lowest)
-
-    # --- a 4-frame window with gradients to log10 E, ν and the skinning parameters --------------------
-    sim.log10_E.requires_grad_(True)
-    sim.nu.requires_grad_(True)
-    params = [sim.log10_E, sim.nu, *sim.field.parameters()]
-    cub_target = sim.X.detach()
-
-    def window(config, seq, points: bool = False):
-        sim.config = config
-        start = seq[s.window_start - 1]
-        start = type(start)(start.z.detach(), start.zdot.detach(), start.t, None,
-                            z_prev=None if start.z_prev is None else start.z_prev.detach(),
-                            zdot_prev=None if start.zdot_prev is None else start.zdot_prev.detach(),
-                            h_prev=start.h_prev)
-
-        def run_window() -> None:
-            out = sim.rollout(start, s.window)
-            if points:
-
-                w = sim.field(pts)
-                loss = sum(((deform(pts, w, st.z) - pts) ** 2).mean() for st in out)
-            else:
-                loss = sum(((sim.positions(sim.X, st.z) - cub_target) ** 2).mean() for st in out)
-            torch.autograd.grad(loss, params, allow_unused=True)
-
-        return time_ms(run_window, device, repeats)
-
-    window_ms = window(default, states)
-    window_one_step_ms = window(one_step, ie_states)
-    window_points_ms = window(default, states, points=True)
-    sim.config = default
-    sim.volumetric = "projected"
-    frame_projected_ms, projected_states = timed_rollout(default)
-    window_projected_ms = window(default, projected_states)
-    sim.volumetric = "pointwise"
-    sim.config = default
-    sim.log10_E.requires_grad_(False)
-    sim.nu.requires_grad_(False)
-
-    # --- data-free training iterations --------------------------------------------------------------
-    iters = s.train_timing_iters
-    skin_ms = time_ms(lambda: train_skinning(sim.field, pts, SkinningTrainingConfig(iterations=iters, seed=s.seed),
-                                             progress=False), device, repeats=1) / iters
-    skin_ops = skinning_iteration_ops(sim.field, pts, s.seed)
-    nj = NeuralJacobian(num_handles_total=sim.field.num_handles_total, seed=s.seed).to(device)
-    nj_ms = time_ms(lambda: train_neural_jacobian(nj, sim.field, pts, NeuralJacobianTrainingConfig(
-        iterations=iters, seed=s.seed), progress=False), device, repeats=1) / iters
-
-    return {
+    figures = {
         "sim_frame_ms": frame_ms,
         "sim_frame_substeps": n,
         "sim_frame_time_convergence_percent": convergence,
@@ -197,13 +173,81 @@ def run(device: torch.device, quick: bool = False, settings: PhysicsBenchSetting
         "sim_step_ms_always_projected": projected_ms,
         "sim_step_time_convergence_percent": ie_distance,
         "sim_floor_penetration_m": penetration,
+    }
+    return figures, states, ie_states
+
+
+def _window_figures(timer: _Timer, pts: torch.Tensor, default: SimConfig, one_step: SimConfig,
+                    states: list[SimState], ie_states: list[SimState]) -> dict[str, Any]:
+    """The ``sim_window_*`` figures (a 4-frame window with gradients to log10 E, ν and the skinning parameters,
+    from the drops' ``states`` and ``ie_states``) and ``sim_frame_ms_projected``; the simulator is left as it
+    was (default configuration, pointwise volumetric term, no gradients to the material)."""
+    sim, s = timer.sim, timer.settings
+    sim.log10_E.requires_grad_(True)
+    sim.nu.requires_grad_(True)
+    params = [sim.log10_E, sim.nu, *sim.field.parameters()]
+    cub_target = sim.X.detach()
+
+    def window(config: SimConfig, seq: list[SimState], points: bool = False) -> float:
+        return _window_ms(timer, config, seq[s.window_start - 1], params, cub_target, pts if points else None)
+
+    window_ms = window(default, states)
+    window_one_step_ms = window(one_step, ie_states)
+    window_points_ms = window(default, states, points=True)
+    sim.config = default
+    sim.volumetric = "projected"
+    frame_projected_ms, projected_states = timer.rollout(default)
+    window_projected_ms = window(default, projected_states)
+    sim.volumetric = "pointwise"
+    sim.config = default
+    sim.log10_E.requires_grad_(False)
+    sim.nu.requires_grad_(False)
+    return {
         "sim_window_ms": window_ms,
         "sim_window_ms_one_step_per_frame": window_one_step_ms,
         "sim_window_points_ms": window_points_ms,
         "sim_frame_ms_projected": frame_projected_ms,
         "sim_window_ms_projected": window_projected_ms,
+    }
+
+
+def _window_ms(timer: _Timer, config: SimConfig, start: SimState, params: list[torch.Tensor],
+               cub_target: torch.Tensor, pts: torch.Tensor | None) -> float:
+    """ms of one window of ``settings.window`` frames from ``start`` (detached) with ``config``, forward and
+    backward to ``params``: the loss on the cubature points' displacement from ``cub_target`` (K, 3), or with
+    ``pts`` (N, 3) on those points' displacement."""
+    sim, s = timer.sim, timer.settings
+    sim.config = config
+    start = type(start)(start.z.detach(), start.zdot.detach(), start.t, None,
+                        z_prev=None if start.z_prev is None else start.z_prev.detach(),
+                        zdot_prev=None if start.zdot_prev is None else start.zdot_prev.detach(),
+                        h_prev=start.h_prev)
+
+    def run_window() -> None:
+        out = sim.rollout(start, s.window)
+        if pts is not None:
+            w = sim.field(pts)
+            loss = sum(((deform(pts, w, st.z) - pts) ** 2).mean() for st in out)
+        else:
+            loss = sum(((sim.positions(sim.X, st.z) - cub_target) ** 2).mean() for st in out)
+        torch.autograd.grad(loss, params, allow_unused=True)
+
+    return time_ms(run_window, timer.device, timer.repeats)
+
+
+def _training_figures(sim: Simulator, pts: torch.Tensor, s: PhysicsBenchSettings, device: torch.device
+                      ) -> dict[str, Any]:
+    """ms per data-free training iteration of the skinning field (trained further in place) and of a new Neural
+    Jacobian on the points ``pts`` (N, 3), and the aten operators of one skinning iteration."""
+    iters = s.train_timing_iters
+    skin_ms = time_ms(lambda: train_skinning(sim.field, pts, SkinningTrainingConfig(iterations=iters, seed=s.seed),
+                                             progress=False), device, repeats=1) / iters
+    skin_ops = skinning_iteration_ops(sim.field, pts, s.seed)
+    nj = NeuralJacobian(num_handles_total=sim.field.num_handles_total, seed=s.seed).to(device)
+    nj_ms = time_ms(lambda: train_neural_jacobian(nj, sim.field, pts, NeuralJacobianTrainingConfig(
+        iterations=iters, seed=s.seed), progress=False), device, repeats=1) / iters
+    return {
         "skinning_train_ms_per_iter": skin_ms,
         "skinning_iter_ops": skin_ops,
         "jacobian_train_ms_per_iter": nj_ms,
-        "physics_settings": asdict(s),
     }

@@ -90,6 +90,7 @@ from vid2sim.reconstruct.silhouettes import (
 from vid2sim.runtime.files import read_json, write_json_atomic
 from vid2sim.splats.cameras import Camera, stack_cameras
 
+_NAME = "estimate_initial_velocity"  # errors start with it
 ROTATION_MODELS = ("torque_free", "constant")
 SHAPE_MODELS = ("surface", "points")
 
@@ -325,48 +326,80 @@ def estimate_initial_velocity(
             within ``floor_margin`` of the floor at frame 0; fewer than 2 usable frames.
     """
     start = time.perf_counter()
-    name = "estimate_initial_velocity"
     gravity = torch.as_tensor(gravity).detach().to("cpu", torch.float64)
     _check_inputs(points, masks, cameras, dt, gravity, floor_height, max_frames)
-    if rotation_model not in ROTATION_MODELS:
-        raise ValueError(f"{name}: rotation_model must be one of {ROTATION_MODELS}, got {rotation_model!r}")
-    if not (math.isfinite(floor_margin) and floor_margin >= 0):
-        raise ValueError(f"{name}: floor_margin must be a finite number >= 0, got {floor_margin!r}")
-    if shape_model not in SHAPE_MODELS:
-        raise ValueError(f"{name}: shape_model must be one of {SHAPE_MODELS}, got {shape_model!r}")
-    if max_points < 4 or iterations < 1:
-        raise ValueError(f"{name}: max_points must be >= 4 and iterations >= 1, got {max_points}, {iterations}")
-    device = points.device
-    out_dtype = points.dtype if points.is_floating_point() else torch.float32
+    _check_options(rotation_model, floor_margin, shape_model, max_points, iterations)
     g = gravity.detach().to("cpu", torch.float64).numpy()
     P = points.detach().to("cpu", torch.float64).numpy()
-    V, T, H, W = masks.shape
-    K_max = min(int(max_frames), T)
+    K_max = min(int(max_frames), masks.shape[1])
+    masks_np = _used_masks(masks, K_max)
+    viewmats_t, Ks_t, width, height = stack_cameras(list(cameras))
+    viewmats, Ks = viewmats_t.detach().cpu().double().numpy(), Ks_t.detach().cpu().double().numpy()
+
+    centre, inertia = _centre_and_inertia(P, rotation_model)
+    r = P - centre
+    rng = np.random.default_rng(seed)
+    subset = r[rng.choice(len(r), max_points, replace=False)] if len(r) > max_points else r
+    metres_per_px = _check_views(subset + centre, masks_np[:, 0], viewmats, Ks, width, height)
+    surface = surface_samples(P, max_points, rng) if shape_model == "surface" else None
+    Xc = subset if surface is None else surface - centre  # the points the silhouettes are fitted with
+    flight = _Flight(shape=Xc, points=r, viewmats=viewmats, Ks=Ks, width=width, height=height, masks=masks_np,
+                     metres_per_px=metres_per_px, radius=float(np.linalg.norm(r, axis=1).max()),
+                     iterations=iterations, dt=dt, g=g, up=-g / np.linalg.norm(g) if floor_height is not None else None,
+                     floor_height=floor_height, floor_margin=floor_margin, progress=progress)
+    model_inertia = inertia if rotation_model == "torque_free" else None
+    frames = _ballistic_frames(flight, centre, model_inertia, K_max, max_frames)
+    out_dtype = points.dtype if points.is_floating_point() else torch.float32
+    return _estimate(flight, frames, centre, out_dtype, points.device, start)
+
+
+def _check_options(rotation_model: str, floor_margin: float, shape_model: str, max_points: int,
+                   iterations: int) -> None:
+    """Raise ValueError for an unknown model or an out-of-range option of :func:`estimate_initial_velocity`."""
+    if rotation_model not in ROTATION_MODELS:
+        raise ValueError(f"{_NAME}: rotation_model must be one of {ROTATION_MODELS}, got {rotation_model!r}")
+    if not (math.isfinite(floor_margin) and floor_margin >= 0):
+        raise ValueError(f"{_NAME}: floor_margin must be a finite number >= 0, got {floor_margin!r}")
+    if shape_model not in SHAPE_MODELS:
+        raise ValueError(f"{_NAME}: shape_model must be one of {SHAPE_MODELS}, got {shape_model!r}")
+    if max_points < 4 or iterations < 1:
+        raise ValueError(f"{_NAME}: max_points must be >= 4 and iterations >= 1, got {max_points}, {iterations}")
+
+
+def _used_masks(masks: Tensor, K_max: int) -> np.ndarray:
+    """The masks (V, K_max, H, W) float32 of the frames that may be used; refused when one is empty."""
+    V = masks.shape[0]
     masks_np = masks.detach()[:, :K_max].to("cpu", torch.float32).numpy()
     for t in range(K_max):
         for v in range(V):
             if not (masks_np[v, t] >= 0.5).any():
-                raise ValueError(f"{name}: the mask of view {v} at frame {t} is empty (no pixel >= 0.5); the object "
+                raise ValueError(f"{_NAME}: the mask of view {v} at frame {t} is empty (no pixel >= 0.5); the object "
                                  "must be visible in every view of the frames used")
-    viewmats_t, Ks_t, width, height = stack_cameras(list(cameras))
-    viewmats, Ks = viewmats_t.detach().cpu().double().numpy(), Ks_t.detach().cpu().double().numpy()
+    return masks_np
 
+
+def _centre_and_inertia(P: np.ndarray, rotation_model: str) -> tuple[np.ndarray, np.ndarray]:
+    """The centroid (3,) of the points ``P`` (N, 3) and their inertia (3, 3) about it (uniform density, unit
+    mass); refused when singular and the rotation model needs it."""
     centre = P.mean(0)
     r = P - centre
     inertia = (r * r).sum(1).mean() * np.eye(3) - r.T @ r / len(r)
     evals = np.linalg.eigvalsh(inertia)
     if rotation_model == "torque_free" and evals[0] <= 1e-9 * evals[-1]:
-        raise ValueError(f"{name}: the points are degenerate (collinear): their inertia tensor is singular")
-    radius = float(np.linalg.norm(r, axis=1).max())
-    rng = np.random.default_rng(seed)
-    subset = r[rng.choice(len(r), max_points, replace=False)] if len(r) > max_points else r
+        raise ValueError(f"{_NAME}: the points are degenerate (collinear): their inertia tensor is singular")
+    return centre, inertia
 
-    # the cameras must see the points, and the frame-0 masks must match them
-    cam = np.einsum("vij,nj->vni", viewmats[:, :3, :3], subset + centre) + viewmats[:, None, :3, 3]
+
+def _check_views(X: np.ndarray, masks0: np.ndarray, viewmats: np.ndarray, Ks: np.ndarray, width: int,
+                 height: int) -> float:
+    """Check that every camera sees the world points ``X`` (M, 3) and that they match its frame-0 mask
+    (``masks0`` (V, H, W)); returns the mean size of a pixel at the points' depth (m)."""
+    V = len(viewmats)
+    cam = np.einsum("vij,nj->vni", viewmats[:, :3, :3], X) + viewmats[:, None, :3, 3]
     z = cam[..., 2]
     for v in range(V):
         if (z[v] <= 1e-6).any():
-            raise ValueError(f"{name}: camera {v} does not see the points: some lie behind it (check the camera "
+            raise ValueError(f"{_NAME}: camera {v} does not see the points: some lie behind it (check the camera "
                              "poses and that the points are in the same world frame)")
     zs = np.maximum(z, 1e-6)
     u = Ks[:, None, 0, 0] * cam[..., 0] / zs + Ks[:, None, 0, 2]
@@ -376,79 +409,130 @@ def estimate_initial_velocity(
     for v in range(V):
         seen = float(in_image[v].mean())
         if seen < 0.5:
-            raise ValueError(f"{name}: camera {v} does not see the points: only {100 * seen:.0f} % of them project "
+            raise ValueError(f"{_NAME}: camera {v} does not see the points: only {100 * seen:.0f} % of them project "
                              f"into its {width}x{height} image")
-        matched = float(((masks_np[v, 0][row[v], col[v]] > 0.25) & in_image[v]).mean())
+        matched = float(((masks0[v][row[v], col[v]] > 0.25) & in_image[v]).mean())
         if matched < 0.5:
             raise ValueError(
-                f"{name}: the points do not match the frame-0 mask of view {v}: only {100 * matched:.0f} % "
+                f"{_NAME}: the points do not match the frame-0 mask of view {v}: only {100 * matched:.0f} % "
                 "of them project inside it (are they the object at frame 0, in the cameras' world frame?)"
             )
-    metres_per_px = float(z.mean()) / float(Ks[:, [0, 1], [0, 1]].mean())
-    surface = surface_samples(P, max_points, rng) if shape_model == "surface" else None
-    Xc = subset if surface is None else surface - centre  # the points the silhouettes are fitted with
+    return float(z.mean()) / float(Ks[:, [0, 1], [0, 1]].mean())
 
-    up = -g / np.linalg.norm(g) if floor_height is not None else None
-    max_step = dt / 4.0
-    model_inertia = inertia if rotation_model == "torque_free" else None
 
-    def clearance(R: np.ndarray, p: np.ndarray) -> float:
+@dataclass
+class _Flight:
+    """What the frame-by-frame pose fits and floor tests need (float64 numpy unless stated).
+
+    Attributes:
+        shape: (M, 3) the shape points fitted to the silhouettes, about the centroid.
+        points: (N, 3) all given points about the centroid (the floor tests use them all).
+        viewmats, Ks: (V, 4, 4) world-to-camera matrices and (V, 3, 3) intrinsics; width, height: pixels.
+        masks: (V, K_max, H, W) float32 masks of the frames that may be used.
+        metres_per_px: a pixel's size at the points' depth; radius: the points' largest distance from the centroid.
+        iterations: Levenberg–Marquardt iterations per fit, at most.
+        dt: s per frame; g: (3,) gravity; up: (3,) −g/|g| with a floor, else None.
+        floor_height, floor_margin: the floor along ``up`` (None: no floor) and the contact clearance (m).
+        progress: print one line per fitted frame.
+    """
+
+    shape: np.ndarray
+    points: np.ndarray
+    viewmats: np.ndarray
+    Ks: np.ndarray
+    width: int
+    height: int
+    masks: np.ndarray
+    metres_per_px: float
+    radius: float
+    iterations: int
+    dt: float
+    g: np.ndarray
+    up: np.ndarray | None
+    floor_height: float | None
+    floor_margin: float
+    progress: bool
+
+    def clearance(self, R: np.ndarray, p: np.ndarray) -> float:
         """Height (m) above the floor of the lowest given point posed by (R, p)."""
-        assert up is not None and floor_height is not None
-        return float(((r @ R.T + p) @ up).min()) - float(floor_height)
+        assert self.up is not None and self.floor_height is not None
+        return float(((self.points @ R.T + p) @ self.up).min()) - float(self.floor_height)
 
-    def predicted_contact(model: _Ballistic, t0: float, t1: float) -> float | None:
+    def predicted_contact(self, model: _Ballistic, t0: float, t1: float) -> float | None:
         """The first of 9 times in [t0, t1] at which the model's lowest point is within the margin, if any."""
-        if up is None:
+        if self.up is None:
             return None
         times = np.linspace(t0, t1, 9)
         for s, R, p in zip(times, model.rotations(times), model.centroids(times)):
-            if clearance(R, p) <= floor_margin:
+            if self.clearance(R, p) <= self.floor_margin:
                 return float(s)
         return None
 
-    def fit_frame(t: int, R: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
-        fitter = PoseFit(Xc, viewmats, Ks, width, height, [prepare_silhouette(masks_np[v, t]) for v in range(V)])
-        return fitter.fit(R, p, metres_per_px, radius, iterations)
+    def fit_frame(self, t: int, R: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+        """The pose (R (3, 3), p (3,)) of frame ``t`` fitted to its silhouettes from (R, p), and its residual (px)."""
+        V = self.masks.shape[0]
+        fitter = PoseFit(self.shape, self.viewmats, self.Ks, self.width, self.height,
+                         [prepare_silhouette(self.masks[v, t]) for v in range(V)])
+        return fitter.fit(R, p, self.metres_per_px, self.radius, self.iterations)
 
-    def say(message: str) -> None:
-        if progress:
+    def say(self, message: str) -> None:
+        """Print one progress line (with ``progress``)."""
+        if self.progress:
             print(f"[initial velocity] {message}", flush=True)
 
-    R_fit, p_fit, res = fit_frame(0, np.eye(3), centre.copy())
+
+@dataclass
+class _Frames:
+    """The ballistic frames 0 … K−1: fitted rotations (K × (3, 3)), centroids (K × (3,)) and residuals (K, px),
+    the ballistic model fitted through them, and why no more frames were used."""
+
+    rotations: list[np.ndarray]
+    centroids: list[np.ndarray]
+    residuals: list[float]
+    model: _Ballistic
+    stop: str
+
+
+def _ballistic_frames(f: _Flight, centre: np.ndarray, inertia: np.ndarray | None, K_max: int,
+                      max_frames: int) -> _Frames:
+    """Fit frame 0, then add frames one at a time while the object is in free flight (module docstring, step 3);
+    ``inertia`` (3, 3) of the points at frame 0 (None: constant ω)."""
+    max_step = f.dt / 4.0
+    R_fit, p_fit, res = f.fit_frame(0, np.eye(3), centre.copy())
     rotations, centroids, residuals = [R_fit], [p_fit], [res]
-    if model_inertia is not None:
+    if inertia is not None:
         # the fitted poses place the points, not the object: frame 0's fit may be turned by degrees where the
         # silhouettes pin the shape loosely (up to 15° on a rounded benchmark object). The ballistic model
         # propagates those poses, so its inertia is the points' frame-0 inertia seen from frame 0's fitted
         # orientation (R₀ I_body R₀ᵀ = the frame-0 inertia).
-        model_inertia = R_fit.T @ model_inertia @ R_fit
-    say(f"frame 0: residual {res:.2f} px")
-    if up is not None and clearance(R_fit, p_fit) <= floor_margin:
+        inertia = R_fit.T @ inertia @ R_fit
+    f.say(f"frame 0: residual {res:.2f} px")
+    if f.up is not None and f.clearance(R_fit, p_fit) <= f.floor_margin:
         raise TooFewBallisticFrames(
-            f"{name}: fewer than 2 usable frames: the object already touches the floor at frame 0 (its lowest point "
-            f"is {1000 * clearance(R_fit, p_fit):.1f} mm above it, margin {1000 * floor_margin:.1f} mm)"
+            f"{_NAME}: fewer than 2 usable frames: the object already touches the floor at frame 0 (its lowest "
+            f"point is {1000 * f.clearance(R_fit, p_fit):.1f} mm above it, margin {1000 * f.floor_margin:.1f} mm)"
         )
     model: _Ballistic | None = None
     stop = "max_frames" if K_max == max_frames else "end of the masks"
     for t in range(1, K_max):
         if model is not None:
-            hit = predicted_contact(model, (t - 1) * dt, t * dt)
+            hit = f.predicted_contact(model, (t - 1) * f.dt, t * f.dt)
             if hit is not None:
                 stop = f"contact predicted at {hit:.3f} s, before frame {t}"
                 break
-            R_init, p_init = model.rotations([t * dt])[0], model.centroids([t * dt])[0]
+            R_init, p_init = model.rotations([t * f.dt])[0], model.centroids([t * f.dt])[0]
         else:  # frame 1: frame 0's pose, falling from rest
-            R_init, p_init = rotations[0], centroids[0] + 0.5 * g * dt * dt
-        R_fit, p_fit, res = fit_frame(t, R_init, p_init)
-        say(f"frame {t}: residual {res:.2f} px")
-        if up is not None and clearance(R_fit, p_fit) <= floor_margin:
-            stop = f"frame {t} reaches the floor (fitted lowest point {1000 * clearance(R_fit, p_fit):.1f} mm above it)"
+            R_init, p_init = rotations[0], centroids[0] + 0.5 * f.g * f.dt * f.dt
+        R_fit, p_fit, res = f.fit_frame(t, R_init, p_init)
+        f.say(f"frame {t}: residual {res:.2f} px")
+        if f.up is not None and f.clearance(R_fit, p_fit) <= f.floor_margin:
+            stop = (f"frame {t} reaches the floor (fitted lowest point {1000 * f.clearance(R_fit, p_fit):.1f} mm "
+                    "above it)")
             break
-        times = np.arange(t + 1) * dt
-        trial = _fit_ballistic(times, np.stack(centroids + [p_fit]), np.stack(rotations + [R_fit]), g,
-                               model_inertia, max_step)
-        hit = predicted_contact(trial, 0.0, t * dt)
+        times = np.arange(t + 1) * f.dt
+        trial = _fit_ballistic(times, np.stack(centroids + [p_fit]), np.stack(rotations + [R_fit]), f.g,
+                               inertia, max_step)
+        hit = f.predicted_contact(trial, 0.0, t * f.dt)
         if hit is not None:
             stop = f"the fit with frame {t} predicts contact at {hit:.3f} s"
             break
@@ -456,22 +540,29 @@ def estimate_initial_velocity(
         centroids.append(p_fit)
         residuals.append(res)
         model = trial
-    K = len(rotations)
     if model is None:
         raise TooFewBallisticFrames(
-            f"{name}: fewer than 2 usable frames ({stop}); the velocity needs frames 0 and 1 before "
+            f"{_NAME}: fewer than 2 usable frames ({stop}); the velocity needs frames 0 and 1 before "
             "any contact with the floor"
         )
+    return _Frames(rotations, centroids, residuals, model, stop)
 
-    Rs, ps = np.stack(rotations), np.stack(centroids)
-    times = np.arange(K) * dt
-    posed_fit = np.einsum("kij,nj->kni", Rs, Xc) + ps[:, None]
-    posed_model = np.einsum("kij,nj->kni", model.rotations(times), Xc) + model.centroids(times)[:, None]
+
+def _estimate(f: _Flight, frames: _Frames, centre: np.ndarray, dtype: torch.dtype, device: torch.device,
+              start: float) -> InitialVelocity:
+    """The :class:`InitialVelocity` of the ballistic ``frames`` (tensors of ``dtype`` on ``device``), with how far
+    the model strays from the fitted poses; ``start``: when the estimate began (``time.perf_counter``)."""
+    model, K = frames.model, len(frames.rotations)
+    Rs, ps = np.stack(frames.rotations), np.stack(frames.centroids)
+    times = np.arange(K) * f.dt
+    posed_fit = np.einsum("kij,nj->kni", Rs, f.shape) + ps[:, None]
+    posed_model = np.einsum("kij,nj->kni", model.rotations(times), f.shape) + model.centroids(times)[:, None]
     model_rms = float(np.sqrt(((posed_fit - posed_model) ** 2).sum(-1).mean()))
-    say(f"{K} frames: v = {np.round(model.v, 4).tolist()} m/s, ω = {np.round(model.omega, 4).tolist()} rad/s ({stop})")
+    f.say(f"{K} frames: v = {np.round(model.v, 4).tolist()} m/s, ω = {np.round(model.omega, 4).tolist()} rad/s "
+          f"({frames.stop})")
 
     def out(a: np.ndarray) -> Tensor:
-        return torch.as_tensor(np.ascontiguousarray(a), dtype=out_dtype, device=device)
+        return torch.as_tensor(np.ascontiguousarray(a), dtype=dtype, device=device)
 
     # frame t's pose relative to frame 0's fit: a bias the fits share (the silhouettes pinning a rounded shape's
     # turn loosely) cancels, and frame 0 maps exactly to itself. On the small benchmark suite the absolute fits
@@ -482,12 +573,12 @@ def estimate_initial_velocity(
         angular=out(model.omega),
         centre=out(centre),
         frames_used=K,
-        residual_px=float(np.mean(residuals)),
+        residual_px=float(np.mean(frames.residuals)),
         rotations=out(rel),
         translations=out(ps - rel @ ps[0]),
-        frame_residuals_px=out(np.array(residuals)),
+        frame_residuals_px=out(np.array(frames.residuals)),
         model_residual_m=model_rms,
-        stop_reason=stop,
+        stop_reason=frames.stop,
         seconds=time.perf_counter() - start,
     )
 

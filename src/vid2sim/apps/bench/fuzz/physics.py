@@ -269,6 +269,7 @@ def build_asset(shape: str, handles: int, cubature: int, seed: int, workdir: Pat
 def scenario_of(case: PhysicsCase, asset) -> "Any":
     """The :class:`~vid2sim.simulate.scenario.Scenario` of ``case`` on ``asset`` (the object posed, then lifted so
     that its lowest point is ``drop_height`` above the floor's highest point under it)."""
+    from vid2sim.simulate.rotations import axis_angle_to_matrix
     from vid2sim.simulate.scenario import (
         CameraSpec,
         FloorSpec,
@@ -276,7 +277,6 @@ def scenario_of(case: PhysicsCase, asset) -> "Any":
         MaterialSpec,
         ObstacleSpec,
         Scenario,
-        axis_angle_to_matrix,
     )
 
     pts = torch.cat([asset.points, asset.contact_points]).double()
@@ -442,7 +442,8 @@ def run_case(case: PhysicsCase, workdir: str | Path | None = None, skinning_iter
     exception: a bug)."""
     from vid2sim.physics.solver import SimulationError
     from vid2sim.runtime.errors import InputError
-    from vid2sim.simulate.run import resolve_scenario, run_scenario, simulate
+    from vid2sim.simulate.resolve import resolve_scenario
+    from vid2sim.simulate.run import run_scenario, simulate
 
     t0 = time.perf_counter()
     record: dict[str, Any] = {"seed": case.seed, "case": asdict(case)}
