@@ -46,6 +46,8 @@ class MetricConfig:
         floor_normal_agreement_deg: adopt the point floor's normal as the gravity direction when it is within this
             angle of the parabola's, or within 3 of the parabola's standard deviations (a short free flight's
             direction is uncertain; the floor's plane, from hundreds of points, is not).
+        robust_hull_views: track the robust hull's centroid (one view's mask may disagree,
+            :mod:`~vid2sim.scene.capture.hull`) in frames with at least this many whole views; 0: the strict hull's.
     """
 
     gravity: float = 9.81
@@ -56,6 +58,7 @@ class MetricConfig:
     use_plates: bool = True
     upright_cameras: bool = True
     floor_normal_agreement_deg: float = 10.0
+    robust_hull_views: int = 4
 
     def to_json(self) -> dict:
         return asdict(self)
@@ -66,33 +69,30 @@ class Track:
     """The object's track in the calibration frame.
 
     Attributes:
-        centres: (T, 3) hull centroids (NaN where fewer than two views see the whole object).
+        centres: (T, 3) the robust hull's centroids (NaN where fewer than two views see the whole object): what the
+            free flight is fitted to.
         hulls: per frame its :class:`HullFrame` (None where not tracked).
         size: the object's diameter (calibration units; the median hull extent).
+        strict_centres: (T, 3) the strict hull's centroids (the same as ``centres`` where the robust hull is off);
+            the difference of the two fits measures how much the masks' errors move the scale.
     """
 
     centres: np.ndarray
     hulls: list[HullFrame | None]
     size: float
+    strict_centres: np.ndarray | None = None
 
     def lowest_along(self, up: np.ndarray) -> np.ndarray:
         """(T,) the object's lowest height along ``up`` (NaN where not tracked)."""
         return np.array([lowest_point(h, up) if h is not None else np.nan for h in self.hulls])
 
 
-def track_object(cameras: Sequence[CaptureCamera], masks: Sequence[np.ndarray], usable: np.ndarray,
-                 config: MetricConfig) -> Track:
-    """The object's :class:`Track` from each view's masks (T, H, W) — float in [0, 1] or uint8 coverage in 0..255 —
-    and the usable (V, T) views of every frame."""
-    scale = [255.0 if m.dtype == np.uint8 else 1.0 for m in masks]
-    V, T = usable.shape
-    pix = np.zeros((V, T, 2))
-    area = np.zeros((V, T))
-    for v, m in enumerate(masks):
-        pix[v], area[v] = mask_centroids(m.astype(np.float32) / scale[v])
-    rough = triangulate(cameras, pix, usable)
-    # the object's radius in calibration units from its silhouettes' sizes at the rough depth
+def _object_radius(cameras: Sequence[CaptureCamera], area: np.ndarray, rough: np.ndarray,
+                   usable: np.ndarray) -> float:
+    """The object's largest radius in calibration units: its silhouettes' areas (V, T) at the rough depth of its
+    triangulated centres (T, 3)."""
     radius = 0.0
+    V, T = usable.shape
     for t in range(T):
         if not np.isfinite(rough[t]).all():
             continue
@@ -101,8 +101,25 @@ def track_object(cameras: Sequence[CaptureCamera], masks: Sequence[np.ndarray], 
                 depth = (cameras[v].world_to_camera[:3, :3] @ rough[t] + cameras[v].world_to_camera[:3, 3])[2]
                 f = 0.5 * (cameras[v].K[0, 0] + cameras[v].K[1, 1])
                 radius = max(radius, np.sqrt(area[v, t] / np.pi) * depth / f)
-    half = config.hull_margin * radius
+    return radius
+
+
+def track_object(cameras: Sequence[CaptureCamera], masks: Sequence[np.ndarray], usable: np.ndarray,
+                 config: MetricConfig) -> Track:
+    """The object's :class:`Track` from each view's masks (T, H, W) — float in [0, 1] or uint8 coverage in 0..255 —
+    and the usable (V, T) views of every frame: per frame the soft hull around the triangulated silhouette
+    centroids, then again around its own centroid."""
+    scale = [255.0 if m.dtype == np.uint8 else 1.0 for m in masks]
+    V, T = usable.shape
+    pix = np.zeros((V, T, 2))
+    area = np.zeros((V, T))
+    for v, m in enumerate(masks):
+        pix[v], area[v] = mask_centroids(m.astype(np.float32) / scale[v])
+    rough = triangulate(cameras, pix, usable)
+    half = config.hull_margin * _object_radius(cameras, area, rough, usable)
+    robust_views = config.robust_hull_views if config.robust_hull_views > 0 else V + 1
     centres = np.full((T, 3), np.nan)
+    strict = np.full((T, 3), np.nan)
     hulls: list[HullFrame | None] = [None] * T
     extents = []
     for t in range(T):
@@ -111,18 +128,18 @@ def track_object(cameras: Sequence[CaptureCamera], masks: Sequence[np.ndarray], 
             continue
         cams = [cameras[v] for v in views]
         frame = np.stack([masks[v][t].astype(np.float32) / scale[v] for v in views])
-        hull = soft_hull(cams, frame, rough[t], half, max(16, config.hull_resolution // 2))
-        c = hull.centroid()
+        hull = soft_hull(cams, frame, rough[t], half, max(16, config.hull_resolution // 2), robust_views)
+        c = hull.centroid(robust=True)
         if not np.isfinite(c).all():
             continue
-        hull = soft_hull(cams, frame, c, half, config.hull_resolution)  # centred on the object
-        c = hull.centroid()
-        if np.isfinite(c).all():
-            centres[t] = c
+        hull = soft_hull(cams, frame, c, half, config.hull_resolution, robust_views)  # centred on the object
+        c, c_strict = hull.centroid(robust=True), hull.centroid()
+        if np.isfinite(c).all() and np.isfinite(c_strict).all():
+            centres[t], strict[t] = c, c_strict
             hulls[t] = hull
             extents.append(hull.extent())
     size = float(np.median(extents)) if extents else float("nan")
-    return Track(centres, hulls, size)
+    return Track(centres, hulls, size, strict)
 
 
 @dataclass
