@@ -13,6 +13,7 @@ calibration's frame and units.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Sequence
 
 import numpy as np
@@ -81,19 +82,23 @@ class HullFrame:
     occupancy: np.ndarray
     robust: np.ndarray | None = None
 
-    @property
+    @cached_property
     def points(self) -> np.ndarray:
-        """(n³, 3) voxel centres."""
+        """(n³, 3) voxel centres (computed once: the free-flight search asks for the lowest point often)."""
         return self.origin + self.voxel * _unit_grid(self.resolution).numpy().astype(np.float64)
 
     def centroid(self, robust: bool = False) -> np.ndarray:
         """(3,) centroid weighted by clip((occ − 0.3) / 0.4, 0, 1) (NaN for an empty hull), of the robust hull's
         values with ``robust`` (where there are)."""
         occ = self.robust if robust and self.robust is not None else self.occupancy
-        w = np.clip((occ - 0.3) / 0.4, 0.0, 1.0)
-        if w.sum() <= 0:
+        n = self.resolution
+        w = np.clip((occ - 0.3) / 0.4, 0.0, 1.0).reshape(n, n, n)
+        total = w.sum()
+        if total <= 0:
             return np.full(3, np.nan)
-        return (w[:, None] * self.points).sum(0) / w.sum()
+        ax = np.arange(n, dtype=np.float64)
+        ijk = np.array([w.sum((1, 2)) @ ax, w.sum((0, 2)) @ ax, w.sum((0, 1)) @ ax]) / total
+        return self.origin + self.voxel * ijk
 
     def extent(self) -> float:
         """Diameter of the hull's voxels with occupancy > 0.5 (largest distance from the centroid, doubled)."""
