@@ -15,7 +15,8 @@ fit is robust:
    above the contact level are in the air, broken into segments where the vertical velocity jumps up (a bounce
    between two frames in the air);
 4. the first flight — before the first contact — is measured alone when one parabola explains enough of it (its
-   longest such run: a release from the hand starts it): after a bounce a soft object wobbles, and its tracked
+   frames within tolerance of the parabola of its longest consistent run, :func:`flight_frames`: a release from
+   the hand starts it): after a bounce a soft object wobbles, and its tracked
    centre strays from its centre of mass; otherwise all segments are fitted together, each with its own position
    and velocity and one shared ``a`` (linear least squares). 3–4 repeat twice. The covariance of ``a`` comes from
    the residuals (or from σ when too few); :func:`jackknife_sigma` measures the spread the frames themselves
@@ -316,6 +317,49 @@ def longest_window(x: np.ndarray, dt: float, frames: list[int], tol: float) -> l
     return [frames[0] + f for f in best]
 
 
+def _trimmed(x: np.ndarray, dt: float, frames: list[int], tol: float, sigma: float,
+             direction: np.ndarray | None) -> list[int]:
+    """``frames`` less their worst-fitting frame, one at a time and refitting, until the rest lie within ``tol`` of
+    their parabola (fewer than 3: what is left)."""
+    kept = list(frames)
+    while len(kept) >= 3:
+        fit = fit_segments(x, dt, [kept], direction, noise=sigma)
+        res = np.linalg.norm(np.stack([_predict(x, dt, kept, fit, f) for f in kept]) - x[kept], axis=1)
+        worst = int(np.argmax(res))
+        if res[worst] <= tol:
+            break
+        kept.pop(worst)
+    return kept
+
+
+def _grown(x: np.ndarray, dt: float, frames: list[int], tol: float, sigma: float,
+           direction: np.ndarray | None) -> list[int]:
+    """The longest run of ``frames`` one parabola explains (:func:`longest_window`), then every frame of ``frames``
+    within ``tol`` of the parabola fitted so far, refitted until the set settles."""
+    kept = longest_window(x, dt, frames, tol)
+    for _ in range(len(frames)):
+        if len(kept) < 3:
+            break
+        fit = fit_segments(x, dt, [kept], direction, noise=sigma)
+        near = [f for f in frames if np.linalg.norm(_predict(x, dt, kept, fit, f) - x[f]) <= tol]
+        if near == kept or len(near) < 3:
+            break
+        kept = near
+    return kept
+
+
+def flight_frames(x: np.ndarray, dt: float, frames: list[int], tol: float, sigma: float,
+                  direction: np.ndarray | None = None) -> list[int]:
+    """The most frames of one flight (consecutive ``frames``) that one parabola explains within ``tol``: the larger
+    of two robust sets — all its frames less the worst-fitting ones (a few frames offset together, e.g. while a
+    mask lost part of the object, stay in: they lie within ``tol`` of the whole flight's parabola, though they
+    break a run grown frame by frame), and the longest run one parabola explains grown by the frames near its
+    parabola (a flight that begins in a hand starts at the release however long it was held)."""
+    trimmed = _trimmed(x, dt, frames, tol, sigma, direction)
+    grown = _grown(x, dt, frames, tol, sigma, direction)
+    return trimmed if len(trimmed) >= len(grown) else grown
+
+
 def air_segments(x: np.ndarray, dt: float, acceleration: np.ndarray, lowest_along: Callable[[np.ndarray], np.ndarray],
                  sigma: float, tol: float) -> list[list[int]]:
     """The runs of frames (4+ each) in which the object is in the air, with gravity along ``acceleration``: its
@@ -353,7 +397,7 @@ def find_ballistic(x: np.ndarray, dt: float, lowest_along: Callable[[np.ndarray]
         segs = air_segments(x, dt, best.acceleration, lowest_along, sigma, tol)
         if not segs:  # e.g. a throw starting at floor level: keep the seed
             break
-        first = longest_window(x, dt, segs[0], tol) if search.first_flight else []
+        first = flight_frames(x, dt, segs[0], tol, sigma, direction) if search.first_flight else []
         only_first = len(first) >= search.first_flight_frames
         if only_first:
             segs = [first]

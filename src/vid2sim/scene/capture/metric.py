@@ -133,9 +133,9 @@ def track_object(cameras: Sequence[CaptureCamera], masks: Sequence[np.ndarray], 
         if not np.isfinite(c).all():
             continue
         hull = soft_hull(cams, frame, c, half, config.hull_resolution, robust_views)  # centred on the object
-        c, c_strict = hull.centroid(robust=True), hull.centroid()
-        if np.isfinite(c).all() and np.isfinite(c_strict).all():
-            centres[t], strict[t] = c, c_strict
+        c = hull.centroid(robust=True)
+        if np.isfinite(c).all():  # (the strict hull may be empty where one view lost the object's middle)
+            centres[t], strict[t] = c, hull.centroid()
             hulls[t] = hull
             extents.append(hull.extent())
     size = float(np.median(extents)) if extents else float("nan")
@@ -420,8 +420,12 @@ def _measure_scale(track: Track, fit: BallisticFit, dt: float, gravity: _Gravity
     parts = {"fit": fit.magnitude_sigma() / a,
              "jackknife": jackknife_sigma(track.centres, dt, segments, direction, fit.noise) / a}
     if track.strict_centres is not None:
-        strict = fit_segments(track.strict_centres, dt, segments, direction=direction, noise=fit.noise)
-        parts["centre"] = abs(float(np.linalg.norm(strict.acceleration)) - a) / a
+        finite = np.isfinite(track.strict_centres).all(1)
+        kept = [[f for f in s if finite[f]] for s in segments]
+        kept = [s for s in kept if len(s) >= 3]
+        if kept:
+            strict = fit_segments(track.strict_centres, dt, kept, direction=direction, noise=fit.noise)
+            parts["centre"] = abs(float(np.linalg.norm(strict.acceleration)) - a) / a
     rel = float(np.sqrt(sum(v * v for v in parts.values() if np.isfinite(v))))
     value = config.gravity / a
     return value, value * rel, parts, fit
