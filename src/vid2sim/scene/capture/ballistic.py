@@ -8,13 +8,19 @@ fit is robust:
 1. the tracking noise σ is measured from the third differences of the track (zero on any parabola);
 2. free-flight windows are grown frame by frame from every start while one parabola still explains them (each
    new frame within tolerance of the prediction); moving windows whose acceleration is clearly not zero are
-   candidates (a resting object also fits a parabola, with a ≈ 0), and the one with the largest acceleration
-   starts: free fall is the largest acceleration an object keeps for several frames;
+   candidates (a resting object also fits a parabola, with a ≈ 0), and the longest of those whose acceleration
+   comes close to the largest starts (:func:`seed_window`): free fall is the largest acceleration an object
+   keeps for many frames;
 3. with a first ``a`` the object's lowest point along the gravity direction tells flight from contact: frames
    above the contact level are in the air, broken into segments where the vertical velocity jumps up (a bounce
    between two frames in the air);
-4. all segments are fitted together, each with its own position and velocity and one shared ``a`` (linear least
-   squares); 3–4 repeat twice. The covariance of ``a`` comes from the residuals (or from σ when too few).
+4. the first flight — before the first contact — is measured alone when one parabola explains enough of it (its
+   frames within tolerance of the parabola of its longest consistent run, :func:`flight_frames`: a release from
+   the hand starts it): after a bounce a soft object wobbles, and its tracked
+   centre strays from its centre of mass; otherwise all segments are fitted together, each with its own position
+   and velocity and one shared ``a`` (linear least squares). 3–4 repeat twice. The covariance of ``a`` comes from
+   the residuals (or from σ when too few); :func:`jackknife_sigma` measures the spread the frames themselves
+   give.
 """
 
 from __future__ import annotations
@@ -128,6 +134,27 @@ def fit_segments(x: np.ndarray, dt: float, segments: list[list[int]], direction:
     return BallisticFit(acc, cov, [list(s) for s in segments], rms, float(np.sqrt(sigma2)), direction is not None)
 
 
+def jackknife_sigma(x: np.ndarray, dt: float, segments: list[list[int]], direction: np.ndarray | None = None,
+                    noise: float | None = None, block: int = 3) -> float:
+    """Block-jackknife standard deviation of |a|: the joint fit repeated without each block of ``block``
+    consecutive frames (a mask's error lasts a few frames, so single frames would understate it); NaN with fewer
+    than 4 blocks."""
+    frames = sorted(f for s in segments for f in s)
+    blocks = [set(frames[i:i + block]) for i in range(0, len(frames), block)]
+    if len(blocks) < 4:
+        return float("nan")
+    mags = []
+    for drop in blocks:
+        kept = [[f for f in s if f not in drop] for s in segments]
+        kept = [s for s in kept if len(s) >= 3]
+        if kept:
+            mags.append(float(np.linalg.norm(fit_segments(x, dt, kept, direction, noise=noise).acceleration)))
+    m = len(mags)
+    if m < 4:
+        return float("nan")
+    return float(np.sqrt((m - 1) / m * ((np.array(mags) - np.mean(mags)) ** 2).sum()))
+
+
 def _windows(x: np.ndarray, dt: float, tol: float, min_len: int) -> list[list[int]]:
     """Maximal runs of consecutive tracked frames that one parabola explains (each new frame within ``tol`` of the
     prediction from the frames before it)."""
@@ -213,6 +240,11 @@ class BallisticSearch:
         max_angle_deg: a candidate's acceleration must lie within this angle of the rough down direction (when one
             is given: the cameras are assumed upright, give or take this much).
         iterations: rounds of segment finding and joint fitting.
+        seed_frames, seed_ratio: the seed window is the longest of the windows of at least ``seed_frames`` frames
+            whose |a| reaches ``seed_ratio`` × the largest |a| among them (:func:`seed_window`).
+        first_flight: measure on the first flight alone (before the first contact), when one parabola explains
+            at least ``first_flight_frames`` of its frames: later flights follow a bounce, after which a soft
+            object wobbles and spins, and its tracked centre strays further from its centre of mass.
     """
 
     min_frames: int = 3
@@ -221,29 +253,25 @@ class BallisticSearch:
     significance: float = 5.0
     max_angle_deg: float = 60.0
     iterations: int = 3
+    seed_frames: int = 8
+    seed_ratio: float = 0.75
+    first_flight: bool = True
+    first_flight_frames: int = 6
 
 
-def find_ballistic(x: np.ndarray, dt: float, lowest_along: Callable[[np.ndarray], np.ndarray], size: float,
-                   search: BallisticSearch | None = None, direction: np.ndarray | None = None,
-                   rough_down: np.ndarray | None = None) -> BallisticFit | None:
-    """The joint free-flight fit of a track (T, 3) (module docstring), or None when no free flight shows.
-
-    Args:
-        size: the object's size (calibration units), for the tolerance.
-        lowest_along: the object's lowest height (T,) along a unit up vector (3,), frame by frame.
-        direction: a known gravity direction (3,), unit; then only |a| is fitted.
-        rough_down: a rough down direction (3,), unit (the cameras' mean image-down axis): a candidate window's
-            acceleration must lie within ``search.max_angle_deg`` of it. A bouncing object decelerates upwards over
-            several frames, as steadily as a parabola — this keeps it from passing for free fall.
-    """
-    search = BallisticSearch() if search is None else search
+def noise_and_tolerance(x: np.ndarray, size: float, search: BallisticSearch) -> tuple[float, float]:
+    """The track's (T, 3) noise σ (:func:`tracking_noise`) and the distance within which a frame belongs to a
+    parabola."""
     sigma = tracking_noise(x)
     if not np.isfinite(sigma) or sigma <= 0:
         sigma = 1e-9 * max(1.0, float(np.nanmax(np.abs(x))))
-    tol = max(5.0 * np.sqrt(3.0) * sigma, search.tolerance * size)
-    # candidate windows: moving, with a clearly non-zero acceleration; free fall is the largest acceleration an
-    # object keeps over several frames (contact forces act in short impulses, friction and rolling stay below g),
-    # so the candidate with the largest |a| seeds the fit (windows of 4+ frames first, 3-frame ones otherwise)
+    return sigma, max(5.0 * np.sqrt(3.0) * sigma, search.tolerance * size)
+
+
+def candidate_windows(x: np.ndarray, dt: float, sigma: float, tol: float, size: float, search: BallisticSearch,
+                      direction: np.ndarray | None = None, rough_down: np.ndarray | None = None) -> list[BallisticFit]:
+    """The windows (:func:`_windows`) in which the object moves with a clearly non-zero acceleration that points
+    the way gravity may (along ``direction``; within ``search.max_angle_deg`` of ``rough_down``), each fitted."""
     candidates: list[BallisticFit] = []
     for seg in _windows(x, dt, tol, max(search.min_frames, 3)):
         travel = float(np.linalg.norm(x[seg] - x[seg[0]], axis=1).max())
@@ -258,39 +286,131 @@ def find_ballistic(x: np.ndarray, dt: float, lowest_along: Callable[[np.ndarray]
         if rough_down is not None and fit.acceleration @ rough_down < mag * np.cos(np.radians(search.max_angle_deg)):
             continue
         candidates.append(fit)
-    long_ones = [c for c in candidates if len(c.frames) >= 4]
-    pool = long_ones or candidates
-    best: BallisticFit | None = max(pool, key=lambda c: np.linalg.norm(c.acceleration)) if pool else None
+    return candidates
+
+
+def seed_window(candidates: list[BallisticFit], search: BallisticSearch) -> BallisticFit | None:
+    """The candidate that seeds the search. Free fall is the largest acceleration an object keeps for many frames:
+    contact, rolling and sliding keep a smaller one (friction stays below g), a bounce's contact a larger one for a
+    few frames only. So among the windows of at least ``search.seed_frames`` frames, those whose |a| reaches
+    ``search.seed_ratio`` × the largest; the longest of them (then the larger |a|). Without such windows, the
+    largest |a| among the windows of 4+ frames (3-frame ones otherwise)."""
+    if not candidates:
+        return None
+    mag = lambda c: float(np.linalg.norm(c.acceleration))  # noqa: E731
+    long_ones = [c for c in candidates if len(c.frames) >= search.seed_frames]
+    if long_ones:
+        top = max(mag(c) for c in long_ones)
+        pool = [c for c in long_ones if mag(c) >= search.seed_ratio * top]
+        return max(pool, key=lambda c: (len(c.frames), mag(c)))
+    short = [c for c in candidates if len(c.frames) >= 4] or candidates
+    return max(short, key=mag)
+
+
+def longest_window(x: np.ndarray, dt: float, frames: list[int], tol: float) -> list[int]:
+    """The longest run of the consecutive ``frames`` that one parabola explains (the earliest of equal ones):
+    a flight that begins in a hand starts at the release."""
+    best: list[int] = []
+    for seg in _windows(x[frames[0]:frames[-1] + 1], dt, tol, 3):
+        if len(seg) > len(best):
+            best = seg
+    return [frames[0] + f for f in best]
+
+
+def _trimmed(x: np.ndarray, dt: float, frames: list[int], tol: float, sigma: float,
+             direction: np.ndarray | None) -> list[int]:
+    """``frames`` less their worst-fitting frame, one at a time and refitting, until the rest lie within ``tol`` of
+    their parabola (fewer than 3: what is left)."""
+    kept = list(frames)
+    while len(kept) >= 3:
+        fit = fit_segments(x, dt, [kept], direction, noise=sigma)
+        res = np.linalg.norm(np.stack([_predict(x, dt, kept, fit, f) for f in kept]) - x[kept], axis=1)
+        worst = int(np.argmax(res))
+        if res[worst] <= tol:
+            break
+        kept.pop(worst)
+    return kept
+
+
+def _grown(x: np.ndarray, dt: float, frames: list[int], tol: float, sigma: float,
+           direction: np.ndarray | None) -> list[int]:
+    """The longest run of ``frames`` one parabola explains (:func:`longest_window`), then every frame of ``frames``
+    within ``tol`` of the parabola fitted so far, refitted until the set settles."""
+    kept = longest_window(x, dt, frames, tol)
+    for _ in range(len(frames)):
+        if len(kept) < 3:
+            break
+        fit = fit_segments(x, dt, [kept], direction, noise=sigma)
+        near = [f for f in frames if np.linalg.norm(_predict(x, dt, kept, fit, f) - x[f]) <= tol]
+        if near == kept or len(near) < 3:
+            break
+        kept = near
+    return kept
+
+
+def flight_frames(x: np.ndarray, dt: float, frames: list[int], tol: float, sigma: float,
+                  direction: np.ndarray | None = None) -> list[int]:
+    """The most frames of one flight (consecutive ``frames``) that one parabola explains within ``tol``: the larger
+    of two robust sets — all its frames less the worst-fitting ones (a few frames offset together, e.g. while a
+    mask lost part of the object, stay in: they lie within ``tol`` of the whole flight's parabola, though they
+    break a run grown frame by frame), and the longest run one parabola explains grown by the frames near its
+    parabola (a flight that begins in a hand starts at the release however long it was held)."""
+    trimmed = _trimmed(x, dt, frames, tol, sigma, direction)
+    grown = _grown(x, dt, frames, tol, sigma, direction)
+    return trimmed if len(trimmed) >= len(grown) else grown
+
+
+def air_segments(x: np.ndarray, dt: float, acceleration: np.ndarray, lowest_along: Callable[[np.ndarray], np.ndarray],
+                 sigma: float, tol: float) -> list[list[int]]:
+    """The runs of frames (4+ each) in which the object is in the air, with gravity along ``acceleration``: its
+    lowest point above the contact level (the 10th percentile over the frames), broken at bounces."""
+    up = -acceleration / np.linalg.norm(acceleration)
+    low = lowest_along(up)
+    finite = low[np.isfinite(low)]
+    if len(finite) == 0:
+        return []
+    contact = float(np.percentile(finite, 10))
+    sigma_h = max(sigma, tol / (5.0 * np.sqrt(3.0)))
+    runs = flight_segments(x, low, sigma_h, contact)
+    return [s for s in split_bounces(x @ up, runs, np.linalg.norm(acceleration) * dt, sigma_h, dt) if len(s) >= 4]
+
+
+def find_ballistic(x: np.ndarray, dt: float, lowest_along: Callable[[np.ndarray], np.ndarray], size: float,
+                   search: BallisticSearch | None = None, direction: np.ndarray | None = None,
+                   rough_down: np.ndarray | None = None) -> BallisticFit | None:
+    """The free-flight fit of a track (T, 3) (module docstring), or None when no free flight shows.
+
+    Args:
+        size: the object's size (calibration units), for the tolerance.
+        lowest_along: the object's lowest height (T,) along a unit up vector (3,), frame by frame.
+        direction: a known gravity direction (3,), unit; then only |a| is fitted.
+        rough_down: a rough down direction (3,), unit (the cameras' mean image-down axis): a candidate window's
+            acceleration must lie within ``search.max_angle_deg`` of it. A bouncing object decelerates upwards over
+            several frames, as steadily as a parabola — this keeps it from passing for free fall.
+    """
+    search = BallisticSearch() if search is None else search
+    sigma, tol = noise_and_tolerance(x, size, search)
+    best = seed_window(candidate_windows(x, dt, sigma, tol, size, search, direction, rough_down), search)
     if best is None:
         return None
     for _ in range(search.iterations):
-        a = best.acceleration
-        up = -a / np.linalg.norm(a)
-        low = lowest_along(up)
-        h = x @ up
-        finite = low[np.isfinite(low)]
-        if len(finite) == 0:
+        segs = air_segments(x, dt, best.acceleration, lowest_along, sigma, tol)
+        if not segs:  # e.g. a throw starting at floor level: keep the seed
             break
-        contact = float(np.percentile(finite, 10))
-        sigma_h = max(sigma, tol / (5.0 * np.sqrt(3.0)))
-        runs = flight_segments(x, low, sigma_h, contact)
-        segs = [s for s in split_bounces(h, runs, np.linalg.norm(a) * dt, sigma_h, dt) if len(s) >= 4]
-        # keep the seed window's frames if the contact test lost them (e.g. a throw starting at floor level)
-        if not segs:
-            break
+        first = flight_frames(x, dt, segs[0], tol, sigma, direction) if search.first_flight else []
+        only_first = len(first) >= search.first_flight_frames
+        if only_first:
+            segs = [first]
         fit = fit_segments(x, dt, segs, direction, noise=sigma)
         if not np.isfinite(fit.acceleration).all() or fit.acceleration @ best.acceleration <= 0:
             break
-        # drop segments whose frames the joint fit does not explain (5σ), then refit
-        good = []
-        for s in segs:
-            pred = np.stack([_predict(x, dt, s, fit, f) for f in s])
-            if np.linalg.norm(pred - x[s], axis=1).max() <= tol:
-                good.append(s)
+        # drop segments whose frames the joint fit does not explain, then refit
+        good = [s for s in segs if np.linalg.norm(np.stack([_predict(x, dt, s, fit, f) for f in s]) - x[s],
+                                                  axis=1).max() <= tol]
         if not good:
             break
         fit = fit_segments(x, dt, good, direction, noise=sigma)
-        if len(fit.frames) < len(best.frames) and fit.magnitude_sigma() > best.magnitude_sigma():
+        if not only_first and len(fit.frames) < len(best.frames) and fit.magnitude_sigma() > best.magnitude_sigma():
             break
         best = fit
     best.noise = max(best.noise, sigma)

@@ -3,12 +3,17 @@ visual hull (its centroid, its extent, its lowest point along a direction).
 
 The soft hull of a point is the smallest mask value of its projections over the views (bilinear, 0 outside an
 image); its centroid, weighted by how surely a voxel is inside, moves smoothly with the object instead of
-jumping by voxels. Everything here works in the calibration's frame and units.
+jumping by voxels. A mask that misses part of the object (its colours close to the background's there) carves
+that part out of the strict hull and pulls its centroid away; the *robust* hull takes the second-smallest value
+instead (one view may disagree), so the centroid of the object's track does not jump with one view's mask. The
+strict hull stays the object's outline for its extent and its lowest point. Everything here works in the
+calibration's frame and units.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Sequence
 
 import numpy as np
@@ -68,24 +73,32 @@ class HullFrame:
         origin: (3,) centre of the grid's first voxel (calibration frame); voxel: the voxel edge length;
         resolution: voxels per side n; occupancy: (n³,) soft hull value in [0, 1], index (i·n + j)·n + k for the
             voxel at origin + voxel·(i, j, k).
+        robust: (n³,) the robust hull's value (one view may disagree), or None (as strict: too few views).
     """
 
     origin: np.ndarray
     voxel: float
     resolution: int
     occupancy: np.ndarray
+    robust: np.ndarray | None = None
 
-    @property
+    @cached_property
     def points(self) -> np.ndarray:
-        """(n³, 3) voxel centres."""
+        """(n³, 3) voxel centres (computed once: the free-flight search asks for the lowest point often)."""
         return self.origin + self.voxel * _unit_grid(self.resolution).numpy().astype(np.float64)
 
-    def centroid(self) -> np.ndarray:
-        """(3,) centroid weighted by clip((occ − 0.3) / 0.4, 0, 1) (NaN for an empty hull)."""
-        w = np.clip((self.occupancy - 0.3) / 0.4, 0.0, 1.0)
-        if w.sum() <= 0:
+    def centroid(self, robust: bool = False) -> np.ndarray:
+        """(3,) centroid weighted by clip((occ − 0.3) / 0.4, 0, 1) (NaN for an empty hull), of the robust hull's
+        values with ``robust`` (where there are)."""
+        occ = self.robust if robust and self.robust is not None else self.occupancy
+        n = self.resolution
+        w = np.clip((occ - 0.3) / 0.4, 0.0, 1.0).reshape(n, n, n)
+        total = w.sum()
+        if total <= 0:
             return np.full(3, np.nan)
-        return (w[:, None] * self.points).sum(0) / w.sum()
+        ax = np.arange(n, dtype=np.float64)
+        ijk = np.array([w.sum((1, 2)) @ ax, w.sum((0, 2)) @ ax, w.sum((0, 1)) @ ax]) / total
+        return self.origin + self.voxel * ijk
 
     def extent(self) -> float:
         """Diameter of the hull's voxels with occupancy > 0.5 (largest distance from the centroid, doubled)."""
@@ -109,9 +122,10 @@ def _unit_grid(n: int) -> torch.Tensor:
 
 
 def soft_hull(cameras: Sequence[CaptureCamera], masks: np.ndarray, centre: np.ndarray, half_size: float,
-              resolution: int) -> HullFrame:
+              resolution: int, robust_views: int = 4) -> HullFrame:
     """The soft visual hull of one frame: masks (V, H, W) float in [0, 1] of the views to use, a cube of
-    ``half_size`` around ``centre`` (3,) split into ``resolution``³ voxels."""
+    ``half_size`` around ``centre`` (3,) split into ``resolution``³ voxels; with at least ``robust_views`` views
+    also the robust hull (the second-smallest value over the views)."""
     w2c, K = _stack(cameras)
     V, H, W = masks.shape
     n = int(resolution)
@@ -132,8 +146,10 @@ def soft_hull(cameras: Sequence[CaptureCamera], masks: np.ndarray, centre: np.nd
     vals = torch.nn.functional.grid_sample(torch.as_tensor(masks, dtype=torch.float32)[:, None], grid,
                                            mode="bilinear", padding_mode="zeros", align_corners=False)[:, 0, 0]
     vals = torch.where(z > 1e-9, vals, torch.zeros_like(vals))
-    occ = vals.min(0).values.numpy().astype(np.float64)
-    return HullFrame(origin, voxel, n, occ)
+    if V >= max(robust_views, 2):
+        two = torch.topk(vals, 2, dim=0, largest=False, sorted=True).values.numpy().astype(np.float64)
+        return HullFrame(origin, voxel, n, two[0], two[1])
+    return HullFrame(origin, voxel, n, vals.min(0).values.numpy().astype(np.float64))
 
 
 def lowest_point(hull: HullFrame, up: np.ndarray) -> float:

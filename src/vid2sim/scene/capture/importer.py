@@ -30,8 +30,10 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
 
+import cv2
 import numpy as np
 import torch
+from scipy import ndimage
 
 from vid2sim.runtime.errors import ConfigError
 from vid2sim.scene.capture.cameras import CaptureCamera
@@ -42,7 +44,14 @@ from vid2sim.scene.capture.frames import frame_count, read_frames, read_masks, r
 from vid2sim.scene.capture.jsonify import jsonable
 from vid2sim.scene.capture.layout import CALIBRATIONS, CaptureLayout, discover_capture
 from vid2sim.scene.capture.masks import MaskConfig, MaskResult, masks_from_plate, summarise
-from vid2sim.scene.capture.metric import MetricConfig, MetricFrame, NoFreeFlight, solve_metric_frame, track_object
+from vid2sim.scene.capture.metric import (
+    MetricConfig,
+    MetricFrame,
+    NoFreeFlight,
+    Track,
+    solve_metric_frame,
+    track_object,
+)
 from vid2sim.scene.capture.nerfstudio import read_transforms
 from vid2sim.scene.capture.plate import estimate_plate, image_shift
 from vid2sim.scene.capture.undistort import make_undistortion, reduce
@@ -323,8 +332,6 @@ def _check_static(name: str, path: Path, frames: np.ndarray, plate: np.ndarray, 
                   first_frames: Sequence[int], config: CaptureImportConfig) -> None:
     """Refuse a clean plate that disagrees with the first frames on the static background: too many pixels outside
     the object differ from it, or the frame (the object's region filled from the plate) is shifted against it."""
-    from scipy import ndimage
-
     for t in first_frames:
         if masks.stray[t] > config.max_stray:
             raise CaptureError(f"the clean plate and frame {t} disagree on the static background "
@@ -350,6 +357,158 @@ def _check_scene_frames(views: list[ViewData], scene_frames: range, layout: Capt
                                    file=layout.cameras[view.name].source)
 
 
+def _check_output(out: Path, overwrite: bool) -> None:
+    if out.exists() and not overwrite:
+        raise FileExistsError(f"{out} already exists; pass overwrite=True (--overwrite) to replace a scene folder")
+    if out.exists() and not (out / "scene.json").is_file() and any(out.iterdir()):
+        raise FileExistsError(f"{out} is not a scene folder (no scene.json): refusing to replace it")
+
+
+def measure_metric(views: list[ViewData], fps: float, scene_frames: range, points: np.ndarray | None,
+                   layout: CaptureLayout, config: CaptureImportConfig) -> tuple[Track, MetricFrame]:
+    """Stage 5: the object's track from the masks at the filmed resolution (half the pixel size, half the
+    centroid's noise), then scale, gravity and floor (the user's values win)."""
+    usable = np.stack([~v.masks.empty & ~v.masks.border for v in views])
+    track = track_object([v.track_camera for v in views], [v.track_masks for v in views], usable, config.metric)
+    try:
+        down = None if config.gravity_axis is None else np.asarray(config.gravity_axis, dtype=np.float64)
+        metric = solve_metric_frame(track, 1.0 / fps, config.metric, scene_frames, points=points,
+                                    scale=config.scale, down=down, floor=config.floor,
+                                    cameras=[v.camera for v in views], plates=[v.plate for v in views])
+    except NoFreeFlight:
+        missing = " and ".join(n for n, v in (("--scale", config.scale), ("--gravity-axis", config.gravity_axis))
+                               if v is None)
+        raise CaptureError(f"no free-flight frames to measure gravity on (the object is never seen falling freely "
+                           f"in at least 3 frames); pass {missing}", file=layout.root) from None
+    return track, metric
+
+
+@dataclass
+class _Colour:
+    """Stage 6's result: the colour map of every view, the reference view, the observed and held-out views."""
+
+    maps: list[ColourMap]
+    ref: int
+    observed: list[int] | None
+    held_out: list[int] | None
+
+
+def match_colours(views: list[ViewData], track: Track, metric: MetricFrame, scene_frames: range,
+                  points: np.ndarray | None, visible: list[set[str]] | None, config: CaptureImportConfig) -> _Colour:
+    """Stage 6: each view's affine colour map to the reference camera, fitted on the plates over the floor around
+    the object (and COLMAP's points); identities without plates."""
+    names = [v.name for v in views]
+    obs = _view_indices(names, config.observed_views, "observed_views")
+    held = _view_indices(names, config.held_out_views, "held_out_views")
+    if config.colour_reference is not None:
+        if config.colour_reference not in names:
+            raise ConfigError(f"colour_reference: no camera {config.colour_reference!r} (cameras: {', '.join(names)})")
+        ref = names.index(config.colour_reference)
+    else:
+        ref = (obs or [i for i in range(len(names)) if i not in (held or [])] or [0])[0]
+    plates = [v.plate for v in views]
+    if not all(p is not None for p in plates):
+        return _Colour([ColourMap.identity() for _ in views], ref, obs, held)
+    centre = np.nanmean(track.centres[list(scene_frames)], axis=0)
+    pts = floor_grid(-metric.down, metric.floor.offset, centre, 3.0 * track.size)
+    vis_idx = None
+    if points is not None and len(points):
+        if visible is not None:
+            vis_idx = [set(range(len(names)))] * len(pts) + [{names.index(n) for n in s} for s in visible]
+        pts = np.concatenate([pts, points])
+    maps = colour_maps([v.camera for v in views], plates, ref, pts, vis_idx, config.colour)  # type: ignore[arg-type]
+    return _Colour(maps, ref, obs, held)
+
+
+def scene_images(views: list[ViewData], maps: list[ColourMap], keep: list[int]) -> tuple[np.ndarray, np.ndarray]:
+    """Stage 7's images (V, T, H, W, 3) composited on white — colour-mapped, the plate's share removed at soft
+    edges — and masks (V, T, H, W) of the kept frames."""
+    H, W = views[0].frames.shape[1:3]
+    images = np.empty((len(views), len(keep), H, W, 3), np.float32)
+    masks = np.empty((len(views), len(keep), H, W), np.float32)
+    for i, v in enumerate(views):
+        fr = maps[i](v.frames[keep])
+        m = v.masks.masks[keep]
+        if v.plate is not None:
+            bg = maps[i](v.plate)[None]
+            img = fr + (1.0 - m[..., None]) * (1.0 - bg)
+        else:
+            img = fr * m[..., None] + (1.0 - m[..., None])
+        images[i] = np.clip(img, 0.0, 1.0)
+        masks[i] = m
+    return images, masks
+
+
+def _report(capture: str | Path, views: list[ViewData], cameras: dict[str, CaptureCamera], calib_source: str,
+            fps: float, fps_source: str, T: int, scene_frames: range, colour: _Colour, metric: MetricFrame,
+            track: Track, config: CaptureImportConfig) -> dict[str, Any]:
+    """``capture_report.json``'s content (without the warnings and the seconds)."""
+    names = [v.name for v in views]
+    return {
+        "capture": str(Path(capture).resolve()),
+        "cameras": names,
+        "calibration": calib_source,
+        "fps": fps, "fps_source": fps_source,
+        "video_frames": T,
+        "scene_frames": [scene_frames.start, scene_frames.stop],
+        "every": config.every,
+        "undistortion": {v.name: {"model": cameras[v.name].model, "K": v.camera.K.tolist(),
+                                  "distortion": cameras[v.name].distortion.tolist(), "downscale": config.downscale}
+                         for v in views},
+        "masks": {v.name: {"source": v.mask_source, "plate": v.plate_source,
+                           "noise": None if not math.isfinite(v.masks.noise) else v.masks.noise,
+                           "area_px": [round(float(a), 1) for a in v.masks.area],
+                           "confidence": [round(float(c), 4) for c in v.masks.confidence],
+                           "border_frames": np.flatnonzero(v.masks.border).tolist(),
+                           "empty_frames": np.flatnonzero(v.masks.empty).tolist(),
+                           "jump_frames": np.flatnonzero(v.masks.jump).tolist()} for v in views},
+        "colour": {"reference": names[colour.ref], "maps": {v.name: colour.maps[i].to_json()
+                                                            for i, v in enumerate(views)}},
+        "metric": metric.to_json(),
+        "track_units": track.centres.tolist(),
+        "object_size_units": track.size,
+    }
+
+
+def build_scene(views: list[ViewData], metric: MetricFrame, colour: _Colour, scene_frames: range, fps: float,
+                report: dict[str, Any], config: CaptureImportConfig) -> Scene:
+    """Stage 7's scene: images and masks of the kept frames, the cameras in the metric frame, and ``scene.json``'s
+    metadata (the report's estimates and warnings)."""
+    images, masks = scene_images(views, colour.maps, list(scene_frames))
+    cams = []
+    for v in views:
+        w2c = metric.camera(v.camera.world_to_camera)
+        cams.append(Camera(torch.as_tensor(w2c, dtype=torch.float32), torch.as_tensor(v.camera.K, dtype=torch.float32),
+                           v.camera.width, v.camera.height))
+    metadata = {"capture": {k: report[k] for k in ("capture", "cameras", "calibration", "fps", "scene_frames", "every",
+                                                    "colour", "metric", "warnings")}}
+    metadata["capture"]["report"] = IMPORT_REPORT_JSON
+    scene_config = SceneConfig(dt=config.every / fps, gravity=(0.0, 0.0, -metric.gravity), floor_height=0.0,
+                               observed_frames=config.observed_frames, held_out_frames=config.held_out_frames,
+                               observed_views=colour.observed, held_out_views=colour.held_out,
+                               metadata=jsonable(metadata))
+    try:
+        return Scene(cams, torch.from_numpy(images), torch.from_numpy(masks), config=scene_config)
+    except ValueError as exc:
+        raise ConfigError(f"import-capture: {exc}") from None
+
+
+def _write(scene: Scene, out: Path, report: dict[str, Any], config: CaptureImportConfig, times: dict[str, float],
+           lap: Any) -> None:
+    """Write the scene beside ``out`` with the config and the report, then rename it into place."""
+    out.parent.mkdir(parents=True, exist_ok=True)
+    staging = out.parent / f".{out.name}.importing-{uuid.uuid4().hex[:12]}"
+    try:
+        write_scene(scene, staging / "scene", layout=config.layout)
+        lap("write")
+        report["seconds"] = times
+        (staging / "scene" / IMPORT_CONFIG_JSON).write_text(json.dumps(config.to_json(), indent=2) + "\n")
+        (staging / "scene" / IMPORT_REPORT_JSON).write_text(json.dumps(jsonable(report), indent=1) + "\n")
+        move_into_place(staging / "scene", out)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+
+
 def import_capture(capture: str | Path, out: str | Path, config: CaptureImportConfig | None = None,
                    overwrite: bool = False, progress: bool = False) -> Path:
     """Import the capture folder ``capture`` as the scene folder ``out`` (module docstring).
@@ -362,23 +521,16 @@ def import_capture(capture: str | Path, out: str | Path, config: CaptureImportCo
         CaptureError: a problem with the capture (the message names the camera and the file).
         FileExistsError: ``out`` exists (without ``overwrite``) or is not a scene folder.
     """
-    import cv2
-
-
     config = CaptureImportConfig() if config is None else config
     if config.threads is not None:
         torch.set_num_threads(int(config.threads))
         cv2.setNumThreads(int(config.threads))
     out = Path(out)
-    if out.exists() and not overwrite:
-        raise FileExistsError(f"{out} already exists; pass overwrite=True (--overwrite) to replace a scene folder")
-    if out.exists() and not (out / "scene.json").is_file() and any(out.iterdir()):
-        raise FileExistsError(f"{out} is not a scene folder (no scene.json): refusing to replace it")
+    _check_output(out, overwrite)
     times, lap = _stage_times()
     say = (lambda m: print(f"[import-capture] {m}", flush=True)) if progress else (lambda m: None)
 
     layout = discover_capture(capture)
-    names = list(layout.cameras)
     T, fps, sizes, fps_source = _check_frames(layout, config)
     A, B = config.frames if config.frames is not None else (0, T)
     if B > T:
@@ -386,126 +538,28 @@ def import_capture(capture: str | Path, out: str | Path, config: CaptureImportCo
     scene_frames = range(A, B, config.every)
     cameras, points, visible, calib_source = read_calibration(layout, config.calibration, sizes)
     lap("read")
-    say(f"{len(names)} cameras, {T} frames at {fps:g} fps, calibration {calib_source}")
+    say(f"{len(layout.cameras)} cameras, {T} frames at {fps:g} fps, calibration {calib_source}")
 
     views = load_views(layout, cameras, T, config)
     _check_scene_frames(views, scene_frames, layout)
     lap("masks")
     say("masks: " + ", ".join(f"{v.name} {v.mask_source}" for v in views))
 
-    pinholes = [v.camera for v in views]
-    usable = np.stack([~v.masks.empty & ~v.masks.border for v in views])
-    # the track from the masks at the filmed resolution: half the pixel size, half the centroid's noise
-    track = track_object([v.track_camera for v in views], [v.track_masks for v in views], usable, config.metric)
-    try:
-        down = None if config.gravity_axis is None else np.asarray(config.gravity_axis, dtype=np.float64)
-        metric = solve_metric_frame(track, 1.0 / fps, config.metric, scene_frames, points=points,
-                                    scale=config.scale, down=down, floor=config.floor, cameras=pinholes,
-                                    plates=[v.plate for v in views])
-    except NoFreeFlight:
-        missing = " and ".join(n for n, v in (("--scale", config.scale), ("--gravity-axis", config.gravity_axis))
-                               if v is None)
-        raise CaptureError(f"no free-flight frames to measure gravity on (the object is never seen falling freely "
-                           f"in at least 3 frames); pass {missing}", file=layout.root) from None
+    track, metric = measure_metric(views, fps, scene_frames, points, layout, config)
     lap("metric")
     say(f"metres per unit {metric.scale:.6g} ± {metric.scale_sigma:.2g} ({metric.scale_source}); gravity "
         f"± {metric.down_sigma_deg:.2f} deg ({metric.down_source}); floor ({metric.floor.source})")
 
-    # colour
-    plates = [v.plate for v in views]
-    obs = _view_indices(names, config.observed_views, "observed_views")
-    held = _view_indices(names, config.held_out_views, "held_out_views")
-    if config.colour_reference is not None:
-        if config.colour_reference not in names:
-            raise ConfigError(f"colour_reference: no camera {config.colour_reference!r} (cameras: {', '.join(names)})")
-        ref = names.index(config.colour_reference)
-    else:
-        ref = (obs or [i for i in range(len(names)) if i not in (held or [])] or [0])[0]
-    if all(p is not None for p in plates):
-        centre = np.nanmean(track.centres[list(scene_frames)], axis=0)
-        grid = floor_grid(-metric.down, metric.floor.offset, centre, 3.0 * track.size)
-        pts = grid
-        vis_idx = None
-        if points is not None and len(points):
-            pts = np.concatenate([grid, points])
-            if visible is not None:
-                all_views = set(range(len(names)))
-                vis_idx = [all_views] * len(grid) + [{names.index(n) for n in s} for s in visible]
-        maps = colour_maps(pinholes, plates, ref, pts, vis_idx, config.colour)  # type: ignore[arg-type]
-    else:
-        maps = [ColourMap.identity() for _ in views]
+    colour = match_colours(views, track, metric, scene_frames, points, visible, config)
     lap("colour")
 
-    # the scene
-    Tn = len(scene_frames)
-    keep = list(scene_frames)
-    H, W = views[0].frames.shape[1:3]
-    images = np.empty((len(views), Tn, H, W, 3), np.float32)
-    scene_masks = np.empty((len(views), Tn, H, W), np.float32)
-    for i, v in enumerate(views):
-        fr = maps[i](v.frames[keep])
-        m = v.masks.masks[keep]
-        if v.plate is not None:
-            bg = maps[i](v.plate)[None]
-            img = fr + (1.0 - m[..., None]) * (1.0 - bg)
-        else:
-            img = fr * m[..., None] + (1.0 - m[..., None])
-        images[i] = np.clip(img, 0.0, 1.0)
-        scene_masks[i] = m
-    scene_cams = []
-    for cam in pinholes:
-        w2c = metric.camera(cam.world_to_camera)
-        scene_cams.append(Camera(torch.as_tensor(w2c, dtype=torch.float32), torch.as_tensor(cam.K, dtype=torch.float32),
-                                 cam.width, cam.height))
-    report = {
-        "capture": str(Path(capture).resolve()),
-        "cameras": names,
-        "calibration": calib_source,
-        "fps": fps, "fps_source": fps_source,
-        "video_frames": T,
-        "scene_frames": [A, B],
-        "every": config.every,
-        "undistortion": {v.name: {"model": cameras[v.name].model, "K": v.camera.K.tolist(),
-                                  "distortion": cameras[v.name].distortion.tolist(), "downscale": config.downscale}
-                         for v in views},
-        "masks": {v.name: {"source": v.mask_source, "plate": v.plate_source,
-                           "noise": None if not math.isfinite(v.masks.noise) else v.masks.noise,
-                           "area_px": [round(float(a), 1) for a in v.masks.area],
-                           "confidence": [round(float(c), 4) for c in v.masks.confidence],
-                           "border_frames": np.flatnonzero(v.masks.border).tolist(),
-                           "empty_frames": np.flatnonzero(v.masks.empty).tolist(),
-                           "jump_frames": np.flatnonzero(v.masks.jump).tolist()} for v in views},
-        "colour": {"reference": names[ref], "maps": {v.name: maps[i].to_json() for i, v in enumerate(views)}},
-        "metric": metric.to_json(),
-        "track_units": track.centres.tolist(),
-        "object_size_units": track.size,
-    }
-    warnings = _warnings(views, metric, scene_frames, maps, ref)
-    report["warnings"] = warnings
-    metadata = {"capture": {k: report[k] for k in ("capture", "cameras", "calibration", "fps", "scene_frames", "every",
-                                                    "colour", "metric", "warnings")}}
-    metadata["capture"]["report"] = IMPORT_REPORT_JSON
-    held_frames = config.held_out_frames
-    scene_config = SceneConfig(dt=config.every / fps, gravity=(0.0, 0.0, -metric.gravity), floor_height=0.0,
-                               observed_frames=config.observed_frames, held_out_frames=held_frames,
-                               observed_views=obs, held_out_views=held, metadata=jsonable(metadata))
-    try:
-        scene = Scene(scene_cams, torch.from_numpy(images), torch.from_numpy(scene_masks), config=scene_config)
-    except ValueError as exc:
-        raise ConfigError(f"import-capture: {exc}") from None
+    report = _report(capture, views, cameras, calib_source, fps, fps_source, T, scene_frames, colour, metric, track,
+                     config)
+    report["warnings"] = _warnings(views, metric, scene_frames, colour.maps, colour.ref)
+    scene = build_scene(views, metric, colour, scene_frames, fps, report, config)
     lap("assemble")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    staging = out.parent / f".{out.name}.importing-{uuid.uuid4().hex[:12]}"
-    try:
-        write_scene(scene, staging / "scene", layout=config.layout)
-        lap("write")
-        report["seconds"] = times
-        (staging / "scene" / IMPORT_CONFIG_JSON).write_text(json.dumps(config.to_json(), indent=2) + "\n")
-        (staging / "scene" / IMPORT_REPORT_JSON).write_text(json.dumps(jsonable(report), indent=1) + "\n")
-        move_into_place(staging / "scene", out)
-    finally:
-        shutil.rmtree(staging, ignore_errors=True)
-    for w in warnings:
+    _write(scene, out, report, config, times, lap)
+    for w in report["warnings"]:
         say("warning: " + w)
     return out
 
@@ -524,7 +578,8 @@ def _warnings(views: list[ViewData], metric: MetricFrame, scene_frames: range, m
                        "close to the background's there; a plainer background or your own masks help")
     if metric.scale_source == "free flight" and metric.scale_sigma > 0.02 * metric.scale:
         out.append(f"the scale is uncertain ({100 * metric.scale_sigma / metric.scale:.1f} %): few free-flight "
-                   "frames; film at a higher frame rate, drop from higher, or give --scale")
+                   "frames before the first contact, or masks that disagree between the views; film at a higher "
+                   "frame rate, drop from higher, against a plainer background, or give --scale")
     if metric.down_source == "free flight" and metric.down_sigma_deg > 1.0:
         out.append(f"the gravity direction is uncertain ({metric.down_sigma_deg:.1f} deg); give --gravity-axis or "
                    "calibrate with COLMAP points on the floor")

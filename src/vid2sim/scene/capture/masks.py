@@ -25,6 +25,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass
 
+import cv2
 import numpy as np
 from scipy import ndimage
 
@@ -112,35 +113,77 @@ def _disk(radius: float) -> np.ndarray:
 
 
 def blur(images: np.ndarray, sigma: float) -> np.ndarray:
-    """Gaussian blur over the two image axes of (..., H, W, C) float images."""
+    """Gaussian blur over the two image axes of (..., H, W, C) float images (edges replicated; the kernel cut at
+    2.5 σ, as ``scipy.ndimage.gaussian_filter(mode="nearest", truncate=2.5)``), float32."""
     if sigma <= 0:
         return images
-    axes_sigma = [0.0] * images.ndim
-    axes_sigma[-3] = axes_sigma[-2] = sigma
-    return ndimage.gaussian_filter(images, axes_sigma, mode="nearest", truncate=2.5)
+    size = 2 * int(2.5 * sigma + 0.5) + 1
+    flat = np.asarray(images, dtype=np.float32).reshape((-1,) + images.shape[-3:])
+    out = np.empty(flat.shape, np.float32)
+    for i, image in enumerate(flat):
+        out[i] = cv2.GaussianBlur(image, (size, size), sigma, borderType=cv2.BORDER_REPLICATE)
+    return out.reshape(images.shape)
+
+
+def distance_to_background(mask: np.ndarray) -> np.ndarray:
+    """Euclidean distance (H, W) float64 of every pixel of a bool mask to the nearest pixel outside it (0 outside),
+    exactly as ``scipy.ndimage.distance_transform_edt`` (OpenCV's exact transform, squared and rounded back to
+    the integer it is the root of)."""
+    d = cv2.distanceTransform(mask.astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE).astype(np.float64)
+    return np.sqrt(np.round(d * d))
 
 
 def noise_level(frames: np.ndarray, plate: np.ndarray, floor: float) -> float:
     """Robust noise level σ of (T, H, W, 3) frames against their (H, W, 3) plate: 1.4826 × the median absolute
     per-channel difference (most pixels are background), at least ``floor``."""
-    diff = np.abs(frames - plate[None]).reshape(-1)
-    if diff.size > 2_000_000:
-        diff = diff[:: diff.size // 2_000_000]
+    flat = frames.reshape(-1)
+    step = max(1, flat.size // 2_000_000) if flat.size > 2_000_000 else 1
+    idx = np.arange(0, flat.size, step)
+    diff = np.abs(flat[idx] - plate.reshape(-1)[idx % plate.size])  # = |frames − plate| at every step-th value
     return max(float(1.4826 * np.median(diff)), floor)
 
 
-def texture_correlation(frames: np.ndarray, plate: np.ndarray, window: int) -> tuple[np.ndarray, np.ndarray]:
-    """Normalised correlation (T, H, W) of the grey frames (T, H, W, 3) with the grey plate (H, W, 3) in
-    ``window``² windows, and the plate's local std (H, W)."""
-    k = (1, window, window)
-    g = frames.mean(-1)
-    b = np.broadcast_to(plate.mean(-1)[None], g.shape)
-    f = lambda x: ndimage.uniform_filter(x, k, mode="nearest")  # noqa: E731
-    mg, mb = f(g), f(b)
-    cov = f(g * b) - mg * mb
-    vg = np.maximum(f(g * g) - mg * mg, 0.0)
-    vb = np.maximum(f(b * b) - mb * mb, 0.0)
-    return cov / np.sqrt(np.maximum(vg * vb, 1e-12)), np.sqrt(vb[0])
+def box_mean(image: np.ndarray, window: int) -> np.ndarray:
+    """The mean of a (H, W) float32 image over ``window``² windows (odd; edges replicated, as
+    ``scipy.ndimage.uniform_filter(mode="nearest")``)."""
+    return cv2.boxFilter(np.ascontiguousarray(image, dtype=np.float32), -1, (window, window), normalize=True,
+                         borderType=cv2.BORDER_REPLICATE)
+
+
+@dataclass
+class PlateTexture:
+    """The grey plate (H, W) and its local mean and variance in ``window``² windows, for
+    :meth:`correlation`; ``std`` (H, W) is its local standard deviation."""
+
+    grey: np.ndarray
+    window: int
+
+    def __post_init__(self) -> None:
+        self.grey = np.asarray(self.grey, dtype=np.float32)
+        self.mean = box_mean(self.grey, self.window)
+        self.var = np.maximum(box_mean(self.grey * self.grey, self.window) - self.mean * self.mean, 0.0)
+        self.std = np.sqrt(self.var)
+
+    def correlation(self, grey: np.ndarray) -> np.ndarray:
+        """Normalised correlation (H, W) of one grey frame (H, W) with the plate in the windows."""
+        mg = box_mean(grey, self.window)
+        cov = box_mean(grey * self.grey, self.window) - mg * self.mean
+        vg = np.maximum(box_mean(grey * grey, self.window) - mg * mg, 0.0)
+        return cov / np.sqrt(np.maximum(vg * self.var, 1e-12))
+
+
+def _shadow_floor(a: np.ndarray, shadow_like: np.ndarray, config: MaskConfig) -> float | None:
+    """The darkest brightness ratio that still passes as this camera's shadow (``MaskConfig.shadow_band``), from
+    the ratios ``a`` of the shadow-like pixels; None when fewer than 50 are."""
+    if config.shadow_band < 0 or shadow_like.sum() < 50:
+        return None
+    ratios = a[shadow_like]
+    counts, edges = np.histogram(ratios, bins=50, range=(config.shadow_min_brightness, 1.0))
+    k = int(np.argmax(counts))
+    mode = 0.5 * (edges[k] + edges[k + 1])
+    near = ratios[np.abs(ratios - mode) < 0.1]
+    mad = 1.4826 * float(np.median(np.abs(near - mode))) if len(near) else 0.0
+    return max(config.shadow_min_brightness, mode - max(config.shadow_band, 3.0 * mad))
 
 
 def object_score(frames: np.ndarray, plate: np.ndarray, sigma: float, config: MaskConfig) -> np.ndarray:
@@ -148,34 +191,47 @@ def object_score(frames: np.ndarray, plate: np.ndarray, sigma: float, config: Ma
 
     Besides the module docstring's three terms, a darkening that does not keep the plate's texture (normalised
     correlation below ``shadow_min_correlation`` where the plate is textured) is no shadow: it scores its depth
-    ``(1 − a)·|B| / σ``."""
-    B = plate[None].astype(np.float32)
-    bb = np.maximum((B * B).sum(-1), 1e-6)
-    a = (frames * B).sum(-1) / bb
-    c = np.linalg.norm(frames - a[..., None] * B, axis=-1)
+    ``(1 − a)·|B| / σ``. Works frame by frame on colour planes (each frame's images stay in the cache; the
+    shadow's brightness band needs every frame's ratios first)."""
+    frames = np.asarray(frames, dtype=np.float32)
+    B = np.ascontiguousarray(np.moveaxis(np.asarray(plate, dtype=np.float32), -1, 0))
+    bb = np.maximum(B[0] * B[0] + B[1] * B[1] + B[2] * B[2], 1e-6)
     nb = np.sqrt(bb)
-    chroma = c / (sigma + config.shadow_chroma_tolerance * np.clip(a, 0, None) * nb)
-    brighter = (a - 1.0) * nb / sigma
-    darker = (config.shadow_min_brightness - a) * nb / sigma
-    score = np.maximum(chroma, np.maximum(brighter, darker))
-    shadow_like = (chroma < 2.0) & (a > config.shadow_min_brightness) & ((1.0 - a) * nb > 4.0 * sigma)
-    if config.shadow_band >= 0 and shadow_like.sum() >= 50:
-        ratios = a[shadow_like]
-        counts, edges = np.histogram(ratios, bins=50, range=(config.shadow_min_brightness, 1.0))
-        k = int(np.argmax(counts))
-        mode = 0.5 * (edges[k] + edges[k + 1])
-        near = ratios[np.abs(ratios - mode) < 0.1]
-        mad = 1.4826 * float(np.median(np.abs(near - mode))) if len(near) else 0.0
-        floor_ratio = max(config.shadow_min_brightness, mode - max(config.shadow_band, 3.0 * mad))
-        score = np.maximum(score, (floor_ratio - a) * nb / sigma)
+    nb_s = nb / sigma
+    T = len(frames)
+    a = np.empty(frames.shape[:3], np.float32)
+    score = np.empty(frames.shape[:3], np.float32)
+    shadow_like = np.empty(frames.shape[:3], bool)
+    for t in range(T):
+        F = np.moveaxis(frames[t], -1, 0)
+        at = a[t]
+        np.divide(F[0] * B[0] + F[1] * B[1] + F[2] * B[2], bb, out=at)
+        c2 = np.square(F[0] - at * B[0])
+        c2 += np.square(F[1] - at * B[1])
+        c2 += np.square(F[2] - at * B[2])
+        chroma = np.sqrt(c2, out=c2)
+        chroma /= sigma + config.shadow_chroma_tolerance * np.maximum(at, 0) * nb
+        st = score[t]
+        np.maximum(chroma, (at - 1.0) * nb_s, out=st)
+        np.maximum(st, (config.shadow_min_brightness - at) * nb_s, out=st)
+        shadow_like[t] = (chroma < 2.0) & (at > config.shadow_min_brightness) & ((1.0 - at) * nb > 4.0 * sigma)
+    floor_ratio = _shadow_floor(a, shadow_like, config)
+    del shadow_like
     if config.shadow_min_correlation > -1:
         window = max(3, int(round(config.shadow_texture_window * frames.shape[1] / 128.0)) | 1)
-        ncc, texture = texture_correlation(frames, plate, window)
-        # the texture a shadow would keep is the plate's, scaled by the darkening: it must stand out of the noise
-        textured = np.clip(a, 0.0, 1.0) * texture[None] > config.shadow_texture_min * sigma
-        unexplained = textured & (ncc < config.shadow_min_correlation)
-        score = np.where(unexplained, np.maximum(score, (1.0 - a) * nb / sigma), score)
-    return score.astype(np.float32)
+        texture = PlateTexture((B[0] + B[1] + B[2]) / 3.0, window)
+    for t in range(T):
+        at, st = a[t], score[t]
+        if floor_ratio is not None:
+            np.maximum(st, (floor_ratio - at) * nb_s, out=st)
+        if config.shadow_min_correlation > -1:
+            F = np.moveaxis(frames[t], -1, 0)
+            ncc = texture.correlation((F[0] + F[1] + F[2]) / np.float32(3.0))
+            # the texture a shadow would keep is the plate's, scaled by the darkening: it must stand out of the noise
+            unexplained = (np.clip(at, 0.0, 1.0) * texture.std > config.shadow_texture_min * sigma) & \
+                (ncc < config.shadow_min_correlation)
+            st[unexplained] = np.maximum(st[unexplained], ((1.0 - at) * nb_s)[unexplained])
+    return score
 
 
 def hysteresis(score: np.ndarray, high: float, low: float) -> np.ndarray:
@@ -200,14 +256,33 @@ def largest_component(mask: np.ndarray) -> np.ndarray:
     return labels == int(np.argmax(sizes))
 
 
+def erode(mask: np.ndarray, structure: np.ndarray) -> np.ndarray:
+    """Binary erosion of a (H, W) bool mask by a symmetric structure, the outside of the image counting as
+    background (``scipy.ndimage.binary_erosion``'s default; OpenCV's morphology is several times faster)."""
+    out = cv2.erode(mask.astype(np.uint8), structure.astype(np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=0)
+    return out.astype(bool)
+
+
+def dilate(mask: np.ndarray, structure: np.ndarray, iterations: int = 1) -> np.ndarray:
+    """Binary dilation of a (H, W) bool mask by a symmetric structure, ``iterations`` times (as
+    ``scipy.ndimage.binary_dilation``)."""
+    out = cv2.dilate(mask.astype(np.uint8), structure.astype(np.uint8), iterations=iterations,
+                     borderType=cv2.BORDER_CONSTANT, borderValue=0)
+    return out.astype(bool)
+
+
+CROSS = ndimage.generate_binary_structure(2, 1)
+
+
 def clean(mask: np.ndarray, config: MaskConfig, scale: float) -> np.ndarray:
     """Opening, closing, hole filling and the largest component of one (H, W) bool mask."""
     if config.open_radius > 0:
-        mask = ndimage.binary_opening(mask, _disk(config.open_radius * scale))
+        disk = _disk(config.open_radius * scale)
+        mask = dilate(erode(mask, disk), disk)
     if config.close_radius > 0:
-        r = config.close_radius * scale
-        pad = int(np.ceil(r)) + 1
-        mask = ndimage.binary_closing(np.pad(mask, pad), _disk(r))[pad:-pad, pad:-pad]
+        disk = _disk(config.close_radius * scale)
+        pad = int(np.ceil(config.close_radius * scale)) + 1
+        mask = erode(dilate(np.pad(mask, pad), disk), disk)[pad:-pad, pad:-pad]
     if config.fill_holes:
         mask = ndimage.binary_fill_holes(mask)
     return largest_component(mask)
@@ -226,8 +301,8 @@ def soft_edges(mask: np.ndarray, frame: np.ndarray, plate: np.ndarray, sigma: fl
     out = mask.astype(np.float32)
     if not mask.any():
         return out
-    inside = ndimage.distance_transform_edt(mask)
-    outside = ndimage.distance_transform_edt(~mask)
+    inside = distance_to_background(mask)
+    outside = distance_to_background(~mask)
     band = (mask & (inside <= width)) | (~mask & (outside <= width))
     core = inside >= depth
     if not core.any():
@@ -255,8 +330,24 @@ def soft_edges(mask: np.ndarray, frame: np.ndarray, plate: np.ndarray, sigma: fl
     return out
 
 
+def object_box(detected: np.ndarray, margin: int) -> tuple[slice, slice] | None:
+    """The rows and columns (slices) of a (H, W) bool mask's bounding box grown by ``margin`` px (clipped to the
+    image), or None for an empty mask."""
+    rows = np.flatnonzero(detected.any(1))
+    if len(rows) == 0:
+        return None
+    cols = np.flatnonzero(detected.any(0))
+    H, W = detected.shape
+    return (slice(max(rows[0] - margin, 0), min(rows[-1] + margin + 1, H)),
+            slice(max(cols[0] - margin, 0), min(cols[-1] + margin + 1, W)))
+
+
 def masks_from_plate(frames: np.ndarray, plate: np.ndarray, config: MaskConfig | None = None) -> MaskResult:
     """Masks of one camera from its frames and clean plate.
+
+    The clean-up, the soft edges and the stray count of each frame work on the box around what the test found,
+    grown by more than any of their operations reaches (the result is the same as on the whole frame: every
+    pixel outside the box is background to all of them).
 
     Args:
         frames: (T, H, W, 3) float32 in [0, 1] (undistorted).
@@ -264,25 +355,35 @@ def masks_from_plate(frames: np.ndarray, plate: np.ndarray, config: MaskConfig |
         config: the test's settings.
     """
     config = MaskConfig() if config is None else config
+    frames = np.asarray(frames, dtype=np.float32)
+    plate = np.asarray(plate, dtype=np.float32)
     T, H, W, _ = frames.shape
     scale = H / 128.0
-    F = blur(frames.astype(np.float32), config.blur_sigma)
-    B = blur(plate.astype(np.float32), config.blur_sigma)
+    F = blur(frames, config.blur_sigma)
+    B = blur(plate, config.blur_sigma)
     sigma = noise_level(F, B, config.noise_floor)
     score = object_score(F, B, sigma, config)
+    del F
     detected = hysteresis(score, config.high, config.low)
+    grow = max(1, int(round(2 * scale)))
+    margin = int(np.ceil(2 * config.close_radius * scale + config.open_radius * scale + config.edge_width)) + grow + 3
     masks = np.zeros((T, H, W), np.float32)
     confidence = np.zeros(T)
     stray = np.zeros(T)
     for t in range(T):
-        m = clean(detected[t], config, scale)
-        supported = detected[t] & m
-        confidence[t] = supported.sum() / max(m.sum(), 1)
-        outside = ~ndimage.binary_dilation(m, iterations=max(1, int(round(2 * scale))))
-        stray[t] = (score[t][outside] > config.low).mean() if outside.any() else 0.0
-        masks[t] = soft_edges(m, frames[t].astype(np.float32), plate.astype(np.float32), sigma,
-                              width=config.edge_width, depth=config.edge_depth) if config.soft_edges \
-            else m.astype(np.float32)
+        hits = score[t] > config.low
+        box = object_box(detected[t], margin)
+        if box is None:
+            stray[t] = hits.mean()
+            continue
+        d = detected[t][box]
+        m = clean(d, config, scale)
+        confidence[t] = (d & m).sum() / max(m.sum(), 1)
+        near = dilate(m, CROSS, grow)
+        outside = H * W - int(near.sum())
+        stray[t] = (int(hits.sum()) - int(hits[box][near].sum())) / outside if outside > 0 else 0.0
+        masks[t][box] = soft_edges(m, frames[t][box], plate[box], sigma, width=config.edge_width,
+                                   depth=config.edge_depth) if config.soft_edges else m
     return summarise(masks, confidence, sigma, stray, config)
 
 

@@ -24,7 +24,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from vid2sim.scene.capture.ballistic import BallisticFit, BallisticSearch, find_ballistic, fit_segments
+from vid2sim.scene.capture.ballistic import BallisticFit, BallisticSearch, find_ballistic, fit_segments, jackknife_sigma
 from vid2sim.scene.capture.cameras import CaptureCamera
 from vid2sim.scene.capture.floor import floor_from_plates
 from vid2sim.scene.capture.hull import HullFrame, lowest_point, mask_centroids, soft_hull, triangulate
@@ -46,6 +46,8 @@ class MetricConfig:
         floor_normal_agreement_deg: adopt the point floor's normal as the gravity direction when it is within this
             angle of the parabola's, or within 3 of the parabola's standard deviations (a short free flight's
             direction is uncertain; the floor's plane, from hundreds of points, is not).
+        robust_hull_views: track the robust hull's centroid (one view's mask may disagree,
+            :mod:`~vid2sim.scene.capture.hull`) in frames with at least this many whole views; 0: the strict hull's.
     """
 
     gravity: float = 9.81
@@ -56,6 +58,7 @@ class MetricConfig:
     use_plates: bool = True
     upright_cameras: bool = True
     floor_normal_agreement_deg: float = 10.0
+    robust_hull_views: int = 4
 
     def to_json(self) -> dict:
         return asdict(self)
@@ -66,33 +69,30 @@ class Track:
     """The object's track in the calibration frame.
 
     Attributes:
-        centres: (T, 3) hull centroids (NaN where fewer than two views see the whole object).
+        centres: (T, 3) the robust hull's centroids (NaN where fewer than two views see the whole object): what the
+            free flight is fitted to.
         hulls: per frame its :class:`HullFrame` (None where not tracked).
         size: the object's diameter (calibration units; the median hull extent).
+        strict_centres: (T, 3) the strict hull's centroids (the same as ``centres`` where the robust hull is off);
+            the difference of the two fits measures how much the masks' errors move the scale.
     """
 
     centres: np.ndarray
     hulls: list[HullFrame | None]
     size: float
+    strict_centres: np.ndarray | None = None
 
     def lowest_along(self, up: np.ndarray) -> np.ndarray:
         """(T,) the object's lowest height along ``up`` (NaN where not tracked)."""
         return np.array([lowest_point(h, up) if h is not None else np.nan for h in self.hulls])
 
 
-def track_object(cameras: Sequence[CaptureCamera], masks: Sequence[np.ndarray], usable: np.ndarray,
-                 config: MetricConfig) -> Track:
-    """The object's :class:`Track` from each view's masks (T, H, W) — float in [0, 1] or uint8 coverage in 0..255 —
-    and the usable (V, T) views of every frame."""
-    scale = [255.0 if m.dtype == np.uint8 else 1.0 for m in masks]
-    V, T = usable.shape
-    pix = np.zeros((V, T, 2))
-    area = np.zeros((V, T))
-    for v, m in enumerate(masks):
-        pix[v], area[v] = mask_centroids(m.astype(np.float32) / scale[v])
-    rough = triangulate(cameras, pix, usable)
-    # the object's radius in calibration units from its silhouettes' sizes at the rough depth
+def _object_radius(cameras: Sequence[CaptureCamera], area: np.ndarray, rough: np.ndarray,
+                   usable: np.ndarray) -> float:
+    """The object's largest radius in calibration units: its silhouettes' areas (V, T) at the rough depth of its
+    triangulated centres (T, 3)."""
     radius = 0.0
+    V, T = usable.shape
     for t in range(T):
         if not np.isfinite(rough[t]).all():
             continue
@@ -101,8 +101,25 @@ def track_object(cameras: Sequence[CaptureCamera], masks: Sequence[np.ndarray], 
                 depth = (cameras[v].world_to_camera[:3, :3] @ rough[t] + cameras[v].world_to_camera[:3, 3])[2]
                 f = 0.5 * (cameras[v].K[0, 0] + cameras[v].K[1, 1])
                 radius = max(radius, np.sqrt(area[v, t] / np.pi) * depth / f)
-    half = config.hull_margin * radius
+    return radius
+
+
+def track_object(cameras: Sequence[CaptureCamera], masks: Sequence[np.ndarray], usable: np.ndarray,
+                 config: MetricConfig) -> Track:
+    """The object's :class:`Track` from each view's masks (T, H, W) — float in [0, 1] or uint8 coverage in 0..255 —
+    and the usable (V, T) views of every frame: per frame the soft hull around the triangulated silhouette
+    centroids, then again around its own centroid."""
+    scale = [255.0 if m.dtype == np.uint8 else 1.0 for m in masks]
+    V, T = usable.shape
+    pix = np.zeros((V, T, 2))
+    area = np.zeros((V, T))
+    for v, m in enumerate(masks):
+        pix[v], area[v] = mask_centroids(m.astype(np.float32) / scale[v])
+    rough = triangulate(cameras, pix, usable)
+    half = config.hull_margin * _object_radius(cameras, area, rough, usable)
+    robust_views = config.robust_hull_views if config.robust_hull_views > 0 else V + 1
     centres = np.full((T, 3), np.nan)
+    strict = np.full((T, 3), np.nan)
     hulls: list[HullFrame | None] = [None] * T
     extents = []
     for t in range(T):
@@ -111,18 +128,18 @@ def track_object(cameras: Sequence[CaptureCamera], masks: Sequence[np.ndarray], 
             continue
         cams = [cameras[v] for v in views]
         frame = np.stack([masks[v][t].astype(np.float32) / scale[v] for v in views])
-        hull = soft_hull(cams, frame, rough[t], half, max(16, config.hull_resolution // 2))
-        c = hull.centroid()
+        hull = soft_hull(cams, frame, rough[t], half, max(16, config.hull_resolution // 2), robust_views)
+        c = hull.centroid(robust=True)
         if not np.isfinite(c).all():
             continue
-        hull = soft_hull(cams, frame, c, half, config.hull_resolution)  # centred on the object
-        c = hull.centroid()
-        if np.isfinite(c).all():
-            centres[t] = c
+        hull = soft_hull(cams, frame, c, half, config.hull_resolution, robust_views)  # centred on the object
+        c = hull.centroid(robust=True)
+        if np.isfinite(c).all():  # (the strict hull may be empty where one view lost the object's middle)
+            centres[t], strict[t] = c, hull.centroid()
             hulls[t] = hull
             extents.append(hull.extent())
     size = float(np.median(extents)) if extents else float("nan")
-    return Track(centres, hulls, size)
+    return Track(centres, hulls, size, strict)
 
 
 @dataclass
@@ -212,7 +229,8 @@ class MetricFrame:
     """The calibration → scene similarity and the estimates behind it.
 
     Attributes:
-        scale: metres per calibration unit; scale_sigma: its std; scale_source: ``"free flight"`` or ``"user"``.
+        scale: metres per calibration unit; scale_sigma: its std; scale_source: ``"free flight"`` or ``"user"``;
+            scale_sigma_parts: the std's parts relative to the scale (``fit``, ``jackknife``, ``centre``).
         down: (3,) unit gravity direction in the calibration frame; down_sigma_deg: its std (degrees);
             down_source: ``"free flight"``, ``"floor (colmap points)"``, ``"floor (plates)"`` or ``"user"``.
         floor: the :class:`FloorEstimate` (calibration units along up = −down).
@@ -233,6 +251,7 @@ class MetricFrame:
     ballistic: BallisticFit | None
     gravity: float
     notes: list[str] = field(default_factory=list)
+    scale_sigma_parts: dict[str, float] = field(default_factory=dict)
 
     @property
     def matrix(self) -> np.ndarray:
@@ -258,7 +277,8 @@ class MetricFrame:
         b = self.ballistic
         return {
             "calibration_to_scene": self.matrix.tolist(),
-            "metres_per_unit": {"value": self.scale, "sigma": self.scale_sigma, "source": self.scale_source},
+            "metres_per_unit": {"value": self.scale, "sigma": self.scale_sigma, "source": self.scale_source,
+                                "sigma_parts_relative": self.scale_sigma_parts},
             "gravity_direction_calibration": {"value": self.down.tolist(), "sigma_deg": self.down_sigma_deg,
                                               "source": self.down_source},
             "floor_calibration": {"offset": self.floor.offset, "sigma": self.floor.sigma, "source": self.floor.source,
@@ -306,6 +326,111 @@ class NoFreeFlight(Exception):
     """No free-flight frames to measure gravity on."""
 
 
+def _fit_free_flight(track: Track, dt: float, config: MetricConfig, down: np.ndarray | None,
+                     cameras: Sequence[CaptureCamera] | None) -> BallisticFit:
+    """The free-flight fit (:func:`~vid2sim.scene.capture.ballistic.find_ballistic`) along a known ``down``, if any.
+
+    Raises:
+        NoFreeFlight: none shows.
+    """
+    rough = cameras_down(cameras) if cameras is not None and config.upright_cameras else None
+    fit = find_ballistic(track.centres, dt, track.lowest_along, track.size, config.ballistic, direction=down,
+                         rough_down=rough)
+    if fit is None:
+        raise NoFreeFlight("no free-flight frames")
+    return fit
+
+
+def _floor_plane(track: Track, up: np.ndarray, contact: FloorEstimate, config: MetricConfig,
+                 points: np.ndarray | None, cameras: Sequence[CaptureCamera] | None,
+                 plates: Sequence[np.ndarray] | None) -> FloorEstimate | None:
+    """The floor's plane with its own normal: from COLMAP's points near the contact height, else from the clean
+    plates; None when neither finds one."""
+    if config.use_points and points is not None and len(points):
+        plane = floor_from_points(points, up, contact.offset, track.size)
+        if plane is not None:
+            return plane
+    if config.use_plates and plates is not None and cameras is not None and all(p is not None for p in plates):
+        centre = np.nanmedian(track.centres, axis=0)
+        found = floor_from_plates(cameras, plates, up, contact.offset, centre, 1.5 * track.size, 0.15 * track.size)
+        if found is not None:
+            return FloorEstimate(found.offset, found.sigma, "plates", found.normal, found.normal_sigma_deg, 0)
+    return None
+
+
+@dataclass
+class _Gravity:
+    """The gravity direction as it stands: unit ``down`` (3,), its std (degrees) and where it came from."""
+
+    down: np.ndarray
+    sigma_deg: float
+    source: str
+
+    @property
+    def up(self) -> np.ndarray:
+        return -self.down
+
+
+def _measure_floor(track: Track, gravity: _Gravity, fit: BallisticFit | None, config: MetricConfig,
+                   points: np.ndarray | None, cameras: Sequence[CaptureCamera] | None,
+                   plates: Sequence[np.ndarray] | None, notes: list[str]) -> tuple[FloorEstimate, _Gravity]:
+    """The floor (calibration units along up), and the gravity direction — the floor plane's normal instead of the
+    free flight's where the two agree (``config.floor_normal_agreement_deg``, or 3 of the flight's σ)."""
+    up = gravity.up
+    contact = floor_from_contact(track, up, fit.frames if fit is not None else [])
+    plane = _floor_plane(track, up, contact, config, points, cameras, plates) if contact is not None else None
+    if plane is not None and plane.normal is not None:
+        angle = float(np.degrees(np.arccos(np.clip(plane.normal @ up, -1, 1))))
+        consistent = angle <= config.floor_normal_agreement_deg or angle <= 3.0 * gravity.sigma_deg
+        if gravity.source == "free flight" and consistent:
+            notes.append(f"gravity direction from the floor's normal ({plane.source}; {angle:.2f} deg from the "
+                         "free-flight estimate)")
+            return plane, _Gravity(-plane.normal, plane.normal_sigma_deg, f"floor ({plane.source})")
+        if gravity.source == "free flight":
+            notes.append(f"the floor's normal ({plane.source}) is {angle:.2f} deg from the free-flight gravity "
+                         "direction; kept the free-flight direction")
+        # the plane's height along the kept up direction, under the object
+        foot = np.nanmedian(track.centres, axis=0)
+        height = float(foot @ up) + (plane.offset - float(foot @ plane.normal)) / max(float(plane.normal @ up), 1e-6)
+        return FloorEstimate(height, plane.sigma, plane.source, plane.normal, plane.normal_sigma_deg,
+                             plane.points), gravity
+    if contact is not None:
+        return contact, gravity
+    notes.append("no contact frames: the floor is put at the object's lowest centre")
+    return FloorEstimate(float(np.nanmin(track.centres @ up)), float("nan"), "lowest centre"), gravity
+
+
+def _measure_scale(track: Track, fit: BallisticFit, dt: float, gravity: _Gravity, floor: FloorEstimate,
+                   config: MetricConfig, notes: list[str]) -> tuple[float, float, dict[str, float], BallisticFit]:
+    """Metres per unit from the free flight, its std and the std's parts (relative), and the final fit.
+
+    Free-flight frames in which the object, on its fitted parabola, would already reach the floor are dropped (a
+    soft object's first contact frames bend its path too little to be told from the parabola); the fit is
+    repeated along the final direction when that came from the floor. The std combines (in quadrature) the fit's
+    own (from its residuals), the block jackknife's over its frames, and the change of |a| between the robust and
+    the strict hull's centres (how much one view's mask errors can move it)."""
+    segments = trim_contact(track, fit, dt, gravity.up, floor.offset)
+    direction = gravity.down if gravity.source.startswith("floor") else None
+    if segments != fit.segments:
+        notes.append(f"free-flight frames {sorted(set(fit.frames) - {f for s in segments for f in s})} "
+                     "dropped: the object reaches the floor there")
+    if segments != fit.segments or direction is not None:
+        fit = fit_segments(track.centres, dt, segments, direction=direction, noise=fit.noise)
+    a = float(np.linalg.norm(fit.acceleration))
+    parts = {"fit": fit.magnitude_sigma() / a,
+             "jackknife": jackknife_sigma(track.centres, dt, segments, direction, fit.noise) / a}
+    if track.strict_centres is not None:
+        finite = np.isfinite(track.strict_centres).all(1)
+        kept = [[f for f in s if finite[f]] for s in segments]
+        kept = [s for s in kept if len(s) >= 3]
+        if kept:
+            strict = fit_segments(track.strict_centres, dt, kept, direction=direction, noise=fit.noise)
+            parts["centre"] = abs(float(np.linalg.norm(strict.acceleration)) - a) / a
+    rel = float(np.sqrt(sum(v * v for v in parts.values() if np.isfinite(v))))
+    value = config.gravity / a
+    return value, value * rel, parts, fit
+
+
 def solve_metric_frame(track: Track, dt: float, config: MetricConfig, scene_frames: range,
                        points: np.ndarray | None = None, scale: float | None = None,
                        down: np.ndarray | None = None, floor: float | None = None,
@@ -325,89 +450,31 @@ def solve_metric_frame(track: Track, dt: float, config: MetricConfig, scene_fram
         NoFreeFlight: the scale or the direction has to be measured and no free flight shows.
     """
     notes: list[str] = []
-    fit: BallisticFit | None = None
-    need_fit = scale is None or down is None
     if down is not None:
         down = np.asarray(down, dtype=np.float64)
         down = down / np.linalg.norm(down)
-    if need_fit:
-        rough = cameras_down(cameras) if cameras is not None and config.upright_cameras else None
-        fit = find_ballistic(track.centres, dt, track.lowest_along, track.size, config.ballistic, direction=down,
-                             rough_down=rough)
-        if fit is None:
-            raise NoFreeFlight("no free-flight frames")
+    fit = _fit_free_flight(track, dt, config, down, cameras) if scale is None or down is None else None
     if down is None:
         assert fit is not None
-        a = fit.acceleration
-        down_est = a / np.linalg.norm(a)
-        down_sigma = fit.direction_sigma_deg()
-        down_source = "free flight"
+        gravity = _Gravity(fit.acceleration / np.linalg.norm(fit.acceleration), fit.direction_sigma_deg(),
+                           "free flight")
     else:
-        down_est, down_sigma, down_source = down, 0.0, "user"
-    up = -down_est
-    # the floor (and possibly a sharper gravity direction from it)
-    floor_est: FloorEstimate | None = None
+        gravity = _Gravity(down, 0.0, "user")
     if floor is not None:
         floor_est = FloorEstimate(float(floor), 0.0, "user")
     else:
-        contact = floor_from_contact(track, up, fit.frames if fit is not None else [])
-        plane: FloorEstimate | None = None
-        if config.use_points and points is not None and len(points) and contact is not None:
-            plane = floor_from_points(points, up, contact.offset, track.size)
-        if plane is None and config.use_plates and plates is not None and cameras is not None and contact is not None \
-                and all(p is not None for p in plates):
-            centre = np.nanmedian(track.centres, axis=0)
-            found = floor_from_plates(cameras, plates, up, contact.offset, centre, 1.5 * track.size,
-                                      0.15 * track.size)
-            if found is not None:
-                plane = FloorEstimate(found.offset, found.sigma, "plates", found.normal, found.normal_sigma_deg, 0)
-        if plane is not None and plane.normal is not None:
-            angle = float(np.degrees(np.arccos(np.clip(plane.normal @ up, -1, 1))))
-            consistent = angle <= config.floor_normal_agreement_deg or angle <= 3.0 * down_sigma
-            if down_source == "free flight" and consistent:
-                down_est, up = -plane.normal, plane.normal
-                down_sigma = plane.normal_sigma_deg
-                down_source = f"floor ({plane.source})"
-                notes.append(f"gravity direction from the floor's normal ({plane.source}; {angle:.2f} deg from the "
-                             "free-flight estimate)")
-            else:
-                if down_source == "free flight":
-                    notes.append(f"the floor's normal ({plane.source}) is {angle:.2f} deg from the free-flight gravity "
-                                 "direction; kept the free-flight direction")
-                # the plane's height along the kept up direction, under the object
-                foot = np.nanmedian(track.centres, axis=0)
-                height = float(foot @ up) + (plane.offset - float(foot @ plane.normal)) / max(float(plane.normal @ up),
-                                                                                            1e-6)
-                plane = FloorEstimate(height, plane.sigma, plane.source, plane.normal, plane.normal_sigma_deg,
-                                      plane.points)
-            floor_est = plane
-        if floor_est is None:
-            floor_est = contact
-        if floor_est is None:
-            floor_est = FloorEstimate(float(np.nanmin(track.centres @ up)), float("nan"), "lowest centre")
-            notes.append("no contact frames: the floor is put at the object's lowest centre")
-    # the scale: drop free-flight frames in which the object, on its fitted parabola, would already reach the floor
-    # (a soft object's first contact frames bend its path too little to be told from the parabola), refit along the
-    # final direction
+        floor_est, gravity = _measure_floor(track, gravity, fit, config, points, cameras, plates, notes)
+    parts: dict[str, float] = {}
     if scale is None:
         assert fit is not None
-        segments = trim_contact(track, fit, dt, -down_est, floor_est.offset)
-        if segments != fit.segments or down_source.startswith("floor"):
-            direction = down_est if down_source.startswith("floor") else None
-            if segments != fit.segments:
-                notes.append(f"free-flight frames {sorted(set(fit.frames) - {f for s in segments for f in s})} "
-                             "dropped: the object reaches the floor there")
-            fit = fit_segments(track.centres, dt, segments, direction=direction, noise=fit.noise)
-        a = float(np.linalg.norm(fit.acceleration))
-        scale_val = config.gravity / a
-        scale_sigma = scale_val * fit.magnitude_sigma() / a
+        scale_val, scale_sigma, parts, fit = _measure_scale(track, fit, dt, gravity, floor_est, config, notes)
         scale_source = "free flight"
     else:
         scale_val, scale_sigma, scale_source = float(scale), 0.0, "user"
-    R = rotation_to_down(down_est)
+    R = rotation_to_down(gravity.down)
     centres = track.centres[[t for t in scene_frames if np.isfinite(track.centres[t]).all()]]
     centre = centres.mean(0) if len(centres) else np.nanmean(track.centres, axis=0)
     rc = scale_val * R @ centre
     translation = np.array([-rc[0], -rc[1], -scale_val * floor_est.offset])
-    return MetricFrame(scale_val, scale_sigma, scale_source, down_est, down_sigma, down_source, floor_est, R,
-                       translation, fit, config.gravity, notes)
+    return MetricFrame(scale_val, scale_sigma, scale_source, gravity.down, gravity.sigma_deg, gravity.source,
+                       floor_est, R, translation, fit, config.gravity, notes, parts)

@@ -89,14 +89,17 @@ def make_undistortion(camera: CaptureCamera, alpha: float = 0.0, downscale: int 
 
 def reduce(images: np.ndarray, factor: int, channels: bool) -> np.ndarray:
     """Float images (…, H, W, C) (``channels``) or (…, H, W) reduced ``factor`` times by averaging
-    ``factor`` × ``factor`` blocks (H and W must be multiples of it)."""
+    ``factor`` × ``factor`` blocks (H and W must be multiples of it), float32 (OpenCV's area resampling, which
+    is that block mean at an integer factor)."""
     if factor == 1:
         return images
-    if not channels:
-        return reduce(images[..., None], factor, True)[..., 0]
-    *lead, H, W, C = images.shape
-    blocks = images.reshape(*lead, H // factor, factor, W // factor, factor, C)
-    return blocks.mean(axis=(-4, -2), dtype=np.float32)
+    shape = images.shape[-3:] if channels else images.shape[-2:]
+    H, W = shape[:2]
+    flat = np.asarray(images, dtype=np.float32).reshape((-1,) + shape)
+    out = np.empty((len(flat), H // factor, W // factor) + shape[2:], np.float32)
+    for i, image in enumerate(flat):
+        out[i] = cv2.resize(image, (W // factor, H // factor), interpolation=cv2.INTER_AREA)
+    return out.reshape(images.shape[:-len(shape)] + out.shape[1:])
 
 
 def distort_normalised(xy: np.ndarray, distortion: np.ndarray) -> np.ndarray:
