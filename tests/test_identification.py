@@ -5,10 +5,17 @@ determine must be reported as such rather than returned as found.
 
 The scene is built and reconstructed once for the module (about a minute on two quiet cores: a 10-frame,
 40² FEM drop whose first contact is at frame 1, so the observed clip holds the bounce).
+
+The object's tet mesh is frozen (``tests/data/identification_tets.npz``): fTetWild's tets differ from run to run
+(even on one thread), and at this toy size the recovered E follows them. Over 6 fresh meshes of the same surface
+|Δlog10 E| was 0.028, 0.113, 0.166, 0.197, 0.270 and 0.464 (4 of 6 within half the prior's 0.477 — the test's
+bound), so with fresh meshes the test failed one run in three. The frozen mesh is one of those six, the one near
+their median (0.166); with it the reconstruction is the same on every run (measured twice: 0.166, ν 0.302).
 """
 
 import json
 import math
+from pathlib import Path
 
 import pytest
 
@@ -29,9 +36,11 @@ def identified(tmp_path_factory):
     from vid2sim.synthetic.scenes import SyntheticSceneConfig, make_scene
 
     root = tmp_path_factory.mktemp("identify")
+    tets = Path(__file__).parent / "data" / "identification_tets.npz"
     scene = make_scene(SyntheticSceneConfig.preset("small", seed=3, youngs_modulus=TRUTH_E, poisson_ratio=TRUTH_NU,
                                                    frames=10, observed_frames=10, resolution=40, views=4,
-                                                   held_out_views=1, substeps=4, drop_height=0.02),
+                                                   held_out_views=1, substeps=4, drop_height=0.02,
+                                                   tet_mesh=str(tets)),
                        root / "scene", progress=False)
     config = configs.merge(
         ReconstructConfig(),
