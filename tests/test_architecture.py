@@ -158,3 +158,25 @@ def test_project_imports_sit_at_the_top_of_their_module():
               for target in _function_level_imports(p)
               if (m, target) not in NESTED and not any(m.startswith(k) for k in NESTED_PACKAGES)]
     assert not hidden, hidden
+
+
+#: the longest function and module the layout allows (issue #49: "functions that fit on a screen")
+MAX_FUNCTION_LINES = 100
+MAX_MODULE_LINES = 1000
+
+
+def test_functions_and_modules_stay_short():
+    """No function in src/ is longer than MAX_FUNCTION_LINES lines (decorators excluded, docstring included), no
+    module longer than MAX_MODULE_LINES: a long one is split into named steps or modules."""
+    long_functions, long_modules = [], []
+    for module, path in _modules().items():
+        text = path.read_text()
+        if text.count("\n") > MAX_MODULE_LINES:
+            long_modules.append(f"{module}: {text.count(chr(10))} lines")
+        for node in ast.walk(ast.parse(text)):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                lines = node.end_lineno - node.lineno + 1
+                if lines > MAX_FUNCTION_LINES:
+                    long_functions.append(f"{module}.{node.name} ({path.name}:{node.lineno}): {lines} lines")
+    assert not long_functions, "functions too long:\n" + "\n".join(long_functions)
+    assert not long_modules, "modules too long:\n" + "\n".join(long_modules)
