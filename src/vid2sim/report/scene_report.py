@@ -20,7 +20,6 @@ import json
 import math
 import shutil
 import time
-import uuid
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -37,9 +36,9 @@ from vid2sim.report import media as M
 from vid2sim.report.config import ReportConfig, ReportInputError
 from vid2sim.report.inputs import GROUPS, check_evaluation
 from vid2sim.report.plots import optimisation_figure, psnr_figure
+from vid2sim.runtime.files import write_folder_atomic
 from vid2sim.scene.folder import Scene
 from vid2sim.scene.reading import load_scene
-from vid2sim.scene.writing import move_into_place
 
 GROUP_TITLES = {"dynamic": "Dynamic reconstruction", "future": "Future prediction", "novel_views": "Novel views"}
 
@@ -151,11 +150,9 @@ def write_report(out_dir: str | Path, asset: str | Path, scene: Any = None, eval
             shape = tuple(renders.shape) if isinstance(renders, Tensor) else type(renders).__name__
             raise ReportInputError(f"renders must be a tensor of the scene's shape {(V, T, Hh, Ww, 3)} "
                                    f"(V, T, H, W, 3), got {shape}")
-    tmp = out.parent / f".{out.name}.tmp-{uuid.uuid4().hex[:10]}"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    (tmp / "media").mkdir(parents=True)
-    try:
-        builder = _Builder(tmp, asset_dir, material, log, asset_json, evaluation, config, progress)
+    def write(staging: Path) -> None:
+        (staging / "media").mkdir(parents=True)
+        builder = _Builder(staging, asset_dir, material, log, asset_json, evaluation, config, progress)
         if scene_obj is not None:
             builder.scene_media(scene_obj, scene_path, renders.detach().float().cpu())
         else:
@@ -164,11 +161,8 @@ def write_report(out_dir: str | Path, asset: str | Path, scene: Any = None, eval
             builder.simulation_media(Path(folder))
         builder.timings.update(timings or {})
         builder.finish(time.perf_counter() - t_start)
-        move_into_place(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    return out
+
+    return write_folder_atomic(out, write)
 
 
 def _scene(scene: Any, progress: bool) -> tuple[Scene | None, Path | None]:

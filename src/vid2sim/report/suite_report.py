@@ -16,7 +16,6 @@ import math
 import os
 import shutil
 import time
-import uuid
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -30,8 +29,8 @@ from vid2sim.report.config import ReportConfig
 from vid2sim.report.inputs import check_suite
 from vid2sim.report.plots import material_scatter
 from vid2sim.report.scene_report import check_out
+from vid2sim.runtime.files import write_folder_atomic
 from vid2sim.scene.reading import load_scene
-from vid2sim.scene.writing import move_into_place
 
 #: suite means key → (label, unit, decimals, scale of the shown value)
 MEAN_LABELS = {
@@ -106,20 +105,19 @@ def write_suite_report(out_dir: str | Path, suite: Mapping[str, Any], config: Re
     data = check_suite(suite)
     out = Path(out_dir)
     check_out(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.parent / f".{out.name}.tmp-{uuid.uuid4().hex[:10]}"
-    (tmp / "media").mkdir(parents=True)
-    try:
+
+    def write(staging: Path) -> None:
+        (staging / "media").mkdir(parents=True)
         rows, scatter = [], []
         for i, s in enumerate(data["scenes"]):
             found, truth, point = _scene_material(s)
             if point is not None:
                 scatter.append(point)
-            rows += _scene_rows(i, s, found, truth, tmp / "media" / f"thumb_{i:03d}.png", out, config)
+            rows += _scene_rows(i, s, found, truth, staging / "media" / f"thumb_{i:03d}.png", out, config)
         headers = ["#", "scene", "frame 0", "status"] + list(METRIC_COLUMNS) + ["seconds"]
         table = H.table(headers, rows, table_id="suite-table", foot=[_means_row(data)])
         cards = _mean_cards(data["means"])
-        material_scatter(tmp / "media" / "material.svg", scatter)
+        material_scatter(staging / "media" / "material.svg", scatter)
         sections = _suite_sections(data, cards, table)
         date = _dt.datetime.now().astimezone().strftime("%Y-%m-%d %H:%M %Z")
         suite_name = Path(str(data.get("suite") or "suite")).name
@@ -129,13 +127,10 @@ def write_suite_report(out_dir: str | Path, suite: Mapping[str, Any], config: Re
         page = H.page(f"vid2sim benchmark · {suite_name}", subtitle, [(a, n) for a, n, _ in sections],
                       "\n".join(s for _, _, s in sections),
                       f"vid2sim {H.esc(__version__)} · written in {time.perf_counter() - t0:.1f} s", body_class="wide")
-        (tmp / "index.html").write_text(page, encoding="utf-8")
-        (tmp / "suite.json").write_text(json.dumps(data, indent=1, default=str), encoding="utf-8")
-        move_into_place(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    return out
+        (staging / "index.html").write_text(page, encoding="utf-8")
+        (staging / "suite.json").write_text(json.dumps(data, indent=1, default=str), encoding="utf-8")
+
+    return write_folder_atomic(out, write)
 
 
 def _scene_material(s: Mapping[str, Any]) -> tuple[dict[str, Any], dict[str, Any], dict[str, Any] | None]:
