@@ -53,6 +53,8 @@ class MaskConfig:
             removes specks and the closing that bridges gaps.
         fill_holes: fill holes inside the object (an object that truly has holes should give its own masks).
         soft_edges: estimate fractional coverage in a band at the boundary (:func:`soft_edges`).
+        edge_chroma_weight: the weight of the colour differences (Cb, Cr) against the luma there: below 1 for
+            video and JPEG frames, whose colour differences have half the resolution (:func:`soft_edges`).
         edge_width, edge_depth: that band's half-width and how deep inside the object its colour is taken, in pixels
             of the frames (an outline's blur is a few pixels whatever the image's size).
         jump_ratio: an area ratio between neighbouring frames beyond this (or its inverse) flags ``jump``.
@@ -74,6 +76,7 @@ class MaskConfig:
     soft_edges: bool = True
     edge_width: float = 2.0
     edge_depth: float = 3.0
+    edge_chroma_weight: float = 0.3
     jump_ratio: float = 1.5
 
     def to_json(self) -> dict:
@@ -288,8 +291,12 @@ def clean(mask: np.ndarray, config: MaskConfig, scale: float) -> np.ndarray:
     return largest_component(mask)
 
 
+#: RGB → Y'CbCr (BT.601): the luma and the two colour differences that video and JPEG codecs store
+YCBCR = np.array([[0.299, 0.587, 0.114], [-0.168736, -0.331264, 0.5], [0.5, -0.418688, -0.081312]])
+
+
 def soft_edges(mask: np.ndarray, frame: np.ndarray, plate: np.ndarray, sigma: float, width: float = 2.0,
-               depth: float = 3.0) -> np.ndarray:
+               depth: float = 3.0, chroma_weight: float = 0.3) -> np.ndarray:
     """Fractional coverage (H, W) float32 in a band of ``width`` px on both sides of a (H, W) bool mask's boundary.
 
     A band pixel's colour I is explained as ``α·F + β·B``: F the colour of the nearest object pixel at least
@@ -297,7 +304,14 @@ def soft_edges(mask: np.ndarray, frame: np.ndarray, plate: np.ndarray, sigma: fl
     factor) — the background there may lie in the object's shadow, which only scales it. The 2 × 2 least-squares
     solution gives α; where F and B have nearly the same chromaticity the two cannot be told apart and the plain
     projection ``<I − B, F − B> / |F − B|²`` is used, and where F and B are too alike altogether (|F − B| < 6σ) the
-    binary value is kept."""
+    binary value is kept.
+
+    The colours are compared in Y'CbCr with the two colour differences weighted by ``chroma_weight``: video codecs
+    (H.264's usual 4:2:0) and JPEG store them at half the resolution, so at an outline they are smeared over twice
+    the pixels the luma is, and weighted fully they pull α towards the wrong side. The weight was chosen on the six
+    capture twins of a small suite (H.264, 4:2:0): 1, 0.5 and 0.3 gave a mean soft IoU against the true coverage
+    of 0.946, 0.949 and 0.950 (better on four scenes, worse on two; scene 1: 0.949 → 0.965, scene 2: 0.949 →
+    0.940). 1 weighs them like the luma (frames stored at full chroma resolution, e.g. PNG)."""
     out = mask.astype(np.float32)
     if not mask.any():
         return out
@@ -311,8 +325,9 @@ def soft_edges(mask: np.ndarray, frame: np.ndarray, plate: np.ndarray, sigma: fl
         return out
     _, (iy, ix) = ndimage.distance_transform_edt(~core, return_indices=True)
     ys, xs = np.nonzero(band)
-    F = frame[iy[ys, xs], ix[ys, xs]].astype(np.float64)
-    I, B = frame[ys, xs].astype(np.float64), plate[ys, xs].astype(np.float64)
+    M = np.diag([1.0, chroma_weight, chroma_weight]) @ YCBCR
+    F = frame[iy[ys, xs], ix[ys, xs]].astype(np.float64) @ M.T
+    I, B = frame[ys, xs].astype(np.float64) @ M.T, plate[ys, xs].astype(np.float64) @ M.T
     ff, bb, fb = (F * F).sum(-1), (B * B).sum(-1), (F * B).sum(-1)
     fi, bi = (F * I).sum(-1), (B * I).sum(-1)
     det = ff * bb - fb * fb
@@ -323,7 +338,7 @@ def soft_edges(mask: np.ndarray, frame: np.ndarray, plate: np.ndarray, sigma: fl
     a_plain = ((I - B) * d).sum(-1) / np.maximum(dd, 1e-12)
     separable = (det > 0.01 * ff * bb) & (b_ls >= 0)
     alpha = np.clip(np.where(separable, a_ls, a_plain), 0.0, 1.0)
-    sure = dd > (6.0 * sigma) ** 2
+    sure = dd > (6.0 * sigma) ** 2 * float(np.trace(M @ M.T)) / 3.0  # σ² per RGB channel, carried through M
     vals = out[ys, xs]
     vals[sure] = alpha[sure]
     out[ys, xs] = vals
@@ -383,7 +398,8 @@ def masks_from_plate(frames: np.ndarray, plate: np.ndarray, config: MaskConfig |
         outside = H * W - int(near.sum())
         stray[t] = (int(hits.sum()) - int(hits[box][near].sum())) / outside if outside > 0 else 0.0
         masks[t][box] = soft_edges(m, frames[t][box], plate[box], sigma, width=config.edge_width,
-                                   depth=config.edge_depth) if config.soft_edges else m
+                                   depth=config.edge_depth, chroma_weight=config.edge_chroma_weight) \
+            if config.soft_edges else m
     return summarise(masks, confidence, sigma, stray, config)
 
 
