@@ -462,3 +462,19 @@ def test_masks_on_the_object_box_equal_the_whole_frame() -> None:
         assert got.confidence[t] == pytest.approx((detected[t] & m).sum() / max(m.sum(), 1))
         assert got.stray[t] == pytest.approx((score[t][outside] > config.low).mean())
     assert got.masks.sum() > 100
+
+
+def test_bench_capture_summary_names_the_worst_scene() -> None:
+    """``bench capture``'s means: the worst scene of each figure is its lowest IoU and its largest error."""
+    from vid2sim.apps.bench.capture import _means
+
+    def record(iou: float, worst: float, scale: float) -> dict:
+        return {"status": "ok", "import": {"mask_iou": iou, "mask_iou_worst": worst, "scale_error": scale,
+                                          "gravity_error_deg": 0.01, "floor_error_m": -1e-4, "import_seconds": 9.0}}
+
+    m = _means([record(0.96, 0.93, -0.03), record(0.94, 0.90, 0.01), {"status": "failed"}])
+    assert m["scenes"] == 2
+    assert m["mask_iou"] == pytest.approx(0.95) and m["worst_mask_iou"] == 0.94
+    assert m["worst_mask_iou_worst"] == 0.90
+    assert m["abs_scale_error"] == pytest.approx(0.02) and m["worst_abs_scale_error"] == 0.03
+    assert m["worst_abs_floor_error_m"] == pytest.approx(1e-4)

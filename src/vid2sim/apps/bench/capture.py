@@ -338,7 +338,8 @@ def _means(records: list[dict[str, Any]]) -> dict[str, Any]:
             key = f"abs_{key}"
         if vals:
             means[key] = float(np.mean(vals))
-            means[f"max_{key}"] = float(np.max(vals)) if key != "mask_iou" else float(np.min(vals))
+            # the worst scene: the lowest IoU, the largest error or time
+            means[f"worst_{key}"] = float(np.min(vals)) if key.startswith("mask_iou") else float(np.max(vals))
     for key in COMPARED:
         diffs = [r["compared"][key]["difference"] for r in ok if "compared" in r
                  and r["compared"][key]["difference"] is not None]
@@ -369,6 +370,6 @@ def format_capture_table(result: dict[str, Any]) -> str:
             f"{d('abs_error_nu'):>7}"
         )
     m = result["means"]
-    rows.append(f"means over {m.get('scenes', 0)} scenes: " + ", ".join(f"{k} {v:.4g}" for k, v in m.items()
+    rows.append(f"means over {m.get('scenes', 0)} scenes: " + ", ".join(f"{k} {v:.5g}" for k, v in m.items()
                                                                        if k != "scenes"))
     return "\n".join(rows)
