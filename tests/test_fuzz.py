@@ -253,3 +253,30 @@ def test_a_full_disk_names_the_file_and_leaves_nothing_half_written(tmp_path, mo
     monkeypatch.undo()
     assert json.loads((tmp_path / "index.json").read_text()) == {"complete": False}  # the old file stands
     assert sorted(p.name for p in tmp_path.iterdir()) == ["index.json"]  # no temporary file left
+
+
+def test_kill_outputs_are_compared_without_their_wall_clock(tmp_path):
+    """The kill campaign's comparison of two output folders: equal up to wall-clock fields (in JSON and in
+    ``.npz`` archives, a JSON string inside included) and the folder's own path; any other difference counts, and
+    files under a skipped name need only exist in both."""
+    from vid2sim.apps.bench.fuzz.kills import same_tree
+
+    def write(root: Path, seconds: float, value: int, log: str) -> Path:
+        (root / "sub").mkdir(parents=True)
+        (root / "a.json").write_text(json.dumps({"value": value, "seconds": seconds, "path": str(root / "x"),
+                                                 "timing": {"seconds": seconds}, "load_seconds": seconds}))
+        np.savez(root / "sub" / "r.npz", x=np.arange(3.0), wall_time=np.float64(seconds),
+                 stats=np.array(json.dumps({"n": value, "wall_time_all_runs": seconds})))
+        (root / "sub" / "log.json").write_text(log)
+        (root / "image.png").write_bytes(bytes([1, 2, value]))
+        return root
+
+    a = write(tmp_path / "a", 1.0, 3, "{}")
+    b = write(tmp_path / "b", 2.5, 3, '{"other": 1}')
+    assert same_tree(a, b, skip=("log.json",))[0]
+    assert not same_tree(a, b)[0]  # log.json differs when not skipped
+    c = write(tmp_path / "c", 1.0, 4, "{}")
+    ok, why = same_tree(a, c, skip=("log.json",))
+    assert not ok and "differs" in why
+    (b / "extra.txt").write_text("x")
+    assert not same_tree(a, b, skip=("log.json",))[0]

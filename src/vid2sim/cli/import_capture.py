@@ -84,4 +84,4 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--overwrite", action="store_true", help="replace an existing scene folder")
     p.add_argument("--quiet", action="store_true", help="no progress lines")
     add_threads_option(p)
-    p.set_defaults(func=run)
+    p.set_defaults(func=run, lock_output="scene")  # one writer per SCENE (runtime.locks)

@@ -9,6 +9,17 @@ Each command runs at a toy size, in a fresh interpreter (``python -m vid2sim``: 
 bit, ``index.json`` except its timings |
 | ``train-predictor`` (6 steps on that data, checkpoint every 2) | ``predictor.pt`` exists | the final weights within
 1e-5 (one torch thread) |
+| ``make-benchmark`` (2 scenes, 4 views at 40², 6 frames, linear tets reused with ``--tets-from``) | ``index.json``
+``complete`` | every file bit for bit but the wall-clock times (in JSON and ``fem_result.npz``) |
+| ``reconstruct`` (a scene of that suite, the demo's tiny settings, no report) | ``asset.json`` exists | every
+file bit for bit but ``log.json`` (timings) |
+| ``bench suite`` (that suite, the same settings) | ``suite.json`` exists | the assets as ``reconstruct``'s; the
+evaluations and ``suite.json`` but their seconds and paths; the reports exist |
+| ``import-capture`` (the capture twin of a scene of that suite) | ``scene.json`` exists | every file bit for bit but
+``capture_report.json``'s seconds |
+
+fTetWild's tets differ run to run, so the suite every case starts from is made once per campaign, and
+``make-benchmark``'s cases reuse its tets (``--tets-from``), which makes them deterministic.
 
 Case i draws the command and the moment (uniform between 0.3 s and the uninterrupted run's duration) from
 ``seed + i``. Two processes on one output (:mod:`vid2sim.runtime.locks`) are checked on every other case: while
@@ -33,20 +44,55 @@ import numpy as np
 
 from vid2sim.runtime.locks import lock_path, read_owner
 
-COMMANDS = ("make-training-data", "train-predictor")
+COMMANDS = ("make-training-data", "train-predictor", "make-benchmark", "reconstruct", "bench suite", "import-capture")
+#: the toy suite of make-benchmark (and the input of reconstruct, bench suite and import-capture)
+_SUITE_FLAGS = ["--n", "2", "--preset", "small", "--views", "4", "--held-out-views", "1", "--resolution", "40",
+                "--frames", "6", "--observed-frames", "5", "--substeps", "4", "--element-order", "1", "--threads",
+                "1", "--quiet"]
 
 
-def _argv(command: str, out: Path, data: Path | None, quick: bool = False) -> list[str]:
+def _argv(command: str, out: Path, root: Path, quick: bool = False) -> list[str]:
+    """The command line of ``command`` writing ``out``; its inputs are the campaign's in ``root`` (:func:`_inputs`)."""
     if command == "make-training-data":
         n = "1" if quick else "2"
         # the reduced truth: deterministic from the seed (the FEM truth's tets come from fTetWild, which is not, so
         # a resumed run could not be compared with an uninterrupted one) and seconds instead of minutes
         return ["make-training-data", str(out), "--truth", "reduced", "--objects", n, "--draws", n, "--resolution",
                 "16", "--frames", "4", "--workers", "1", "--threads", "1", "--quiet"]
-    assert data is not None
-    return ["train-predictor", str(data), str(out), "--steps", "6", "--batch-size", "2", "--eval-every", "2",
-            "--image-size", "16", "--patch-size", "8", "--tubelet-size", "2", "--width", "32", "--layers", "1",
-            "--heads", "1", "--val-fraction", "0.5", "--quiet"]
+    if command == "train-predictor":
+        return ["train-predictor", str(root / "ref_data"), str(out), "--steps", "6", "--batch-size", "2",
+                "--eval-every", "2", "--image-size", "16", "--patch-size", "8", "--tubelet-size", "2", "--width",
+                "32", "--layers", "1", "--heads", "1", "--val-fraction", "0.5", "--quiet"]
+    if command == "make-benchmark":
+        return ["make-benchmark", str(out), "--tets-from", str(root / "suite"), *_SUITE_FLAGS]
+    if command == "reconstruct":
+        return ["reconstruct", str(root / "suite" / "scene_000"), str(out), "--config", str(root / "tiny.json"),
+                "--threads", "1", "--quiet", "--no-report"]
+    if command == "bench suite":
+        return ["bench", "suite", str(root / "suite"), str(out), "--config", str(root / "tiny.json"), "--threads",
+                "1", "--quiet"]
+    if command == "import-capture":
+        return ["import-capture", str(root / "capture"), str(out), "--downscale", "2", "--every", "3", "--threads",
+                "1", "--quiet", "--overwrite"]
+    raise ValueError(f"unknown command {command!r}")
+
+
+def _inputs(root: Path, commands: tuple[str, ...], threads: int, limit: float) -> None:
+    """The inputs the commands read, made once in ``root``: the toy suite (fresh tets), the tiny reconstruction
+    settings and the capture twin of the suite's first scene."""
+    if not {"make-benchmark", "reconstruct", "bench suite", "import-capture"} & set(commands):
+        return
+    from vid2sim.apps.demo import TINY
+    from vid2sim.reconstruct.config import ReconstructConfig
+    from vid2sim.runtime import config as configs
+
+    (root / "tiny.json").write_text(json.dumps(configs.to_dict(configs.merge(ReconstructConfig(), TINY))))
+    steps = [["make-benchmark", str(root / "suite"), *_SUITE_FLAGS],
+             ["make-capture", str(root / "suite" / "scene_000"), str(root / "capture"), "--threads", "1", "--quiet"]]
+    for argv in steps:
+        rc, _, err = _run_to_end(argv, threads, limit)
+        if rc != 0:
+            raise RuntimeError(f"making the campaign's input with `vid2sim {' '.join(argv[:2])}` failed: {err[-1500:]}")
 
 
 def _wait_for_owner(proc: subprocess.Popen, out: Path, timeout: float) -> bool:
@@ -72,14 +118,77 @@ def _start(argv: list[str], threads: int) -> subprocess.Popen:
                             stderr=subprocess.PIPE, text=True, env=_env(threads), start_new_session=True)
 
 
+#: the file whose presence says an output is finished, for the commands that write one at the end
+_FINISHED = {"train-predictor": "predictor.pt", "reconstruct": "asset.json", "bench suite": "suite.json",
+             "import-capture": "scene.json"}
+
+
 def looks_finished(command: str, out: Path) -> bool:
     """Whether ``out`` claims to be a finished output of ``command``."""
-    if command == "make-training-data":
+    if command in ("make-training-data", "make-benchmark"):
         try:
             return bool(json.loads((out / "index.json").read_text()).get("complete"))
         except (OSError, ValueError):
             return False
-    return (out / "predictor.pt").is_file()
+    return (out / _FINISHED[command]).is_file()
+
+
+def _wall_clock(key: str) -> bool:
+    return key in ("seconds", "timing", "timings", "timings_seconds") or key.endswith("_seconds") \
+        or key.startswith("wall_time")
+
+
+def _core(obj: Any, a: str, b: str) -> Any:
+    """A JSON value without its wall-clock fields, the output folder ``a``'s path written as ``b``'s."""
+    if isinstance(obj, dict):
+        return {k: _core(v, a, b) for k, v in obj.items() if not _wall_clock(k)}
+    if isinstance(obj, list):
+        return [_core(v, a, b) for v in obj]
+    return obj.replace(a, b) if isinstance(obj, str) else obj
+
+
+def _same_npz(x: Path, y: Path) -> bool:
+    """Two ``.npz`` files hold the same arrays but their wall-clock times (a JSON string array included)."""
+    with np.load(x, allow_pickle=False) as p, np.load(y, allow_pickle=False) as q:
+        if sorted(p.files) != sorted(q.files):
+            return False
+        for k in p.files:
+            if _wall_clock(k):
+                continue
+            u, v = p[k], q[k]
+            if u.dtype.kind == "U" and u.ndim == 0 and v.dtype.kind == "U" and v.ndim == 0:
+                try:
+                    if _core(json.loads(str(u)), "", "") != _core(json.loads(str(v)), "", ""):
+                        return False
+                    continue
+                except ValueError:
+                    pass
+            if u.shape != v.shape or u.dtype != v.dtype or not np.array_equal(u, v, equal_nan=u.dtype.kind in "fc"):
+                return False
+    return True
+
+
+def same_tree(a: Path, b: Path, skip: tuple[str, ...] = ()) -> tuple[bool, str]:
+    """Whether the folders ``a`` and ``b`` hold the same files with the same content: bit for bit, but JSON files
+    and ``.npz`` archives without their wall-clock times (and ``a``'s path read as ``b``'s); files named in
+    ``skip`` (their name, or a folder they are in) must only exist in both."""
+    files = sorted(str(p.relative_to(a)) for p in a.rglob("*") if p.is_file())
+    other = sorted(str(p.relative_to(b)) for p in b.rglob("*") if p.is_file())
+    if files != other:
+        return False, f"different files: {sorted(set(files) ^ set(other))[:4]}"
+    for rel in files:
+        if any(part in skip for part in Path(rel).parts):
+            continue
+        x, y = a / rel, b / rel
+        if rel.endswith(".json"):
+            same = _core(json.loads(x.read_text()), str(a), str(b)) == _core(json.loads(y.read_text()), str(b), str(b))
+        elif rel.endswith(".npz"):
+            same = _same_npz(x, y)
+        else:
+            same = x.read_bytes() == y.read_bytes()
+        if not same:
+            return False, f"{rel} differs"
+    return True, f"{len(files)} files equal"
 
 
 def same_result(command: str, a: Path, b: Path) -> tuple[bool, str]:
@@ -105,14 +214,18 @@ def same_result(command: str, a: Path, b: Path) -> tuple[bool, str]:
         if core(ia) != core(ib):
             return False, "index.json differs beyond its timings"
         return True, f"{len(shards)} shards bit for bit"
-    import torch
+    if command == "train-predictor":
+        import torch
 
-    pa, pb = (torch.load(p / "predictor.pt", map_location="cpu", weights_only=True) for p in (a, b))
-    sa, sb = pa["state_dict"], pb["state_dict"]
-    if sorted(sa) != sorted(sb):
-        return False, "different parameters"
-    worst = max(float((sa[k].double() - sb[k].double()).abs().max()) for k in sa) if sa else 0.0
-    return worst <= 1e-5, f"largest weight difference {worst:.3g}"
+        pa, pb = (torch.load(p / "predictor.pt", map_location="cpu", weights_only=True) for p in (a, b))
+        sa, sb = pa["state_dict"], pb["state_dict"]
+        if sorted(sa) != sorted(sb):
+            return False, "different parameters"
+        worst = max(float((sa[k].double() - sb[k].double()).abs().max()) for k in sa) if sa else 0.0
+        return worst <= 1e-5, f"largest weight difference {worst:.3g}"
+    # a run's own timings, and the reports' pages and videos (they print times and dates)
+    skip = {"reconstruct": ("log.json",), "bench suite": ("log.json", "report")}.get(command, ())
+    return same_tree(a, b, skip)
 
 
 def _run_to_end(argv: list[str], threads: int, timeout: float) -> tuple[int, float, str]:
@@ -139,25 +252,21 @@ def run(config, records_path: str | Path | None, progress: bool = False) -> dict
     if todo:
         with tempfile.TemporaryDirectory(prefix="vid2sim-fuzz-kills-") as tmp:
             root = Path(tmp)
-            ref: dict[str, tuple[Path, float]] = {}
-            rc, secs, err = _run_to_end(_argv("make-training-data", root / "ref_data", None, config.quick),
-                                         config.threads, limit)
-            if rc != 0:
-                raise RuntimeError(f"the uninterrupted make-training-data failed: {err[-1500:]}")
-            ref["make-training-data"] = (root / "ref_data", secs)
             commands = COMMANDS if not config.quick else ("make-training-data",)
-            if "train-predictor" in commands:
-                rc, secs, err = _run_to_end(_argv("train-predictor", root / "ref_train", root / "ref_data"),
-                                            config.threads, limit)
+            _inputs(root, commands, config.threads, limit)
+            ref: dict[str, tuple[Path, float]] = {}
+            for command in commands:  # train-predictor reads ref_data: make-training-data comes first
+                name = "ref_data" if command == "make-training-data" else "ref_" + command.replace(" ", "_")
+                rc, secs, err = _run_to_end(_argv(command, root / name, root, config.quick), config.threads, limit)
                 if rc != 0:
-                    raise RuntimeError(f"the uninterrupted train-predictor failed: {err[-1500:]}")
-                ref["train-predictor"] = (root / "ref_train", secs)
+                    raise RuntimeError(f"the uninterrupted {command} failed: {err[-1500:]}")
+                ref[command] = (root / name, secs)
             for i in todo:
                 rng = np.random.default_rng([config.seed + i, 5301])
                 command = commands[int(rng.integers(len(commands)))]
                 ref_out, ref_secs = ref[command]
                 out = root / f"case{i}"
-                argv = _argv(command, out, root / "ref_data", config.quick)
+                argv = _argv(command, out, root, config.quick)
                 moment = float(rng.uniform(0.3, max(0.6, ref_secs)))
                 proc = _start(argv, config.threads)
                 second = None
