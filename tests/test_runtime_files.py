@@ -11,7 +11,7 @@ import stat
 import numpy as np
 import pytest
 
-from vid2sim.runtime.files import jsonable, write_folder_atomic
+from vid2sim.runtime.files import jsonable, remove_leftovers, write_folder_atomic
 from vid2sim.scene.capture import jsonify
 
 RECORD = {"a": (1, 2.5, np.float32(0.25)), 3: [np.int64(7), np.bool_(True), None, "x"], "nan": float("nan"),
@@ -106,3 +106,21 @@ def test_a_failed_folder_write_leaves_nothing_and_the_old_folder_as_it_was(tmp_p
         write_folder_atomic(out, fails, create=True)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
     assert [p.name for p in out.iterdir()] == ["keep"] and (out / "keep").read_text() == "old"
+
+
+def test_a_new_folder_write_removes_what_a_killed_writer_left(tmp_path):
+    """SIGKILL runs no clean-up: the staging and replaced folders a killed writer of the same target left beside it
+    are removed when the next write starts (found by the kill campaign: a report's `.report.making-…` inside a
+    resumed `bench suite` output); other hidden folders stay."""
+    out = tmp_path / "out"
+    left = [tmp_path / f".out.{tag}-0123456789ab" for tag in ("making", "old", "writing", "importing")]
+    kept = [tmp_path / ".out.making-notahexname", tmp_path / ".other.making-0123456789ab", tmp_path / ".out.lock"]
+    for p in left + kept[:2]:
+        p.mkdir()
+        (p / "half").write_text("x")
+    kept[2].write_text("{}")
+    write_folder_atomic(out, lambda staging: (staging / "a").write_text("a"), create=True)
+    assert (out / "a").read_text() == "a"
+    assert not any(p.exists() for p in left)
+    assert all(p.exists() for p in kept)
+    assert remove_leftovers(out) == []

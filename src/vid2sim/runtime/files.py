@@ -9,6 +9,7 @@ opened normally (``mkstemp`` would make it private). A folder is written whole t
 
 from __future__ import annotations
 
+import glob
 import json
 import math
 import os
@@ -63,17 +64,40 @@ def write_json_atomic(path: str | Path, obj: Any, indent: int | None = 2) -> Pat
     return write_text_atomic(path, json.dumps(obj, indent=indent) + "\n")
 
 
+#: the tags of the hidden folders a folder writer stages beside its target (``.NAME.<tag>-<12 hex digits>``)
+STAGING_TAGS = ("making", "old", "writing", "importing")
+
+
+def remove_leftovers(path: str | Path) -> list[Path]:
+    """Remove the hidden staging folders that writers killed mid-way (SIGKILL runs no clean-up) left beside the
+    folder ``path``: ``.NAME.<tag>-<12 hex digits>`` for the :data:`STAGING_TAGS`. Call it when a new write of
+    ``path`` starts: every command that writes a folder holds its output's lock (:mod:`vid2sim.runtime.locks`), so
+    no live writer owns them then. Returns the folders removed."""
+    path = Path(path)
+    gone = []
+    for tag in STAGING_TAGS:
+        for p in path.parent.glob(f".{glob.escape(path.name)}.{tag}-*"):
+            suffix = p.name.rsplit("-", 1)[-1]
+            if len(suffix) == 12 and all(c in "0123456789abcdef" for c in suffix) and p.is_dir() \
+                    and not p.is_symlink():
+                shutil.rmtree(p, ignore_errors=True)
+                gone.append(p)
+    return gone
+
+
 def write_folder_atomic(path: str | Path, write: Callable[[Path], None], create: bool = False) -> Path:
     """Call ``write(staging)`` (it fills the folder ``staging``) on a hidden folder ``.NAME.making-<id>`` beside
     ``path``, then move it into place (:func:`move_folder_into_place`); returns the path.
 
-    ``create`` makes the staging folder before ``write`` is called (else ``write`` creates it). An empty folder
+    ``create`` makes the staging folder before ``write`` is called (else ``write`` creates it). Staging folders
+    that a killed writer of ``path`` left are removed first (:func:`remove_leftovers`). An empty folder
     at ``path`` is removed first; any other folder there is replaced only at the last moment, so the caller
     decides beforehand whether it may be. On any error (or an interrupt) the staging folder is removed and
     ``path`` is left as it was.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    remove_leftovers(path)
     staging = path.parent / f".{path.name}.making-{uuid.uuid4().hex[:12]}"
     if create:
         staging.mkdir()

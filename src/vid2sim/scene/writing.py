@@ -22,6 +22,7 @@ from torch import Tensor
 
 from vid2sim.runtime.errors import InputError
 from vid2sim.runtime.files import move_folder_into_place as move_into_place
+from vid2sim.runtime.files import remove_leftovers
 from vid2sim.scene.folder import SCENE_JSON, TRANSFORMS_JSON, Scene
 from vid2sim.scene.reading import run_parallel
 from vid2sim.scene.video import write_video
@@ -88,6 +89,7 @@ def write_scene(
                 "something that is not a scene folder"
             )
     target.parent.mkdir(parents=True, exist_ok=True)
+    remove_leftovers(target)  # what a killed writer of the same scene left
     tmp = target.parent / f".{target.name}.writing-{uuid.uuid4().hex[:12]}"
     tmp.mkdir()
     try:

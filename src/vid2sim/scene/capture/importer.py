@@ -36,6 +36,7 @@ import torch
 from scipy import ndimage
 
 from vid2sim.runtime.errors import ConfigError
+from vid2sim.runtime.files import remove_leftovers
 from vid2sim.scene.capture.cameras import CaptureCamera
 from vid2sim.scene.capture.colmap import colmap_cameras, points_by_camera, read_colmap
 from vid2sim.scene.capture.colour import ColourConfig, ColourMap, colour_maps, floor_grid
@@ -497,6 +498,7 @@ def _write(scene: Scene, out: Path, report: dict[str, Any], config: CaptureImpor
            lap: Any) -> None:
     """Write the scene beside ``out`` with the config and the report, then rename it into place."""
     out.parent.mkdir(parents=True, exist_ok=True)
+    remove_leftovers(out)  # what a killed import of the same scene left
     staging = out.parent / f".{out.name}.importing-{uuid.uuid4().hex[:12]}"
     try:
         write_scene(scene, staging / "scene", layout=config.layout)
