@@ -73,6 +73,7 @@ from vid2sim.physics.skinning_training import (
 )
 from vid2sim.predictor.solid import sample_solid
 from vid2sim.runtime.errors import ConfigError, InputError
+from vid2sim.runtime.files import write_file_atomic
 from vid2sim.runtime.training import Progress, Schedule, optimise
 from vid2sim.synthetic.meshes import normalize_to_canonical
 from vid2sim.synthetic.shapes import ProceduralShapeConfig, make_procedural_object, random_rotation
@@ -565,27 +566,11 @@ def train_template(config: TemplateConfig | None = None, progress: bool = True) 
 
 def save_template(template: SkinningField, info: dict, path: str | Path) -> Path:
     """Write the template (its state dict, float32, and ``info``) to ``path`` atomically."""
-    import os
-    import tempfile
-
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     payload = {"format": TEMPLATE_FORMAT, "num_handles": template.num_handles, "width": template.width,
                "hidden_layers": template.hidden_layers,
                "state_dict": {k: v.detach().float().clone() for k, v in template.state_dict().items()},
                "reference_last_layer": reference_last_layer(template).to(torch.float64), "info": info}
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    os.close(fd)
-    try:
-        torch.save(payload, tmp)
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)  # mkstemp's file is private; give it a plain file's permissions
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    return write_file_atomic(path, lambda tmp: torch.save(payload, tmp))
 
 
 def _read(path: str | Path | None) -> dict:
