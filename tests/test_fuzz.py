@@ -264,7 +264,8 @@ def test_kill_outputs_are_compared_without_their_wall_clock(tmp_path):
     def write(root: Path, seconds: float, value: int, log: str) -> Path:
         (root / "sub").mkdir(parents=True)
         (root / "a.json").write_text(json.dumps({"value": value, "seconds": seconds, "path": str(root / "x"),
-                                                 "timing": {"seconds": seconds}, "load_seconds": seconds}))
+                                                 "timing": {"seconds": seconds}, "load_seconds": seconds,
+                                                 "nan": float("nan")}))  # NaN, as scene files may hold
         np.savez(root / "sub" / "r.npz", x=np.arange(3.0), wall_time=np.float64(seconds),
                  stats=np.array(json.dumps({"n": value, "wall_time_all_runs": seconds})))
         (root / "sub" / "log.json").write_text(log)

@@ -147,6 +147,10 @@ def _core(obj: Any, a: str, b: str) -> Any:
     return obj.replace(a, b) if isinstance(obj, str) else obj
 
 
+def _canonical(obj: Any) -> str:
+    return json.dumps(obj, sort_keys=True)
+
+
 def _same_npz(x: Path, y: Path) -> bool:
     """Two ``.npz`` files hold the same arrays but their wall-clock times (a JSON string array included)."""
     with np.load(x, allow_pickle=False) as p, np.load(y, allow_pickle=False) as q:
@@ -158,7 +162,7 @@ def _same_npz(x: Path, y: Path) -> bool:
             u, v = p[k], q[k]
             if u.dtype.kind == "U" and u.ndim == 0 and v.dtype.kind == "U" and v.ndim == 0:
                 try:
-                    if _core(json.loads(str(u)), "", "") != _core(json.loads(str(v)), "", ""):
+                    if _canonical(_core(json.loads(str(u)), "", "")) != _canonical(_core(json.loads(str(v)), "", "")):
                         return False
                     continue
                 except ValueError:
@@ -180,8 +184,9 @@ def same_tree(a: Path, b: Path, skip: tuple[str, ...] = ()) -> tuple[bool, str]:
         if any(part in skip for part in Path(rel).parts):
             continue
         x, y = a / rel, b / rel
-        if rel.endswith(".json"):
-            same = _core(json.loads(x.read_text()), str(a), str(b)) == _core(json.loads(y.read_text()), str(b), str(b))
+        if rel.endswith(".json"):  # compared as canonical text: NaN (which scene files may hold) equals NaN there
+            same = _canonical(_core(json.loads(x.read_text()), str(a), str(b))) == \
+                _canonical(_core(json.loads(y.read_text()), str(b), str(b)))
         elif rel.endswith(".npz"):
             same = _same_npz(x, y)
         else:
