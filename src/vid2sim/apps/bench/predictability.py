@@ -22,13 +22,13 @@ from __future__ import annotations
 
 import json
 import math
-import os
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from vid2sim.evaluate.scores import scene_groups
 from vid2sim.metrics.geometry import boundary_faces
 from vid2sim.runtime.errors import InputError
+from vid2sim.runtime.files import write_text_atomic
 from vid2sim.scene.reading import load_scene
 from vid2sim.synthetic.scenes import (
     FEM_RESULT_NPZ,
@@ -130,10 +130,7 @@ def predictability(scene: str | Path, out: str | Path, height_offset: float = 1e
     fem_truth = truth.config.metadata.get("fem", {}).get("substeps")
     fem_twin = copy.config.metadata.get("fem", {}).get("substeps")
     report["fem_substeps"] = {"truth": fem_truth, "twin": fem_twin}
-    out.mkdir(parents=True, exist_ok=True)
-    tmp = out / (PREDICTABILITY_JSON + ".tmp")
-    tmp.write_text(json.dumps(report, indent=2) + "\n")
-    os.replace(tmp, out / PREDICTABILITY_JSON)
+    write_text_atomic(out / PREDICTABILITY_JSON, json.dumps(report, indent=2) + "\n")
     return report
 
 

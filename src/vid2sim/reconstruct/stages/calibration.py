@@ -39,7 +39,7 @@ from vid2sim.reconstruct.runner import Context, State
 from vid2sim.reconstruct.silhouettes import solid_surface
 from vid2sim.reconstruct.stages.points import ObjectPoints, sample_in_voxels
 from vid2sim.reconstruct.stages.stage1 import prior_material
-from vid2sim.runtime.files import read_json, write_json_atomic
+from vid2sim.runtime.files import read_json, write_json_atomic, write_text_atomic
 
 RESULT, REFERENCE = "stiffness.json", "stiffness_reference.json"
 
@@ -87,9 +87,7 @@ def _reference_worker(points_path: str, arguments: dict, path: str) -> None:
         out = {"ok": True, "reference": tet_reference(points, **arguments)}
     except ValueError as exc:  # a bad input (no surface): reported to the parent as the same error
         out = {"ok": False, "error": str(exc)}
-    tmp = Path(path).with_suffix(".tmp")
-    tmp.write_text(json.dumps(out))
-    tmp.replace(path)
+    write_text_atomic(path, json.dumps(out))
 
 
 class TetReferenceJob:
