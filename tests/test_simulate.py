@@ -55,10 +55,10 @@ def test_captured_scenario_reproduces_the_assets_own_rollout(asset, tiny_scene):
     contact = asset.contact_points
     for a, b in zip(run.states, ref):
         assert a.t == pytest.approx(b.t)
-        # the same motion, up to the float32 reference's rounding amplified by the contact: the session's tiny
-        # scene is made afresh with fTetWild (whose tets differ run to run), and a full-suite run measured 1.2 mm
-        # on 7 of 1 320 coordinates (the same test alone passed within 1 mm); 2.5 mm on the tiny object (about
-        # 1 m) is still the same motion
+        # the same motion, up to the float32 reference's rounding amplified by the contact: when the session's
+        # tiny scene was still tetrahedralised afresh (its tets are frozen now, tests/conftest.py), a full-suite
+        # run measured 1.2 mm on 7 of 1 320 coordinates on one mesh; 2.5 mm on the tiny object (about 1 m) is
+        # still the same motion
         with torch.no_grad():
             torch.testing.assert_close(sim.positions(contact, a.z.float()), sim.positions(contact, b.z), rtol=0,
                                        atol=2.5e-3)
