@@ -167,6 +167,31 @@ def test_clip_loss_weights_its_frames():
             assert torch.allclose(together[t], alone, atol=1e-6)
         assert not torch.allclose(together, render_states(rig, states[1:4], obs, [0, 1]), atol=1e-3)
 
+def test_a_scaled_loss_sees_the_full_renders_through_the_same_filter_as_its_targets():
+    """At a coarse scale the targets are area-averaged and so are the renders (made at the cameras' full size):
+    a state whose full-size renders are the targets has zero loss at every scale. Rendering the Gaussians by
+    half-size cameras instead leaves a floor (the footprint of a splat smaller than a pixel does not average)."""
+    from vid2sim.reconstruct.stages.joint import clip_loss, downsample
+
+    sim, gaussians, cams = _scene_setup()
+    rig = GaussianRig(sim, gaussians)
+    start = sim.rigid_velocity_state([0.1, 0.0, -1.0], [0.0, 1.0, 0.0], [0.0, 0.0, 0.0])
+    with torch.no_grad():
+        states = [start] + sim.rollout(start, 3)
+        full = Observations(torch.zeros(2, 4, 32, 32, 3), cams)
+        targets = render_states(rig, states, full, [0, 1]).transpose(0, 1)  # (V, T, H, W, 3)
+    full = Observations(targets, cams)
+    half = full.at_scale(0.5)
+    assert half.images.shape == (2, 4, 16, 16, 3) and half.cameras is full.cameras
+    assert torch.allclose(half.images, downsample(targets, (16, 16)))
+    for obs in (full, half):
+        loss, _ = clip_loss(sim, rig, start, obs)
+        assert loss < 1e-12
+    with torch.no_grad():  # the old way: half-size cameras render a different image than the averaged one
+        direct = render_states(rig, states[1:], Observations(half.images, [c.resized(16, 16) for c in cams]), [0, 1])
+    assert float(((direct - half.images[:, 1:].transpose(0, 1)) ** 2).mean()) > 1e-5
+
+
 def test_joint_optimisation_recovers_E_from_images_of_the_same_model():
     """Images rendered from the model at log10 E = 4.5 → the coarse search and Adam find it from the prior 5."""
     sim, gaussians, cams = _scene_setup()

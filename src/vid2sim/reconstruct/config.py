@@ -270,7 +270,8 @@ class JointConfig:
             and held at its prior the bounce's energy loss is absorbed by E); otherwise (the default) it stays at
             its prior. ``windows`` fits it with the learning rate ``lr_damping``.
         coarse_log10_E: grid of the coarse search (empty: skip it).
-        coarse_scale: image scale of the coarse search and the first ``coarse_fraction`` of the iterations.
+        coarse_scale: image scale of the coarse search, the Gauss–Newton fit and the first ``coarse_fraction`` of the
+            iterations (targets and renders, made at full size, area-averaged to it).
         coarse_fraction: fraction of the iterations rendered at ``coarse_scale`` (then full resolution).
         views_per_iteration: views rendered per iteration (None: all observed views).
         refresh_every: iterations between the whole rollouts that provide the windows' start states.

@@ -5,10 +5,11 @@ each frame's state z moves the Gaussians fitted at frame 0 (centres by LBS, cova
 rendered in the observed views and compared with the video.
 
 First, for either method, a coarse search over log10 E (the loss is not convex in E: the wrong bounce phase is a
-local minimum): whole observed rollouts at a grid of E, rendered at ``coarse_scale``; its parabola vertex is the
-start. The whole-clip losses weight frame t by exp(−(t − 1)/4) (``frame_decay``): the first contact, where E acts
-most directly, counts more than the late frames, where a stiff object's rocking on the floor drifts chaotically
-from any model's. Then ``JointConfig.method``:
+local minimum): whole observed rollouts at a grid of E, compared at ``coarse_scale`` (renders and images
+area-averaged, :meth:`Observations.at_scale`); its parabola vertex is the start. The whole-clip losses weight
+frame t by exp(−(t − 1)/4) (``frame_decay``): the first contact, where E acts most directly, counts more than the
+late frames, where a stiff object's rocking on the floor drifts chaotically from any model's.
+Then ``JointConfig.method``:
 
 * "gauss_newton" (opt-in, beyond the paper; not the default while it does not beat "windows" on the small suite):
   Levenberg–Marquardt on the few physical parameters — log10 E,
@@ -82,15 +83,31 @@ class Observations:
     background: tuple[float, float, float] = (1.0, 1.0, 1.0)
 
     def at_scale(self, scale: float) -> "Observations":
-        """The same observations at ``scale`` × the resolution (area-averaged images, rescaled cameras)."""
+        """The same observations at ``scale`` × the resolution: area-averaged images, the same cameras.
+
+        The renders of a scaled loss are made at the cameras' full resolution and area-averaged to the images' size
+        (:func:`render_states`), so that both sides of the loss pass through the same filter. Gaussians rendered
+        directly by half-size cameras are not the average of their full-size render (a splat's footprint does not
+        shrink with the pixel grid below a pixel): on the small suite that left a floor of 3.6e-3 in the frame-0 loss
+        at half resolution against 4e-5 at full, 70 % of the coarse search's loss at its minimum (docs/architecture.md,
+        "The coarse losses' resolution"). Rendering at full size costs about the same on the CPU (the per-Gaussian
+        work dominates)."""
         if scale == 1.0:
             return self
         V, T, H, W, _ = self.images.shape
         h, w = max(8, round(H * scale)), max(8, round(W * scale))
-        x = self.images.reshape(V * T, H, W, 3).permute(0, 3, 1, 2)
-        x = torch.nn.functional.interpolate(x, size=(h, w), mode="area")
-        imgs = x.permute(0, 2, 3, 1).reshape(V, T, h, w, 3)
-        return Observations(imgs, [c.resized(w, h) for c in self.cameras], self.background)
+        return Observations(downsample(self.images.reshape(V * T, H, W, 3), (h, w)).reshape(V, T, h, w, 3),
+                            self.cameras, self.background)
+
+
+def downsample(images: Tensor, size: tuple[int, int]) -> Tensor:
+    """(..., H, W, 3) images area-averaged to (..., h, w, 3) (the input itself when the size is already (h, w))."""
+    if tuple(images.shape[-3:-1]) == tuple(size):
+        return images
+    lead = images.shape[:-3]
+    x = images.reshape(-1, *images.shape[-3:]).permute(0, 3, 1, 2)
+    x = torch.nn.functional.interpolate(x, size=size, mode="area")
+    return x.permute(0, 2, 3, 1).reshape(*lead, *size, 3)
 
 
 @dataclass
@@ -160,7 +177,8 @@ def _detached(state: SimState) -> SimState:
 
 def render_states(rig: GaussianRig, states: Sequence[SimState], obs: Observations, views: Sequence[int],
                   basis: tuple[Tensor, Tensor] | None = None) -> Tensor:
-    """(len(states), len(views), H, W, 3) renders of the states in the given views of ``obs``.
+    """(len(states), len(views), H, W, 3) renders of the states in the given views of ``obs``, at the size of
+    ``obs.images`` (rendered by the cameras at their own size and area-averaged to it, :meth:`Observations.at_scale`).
 
     All frames go to the renderer in one call (per-view Gaussians: frame t's Gaussians for frame t's
     cameras), which composites them together; with gsplat that is one batched launch. On the CPU it saves
@@ -169,15 +187,17 @@ def render_states(rig: GaussianRig, states: Sequence[SimState], obs: Observation
     basis = rig.basis() if basis is None else basis
     cams = [obs.cameras[v] for v in views]
     nv = len(cams)
+    size = tuple(obs.images.shape[2:4])
     if rig.shading is not None:  # colours differ per frame: one call per frame
         frames = [rig.deformed(s.z, basis) for s in states]
-        return torch.stack([render(d.means, d.opacities, d.sh, cams, covars=d.covars, sh_degree=d.sh_degree,
-                                   background=list(obs.background)).rgb for d in frames])
+        out = torch.stack([render(d.means, d.opacities, d.sh, cams, covars=d.covars, sh_degree=d.sh_degree,
+                                  background=list(obs.background)).rgb for d in frames])
+        return downsample(out, size)
     means, covars = rig.deformed_frames(torch.stack([s.z for s in states]), basis)  # all frames in one batch
     g = rig.gaussians
     out = render(means.repeat_interleave(nv, dim=0), g.opacities, g.sh, cams * len(states),  # (T·V, N, 3)
                  covars=covars.repeat_interleave(nv, dim=0), sh_degree=g.sh_degree, background=list(obs.background)).rgb
-    return out.reshape(len(states), nv, *out.shape[1:])
+    return downsample(out.reshape(len(states), nv, *out.shape[1:]), size)
 
 
 def image_loss(renders: Tensor, targets: Tensor) -> Tensor:
