@@ -96,7 +96,8 @@ def test_suite_json_schema_means_and_table(local_run, suite_dir, tiny_config):
     assert set(result["means"]) == set(METRICS) == {
         "dynamic_psnr", "dynamic_ssim", "future_psnr", "future_ssim", "novel_psnr", "novel_ssim",
         "abs_error_log10_E", "abs_error_nu", "start_abs_error_log10_E", "start_abs_error_nu", "chamfer_observed",
-        "chamfer_future", "centre_of_mass_observed", "centre_of_mass_future", "interval_covers_log10_E",
+        "chamfer_future", "centre_of_mass_frame_0", "centre_of_mass_observed", "centre_of_mass_future",
+        "interval_covers_log10_E",
         "interval_covers_nu", "joint_improved", "seconds"}
     index = json.loads((suite_dir / "index.json").read_text())
     assert [r["name"] for r in result["scenes"]] == [s["name"] for s in index["scenes"]] == ["scene_000", "scene_001"]
@@ -150,7 +151,9 @@ def test_suite_json_schema_means_and_table(local_run, suite_dir, tiny_config):
     chamfer = next(line for line in lines if line.startswith("Chamfer (cm)")).split()
     assert chamfer[-1] == f"{100 * result['means']['chamfer_observed']:.2f}"  # metres in JSON, cm in the table
     com = next(line for line in lines if line.startswith("centre of mass (cm)")).split()
-    assert com[-1] == f"{100 * result['means']['centre_of_mass_observed']:.2f}"
+    assert com[-1] == f"{100 * result['means']['centre_of_mass_frame_0']:.2f}"  # the row "frame 0", then observed
+    observed = lines[lines.index(next(line for line in lines if line.startswith("centre of mass (cm)"))) + 1].split()
+    assert observed[0] == "observed" and observed[-1] == f"{100 * result['means']['centre_of_mass_observed']:.2f}"
     assert len({len(line) for line in lines[2:16]}) == 1  # aligned columns
     assert "FAILED" not in table
 

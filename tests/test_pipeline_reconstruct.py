@@ -177,6 +177,7 @@ def test_evaluate_reports_views_frames_material_and_chamfer(tiny_asset, tiny_sce
     com = report["centre_of_mass"]  # the simulated body's centre of mass against the truth's, per frame
     assert len(com["per_frame"]) == 6 and all(0 <= d < 0.1 for d in com["per_frame"])
     assert com["observed_mean"] == pytest.approx(sum(com["per_frame"][:5]) / 5)  # observed frames 0..4
+    assert com["frame_0"] == com["per_frame"][0]
     assert com["future_mean"] == pytest.approx(com["per_frame"][5])
     # Stage II's start (the tiny config's prior, E 1e5 and ν 0.3: the truth here) with its errors
     prior = json.loads((asset / "config.json").read_text())["prior"]

@@ -36,8 +36,9 @@ def run(args: argparse.Namespace) -> int:
                          f"|d log10 E| = {start['abs_error_log10_E']:.3f}, |d nu| = {start['abs_error_nu']:.3f}")
     for key, what in (("chamfer", "Chamfer to the true surface"), ("centre_of_mass", "centre of mass off the truth's")):
         if key in report:
-            future = report[key]["future_mean"]
-            lines.append(f"{what}: {100 * report[key]['observed_mean']:.2f} cm observed"
+            future, first = report[key]["future_mean"], report[key].get("frame_0")
+            lines.append(f"{what}: " + (f"{100 * first:.2f} cm at frame 0, " if first is not None else "")
+                         + f"{100 * report[key]['observed_mean']:.2f} cm observed"
                          + (f", {100 * future:.2f} cm future" if future is not None else ""))
     print("\n".join(lines + [f"wrote {out}"]))
     if not args.no_report:

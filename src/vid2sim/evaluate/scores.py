@@ -11,7 +11,8 @@ rendered in every camera. Reported (means, and per frame):
 * with ground truth in the scene: the absolute errors of log10 E and ν, the Chamfer distance (m) of the
   simulated Gaussian centres to the ground-truth surface (the ``tet_trajectory`` extra) per frame, and the
   distance (m) between the simulated body's centre of mass and the truth's per frame (``centre_of_mass``: the
-  part of the motion error a wrong start or bounce leaves, whatever the shape);
+  part of the motion error a wrong start or bounce leaves, whatever the shape; ``frame_0`` is the reconstructed
+  body's own error, its mass distribution's, before any motion);
 * the material Stage II started from (the documented prior, or Stage I's prediction) with its own errors
   (``material.start``, :func:`start_material`): the baseline that says whether the fit improved on its start;
 * the material's intervals and identifiability as ``reconstruct`` reported them (``material.uncertainty``, from
@@ -260,6 +261,7 @@ def _motion_errors(tet: dict[str, Tensor], centres: list[Tensor], sim: Simulator
         },
         "centre_of_mass": {
             "per_frame": offset,
+            "frame_0": offset[0],  # the reconstructed body's own, before any motion
             "observed_mean": sum(offset[f] for f in obs_f) / len(obs_f),
             "future_mean": sum(offset[f] for f in held_f) / len(held_f) if held_f else None,
             "units": "m (distance between the simulated body's centre of mass and the ground truth's)",

@@ -41,6 +41,7 @@ MEAN_LABELS = {
     "start_abs_error_log10_E": ("|Δ log10 E| at the start (prior or Stage I)", "decades", 3, 1.0),
     "start_abs_error_nu": ("|Δ ν| at the start (prior or Stage I)", "", 3, 1.0),
     "chamfer_observed": ("Chamfer observed", "cm", 2, 100.0), "chamfer_future": ("Chamfer future", "cm", 2, 100.0),
+    "centre_of_mass_frame_0": ("centre of mass off, frame 0", "cm", 2, 100.0),
     "centre_of_mass_observed": ("centre of mass off, observed", "cm", 2, 100.0),
     "centre_of_mass_future": ("centre of mass off, future", "cm", 2, 100.0),
     "interval_covers_log10_E": ("scenes whose log10 E interval holds the truth", "", 2, 1.0),
