@@ -29,6 +29,10 @@ class PointsConfig:
         depth_tolerance: how far (in voxels) a hull voxel may lie in front of the Gaussians' rendered
             surface before it is carved.
         alpha_threshold: the rendered opacity above which a pixel's depth is trusted.
+        depth_planes: depth planes per view on which the Gaussians' surface depth is found
+            (:func:`vid2sim.splats.surface_depth.surface_depth`; its resolution is the object's depth / planes).
+        surface_opacity: the opacity accumulated along a ray that marks the Gaussians' surface for the depth
+            carving (½ is the median depth; lower carves less where the front Gaussians are faint).
         mask_threshold: mask values above it count as object.
         max_contact_points: the surface voxels are reduced to at most this many contact points (farthest-point
             sampling; each keeps the area of the voxels nearest to it) — the contact's cost grows with them.
@@ -51,6 +55,8 @@ class PointsConfig:
     num_points: int = 20000
     depth_tolerance: float = 1.5
     alpha_threshold: float = 0.5
+    depth_planes: int = 32
+    surface_opacity: float = 0.2
     mask_threshold: float = 0.5
     max_contact_points: int = 1000
     seed: int = 0
@@ -73,6 +79,11 @@ class PointsConfig:
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
                 raise ConfigError(f"PointsConfig.{name} must be a finite number > 0, got {value!r}")
+        if isinstance(self.depth_planes, bool) or not isinstance(self.depth_planes, int) or self.depth_planes < 2:
+            raise ConfigError(f"PointsConfig.depth_planes must be an integer >= 2, got {self.depth_planes!r}")
+        if isinstance(self.surface_opacity, bool) or not isinstance(self.surface_opacity, (int, float)) \
+                or not 0 < self.surface_opacity < 1:
+            raise ConfigError(f"PointsConfig.surface_opacity must lie in (0, 1), got {self.surface_opacity!r}")
         if self.resolution < 8:
             raise ConfigError(f"PointsConfig.resolution must be >= 8, got {self.resolution}")
         if self.num_points < 100:
