@@ -11,12 +11,11 @@ trusts").
 depth (the convention of 2DGS and Gaussian Opacity Fields for surfaces); lower, the first surface the ray meets.
 Where the front Gaussians are faint (a layer that stops less than half the light) the median lies behind them, so
 a carving that must not cut into the object takes a lower level. No rasteriser pass gives this depth directly, so
-it is found on depth planes: per
-view, the Gaussians are split at ``planes`` depths spanning their centres' range, the opacity accumulated by the
-Gaussians in front of each plane is rendered (one batched call per view, the Gaussians behind a plane mirrored
-behind the camera, where they are culled), and the crossing of ½ is interpolated linearly between the planes that
-bracket it. A Gaussian counts as in front of a plane by its centre, so the depth resolves to about the plane
-spacing and the Gaussians' own extent.
+it is found on depth planes: per view, the Gaussians are split at ``planes`` depths spanning their centres' range,
+the opacity accumulated by the Gaussians in front of each plane is rendered (one batched call per view, the
+Gaussians behind a plane mirrored through the camera's centre, where the near plane culls them), and the crossing
+of the level is interpolated linearly between the planes that bracket it. A Gaussian counts as in front of a plane
+by its centre, so the depth resolves to about the plane spacing and the Gaussians' own extent.
 """
 
 from __future__ import annotations
