@@ -90,8 +90,8 @@ class Observations:
         directly by half-size cameras are not the average of their full-size render (a splat's footprint does not
         shrink with the pixel grid below a pixel): on the small suite that left a floor of 3.6e-3 in the frame-0 loss
         at half resolution against 4e-5 at full, 70 % of the coarse search's loss at its minimum (docs/architecture.md,
-        "The coarse losses' resolution"). Rendering at full size costs about the same on the CPU (the per-Gaussian
-        work dominates)."""
+        "The coarse losses' resolution"). At the small preset rendering at full size costs about the same on the CPU
+        (the per-Gaussian work dominates); at 448² the pixels count."""
         if scale == 1.0:
             return self
         V, T, H, W, _ = self.images.shape
