@@ -150,9 +150,9 @@ def test_suite_json_schema_means_and_table(local_run, suite_dir, tiny_config):
     assert psnr[-1] == f"{result['means']['dynamic_psnr']:.2f}"
     chamfer = next(line for line in lines if line.startswith("Chamfer (cm)")).split()
     assert chamfer[-1] == f"{100 * result['means']['chamfer_observed']:.2f}"  # metres in JSON, cm in the table
-    com = next(line for line in lines if line.startswith("centre of mass (cm)")).split()
+    row = next(i for i, line in enumerate(lines) if line.startswith("centre of mass (cm)"))
+    com, observed = lines[row].split(), lines[row + 1].split()
     assert com[-1] == f"{100 * result['means']['centre_of_mass_frame_0']:.2f}"  # the row "frame 0", then observed
-    observed = lines[lines.index(next(line for line in lines if line.startswith("centre of mass (cm)"))) + 1].split()
     assert observed[0] == "observed" and observed[-1] == f"{100 * result['means']['centre_of_mass_observed']:.2f}"
     assert len({len(line) for line in lines[2:16]}) == 1  # aligned columns
     assert "FAILED" not in table

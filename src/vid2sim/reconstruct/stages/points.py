@@ -103,6 +103,14 @@ class ObjectPoints:
         return (X - self.centre.to(X)) / self.scale
 
 
+def _at_most(camera: Camera, side: int) -> Camera:
+    """``camera`` with its image's longer side at most ``side`` pixels (the same view, K scaled)."""
+    scale = side / max(camera.width, camera.height)
+    if scale >= 1:
+        return camera
+    return camera.resized(max(1, round(camera.width * scale)), max(1, round(camera.height * scale)))
+
+
 def _carve_by_depth(centres: Tensor, depth: Tensor, alpha: Tensor, viewmats: Tensor, Ks: Tensor,
                     tolerance: float, alpha_threshold: float) -> Tensor:
     """(M,) bool: voxel centres not in front of the rendered surface in any view that sees the object there."""
@@ -149,10 +157,7 @@ def object_points(masks: Tensor, cameras: Sequence[Camera], gaussians: Gaussians
     if gaussians is not None:
         # a voxel spans a few pixels of a full-size view: depth maps of twice the grid's resolution resolve it, at a
         # fraction of the cost (each depth plane is a render)
-        side = 2 * cfg.resolution
-        small = [c if max(c.width, c.height) <= side else
-                 c.resized(max(1, round(c.width * side / max(c.width, c.height))),
-                           max(1, round(c.height * side / max(c.width, c.height)))) for c in cameras]
+        small = [_at_most(c, 2 * cfg.resolution) for c in cameras]
         depth, alpha = surface_depth(gaussians, small, cfg.depth_planes, cfg.surface_opacity)
         viewmats, Ks, _, _ = stack_cameras(small)
         idx = torch.nonzero(occ)
