@@ -343,10 +343,10 @@ def test_a_loss_power_below_one_favours_the_frames_the_motion_explains(tiny_asse
         renders = render_frames([motion.carry(g, t) for t in observed[:4]], cameras, progress=False)
         return image_metrics(renders, images[:, :4], layout="VT")["psnr"]
 
-    fits = {p: refine_on_motion(asset.gaussians, motion, images, cameras, observed, FitConfig(), 80, geometry=False,
+    fits = {p: refine_on_motion(asset.gaussians, motion, images, cameras, observed, FitConfig(), 40, geometry=False,
                                 loss_power=p) for p in (1.0, 0.5)}
     assert fits[0.5][2]["loss_power"] == 0.5 and fits[1.0][2]["loss_power"] == 1.0
-    # measured: 25.03 against 24.80 dB
+    # measured: 23.34 against 23.13 dB (40 iterations; 25.03 against 24.80 with 80)
     assert explained_psnr(fits[0.5][0]) > explained_psnr(fits[1.0][0]) + 0.1
     for bad in (0.0, 1.5):
         with pytest.raises(ValueError, match="loss_power"):
