@@ -259,13 +259,13 @@ def test_motion_appearance_fits_the_gaussians_through_the_motion(tiny_asset, tin
                              layout="VT")["psnr"]
 
     colours, no_shading, record = refine_on_motion(asset.gaussians, motion, images, cameras, observed, FitConfig(),
-                                                   30, geometry=False)
+                                                   15, geometry=False)
     assert no_shading is None and "shading" not in record
-    assert record["iterations"] == 30 and not record["geometry"] and record["loss_last"] < record["loss_first"]
+    assert record["iterations"] == 15 and not record["geometry"] and record["loss_last"] < record["loss_first"]
     for name in ("means", "log_scales", "quats"):  # colours only: the geometry stays as it was
         assert torch.equal(getattr(colours, name), getattr(asset.gaussians, name)), name
     assert not torch.equal(colours.sh, asset.gaussians.sh)
-    full, _, record = refine_on_motion(asset.gaussians, motion, images, cameras, observed, FitConfig(), 30)
+    full, _, record = refine_on_motion(asset.gaussians, motion, images, cameras, observed, FitConfig(), 15)
     assert record["geometry"] and full.num == asset.gaussians.num
     for name in ("means", "log_scales", "quats", "sh", "opacity_logits"):
         assert not torch.equal(getattr(full, name), getattr(asset.gaussians, name)), name
@@ -275,7 +275,7 @@ def test_motion_appearance_fits_the_gaussians_through_the_motion(tiny_asset, tin
     assert start.light.tolist() == pytest.approx([0.0, 0.0, 1.0]) and float(start.ambient) == pytest.approx(0.5)
     albedo = dataclasses.replace(asset.gaussians, sh=start.unshade(asset.gaussians.sh))
     assert torch.allclose(motion.carry(albedo, 0, start).sh, motion.carry(asset.gaussians, 0).sh, atol=1e-5)
-    lit, shading, record = refine_on_motion(albedo, motion, images, cameras, observed, FitConfig(), 30, shading=start)
+    lit, shading, record = refine_on_motion(albedo, motion, images, cameras, observed, FitConfig(), 15, shading=start)
     assert shading.num == lit.num and record["shading"]["model"] == "lambert"
     assert not torch.equal(shading.normals, start.normals) and not torch.equal(shading.light, start.light)
     assert record["loss_last"] < record["loss_first"]

@@ -259,9 +259,11 @@ class JointConfig:
             (``iterations``, the learning rates; the networks too where their learning rates are > 0).
             "gauss_newton" (beyond the paper, opt-in): Levenberg–Marquardt on the physical parameters (log10 E, ν,
             ζ, the initial linear and angular velocity) over the whole observed clip, with a Gaussian prior on the
-            material (:mod:`vid2sim.reconstruct.gauss_newton`); the networks stay as trained. Not the default: on
-            two small-suite scenes it kept the coarse start on one and moved E away from the truth on the other
-            (docs/results.md, "Gauss–Newton joint fit"). Either method reports the material's intervals.
+            material (:mod:`vid2sim.reconstruct.gauss_newton`); the networks stay as trained. Not the default yet:
+            on the 8-scene quadratic-tet small suite it beat the coarse search's start on 7 scenes (the windows on
+            4), with images and E as good or better (docs/results.md, "The quadratic-tet small suite"), but
+            ``iterations`` and the tools that count it (``--iterations``, ``bench ablation``, ``bench speed``, the
+            report's loss curve) are the windows' Adam iterations. Either method reports the material's intervals.
         gauss_newton_iterations: at most this many Gauss–Newton Jacobians (each p + 1 rollouts of the clip at
             ``coarse_scale``).
         gauss_newton_tolerance: stop when an accepted step lowers the posterior objective by less than this.
