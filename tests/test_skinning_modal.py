@@ -103,8 +103,8 @@ def test_modal_training_finds_the_bending_mode_the_paper_objective_misses():
     frequency, ω = 4.730² √(E I / (ρ A L⁴)). The continuum lies a few percent below Euler–Bernoulli (shear
     and rotary inertia at slenderness 5), and every subspace lies above the continuum."""
     lowest = {objective: _lowest(_trained_bar(objective, 20000), _bar(20000, 1)) for objective in ("random_z", "modal")}
-    assert 0.85 < lowest["modal"] < 1.08, lowest
-    assert lowest["random_z"] > 1.15 * lowest["modal"], lowest
+    assert 0.85 < lowest["modal"] < 1.08, lowest  # measured 0.968
+    assert lowest["random_z"] > 1.15 * lowest["modal"], lowest  # measured 1.262
 
 
 def test_modal_training_on_too_few_points_overfits_them():
