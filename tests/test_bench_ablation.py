@@ -5,6 +5,7 @@ prediction, ablation.json, resuming, a Stage I that did not run reported as a fa
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 import json
 import math
@@ -112,19 +113,22 @@ def test_variants_apply_to_the_preset_or_the_given_config(tiny_config):
     configs = variant_configs(given, predictor="/x/p.pt")
     assert list(configs) == NAMES
     s1, full, prior = (configs[n].reconstruct_config() for n in NAMES)
-    assert (s1.stage1.enabled, s1.stage1.predictor, s1.joint.iterations, s1.joint.coarse_log10_E) == (
+    assert (s1.stage1.enabled, s1.stage1.predictor, s1.joint.method_iterations(),
+            s1.joint.coarse_log10_E) == (
         True,
         "/x/p.pt",
         0,
         (),
     )
-    assert (full.stage1.enabled, full.stage1.predictor, full.joint.iterations, full.joint.coarse_log10_E) == (
+    assert (full.stage1.enabled, full.stage1.predictor, full.joint.method_iterations(),
+            full.joint.coarse_log10_E) == (
         True,
         "/x/p.pt",
         7,
         (4.5, 5.0),
     )
-    assert (prior.stage1.enabled, prior.stage1.predictor, prior.joint.iterations, prior.joint.coarse_log10_E) == (
+    assert (prior.stage1.enabled, prior.stage1.predictor, prior.joint.method_iterations(),
+            prior.joint.coarse_log10_E) == (
         False,
         None,
         7,
@@ -133,13 +137,19 @@ def test_variants_apply_to_the_preset_or_the_given_config(tiny_config):
     # everything else is the given config's; the given config is untouched
     assert {k: v for k, v in s1.to_dict().items() if k not in ("stage1", "joint")} == \
         {k: v for k, v in base.to_dict().items() if k not in ("stage1", "joint")}
-    assert base.stage1.enabled is False and base.stage1.predictor is None and base.joint.iterations == 2
+    assert base.stage1.enabled is False and base.stage1.predictor is None and base.joint.gauss_newton_iterations == 2
+    # the iterations are the default method's (Gauss-Newton steps); Stage I alone runs none of either method
+    assert (full.joint.method, full.joint.gauss_newton_iterations, full.joint.iterations) == ("gauss_newton", 7, 2)
+    assert (s1.joint.gauss_newton_iterations, s1.joint.iterations) == (0, 0)
+    windows = dataclasses.replace(base, joint=dataclasses.replace(base.joint, method="windows"))
+    adam = variant_configs(SuiteConfig(reconstruct=windows, iterations=7))["stage2_prior"].reconstruct_config()
+    assert (adam.joint.iterations, adam.joint.gauss_newton_iterations) == (7, 2)
     assert [configs[n].iterations for n in NAMES] == [0, 7, 7] and all(configs[n].threads == 1 for n in NAMES)
     # Stage I alone does not depend on the iterations; the preset's settings are used without a config
     assert variant_configs(SuiteConfig(iterations=3))["stage1_only"].to_dict() == \
         variant_configs(SuiteConfig())["stage1_only"].to_dict()
     small = variant_configs()
-    assert small["stage2_prior"].reconstruct_config().joint.iterations == 100  # the small preset's
+    assert small["stage2_prior"].reconstruct_config().joint.method_iterations() == 8  # the default's
     assert small["stage1_stage2"].reconstruct_config().stage1.predictor is None  # None: the shipped checkpoint
 
 
@@ -328,8 +338,10 @@ def test_three_variants_stage_one_where_it_belongs_and_ablation_json(run):
     assert [r["log10_E"] for r in logs["stage1_stage2"]["coarse_search"]] == pytest.approx(
         [s1["log10_E"] - 0.25, s1["log10_E"] + 0.25], abs=1e-5)
     assert [r["log10_E"] for r in logs["stage2_prior"]["coarse_search"]] == pytest.approx([4.5, 5.0])
-    for name in ("stage1_stage2", "stage2_prior"):
-        assert [e["iteration"] for e in logs[name]["iterations"] if "loss" in e] == [1, 2]
+    steps = {}
+    for name in ("stage1_stage2", "stage2_prior"):  # Gauss-Newton: the start, then at most 2 steps, at least one
+        steps[name] = [e["iteration"] for e in logs[name]["iterations"]]
+        assert steps[name] in ([0, 1], [0, 1, 2]) and all("loss" in e for e in logs[name]["iterations"])
     # iterations to converge: 0 for Stage I alone; the others recomputed from the asset's log and material
     conv = result["iterations_to_converge"]["variants"]
     assert result["variants"]["stage1_only"]["scenes"][0]["convergence"] == Convergence(0, 0, 0, 0).to_dict()
@@ -337,7 +349,8 @@ def test_three_variants_stage_one_where_it_belongs_and_ablation_json(run):
     for name in ("stage1_stage2", "stage2_prior"):
         m = _json(out / name / "scene_000" / "asset" / "material.json")
         expected = iterations_to_converge(logs[name]["iterations"], m["log10_E"], m["nu"]).to_dict()
-        assert result["variants"][name]["scenes"][0]["convergence"] == expected and expected["iterations"] == 2
+        assert result["variants"][name]["scenes"][0]["convergence"] == expected
+        assert expected["iterations"] == steps[name][-1]
         assert conv[name]["per_scene"] == {"scene_000": expected["iterations_to_converge"]}
         assert result["variants"][name]["means"]["iterations_to_converge"] == conv[name]["mean"]
     # the table: the three rows with the means of ablation.json

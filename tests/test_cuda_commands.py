@@ -58,12 +58,14 @@ def test_reconstruct_small_on_cuda(cuda_asset):
 
 
 def test_reconstruct_short_full_on_cuda(tiny_scene, tmp_path):
-    """The full preset (gsplat, SH degree 3, trained networks in the joint optimisation) cut to a few iterations;
-    the stiffness calibration, CPU work, is left to scripts/gpu_check.sh's full run."""
+    """The full preset (gsplat, SH degree 3) cut to a few iterations, with the paper's windows (trained networks
+    in the joint optimisation; the default Gauss-Newton fit runs in the other CUDA tests); the stiffness
+    calibration, CPU work, is left to scripts/gpu_check.sh's full run."""
     config = _config_file(tmp_path / "full.json", "full", {
         "gaussians": {"iterations": 60}, "points": {"resolution": 24, "num_points": 1000},
         "networks": {"skinning_iterations": 50}, "calibration": {"enabled": False},
-        "joint": {"iterations": 3, "coarse_log10_E": [4.5, 5.0], "validate_every": 1, "window": 2}})
+        "joint": {"method": "windows", "iterations": 3, "coarse_log10_E": [4.5, 5.0], "validate_every": 1,
+                  "window": 2}})
     out = tmp_path / "asset"
     assert main(["reconstruct", str(tiny_scene), str(out), "--config", config, "--device", "cuda", "--no-report",
                  "--quiet"]) == 0

@@ -100,7 +100,7 @@ def test_raise_on_finding_stops_at_the_first_mix_and_a_run_without_the_device_fa
 
 #: the demo's tiny sizes (the tiny_asset fixture's) cut further: the check adds Python work to every torch call
 _RECONSTRUCT = ["--gaussians.iterations", "10", "--appearance.iterations", "2", "--motion_appearance.iterations", "2",
-                "--networks.skinning_iterations", "4", "--joint.iterations", "1"]
+                "--networks.skinning_iterations", "4", "--iterations", "1"]
 
 
 @pytest.fixture(scope="module")

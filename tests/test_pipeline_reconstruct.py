@@ -652,6 +652,38 @@ def test_cli_no_stage1_and_predictor_flags(tiny_scene, tmp_path, monkeypatch):
     assert main(["reconstruct", str(tiny_scene), str(tmp_path / "a"), "--predictor", str(tmp_path / "no.pt")]) == 2
 
 
+def test_cli_iterations_are_the_joint_methods(tiny_scene, tmp_path, monkeypatch, capsys):
+    """``--iterations`` sets the Gauss-Newton steps of the default method and the Adam iterations of the windows;
+    given beside the field it stands for, or negative, it is refused before any work."""
+    seen = []
+
+    def fake(scene, out, config, progress=True, restart=False, device=None):
+        seen.append(config)
+        raise SystemExit(0)
+
+    monkeypatch.setattr(cli_reconstruct, "reconstruct", fake)
+    base = [str(tiny_scene), str(tmp_path / "a"), "--quiet"]
+    with pytest.raises(SystemExit):
+        main(["reconstruct", *base])
+    assert seen[-1].joint.method == "gauss_newton" and seen[-1].joint.method_iterations() == 8
+    with pytest.raises(SystemExit):
+        main(["reconstruct", *base, "--iterations", "3"])
+    assert (seen[-1].joint.gauss_newton_iterations, seen[-1].joint.iterations) == (3, 100)  # the preset's Adam
+    with pytest.raises(SystemExit):
+        main(["reconstruct", *base, "--iterations", "3", "--joint.method", "windows"])
+    assert (seen[-1].joint.gauss_newton_iterations, seen[-1].joint.iterations) == (8, 3)
+    config = tmp_path / "config.json"
+    config.write_text(json.dumps({"joint": {"method": "windows"}}))
+    with pytest.raises(SystemExit):
+        main(["reconstruct", *base, "--config", str(config), "--iterations", "0"])
+    assert (seen[-1].joint.method, seen[-1].joint.iterations) == ("windows", 0)  # the file's method
+    assert main(["reconstruct", *base, "--iterations", "3", "--joint.gauss_newton_iterations", "4"]) == 2
+    assert "--iterations and --joint.gauss_newton_iterations both set" in capsys.readouterr().err
+    assert main(["reconstruct", *base, "--iterations", "-1"]) == 2
+    assert "--iterations must be >= 0, got -1" in capsys.readouterr().err
+    assert len(seen) == 4
+
+
 def test_cli_bad_device_fails_before_any_work(tiny_scene, tmp_path, capsys):
     out = tmp_path / "a"
     assert main(["reconstruct", str(tiny_scene), str(out), "--device", "banana", "--quiet"]) == 2

@@ -285,10 +285,13 @@ def test_output_is_complete_or_absent(asset, tiny_asset, tmp_path, monkeypatch):
 def test_automatic_cameras_follow_the_whole_motion(asset, tmp_path):
     from PIL import Image
 
-    s = Scenario(frames=10, resolution=16, cameras=_cams("ring", views=1), floor=_floor(tilt_deg=20.0))
+    # released at rest (not with the reconstruction's velocity), so that where it goes is the slope's doing
+    s = Scenario(frames=10, resolution=16, cameras=_cams("ring", views=1), floor=_floor(tilt_deg=20.0),
+                 initial=InitialSpec(linear_velocity=(0.0, 0.0, 0.0), angular_velocity=(0.0, 0.0, 0.0)))
     at_start = resolve_scenario(asset, s).scenario.cameras  # framed on the object at t = 0
     out = simulate(asset, s, tmp_path / "slide", progress=False, video=False, ply=False)
     saved = Scenario.from_yaml(out / "scenario.yaml").cameras
+    # measured on the tiny assets of either joint method: radius × 1.265 and 1.263, target 0.14 m down the slope
     assert saved.radius > 1.2 * at_start.radius and saved.target[1] < at_start.target[1] - 0.1  # down the slope
     summary = json.loads((out / "summary.json").read_text())
     assert summary["cameras"][0]["frames_out_of_view"] == [] and summary["notes"] == []

@@ -1,7 +1,8 @@
 """The reconstruction's settings on the command line, shared by ``reconstruct``, ``bench suite`` and
 ``bench ablation``: ``--preset``, ``--config FILE`` and one flag per field of
-:class:`~vid2sim.reconstruct.config.ReconstructConfig` (``--joint.iterations``, ``--networks.handles``, …, generated
-by :mod:`vid2sim.runtime.config`), with short aliases for the common ones."""
+:class:`~vid2sim.reconstruct.config.ReconstructConfig` (``--joint.method``, ``--networks.handles``, …, generated
+by :mod:`vid2sim.runtime.config`), with short aliases for the common ones, and ``--iterations``: the joint
+optimisation's iterations of whichever method it uses."""
 
 from __future__ import annotations
 
@@ -16,7 +17,7 @@ from vid2sim.runtime.files import read_json
 
 #: short flag → the setting it sets
 ALIASES = {
-    "--iterations": "joint.iterations", "--jacobian": "networks.jacobian", "--seed": "seed",
+    "--jacobian": "networks.jacobian", "--seed": "seed",
     "--handles": "networks.handles", "--skinning-objective": "networks.skinning_objective",
     "--stage1": "stage1.enabled", "--predictor": "stage1.predictor",
     "--calibrate-stiffness": "calibration.enabled", "--calibration-nu": "calibration.nu",
@@ -47,14 +48,20 @@ def add_reconstruct_options(p: argparse.ArgumentParser, default_preset: str = "s
             return f"default {next(iter(values.values()))}"
         return ", ".join(f"{name} preset {value}" for name, value in values.items())
 
-    configs.add_flags(p, ReconstructConfig, ALIASES, defaults=defaults,
-                      group_title="reconstruction settings (each --section.field; docs/architecture.md)")
+    group = p.add_argument_group("reconstruction settings (each --section.field; docs/architecture.md)")
+    group.add_argument("--iterations", type=int, default=None, metavar="N",
+                       help="the joint optimisation's iterations: Gauss-Newton steps (--joint.gauss_newton_iterations,"
+                            " default 8) with the default method, Adam iterations (--joint.iterations; small preset "
+                            "100, full 400) with --joint.method windows")
+    configs.add_flags(group, ReconstructConfig, ALIASES, defaults=defaults)
 
 
 def reconstruct_config(args: argparse.Namespace) -> ReconstructConfig:
     """The configuration the options describe: the preset (or ``--config``'s file) with the flags on top. A
     checkpoint given with ``--predictor`` switches Stage I on unless ``--no-stage1`` says otherwise; the projected
     volumetric term takes one calibration factor ("curve") unless ``--calibration-nu`` says otherwise.
+    ``--iterations`` sets the iterations of the joint method the rest resolves to
+    (:meth:`~vid2sim.reconstruct.config.JointConfig.with_iterations`).
 
     Raises:
         UserError: a bad value, naming the flag; a ``--config`` file that is not a configuration.
@@ -70,10 +77,22 @@ def reconstruct_config(args: argparse.Namespace) -> ReconstructConfig:
     simulator, calibration = overrides.get("simulator", {}), overrides.get("calibration", {})
     if simulator.get("volumetric") == "projected" and "nu" not in calibration:
         overrides.setdefault("calibration", {})["nu"] = "curve"  # the projected term does not lock: one factor
+    iterations = getattr(args, "iterations", None)
+    if iterations is not None:
+        joint = overrides.get("joint", {})
+        both = [f"--joint.{name}" for name in ("iterations", "gauss_newton_iterations") if name in joint]
+        if both:
+            raise UserError(f"--iterations and {both[0]} both set the joint optimisation's iterations: give one")
+        if iterations < 0:
+            raise UserError(f"--iterations must be >= 0, got {iterations}")
     try:
         if args.config is not None:
             base = ReconstructConfig.from_dict(read_json(args.config, "a reconstruction's config.json"))
-            return configs.merge(base, overrides)
-        return ReconstructConfig.preset(args.preset, overrides)
+            config = configs.merge(base, overrides)
+        else:
+            config = ReconstructConfig.preset(args.preset, overrides)
     except ConfigError as exc:
         raise UserError(configs.name_flags(str(exc), ReconstructConfig, ALIASES)) from exc
+    if iterations is not None:
+        config.joint = config.joint.with_iterations(iterations)
+    return config

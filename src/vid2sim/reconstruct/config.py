@@ -255,15 +255,15 @@ class JointConfig:
     """Settings of :func:`joint_optimisation` (defaults: the paper's, plus the CPU measures above).
 
     Attributes:
-        method: "windows" (the default, the paper's): Adam on random windows of ``window`` frames
-            (``iterations``, the learning rates; the networks too where their learning rates are > 0).
-            "gauss_newton" (beyond the paper, opt-in): Levenberg–Marquardt on the physical parameters (log10 E, ν,
-            ζ, the initial linear and angular velocity) over the whole observed clip, with a Gaussian prior on the
-            material (:mod:`vid2sim.reconstruct.gauss_newton`); the networks stay as trained. Not the default yet:
-            on the 8-scene quadratic-tet small suite it beat the coarse search's start on 7 scenes (the windows on
-            4), with images and E as good or better (docs/results.md, "The quadratic-tet small suite"), but
-            ``iterations`` and the tools that count it (``--iterations``, ``bench ablation``, ``bench speed``, the
-            report's loss curve) are the windows' Adam iterations. Either method reports the material's intervals.
+        method: "gauss_newton" (the default, beyond the paper): Levenberg–Marquardt on the physical parameters
+            (log10 E, ν, ζ, the initial linear and angular velocity) over the whole observed clip, with a Gaussian
+            prior on the material (:mod:`vid2sim.reconstruct.gauss_newton`); the networks stay as trained
+            data-free; at most ``gauss_newton_iterations`` steps. On the 8-scene quadratic-tet small suite it
+            beat the coarse search's start on 7 scenes (the windows on 4), with images and E as good or better
+            (docs/results.md, "The quadratic-tet small suite"). "windows" (the paper's): Adam on random windows of
+            ``window`` frames (``iterations``, the learning rates; the networks too where their learning rates
+            are > 0). :meth:`method_iterations` and :meth:`with_iterations` read and set the iterations of the
+            chosen method (``--iterations``). Either method reports the material's intervals.
         gauss_newton_iterations: at most this many Gauss–Newton Jacobians (each p + 1 rollouts of the clip at
             ``coarse_scale``).
         gauss_newton_tolerance: stop when an accepted step lowers the posterior objective by less than this.
@@ -275,7 +275,7 @@ class JointConfig:
         interval_level: probability of the material's reported intervals (``material.json`` ``uncertainty``;
             a Laplace approximation at the fit, :mod:`vid2sim.reconstruct.uncertainty`).
         log10_E_bounds: log10 E is kept in this interval by the Gauss–Newton fit.
-        iterations: Adam iterations (``method`` "windows").
+        iterations: Adam iterations (``method`` "windows"; not used by "gauss_newton").
         window: frames per window (Δs).
         lr_log10_E, lr_nu, lr_skinning, lr_jacobian: the paper's learning rates.
         lr_velocity: learning rate of the initial linear (m/s) and angular (rad/s) velocity.
@@ -301,7 +301,7 @@ class JointConfig:
         seed: seeds the windows and view subsets.
     """
 
-    method: Literal["gauss_newton", "windows"] = "windows"
+    method: Literal["gauss_newton", "windows"] = "gauss_newton"
     gauss_newton_iterations: int = 8
     gauss_newton_tolerance: float = 1e-3
     gauss_newton_patience: int = 2
@@ -372,6 +372,18 @@ class JointConfig:
         if not 0 <= lo < hi < 0.5:
             raise ConfigError(f"JointConfig.nu_bounds must satisfy 0 <= lo < hi < 0.5, got {self.nu_bounds}")
         self.coarse_log10_E = tuple(sorted(float(v) for v in self.coarse_log10_E))  # the parabola needs order
+
+    def method_iterations(self) -> int:
+        """The iterations of the chosen method: Gauss–Newton steps (``gauss_newton_iterations``) or Adam
+        iterations (``iterations``)."""
+        return self.gauss_newton_iterations if self.method == "gauss_newton" else self.iterations
+
+    def with_iterations(self, n: int) -> "JointConfig":
+        """A copy whose chosen method runs ``n`` iterations (0: Stage II keeps the coarse search's start)."""
+        if isinstance(n, bool) or not isinstance(n, int) or n < 0:
+            raise ConfigError(f"the joint optimisation's iterations must be an integer >= 0, got {n!r}")
+        field_name = "gauss_newton_iterations" if self.method == "gauss_newton" else "iterations"
+        return dataclasses.replace(self, **{field_name: n})
 
 
 @dataclass

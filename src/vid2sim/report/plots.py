@@ -63,7 +63,8 @@ def optimisation_figure(path: Path, log: Mapping[str, Any], found: Mapping[str, 
     Args:
         log: ``log.json`` of an asset: ``iterations`` (per joint iteration ``loss``, ``log10_E``, ``nu``,
             ``damping_ratio``, ``ms``; validation entries ``validation_loss``), ``coarse_search`` (``log10_E``,
-            ``loss``).
+            ``loss``), ``joint_fit`` ``method`` (names the training loss: the windows' or the Gauss–Newton fit's
+            whole clip).
         found: the asset's material (``log10_E``, ``nu``, ``damping_ratio``): the best validation snapshot.
         truth: the ground truth (``log10_E``, ``nu``, ``damping_ratio`` — each optional), or None.
     """
@@ -73,6 +74,8 @@ def optimisation_figure(path: Path, log: Mapping[str, Any], found: Mapping[str, 
     entries = [e for e in log.get("iterations", []) if isinstance(e, Mapping)]
     train = [e for e in entries if "loss" in e]
     val = [e for e in entries if "validation_loss" in e]
+    fit = log.get("joint_fit")
+    gauss_newton = isinstance(fit, Mapping) and fit.get("method") == "gauss_newton"
     with matplotlib.rc_context(_RC):
         fig = _figure(11.5, 5.6)
         axes = fig.subplots(2, 3)
@@ -80,7 +83,8 @@ def optimisation_figure(path: Path, log: Mapping[str, Any], found: Mapping[str, 
         if train or val:
             if train:
                 ax.plot([e["iteration"] for e in train], [e["loss"] for e in train], color="#9aa3ad", lw=0.8,
-                        marker=".", ms=3, alpha=0.8, label="training loss")
+                        marker=".", ms=3, alpha=0.8,
+                        label="whole-clip loss (fit's resolution)" if gauss_newton else "training loss (window)")
             if val:
                 ax.plot([e["iteration"] for e in val], [e["validation_loss"] for e in val], color=FOUND_COLOUR,
                         lw=1.6, marker="o", ms=3.5, label="validation loss (all frames)")
@@ -93,7 +97,7 @@ def optimisation_figure(path: Path, log: Mapping[str, Any], found: Mapping[str, 
         else:
             _empty(ax, "no iterations logged")
         ax.set_title("image loss")
-        ax.set_xlabel("iteration")
+        ax.set_xlabel("Gauss–Newton step" if gauss_newton else "iteration")
         _integer_x(ax)
         for ax, key, title in ((axes[0, 1], "log10_E", "log10 E  (E in Pa)"), (axes[0, 2], "nu", "Poisson's ratio ν"),
                                (axes[1, 0], "damping_ratio", "damping ratio ζ")):

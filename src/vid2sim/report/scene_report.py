@@ -582,14 +582,22 @@ class _Builder:
             return
         optimisation_figure(self.media / "optimisation.svg", self.log, self.found, self.truth)
         n = sum(1 for e in self.log.get("iterations", []) if isinstance(e, dict) and "loss" in e)
+        fit = self.log.get("joint_fit")
+        method = fit.get("method") if isinstance(fit, dict) else None
+        if method == "gauss_newton":
+            steps = "Gauss–Newton entries (the start, then one per step)"
+            training = ("The fit's loss at each step (grey: the whole observed clip in every observed view, at the "
+                        "fit's resolution; a rejected step keeps the last accepted state's)")
+        else:
+            steps = "joint iterations" + (" (the log does not name the method)" if method is None else "")
+            training = "The training loss of each iteration (grey: the paper's random window of frames and views)"
         self.sections.append(("optimisation", "Optimisation", H.section(
             "optimisation", "Joint optimisation of the material and the motion",
             '<div class="figure"><img src="media/optimisation.svg" alt="optimisation curves" '
             'data-probe="plot:optimisation"></div>',
-            f"{n} joint iterations. The training loss of each iteration (grey: the paper's random window of frames "
-            "and views, the default, or with the Gauss–Newton fit the whole clip at the fit's resolution) "
-            "and of the validation rollout over all observed frames (blue; the asset keeps the best, ★); "
-            "log10 E, ν and ζ per iteration against the value found (blue dotted) and the truth (red dashed); "
+            f"{n} {steps}. {training} "
+            "and the validation rollout over all observed frames at full resolution (blue; the asset keeps the best, "
+            "★); log10 E, ν and ζ per iteration against the value found (blue dotted) and the truth (red dashed); "
             "the coarse grid search of E that picks the start; the wall time of each iteration.")))
 
     def _timings_section(self, total: float) -> None:

@@ -102,7 +102,8 @@ class Convergence:
             (None: it does not stay there until the last logged iteration).
         nu: the same for ν.
         iterations_to_converge: max(log10_E, nu); None when either is None.
-        iterations: the last logged iteration (the Adam iterations that ran).
+        iterations: the last logged iteration (the iterations of the joint method that ran: Gauss–Newton steps,
+            or Adam iterations with ``joint.method`` "windows").
     """
 
     log10_E: int | None
@@ -134,7 +135,8 @@ def iterations_to_converge(log: Sequence[Mapping[str, Any]], final_log10_E: floa
     """Stage II iterations a reconstruction needed to converge, from its joint log.
 
     The log is the asset's ``log.json`` ``"iterations"`` (:attr:`vid2sim.reconstruct.stages.joint.JointResult.log`): one
-    dict per Adam iteration with ``iteration`` (1 … N) and the ``log10_E`` and ``nu`` *after* that iteration's
+    dict per iteration of the joint method (a Gauss–Newton step, or an Adam iteration with ``joint.method``
+    "windows") with ``iteration`` (1 … N) and the ``log10_E`` and ``nu`` *after* that iteration's
     step, preceded by the entry of iteration 0 (the state the iterations start from: after the coarse search
     over log10 E, or Stage I's prediction). For each of log10 E and ν the answer is the first iteration k after
     which the value stays within the tolerance of its final value for every later logged iteration:

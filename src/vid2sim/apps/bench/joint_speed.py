@@ -15,6 +15,13 @@ for dF/dz instead of the exact closed form). Medians over repeats. ``joint_iter_
 ``joint_iter_ms`` with the simulator's per-term reference code (``SimConfig(fused_kernels=False)``) in the same
 run, for a same-machine ratio.
 
+``joint_gauss_newton_step_ms``: one step of the default method (``JointConfig.method`` "gauss_newton") on the same
+object: the whole 10-frame clip's forward-difference Jacobian in the 8 physical parameters (log10 E, ν, the initial
+linear and angular velocity: 8 + 1 rollouts of the clip, each frame rendered in the 4 views at half resolution,
+the fit's ``coarse_scale``) and one trial step (a rollout and its loss), without gradients; ``joint_settings``
+``gauss_newton_parameters`` says how many. A Gauss–Newton step does the work of many windows iterations: compare
+whole fits (``bench suite``'s seconds), not the two per-iteration figures.
+
 Operation counts (:mod:`vid2sim.apps.bench.op_count`; deterministic, unlike the timings): ``joint_iter_ops``, the
 top-level aten operators one ``joint_iter_ms`` iteration dispatches on the device that runs it (on a GPU each is
 a launch: the iteration is launch-bound there), ``joint_iter_aten_events`` all aten events (nested ones too),
@@ -39,7 +46,9 @@ from vid2sim.asset.motion import GaussianRig
 from vid2sim.physics.external import AREA_CONTACT_STIFFNESS, Floor, Gravity
 from vid2sim.physics.neural_jacobian import NeuralJacobian
 from vid2sim.physics.solver import Simulator
-from vid2sim.reconstruct.stages.joint import Observations, image_loss, render_states
+from vid2sim.reconstruct.config import JointConfig
+from vid2sim.reconstruct.gauss_newton import linearise
+from vid2sim.reconstruct.stages.joint import ClipResiduals, Observations, image_loss, physical_parameters, render_states
 from vid2sim.splats.cameras import camera_ring
 from vid2sim.splats.gaussians import Gaussians
 
@@ -103,6 +112,23 @@ class JointBench:
         states = [type(s)(s.z.detach().requires_grad_(True), s.zdot) for s in self._window]
         renders = render_states(self.rig, states, obs, range(4), self.fixed)
         image_loss(renders, obs.images[:, 6:10].transpose(0, 1)).backward()
+
+    def gauss_newton_step(self) -> int:
+        """One Gauss–Newton step (module docstring) from the bench's wrong guess; returns the parameter count."""
+        sim, cfg = self.sim, JointConfig()
+        prior = {"log10_E": float(sim.log10_E), "nu": float(sim.nu), "damping_ratio": float(sim.damping_ratio)}
+        parameters = physical_parameters(sim, cfg, prior, float(sim.config.dt))
+        clip = ClipResiduals(sim, self.rig, self.half, [0.0, 0.0, 0.0], cfg.frame_decay, [q.name for q in parameters])
+        theta = [prior["log10_E"], prior["nu"], 0.1, 0.0, -1.0, 0.0, 1.0, 0.0]
+        try:
+            lin = linearise(clip, parameters, theta)
+            trial = list(theta)
+            trial[0] += 0.1
+            trajectory = clip.simulate(trial, lin.substeps)
+            sum(float((clip.residuals([trajectory], t) ** 2).sum()) for t in range(clip.frames))
+        finally:
+            clip.apply(theta)
+        return len(parameters)
 
     def with_networks(self) -> None:
         """One iteration with the skinning MLP (and the Neural Jacobian, when in use) optimised too."""
@@ -173,6 +199,9 @@ def run(device: torch.device, quick: bool = False, settings: PhysicsBenchSetting
     sim.jacobian = NeuralJacobian(num_handles_total=sim.field.num_handles_total, seed=s.seed).to(bench.fixed[0])
     sim.use_neural_jacobian = True
     neural = time_ms(bench.with_networks, device, repeats)
+    sim.use_neural_jacobian = False
+    gauss_newton_parameters = bench.gauss_newton_step()  # (also a warm-up)
+    gauss_newton = time_ms(bench.gauss_newton_step, device, repeats, warmup=0)
 
     return {
         "joint_iter_ms": fixed_full,
@@ -183,6 +212,8 @@ def run(device: torch.device, quick: bool = False, settings: PhysicsBenchSetting
         "joint_iter_ms_half_resolution": fixed_half,
         "joint_iter_ms_with_networks": closed_form,
         "joint_iter_ms_with_networks_neural_jacobian": neural,
+        "joint_gauss_newton_step_ms": gauss_newton,
         "joint_settings": {"gaussians": 6000, "views": 4, "resolution": 128, "window": 4, "contact_points": 1000,
-                           "substeps": sim.substeps()},
+                           "substeps": sim.substeps(), "gauss_newton_parameters": gauss_newton_parameters,
+                           "gauss_newton_resolution": 64},
     }

@@ -78,7 +78,9 @@ class SuiteConfig:
     Attributes:
         preset: the reconstruction preset, "small" (CPU minutes per scene) or "full" (the paper's sizes);
             see :meth:`vid2sim.reconstruct.pipeline.ReconstructConfig.preset`.
-        iterations: joint-optimisation iterations instead of the preset's (None: the preset's).
+        iterations: joint-optimisation iterations of the reconstruction's method instead of the preset's
+            (:meth:`~vid2sim.reconstruct.config.JointConfig.with_iterations`: Gauss–Newton steps by default, Adam
+            iterations with ``joint.method`` "windows"; None: the preset's).
         reconstruct: a complete ReconstructConfig used instead of the preset (tests, studies); ``iterations``
             still applies when given. suite.json then names the preset "custom".
         threads: torch threads per scene (None: torch's default in this process, 1 in a Ray task); a Ray
@@ -116,7 +118,7 @@ class SuiteConfig:
 
         cfg = copy.deepcopy(self.reconstruct) if self.reconstruct is not None else ReconstructConfig.preset(self.preset)
         if self.iterations is not None:
-            cfg.joint.iterations = self.iterations
+            cfg.joint = cfg.joint.with_iterations(self.iterations)
         return cfg
 
     def to_dict(self) -> dict[str, Any]:

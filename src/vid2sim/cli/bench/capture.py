@@ -37,7 +37,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--clean", default=None, metavar="RESULTS",
                    help="a bench suite output folder whose NAME/evaluation.json are the clean runs (default: run them)")
     p.add_argument("--preset", choices=["small", "full"], default="small", help="reconstruct preset (default small)")
-    p.add_argument("--iterations", type=int, default=None, help="joint-optimisation iterations (default: preset's)")
+    p.add_argument("--iterations", type=int, default=None,
+                   help="the joint optimisation's iterations (Gauss-Newton steps with the default method; default: "
+                        "the preset's)")
     p.add_argument("--seed", type=int, default=0, help="first twin seed (scene i uses seed + i)")
     p.add_argument("--lead-in", type=int, default=8, help="free-flight frames filmed before each scene (default 8)")
     p.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")

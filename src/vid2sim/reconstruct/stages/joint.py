@@ -11,15 +11,15 @@ frame t by exp(−(t − 1)/4) (``frame_decay``): the first contact, where E act
 late frames, where a stiff object's rocking on the floor drifts chaotically from any model's.
 Then ``JointConfig.method``:
 
-* "gauss_newton" (opt-in, beyond the paper; not the default while it does not beat "windows" on the small suite):
-  Levenberg–Marquardt on the few physical parameters — log10 E,
+* "gauss_newton" (the default, beyond the paper; on the 8-scene quadratic-tet small suite it beat the coarse start
+  on 7 scenes, the windows on 4, docs/results.md): Levenberg–Marquardt on the few physical parameters — log10 E,
   ν, the damping ratio ζ, the initial linear and angular velocity — over the whole observed clip at
   ``coarse_scale``, with a Gaussian prior on the material (:mod:`vid2sim.reconstruct.gauss_newton`). The
   Jacobian comes from forward differences of whole rollouts, so every frame's error informs every parameter;
   every step is accepted only if it lowers the posterior objective; the kept state is the best by the
   full-resolution validation loss, the start included, and the fit stops when that has not improved for
   ``gauss_newton_patience`` steps. The networks stay as trained data-free.
-* "windows" (the default): the paper's Adam on (log10 E, ν, skinning MLP, Jacobian net) with learning rates (5e-3,
+* "windows" (the paper's): Adam on (log10 E, ν, skinning MLP, Jacobian net) with learning rates (5e-3,
   1e-3, 5e-7, 5e-7) and the initial velocity, windows of Δs = 4 frames starting at a random frame
   s ∈ [s′, T − Δs], loss = mean squared image error over the views
   (docs/architecture.md, "The paper's numbers"). Beyond the paper: a
