@@ -373,17 +373,20 @@ class JointConfig:
             raise ConfigError(f"JointConfig.nu_bounds must satisfy 0 <= lo < hi < 0.5, got {self.nu_bounds}")
         self.coarse_log10_E = tuple(sorted(float(v) for v in self.coarse_log10_E))  # the parabola needs order
 
+    def _iterations_field(self) -> str:
+        """The field holding the chosen method's iterations."""
+        return "gauss_newton_iterations" if self.method == "gauss_newton" else "iterations"
+
     def method_iterations(self) -> int:
         """The iterations of the chosen method: Gauss–Newton steps (``gauss_newton_iterations``) or Adam
         iterations (``iterations``)."""
-        return self.gauss_newton_iterations if self.method == "gauss_newton" else self.iterations
+        return getattr(self, self._iterations_field())
 
     def with_iterations(self, n: int) -> "JointConfig":
         """A copy whose chosen method runs ``n`` iterations (0: Stage II keeps the coarse search's start)."""
         if isinstance(n, bool) or not isinstance(n, int) or n < 0:
             raise ConfigError(f"the joint optimisation's iterations must be an integer >= 0, got {n!r}")
-        field_name = "gauss_newton_iterations" if self.method == "gauss_newton" else "iterations"
-        return dataclasses.replace(self, **{field_name: n})
+        return dataclasses.replace(self, **{self._iterations_field(): n})
 
 
 @dataclass

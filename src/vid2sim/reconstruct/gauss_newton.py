@@ -276,7 +276,7 @@ def levenberg_marquardt(model: ClipModel, parameters: Sequence[Parameter], theta
         if not q.lower <= x <= q.upper:
             raise ValueError(f"the start of {q.name} ({x}) lies outside its bounds [{q.lower}, {q.upper}]")
     trajectory = model.simulate(theta)
-    loss = _clip_loss(model, trajectory)
+    loss = trajectory_loss(model, trajectory)
     phi = objective(loss, theta, parameters, n)
     best_val = validate(theta, trajectory) if validate is not None else None
     start_val, best_theta, best_phi, since_best = best_val, list(theta), phi, 0
@@ -295,7 +295,7 @@ def levenberg_marquardt(model: ClipModel, parameters: Sequence[Parameter], theta
                 break
             try:
                 trial_trajectory = model.simulate(trial)
-                trial_loss = _clip_loss(model, trial_trajectory)
+                trial_loss = trajectory_loss(model, trial_trajectory)
             except SimulationError:
                 trial_loss = math.inf
             rollouts += 1
@@ -341,7 +341,7 @@ def levenberg_marquardt(model: ClipModel, parameters: Sequence[Parameter], theta
     return FitResult(best_theta, final, best_phi, best_val, start_val, log, stop)
 
 
-def _clip_loss(model: ClipModel, trajectory: Any) -> float:
+def trajectory_loss(model: ClipModel, trajectory: Any) -> float:
     """L = Σ_t ‖r_t‖² of one trajectory."""
     with torch.no_grad():
         return float(sum(float((model.residuals([trajectory], t)[0].double() ** 2).sum()) for t in range(model.frames)))
