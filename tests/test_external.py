@@ -279,7 +279,9 @@ def test_serialisation_round_trip():
         d = json.loads(json.dumps(energy.to_dict()))
         assert external_from_dict(d) == energy
         assert type(energy).from_dict(d) == energy
-    assert Floor(height=-0.7).to_dict() == {"type": "floor", "height": -0.7, "stiffness": 1e5}
+    assert Floor(height=-0.7).to_dict() == {"type": "floor", "height": -0.7, "stiffness": 1e5, "friction": 0.0,
+                                            "friction_velocity": 1e-2}
+    assert external_from_dict({"type": "floor", "height": 0, "friction": 0.4}) == Floor(0.0, friction=0.4)
     assert external_from_dict({"type": "sphere", "center": [0, 0, 1], "radius": 2}) == SphereObstacle(
         (0.0, 0.0, 1.0), 2.0
     )
@@ -296,6 +298,10 @@ def test_serialisation_round_trip():
         (lambda: Floor(height=float("inf")), "Floor.height must be finite"),
         (lambda: Floor(height="low"), "Floor.height must be a real number"),
         (lambda: Floor(height=0.0, stiffness=-1.0), "Floor.stiffness must be > 0"),
+        (lambda: Floor(height=0.0, friction=-0.1), "Floor.friction must be a Coulomb coefficient >= 0"),
+        (lambda: Floor(height=0.0, friction_velocity=0.0), "Floor.friction_velocity must be > 0"),
+        (lambda: MovingFloor(0.0, friction=float("nan")), "MovingFloor.friction must be finite"),
+        (lambda: SphereObstacle((0, 0, 0), 1.0, friction=-1), "SphereObstacle.friction must be a Coulomb"),
         (lambda: Gravity((0.0, -9.8)), "Gravity.acceleration must have 3 components"),
         (lambda: Gravity("down"), "Gravity.acceleration must be a sequence"),
         (lambda: MovingFloor(0.0, frequency=-1.0), "MovingFloor.frequency must be >= 0"),
@@ -357,3 +363,25 @@ def test_distance_derivatives_are_those_of_the_signed_distance(name, t):
         assert float(hess.abs().max()) == 0.0
     else:
         assert torch.allclose(curvature, hess, atol=1e-10) and float(hess.abs().max()) > 0
+
+
+@pytest.mark.parametrize("t", TIMES)
+def test_surface_velocity_is_that_of_the_moving_planes_material_points(t):
+    """A point riding on the moving floor (carried by its pivot's climb and turned with its tilt about the axis
+    through the pivot) moves at ``surface_velocity``: central differences of its path over ±δ; the fixed
+    barriers' surfaces stand still."""
+    x, _ = points(12, seed=21)
+    axis = np.array(MOVING.tilt_axis) / np.linalg.norm(MOVING.tilt_axis)
+
+    def carried(tt: float) -> np.ndarray:
+        turn = Rotation.from_rotvec(math.radians(MOVING.tilt_rate_deg) * (tt - t) * axis).as_matrix()
+        pivot = lambda time: np.array([*MOVING.pivot_xy, MOVING.height_at(time)])  # noqa: E731
+        return pivot(tt) + (x.numpy() - pivot(t)) @ turn.T
+
+    delta = 1e-6
+    expected = (carried(t + delta) - carried(t - delta)) / (2 * delta)
+    assert np.allclose(MOVING.surface_velocity(x, t).numpy(), expected, atol=1e-7)
+    s0 = MOVING.signed_distance(torch.from_numpy(carried(t + delta)), t + delta)
+    assert torch.allclose(s0, MOVING.signed_distance(x, t), atol=1e-9)  # riding points keep their distance
+    for fixed in (ENERGIES["floor"], ENERGIES["sphere"]):
+        assert torch.equal(fixed.surface_velocity(x, t), torch.zeros_like(x))

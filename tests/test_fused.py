@@ -25,9 +25,10 @@ REFERENCE = Path(__file__).parent / "data" / "standard_drop_reference.json"
 TIGHT = dict(newton_tol=1e-12, newton_rtol=1e-11, newton_max_iters=60)
 
 
-def _simulator(field, pts, config: SimConfig, material: Material | None = None) -> Simulator:
+def _simulator(field, pts, config: SimConfig, material: Material | None = None, friction: float = 0.0) -> Simulator:
     idx, w = sample_cubature(pts, 120, volume=1.0, seed=0)
-    return Simulator(field, pts[idx], w, material or Material(1e5, 0.3), [Gravity(), Floor(height=-0.5)], config)
+    return Simulator(field, pts[idx], w, material or Material(1e5, 0.3),
+                     [Gravity(), Floor(height=-0.5, friction=friction)], config)
 
 
 def _random_F(n: int, seed: int, spread: float = 0.2) -> torch.Tensor:
@@ -125,13 +126,16 @@ def test_standard_drop_equals_the_code_before_the_fused_kernels(trained_field):
     assert min(float(sim.positions(pts, s.z)[:, 2].min()) for s in states) < -0.5  # it did reach the floor
 
 
-def test_fused_kernels_reach_the_reference_kernels_states_and_gradients(trained_field):
-    """Default tolerances, damped, floor contact: the fused kernels and the per-term reference code
-    (``fused_kernels=False``) give the same states to 1e-6 of the size and the same adjoint gradients to 1e-6."""
+@pytest.mark.parametrize("friction", [0.0, 0.5])
+def test_fused_kernels_reach_the_reference_kernels_states_and_gradients(trained_field, friction):
+    """Default tolerances, damped, floor contact (frictionless, and with Coulomb friction: the spinning body slips):
+    the fused kernels and the per-term reference code (``fused_kernels=False``) give the same states to 1e-6 of the
+    size and the same adjoint gradients to 1e-6."""
     field, pts = trained_field
     results = {}
     for fused_kernels in (True, False):
-        sim = _simulator(field, pts, SimConfig(fused_kernels=fused_kernels), Material(5e4, 0.3, damping_ratio=0.1))
+        sim = _simulator(field, pts, SimConfig(fused_kernels=fused_kernels), Material(5e4, 0.3, damping_ratio=0.1),
+                         friction)
         names = ("log10_E", "nu", "damping_ratio")
         for name in names:
             getattr(sim, name).requires_grad_(True)
@@ -147,6 +151,12 @@ def test_fused_kernels_reach_the_reference_kernels_states_and_gradients(trained_
     for a, b in zip(results[True][1], results[False][1]):
         assert float((a - b).abs().max()) <= 1e-6 * float(b.abs().max())
     assert results[True][2] == results[False][2]
+    if friction:
+        frictionless = _simulator(field, pts, SimConfig(), Material(5e4, 0.3, damping_ratio=0.1))
+        with torch.no_grad():
+            z = frictionless.rollout(frictionless.rigid_velocity_state([0.3, 0.0, -2.5], [1.0, 3.0, 0.0]), 6)[-1].z
+        assert float((sim.positions(probe, z) - sim.positions(probe, results[True][0][-1])).norm(dim=1).max()) \
+            > 1e-3 * size  # the friction acted
 
 
 def test_adjoint_batches_and_hessian_blocks_do_not_change_the_gradients(trained_field, monkeypatch):

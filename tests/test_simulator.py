@@ -392,17 +392,19 @@ def test_adjoint_gradients_wrt_the_initial_state_match_finite_differences(traine
             assert abs(g - float(fd)) <= 1e-3 * abs(float(fd)) + 1e-9, (which, i, g, float(fd))
 
 
-@pytest.mark.parametrize("layer, beta", [(0.0, 0.0), (0.5, 0.0), (0.0, 1.0)])
-def test_adjoint_matches_unrolled_autograd(trained_field, layer, beta):
+@pytest.mark.parametrize("layer, beta, friction", [(0.0, 0.0, 0.0), (0.5, 0.0, 0.0), (0.0, 1.0, 0.0),
+                                                   (0.0, 0.0, 0.6)])
+def test_adjoint_matches_unrolled_autograd(trained_field, layer, beta, friction):
     """The per-step adjoint equals backpropagation through many plain Newton iterations: BDF2 with
     damping, 2 substeps per frame, over a floor impact; also with a contact layer (``contact_layer``, which
-    makes the floor's effective stiffness depend on E and ν: here it halves it) and with a contact dashpot
-    (``contact_damping``, gradient to β as well)."""
+    makes the floor's effective stiffness depend on E and ν: here it halves it), with a contact dashpot
+    (``contact_damping``, gradient to β as well) and with floor friction (the spinning object slips)."""
     from vid2sim.physics.integrators import bdf_step
     from vid2sim.physics.reduced import ElasticBasis, StepProblem, lbs_rows
 
     field, pts = trained_field
-    sim = _sim(field, pts, material=Material(5e4, 0.3, damping_ratio=0.1), externals=[Gravity(), Floor(height=-0.3)],
+    floor = Floor(height=-0.3, friction=friction, friction_velocity=0.5)
+    sim = _sim(field, pts, material=Material(5e4, 0.3, damping_ratio=0.1), externals=[Gravity(), floor],
                k=60, config=SimConfig(substeps=2, **TIGHT))
     sim.contact_layer = torch.tensor(layer, dtype=torch.float64, requires_grad=True) if layer else 0.0
     sim.contact_damping.fill_(beta)
@@ -453,6 +455,126 @@ def test_adjoint_matches_unrolled_autograd(trained_field, layer, beta):
             sim.contact_damping = torch.tensor(0.0, dtype=torch.float64)
             undamped = sim.rollout(state, 3)[-1].z
         assert float((undamped - states[-1].z.detach()).abs().max()) > 1e-3  # the dashpot acted
+    if friction:
+        sim.externals[1] = Floor(height=-0.3)
+        with torch.no_grad():
+            frictionless = sim.rollout(state, 3)[-1].z
+        assert float((frictionless - states[-1].z.detach()).abs().max()) > 1e-3  # the friction acted
+
+
+def _friction_problem(trained_field, eps: float):
+    """One BDF2 step's problem with the floor's friction, points in contact at the start of the step and slipping
+    over a range of speeds (the body spins and slides), and a state near its solution."""
+    from vid2sim.physics.integrators import bdf_step
+    from vid2sim.physics.reduced import ElasticBasis, StepProblem, lbs_rows
+
+    field, pts = trained_field
+    sim = _sim(field, pts, material=Material(5e4, 0.3, damping_ratio=0.1),
+               externals=[Gravity(), Floor(height=-0.25, friction=0.7, friction_velocity=eps)], k=60)
+    mu, lam = sim.lame()
+    w, dw = field.weights_and_gradients(sim.X)
+    basis = ElasticBasis(torch.eye(3, dtype=torch.float64).expand(sim.X.shape[0], 3, 3), gradient_basis(sim.X, w, dw))
+    perm = z_to_y_index(field.num_handles_total)
+    state = sim.rigid_velocity_state([1.5, 0.4, -0.5], [0.0, 0.0, 3.0])
+    y, ydot = state.z[perm], state.zdot[perm]
+    h = 0.01
+    y_prev2, y_prev = y - h * ydot, y  # a rigid motion one step back
+    problem = StepProblem(sim.X, sim.vol, sim.masses(), lbs_rows(sim.X, w), basis, mu, lam, "neo_hookean",
+                          sim.externals, 2 * h, bdf_step("bdf2", h, h), y_prev, ydot, y_prev2, ydot,
+                          sim.retardation_time())
+    gen = torch.Generator().manual_seed(3)
+    y_eval = problem.y_pred + 1e-3 * torch.randn(y.shape, generator=gen, dtype=torch.float64)
+    return problem, y_eval
+
+
+@pytest.mark.parametrize("eps", [0.02, 5.0])
+def test_friction_potential_gradient_and_hessian_match_finite_differences(trained_field, eps):
+    """The step's potential with floor friction: ∇Φ against central differences of Φ, the exact Hessian against
+    those of ∇Φ, with points in contact slipping faster than ε_v (ε = 0.02) and slower (ε = 5: the smoothed
+    stick law); the friction's Hessian is positive semi-definite."""
+    problem, y = _friction_problem(trained_field, eps)
+    (index, _, _, _, c, _), = problem._friction_reference
+    assert 3 <= index.numel() < problem.X.shape[0] and bool((c > 0).all())
+    x = problem._contact_positions(y)[index]
+    _, _, _, n, _, _ = problem._friction_reference[0]
+    _, sigma = problem._slip(x, *problem._friction_reference[0][1:4])
+    assert (bool((sigma > eps).all()) if eps < 0.1 else bool((sigma < eps).all()))
+    g = problem.gradient(y)
+    H = problem.hessian(y, project=False)
+    d = 1e-6
+    fd_g = torch.zeros_like(y)
+    fd_H = torch.zeros_like(H)
+    for i in range(y.numel()):
+        e = torch.zeros_like(y)
+        e[i] = d
+        fd_g[i] = (problem.potential(y + e)[0] - problem.potential(y - e)[0]) / (2 * d)
+        fd_H[:, i] = (problem.gradient(y + e) - problem.gradient(y - e)) / (2 * d)
+    assert torch.allclose(g, fd_g, rtol=1e-6, atol=1e-6 * float(g.abs().max()))
+    assert torch.allclose(H, fd_H, rtol=1e-5, atol=1e-6 * float(H.abs().max()))
+    H_f = problem._friction_hessian(y)
+    assert float(torch.linalg.eigvalsh(H_f).min()) >= -1e-9 * float(H_f.abs().max())
+
+
+def test_friction_holds_a_box_on_a_slope_it_would_slide_down(trained_field):
+    """A stiff box set down at rest on a floor tilted by 20°: frictionless it accelerates downhill at g sin 20°;
+    with μ = 0.6 > tan 20° it stays (creeping below the smoothing's slip speed); with μ = 0.2 < tan 20° it slides
+    at g (sin 20° − μ cos 20°)."""
+    from vid2sim.physics.external import MovingFloor
+
+    field, pts = trained_field
+    theta = math.radians(20.0)
+    down = torch.tensor([0.0, -math.cos(theta), -math.sin(theta)], dtype=torch.float64)  # downhill along the plane
+    travel = {}
+    for mu in (0.0, 0.2, 0.6):
+        sim = _sim(field, pts, material=Material(1e6, 0.3), config=SimConfig(dt=0.02, substeps=8), k=120)
+        # the box turned onto the plane (about +x, as the plane's tilt) and set just on it
+        c, s = math.cos(theta), math.sin(theta)
+        R = torch.tensor([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]], dtype=torch.float64)
+        posed = sim.X @ R.T
+        n = torch.tensor([0.0, -s, c], dtype=torch.float64)
+        floor = MovingFloor(height=float((posed @ n).min()) / c - 1e-4, tilt_deg=20.0, stiffness=1e8, friction=mu)
+        sim.externals[1] = floor
+        state = sim.rest_state()
+        H = field.num_handles_total
+        z = state.z.clone().reshape(H, 3, 4)
+        z[H - 1, :, :3] = R - torch.eye(3, dtype=torch.float64)  # the constant handle carries the rigid turn
+        state.z = z.reshape(-1)
+        with torch.no_grad():
+            states = sim.rollout(state, 25)
+        start = sim.positions(sim.X, state.z).mean(0)
+        travel[mu] = [float((sim.positions(sim.X, st.z).mean(0) - start) @ down) for st in states]
+    t = 25 * 0.02
+    assert travel[0.0][-1] == pytest.approx(0.5 * G * math.sin(theta) * t * t, rel=0.05)
+    assert travel[0.2][-1] == pytest.approx(0.5 * G * (math.sin(theta) - 0.2 * math.cos(theta)) * t * t, rel=0.1)
+    assert abs(travel[0.6][-1]) < 0.02 * travel[0.0][-1]
+
+
+def test_a_sliding_box_stops_where_coulomb_says_and_converges_in_the_step(trained_field):
+    """A stiff box launched along the floor at v₀ = 2 m/s with μ = 0.5 decelerates at μg and stops after
+    v₀² / (2μg) = 0.408 m (within 2 %, with 8 and 32 substeps per frame, which agree within 1 %); on the
+    frictionless floor it keeps its speed."""
+    field, pts = trained_field
+    v0, mu = 2.0, 0.5
+    travel = {}
+    for friction, substeps in ((mu, 8), (mu, 32), (0.0, 8)):
+        sim = _sim(field, pts, material=Material(1e6, 0.3), config=SimConfig(dt=0.02, substeps=substeps), k=120)
+        sim.externals[1] = Floor(height=float(sim.X[:, 2].min()) - 1e-4, stiffness=1e8, friction=friction)
+        with torch.no_grad():
+            states = sim.rollout(sim.rigid_velocity_state([v0, 0.0, 0.0]), 30)
+        x = torch.tensor([float(sim.positions(sim.X, s.z)[:, 0].mean()) for s in states], dtype=torch.float64)
+        x = torch.cat([sim.X[:, 0].mean().view(1), x])
+        travel[(friction, substeps)] = x - x[0]
+        if friction:
+            v = (x[1:] - x[:-1]) / 0.02
+            slope = float(torch.linalg.lstsq(torch.stack([torch.arange(3, 16.0, dtype=torch.float64),
+                                                           torch.ones(13, dtype=torch.float64)], 1),
+                                             v[3:16, None]).solution[0]) / 0.02
+            assert slope == pytest.approx(-mu * G, rel=0.1)
+    stop = v0 * v0 / (2 * mu * G)
+    assert float(travel[(mu, 8)][-1]) == pytest.approx(stop, rel=0.02)
+    assert float(travel[(mu, 32)][-1]) == pytest.approx(stop, rel=0.02)
+    assert float((travel[(mu, 8)] - travel[(mu, 32)]).abs().max()) < 0.01 * stop
+    assert float(travel[(0.0, 8)][-1]) == pytest.approx(v0 * 0.6, rel=0.01)
 
 
 def test_contact_dashpot_takes_the_bounce_and_only_dissipates(trained_field):

@@ -28,6 +28,12 @@ per-point weights (above), ``t`` time in seconds:
 - ``to_dict() -> dict`` and ``from_dict(d)``; :func:`external_from_dict` dispatches on ``d["type"]``
   ('gravity', 'floor', 'moving_floor', 'sphere').
 
+Barriers also carry a Coulomb friction coefficient ``friction`` (μ ≥ 0; 0, the paper's frictionless contact, by
+default) and the slip speed ``friction_velocity`` (ε_v, m/s) below which friction is smoothed to a stiff viscous
+law, and give ``surface_velocity(x, t) -> (N, 3)``, the velocity of the barrier's surface at the points x (the
+friction acts on the slip relative to it). The friction itself is a dissipation potential of the implicit step
+(:class:`vid2sim.physics.reduced.StepProblem`), not an energy here.
+
 World frame z-up (docs/architecture.md, "The paper's numbers"). Parameters are plain floats (serialisable); tensors are
 built on the
 device/dtype of ``x`` at each call.
@@ -46,6 +52,7 @@ from vid2sim.runtime.errors import ConfigError
 
 __all__ = [
     "AREA_CONTACT_STIFFNESS",
+    "FRICTION_VELOCITY",
     "ExternalEnergy",
     "Gravity",
     "Floor",
@@ -132,6 +139,23 @@ def _check_inputs(x: Tensor, mass: Tensor, t: float) -> float:
     return _real(tf, "time t")
 
 
+def _friction(value: Any, name: str) -> float:
+    v = _real(value, name)
+    if v < 0:
+        raise ValueError(f"{name} must be a Coulomb coefficient >= 0 (0: frictionless), got {v}")
+    return v
+
+
+def _check_friction(obj: Any, cls: str) -> None:
+    object.__setattr__(obj, "friction", _friction(obj.friction, f"{cls}.friction"))
+    object.__setattr__(obj, "friction_velocity", _positive(obj.friction_velocity, f"{cls}.friction_velocity"))
+
+
+#: ε_v (m/s): below this slip speed a barrier's Coulomb friction is smoothed to a viscous law (the stick regime
+#: creeps at most this fast); the independent engine's default is the same.
+FRICTION_VELOCITY = 1e-2
+
+
 def _from_dict(cls, d: Mapping[str, Any], kind: str):
     if not isinstance(d, Mapping):
         raise ValueError(f"{kind} config must be a mapping, got {type(d).__name__}")
@@ -216,15 +240,24 @@ class Floor:
         height: h in metres (the public release's canonical frame uses −0.7).
         stiffness: k, in J/m² per unit weight (paper: 1e5 per point with w = 1; with area weights in m²
             it is a contact pressure per metre of penetration, Pa/m).
+        friction: Coulomb coefficient μ ≥ 0 of the floor (0: frictionless, the paper's).
+        friction_velocity: ε_v (m/s), the slip speed below which friction is smoothed.
     """
 
     height: float
     stiffness: float = 1e5
+    friction: float = 0.0
+    friction_velocity: float = FRICTION_VELOCITY
     kind: ClassVar[str] = "contact"
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "height", _real(self.height, "Floor.height"))
         object.__setattr__(self, "stiffness", _positive(self.stiffness, "Floor.stiffness"))
+        _check_friction(self, "Floor")
+
+    def surface_velocity(self, x: Tensor, t: float = 0.0) -> Tensor:
+        """Zeros (N, 3): the floor stands still."""
+        return torch.zeros_like(x)
 
     def signed_distance(self, x: Tensor, t: float = 0.0) -> Tensor:
         """z_i − h, (N,) (negative below the floor)."""
@@ -286,8 +319,8 @@ class MovingFloor:
     and unit normal ``n(t) = R(a, θ(t)) e_z`` — e_z rotated by θ(t) (right-hand rule) about the horizontal
     unit axis a = tilt_axis/‖tilt_axis‖, i.e. ``n = cos θ e_z + sin θ (a × e_z)``. The signed distance is
     ``s(x, t) = n(t)·(x − p(t))``, negative below the plane. With all motion parameters zero it equals
-    :class:`Floor` of the same height and stiffness. (Contact is frictionless, so sliding along the plane
-    is driven only by its tilt.)
+    :class:`Floor` of the same height and stiffness. Its surface moves with the pivot's vertical velocity and
+    turns about the tilt axis through the pivot (:meth:`surface_velocity`), which friction drags along.
 
     Attributes:
         height: pivot height at t = 0 (m).
@@ -299,6 +332,8 @@ class MovingFloor:
         tilt_axis: horizontal tilt axis (3-vector with zero z component, nonzero; normalised internally).
         pivot_xy: horizontal position (x, y) of the pivot (m).
         stiffness: k (paper's floor: 1e5).
+        friction: Coulomb coefficient μ ≥ 0 (0: frictionless, the paper's).
+        friction_velocity: ε_v (m/s), the slip speed below which friction is smoothed.
     """
 
     height: float
@@ -310,6 +345,8 @@ class MovingFloor:
     tilt_axis: tuple[float, float, float] = (1.0, 0.0, 0.0)
     pivot_xy: tuple[float, float] = (0.0, 0.0)
     stiffness: float = 1e5
+    friction: float = 0.0
+    friction_velocity: float = FRICTION_VELOCITY
     kind: ClassVar[str] = "contact"
 
     def __post_init__(self) -> None:
@@ -325,6 +362,7 @@ class MovingFloor:
         object.__setattr__(self, "tilt_axis", axis)
         object.__setattr__(self, "pivot_xy", _vector(self.pivot_xy, 2, "MovingFloor.pivot_xy"))
         object.__setattr__(self, "stiffness", _positive(self.stiffness, "MovingFloor.stiffness"))
+        _check_friction(self, "MovingFloor")
 
     def height_at(self, t: float) -> float:
         """Pivot height at time t (m)."""
@@ -338,6 +376,19 @@ class MovingFloor:
         ax, ay = ax / norm, ay / norm
         c, s = math.cos(theta), math.sin(theta)
         return (s * ay, -s * ax, c)  # cos θ e_z + sin θ (a × e_z), a × e_z = (a_y, −a_x, 0)
+
+    def surface_velocity(self, x: Tensor, t: float) -> Tensor:
+        """(N, 3): the plane's material velocity at x, ṗ(t) + ω × (x − p(t)) with ṗ the pivot's vertical
+        velocity and ω = θ̇ a the tilt's angular velocity."""
+        _, p = self._plane(x, t)
+        ax, ay, _ = self.tilt_axis
+        norm = math.hypot(ax, ay)
+        rate = math.radians(self.tilt_rate_deg)
+        omega = torch.tensor((rate * ax / norm, rate * ay / norm, 0.0), dtype=x.dtype, device=x.device)
+        climb = self.velocity + self.amplitude * 2.0 * math.pi * self.frequency \
+            * math.cos(2.0 * math.pi * self.frequency * t)
+        pdot = torch.tensor((0.0, 0.0, climb), dtype=x.dtype, device=x.device)
+        return pdot + torch.linalg.cross(omega.expand_as(x), x - p)
 
     def _plane(self, x: Tensor, t: float) -> tuple[Tensor, Tensor]:
         n = torch.tensor(self.normal_at(t), dtype=x.dtype, device=x.device)
@@ -404,17 +455,26 @@ class SphereObstacle:
         center: c (m), 3-vector.
         radius: r > 0 (m).
         stiffness: k > 0 (default 1e5, as the floor).
+        friction: Coulomb coefficient μ ≥ 0 (0: frictionless, the paper's).
+        friction_velocity: ε_v (m/s), the slip speed below which friction is smoothed.
     """
 
     center: tuple[float, float, float]
     radius: float
     stiffness: float = 1e5
+    friction: float = 0.0
+    friction_velocity: float = FRICTION_VELOCITY
     kind: ClassVar[str] = "contact"
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "center", _vector(self.center, 3, "SphereObstacle.center"))
         object.__setattr__(self, "radius", _positive(self.radius, "SphereObstacle.radius"))
         object.__setattr__(self, "stiffness", _positive(self.stiffness, "SphereObstacle.stiffness"))
+        _check_friction(self, "SphereObstacle")
+
+    def surface_velocity(self, x: Tensor, t: float = 0.0) -> Tensor:
+        """Zeros (N, 3): the ball stands still."""
+        return torch.zeros_like(x)
 
     def _geometry(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """d (N,), n̂ (N, 3), at_centre (N,) — differentiable where d > 0."""

@@ -5,7 +5,8 @@ operation costs a launch (≈ 5–10 µs) whatever its size, and the per-term co
 :class:`~vid2sim.physics.reduced.StepProblem` issues hundreds per Newton iteration. This module evaluates the
 same incremental potential, its gradient, its exact Hessian and the adjoint's products for the **common
 case** — an elastic Neo-Hookean material with Kelvin–Voigt damping (or none), the exact closed-form
-F-basis, the pointwise volumetric term, gravity and contact barriers without a contact layer or dashpot —
+F-basis, the pointwise volumetric term, gravity and contact barriers without a contact layer or dashpot (friction
+on static floors only) —
 with every per-point quantity computed for all points at once and the material's constants folded into
 per-point coefficient vectors made once per step length (:class:`PointCoefficients`). Whatever else a step
 needs goes through the per-term code, which stays the reference (``SimConfig.fused_kernels=False``).
@@ -250,10 +251,11 @@ def metric_adjoint_map(F: Tensor, F_prev: Tensor, a: Tensor, b: Tensor) -> Tenso
 def fused_supported(model: str, structured: bool, plastic: bool, volumetric: Tensor | None, dashpot: Tensor | None,
                     layer_k: Tensor | None, externals: Sequence) -> bool:
     """Whether a step can use the fused kernels: elastic Neo-Hookean, the structured F-basis, the pointwise
-    volumetric term, no contact dashpot or layer, and no body force but gravity."""
+    volumetric term, no contact dashpot or layer, friction on static floors only, and no body force but gravity."""
     body_ok = all(isinstance(e, Gravity) for e in externals if getattr(e, "kind", "body") == "body")
+    frictionless = all(getattr(e, "friction", 0.0) == 0.0 for e in externals if type(e) is not Floor)
     return (model == "neo_hookean" and structured and not plastic and volumetric is None and dashpot is None
-            and layer_k is None and body_ok)
+            and layer_k is None and body_ok and frictionless)
 
 
 @dataclass
@@ -274,6 +276,7 @@ class FusedFrame:
             weights; contact_cols: (L, Nc) the rows transposed.
         floors: [(z_c − h (Nc,), 2k)] of the :class:`~vid2sim.physics.external.Floor` barriers (only the
             height of a point matters to them); barriers: the other contact energies.
+        frictions: [(z_c − h (Nc,), 2k μ, ε_v)] of the floors with friction μ > 0.
     """
 
     G_rows: Tensor
@@ -296,6 +299,7 @@ class FusedFrame:
     contact_cols: Tensor
     floors: list[tuple[Tensor, float]]
     barriers: list
+    frictions: list[tuple[Tensor, float, float]] = field(default_factory=list)
     _coefficients: dict = field(default_factory=dict)
     _metrics: list = field(default_factory=list)
 
@@ -340,6 +344,8 @@ class FusedFrame:
             contact_b.T.contiguous(),
             floors,
             [e for e in contact if type(e) is not Floor],
+            [(contact_X[:, 2] - e.height, 2.0 * e.stiffness * e.friction, e.friction_velocity)
+             for e in contact if type(e) is Floor and e.friction > 0],
         )
 
     @property
@@ -382,6 +388,75 @@ class FusedFrame:
 
 
 # ---- one step ------------------------------------------------------------------------------------
+
+@dataclass
+class _FloorFriction:
+    """A static floor's friction in one step (the potential of :class:`~vid2sim.physics.reduced.StepProblem`): the
+    floor's normal is e_z, so the slip of the A points in contact at the start of the step is the horizontal part
+    of their BDF velocity, u = (a₀/h)(x_xy − x_ref) (A, 2).
+
+    Attributes:
+        b: (A, L) the points' LBS rows; x0: (A, 2) their rest x, y; x_ref: (A, 2) the BDF reference position;
+        c: (A,) k_e μ λ with the lagged normal force λ = 2k w (h − z_prev); eps: ε_v; rate: a₀/h.
+    """
+
+    b: Tensor
+    x0: Tensor
+    x_ref: Tensor
+    c: Tensor
+    eps: float
+    rate: float
+
+    @classmethod
+    def make(cls, frame: "FusedFrame", step: BDFStep, offset: Tensor, k2_mu: float, eps: float, y_prev: Tensor,
+             y_prev2: Tensor | None) -> "_FloorFriction | None":
+        """From the frame's floor (offset z_c − h (Nc,), 2kμ, ε_v) and the states before the step; None when no
+        contact point is below the floor at its start."""
+        a0, a1, a2 = step.coefficients
+        Yp = y_prev.view(3, -1)
+        s_prev = torch.addmv(offset, frame.contact_b, Yp[2])
+        index = (s_prev < 0).nonzero()[:, 0]
+        if index.numel() == 0:
+            return None
+        b = frame.contact_b[index]
+        x0 = frame.contact_X[index, :2]
+        x_ref = (a1 / a0) * torch.addmm(x0, b, Yp[:2].t())
+        if step.needs_history:
+            x_ref = x_ref + (a2 / a0) * torch.addmm(x0, b, y_prev2.view(3, -1)[:2].t())
+        c = (step.energy_scale * k2_mu) * frame.contact_w[index] * (-s_prev[index])
+        return cls(b, x0, x_ref, c, float(eps), a0 / step.h)
+
+    def _slip(self, Y: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """(u (A, 2), σ (A,), slow (A,) bool) at the state Y: (3, L)."""
+        u = (torch.addmm(self.x0, self.b, Y[:2].t()) - self.x_ref).mul_(self.rate)
+        sigma = torch.sqrt((u * u).sum(1) + torch.finfo(u.dtype).tiny)
+        return u, sigma, sigma < self.eps
+
+    def add_gradient(self, Y: Tensor, grad: Tensor, energy: bool) -> tuple[Tensor, float] | None:
+        """Add ∂D_f/∂Y to grad: (3, L) in place; returns D_f as a part (0-d, factor), or None without ``energy``."""
+        u, sigma, slow = self._slip(Y)
+        e = self.eps
+        phi = torch.where(slow, 2.0 / e - sigma / (e * e), 1.0 / sigma)  # f₁(σ)/σ
+        grad[:2].addmm_((self.c * phi).unsqueeze(1).mul(u).t(), self.b)
+        if not energy:
+            return None
+        f0 = torch.where(slow, sigma * sigma / e - sigma**3 / (3.0 * e * e) + e / 3.0, sigma)
+        return torch.dot(self.c, f0), 1.0 / self.rate
+
+    def add_hessian(self, Y: Tensor, H: Tensor) -> None:
+        """Add ∂²D_f/∂y² to H: (D, D) in place: per point (a₀/h) c [φ I₂ + σ φ'(σ) ûûᵀ] in the x, y rows."""
+        u, sigma, slow = self._slip(Y)
+        e = self.eps
+        phi = torch.where(slow, 2.0 / e - sigma / (e * e), 1.0 / sigma)
+        sigma_dphi = torch.where(slow, -sigma / (e * e), -1.0 / sigma)
+        u_hat = u / sigma.unsqueeze(1)
+        block = (sigma_dphi.view(-1, 1, 1) * u_hat.unsqueeze(2)) * u_hat.unsqueeze(1)
+        block.diagonal(dim1=1, dim2=2).add_(phi.unsqueeze(1))
+        block.mul_((self.rate * self.c).view(-1, 1, 1))
+        L = self.b.shape[1]
+        bb = (self.b.unsqueeze(2) * self.b.unsqueeze(1)).view(-1, L * L)  # (A, L²)
+        Hr = torch.mm(block.view(-1, 4).t(), bb).view(2, 2, L, L).permute(0, 2, 1, 3).reshape(2 * L, 2 * L)
+        H[:2 * L, :2 * L] += Hr
 
 @dataclass
 class StepAdjoint:
@@ -436,6 +511,8 @@ class FusedStep:
                 Ft2, C2 = frame.metric(y_prev2)
                 self.previous.append(Ft2)
                 self.C_ref.add_(C2, alpha=a2 / a0)
+        frictions = (_FloorFriction.make(frame, step, *f, y_prev, y_prev2) for f in frame.frictions)
+        self.frictions = [f for f in frictions if f is not None]
         # Φ's constant parts: Σ ½β₀ (tr C_ref − 3) + k_e e₀ + f·ŷ (the gravity term f·y is written f·(y − ŷ) + f·ŷ)
         self.constants = [
             energy_offset(self.C_ref, self.coef),
@@ -462,6 +539,10 @@ class FusedStep:
                 grad.addmm_(g_i.t(), fr.contact_b, alpha=k_e)
                 if energy:
                     parts.append((e_i, k_e))
+        for friction in self.frictions:
+            part = friction.add_gradient(Y, grad, energy)
+            if part is not None:
+                parts.append(part)
         return parts
 
     def evaluate(self, y: Tensor, energy: bool = True) -> tuple[list[tuple[Tensor, float]], Tensor, Tensor]:
@@ -653,6 +734,9 @@ def _add_barrier_hessians(steps: Sequence[FusedStep], Y: Tensor, H: Tensor) -> N
             h = (heights + offset < 0).to(H.dtype) * (k2 * fr.contact_w) * k_e
             weighted = (fr.contact_cols.unsqueeze(0) * h.unsqueeze(1)).view(S * L, -1)  # (S L, Nc)
             H[:, 2 * L:, 2 * L:] += torch.mm(weighted, fr.contact_b).view(S, L, L)
+    for s, step in enumerate(steps):
+        for friction in step.frictions:
+            friction.add_hessian(Y[s], H[s])
     for ext in fr.barriers:
         for s, step in enumerate(steps):
             x = torch.addmm(fr.contact_X, fr.contact_b, Y[s].t())

@@ -173,6 +173,18 @@ class StepProblem:
     distance s to the barrier (the barrier's own motion included). φ_i = 1 for the points that were in contact
     (s < 0) at the start of the step, else 0: the activation lags by one step (an O(h) error that the step
     count controls, like the rest of the step) and keeps D quadratic, so Newton and the adjoint stay exact.
+
+    A barrier with Coulomb friction μ > 0 (its ``friction``) adds the smoothed, lagged friction potential of
+    incremental-potential contact (Li et al. 2020, "IPC", §5):
+
+        D_f(y) = k_E (h / a₀) μ Σ_i λ_i f₀(‖u_i(y)‖),    u_i = T_i ((a₀ / h)(x_i(y) − x_ref,i) − v_b,i),
+
+    with x_ref = (a₁ x_n + a₂ x_{n−1}) / a₀ (so (a₀/h)(x − x_ref) is the BDF velocity of the point), v_b the
+    barrier's surface velocity there, T_i = I − n_i n_iᵀ the tangent projector and λ_i = 2 k w_i max(0, −s_i) the
+    penalty's normal force, both at the start of the step (lagged, as the dashpot's activation), and f₀ the
+    integral of IPC's smoothed sliding law f₁(σ) = 2σ/ε_v − σ²/ε_v² below the slip speed ε_v, 1 above. Its
+    gradient is k_E times the friction force −μ λ_i f₁(‖u_i‖) u_i/‖u_i‖; it is convex in y, so Newton's
+    Hessian needs no projection and the adjoint stays exact.
     """
 
     X: Tensor  # (K, 3) cubature rest positions
@@ -281,6 +293,75 @@ class StepProblem:
             active = (s_prev.detach() < 0).to(s_prev.dtype)
             out.append((ext, s_ref, (self.step.h / a0) * self.contact_damping * w * active))
         return out
+
+    @functools.cached_property
+    def _friction_reference(self) -> list[tuple[Tensor, Tensor, Tensor, Tensor, Tensor, float]]:
+        """[(index (A,), x_ref (A, 3), v_b (A, 3), n (A, 3), c (A,), ε_v)] of every barrier with friction, over the
+        A contact points in contact with it at the start of the step: the BDF reference position, the barrier's
+        surface velocity, the lagged normal and the coefficient k_E μ λ; empty without friction."""
+        barriers = [e for e in self._externals_by_kind[1] if getattr(e, "friction", 0.0) > 0]
+        if not barriers:
+            return []
+        a0, a1, a2 = self.step.coefficients
+        _, _, w = self._contact
+        t_prev = self.t - self.step.h
+        x_prev = self._contact_positions(self.y_prev)
+        x_ref = (a1 / a0) * x_prev
+        if self.step.needs_history:
+            x_ref = x_ref + (a2 / a0) * self._contact_positions(self.y_prev2)
+        out = []
+        for ext in barriers:
+            s_prev, n, _ = ext.distance_derivatives(x_prev, t_prev)
+            index = (s_prev.detach() < 0).nonzero()[:, 0]
+            if index.numel() == 0:
+                continue
+            normal_force = 2.0 * ext.stiffness * self._barrier_weights(ext, w)[index] * (-s_prev[index])
+            coefficient = self.step.energy_scale * ext.friction * normal_force
+            v_b = ext.surface_velocity(x_prev[index], self.t)
+            out.append((index, x_ref[index], v_b, n[index], coefficient, float(ext.friction_velocity)))
+        return out
+
+    def _slip(self, x: Tensor, x_ref: Tensor, v_b: Tensor, n: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """(u (A, 3), σ (A,)): the tangential slip velocity (a₀/h)(x − x_ref) − v_b projected off the normal n,
+        and its length (kept off zero by the dtype's smallest normal number, so that it differentiates)."""
+        v = (self.step.a0 / self.step.h) * (x - x_ref) - v_b
+        u = v - (v * n).sum(1, keepdim=True) * n
+        return u, torch.sqrt((u * u).sum(1) + torch.finfo(u.dtype).tiny)
+
+    def _friction_energy_and_force(self, y: Tensor) -> tuple[Tensor, Tensor]:
+        """(D_f(y) (), ∂D_f/∂y (D,)) of the barriers' friction (zeros without any)."""
+        e, f = y.new_zeros(()), y.new_zeros(y.shape)
+        x = self._contact_positions(y)
+        b = self._contact[1]
+        for index, x_ref, v_b, n, c, eps in self._friction_reference:
+            u, sigma = self._slip(x[index], x_ref, v_b, n)
+            slow = sigma < eps
+            f0 = torch.where(slow, sigma * sigma / eps - sigma**3 / (3.0 * eps * eps) + eps / 3.0, sigma)
+            phi = torch.where(slow, 2.0 / eps - sigma / (eps * eps), 1.0 / sigma)  # f₁(σ)/σ
+            e = e + (self.step.h / self.step.a0) * (c * f0).sum()
+            f = f + (((c * phi)[:, None] * u).T @ b[index]).reshape(-1)
+        return e, f
+
+    def _friction_hessian(self, y: Tensor) -> Tensor | None:
+        """∂²D_f/∂y² (D, D) of the barriers' friction, or None without any: per point
+        c (a₀/h) [φ T + σ φ'(σ) ûûᵀ] with φ = f₁(σ)/σ and T = I − nnᵀ, positive semi-definite."""
+        if not self._friction_reference:
+            return None
+        x = self._contact_positions(y)
+        b = self._contact[1]
+        eye = torch.eye(3, dtype=x.dtype, device=x.device)
+        H = None
+        for index, x_ref, v_b, n, c, eps in self._friction_reference:
+            u, sigma = self._slip(x[index], x_ref, v_b, n)
+            slow = sigma < eps
+            phi = torch.where(slow, 2.0 / eps - sigma / (eps * eps), 1.0 / sigma)
+            sigma_dphi = torch.where(slow, -sigma / (eps * eps), -1.0 / sigma)  # σ φ'(σ)
+            u_hat = u / sigma[:, None]
+            tangent = eye - n[:, :, None] * n[:, None, :]
+            block = phi[:, None, None] * tangent + sigma_dphi[:, None, None] * (u_hat[:, :, None] * u_hat[:, None, :])
+            H_b = reduced_point_hessian(((self.step.a0 / self.step.h) * c)[:, None, None] * block, b[index])
+            H = H_b if H is None else H + H_b
+        return H
 
     def _dashpot_energy_and_force(self, y: Tensor) -> tuple[Tensor, Tensor]:
         """(D(y) (), ∂D/∂y (D,)) of the contact dashpot (zeros without one)."""
@@ -420,6 +501,9 @@ class StepProblem:
         if self.contact_damping is not None:
             e_d, f_d = self._dashpot_energy_and_force(y)
             phi, g = phi + e_d if energy else phi, g + f_d
+        if self._friction_reference:
+            e_f, f_f = self._friction_energy_and_force(y)
+            phi, g = phi + e_f if energy else phi, g + f_f
         return phi, g, True
 
     @property
@@ -531,9 +615,9 @@ class StepProblem:
             + self.step.energy_scale * self._external_hessian(y, project)
         if extra is not None:
             H = H + extra
-        H_d = self._dashpot_hessian(y, project)
-        if H_d is not None:
-            H = H + H_d
+        for H_c in (self._dashpot_hessian(y, project), self._friction_hessian(y)):
+            if H_c is not None:
+                H = H + H_c
         return 0.5 * (H + H.T)
 
 

@@ -481,8 +481,10 @@ class _ImplicitStep(torch.autograd.Function):
         it_saved = iter(saved)
         inputs = [next(it_saved) if p else None for p in ctx.present]
         needs = [n and t is not None for n, t in zip(ctx.needs_input_grad[1:], inputs)]
-        if spec.fused is not None and not any(needs[len(_FUSED_ADJOINT):]):
+        if spec.fused is not None and not spec.fused.frictions and not any(needs[len(_FUSED_ADJOINT):]):
             return (None, *_fused_adjoint(spec.fused, grad_y, needs))
+        # otherwise −λᵀ ∂∇Φ/∂θ by autograd of the reference gradient (friction's lagged normal force and reference
+        # position also depend on the previous states)
         # one problem for the gradient's graph and the Hessian: the Hessian reuses what the gradient cached
         # (the inertial target, C_ref, the mass block) without recording it
         with torch.enable_grad():
