@@ -25,10 +25,12 @@ from vid2sim.reconstruct.gauss_newton import (
 from vid2sim.reconstruct.stages.joint import (
     ClipResiduals,
     Observations,
+    floor_friction,
     frame_weights,
     joint_optimisation,
     physical_parameters,
     render_states,
+    set_floor_friction,
 )
 from vid2sim.reconstruct.uncertainty import NOT_IDENTIFIABLE, information_by_frame, laplace_intervals
 
@@ -146,12 +148,15 @@ def test_a_direction_the_clip_does_not_see_is_not_identifiable_and_keeps_the_pri
 # ---- the joint stage on the reduced model's own motion ------------------------------------------------------------
 
 
-def _own_motion(frames: int, log10_E: float, nu: float, zeta: float, linear, angular, floor: bool = True):
-    """The test drop (tests/test_pipeline_joint.py) simulated at the given material and rendered in its 2 views;
-    returns the simulator (at that material), its Gaussians, cameras and images (2, frames, 32, 32, 3)."""
+def _own_motion(frames: int, log10_E: float, nu: float, zeta: float, linear, angular, floor: bool = True,
+                friction: float = 0.0):
+    """The test drop (tests/test_pipeline_joint.py) simulated at the given material (and floor friction) and
+    rendered in its 2 views; returns the simulator (at that material), its Gaussians, cameras and images
+    (2, frames, 32, 32, 3)."""
     sim, gaussians, cams = _scene_setup()
     if not floor:
         sim.externals = sim.externals[:1]  # gravity only: free flight
+    set_floor_friction(sim, friction)
     with torch.no_grad():
         sim.log10_E.fill_(log10_E)
         sim.nu.fill_(nu)
@@ -231,6 +236,24 @@ def test_gauss_newton_recovers_E_nu_and_damping_of_the_models_own_motion():
 
 
 @pytest.mark.slow
+def test_gauss_newton_recovers_the_floors_friction_of_the_models_own_motion():
+    """Images of the model's own drop onto a floor with Coulomb friction μ = 0.6, thrown sideways so that it slides
+    after landing: from the prior μ = 0.2 (E at the truth, no coarse search) the fit recovers μ, reports it
+    identifiable, and leaves the simulator with it."""
+    sim, gaussians, cams, images = _own_motion(7, 4.8, 0.3, 0.05, [1.2, 0.0, -1.0], [0.0, 0.0, 0.0], friction=0.6)
+    set_floor_friction(sim, 0.2)
+    cfg = JointConfig(method="gauss_newton", fit_friction=True, coarse_log10_E=(), coarse_scale=1.0,
+                      gauss_newton_iterations=5)
+    result = joint_optimisation(sim, gaussians, Observations(images, cams), [1.2, 0.0, -1.0], [0.0, 0.0, 0.0],
+                                [0.0, 0.0, 0.0], cfg, progress=False)
+    assert abs(result.floor_friction - 0.6) < 0.03 and abs(result.log10_E - 4.8) < 0.05
+    assert floor_friction(sim) == pytest.approx(result.floor_friction)
+    entry = result.uncertainty["floor_friction"]
+    assert entry["identifiable"] and entry["prior_mean"] == pytest.approx(0.2)
+    assert result.validation_loss < 0.1 * result.start_validation_loss
+
+
+@pytest.mark.slow
 def test_a_clip_without_contact_says_the_material_is_not_identifiable():
     """Free flight without spin (no floor): nothing deforms the body, so the images carry no information about E,
     ν or ζ. They stay at the prior, flagged "not identifiable from this video" with the prior's width, while the
@@ -268,3 +291,14 @@ def test_evaluate_scores_the_intervals_against_the_truth_and_the_fit_against_its
         == {"start_validation_loss": 2e-3, "validation_loss": 1e-3, "improved": 1.0, "method": "gauss_newton"}
     assert joint_fit_record({"start_validation_loss": 1e-3, "validation_loss": 1e-3})["improved"] == 0.0
     assert joint_fit_record({"validation_loss": 1e-3}) is None  # an asset made before the start was recorded
+
+
+def test_the_scenes_true_floor_friction_is_read_from_its_metadata():
+    """``floor_friction`` when the scene says it; scenes made before it: the independent engine's contact record, or
+    0 for our FEM truth's frictionless floor; None for a scene that does not say (a capture)."""
+    from vid2sim.evaluate.scores import true_floor_friction
+
+    assert true_floor_friction({"floor_friction": 0.3, "truth": "fem"}) == 0.3
+    assert true_floor_friction({"truth": "newton", "newton": {"contact": {"friction": 0.5}}}) == 0.5
+    assert true_floor_friction({"truth": "fem"}) == 0.0
+    assert true_floor_friction({}) is None and true_floor_friction({"floor_friction": "rough"}) is None

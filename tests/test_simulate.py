@@ -143,6 +143,26 @@ def test_tilted_floor_makes_the_object_slide_downhill(asset):
     assert tilted["summary"]["lowest_point_m"] < -0.7 - 0.02 < flat["summary"]["lowest_point_m"]
 
 
+def test_the_floor_and_obstacles_take_the_scenarios_friction_or_the_assets(asset):
+    """``floor.friction`` / ``obstacles[i].friction`` reach the simulator's barriers (static and moving floors);
+    unset, they are the asset's floor friction (0 for an asset reconstructed without one); a negative one is
+    refused naming the field."""
+    from dataclasses import replace
+
+    sphere = ObstacleSpec(center=(0.0, 0.0, 3.0), radius=0.2)
+    plain = resolve_scenario(asset, Scenario(frames=2, obstacles=[sphere])).externals
+    assert [e.friction for e in plain[1:]] == [0.0, 0.0]
+    rough = replace(asset, floor_friction=0.3)
+    resolved = resolve_scenario(rough, Scenario(frames=2, obstacles=[ObstacleSpec(center=(0.0, 0.0, 3.0), radius=0.2)]))
+    assert [e.friction for e in resolved.externals[1:]] == [0.3, 0.3]
+    tilted = resolve_scenario(rough, Scenario(frames=2, floor=_floor(tilt_deg=10.0, friction=0.8))).externals[1]
+    assert type(tilted).__name__ == "MovingFloor" and tilted.friction == 0.8
+    bad = Scenario(frames=2)
+    bad.set("floor.friction", -0.2, "--floor-friction")
+    with pytest.raises(ScenarioError, match=r"--floor-friction -0.2: expected a Coulomb coefficient >= 0"):
+        resolve_scenario(asset, bad)
+
+
 def test_rising_floor_carries_the_object(asset):
     _, static = _physics(asset, Scenario(frames=12))
     _, rising = _physics(asset, Scenario(frames=12, floor=_floor(velocity=0.5)))

@@ -74,7 +74,8 @@ class Asset:
         contact_points: (S, 3); contact_areas: (S,) (m²).
         points: (N, 3) interior samples; volume: m³.
         sim_config: the simulator's :class:`SimConfig`.
-        gravity: (3,) m/s²; floor_height: m or None; floor_stiffness: Pa/m (a contact pressure per metre).
+        gravity: (3,) m/s²; floor_height: m or None; floor_stiffness: Pa/m (a contact pressure per metre);
+            floor_friction: the floor's Coulomb coefficient μ (0: frictionless; assets written before it had none).
         length_scale: the damping's and automatic substeps' length (m).
         initial_velocity: {"linear": [3], "angular": [3], "centre": [3]} at frame 0.
         dt: the video frame time (s).
@@ -105,6 +106,7 @@ class Asset:
     extra: dict[str, Any] = field(default_factory=dict)
     shading: Shading | None = None
     mass_volumes: Tensor | None = None
+    floor_friction: float = 0.0
 
     def __post_init__(self) -> None:
         if self.shading is not None and self.shading.num != self.gaussians.num:
@@ -127,7 +129,8 @@ class Asset:
         if externals is None:
             externals = [Gravity(self.gravity)]
             if self.floor_height is not None:
-                externals.append(Floor(height=self.floor_height, stiffness=self.floor_stiffness))
+                externals.append(Floor(height=self.floor_height, stiffness=self.floor_stiffness,
+                                       friction=self.floor_friction))
         return Simulator(self.field, self.cubature_points, self.cubature_weights, Material(**values), externals,
                          self.sim_config, jacobian=self.jacobian, use_neural_jacobian=self.jacobian is not None,
                          length_scale=self.length_scale, contact_points=self.contact_points,
@@ -183,7 +186,8 @@ def save_asset(asset: Asset, folder: str | Path, config: dict[str, Any] | None =
                                     "widths": list(j.widths), "frequency_scale": j.frequency_scale}
         meta = {"format": ASSET_FORMAT, "version": ASSET_VERSION, "units": "SI (m, s, kg, Pa)",
                 "dt": asset.dt, "gravity": list(asset.gravity), "floor_height": asset.floor_height,
-                "floor_stiffness": asset.floor_stiffness, "length_scale": asset.length_scale,
+                "floor_stiffness": asset.floor_stiffness, "floor_friction": asset.floor_friction,
+                "length_scale": asset.length_scale,
                 "sim_config": asdict(asset.sim_config), "initial_velocity": asset.initial_velocity,
                 "networks": networks, "files": {k: v for k, v in FILES.items() if (tmp / v).exists() or k in
                                                 ("config", "log")},
@@ -343,6 +347,7 @@ def load_asset(folder: str | Path, device: torch.device | str = "cpu") -> Asset:
                  cubature_weights=arrays["cubature_weights"], contact_points=arrays["contact_points"],
                  contact_areas=arrays["contact_areas"], points=arrays["points"], volume=volume,
                  sim_config=sim_config, gravity=list(meta["gravity"]), floor_height=meta.get("floor_height"),
-                 floor_stiffness=float(meta["floor_stiffness"]), length_scale=float(meta["length_scale"]),
+                 floor_stiffness=float(meta["floor_stiffness"]), floor_friction=float(meta.get("floor_friction", 0.0)),
+                 length_scale=float(meta["length_scale"]),
                  initial_velocity=meta["initial_velocity"], dt=float(meta["dt"]), extra=meta.get("extra", {}),
                  mass_volumes=arrays.get("mass_volumes"))

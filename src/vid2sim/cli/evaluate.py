@@ -34,6 +34,8 @@ def run(args: argparse.Namespace) -> int:
         if start is not None and "abs_error_nu" in start:
             lines.append(f"  at the start ({start['source']}: E = {start['E']:.3e} Pa, nu = {start['nu']:.3f}): "
                          f"|d log10 E| = {start['abs_error_log10_E']:.3f}, |d nu| = {start['abs_error_nu']:.3f}")
+    if "true_floor_friction" in mat:
+        lines.append(f"floor friction {mat['fitted']['floor_friction']:.3f} (truth {mat['true_floor_friction']:.3f})")
     for key, what in (("chamfer", "Chamfer to the true surface"), ("centre_of_mass", "centre of mass off the truth's")):
         if key in report:
             future, first = report[key]["future_mean"], report[key].get("frame_0")

@@ -25,6 +25,7 @@ _SCALARS = {
     "yield_stress": ("material.yield_stress", "--yield-stress"),
     "friction_angle": ("material.friction_angle_deg", "--friction-angle"),
     "floor_height": ("floor.height", "--floor-height"), "floor_stiffness": ("floor.stiffness", "--floor-stiffness"),
+    "floor_friction": ("floor.friction", "--floor-friction"),
     "floor_velocity": ("floor.velocity", "--floor-velocity"),
     "floor_amplitude": ("floor.amplitude", "--floor-amplitude"),
     "floor_frequency": ("floor.frequency", "--floor-frequency"), "floor_tilt": ("floor.tilt_deg", "--floor-tilt"),
@@ -160,6 +161,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--no-floor", action="store_true", help="no floor")
     g.add_argument("--floor-height", type=float, default=None, help="m, under the object at t = 0")
     g.add_argument("--floor-stiffness", type=float, default=None, help="Pa per metre of penetration")
+    g.add_argument("--floor-friction", type=float, default=None,
+                   help="Coulomb coefficient >= 0 (default: the asset's; 0: frictionless)")
     g.add_argument("--floor-velocity", type=float, default=None, help="vertical velocity, m/s")
     g.add_argument("--floor-amplitude", type=float, default=None, help="vertical oscillation amplitude, m")
     g.add_argument("--floor-frequency", type=float, default=None, help="vertical oscillation frequency, Hz")

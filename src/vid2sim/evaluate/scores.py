@@ -214,12 +214,30 @@ def _add_fovvdp(report: dict[str, Any], renders: Tensor, targets: Tensor, config
             report[key]["fovvdp_display"] = scores[0]["display"]
 
 
+def true_floor_friction(meta: dict[str, Any]) -> float | None:
+    """The floor's Coulomb coefficient in a scene's ``metadata``: ``floor_friction``, else the independent engine's
+    contact record (``newton.contact.friction``), else 0 for our FEM truth (its floor is frictionless); None when
+    the scene does not say."""
+    value = meta.get("floor_friction")
+    if value is None:
+        value = (meta.get("newton") or {}).get("contact", {}).get("friction")
+    if value is None and meta.get("truth") == "fem":
+        value = 0.0
+    return float(value) if isinstance(value, (int, float)) and not isinstance(value, bool) else None
+
+
 def _material_record(asset: Asset, asset_path: str | Path, meta: dict[str, Any]) -> dict[str, Any]:
     """The report's ``material``: the fitted material, the asset's uncertainty and joint fit record, Stage II's
-    start, and with the truth in the scene's ``meta``data the errors and whether the intervals hold it."""
+    start, and with the truth in the scene's ``meta``data the errors and whether the intervals hold it; the floor's
+    friction (the asset's, fitted or given) beside it, scored where the scene says its true value."""
     fitted = {"E": asset.material["E"], "nu": asset.material["nu"]}
     material: dict[str, Any] = {"fitted": {**fitted, "log10_E": asset.material.get("log10_E"),
-                                           "damping_ratio": asset.material.get("damping_ratio")}}
+                                           "damping_ratio": asset.material.get("damping_ratio"),
+                                           "floor_friction": asset.floor_friction}}
+    friction = true_floor_friction(meta)
+    if friction is not None:
+        material["true_floor_friction"] = friction
+        material["abs_error_floor_friction"] = abs(asset.floor_friction - friction)
     uncertainty = asset.material.get("uncertainty")
     if isinstance(uncertainty, dict):
         material["uncertainty"] = uncertainty

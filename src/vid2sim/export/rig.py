@@ -198,8 +198,9 @@ def _simulation_record(asset: Asset) -> dict[str, Any]:
             "height": float(asset.floor_height),
             "normal": _up(asset.gravity),
             "stiffness": float(asset.floor_stiffness),
+            "friction": float(asset.floor_friction),
             "meaning": "penalty contact pressure stiffness (Pa per metre of penetration) on the contact points' "
-                       "areas",
+                       "areas; friction: the Coulomb coefficient (0: frictionless)",
         },
         "length_scale": asset.length_scale,
         "initial_velocity": asset.initial_velocity,

@@ -205,12 +205,16 @@ class SimulatorConfig:
             corrected so that the mass, centre of mass and inertia tensor are the kept voxels',
             :mod:`vid2sim.physics.mass`).
         integration: time integration (time-converged BDF2 substeps by default).
+        floor_friction: the Coulomb friction coefficient μ of the floor the object lands on (smoothed below a slip
+            speed of 1 cm/s); 0, the paper's frictionless floor, by default. The asset carries it (the fitted one
+            with ``joint.fit_friction``).
     """
 
     cubature: int = 500
     volumetric: Literal["pointwise", "projected"] = "pointwise"
     mass: Literal["cubature", "moments"] = "cubature"
     integration: SimConfig = field(default_factory=SimConfig)
+    floor_friction: float = 0.0
 
     def __post_init__(self) -> None:
         if self.cubature < 1:
@@ -219,6 +223,10 @@ class SimulatorConfig:
             raise ConfigError(f"SimulatorConfig.volumetric must be 'pointwise' or 'projected', got {self.volumetric!r}")
         if self.mass not in ("moments", "cubature"):
             raise ConfigError(f"SimulatorConfig.mass must be 'moments' or 'cubature', got {self.mass!r}")
+        if isinstance(self.floor_friction, bool) or not isinstance(self.floor_friction, (int, float)) \
+                or not 0 <= self.floor_friction < math.inf:
+            raise ConfigError("SimulatorConfig.floor_friction must be a Coulomb coefficient >= 0 (0: frictionless), "
+                              f"got {self.floor_friction!r}")
 
 
 @dataclass
@@ -282,6 +290,12 @@ class JointConfig:
         fit_damping: also fit the damping ratio ζ (beyond the paper: the damping is a property of the object,
             and held at its prior the bounce's energy loss is absorbed by E); otherwise (the default) it stays at
             its prior. ``windows`` fits it with the learning rate ``lr_damping``.
+        fit_friction: also fit the floor's Coulomb friction μ: the coarse search runs over E at each friction of
+            ``coarse_friction`` (and ``simulator.floor_friction``) and starts from the best pair, then the
+            Gauss–Newton fit refines μ in ``friction_bounds`` with a Gaussian prior of standard deviation
+            ``prior_sd_friction`` centred on ``simulator.floor_friction`` (the windows' Adam, which has no gradient
+            to μ, keeps the coarse search's). After the first bounce friction decides whether the object slides or
+            rolls, and where it comes to rest.
         coarse_log10_E: grid of the coarse search (empty: skip it).
         coarse_scale: image scale of the coarse search, the Gauss–Newton fit and the first ``coarse_fraction`` of the
             iterations (targets and renders, made at full size, area-averaged to it).
@@ -319,6 +333,10 @@ class JointConfig:
     lr_velocity: float = 5e-3
     fit_damping: bool = False
     lr_damping: float = 1e-3
+    fit_friction: bool = False
+    prior_sd_friction: float = 0.5
+    friction_bounds: tuple[float, float] = (0.0, 2.0)
+    coarse_friction: tuple[float, ...] = (0.0, 0.5)
     coarse_log10_E: tuple[float, ...] = (4.0, 4.25, 4.5, 4.75, 5.0, 5.25, 5.5, 5.75, 6.0)
     coarse_scale: float = 0.5
     coarse_fraction: float = 0.5
@@ -337,7 +355,8 @@ class JointConfig:
         if self.gauss_newton_iterations < 0 or self.gauss_newton_patience < 1:
             raise ConfigError("JointConfig.gauss_newton_iterations must be >= 0 and gauss_newton_patience >= 1, got "
                               f"{self.gauss_newton_iterations}, {self.gauss_newton_patience}")
-        for name in ("gauss_newton_tolerance", "prior_sd_log10_E", "prior_sd_nu", "prior_sd_damping"):
+        for name in ("gauss_newton_tolerance", "prior_sd_log10_E", "prior_sd_nu", "prior_sd_damping",
+                     "prior_sd_friction"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < float(value) < math.inf:
                 raise ConfigError(f"JointConfig.{name} must be a finite number > 0, got {value!r}")
@@ -368,6 +387,13 @@ class JointConfig:
                              f"got {self.centre_of_mass_step!r}")
         if self.centre_of_mass_rounds < 1:
             raise ConfigError(f"JointConfig.centre_of_mass_rounds must be >= 1, got {self.centre_of_mass_rounds}")
+        if any(not 0 <= float(mu) < math.inf for mu in self.coarse_friction):
+            raise ConfigError("JointConfig.coarse_friction must hold Coulomb coefficients >= 0, got "
+                              f"{self.coarse_friction}")
+        lo, hi = self.friction_bounds
+        if not 0 <= lo < hi < math.inf:
+            raise ConfigError("JointConfig.friction_bounds must satisfy 0 <= lo < hi < inf, got "
+                              f"{self.friction_bounds}")
         lo, hi = self.nu_bounds
         if not 0 <= lo < hi < 0.5:
             raise ConfigError(f"JointConfig.nu_bounds must satisfy 0 <= lo < hi < 0.5, got {self.nu_bounds}")

@@ -63,8 +63,8 @@ def optimisation_figure(path: Path, log: Mapping[str, Any], found: Mapping[str, 
     Args:
         log: ``log.json`` of an asset: ``iterations`` (per joint iteration ``loss``, ``log10_E``, ``nu``,
             ``damping_ratio``, ``ms``; validation entries ``validation_loss``), ``coarse_search`` (``log10_E``,
-            ``loss``), ``joint_fit`` ``method`` (names the training loss: the windows' or the Gauss–Newton fit's
-            whole clip).
+            ``loss``, and ``floor_friction`` when the search ran over the floor's friction too), ``joint_fit``
+            ``method`` (names the training loss: the windows' or the Gauss–Newton fit's whole clip).
         found: the asset's material (``log10_E``, ``nu``, ``damping_ratio``): the best validation snapshot.
         truth: the ground truth (``log10_E``, ``nu``, ``damping_ratio`` — each optional), or None.
     """
@@ -121,8 +121,13 @@ def optimisation_figure(path: Path, log: Mapping[str, Any], found: Mapping[str, 
         ax = axes[1, 1]
         coarse = [c for c in log.get("coarse_search", []) if isinstance(c, Mapping)]
         if coarse:
-            xs, ys = [c["log10_E"] for c in coarse], [c["loss"] for c in coarse]
-            ax.plot(xs, ys, color=LINE_COLOUR, marker="o", ms=5, lw=1.4, label="loss on the grid")
+            ys = [c["loss"] for c in coarse]
+            frictions = sorted({c.get("floor_friction") for c in coarse}, key=lambda mu: -1.0 if mu is None else mu)
+            for k, mu in enumerate(frictions):  # one line per floor friction of the search (one without)
+                row = [c for c in coarse if c.get("floor_friction") == mu]
+                ax.plot([c["log10_E"] for c in row], [c["loss"] for c in row], color=LINE_COLOUR, marker="o", ms=5,
+                        lw=1.4, alpha=1.0 - 0.5 * k / max(1, len(frictions) - 1),
+                        label="loss on the grid" if mu is None else f"loss, floor friction {mu:g}")
             start = next((e["log10_E"] for e in entries if e.get("iteration") == 0), None)
             if isinstance(start, (int, float)):
                 ax.axvline(start, color="#7a5af8", ls="-.", lw=1.3, label=f"start {start:.2f}")

@@ -260,15 +260,17 @@ def _resolve_floor(asset: "Asset", s: Scenario, pose: _Pose) -> Floor | MovingFl
         f.height = float(asset.floor_height)
     if f.stiffness is None:
         f.stiffness = float(asset.floor_stiffness)
+    if f.friction is None:
+        f.friction = float(asset.floor_friction)
     if f.pivot_xy is None:
         f.pivot_xy = (float(com[0]), float(com[1]))
     if f.moving:
         floor = MovingFloor(height=f.height, velocity=f.velocity, amplitude=f.amplitude, frequency=f.frequency,
                             tilt_deg=f.tilt_deg, tilt_rate_deg=f.tilt_rate_deg, tilt_axis=f.tilt_axis,
-                            pivot_xy=f.pivot_xy, stiffness=f.stiffness)
+                            pivot_xy=f.pivot_xy, stiffness=f.stiffness, friction=f.friction)
         depth = -float(floor.signed_distance(posed, 0.0).min())
     else:
-        floor = Floor(height=f.height, stiffness=f.stiffness)
+        floor = Floor(height=f.height, stiffness=f.stiffness, friction=f.friction)
         depth = -float(floor.signed_distance(posed).min())
     if depth > FLOOR_TOLERANCE * size:
         culprits = [p for p in s.origins if p.startswith("floor.") and p != "floor.enabled"] + [
@@ -287,6 +289,8 @@ def _resolve_obstacles(asset: "Asset", s: Scenario, posed: Tensor) -> list[Spher
     for i, o in enumerate(s.obstacles):
         if o.stiffness is None:
             o.stiffness = float(asset.floor_stiffness)
+        if o.friction is None:
+            o.friction = float(asset.floor_friction)
         c = torch.tensor(o.center, dtype=torch.float64)
         d = (posed - c).norm(dim=1)
         inside = int((d < o.radius).sum())
@@ -297,7 +301,7 @@ def _resolve_obstacles(asset: "Asset", s: Scenario, posed: Tensor) -> list[Spher
             raise s.error(f"obstacles[{i}]", {"center": list(o.center), "radius": o.radius},
                           f"the sphere overlaps the object at t = 0 ({inside} of its {d.numel()} points inside, the "
                           f"deepest {(o.radius - float(d.min())) * 100:.3g} cm); expected a sphere outside the object")
-        spheres.append(SphereObstacle(center=o.center, radius=o.radius, stiffness=o.stiffness))
+        spheres.append(SphereObstacle(center=o.center, radius=o.radius, stiffness=o.stiffness, friction=o.friction))
     return spheres
 
 

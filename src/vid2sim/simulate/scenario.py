@@ -82,6 +82,7 @@ class FloorSpec:
             given); False removes it; True needs a height (given, or the asset's).
         height: m, the plane's height under the pivot at t = 0 (default: the asset's floor height).
         stiffness: Pa per metre of penetration on the contact points' areas (default: the asset's).
+        friction: the floor's Coulomb coefficient μ ≥ 0 (default: the asset's; 0 is frictionless).
         velocity: m/s, vertical velocity of the plane.
         amplitude: m, amplitude of a vertical oscillation; frequency: its frequency in Hz.
         tilt_deg: degrees, the plane's tilt at t = 0 (|tilt| < 90); tilt_rate_deg: degrees/s.
@@ -95,6 +96,7 @@ class FloorSpec:
     enabled: bool | None = None
     height: float | None = None
     stiffness: float | None = None
+    friction: float | None = None
     velocity: float = 0.0
     amplitude: float = 0.0
     frequency: float = 0.0
@@ -117,11 +119,13 @@ class ObstacleSpec:
         center: (x, y, z) in m.
         radius: m (> 0).
         stiffness: Pa per metre of penetration (default: the asset's floor stiffness).
+        friction: Coulomb coefficient μ ≥ 0 (default: the asset's floor friction).
     """
 
     center: tuple[float, float, float]
     radius: float
     stiffness: float | None = None
+    friction: float | None = None
 
 
 @dataclass
@@ -206,10 +210,12 @@ class CameraSpec:
 
 # field path → (kind, extra). kinds: float, int, bool, str, path, vec (extra = allowed lengths)
 _FLOOR_SCHEMA = {"enabled": ("bool", None), "height": ("float", None), "stiffness": ("float", None),
+                 "friction": ("float", None),
                  "velocity": ("float", None), "amplitude": ("float", None), "frequency": ("float", None),
                  "tilt_deg": ("float", None), "tilt_rate_deg": ("float", None), "tilt_axis": ("vec", (2, 3)),
                  "pivot_xy": ("vec", (2,))}
-_OBSTACLE_SCHEMA = {"center": ("vec", (3,)), "radius": ("float", None), "stiffness": ("float", None)}
+_OBSTACLE_SCHEMA = {"center": ("vec", (3,)), "radius": ("float", None), "stiffness": ("float", None),
+                    "friction": ("float", None)}
 _INITIAL_SCHEMA = {"euler_deg": ("vec", (3,)), "axis_angle": ("vec", (4,)), "translation": ("vec", (3,)),
                    "linear_velocity": ("vec", (3,)), "angular_velocity": ("vec", (3,))}
 _MATERIAL_SCHEMA = {"preset": ("str", None), "youngs_modulus": ("float", None), "poisson_ratio": ("float", None),
@@ -425,6 +431,8 @@ class Scenario:
         f = self.floor
         _finite(self, "floor.height", "m")
         _positive(self, "floor.stiffness", "Pa per metre of penetration")
+        if f.friction is not None and not (math.isfinite(f.friction) and f.friction >= 0):
+            raise self.error("floor.friction", f.friction, "expected a Coulomb coefficient >= 0 (0: frictionless)")
         for key in ("velocity", "amplitude", "tilt_rate_deg"):
             _finite(self, f"floor.{key}", "")
         if not (math.isfinite(f.frequency) and f.frequency >= 0):
@@ -448,6 +456,9 @@ class Scenario:
                 raise self.error(f"obstacles[{i}].radius", o.radius, "expected a sphere radius > 0 m")
             if o.stiffness is not None and not o.stiffness > 0:
                 raise self.error(f"obstacles[{i}].stiffness", o.stiffness, "expected a stiffness > 0 (Pa/m)")
+            if o.friction is not None and not (math.isfinite(o.friction) and o.friction >= 0):
+                raise self.error(f"obstacles[{i}].friction", o.friction,
+                                 "expected a Coulomb coefficient >= 0 (0: frictionless)")
 
     def _validate_initial(self) -> None:
         s = self.initial

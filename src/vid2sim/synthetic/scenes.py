@@ -540,6 +540,7 @@ def _scene_metadata(config: SyntheticSceneConfig, mesh: TexturedMesh, pose: "Ini
         "object": mesh.name,
         "initial_pose": jsonable(asdict(pose), nan_to_null=False),
         "damping_ratio": config.damping_ratio,
+        "floor_friction": 0.0 if config.truth == "fem" else config.friction,
         **truth_metadata,
         "files": {"config": SYNTHETIC_JSON, f"{config.truth}_result": result_file},
     }

@@ -116,6 +116,7 @@ class JointResult:
 
     Attributes:
         log10_E, nu, damping_ratio: the material.
+        floor_friction: the floor's Coulomb coefficient (fitted with ``fit_friction``, else the simulator's).
         linear_velocity, angular_velocity: (3,) the initial rigid velocity about ``centre``.
         validation_loss: the best validation loss (mean squared image error, all observed frames and views).
         coarse: the coarse search, one ``{"log10_E", "loss"}`` per grid value.
@@ -142,6 +143,7 @@ class JointResult:
     linear_velocity: list[float]
     angular_velocity: list[float]
     validation_loss: float
+    floor_friction: float = 0.0
     coarse: list[dict[str, float]] = field(default_factory=list)
     centre_of_mass_offset: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
     centre_of_mass_search: list[dict[str, Any]] = field(default_factory=list)
@@ -314,13 +316,24 @@ def first_moving_frame(images: Tensor, threshold: float = 1e-3) -> int:
 #: fraction of the object's size per frame (linear, m/s per m/frame) and radians per frame (angular). Each moves
 #: the observed frames by a fraction of a pixel to a few pixels at the small preset: large enough that the
 #: rasteriser's cutoffs and Newton's tolerance are noise, small enough for a secant of a smooth loss.
-DIFFERENCE_STEPS = {"log10_E": 0.01, "nu": 0.01, "damping_ratio": 0.005, "linear": 0.002, "angular": 0.002}
+DIFFERENCE_STEPS = {"log10_E": 0.01, "nu": 0.01, "damping_ratio": 0.005, "floor_friction": 0.02, "linear": 0.002,
+                    "angular": 0.002}
+
+
+def floor_friction(sim: Simulator) -> float:
+    """The Coulomb coefficient of the simulator's floor (0 without one)."""
+    return next((float(e.friction) for e in sim.externals if isinstance(e, Floor)), 0.0)
+
+
+def set_floor_friction(sim: Simulator, value: float) -> None:
+    """Give the simulator's floor(s) the Coulomb coefficient ``value``."""
+    sim.externals = [replace(e, friction=value) if isinstance(e, Floor) else e for e in sim.externals]
 
 
 def physical_parameters(sim: Simulator, cfg: JointConfig, prior: dict[str, float], dt: float) -> list[Parameter]:
-    """The Gauss–Newton fit's parameters: log10 E, ν, ζ (with ``cfg.fit_damping``), each with the prior of
-    ``cfg`` centred on ``prior`` (the start material), then the initial linear (m/s) and angular (rad/s) velocity
-    without a prior."""
+    """The Gauss–Newton fit's parameters: log10 E, ν, ζ (with ``cfg.fit_damping``), the floor's friction μ (with
+    ``cfg.fit_friction``, when there is a floor), each with the prior of ``cfg`` centred on ``prior`` (the start
+    material and friction), then the initial linear (m/s) and angular (rad/s) velocity without a prior."""
     L = sim.length_scale
     out = [Parameter("log10_E", *cfg.log10_E_bounds, DIFFERENCE_STEPS["log10_E"], prior["log10_E"],
                      cfg.prior_sd_log10_E),
@@ -328,6 +341,9 @@ def physical_parameters(sim: Simulator, cfg: JointConfig, prior: dict[str, float
     if cfg.fit_damping:
         out.append(Parameter("damping_ratio", 0.0, 1.0, DIFFERENCE_STEPS["damping_ratio"], prior["damping_ratio"],
                              cfg.prior_sd_damping))
+    if cfg.fit_friction and cfg.method == "gauss_newton" and any(isinstance(e, Floor) for e in sim.externals):
+        out.append(Parameter("floor_friction", *cfg.friction_bounds, DIFFERENCE_STEPS["floor_friction"],
+                             prior["floor_friction"], cfg.prior_sd_friction))
     v, w = DIFFERENCE_STEPS["linear"] * L / dt, DIFFERENCE_STEPS["angular"] / dt
     out += [Parameter(f"linear_velocity_{a}", -math.inf, math.inf, v) for a in "xyz"]
     out += [Parameter(f"angular_velocity_{a}", -math.inf, math.inf, w) for a in "xyz"]
@@ -362,6 +378,8 @@ class ClipResiduals:
             self.sim.nu.fill_(values["nu"])
             if "damping_ratio" in values:
                 self.sim.damping_ratio.fill_(values["damping_ratio"])
+        if "floor_friction" in values:
+            set_floor_friction(self.sim, values["floor_friction"])
         v = [values[f"linear_velocity_{a}"] for a in "xyz"]
         w = [values[f"angular_velocity_{a}"] for a in "xyz"]
         return self.sim.rigid_velocity_state(v, w, self.centre)
@@ -427,7 +445,8 @@ def joint_optimisation(
     needed = cfg.window + 1 if cfg.method == "windows" else 2
     if T < needed:
         raise ValueError(f"the joint optimisation ({cfg.method}) needs at least {needed} observed frames, got {T}")
-    prior = {"log10_E": float(sim.log10_E), "nu": float(sim.nu), "damping_ratio": float(sim.damping_ratio)}
+    prior = {"log10_E": float(sim.log10_E), "nu": float(sim.nu), "damping_ratio": float(sim.damping_ratio),
+             "floor_friction": floor_friction(sim)}
     rig = GaussianRig(sim, gaussians)
     c = [float(x) for x in centre]
     coarse_obs = observations.at_scale(cfg.coarse_scale)
@@ -444,6 +463,7 @@ def joint_optimisation(
     parameters = physical_parameters(sim, cfg, prior, float(sim.config.dt))
     clip = ClipResiduals(sim, rig, coarse_obs, c, cfg.frame_decay, [q.name for q in parameters])
     start = [float(sim.log10_E), float(sim.nu)] + ([float(sim.damping_ratio)] if cfg.fit_damping else []) \
+        + ([floor_friction(sim)] if "floor_friction" in clip.names else []) \
         + [float(x) for x in linear_velocity] + [float(x) for x in angular_velocity]
     n = effective_images(frame_weights(T, cfg.frame_decay), len(observations.cameras))
     if cfg.method == "gauss_newton":
@@ -455,6 +475,7 @@ def joint_optimisation(
     clip.apply(fit.theta)  # the simulator holds the kept material
     uncertainty = laplace_intervals(fit.linearisation, parameters, n, cfg.interval_level)
     return JointResult(log10_E=theta["log10_E"], nu=theta["nu"], damping_ratio=float(sim.damping_ratio),
+                       floor_friction=floor_friction(sim),
                        linear_velocity=[theta[f"linear_velocity_{a}"] for a in "xyz"],
                        angular_velocity=[theta[f"angular_velocity_{a}"] for a in "xyz"],
                        validation_loss=fit.validation_loss, coarse=coarse, centre_of_mass_offset=com_offset,
@@ -467,21 +488,35 @@ def coarse_search(sim: Simulator, rig: GaussianRig, start: Callable[[], SimState
                   cfg: JointConfig, progress: bool = False) -> list[dict[str, float]]:
     """The coarse search over log10 E (``cfg.coarse_log10_E``; none when empty): the whole clip's
     :func:`clip_loss` at each grid value from ``start()``; the simulator is left at :func:`coarse_minimum`.
-    Returns one ``{"log10_E", "loss"}`` per grid value."""
+    With ``cfg.fit_friction`` and a floor, the same over E at each floor friction of ``cfg.coarse_friction``, and the
+    simulator is left at the friction whose best grid loss is lowest (and that friction's E): friction changes
+    which E explains the bounce. Returns one ``{"log10_E", "loss"}`` (and ``"floor_friction"``) per grid value."""
     from tqdm.auto import tqdm
 
     coarse: list[dict[str, float]] = []
     if not cfg.coarse_log10_E:
         return coarse
-    bar = tqdm(cfg.coarse_log10_E, desc="coarse search over log10 E", disable=not progress, leave=False)
-    for value in bar:
+    frictions = [None]
+    if cfg.fit_friction and any(isinstance(e, Floor) for e in sim.externals):
+        frictions = sorted({floor_friction(sim), *cfg.coarse_friction})
+    grid = [(mu, value) for mu in frictions for value in cfg.coarse_log10_E]
+    bar = tqdm(grid, desc="coarse search over log10 E" + (" and the floor's friction" if len(frictions) > 1 else ""),
+               disable=not progress, leave=False)
+    for mu, value in bar:
         with torch.no_grad():
             sim.log10_E.fill_(value)
+        if mu is not None:
+            set_floor_friction(sim, mu)
         loss, _ = clip_loss(sim, rig, _detached(start()), obs, cfg.frame_decay)
-        coarse.append({"log10_E": value, "loss": loss})
+        coarse.append({"log10_E": value, "loss": loss} if mu is None
+                      else {"log10_E": value, "floor_friction": mu, "loss": loss})
         bar.set_postfix(log10_E=value, loss=f"{loss:.2e}")
+    best = min(frictions, key=lambda mu: min(r["loss"] for r in coarse if r.get("floor_friction") == mu))
+    rows = [r for r in coarse if r.get("floor_friction") == best]
     with torch.no_grad():
-        sim.log10_E.fill_(coarse_minimum([r["log10_E"] for r in coarse], [r["loss"] for r in coarse]))
+        sim.log10_E.fill_(coarse_minimum([r["log10_E"] for r in rows], [r["loss"] for r in rows]))
+    if best is not None:
+        set_floor_friction(sim, best)
     return coarse
 
 
@@ -717,7 +752,8 @@ def build_simulator(ctx: Context, state: State, mass_volumes: Tensor | None) -> 
     cfg, obj, cub, o = ctx.config, state.obj, state.cubature, ctx.observed
     externals = [Gravity(list(o.gravity))]
     if o.floor_height is not None:
-        externals.append(Floor(height=o.floor_height, stiffness=AREA_CONTACT_STIFFNESS))
+        externals.append(Floor(height=o.floor_height, stiffness=AREA_CONTACT_STIFFNESS,
+                               friction=cfg.simulator.floor_friction))
     E, nu = prior_material(cfg, state.stage1)
     return Simulator(state.skinning, obj.points[cub.index], cub.weights,
                      Material(E, nu, scene_density(ctx), damping_ratio=cfg.prior.damping), externals,
@@ -792,6 +828,7 @@ def assemble_asset(ctx: Context, state: State) -> Asset:
                  volume=obj.volume, sim_config=cfg.simulator.integration,
                  mass_volumes=None if mass_volumes is None else mass_volumes.detach().cpu(),
                  gravity=list(o.gravity), floor_height=o.floor_height, floor_stiffness=AREA_CONTACT_STIFFNESS,
+                 floor_friction=float(result.get("floor_friction", cfg.simulator.floor_friction)),
                  length_scale=obj.scale,
                  initial_velocity={"linear": result["linear_velocity"], "angular": result["angular_velocity"],
                                    "centre": state.velocity["centre"]},
