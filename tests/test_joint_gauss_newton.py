@@ -181,7 +181,7 @@ def test_the_clip_jacobian_agrees_with_the_adjoint_gradient():
     target = (images.double() + 0.05 * torch.rand(images.shape, generator=torch.Generator().manual_seed(0),
                                                   dtype=torch.float64)).clamp(0, 1)
     obs = Observations(target, cams)
-    cfg = JointConfig(method="gauss_newton", fit_damping=True, frame_decay=3.0)
+    cfg = JointConfig(method="gauss_newton", fit_damping=True, fit_friction=False, frame_decay=3.0)
     prior = {"log10_E": 5.0, "nu": 0.3, "damping_ratio": 0.05}
     params = [dataclasses.replace(q, step=1e-6) for q in physical_parameters(sim, cfg, prior, 0.05)]
     clip = ClipResiduals(sim, rig, obs, [0.0, 0.0, 0.0], cfg.frame_decay, [q.name for q in params])
@@ -251,6 +251,25 @@ def test_gauss_newton_recovers_the_floors_friction_of_the_models_own_motion():
     entry = result.uncertainty["floor_friction"]
     assert entry["identifiable"] and entry["prior_mean"] == pytest.approx(0.2)
     assert result.validation_loss < 0.1 * result.start_validation_loss
+
+
+def test_the_coarse_search_picks_the_floors_friction_with_E():
+    """On the model's own sliding drop with μ = 0.6 the coarse search over E × the friction grid (0, 0.5) picks 0.5
+    and that row's E, and records the friction of every grid point; on the frictionless drop it picks 0."""
+    from vid2sim.reconstruct.stages.joint import coarse_search
+
+    for truth, expected in ((0.6, 0.5), (0.0, 0.0)):
+        sim, gaussians, cams, images = _own_motion(6, 4.8, 0.3, 0.05, [1.2, 0.0, -1.0], [0.0, 0.0, 0.0],
+                                                   friction=truth)
+        set_floor_friction(sim, 0.0)
+        cfg = JointConfig(fit_friction=True, coarse_log10_E=(4.4, 4.8, 5.2), coarse_friction=(0.0, 0.5))
+        rig = GaussianRig(sim, gaussians)
+        records = coarse_search(sim, rig, lambda: sim.rigid_velocity_state([1.2, 0.0, -1.0], [0.0, 0.0, 0.0],
+                                                                           [0.0, 0.0, 0.0]),
+                                Observations(images, cams), cfg)
+        assert [(r["floor_friction"], r["log10_E"]) for r in records] == [(mu, e) for mu in (0.0, 0.5)
+                                                                          for e in (4.4, 4.8, 5.2)]
+        assert floor_friction(sim) == expected and abs(float(sim.log10_E) - 4.8) < 0.2
 
 
 @pytest.mark.slow

@@ -398,7 +398,7 @@ def test_bench_speed_joint_section_times_one_iteration():
     for key in ("joint_iter_ms", "joint_iter_ms_half_resolution", "joint_iter_ms_with_networks",
                 "joint_iter_ms_with_networks_neural_jacobian", "joint_gauss_newton_step_ms"):
         assert 0 < result[key] < 60_000
-    assert result["joint_settings"]["gauss_newton_parameters"] == 8  # log10 E, ν, 3 + 3 velocity components
+    assert result["joint_settings"]["gauss_newton_parameters"] == 9  # log10 E, ν, μ, 3 + 3 velocity components
     # one step = 9 rollouts of the 10-frame clip: more than one windows iteration (a 4-frame window), at most the
     # 9 × 9 frames' share of it
     assert result["joint_iter_ms_half_resolution"] < result["joint_gauss_newton_step_ms"]

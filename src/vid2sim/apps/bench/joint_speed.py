@@ -16,8 +16,9 @@ for dF/dz instead of the exact closed form). Medians over repeats. ``joint_iter_
 run, for a same-machine ratio.
 
 ``joint_gauss_newton_step_ms``: one step of the default method (``JointConfig.method`` "gauss_newton") on the same
-object: the whole 10-frame clip's forward-difference Jacobian in the 8 physical parameters (log10 E, ν, the initial
-linear and angular velocity: 8 + 1 rollouts of the clip, each frame rendered in the 4 views at half resolution,
+object: the whole 10-frame clip's forward-difference Jacobian in the 9 physical parameters (log10 E, ν, the floor's
+friction, the initial linear and angular velocity: 9 + 1 rollouts of the clip, each frame rendered in the 4 views at
+half resolution,
 the fit's ``coarse_scale``) and one trial step (a rollout and its loss), without gradients; ``joint_settings``
 ``gauss_newton_parameters`` says how many. A Gauss–Newton step does the work of many windows iterations: compare
 whole fits (``bench suite``'s seconds), not the two per-iteration figures.
@@ -48,7 +49,14 @@ from vid2sim.physics.neural_jacobian import NeuralJacobian
 from vid2sim.physics.solver import Simulator
 from vid2sim.reconstruct.config import JointConfig
 from vid2sim.reconstruct.gauss_newton import linearise, trajectory_loss
-from vid2sim.reconstruct.stages.joint import ClipResiduals, Observations, image_loss, physical_parameters, render_states
+from vid2sim.reconstruct.stages.joint import (
+    ClipResiduals,
+    Observations,
+    image_loss,
+    physical_parameters,
+    render_states,
+    simulator_prior,
+)
 from vid2sim.splats.cameras import camera_ring
 from vid2sim.splats.gaussians import Gaussians
 
@@ -120,10 +128,12 @@ class JointBench:
     def gauss_newton_step(self) -> int:
         """One Gauss–Newton step (module docstring) from the bench's wrong guess; returns the parameter count."""
         sim, cfg = self.sim, JointConfig()
-        prior = {"log10_E": float(sim.log10_E), "nu": float(sim.nu), "damping_ratio": float(sim.damping_ratio)}
+        prior = simulator_prior(sim)
         parameters = physical_parameters(sim, cfg, prior, float(sim.config.dt))
         clip = ClipResiduals(sim, self.rig, self.half, [0.0, 0.0, 0.0], cfg.frame_decay, [q.name for q in parameters])
-        theta = [prior["log10_E"], prior["nu"], *START_LINEAR_VELOCITY, *START_ANGULAR_VELOCITY]
+        velocity = dict(zip([f"{kind}_velocity_{a}" for kind in ("linear", "angular") for a in "xyz"],
+                            [*START_LINEAR_VELOCITY, *START_ANGULAR_VELOCITY]))
+        theta = [prior[q.name] if q.name in prior else velocity[q.name] for q in parameters]
         try:
             lin = linearise(clip, parameters, theta)
             trial = list(theta)

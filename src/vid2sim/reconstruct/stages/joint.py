@@ -325,6 +325,13 @@ def floor_friction(sim: Simulator) -> float:
     return next((float(e.friction) for e in sim.externals if isinstance(e, Floor)), 0.0)
 
 
+def simulator_prior(sim: Simulator) -> dict[str, float]:
+    """The values the simulator holds now, as the fit's prior means: ``log10_E``, ``nu``, ``damping_ratio`` and
+    ``floor_friction``."""
+    return {"log10_E": float(sim.log10_E), "nu": float(sim.nu), "damping_ratio": float(sim.damping_ratio),
+            "floor_friction": floor_friction(sim)}
+
+
 def set_floor_friction(sim: Simulator, value: float) -> None:
     """Give the simulator's floor(s) the Coulomb coefficient ``value``."""
     sim.externals = [replace(e, friction=value) if isinstance(e, Floor) else e for e in sim.externals]
@@ -445,8 +452,7 @@ def joint_optimisation(
     needed = cfg.window + 1 if cfg.method == "windows" else 2
     if T < needed:
         raise ValueError(f"the joint optimisation ({cfg.method}) needs at least {needed} observed frames, got {T}")
-    prior = {"log10_E": float(sim.log10_E), "nu": float(sim.nu), "damping_ratio": float(sim.damping_ratio),
-             "floor_friction": floor_friction(sim)}
+    prior = simulator_prior(sim)
     rig = GaussianRig(sim, gaussians)
     c = [float(x) for x in centre]
     coarse_obs = observations.at_scale(cfg.coarse_scale)
