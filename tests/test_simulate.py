@@ -145,13 +145,13 @@ def test_tilted_floor_makes_the_object_slide_downhill(asset):
 
 def test_the_floor_and_obstacles_take_the_scenarios_friction_or_the_assets(asset):
     """``floor.friction`` / ``obstacles[i].friction`` reach the simulator's barriers (static and moving floors);
-    unset, they are the asset's floor friction (0 for an asset reconstructed without one); a negative one is
-    refused naming the field."""
+    unset, they are the asset's floor friction (the one its reconstruction fitted); a negative one is refused naming
+    the field."""
     from dataclasses import replace
 
     sphere = ObstacleSpec(center=(0.0, 0.0, 3.0), radius=0.2)
     plain = resolve_scenario(asset, Scenario(frames=2, obstacles=[sphere])).externals
-    assert [e.friction for e in plain[1:]] == [0.0, 0.0]
+    assert [e.friction for e in plain[1:]] == [asset.floor_friction] * 2
     rough = replace(asset, floor_friction=0.3)
     resolved = resolve_scenario(rough, Scenario(frames=2, obstacles=[ObstacleSpec(center=(0.0, 0.0, 3.0), radius=0.2)]))
     assert [e.friction for e in resolved.externals[1:]] == [0.3, 0.3]

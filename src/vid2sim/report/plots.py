@@ -118,30 +118,7 @@ def optimisation_figure(path: Path, log: Mapping[str, Any], found: Mapping[str, 
             _integer_x(ax)
             ax.legend(loc="best")
             ax.ticklabel_format(axis="y", useOffset=False)
-        ax = axes[1, 1]
-        coarse = [c for c in log.get("coarse_search", []) if isinstance(c, Mapping)]
-        if coarse:
-            ys = [c["loss"] for c in coarse]
-            frictions = sorted({c.get("floor_friction") for c in coarse}, key=lambda mu: -1.0 if mu is None else mu)
-            for k, mu in enumerate(frictions):  # one line per floor friction of the search (one without)
-                row = [c for c in coarse if c.get("floor_friction") == mu]
-                ax.plot([c["log10_E"] for c in row], [c["loss"] for c in row], color=LINE_COLOUR, marker="o", ms=5,
-                        lw=1.4, alpha=1.0 - 0.5 * k / max(1, len(frictions) - 1),
-                        label="loss on the grid" if mu is None else f"loss, floor friction {mu:g}")
-            start = next((e["log10_E"] for e in entries if e.get("iteration") == 0), None)
-            if isinstance(start, (int, float)):
-                ax.axvline(start, color="#7a5af8", ls="-.", lw=1.3, label=f"start {start:.2f}")
-            if isinstance(found.get("log10_E"), (int, float)):
-                ax.axvline(found["log10_E"], color=FOUND_COLOUR, ls=":", lw=1.6, label=f"found {found['log10_E']:.2f}")
-            if isinstance(truth.get("log10_E"), (int, float)):
-                ax.axvline(truth["log10_E"], color=TRUTH_COLOUR, ls="--", lw=1.4, label=f"truth {truth['log10_E']:.2f}")
-            if all(y > 0 for y in ys) and max(ys) > 10 * min(ys):
-                ax.set_yscale("log")
-            ax.legend(loc="best")
-        else:
-            _empty(ax, "no coarse search logged")
-        ax.set_title("coarse search of E")
-        ax.set_xlabel("log10 E")
+        _coarse_panel(axes[1, 1], log, entries, found, truth)
         ax = axes[1, 2]
         timed = [e for e in train if isinstance(e.get("ms"), (int, float))]
         if timed:
@@ -158,6 +135,35 @@ def optimisation_figure(path: Path, log: Mapping[str, Any], found: Mapping[str, 
         _integer_x(ax)
         return _save(fig, path)
 
+
+
+def _coarse_panel(ax: Any, log: Mapping[str, Any], entries: list, found: Mapping[str, Any],
+                  truth: Mapping[str, Any]) -> None:
+    """The coarse search's loss over log10 E (one line per floor friction it tried), with the start, the found and
+    the true E."""
+    coarse = [c for c in log.get("coarse_search", []) if isinstance(c, Mapping)]
+    if coarse:
+        ys = [c["loss"] for c in coarse]
+        frictions = sorted({c.get("floor_friction") for c in coarse}, key=lambda mu: -1.0 if mu is None else mu)
+        for k, mu in enumerate(frictions):  # one line per floor friction of the search (one without)
+            row = [c for c in coarse if c.get("floor_friction") == mu]
+            ax.plot([c["log10_E"] for c in row], [c["loss"] for c in row], color=LINE_COLOUR, marker="o", ms=5,
+                    lw=1.4, alpha=1.0 - 0.5 * k / max(1, len(frictions) - 1),
+                    label="loss on the grid" if mu is None else f"loss, floor friction {mu:g}")
+        start = next((e["log10_E"] for e in entries if e.get("iteration") == 0), None)
+        if isinstance(start, (int, float)):
+            ax.axvline(start, color="#7a5af8", ls="-.", lw=1.3, label=f"start {start:.2f}")
+        if isinstance(found.get("log10_E"), (int, float)):
+            ax.axvline(found["log10_E"], color=FOUND_COLOUR, ls=":", lw=1.6, label=f"found {found['log10_E']:.2f}")
+        if isinstance(truth.get("log10_E"), (int, float)):
+            ax.axvline(truth["log10_E"], color=TRUTH_COLOUR, ls="--", lw=1.4, label=f"truth {truth['log10_E']:.2f}")
+        if all(y > 0 for y in ys) and max(ys) > 10 * min(ys):
+            ax.set_yscale("log")
+        ax.legend(loc="best")
+    else:
+        _empty(ax, "no coarse search logged")
+    ax.set_title("coarse search of E")
+    ax.set_xlabel("log10 E")
 
 def psnr_figure(path: Path, per_view: Mapping[str, Sequence[float | None]], held_out_views: Sequence[str],
                 future: Sequence[bool], means: Sequence[tuple[str, Sequence[float | None], bool]] = ()) -> Path:

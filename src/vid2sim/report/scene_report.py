@@ -424,14 +424,17 @@ class _Builder:
         (the evaluation's, else computed), each by parameter; kept for the later sections and report.json."""
         mat_ev = ev.get("material") or {}
         found = {"E": self.material.get("E"), "log10_E": self.material.get("log10_E"), "nu": self.material.get("nu"),
-                 "damping_ratio": self.material.get("damping_ratio"), "density": self.material.get("density")}
+                 "damping_ratio": self.material.get("damping_ratio"), "density": self.material.get("density"),
+                 "floor_friction": self.asset_json.get("floor_friction")}
         truth = dict(self.truth)
+        if _isnum(mat_ev.get("true_floor_friction")):
+            truth.setdefault("floor_friction", mat_ev["true_floor_friction"])
         for k, v in (mat_ev.get("truth") or {}).items():
             truth.setdefault(k, v)
         if isinstance(truth.get("E"), (int, float)) and truth["E"] > 0:
             truth.setdefault("log10_E", math.log10(truth["E"]))
         errors = {"log10_E": mat_ev.get("abs_error_log10_E"), "nu": mat_ev.get("abs_error_nu")}
-        for key in ("log10_E", "nu", "damping_ratio"):
+        for key in ("log10_E", "nu", "damping_ratio", "floor_friction"):
             if errors.get(key) is None and _isnum(found.get(key)) and _isnum(truth.get(key)):
                 errors[key] = abs(found[key] - truth[key])
         self.found, self.truth = found, truth
@@ -490,6 +493,7 @@ class _Builder:
                  ("log10 E", "log10_E", lambda x: H.fmt(x, 3), "decades"),
                  ("Poisson's ratio ν", "nu", lambda x: H.fmt(x, 3), ""),
                  ("damping ratio ζ", "damping_ratio", lambda x: H.fmt(x, 3), ""),
+                 ("floor friction μ", "floor_friction", lambda x: H.fmt(x, 3), ""),
                  ("density (kg/m³, not fitted)", "density", lambda x: H.fmt(x, 0), None)]
         for label, key, f, unit in specs:
             st = start.get(key) if key != "E" else (10 ** start["log10_E"] if _isnum(start.get("log10_E")) else None)
