@@ -46,7 +46,7 @@ from torch import Tensor
 
 from vid2sim.physics.external import Floor, Gravity, energy_and_gradient
 from vid2sim.physics.integrators import BDFStep
-from vid2sim.physics.reduced import reduced_point_hessian
+from vid2sim.physics.reduced import reduced_point_hessian, smoothed_friction
 
 #: Temporary memory (bytes) one batch of adjoint data may take; longer rollouts are done in several batches.
 ADJOINT_BATCH_BYTES = 1 << 27
@@ -426,29 +426,22 @@ class _FloorFriction:
         c = (step.energy_scale * k2_mu) * frame.contact_w[index] * (-s_prev[index])
         return cls(b, x0, x_ref, c, float(eps), a0 / step.h)
 
-    def _slip(self, Y: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """(u (A, 2), σ (A,), slow (A,) bool) at the state Y: (3, L)."""
+    def _slip(self, Y: Tensor) -> tuple[Tensor, Tensor]:
+        """(u (A, 2), σ (A,)) at the state Y: (3, L)."""
         u = (torch.addmm(self.x0, self.b, Y[:2].t()) - self.x_ref).mul_(self.rate)
-        sigma = torch.sqrt((u * u).sum(1) + torch.finfo(u.dtype).tiny)
-        return u, sigma, sigma < self.eps
+        return u, torch.sqrt((u * u).sum(1) + torch.finfo(u.dtype).tiny)
 
     def add_gradient(self, Y: Tensor, grad: Tensor, energy: bool) -> tuple[Tensor, float] | None:
         """Add ∂D_f/∂Y to grad: (3, L) in place; returns D_f as a part (0-d, factor), or None without ``energy``."""
-        u, sigma, slow = self._slip(Y)
-        e = self.eps
-        phi = torch.where(slow, 2.0 / e - sigma / (e * e), 1.0 / sigma)  # f₁(σ)/σ
+        u, sigma = self._slip(Y)
+        f0, phi, _ = smoothed_friction(sigma, self.eps)
         grad[:2].addmm_((self.c * phi).unsqueeze(1).mul(u).t(), self.b)
-        if not energy:
-            return None
-        f0 = torch.where(slow, sigma * sigma / e - sigma**3 / (3.0 * e * e) + e / 3.0, sigma)
-        return torch.dot(self.c, f0), 1.0 / self.rate
+        return (torch.dot(self.c, f0), 1.0 / self.rate) if energy else None
 
     def add_hessian(self, Y: Tensor, H: Tensor) -> None:
         """Add ∂²D_f/∂y² to H: (D, D) in place: per point (a₀/h) c [φ I₂ + σ φ'(σ) ûûᵀ] in the x, y rows."""
-        u, sigma, slow = self._slip(Y)
-        e = self.eps
-        phi = torch.where(slow, 2.0 / e - sigma / (e * e), 1.0 / sigma)
-        sigma_dphi = torch.where(slow, -sigma / (e * e), -1.0 / sigma)
+        u, sigma = self._slip(Y)
+        _, phi, sigma_dphi = smoothed_friction(sigma, self.eps)
         u_hat = u / sigma.unsqueeze(1)
         block = (sigma_dphi.view(-1, 1, 1) * u_hat.unsqueeze(2)) * u_hat.unsqueeze(1)
         block.diagonal(dim1=1, dim2=2).add_(phi.unsqueeze(1))

@@ -335,9 +335,7 @@ class StepProblem:
         b = self._contact[1]
         for index, x_ref, v_b, n, c, eps in self._friction_reference:
             u, sigma = self._slip(x[index], x_ref, v_b, n)
-            slow = sigma < eps
-            f0 = torch.where(slow, sigma * sigma / eps - sigma**3 / (3.0 * eps * eps) + eps / 3.0, sigma)
-            phi = torch.where(slow, 2.0 / eps - sigma / (eps * eps), 1.0 / sigma)  # f₁(σ)/σ
+            f0, phi, _ = smoothed_friction(sigma, eps)
             e = e + (self.step.h / self.step.a0) * (c * f0).sum()
             f = f + (((c * phi)[:, None] * u).T @ b[index]).reshape(-1)
         return e, f
@@ -353,9 +351,7 @@ class StepProblem:
         H = None
         for index, x_ref, v_b, n, c, eps in self._friction_reference:
             u, sigma = self._slip(x[index], x_ref, v_b, n)
-            slow = sigma < eps
-            phi = torch.where(slow, 2.0 / eps - sigma / (eps * eps), 1.0 / sigma)
-            sigma_dphi = torch.where(slow, -sigma / (eps * eps), -1.0 / sigma)  # σ φ'(σ)
+            _, phi, sigma_dphi = smoothed_friction(sigma, eps)
             u_hat = u / sigma[:, None]
             tangent = eye - n[:, :, None] * n[:, None, :]
             block = phi[:, None, None] * tangent + sigma_dphi[:, None, None] * (u_hat[:, :, None] * u_hat[:, None, :])
@@ -624,6 +620,17 @@ class StepProblem:
 def _half_trace_strain(F: Tensor, C_ref: Tensor) -> Tensor:
     """tr G = ½ (‖F‖² − tr C_ref), (K,): the trace of the Kelvin–Voigt strain measured from C_ref."""
     return 0.5 * ((F * F).sum(dim=(1, 2)) - C_ref.diagonal(dim1=1, dim2=2).sum(-1))
+
+
+def smoothed_friction(sigma: Tensor, eps: float) -> tuple[Tensor, Tensor, Tensor]:
+    """The smoothed Coulomb law of incremental-potential contact at slip speeds σ (A,) > 0 with slip speed ε_v:
+    (f₀(σ), φ = f₁(σ)/σ, σ φ'(σ)), each (A,), where f₁(σ) = 2σ/ε_v − σ²/ε_v² below ε_v and 1 above, f₀ its integral
+    (f₀(0) = ε_v/3). The friction potential is c f₀(σ) per point, its force c φ u, its Hessian c (φ T + σφ' ûûᵀ)."""
+    slow = sigma < eps
+    f0 = torch.where(slow, sigma * sigma / eps - sigma**3 / (3.0 * eps * eps) + eps / 3.0, sigma)
+    phi = torch.where(slow, 2.0 / eps - sigma / (eps * eps), 1.0 / sigma)
+    sigma_dphi = torch.where(slow, -sigma / (eps * eps), -1.0 / sigma)
+    return f0, phi, sigma_dphi
 
 
 def reduced_point_hessian(hx: Tensor, b: Tensor) -> Tensor:
