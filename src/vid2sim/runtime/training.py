@@ -91,7 +91,8 @@ def optimise(params: Sequence[Tensor], step: Callable[[int], tuple[Tensor, Mappi
             sched.step()
             losses.append(value)
             if progress.show and (it % progress.every == 0 or it == schedule.iterations - 1):
-                bar.set_postfix({"loss": f"{value:.4g}", **{k: f"{float(v):.3g}" for k, v in parts.items()}})
+                bar.set_postfix({"loss": f"{value:.4g}", **{k: f"{float(torch.as_tensor(v).detach()):.3g}"
+                                                                for k, v in parts.items()}})
     finally:
         for p in params:
             p.grad = None
