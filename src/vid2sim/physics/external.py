@@ -368,12 +368,16 @@ class MovingFloor:
         """Pivot height at time t (m)."""
         return self.height + self.velocity * t + self.amplitude * math.sin(2.0 * math.pi * self.frequency * t)
 
+    def _unit_axis(self) -> tuple[float, float]:
+        """(a_x, a_y) of the unit tilt axis a."""
+        ax, ay, _ = self.tilt_axis
+        norm = math.hypot(ax, ay)
+        return ax / norm, ay / norm
+
     def normal_at(self, t: float) -> tuple[float, float, float]:
         """Unit normal n(t) of the plane."""
         theta = math.radians(self.tilt_deg + self.tilt_rate_deg * t)
-        ax, ay, _ = self.tilt_axis
-        norm = math.hypot(ax, ay)
-        ax, ay = ax / norm, ay / norm
+        ax, ay = self._unit_axis()
         c, s = math.cos(theta), math.sin(theta)
         return (s * ay, -s * ax, c)  # cos θ e_z + sin θ (a × e_z), a × e_z = (a_y, −a_x, 0)
 
@@ -381,10 +385,9 @@ class MovingFloor:
         """(N, 3): the plane's material velocity at x, ṗ(t) + ω × (x − p(t)) with ṗ the pivot's vertical
         velocity and ω = θ̇ a the tilt's angular velocity."""
         _, p = self._plane(x, t)
-        ax, ay, _ = self.tilt_axis
-        norm = math.hypot(ax, ay)
+        ax, ay = self._unit_axis()
         rate = math.radians(self.tilt_rate_deg)
-        omega = torch.tensor((rate * ax / norm, rate * ay / norm, 0.0), dtype=x.dtype, device=x.device)
+        omega = torch.tensor((rate * ax, rate * ay, 0.0), dtype=x.dtype, device=x.device)
         climb = self.velocity + self.amplitude * 2.0 * math.pi * self.frequency \
             * math.cos(2.0 * math.pi * self.frequency * t)
         pdot = torch.tensor((0.0, 0.0, climb), dtype=x.dtype, device=x.device)

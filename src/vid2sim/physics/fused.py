@@ -443,13 +443,14 @@ class _FloorFriction:
         u, sigma = self._slip(Y)
         _, phi, sigma_dphi = smoothed_friction(sigma, self.eps)
         u_hat = u / sigma.unsqueeze(1)
-        block = (sigma_dphi.view(-1, 1, 1) * u_hat.unsqueeze(2)) * u_hat.unsqueeze(1)
-        block.diagonal(dim1=1, dim2=2).add_(phi.unsqueeze(1))
-        block.mul_((self.rate * self.c).view(-1, 1, 1))
-        L = self.b.shape[1]
-        bb = (self.b.unsqueeze(2) * self.b.unsqueeze(1)).view(-1, L * L)  # (A, L²)
-        Hr = torch.mm(block.view(-1, 4).t(), bb).view(2, 2, L, L).permute(0, 2, 1, 3).reshape(2 * L, 2 * L)
-        H[:2 * L, :2 * L] += Hr
+        block = u.new_zeros(u.shape[0], 3, 3)  # the z row and column stay zero: the slip is horizontal
+        xy = block[:, :2, :2]
+        xy.copy_((sigma_dphi.view(-1, 1, 1) * u_hat.unsqueeze(2)) * u_hat.unsqueeze(1))
+        xy.diagonal(dim1=1, dim2=2).add_(phi.unsqueeze(1))
+        xy.mul_((self.rate * self.c).view(-1, 1, 1))
+        H += reduced_point_hessian(block, self.b)
+
+
 
 @dataclass
 class StepAdjoint:

@@ -321,7 +321,7 @@ class StepProblem:
             out.append((index, x_ref[index], v_b, n[index], coefficient, float(ext.friction_velocity)))
         return out
 
-    def _slip(self, x: Tensor, x_ref: Tensor, v_b: Tensor, n: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    def _slip(self, x: Tensor, x_ref: Tensor, v_b: Tensor, n: Tensor) -> tuple[Tensor, Tensor]:
         """(u (A, 3), σ (A,)): the tangential slip velocity (a₀/h)(x − x_ref) − v_b projected off the normal n,
         and its length (kept off zero by the dtype's smallest normal number, so that it differentiates)."""
         v = (self.step.a0 / self.step.h) * (x - x_ref) - v_b

@@ -431,8 +431,7 @@ class Scenario:
         f = self.floor
         _finite(self, "floor.height", "m")
         _positive(self, "floor.stiffness", "Pa per metre of penetration")
-        if f.friction is not None and not (math.isfinite(f.friction) and f.friction >= 0):
-            raise self.error("floor.friction", f.friction, "expected a Coulomb coefficient >= 0 (0: frictionless)")
+        _friction(self, "floor.friction", f.friction)
         for key in ("velocity", "amplitude", "tilt_rate_deg"):
             _finite(self, f"floor.{key}", "")
         if not (math.isfinite(f.frequency) and f.frequency >= 0):
@@ -456,9 +455,7 @@ class Scenario:
                 raise self.error(f"obstacles[{i}].radius", o.radius, "expected a sphere radius > 0 m")
             if o.stiffness is not None and not o.stiffness > 0:
                 raise self.error(f"obstacles[{i}].stiffness", o.stiffness, "expected a stiffness > 0 (Pa/m)")
-            if o.friction is not None and not (math.isfinite(o.friction) and o.friction >= 0):
-                raise self.error(f"obstacles[{i}].friction", o.friction,
-                                 "expected a Coulomb coefficient >= 0 (0: frictionless)")
+            _friction(self, f"obstacles[{i}].friction", o.friction)
 
     def _validate_initial(self) -> None:
         s = self.initial
@@ -618,6 +615,12 @@ def _finite(s: Scenario, path: str, unit: str) -> None:
     value = s.get(path)
     if value is not None and not math.isfinite(value):
         raise s.error(path, value, f"expected a finite number{' (' + unit + ')' if unit else ''}")
+
+
+def _friction(s: Scenario, path: str, value: float | None) -> None:
+    """A contact's Coulomb coefficient at ``path``: None (the asset's) or a finite number >= 0."""
+    if value is not None and not (math.isfinite(value) and value >= 0):
+        raise s.error(path, value, "expected a Coulomb coefficient >= 0 (0: frictionless)")
 
 
 def _positive(s: Scenario, path: str, unit: str) -> None:
