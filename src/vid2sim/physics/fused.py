@@ -397,7 +397,8 @@ class _FloorFriction:
 
     Attributes:
         b: (A, L) the points' LBS rows; x0: (A, 2) their rest x, y; x_ref: (A, 2) the BDF reference position;
-        c: (A,) k_e μ λ with the lagged normal force λ = 2k w (h − z_prev); eps: ε_v; rate: a₀/h.
+        c: (A,) k_e μ λ with the normal force λ = 2k w (h − z_λ) at the state y_λ the step takes it at (the start
+        of the step, or the simulator's fixed point); eps: ε_v; rate: a₀/h.
     """
 
     b: Tensor
@@ -409,13 +410,13 @@ class _FloorFriction:
 
     @classmethod
     def make(cls, frame: "FusedFrame", step: BDFStep, offset: Tensor, k2_mu: float, eps: float, y_prev: Tensor,
-             y_prev2: Tensor | None) -> "_FloorFriction | None":
-        """From the frame's floor (offset z_c − h (Nc,), 2kμ, ε_v) and the states before the step; None when no
-        contact point is below the floor at its start."""
+             y_prev2: Tensor | None, y_lag: Tensor) -> "_FloorFriction | None":
+        """From the frame's floor (offset z_c − h (Nc,), 2kμ, ε_v), the states before the step and the state
+        y_λ: (D,) of the normal force; None when no contact point is below the floor at y_λ."""
         a0, a1, a2 = step.coefficients
         Yp = y_prev.view(3, -1)
-        s_prev = torch.addmv(offset, frame.contact_b, Yp[2])
-        index = (s_prev < 0).nonzero()[:, 0]
+        s_lag = torch.addmv(offset, frame.contact_b, y_lag.view(3, -1)[2])
+        index = (s_lag < 0).nonzero()[:, 0]
         if index.numel() == 0:
             return None
         b = frame.contact_b[index]
@@ -423,7 +424,7 @@ class _FloorFriction:
         x_ref = (a1 / a0) * torch.addmm(x0, b, Yp[:2].t())
         if step.needs_history:
             x_ref = x_ref + (a2 / a0) * torch.addmm(x0, b, y_prev2.view(3, -1)[:2].t())
-        c = (step.energy_scale * k2_mu) * frame.contact_w[index] * (-s_prev[index])
+        c = (step.energy_scale * k2_mu) * frame.contact_w[index] * (-s_lag[index])
         return cls(b, x0, x_ref, c, float(eps), a0 / step.h)
 
     def _slip(self, Y: Tensor) -> tuple[Tensor, Tensor]:
@@ -482,10 +483,11 @@ class FusedStep:
         step: the BDF step; t: the time at its end.
         y_prev, y_prev2: (D,) the states at the start of the step and one step earlier (None without history).
         y_pred: (D,) the inertial target ŷ.
+        friction_state: (D,) the state y_λ friction's normal force is taken at (None: y_prev).
     """
 
     def __init__(self, frame: FusedFrame, step: BDFStep, t: float, y_prev: Tensor, y_prev2: Tensor | None,
-                 y_pred: Tensor) -> None:
+                 y_pred: Tensor, friction_state: Tensor | None = None) -> None:
         self.frame, self.step, self.t = frame, step, t
         self.Y_pred = y_pred.view(3, -1)
         self.coef, self.force_constant, constant = frame.coefficients(step)
@@ -505,7 +507,8 @@ class FusedStep:
                 Ft2, C2 = frame.metric(y_prev2)
                 self.previous.append(Ft2)
                 self.C_ref.add_(C2, alpha=a2 / a0)
-        frictions = (_FloorFriction.make(frame, step, *f, y_prev, y_prev2) for f in frame.frictions)
+        y_lag = y_prev if friction_state is None else friction_state
+        frictions = (_FloorFriction.make(frame, step, *f, y_prev, y_prev2, y_lag) for f in frame.frictions)
         self.frictions = [f for f in frictions if f is not None]
         # Φ's constant parts: Σ ½β₀ (tr C_ref − 3) + k_e e₀ + f·ŷ (the gravity term f·y is written f·(y − ŷ) + f·ŷ)
         self.constants = [

@@ -181,10 +181,12 @@ class StepProblem:
 
     with x_ref = (a₁ x_n + a₂ x_{n−1}) / a₀ (so (a₀/h)(x − x_ref) is the BDF velocity of the point), v_b the
     barrier's surface velocity there, T_i = I − n_i n_iᵀ the tangent projector and λ_i = 2 k w_i max(0, −s_i) the
-    penalty's normal force, both at the start of the step (lagged, as the dashpot's activation), and f₀ the
-    integral of IPC's smoothed sliding law f₁(σ) = 2σ/ε_v − σ²/ε_v² below the slip speed ε_v, 1 above. Its
-    gradient is k_E times the friction force −μ λ_i f₁(‖u_i‖) u_i/‖u_i‖; it is convex in y, so Newton's
-    Hessian needs no projection and the adjoint stays exact.
+    penalty's normal force, and f₀ the integral of IPC's smoothed sliding law f₁(σ) = 2σ/ε_v − σ²/ε_v² below the
+    slip speed ε_v, 1 above. Its gradient is k_E times the friction force −μ λ_i f₁(‖u_i‖) u_i/‖u_i‖; it is convex
+    in y, so Newton's Hessian needs no projection and the adjoint stays exact. λ_i, n_i, v_b and the set of points
+    in contact are evaluated at ``friction_state`` y_λ at the end of the step — the simulator's fixed point
+    y_λ = y* makes the normal force implicit (:attr:`vid2sim.physics.solver.SimConfig.friction_iterations`) — or,
+    when it is None, at the start of the step (lagged, as the dashpot's activation).
     """
 
     X: Tensor  # (K, 3) cubature rest positions
@@ -209,6 +211,7 @@ class StepProblem:
     contact_layer_stiffness: Tensor | None = None  # k_b (0-d, Pa/m): the body's contact layer in series
     contact_damping: Tensor | None = None  # c (0-d, N·s/m per unit contact weight): the contact dashpot
     volumetric: Tensor | None = None  # (K, H) V-orthonormal weights: the λ term projected (physics.volumetric)
+    friction_state: Tensor | None = None  # (D,) y_λ: the state friction's normal force is taken at (None: y_prev)
     fused: "FusedStep | None" = None  # the same step on the fused kernels (physics.fused), used where it applies
 
     # ---- pieces ------------------------------------------------------------------------------
@@ -297,27 +300,31 @@ class StepProblem:
     @functools.cached_property
     def _friction_reference(self) -> list[tuple[Tensor, Tensor, Tensor, Tensor, Tensor, float]]:
         """[(index (A,), x_ref (A, 3), v_b (A, 3), n (A, 3), c (A,), ε_v)] of every barrier with friction, over the
-        A contact points in contact with it at the start of the step: the BDF reference position, the barrier's
-        surface velocity, the lagged normal and the coefficient k_E μ λ; empty without friction."""
-        barriers = [e for e in self._externals_by_kind[1] if getattr(e, "friction", 0.0) > 0]
+        A contact points in contact with it at y_λ (``friction_state``, else the start of the step): the BDF
+        reference position, the barrier's surface velocity, its normal and the coefficient k_E μ λ there; empty
+        without friction."""
+        barriers = friction_barriers(self.externals)
         if not barriers:
             return []
         a0, a1, a2 = self.step.coefficients
         _, _, w = self._contact
-        t_prev = self.t - self.step.h
         x_prev = self._contact_positions(self.y_prev)
         x_ref = (a1 / a0) * x_prev
         if self.step.needs_history:
             x_ref = x_ref + (a2 / a0) * self._contact_positions(self.y_prev2)
+        if self.friction_state is None:
+            x_lag, t_lag = x_prev, self.t - self.step.h
+        else:
+            x_lag, t_lag = self._contact_positions(self.friction_state), self.t
         out = []
         for ext in barriers:
-            s_prev, n, _ = ext.distance_derivatives(x_prev, t_prev)
-            index = (s_prev.detach() < 0).nonzero()[:, 0]
+            s_lag, n, _ = ext.distance_derivatives(x_lag, t_lag)
+            index = (s_lag.detach() < 0).nonzero()[:, 0]
             if index.numel() == 0:
                 continue
-            normal_force = 2.0 * ext.stiffness * self._barrier_weights(ext, w)[index] * (-s_prev[index])
+            normal_force = 2.0 * ext.stiffness * self._barrier_weights(ext, w)[index] * (-s_lag[index])
             coefficient = self.step.energy_scale * ext.friction * normal_force
-            v_b = ext.surface_velocity(x_prev[index], self.t)
+            v_b = ext.surface_velocity(x_lag[index], self.t)
             out.append((index, x_ref[index], v_b, n[index], coefficient, float(ext.friction_velocity)))
         return out
 
@@ -620,6 +627,11 @@ class StepProblem:
 def _half_trace_strain(F: Tensor, C_ref: Tensor) -> Tensor:
     """tr G = ½ (‖F‖² − tr C_ref), (K,): the trace of the Kelvin–Voigt strain measured from C_ref."""
     return 0.5 * ((F * F).sum(dim=(1, 2)) - C_ref.diagonal(dim1=1, dim2=2).sum(-1))
+
+
+def friction_barriers(externals: Sequence) -> list:
+    """The contact barriers among ``externals`` with Coulomb friction μ > 0."""
+    return [e for e in externals if getattr(e, "kind", "body") == "contact" and getattr(e, "friction", 0.0) > 0]
 
 
 def smoothed_friction(sigma: Tensor, eps: float) -> tuple[Tensor, Tensor, Tensor]:

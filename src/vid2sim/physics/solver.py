@@ -20,7 +20,7 @@ line search.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Sequence
 
 import torch
@@ -39,6 +39,7 @@ from vid2sim.physics.reduced import (
     ElasticBasis,
     StepProblem,
     apply_plastic_state,
+    friction_barriers,
     lbs_rows,
     y_to_z_index,
     z_to_y_index,
@@ -90,6 +91,12 @@ class SimConfig:
             definite (its Cholesky factorisation succeeds, which the inertia term makes the common case)
             and the projected one otherwise. Both give a descent direction for the line search; the
             exact one converges at least as fast and costs less than half (no per-point eigen-analysis).
+        friction_iterations: with Coulomb friction on a barrier, the normal force (and the contact set) that friction
+            scales is made implicit by a fixed point over the step: the step is solved again with them taken at its
+            last solution, until no contact point moves by more than ``newton_tol`` × the length scale between two
+            solutions, at most this many times (each solve differentiated exactly, so the gradient is that of the
+            computed step). 0: the normal force of the start of the step (lagged: an O(h) error that, measured on a
+            tumbling drop, dominates the time-step error).
     """
 
     dt: float = 0.05
@@ -104,6 +111,7 @@ class SimConfig:
     line_search_max_halvings: int = 30
     armijo: float = 1e-4
     hessian_projection: str = "on_demand"
+    friction_iterations: int = 4
 
     def __post_init__(self) -> None:
         if self.hessian_projection not in ("always", "on_demand"):
@@ -122,6 +130,10 @@ class SimConfig:
             raise ConfigError(f"SimConfig.newton_tol must be > 0, got {self.newton_tol}")
         if not self.newton_rtol > 0:
             raise ConfigError(f"SimConfig.newton_rtol must be > 0, got {self.newton_rtol}")
+        if isinstance(self.friction_iterations, bool) or not isinstance(self.friction_iterations, int) \
+                or self.friction_iterations < 0:
+            raise ConfigError(
+                f"SimConfig.friction_iterations must be an integer >= 0, got {self.friction_iterations!r}")
         if not 0 < self.reuse_rate < 1:
             raise ConfigError(f"SimConfig.reuse_rate must be in (0, 1), got {self.reuse_rate}")
 
@@ -437,20 +449,21 @@ class _StepSpec:
     fused: FusedStep | None = None  # the step on them, once made
 
     def problem(self, y_prev, ydot_prev, y_prev2, ydot_prev2, mu, lam, tau, mass, b, basis_t, contact_b,
-                layer_k=None, dashpot=None, volumetric=None, fused: bool = False) -> StepProblem:
+                layer_k=None, dashpot=None, volumetric=None, friction_state=None, fused: bool = False) -> StepProblem:
         """The step's problem of these inputs; with ``fused`` (and a ``frame``) on the fused kernels."""
         basis = ElasticBasis(self.A, basis_t, None) if self.structured else ElasticBasis(self.A, None, basis_t)
         problem = StepProblem(self.X, self.vol, mass, b, basis, mu, lam, self.model, self.externals,
                               self.t, self.step, y_prev, ydot_prev, y_prev2, ydot_prev2, tau,
-                              self.contact_X, contact_b, self.contact_w, layer_k, dashpot, volumetric)
+                              self.contact_X, contact_b, self.contact_w, layer_k, dashpot, volumetric, friction_state)
         if fused and self.frame is not None:
-            problem.fused = self.fused = FusedStep(self.frame, self.step, self.t, y_prev, y_prev2, problem.y_pred)
+            problem.fused = self.fused = FusedStep(self.frame, self.step, self.t, y_prev, y_prev2, problem.y_pred,
+                                                   friction_state)
         return problem
 
 
 #: The inputs of :class:`_ImplicitStep` after ``spec``, in order; the fused adjoint serves the first seven.
 _STEP_INPUTS = ("y_prev", "ydot_prev", "y_prev2", "ydot_prev2", "mu", "lam", "tau", "mass", "b", "basis",
-                "contact_b", "layer_k", "dashpot", "volumetric")
+                "contact_b", "layer_k", "dashpot", "volumetric", "friction_state")
 
 
 class _ImplicitStep(torch.autograd.Function):
@@ -459,7 +472,8 @@ class _ImplicitStep(torch.autograd.Function):
     Inputs after ``spec``: y_prev, ydot_prev, y_prev2, ydot_prev2 (None unless BDF2 has history), μ, λ,
     τ (None when undamped), masses, LBS rows b, F-basis, contact points' LBS rows (None: the cubature points),
     the contact layer's stiffness (None: no layer), the contact dashpot's coefficient (None: none), the
-    projected volumetric term's basis (None: pointwise).
+    projected volumetric term's basis (None: pointwise), the state friction's normal force is taken at (None: the
+    start of the step).
     """
 
     @staticmethod
@@ -483,8 +497,8 @@ class _ImplicitStep(torch.autograd.Function):
         needs = [n and t is not None for n, t in zip(ctx.needs_input_grad[1:], inputs)]
         if spec.fused is not None and not spec.fused.frictions and not any(needs[len(_FUSED_ADJOINT):]):
             return (None, *_fused_adjoint(spec.fused, grad_y, needs))
-        # otherwise −λᵀ ∂∇Φ/∂θ by autograd of the reference gradient (friction's lagged normal force and reference
-        # position also depend on the previous states)
+        # otherwise −λᵀ ∂∇Φ/∂θ by autograd of the reference gradient (friction's normal force and reference
+        # position also depend on the previous states or the fixed point's last solution)
         # one problem for the gradient's graph and the Hessian: the Hessian reuses what the gradient cached
         # (the inertial target, C_ref, the mass block) without recording it
         with torch.enable_grad():
@@ -816,6 +830,7 @@ class Simulator:
                                          self.contact_points, basis.contact_b, self.contact_weights)
                 cache.frame = (inputs, frame)
         identity = torch.eye(3, dtype=self.X.dtype, device=self.X.device).expand(self.X.shape[0], 3, 3)
+        frictions = friction_barriers(self.externals) if cfg.friction_iterations > 0 else []
         iterations, converged = 0, True
         for s in range(n):
             A, step_basis = identity, basis_t
@@ -828,18 +843,58 @@ class Simulator:
                 cache.stale = True  # the plastic state changed the basis
             spec = _StepSpec(self.X, self.vol, A, structured, self.material.model, self.externals, t_next, bdf, cfg,
                              self.contact_points, self.contact_weights, self.length_scale, cache, frame=frame)
-            y_new = _ImplicitStep.apply(spec, y, ydot, y2 if bdf.needs_history else None,
-                                        ydot2 if bdf.needs_history else None, mu, lam, tau, masses, b,
-                                        step_basis, basis.contact_b, layer_k, dashpot, basis.volumetric)
-            ydot_new = bdf.velocity(y_new, y, y2 if bdf.needs_history else None)
+            inputs = (y, ydot, y2 if bdf.needs_history else None, ydot2 if bdf.needs_history else None, mu, lam, tau,
+                      masses, b, step_basis, basis.contact_b, layer_k, dashpot, basis.volumetric)
+            y_new = _ImplicitStep.apply(spec, *inputs, None)
             iterations += spec.stats.iterations
             converged = converged and spec.stats.converged
+            if frictions:
+                lagged = self._friction_contact(frictions, basis, y, state.t + s * h)
+                y_new, its, ok = self._implicit_normal_force(spec, inputs, y_new, frictions, basis, lagged)
+                iterations, converged = iterations + its, converged and ok
+            ydot_new = bdf.velocity(y_new, y, y2 if bdf.needs_history else None)
             y2, ydot2, y, ydot = y, ydot, y_new, ydot_new
             h_prev = h
             if self.material.plasticity is not None:
                 Fp_inv = self._update_plastic(Fp_inv, y.detach()[self._inv], mu, lam, t_next)
         return SimState(y[self._inv], ydot[self._inv], state.t + cfg.dt, Fp_inv, iterations, converged,
                         y2[self._inv], ydot2[self._inv], h)
+
+    def _contact_positions(self, basis: "ReducedBasis", y: Tensor) -> Tensor:
+        """(Nc, 3) the contact points' positions at the permuted state y: (D,) (detached)."""
+        if basis.contact_b is None:
+            return self.X + basis.b @ y.detach().view(3, -1).T
+        return self.contact_points + basis.contact_b @ y.detach().view(3, -1).T
+
+    def _friction_contact(self, barriers: Sequence, basis: "ReducedBasis", y: Tensor, t: float) -> bool:
+        """Whether a contact point at the permuted state y: (D,) and time t touches a barrier with friction."""
+        x = self._contact_positions(basis, y)
+        return any(bool((e.signed_distance(x, t) < 0).any()) for e in barriers)
+
+    def _implicit_normal_force(self, spec: _StepSpec, inputs: tuple, y_new: Tensor, barriers: Sequence,
+                               basis: "ReducedBasis", lagged_contact: bool) -> tuple[Tensor, int, bool]:
+        """The fixed point of :attr:`SimConfig.friction_iterations`: the step solved again with friction's normal
+        force taken at its last solution y_new: (D,) until the contact points stop moving; ``lagged_contact``: whether
+        the first solve (normal force of the start of the step) had friction. Returns (y (D,), Newton iterations,
+        all converged). Each solve is an :class:`_ImplicitStep` with the last solution as an input, so the gradient
+        is that of the computed fixed-point iterate."""
+        cfg = self.config
+        tol = cfg.newton_tol * self.length_scale
+        iterations, converged = 0, True
+        for _ in range(cfg.friction_iterations):
+            contact = self._friction_contact(barriers, basis, y_new, spec.t)
+            if not contact and not lagged_contact:
+                break  # no friction at either state: the solve already is the implicit one
+            spec = replace(spec, stats=None, fused=None)
+            y_next = _ImplicitStep.apply(spec, *inputs, y_new)
+            iterations += spec.stats.iterations
+            converged = converged and spec.stats.converged
+            moved = float((self._contact_positions(basis, y_next) - self._contact_positions(basis, y_new))
+                          .norm(dim=1).max())
+            y_new, lagged_contact = y_next, contact
+            if moved <= tol:
+                break
+        return y_new, iterations, converged
 
     def _update_plastic(self, Fp_inv: Tensor, z: Tensor, mu, lam, t: float) -> Tensor:
         """The plastic state after the step to time ``t``: (C, 3, 3) inverse plastic deformation gradients.
