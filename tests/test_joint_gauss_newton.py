@@ -290,7 +290,7 @@ def test_a_clip_without_contact_says_the_material_is_not_identifiable():
     for name, prior in (("log10_E", 5.0), ("nu", 0.3), ("damping_ratio", 0.05)):
         entry = result.uncertainty[name]
         assert not entry["identifiable"] and entry["note"] == NOT_IDENTIFIABLE
-        assert entry["value"] == pytest.approx(prior, abs=1e-3)
+        assert entry["value"] == pytest.approx(prior, abs=5e-3)  # 0.005 decade: the prior's, to the clip's noise
         assert entry["sd"] == pytest.approx(entry["prior_sd"], rel=0.02)
     assert result.linear_velocity == pytest.approx([0.1, 0.0, -1.0], abs=2e-3)
 

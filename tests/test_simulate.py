@@ -49,19 +49,14 @@ def test_captured_scenario_reproduces_the_assets_own_rollout(asset, tiny_scene):
         start = asset.initial_state(sim)
         ref = [start] + sim.rollout(start, 5)
     assert len(run.states) == 6
-    assert run.states[0].z.dtype == torch.float64  # scenarios are simulated in float64 (docs/reliability.md)
-    torch.testing.assert_close(run.states[0].z.float(), ref[0].z, rtol=0, atol=0)
-    torch.testing.assert_close(run.states[0].zdot.float(), ref[0].zdot, rtol=0, atol=1e-6)  # about the centre of mass
+    assert run.states[0].z.dtype == torch.float64  # simulations are float64 (SimConfig.dtype, docs/reliability.md)
+    torch.testing.assert_close(run.states[0].z, ref[0].z, rtol=0, atol=0)
+    torch.testing.assert_close(run.states[0].zdot, ref[0].zdot, rtol=0, atol=1e-6)  # about the centre of mass
     contact = asset.contact_points
     for a, b in zip(run.states, ref):
         assert a.t == pytest.approx(b.t)
-        # the same motion, up to the float32 reference's rounding amplified by the contact: when the session's
-        # tiny scene was still tetrahedralised afresh (its tets are frozen now, tests/conftest.py), a full-suite
-        # run measured 1.2 mm on 7 of 1 320 coordinates on one mesh; 2.5 mm on the tiny object (about 1 m) is
-        # still the same motion
-        with torch.no_grad():
-            torch.testing.assert_close(sim.positions(contact, a.z.float()), sim.positions(contact, b.z), rtol=0,
-                                       atol=2.5e-3)
+        with torch.no_grad():  # the same simulation: the same motion to round-off amplified by the contact
+            torch.testing.assert_close(sim.positions(contact, a.z), sim.positions(contact, b.z), rtol=0, atol=1e-5)
     # the scene's cameras, read without decoding its frames, are the loader's cameras
     from vid2sim.scene.reading import load_scene
 

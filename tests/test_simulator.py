@@ -613,6 +613,34 @@ def test_the_implicit_normal_force_converges_a_tumbling_drop_with_friction_in_th
     assert error[(4, 8)] < 0.25 * error[(0, 8)]
 
 
+def test_the_simulation_computes_in_its_configs_dtype_whatever_its_inputs(trained_field):
+    """A float32 field and float32 points make a float64 simulation by default (its state, its parameters), the
+    positions come back in the points' dtype, and the drop is the one of the float64 inputs; ``dtype="float32"``
+    computes in float32; an unknown dtype is a named error."""
+    import copy
+
+    from vid2sim.runtime.errors import ConfigError
+
+    field, pts = trained_field
+    field32 = copy.deepcopy(field).float()
+    idx, w = sample_cubature(pts, 80, volume=1.0, seed=0)
+    runs = {}
+    for name, f, X, config in (("f64 inputs", field, pts[idx], SimConfig(substeps=4)),
+                               ("f32 inputs", field32, pts[idx].float(), SimConfig(substeps=4)),
+                               ("f32 sim", field32, pts[idx].float(), SimConfig(substeps=4, dtype="float32"))):
+        sim = Simulator(f, X, w.to(X), Material(1e5, 0.3), [Gravity(), Floor(height=-0.5)], config)
+        with torch.no_grad():
+            state = sim.rollout(sim.rigid_velocity_state([0.5, 0.0, -1.0], [0.0, 2.0, 0.0]), 6)[-1]
+            runs[name] = (state.z, sim.log10_E.dtype, sim.positions(X, state.z))
+    assert runs["f32 inputs"][0].dtype == torch.float64 and runs["f32 inputs"][1] == torch.float64
+    assert runs["f32 inputs"][2].dtype == torch.float32
+    assert runs["f32 sim"][0].dtype == torch.float32
+    assert float((runs["f32 inputs"][0] - runs["f64 inputs"][0]).abs().max()) < 1e-4  # the field's float32 basis
+    assert float((runs["f32 sim"][0].double() - runs["f64 inputs"][0]).abs().max()) < 1e-3
+    with pytest.raises(ConfigError, match="dtype"):
+        SimConfig(dtype="float16")
+
+
 def test_contact_dashpot_takes_the_bounce_and_only_dissipates(trained_field):
     """A drop on the floor with the contact dashpot β: the rebound falls as β grows, the mechanical energy
     after the bounce falls with it, and before the first contact nothing changes (the dashpot acts only on

@@ -36,7 +36,7 @@ class GaussianRig:
         self.sim = sim
         self.gaussians = gaussians
         self.shading = shading
-        self.X = gaussians.means.detach().to(sim.X.dtype)
+        self.X = gaussians.means.detach()  # deformed in the Gaussians' dtype (the simulator's state is cast)
 
     def basis(self) -> tuple[Tensor, Tensor | None, Tensor | None]:
         """(w (N, H), gradient basis G (N, 3, 4H) or None, Neural Jacobian dF/dz (N, 9, 12H) or None) at the
@@ -55,7 +55,7 @@ class GaussianRig:
         if J is None:
             F = deformation_gradient(G, z)
         else:
-            F = torch.eye(3, dtype=z.dtype, device=z.device) + (J @ z).reshape(-1, 3, 3)
+            F = torch.eye(3, dtype=J.dtype, device=J.device) + (J @ z.to(J.dtype)).reshape(-1, 3, 3)
         g = self.gaussians
         return deform_gaussians(g, x.to(g.means.dtype), F.to(g.means.dtype), self.shading)
 
@@ -63,6 +63,7 @@ class GaussianRig:
         """(means (T, N, 3), covariances F Σ Fᵀ (T, N, 3, 3)) of the Gaussians for T states Z: (T, 12H) in one batch
         (what :meth:`deformed` gives frame by frame; the colours are the Gaussians' own, so no shading)."""
         w, G, J = basis
+        Z = Z.to(self.X.dtype)
         T, H = Z.shape[0], w.shape[1]
         Y = Z.view(T, H, 3, 4).transpose(1, 2).reshape(T, 3, 4 * H)  # Y[t, a, 4j + k] = Z_j[a, k]
         x = self.X + lbs_rows(self.X, w) @ Y.transpose(1, 2)

@@ -130,12 +130,12 @@ class NeuralJacobian(InputFrame):
         if not bool(torch.isfinite(X).all()):
             raise ValueError("X contains NaN or infinite values")
         p = self.output.weight
-        if X.dtype != p.dtype or X.device != p.device:
-            raise ValueError(f"X ({X.dtype}, {X.device}) must match the network's parameters ({p.dtype}, {p.device})")
-        h = self.encode(X)
+        if X.device != p.device:
+            raise ValueError(f"X is on {X.device} but the network's parameters are on {p.device}")
+        h = self.encode(X.to(p.dtype))  # evaluated in the parameters' dtype, returned in X's
         for block in self.blocks:
             h = block(h)
-        return self.output(h).reshape(X.shape[0], 9, 12 * self.num_handles_total)
+        return self.output(h).reshape(X.shape[0], 9, 12 * self.num_handles_total).to(X.dtype)
 
 
 @dataclass

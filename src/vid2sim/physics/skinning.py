@@ -177,20 +177,17 @@ class SkinningField(InputFrame):
     def _check_input(self, X: Tensor) -> None:
         _check_points(X)
         p = self.last_layer.weight
-        if X.dtype != p.dtype:
-            raise ValueError(
-                f"X has dtype {X.dtype} but the skinning field's parameters are {p.dtype}; convert one of them"
-            )
         if X.device != p.device:
             raise ValueError(f"X is on {X.device} but the skinning field's parameters are on {p.device}")
 
     def learned_weights(self, X: Tensor) -> Tensor:
-        """MLP output only (no rigid column): (N, num_handles) for X: (N, 3)."""
+        """MLP output only (no rigid column): (N, num_handles) for X: (N, 3); evaluated in the parameters' dtype
+        and returned in X's (a float64 simulator reads a float32 field)."""
         self._check_input(X)
-        h = self._canonical(X)
+        h = self._canonical(X.to(self.last_layer.weight.dtype))
         for layer in self.layers[:-1]:
             h = Fn.elu(layer(h))
-        return self.layers[-1](h)
+        return self.layers[-1](h).to(X.dtype)
 
     def forward(self, X: Tensor) -> Tensor:
         """Skinning weights w: (N, H) for rest positions X: (N, 3); ``w[:, -1] == 1`` (rigid handle)."""
@@ -205,12 +202,13 @@ class SkinningField(InputFrame):
         vectorised, and differentiable with respect to the parameters.
 
         Args:
-            X: (N, 3) rest positions.
+            X: (N, 3) rest positions (of any floating dtype: evaluated in the parameters' and returned in X's).
         Returns:
             w: (N, H) weights (last column ≡ 1); dw: (N, H, 3) with ``dw[p, j, c] = ∂w_j/∂X_c`` (rigid column 0).
         """
         self._check_input(X)
-        return self._weights_and_gradients(X)
+        w, dw = self._weights_and_gradients(X.to(self.last_layer.weight.dtype))
+        return w.to(X.dtype), dw.to(X.dtype)
 
     def _weights_and_gradients(self, X: Tensor) -> tuple[Tensor, Tensor]:
         """:meth:`weights_and_gradients` without checking X (for callers that did, e.g. a training loop)."""
@@ -247,11 +245,12 @@ def lbs_matrix(X: Tensor, w: Tensor) -> Tensor:
 
 
 def deform(X: Tensor, w: Tensor, z: Tensor) -> Tensor:
-    """Deformed positions x: (N, 3) = X + Σ_j w_j Z_j [X; 1] for X: (N, 3), w: (N, H), z: (12H,)."""
+    """Deformed positions x: (N, 3) = X + Σ_j w_j Z_j [X; 1] for X: (N, 3), w: (N, H), z: (12H,), in X's dtype
+    (a float64 simulator's state moves float32 points)."""
     H = _check_weights(X, w)
     _check_z(z, H)
     b = (w[:, :, None] * homogeneous(X)[:, None, :]).reshape(X.shape[0], 4 * H)  # (N, 4H), index 4j+k
-    Zt = z.reshape(H, 3, 4).transpose(1, 2).reshape(4 * H, 3)  # Zt[4j+k, a] = Z_j[a, k]
+    Zt = z.to(X.dtype).reshape(H, 3, 4).transpose(1, 2).reshape(4 * H, 3)  # Zt[4j+k, a] = Z_j[a, k]
     return X + b @ Zt
 
 
@@ -291,7 +290,7 @@ def _check_basis(G: Tensor) -> int:
 
 
 def deformation_gradient(G: Tensor, z: Tensor) -> Tensor:
-    """F: (N, 3, 3) from the basis G: (N, 3, 4H) and z: (12H,).
+    """F: (N, 3, 3) from the basis G: (N, 3, 4H) and z: (12H,), in G's dtype.
 
     A batch of states z: (B, 12H) is also accepted and gives F: (B, N, 3, 3).
     """
@@ -304,6 +303,7 @@ def deformation_gradient_unchecked(G: Tensor, z: Tensor) -> Tensor:
     """:func:`deformation_gradient` without checking its inputs."""
     H = G.shape[2] // 4
     eye = torch.eye(3, dtype=G.dtype, device=G.device)
+    z = z.to(G.dtype)
     Y = z.reshape(*z.shape[:-1], H, 3, 4).transpose(-3, -2).reshape(*z.shape[:-1], 3, 4 * H)  # Y[a, 4j+k]
     if z.ndim == 1:
         return eye + torch.einsum("al,pcl->pac", Y, G)

@@ -80,34 +80,15 @@ class ScenarioRun:
     seconds: float
 
 
-def _in_double(asset: "Asset") -> "Asset":
-    """The asset with its simulation quantities (skinning field, Neural Jacobian, points, weights) in float64.
-
-    Assets are stored in float32, but a scenario is simulated in float64: in float32 the incremental potential's
-    round-off near convergence exceeds the decrease the line search asks for, and Newton stopped with "no step
-    along the Newton direction decreases the energy" on ordinary drops (a soft capsule resting on the floor, a
-    stiff object on a moving floor: found by ``vid2sim bench fuzz --physics``; docs/reliability.md)."""
-    import copy
-
-    if asset.cubature_points.dtype == torch.float64:
-        return asset
-    double = {name: getattr(asset, name).detach().double() for name in
-              ("cubature_points", "cubature_weights", "contact_points", "contact_areas", "points")}
-    if asset.mass_volumes is not None:
-        double["mass_volumes"] = asset.mass_volumes.detach().double()
-    return replace(asset, field=copy.deepcopy(asset.field).double(),
-                   jacobian=None if asset.jacobian is None else copy.deepcopy(asset.jacobian).double(), **double)
-
-
 def _simulator(asset: "Asset", resolved: ResolvedScenario) -> "Simulator":
     cfg = replace(asset.sim_config, dt=resolved.dt)
-    return replace(_in_double(asset), sim_config=cfg).simulator(externals=list(resolved.externals),
-                                                                **resolved.material)
+    return replace(asset, sim_config=cfg).simulator(externals=list(resolved.externals), **resolved.material)
 
 
 def run_scenario(asset: "Asset", resolved: ResolvedScenario, progress: bool = False) -> ScenarioRun:
     """Simulate ``resolved`` (from :func:`resolve_scenario`) on ``asset``: ``frames − 1`` frames after the
-    initial state, without gradients, in float64 whatever the asset's precision (the states are float64)."""
+    initial state, without gradients, in the asset's ``SimConfig.dtype`` (float64 by default, whatever the precision
+    the asset is stored in: in float32 Newton stalled on ordinary drops, docs/reliability.md)."""
     sim = _simulator(asset, resolved)
     with torch.no_grad():
         start = resolved.initial_state(sim)
