@@ -405,7 +405,7 @@ def test_adjoint_matches_unrolled_autograd(trained_field, layer, beta, friction)
     field, pts = trained_field
     floor = Floor(height=-0.3, friction=friction, friction_velocity=0.5)
     sim = _sim(field, pts, material=Material(5e4, 0.3, damping_ratio=0.1), externals=[Gravity(), floor],
-               k=60, config=SimConfig(substeps=2, friction_iterations=2, **TIGHT))
+               k=60, config=SimConfig(substeps=2, friction_iterations=2, friction_tol=1e-12, **TIGHT))
     sim.contact_layer = torch.tensor(layer, dtype=torch.float64, requires_grad=True) if layer else 0.0
     sim.contact_damping.fill_(beta)
     names = ("log10_E", "nu", "damping_ratio") + (("contact_damping",) if beta else ()) \
