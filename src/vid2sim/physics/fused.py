@@ -452,7 +452,6 @@ class _FloorFriction:
         H += reduced_point_hessian(block, self.b)
 
 
-
 @dataclass
 class StepAdjoint:
     """What a step's backward pass needs (made by :class:`AdjointBatch`).

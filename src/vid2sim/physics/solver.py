@@ -552,6 +552,11 @@ class _ImplicitStep(torch.autograd.Function):
 _FUSED_ADJOINT = _STEP_INPUTS[:7]
 
 
+def _touches(barriers: Sequence, x: Tensor, t: float) -> bool:
+    """Whether a point x: (N, 3) is inside one of ``barriers`` at time t (signed distance < 0)."""
+    return any(bool((e.signed_distance(x, t) < 0).any()) for e in barriers)
+
+
 def _fused_adjoint(fused: FusedStep, grad_y: Tensor, needs: list[bool]) -> list[Tensor | None]:
     """The adjoint of a step on the fused kernels: the gradients of the inputs ``needs`` marks, in the order of
     :data:`_STEP_INPUTS` (those beyond the first seven are never needed here)."""
@@ -880,7 +885,7 @@ class Simulator:
             iterations += spec.stats.iterations
             converged = converged and spec.stats.converged
             if frictions:
-                lagged = self._friction_contact(frictions, basis, y, state.t + s * h)
+                lagged = _touches(frictions, self._contact_positions(basis, y), state.t + s * h)
                 y_new, its, ok = self._implicit_normal_force(spec, inputs, y_new, frictions, basis, lagged)
                 iterations, converged = iterations + its, converged and ok
             ydot_new = bdf.velocity(y_new, y, y2 if bdf.needs_history else None)
@@ -891,16 +896,12 @@ class Simulator:
         return SimState(y[self._inv], ydot[self._inv], state.t + cfg.dt, Fp_inv, iterations, converged,
                         y2[self._inv], ydot2[self._inv], h)
 
+    @torch.no_grad()
     def _contact_positions(self, basis: "ReducedBasis", y: Tensor) -> Tensor:
-        """(Nc, 3) the contact points' positions at the permuted state y: (D,) (detached)."""
+        """(Nc, 3) the contact points' positions at the permuted state y: (D,), without gradients."""
         if basis.contact_b is None:
-            return self.X + basis.b @ y.detach().view(3, -1).T
-        return self.contact_points + basis.contact_b @ y.detach().view(3, -1).T
-
-    def _friction_contact(self, barriers: Sequence, basis: "ReducedBasis", y: Tensor, t: float) -> bool:
-        """Whether a contact point at the permuted state y: (D,) and time t touches a barrier with friction."""
-        x = self._contact_positions(basis, y)
-        return any(bool((e.signed_distance(x, t) < 0).any()) for e in barriers)
+            return self.X + basis.b @ y.view(3, -1).T
+        return self.contact_points + basis.contact_b @ y.view(3, -1).T
 
     def _implicit_normal_force(self, spec: _StepSpec, inputs: tuple, y_new: Tensor, barriers: Sequence,
                                basis: "ReducedBasis", lagged_contact: bool) -> tuple[Tensor, int, bool]:
@@ -912,18 +913,18 @@ class Simulator:
         cfg = self.config
         tol = cfg.friction_tol * self.length_scale
         iterations, converged = 0, True
+        x_new = self._contact_positions(basis, y_new)
         for _ in range(cfg.friction_iterations):
-            contact = self._friction_contact(barriers, basis, y_new, spec.t)
+            contact = _touches(barriers, x_new, spec.t)
             if not contact and not lagged_contact:
                 break  # no friction at either state: the solve already is the implicit one
             spec = replace(spec, stats=None, fused=None)
             y_next = _ImplicitStep.apply(spec, *inputs, y_new)
             iterations += spec.stats.iterations
             converged = converged and spec.stats.converged
-            with torch.no_grad():
-                moved = float((self._contact_positions(basis, y_next) - self._contact_positions(basis, y_new))
-                              .norm(dim=1).max())
-            y_new, lagged_contact = y_next, contact
+            x_next = self._contact_positions(basis, y_next)
+            moved = float((x_next - x_new).norm(dim=1).max())
+            y_new, x_new, lagged_contact = y_next, x_next, contact
             if moved <= tol:
                 break
         return y_new, iterations, converged

@@ -136,7 +136,6 @@ def optimisation_figure(path: Path, log: Mapping[str, Any], found: Mapping[str, 
         return _save(fig, path)
 
 
-
 def _coarse_panel(ax: Any, log: Mapping[str, Any], entries: list, found: Mapping[str, Any],
                   truth: Mapping[str, Any]) -> None:
     """The coarse search's loss over log10 E (one line per floor friction it tried), with the start, the found and
@@ -164,6 +163,7 @@ def _coarse_panel(ax: Any, log: Mapping[str, Any], entries: list, found: Mapping
         _empty(ax, "no coarse search logged")
     ax.set_title("coarse search of E")
     ax.set_xlabel("log10 E")
+
 
 def psnr_figure(path: Path, per_view: Mapping[str, Sequence[float | None]], held_out_views: Sequence[str],
                 future: Sequence[bool], means: Sequence[tuple[str, Sequence[float | None], bool]] = ()) -> Path:
