@@ -33,6 +33,7 @@ from vid2sim.reconstruct.stages.joint import (
     set_floor_friction,
 )
 from vid2sim.reconstruct.uncertainty import NOT_IDENTIFIABLE, information_by_frame, laplace_intervals
+from vid2sim.runtime.errors import ConfigError
 
 # ---- the method on models whose answer is known ------------------------------------------------------------------
 
@@ -145,6 +146,41 @@ def test_a_direction_the_clip_does_not_see_is_not_identifiable_and_keeps_the_pri
     assert information_by_frame(fit.linearisation, params)["unseen"] == [0.0] * 10
 
 
+def test_the_models_own_error_widens_what_the_images_determine_and_not_what_they_do_not():
+    """A model error m adds in the share the images set the value: a parameter the clip determines (sd ≪ prior
+    sd) gets √(σ_noise² + m²), an unseen one keeps the prior's width exactly; the noise-only figure stays in the
+    record, and a negative or infinite m is refused."""
+    g = torch.Generator().manual_seed(1)
+    A = torch.zeros(10, 3, 2, dtype=torch.float64)
+    A[:, :, 0] = torch.randn(10, 3, generator=g, dtype=torch.float64)
+    b = A[:, :, 0] * 2.0 + 0.1 * torch.randn(10, 3, generator=g, dtype=torch.float64)
+    params = [Parameter("seen", -10, 10, 1e-3, 0.0, 5.0), Parameter("unseen", 0.0, 0.49, 1e-3, 0.3, 0.1)]
+    fit = levenberg_marquardt(LinearClip(A, b), params, [0.0, 0.3], n=10.0, iterations=20, tolerance=1e-10)
+    noise = laplace_intervals(fit.linearisation, params, 10.0, 0.68)
+    both = laplace_intervals(fit.linearisation, params, 10.0, 0.68, {"seen": 0.2, "unseen": 0.09})
+    seen, seen0 = both["seen"], noise["seen"]
+    assert seen0["model_sd"] == 0.0 and seen0["sd"] == seen0["noise_sd"]
+    assert seen["noise_sd"] == seen0["sd"] and seen["model_sd"] == 0.2 and seen["data_sd"] == seen0["data_sd"]
+    # sd ≈ 0.02 against a prior of 5: the images set the value, the two add in quadrature
+    assert seen["sd"] == pytest.approx(math.hypot(seen0["sd"], 0.2), rel=1e-4)
+    z = 0.9944578832097535
+    assert seen["interval"] == pytest.approx([seen["value"] - z * seen["sd"], seen["value"] + z * seen["sd"]])
+    assert seen["identifiable"] and seen["note"] == "found"  # judged on the images, not on the model error
+    assert both["unseen"]["sd"] == noise["unseen"]["sd"] and both["unseen"]["interval"] == noise["unseen"]["interval"]
+    # a parameter the images tell as well as the prior (its posterior variance half the prior's): half gets through
+    from vid2sim.reconstruct.uncertainty import _model_variance
+
+    assert _model_variance(0.1 / math.sqrt(2), 0.1, 0.09) == pytest.approx(0.5 * 0.09 ** 2)
+    assert _model_variance(math.inf, 0.1, 0.1) == 0.0 and _model_variance(0.05, 0.1, 0.0) == 0.0
+    assert _model_variance(0.2, 0.1, 0.1) == 0.0  # never negative
+    for bad in (-0.1, math.inf, math.nan):
+        with pytest.raises(ValueError, match="model error of seen"):
+            laplace_intervals(fit.linearisation, params, 10.0, 0.68, {"seen": bad})
+    for name in ("model_error_log10_E", "model_error_nu"):
+        with pytest.raises(ConfigError, match=name):
+            JointConfig(**{name: -0.01})
+
+
 # ---- the joint stage on the reduced model's own motion ------------------------------------------------------------
 
 
@@ -217,7 +253,7 @@ def test_gauss_newton_recovers_E_nu_and_damping_of_the_models_own_motion():
         sim.damping_ratio.fill_(0.05)
     cfg = JointConfig(
         method="gauss_newton", fit_damping=True, coarse_log10_E=(4.0, 4.4, 4.8, 5.2, 5.6), coarse_scale=1.0,
-        gauss_newton_iterations=8,
+        gauss_newton_iterations=8, model_error_log10_E=0.0, model_error_nu=0.0,  # the model's own motion
     )
     result = joint_optimisation(sim, gaussians, Observations(images, cams), [0.12, 0.0, -0.95], [0.0, 0.9, 0.0],
                                 [0.0, 0.0, 0.0], cfg, progress=False)

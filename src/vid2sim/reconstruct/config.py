@@ -282,6 +282,11 @@ class JointConfig:
             this is reported as not identifiable from the video).
         interval_level: probability of the material's reported intervals (``material.json`` ``uncertainty``;
             a Laplace approximation at the fit, :mod:`vid2sim.reconstruct.uncertainty`).
+        model_error_log10_E, model_error_nu: the reduced model's own error in log10 E and ν, added to the image
+            noise's in the reported intervals (:mod:`vid2sim.reconstruct.uncertainty`): the RMS error of the
+            Gauss–Newton fits on the 8-scene quadratic-tet small suite against its FEM truth (0.195 decade and
+            0.091; docs/results.md), where the noise alone held the truth on 2 of 8. 0: the image noise alone
+            (right for the model's own motion).
         log10_E_bounds: log10 E is kept in this interval by the Gauss–Newton fit.
         iterations: Adam iterations (``method`` "windows"; not used by "gauss_newton").
         window: frames per window (Δs).
@@ -326,6 +331,8 @@ class JointConfig:
     prior_sd_nu: float = 0.1
     prior_sd_damping: float = 0.05
     interval_level: float = 0.68
+    model_error_log10_E: float = 0.2
+    model_error_nu: float = 0.09
     log10_E_bounds: tuple[float, float] = (3.0, 7.0)
     iterations: int = 400
     window: int = 4
@@ -365,6 +372,10 @@ class JointConfig:
                 raise ConfigError(f"JointConfig.{name} must be a finite number > 0, got {value!r}")
         if not 0 < self.interval_level < 1:
             raise ConfigError(f"JointConfig.interval_level must lie in (0, 1), got {self.interval_level}")
+        for name in ("model_error_log10_E", "model_error_nu"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 <= float(value) < math.inf:
+                raise ConfigError(f"JointConfig.{name} must be a finite number >= 0, got {value!r}")
         lo, hi = self.log10_E_bounds
         if not lo < hi:
             raise ConfigError(f"JointConfig.log10_E_bounds must satisfy lo < hi, got {self.log10_E_bounds}")

@@ -433,7 +433,8 @@ def joint_optimisation(
     ``config.method`` fits: Gauss–Newton on the physical parameters over the whole clip (:func:`_gauss_newton`), or
     the paper's Adam on windows (:func:`_windowed_adam`). Either way the kept state is the best by the whole-clip
     validation loss, the coarse search's start included, and the material's uncertainty is the Laplace
-    approximation at it (:func:`vid2sim.reconstruct.uncertainty.laplace_intervals`).
+    approximation at it, widened by the model's own error (``cfg.model_error_log10_E``, ``cfg.model_error_nu``;
+    :func:`vid2sim.reconstruct.uncertainty.laplace_intervals`).
 
     Args:
         sim: the simulator built on the object's points (its material is the prior, the prior's mean; it is
@@ -479,7 +480,8 @@ def joint_optimisation(
                              on_iteration)
     theta = dict(zip(clip.names, fit.theta))
     clip.apply(fit.theta)  # the simulator holds the kept material
-    uncertainty = laplace_intervals(fit.linearisation, parameters, n, cfg.interval_level)
+    uncertainty = laplace_intervals(fit.linearisation, parameters, n, cfg.interval_level,
+                                    {"log10_E": cfg.model_error_log10_E, "nu": cfg.model_error_nu})
     return JointResult(log10_E=theta["log10_E"], nu=theta["nu"], damping_ratio=float(sim.damping_ratio),
                        floor_friction=floor_friction(sim),
                        linear_velocity=[theta[f"linear_velocity_{a}"] for a in "xyz"],
