@@ -128,15 +128,20 @@ def test_laplace_intervals_hold_the_truth_at_their_level_on_a_linear_gaussian_mo
     assert 0.90 <= hits[0.95] / draws <= 0.97
 
 
-def test_a_direction_the_clip_does_not_see_is_not_identifiable_and_keeps_the_prior():
-    """A linear model whose second parameter has no effect: its interval is the prior's, it is flagged, and
-    the first parameter's interval is the data's."""
+def _seen_and_unseen():
+    """(fit, parameters) of a linear model of 10 frames whose second parameter has no effect (y = 2 x + noise)."""
     g = torch.Generator().manual_seed(1)
     A = torch.zeros(10, 3, 2, dtype=torch.float64)
     A[:, :, 0] = torch.randn(10, 3, generator=g, dtype=torch.float64)
     b = A[:, :, 0] * 2.0 + 0.1 * torch.randn(10, 3, generator=g, dtype=torch.float64)
     params = [Parameter("seen", -10, 10, 1e-3, 0.0, 5.0), Parameter("unseen", 0.0, 0.49, 1e-3, 0.3, 0.1)]
-    fit = levenberg_marquardt(LinearClip(A, b), params, [0.0, 0.3], n=10.0, iterations=20, tolerance=1e-10)
+    return levenberg_marquardt(LinearClip(A, b), params, [0.0, 0.3], n=10.0, iterations=20, tolerance=1e-10), params
+
+
+def test_a_direction_the_clip_does_not_see_is_not_identifiable_and_keeps_the_prior():
+    """A linear model whose second parameter has no effect: its interval is the prior's, it is flagged, and
+    the first parameter's interval is the data's."""
+    fit, params = _seen_and_unseen()
     record = laplace_intervals(fit.linearisation, params, 10.0, 0.68)
     assert record["unseen"]["identifiable"] is False and record["unseen"]["note"] == NOT_IDENTIFIABLE
     assert record["unseen"]["data_sd"] is None and record["unseen"]["sd"] == pytest.approx(0.1, rel=1e-6)
@@ -150,12 +155,7 @@ def test_the_models_own_error_widens_what_the_images_determine_and_not_what_they
     """A model error m adds in the share the images set the value: a parameter the clip determines (sd ≪ prior
     sd) gets √(σ_noise² + m²), an unseen one keeps the prior's width exactly; the noise-only figure stays in the
     record, and a negative or infinite m is refused."""
-    g = torch.Generator().manual_seed(1)
-    A = torch.zeros(10, 3, 2, dtype=torch.float64)
-    A[:, :, 0] = torch.randn(10, 3, generator=g, dtype=torch.float64)
-    b = A[:, :, 0] * 2.0 + 0.1 * torch.randn(10, 3, generator=g, dtype=torch.float64)
-    params = [Parameter("seen", -10, 10, 1e-3, 0.0, 5.0), Parameter("unseen", 0.0, 0.49, 1e-3, 0.3, 0.1)]
-    fit = levenberg_marquardt(LinearClip(A, b), params, [0.0, 0.3], n=10.0, iterations=20, tolerance=1e-10)
+    fit, params = _seen_and_unseen()
     noise = laplace_intervals(fit.linearisation, params, 10.0, 0.68)
     both = laplace_intervals(fit.linearisation, params, 10.0, 0.68, {"seen": 0.2, "unseen": 0.09})
     seen, seen0 = both["seen"], noise["seen"]
