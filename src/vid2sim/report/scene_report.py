@@ -521,7 +521,8 @@ class _Builder:
                     table_id="material-table"),
             "“Found” is the asset's material (the joint optimisation's best validation iterate); “truth” is the "
             "synthetic scene's ground truth when it is known. The interval is the reconstruction's own (a Laplace "
-            "approximation of the whole clip's loss at the fit, material.json <code>uncertainty</code>); a parameter "
+            "approximation of the whole clip's loss at the fit, widened by the reduced model's own error measured "
+            "against FEM drops, material.json <code>uncertainty</code>); a parameter "
             "the images constrain less than the prior does is marked not identifiable from this video: its value "
             "is the prior's.")))
 
