@@ -3,7 +3,8 @@
 Each case draws an object (a procedural shape or a mesh file loaded as a user's would be), a skinning field of
 1–40 learned handles, a material (E log-uniform in [1e3, 1e8] Pa, ν in [0, 0.49], density 100–5 000 kg/m³;
 elastic, plasticine or sand), a frame time in [1/240, 1/10] s, a pose, a drop height, an initial velocity up to
-10 m/s and a spin, a static, moving or tilted floor and sphere obstacles. It builds an
+10 m/s and a spin, a static, moving or tilted floor and sphere obstacles, each frictionless or with a Coulomb
+friction μ in [0.05, 1.5] (half and half; the friction's fixed point of :mod:`vid2sim.physics.solver`). It builds an
 :class:`~vid2sim.asset.folder.Asset` in memory, resolves the :class:`~vid2sim.simulate.scenario.Scenario` against
 it and simulates it (:func:`~vid2sim.simulate.run.run_scenario`). A share of the cases carries one parameter out
 of its range; those must be refused by :func:`~vid2sim.simulate.run.simulate` with an error naming the parameter
@@ -149,6 +150,13 @@ def draw_case(seed: int, invalid_share: float = 0.1, quick: bool = False) -> Phy
         r = float(rng.uniform(0.1, 0.4))
         obstacles.append({"center": (float(rng.uniform(-1, 1)), float(rng.uniform(-1, 1)),
                                      FLOOR_HEIGHT + float(rng.uniform(-r, r))), "radius": r})
+    # the floor's and the obstacles' friction come from a stream of their own: every other draw of a seed is the
+    # one the campaigns before friction made
+    fr = np.random.default_rng([seed, 59])
+    if kind != "none":
+        floor["friction"] = float(fr.choice([0.0, fr.uniform(0.05, 1.5)]))
+    for o in obstacles:
+        o["friction"] = float(fr.choice([0.0, fr.uniform(0.05, 1.5)]))
     case = PhysicsCase(
         seed=seed, shape=shape, handles=handles, cubature=int(rng.integers(40, 160)), material=material,
         model="neo_hookean" if material == "elastic" and rng.random() < 0.7 else "stvk",
@@ -295,14 +303,16 @@ def scenario_of(case: PhysicsCase, asset) -> "Any":
     if f["kind"] == "none":
         floor = FloorSpec(enabled=False)
     elif f["kind"] == "static":
-        floor = FloorSpec(enabled=True, height=FLOOR_HEIGHT)
+        floor = FloorSpec(enabled=True, height=FLOOR_HEIGHT, friction=f.get("friction"))
     elif f["kind"] == "moving":
         floor = FloorSpec(enabled=True, height=FLOOR_HEIGHT, velocity=f["velocity"], amplitude=f["amplitude"],
-                          frequency=f["frequency"])
+                          frequency=f["frequency"], friction=f.get("friction"))
     else:
         floor = FloorSpec(enabled=True, height=FLOOR_HEIGHT, tilt_deg=f["tilt_deg"],
-                          tilt_rate_deg=f.get("tilt_rate_deg", 0.0), tilt_axis=tuple(f["tilt_axis"]))
-    obstacles = [ObstacleSpec(center=tuple(o["center"]), radius=o["radius"]) for o in case.obstacles]
+                          tilt_rate_deg=f.get("tilt_rate_deg", 0.0), tilt_axis=tuple(f["tilt_axis"]),
+                          friction=f.get("friction"))
+    obstacles = [ObstacleSpec(center=tuple(o["center"]), radius=o["radius"], friction=o.get("friction"))
+                 for o in case.obstacles]
     s = Scenario(frames=case.frames, dt=case.dt, floor=floor, obstacles=obstacles,
                  initial=InitialSpec(axis_angle=tuple(case.axis_angle), translation=(0.0, 0.0, lift),
                                      linear_velocity=tuple(case.linear_velocity),
