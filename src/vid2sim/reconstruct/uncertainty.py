@@ -26,6 +26,9 @@ the share w in which the images rather than the prior set the value:
 σ_L the Laplace marginal above and σ_p the prior's. A parameter the images determine (σ_L ≪ σ_p) gets
 σ ≈ √(σ_L² + m²); one they do not (σ_L ≈ σ_p) keeps the prior's width, since its value is the prior's and the model's
 bias cannot move it. Identifiability is judged on d alone (the loss's curvature), not on m.
+
+The information by frame says which frames inform which parameter: the share of the diagonal of JᵀJ that each
+frame's block contributes (the Fisher information about that parameter with the others held fixed).
 """
 
 from __future__ import annotations
