@@ -153,7 +153,6 @@ class SimConfig:
         if not 0 < self.reuse_rate < 1:
             raise ConfigError(f"SimConfig.reuse_rate must be in (0, 1), got {self.reuse_rate}")
 
-
     @property
     def torch_dtype(self) -> torch.dtype:
         """The torch dtype of :attr:`dtype`."""
@@ -677,7 +676,7 @@ class Simulator:
         self.externals = list(externals)
         self.jacobian = jacobian
         self.use_neural_jacobian = use_neural_jacobian
-        dtype, device = cubature_points.dtype, cubature_points.device
+        device = cubature_points.device  # (dtype: the simulation's, which the inputs were cast to above)
         self.log10_E = torch.tensor(math.log10(material.youngs_modulus), dtype=dtype, device=device)
         self.nu = torch.tensor(material.poisson_ratio, dtype=dtype, device=device)
         self.density = torch.tensor(material.density, dtype=dtype, device=device)
