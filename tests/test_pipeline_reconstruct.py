@@ -103,6 +103,15 @@ def test_a_calibrated_reconstruction_records_and_uses_its_stiffness_scale(tiny_s
     s = asset.material["stiffness_scale"]
     assert 0.05 < s < 5.0 and s != 1.0 and s == pytest.approx(curve.at(asset.material["nu"]), rel=1e-12)
     assert 0.7 < calibration["points_volume_ratio"] < 1.3 and calibration["volumetric"] == "projected"
+    # the solid's own lowest modes, kept for evaluate's comparison with the truth's mesh (the tiny hull of a 24²
+    # view is coarse: its ratio is only bounded here)
+    from vid2sim.evaluate.scores import solid_stiffness
+    from vid2sim.scene.reading import load_scene
+
+    assert calibration["solid_frequencies"]["nu"] == curve.to_dict()["nu"]
+    shape = solid_stiffness(tmp_path / "asset", load_scene(tiny_scene).extras["tet_trajectory"], 0.3)
+    assert 0.5 < shape["lowest_frequency_ratio"] < 2.0
+    assert shape["implied_log10_E_offset"] == pytest.approx(-2 * math.log10(shape["lowest_frequency_ratio"]))
     assert asset.simulator().stiffness_scale == curve
     other = asset.simulator(youngs_modulus=1e6, poisson_ratio=0.45)
     assert float(other.effective_youngs_modulus()) == pytest.approx(1e6 * curve.at(0.45), rel=1e-6)  # float32
@@ -206,6 +215,36 @@ def test_start_material_reads_the_prior_or_stage1_and_names_a_bad_file(tmp_path)
     (tmp_path / "log.json").write_text("{broken")
     with pytest.raises(ValueError, match="cannot read the start material"):
         start_material(tmp_path)
+
+
+def test_solid_stiffness_compares_the_reconstructed_solids_lowest_mode_with_the_truths(tmp_path):
+    """A solid twice the truth's size vibrates at half its frequency (ω ∝ √(E/ρ)/L): ratio ½, so its shape alone
+    makes a fitted E 2² too large (−2 log10 ½ = +0.602 decade); the asset's grid of ν is interpolated; an asset
+    without the record gives None, a malformed record an error naming log.json."""
+    from vid2sim.evaluate.scores import solid_stiffness
+    from vid2sim.meshing.tetra import box_tet_mesh
+    from vid2sim.physics.tet_modes import tet_frequencies
+    from vid2sim.runtime.errors import InputError
+
+    truth = box_tet_mesh((0.4, 0.2, 0.2), (4, 2, 2))
+    tet = {"vertices": torch.as_tensor(truth.vertices, dtype=torch.float32)[None], "tets": torch.as_tensor(truth.tets)}
+    big = box_tet_mesh((0.8, 0.4, 0.4), (4, 2, 2))
+    assert solid_stiffness(tmp_path, tet, 0.3) is None  # no log.json
+    log = tmp_path / "log.json"
+    log.write_text(json.dumps({"stiffness_calibration": {"stiffness_scale": 1.0}}))  # calibration without the record
+    assert solid_stiffness(tmp_path, tet, 0.3) is None
+    omega = [tet_frequencies(big.vertices, big.tets, 1.0, nu, 1.0, k=2, order=2).tolist() for nu in (0.2, 0.3, 0.4)]
+    log.write_text(json.dumps({"stiffness_calibration": {"solid_frequencies": {"nu": [0.3], "omega": [omega[1]]}}}))
+    out = solid_stiffness(tmp_path, tet, 0.3)
+    assert out["lowest_frequency_ratio"] == pytest.approx(0.5, rel=1e-6)
+    assert out["implied_log10_E_offset"] == pytest.approx(2 * math.log10(2), rel=1e-6)
+    assert out["omega_truth"] == pytest.approx(2 * omega[1][0], rel=1e-6) and out["nu"] == 0.3
+    log.write_text(json.dumps({"stiffness_calibration": {"solid_frequencies": {"nu": [0.2, 0.4],
+                                                                               "omega": [omega[0], omega[2]]}}}))
+    assert solid_stiffness(tmp_path, tet, 0.3)["lowest_frequency_ratio"] == pytest.approx(0.5, rel=0.01)
+    log.write_text(json.dumps({"stiffness_calibration": {"solid_frequencies": {"nu": [0.2, 0.4], "omega": [1.0]}}}))
+    with pytest.raises(InputError, match="log.json.*solid_frequencies"):
+        solid_stiffness(tmp_path, tet, 0.3)
 
 
 def test_evaluate_true_motion_scores_the_gaussians_on_the_ground_truths_motion(tiny_asset, tiny_scene, tmp_path,

@@ -50,6 +50,12 @@ def test_calibration_from_samples_matches_the_one_from_a_mesh_of_the_solid():
     assert 0.3 < exact < 1.0
     assert out["stiffness_scale"] == pytest.approx(exact, rel=0.05)
     assert out["points_volume_ratio"] == pytest.approx(1.0, abs=0.03)
+    # the solid's own lowest mode (what evaluate compares with a truth's mesh): the bar's, corners smoothed
+    from vid2sim.physics.tet_modes import tet_frequencies
+
+    assert out["solid_frequencies"]["nu"] == [0.3]
+    bar = tet_frequencies(mesh.vertices, mesh.tets, 1.0, 0.3, 1.0, k=1, order=2)[0]
+    assert out["solid_frequencies"]["omega"][0][0] == pytest.approx(bar, rel=0.05)
     # two factors over a grid of ν (ReconstructConfig.calibration_nu = "two_factor"): the curve keeps λ's own factor
     two = calibrate_stiffness(field, cubature, weights, _bar(200000, 3), 0.3, cells=48, nus=(0.3, 0.45), factors=2)
     curve = two["stiffness_curve"]

@@ -18,7 +18,12 @@ rendered in every camera. Reported (means, and per frame):
 * the material's intervals and identifiability as ``reconstruct`` reported them (``material.uncertainty``, from
   ``material.json``), with the truth: whether each interval holds it (``material.interval_covers_truth``, 1.0 or
   0.0, so that a suite's mean is the intervals' coverage); and the joint optimisation's validation loss at its
-  start and at the kept state (``material.fit``, :func:`joint_fit_record`).
+  start and at the kept state (``material.fit``, :func:`joint_fit_record`);
+* with the truth's mesh in the scene and the stiffness calibration's record in the asset: the reconstructed
+  solid's lowest elastic frequency against the truth's (``geometry_stiffness``, :func:`solid_stiffness`). At a
+  fixed ν every frequency scales as √(E/ρ), so a solid whose lowest mode is r times the truth's moves like the
+  truth with E r² too large: −2 log10 r is the share of the log10 E error its shape implies (a 4-view hull
+  that fills the crevices between an object's lobes is stiffer than the object; docs/results.md).
 
 The simulation and the rendering are two reusable steps, :func:`simulate_gaussians` (the asset's captured
 drop as deformed Gaussians per frame) and :func:`render_frames` (those in any cameras); ``evaluate(...,
@@ -33,6 +38,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -49,6 +55,7 @@ from vid2sim.metrics.geometry import boundary_faces, material_errors, surface_ch
 from vid2sim.metrics.images import image_metrics
 from vid2sim.metrics.trajectory import tet_centre_of_mass
 from vid2sim.physics.solver import SimState, Simulator
+from vid2sim.physics.tet_modes import tet_frequencies
 from vid2sim.runtime.device import resolve_device
 from vid2sim.runtime.errors import InputError
 from vid2sim.scene.folder import SceneConfig
@@ -190,6 +197,12 @@ def evaluate(asset_path: str | Path, scene_path: str | Path, fovvdp: bool = Fals
     tet = scene.extras.get("tet_trajectory")
     if tet is not None:
         report.update(_motion_errors(tet, centres, sim, states, scene.config))
+        meta_nu = scene.config.metadata.get("nu")
+        nu = float(meta_nu) if isinstance(meta_nu, (int, float)) and not isinstance(meta_nu, bool) \
+            else float(asset.material["nu"])
+        stiffness = solid_stiffness(asset_path, tet, nu)
+        if stiffness is not None:
+            report["geometry_stiffness"] = stiffness
     if true_motion:
         report["true_motion"] = _true_motion(asset, tet, targets, cameras, scene.config, scene_path, progress)
     report["timing"] = {"seconds": time.perf_counter() - t0}
@@ -212,6 +225,50 @@ def _add_fovvdp(report: dict[str, Any], renders: Tensor, targets: Tensor, config
                       for v in views]
             report[key]["fovvdp_jod"] = sum(s["jod"] for s in scores) / len(scores)
             report[key]["fovvdp_display"] = scores[0]["display"]
+
+
+def solid_stiffness(asset_path: str | Path, tet: dict[str, Tensor], nu: float) -> dict[str, Any] | None:
+    """The reconstructed solid's lowest elastic frequency against the ground truth's (module docstring).
+
+    The asset's side is the stiffness calibration's own tet reference (``log.json`` ``stiffness_calibration``
+    ``solid_frequencies``: quadratic tets on a mesh of the reconstructed solid, ω at E = ρ = 1 on a grid of ν,
+    interpolated at ``nu``); the truth's is quadratic tets on the truth's mesh at frame 0 (``tet``: the
+    ``tet_trajectory`` extra, ``vertices`` (T, N, 3), ``tets`` (Nt, 4); with quadratic truths the first
+    max(tets) + 1 vertices are the tets' corners). Both are free–free, linear elasticity at rest.
+
+    Args:
+        nu: the Poisson ratio both are compared at (the truth's).
+    Returns:
+        {"nu", "omega_asset", "omega_truth" (rad/s at E = ρ = 1), "lowest_frequency_ratio" r,
+        "implied_log10_E_offset" −2 log10 r}, or None when the asset has no such record (calibration off, or an
+        asset written before it was kept).
+    Raises:
+        InputError naming log.json when the record is there but malformed.
+    """
+    log_path = Path(asset_path) / "log.json"
+    if not log_path.is_file():
+        return None
+    try:
+        record = json.loads(log_path.read_text()).get("stiffness_calibration") or {}
+        solid = record.get("solid_frequencies") if isinstance(record, dict) else None
+        if solid is None:
+            return None
+        nus = np.asarray(solid["nu"], dtype=float)
+        omega = np.asarray(solid["omega"], dtype=float)
+    except (OSError, json.JSONDecodeError, AttributeError, KeyError, TypeError, ValueError) as exc:
+        raise InputError(f"{log_path}: cannot read stiffness_calibration.solid_frequencies ({exc})") from exc
+    if nus.ndim != 1 or omega.ndim != 2 or omega.shape[0] != len(nus) or len(nus) == 0 or omega.shape[1] == 0 \
+            or not np.all(np.isfinite(omega)) or not np.all(omega > 0) or np.any(np.diff(nus) <= 0):
+        raise InputError(f"{log_path}: stiffness_calibration.solid_frequencies needs an increasing 'nu' grid and "
+                         f"positive 'omega' of shape (len(nu), k), got nu {nus.tolist()} and omega of shape "
+                         f"{list(omega.shape)}")
+    asset_omega = float(np.interp(nu, nus, omega[:, 0]))
+    tets = tet["tets"].long()
+    corners = tet["vertices"][0, : int(tets.max()) + 1].double()
+    truth_omega = float(tet_frequencies(corners, tets, 1.0, nu, 1.0, k=1, order=2)[0])
+    ratio = asset_omega / truth_omega
+    return {"nu": nu, "omega_asset": asset_omega, "omega_truth": truth_omega, "lowest_frequency_ratio": ratio,
+            "implied_log10_E_offset": -2.0 * math.log10(ratio)}
 
 
 def true_floor_friction(meta: dict[str, Any]) -> float | None:

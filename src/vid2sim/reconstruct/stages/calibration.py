@@ -176,6 +176,8 @@ def calibrate_stiffness(field, cubature: Tensor, weights: Tensor, points: Tensor
     Returns:
         {"stiffness_scale": s at ``poisson_ratio``, "stiffness_curve": the curve's ``to_dict()`` or None,
         "tets": mesh size, "mesh_volume_m3", "points_volume_ratio" (the mesh's volume over the weights' sum),
+        "solid_frequencies": {"nu": the grid, "omega": (len(nu), k) nested list} the reconstructed solid's own
+        lowest elastic ω at E = ρ = 1 (rad/s; ``vid2sim evaluate`` compares them with the truth's mesh),
         "seconds" (the reference's and the fit's)}.
     Raises:
         ValueError: no closed surface could be made from the points, or ``reference`` is for another grid.
@@ -210,6 +212,7 @@ def calibrate_stiffness(field, cubature: Tensor, weights: Tensor, points: Tensor
             "dropped_volume_fraction": reference.get("dropped_volume_fraction", 0.0),
             "points_volume_ratio": volume / float(weights.sum()), "volumetric": volumetric,
             "mass": "cubature" if mass_volumes is None else "moments",
+            "solid_frequencies": {"nu": list(grid), "omega": frequencies.tolist()},
             "seconds": reference["seconds"] + time.perf_counter() - t0}
 
 
