@@ -42,6 +42,10 @@ def run(args: argparse.Namespace) -> int:
             lines.append(f"{what}: " + (f"{100 * first:.2f} cm at frame 0, " if first is not None else "")
                          + f"{100 * report[key]['observed_mean']:.2f} cm observed"
                          + (f", {100 * future:.2f} cm future" if future is not None else ""))
+    shape = report.get("geometry_stiffness")
+    if shape is not None:
+        lines.append(f"the solid's lowest elastic mode: {shape['lowest_frequency_ratio']:.3f} x the truth's "
+                     f"(its shape alone implies log10 E {shape['implied_log10_E_offset']:+.3f})")
     print("\n".join(lines + [f"wrote {out}"]))
     if not args.no_report:
         write_asset_report(Path(args.asset) / "report", args.asset, args.scene, quiet=args.quiet, evaluation=report,
