@@ -21,9 +21,11 @@ rendered in every camera. Reported (means, and per frame):
   start and at the kept state (``material.fit``, :func:`joint_fit_record`);
 * with the truth's mesh in the scene and the stiffness calibration's record in the asset: the reconstructed
   solid's lowest elastic frequency against the truth's (``geometry_stiffness``, :func:`solid_stiffness`). At a
-  fixed ν every frequency scales as √(E/ρ), so a solid whose lowest mode is r times the truth's moves like the
-  truth with E r² too large: −2 log10 r is the share of the log10 E error its shape implies (a 4-view hull
-  that fills the crevices between an object's lobes is stiffer than the object; docs/results.md).
+  fixed ν every frequency scales as √(E/ρ), so a solid whose lowest mode is r times the truth's vibrates like the
+  truth with E r² too large, and a fit of a free vibration gives E r² too low: −2 log10 r is the log10 E offset
+  its shape implies. A hull that fills the crevices between an object's lobes is stiffer than the object; the
+  offset explained such a scene's error, not a soft object's, whose motion is its squash at the contact
+  (docs/results.md): it scores the geometry, it is not a correction.
 
 The simulation and the rendering are two reusable steps, :func:`simulate_gaussians` (the asset's captured
 drop as deformed Gaussians per frame) and :func:`render_frames` (those in any cameras); ``evaluate(...,
