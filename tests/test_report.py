@@ -88,6 +88,10 @@ def scene_report(tiny_scene, tiny_asset, tmp_path_factory):
     from vid2sim.report import write_report
 
     evaluation, renders = evaluate(tiny_asset, tiny_scene, progress=False, return_renders=True)
+    assert "geometry_stiffness" not in evaluation  # the tiny preset skips the stiffness calibration that records it
+    # what evaluate adds for a calibrated asset (the seed-0 object's hull at the small preset), so the page shows it
+    evaluation["geometry_stiffness"] = {"nu": 0.281, "omega_asset": 2.6, "omega_truth": 2.0,
+                                        "lowest_frequency_ratio": 1.3, "implied_log10_E_offset": -2 * math.log10(1.3)}
     out = write_report(tmp_path_factory.mktemp("report") / "report", tiny_asset, scene=tiny_scene,
                        evaluation=evaluation, renders=renders, progress=False)
     return out, evaluation, renders
@@ -144,6 +148,11 @@ def test_tables_show_the_evaluation_numbers(scene_report, tiny_asset):
     assert float(metrics["truth.E"][0]) == mat["truth"]["E"]
     assert float(metrics["error.log10_E"][0]) == mat["abs_error_log10_E"]
     assert float(metrics["error.nu"][0]) == mat["abs_error_nu"]
+    stiffness = evaluation["geometry_stiffness"]
+    value, text = metrics["geometry_stiffness.lowest_frequency_ratio"]
+    assert float(value) == stiffness["lowest_frequency_ratio"] and text == "1.300"
+    value, text = metrics["geometry_stiffness.implied_log10_E_offset"]
+    assert float(value) == stiffness["implied_log10_E_offset"] and text == "-0.228"
 
 
 def test_videos_hold_every_frame_in_three_panels_matching_the_data(scene_report, tiny_scene):
@@ -299,6 +308,11 @@ def test_bad_inputs_raise_named_errors(scene_report, tiny_asset, tiny_scene, tmp
     bad = json.loads(json.dumps(evaluation))
     bad["dynamic"]["psnr"] = "high"
     with pytest.raises(ReportInputError, match=r"evaluation\['dynamic'\]\['psnr'\] must be a number, got 'high'"):
+        write_report(tmp_path / "r", tiny_asset, scene=tiny_scene, evaluation=bad, renders=renders)
+    bad = json.loads(json.dumps(evaluation))
+    bad["geometry_stiffness"]["lowest_frequency_ratio"] = None
+    with pytest.raises(ReportInputError, match=r"evaluation\['geometry_stiffness'\]\['lowest_frequency_ratio'\] "
+                                               r"must be a number, got None"):
         write_report(tmp_path / "r", tiny_asset, scene=tiny_scene, evaluation=bad, renders=renders)
     with pytest.raises(ReportInputError, match=r"renders must be a tensor of the scene's shape"):
         write_report(tmp_path / "r", tiny_asset, scene=tiny_scene, evaluation=evaluation, renders=renders[:, :2])

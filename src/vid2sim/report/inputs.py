@@ -44,7 +44,8 @@ def check_evaluation(evaluation: Any, name: str = "evaluation") -> dict[str, Any
 
     Checked: it is a dict; ``dynamic`` / ``future`` / ``novel_views``, when present and non-empty, are dicts
     whose ``psnr``, ``ssim``, ``fovvdp_jod`` are numbers, whose per-frame lists hold numbers, one per entry
-    of ``frames``; ``material`` is a dict whose ``fitted`` / ``truth`` hold numbers; ``chamfer`` has numeric
+    of ``frames``; ``material`` is a dict whose ``fitted`` / ``truth`` hold numbers; ``geometry_stiffness``, when
+    present, holds a numeric ``lowest_frequency_ratio`` and ``implied_log10_E_offset``; ``chamfer`` has numeric
     means and per-frame values.
     """
     if not isinstance(evaluation, Mapping):
@@ -80,6 +81,14 @@ def check_evaluation(evaluation: Any, name: str = "evaluation") -> dict[str, Any
                 _number(d.get(key), f"{name}['material'][{part!r}][{key!r}]")
         for key in ("abs_error_log10_E", "abs_error_nu"):
             _number(material.get(key), f"{name}['material'][{key!r}]")
+    stiffness = evaluation.get("geometry_stiffness")
+    if stiffness is not None:
+        if not isinstance(stiffness, Mapping):
+            raise ReportInputError(f"{name}['geometry_stiffness'] must be a dict, got {type(stiffness).__name__}")
+        for key in ("lowest_frequency_ratio", "implied_log10_E_offset"):
+            _number(stiffness.get(key), f"{name}['geometry_stiffness'][{key!r}]", optional=False)
+        for key in ("nu", "omega_asset", "omega_truth"):
+            _number(stiffness.get(key), f"{name}['geometry_stiffness'][{key!r}]")
     for part in ("chamfer", "centre_of_mass"):
         distances = evaluation.get(part)
         if distances is None:
