@@ -38,3 +38,33 @@ class InputFrame(nn.Module):
 
     def _canonical(self, X: Tensor) -> Tensor:
         return (X - self.input_centre) / self.input_scale
+
+    def _in_parameters_dtype(self, X: Tensor, parameter: Tensor) -> Tensor:
+        """Check rest positions X: (N, 3) (finite, floating, on ``parameter``'s device) and return them in
+        ``parameter``'s dtype: the networks evaluate in their own dtype and their callers cast the result back to
+        X's (a float64 simulator reads a float32 network)."""
+        check_points(X)
+        if X.device != parameter.device:
+            raise ValueError(f"X is on {X.device} but the {type(self).__name__}'s parameters are on {parameter.device}")
+        return X.to(parameter.dtype)
+
+
+def check_points(X: Tensor, name: str = "X") -> None:
+    """Raise a TypeError / ValueError naming ``name`` unless X is a finite floating-point tensor of shape (N, 3)."""
+    if not isinstance(X, Tensor):
+        raise TypeError(f"{name} must be a torch.Tensor of shape (N, 3), got {type(X).__name__}")
+    if X.ndim != 2 or X.shape[1] != 3:
+        raise ValueError(f"{name} must have shape (N, 3), got {tuple(X.shape)}")
+    if not X.is_floating_point():
+        raise ValueError(f"{name} must be a floating-point tensor, got dtype {X.dtype}")
+    if not bool(torch.isfinite(X).all()):
+        bad = int((~torch.isfinite(X)).any(dim=1).sum())
+        raise ValueError(f"{name} contains NaN or infinite values ({bad} of {X.shape[0]} points)")
+
+
+def uniform_(p: Tensor, bound: float, gen: torch.Generator | None) -> None:
+    """Fill ``p`` in place with U(−bound, bound), drawn in float64 on the CPU from ``gen`` (the same values for a
+    seed whatever ``p``'s dtype and device)."""
+    vals = torch.rand(p.shape, generator=gen, dtype=torch.float64) * (2 * bound) - bound
+    with torch.no_grad():
+        p.copy_(vals.to(dtype=p.dtype, device=p.device))

@@ -33,7 +33,7 @@ import torch
 from torch import Tensor, nn
 from torch.nn import functional as Fn
 
-from vid2sim.physics.input_frame import InputFrame
+from vid2sim.physics.input_frame import InputFrame, uniform_
 from vid2sim.physics.skinning import (
     SkinningField,
     deformation_gradient,
@@ -48,10 +48,8 @@ from vid2sim.runtime.training import Progress, Schedule, optimise
 def _init_linear(layer: nn.Linear, gen: torch.Generator | None) -> None:
     bound = 1.0 / math.sqrt(layer.in_features)
     for p in (layer.weight, layer.bias):
-        if p is None:
-            continue
-        vals = torch.rand(p.shape, generator=gen, dtype=torch.float64) * (2 * bound) - bound
-        p.data.copy_(vals.to(p.dtype))
+        if p is not None:
+            uniform_(p, bound, gen)
 
 
 class _ResidualBlock(nn.Module):
@@ -124,15 +122,7 @@ class NeuralJacobian(InputFrame):
 
     def forward(self, X: Tensor) -> Tensor:
         """J: (N, 9, 12H) for rest positions X: (N, 3) (layout of :func:`~vid2sim.physics.skinning.dF_dz`)."""
-        if not isinstance(X, Tensor) or X.ndim != 2 or X.shape[1] != 3:
-            shape = tuple(X.shape) if isinstance(X, Tensor) else type(X).__name__
-            raise ValueError(f"X must have shape (N, 3), got {shape}")
-        if not bool(torch.isfinite(X).all()):
-            raise ValueError("X contains NaN or infinite values")
-        p = self.output.weight
-        if X.device != p.device:
-            raise ValueError(f"X is on {X.device} but the network's parameters are on {p.device}")
-        h = self.encode(X.to(p.dtype))  # evaluated in the parameters' dtype, returned in X's
+        h = self.encode(self._in_parameters_dtype(X, self.output.weight))  # returned in X's dtype
         for block in self.blocks:
             h = block(h)
         return self.output(h).reshape(X.shape[0], 9, 12 * self.num_handles_total).to(X.dtype)

@@ -27,23 +27,11 @@ import torch
 from torch import Tensor, nn
 from torch.nn import functional as Fn
 
-from vid2sim.physics.input_frame import InputFrame
-
-
-def _check_points(X: Tensor, name: str = "X") -> None:
-    if not isinstance(X, Tensor):
-        raise TypeError(f"{name} must be a torch.Tensor of shape (N, 3), got {type(X).__name__}")
-    if X.ndim != 2 or X.shape[1] != 3:
-        raise ValueError(f"{name} must have shape (N, 3), got {tuple(X.shape)}")
-    if not X.is_floating_point():
-        raise ValueError(f"{name} must be a floating-point tensor, got dtype {X.dtype}")
-    if not bool(torch.isfinite(X).all()):
-        bad = int((~torch.isfinite(X)).any(dim=1).sum())
-        raise ValueError(f"{name} contains NaN or infinite values ({bad} of {X.shape[0]} points)")
+from vid2sim.physics.input_frame import InputFrame, check_points, uniform_
 
 
 def _check_weights(X: Tensor, w: Tensor) -> int:
-    _check_points(X)
+    check_points(X)
     if w.ndim != 2 or w.shape[0] != X.shape[0] or w.shape[1] < 1:
         raise ValueError(f"w must have shape (N, H) = ({X.shape[0]}, H) with H >= 1, got {tuple(w.shape)}")
     if not bool(torch.isfinite(w).all()):
@@ -121,18 +109,14 @@ class SkinningField(InputFrame):
             gen = torch.Generator(device="cpu")
             gen.manual_seed(int(seed))
 
-        def uniform(p: Tensor, bound: float) -> None:
-            vals = torch.rand(p.shape, generator=gen, dtype=torch.float64) * (2 * bound) - bound
-            p.copy_(vals.to(dtype=p.dtype, device=p.device))
-
         last = len(self.layers) - 1
         for i, layer in enumerate(self.layers):
             fan_in = layer.in_features
             if i < last:
-                uniform(layer.weight, math.sqrt(6.0 / fan_in))
-                uniform(layer.bias, 1.0 / math.sqrt(fan_in))
+                uniform_(layer.weight, math.sqrt(6.0 / fan_in), gen)
+                uniform_(layer.bias, 1.0 / math.sqrt(fan_in), gen)
             else:
-                uniform(layer.weight, self.output_init_scale / math.sqrt(fan_in))
+                uniform_(layer.weight, self.output_init_scale / math.sqrt(fan_in), gen)
                 layer.bias.zero_()
 
     # ---- sizes ---------------------------------------------------------------------------------
@@ -174,17 +158,10 @@ class SkinningField(InputFrame):
         layer.bias.copy_(vec[nw:].to(layer.bias))
 
     # ---- evaluation ----------------------------------------------------------------------------
-    def _check_input(self, X: Tensor) -> None:
-        _check_points(X)
-        p = self.last_layer.weight
-        if X.device != p.device:
-            raise ValueError(f"X is on {X.device} but the skinning field's parameters are on {p.device}")
-
     def learned_weights(self, X: Tensor) -> Tensor:
         """MLP output only (no rigid column): (N, num_handles) for X: (N, 3); evaluated in the parameters' dtype
         and returned in X's (a float64 simulator reads a float32 field)."""
-        self._check_input(X)
-        h = self._canonical(X.to(self.last_layer.weight.dtype))
+        h = self._canonical(self._in_parameters_dtype(X, self.last_layer.weight))
         for layer in self.layers[:-1]:
             h = Fn.elu(layer(h))
         return self.layers[-1](h).to(X.dtype)
@@ -206,8 +183,7 @@ class SkinningField(InputFrame):
         Returns:
             w: (N, H) weights (last column ≡ 1); dw: (N, H, 3) with ``dw[p, j, c] = ∂w_j/∂X_c`` (rigid column 0).
         """
-        self._check_input(X)
-        w, dw = self._weights_and_gradients(X.to(self.last_layer.weight.dtype))
+        w, dw = self._weights_and_gradients(self._in_parameters_dtype(X, self.last_layer.weight))
         return w.to(X.dtype), dw.to(X.dtype)
 
     def _weights_and_gradients(self, X: Tensor) -> tuple[Tensor, Tensor]:
