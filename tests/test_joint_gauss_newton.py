@@ -32,7 +32,13 @@ from vid2sim.reconstruct.stages.joint import (
     render_states,
     set_floor_friction,
 )
-from vid2sim.reconstruct.uncertainty import NOT_IDENTIFIABLE, information_by_frame, laplace_intervals
+from vid2sim.reconstruct.uncertainty import (
+    NOT_IDENTIFIABLE,
+    coarse_edge,
+    information_by_frame,
+    laplace_intervals,
+    mark_coarse_edge,
+)
 from vid2sim.runtime.errors import ConfigError
 
 # ---- the method on models whose answer is known ------------------------------------------------------------------
@@ -151,6 +157,31 @@ def test_a_direction_the_clip_does_not_see_is_not_identifiable_and_keeps_the_pri
     assert information_by_frame(fit.linearisation, params)["unseen"] == [0.0] * 10
 
 
+def test_a_fit_at_an_end_of_the_coarse_grid_says_so():
+    """Log10 E found at the grid's end whose loss falls all the way to it is flagged (the best friction's grid when
+    the search tried several), and only when the fit stayed within half a step of that end; an interior minimum,
+    a fit that moved away, and no search are not."""
+    grid = (4.0, 4.25, 4.5, 4.75, 5.0)
+    falling = [{"log10_E": e, "loss": 1.0 + e} for e in grid]  # lowest at 4.0
+    rising = [{"log10_E": e, "loss": 10.0 - e} for e in grid]  # lowest at 5.0
+    valley = [{"log10_E": e, "loss": (e - 4.5) ** 2} for e in grid]
+    assert coarse_edge(falling, 3.999) == "lower" and coarse_edge(falling, 4.12) == "lower"
+    assert coarse_edge(falling, 4.2) is None  # the fit left the edge
+    assert coarse_edge(rising, 5.01) == "upper" and coarse_edge(valley, 4.5) is None and coarse_edge([], 4.0) is None
+    # two frictions: the best loss is at μ = 0.5, whose grid has its minimum inside; μ = 0's at its lower end
+    two = [{**r, "floor_friction": 0.0, "loss": r["loss"] + 1.0} for r in falling] + \
+        [{**r, "floor_friction": 0.5} for r in valley]
+    assert coarse_edge(two, 4.5) is None
+    record = {"log10_E": {"value": 3.999, "note": "found"}, "nu": {"value": 0.3, "note": NOT_IDENTIFIABLE}}
+    mark_coarse_edge(record, falling)
+    entry = record["log10_E"]
+    assert entry["at_coarse_edge"] == "lower" and entry["note"].startswith("found; at the lower end")
+    assert "log10 E 4" in entry["note"] and "softer" in entry["note"] and "at_coarse_edge" not in record["nu"]
+    record = {"log10_E": {"value": 4.5, "note": "found"}}
+    mark_coarse_edge(record, valley)
+    assert record["log10_E"] == {"value": 4.5, "note": "found", "at_coarse_edge": None}
+
+
 def test_the_models_own_error_widens_what_the_images_determine_and_not_what_they_do_not():
     """A model error m adds in the share the images set the value: a parameter the clip determines (sd ≪ prior
     sd) gets √(σ_noise² + m²), an unseen one keeps the prior's width exactly; the noise-only figure stays in the
@@ -265,6 +296,7 @@ def test_gauss_newton_recovers_E_nu_and_damping_of_the_models_own_motion():
         entry = result.uncertainty[name]
         assert entry["identifiable"] and entry["note"] == "found"
         assert entry["sd"] < 0.2 * entry["prior_sd"]
+    assert result.uncertainty["log10_E"]["at_coarse_edge"] is None  # 4.5 lies inside the grid 4.0 … 5.6
     assert float(sim.log10_E) == pytest.approx(result.log10_E) and float(sim.nu) == pytest.approx(result.nu)
     # before the first contact the images say nothing about the material: its information comes after it
     info = result.information_by_frame

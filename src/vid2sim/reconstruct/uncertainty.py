@@ -113,6 +113,46 @@ def laplace_intervals(lin: Linearisation, parameters: Sequence[Parameter], n: fl
     return out
 
 
+def coarse_edge(coarse: Sequence[Mapping[str, float]], value: float) -> str | None:
+    """``"lower"`` or ``"upper"`` when the coarse search's best loss lies at that end of its log10 E grid (the grid of
+    the best floor friction, when it searched several) and the fit's ``value`` stayed within half a grid step of that
+    end; None otherwise (no search, an interior minimum, or a fit that moved away from the edge).
+
+    Args:
+        coarse: the coarse search's records, ``{"log10_E", "loss"}`` (and ``"floor_friction"``) each.
+    """
+    if not coarse:
+        return None
+    best = min(coarse, key=lambda r: r["loss"])
+    grid = sorted(r["log10_E"] for r in coarse if r.get("floor_friction") == best.get("floor_friction"))
+    if len(grid) < 2:
+        return None
+    half = 0.5 * min(b - a for a, b in zip(grid, grid[1:]))
+    if best["log10_E"] == grid[0] and value <= grid[0] + half:
+        return "lower"
+    if best["log10_E"] == grid[-1] and value >= grid[-1] - half:
+        return "upper"
+    return None
+
+
+def mark_coarse_edge(record: dict[str, Any], coarse: Sequence[Mapping[str, float]]) -> None:
+    """Record in a :func:`laplace_intervals` record whether log10 E was found at an end of the coarse search
+    (:func:`coarse_edge`; ``log10_E["at_coarse_edge"]``, None when not) and say so in its note: the grid's loss
+    fell all the way to its end, so a material beyond the search may fit the video better, and the interval is
+    the fit's local curvature only, not the loss's profile."""
+    entry = record.get("log10_E")
+    if not isinstance(entry, dict):
+        return
+    edge = coarse_edge(coarse, entry["value"])
+    entry["at_coarse_edge"] = edge
+    if edge is not None:
+        grid = [r["log10_E"] for r in coarse]
+        end = min(grid) if edge == "lower" else max(grid)
+        entry["note"] = (f"{entry['note']}; at the {edge} end of the coarse search (log10 E {end:g}), whose loss "
+                         f"falls all the way to it: a {'softer' if edge == 'lower' else 'stiffer'} material than "
+                         "the search covers may fit the video better (widen --joint.coarse_log10_E to look)")
+
+
 def information_by_frame(lin: Linearisation, parameters: Sequence[Parameter]) -> dict[str, list[float]]:
     """For each parameter, the share of its Fisher information (diag JᵀJ) each frame block gives: F numbers
     summing to 1 (all zero when the images carry none)."""

@@ -590,6 +590,8 @@ class _Builder:
         text = f"{H.fmt_sci(10 ** lo)} … {H.fmt_sci(10 ** hi)}" if key == "E" else f"{f(lo)} … {f(hi)}"
         if not entry.get("identifiable", True):
             text += " · not identifiable from this video"
+        if entry.get("at_coarse_edge"):
+            text += f" · at the coarse search's {entry['at_coarse_edge']} end"
         return H.num_cell(hi - lo, text, key=f"interval.{key}")
 
     def _optimisation_section(self) -> None:

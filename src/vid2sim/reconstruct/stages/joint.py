@@ -61,7 +61,7 @@ from vid2sim.reconstruct.gauss_newton import (
 from vid2sim.reconstruct.runner import Context, State
 from vid2sim.reconstruct.stages.networks import cpu_state
 from vid2sim.reconstruct.stages.stage1 import prior_material
-from vid2sim.reconstruct.uncertainty import information_by_frame, laplace_intervals
+from vid2sim.reconstruct.uncertainty import information_by_frame, laplace_intervals, mark_coarse_edge
 from vid2sim.runtime.files import read_json, save_torch_atomic, write_json_atomic
 from vid2sim.splats.cameras import Camera
 from vid2sim.splats.gaussians import Gaussians
@@ -482,6 +482,7 @@ def joint_optimisation(
     clip.apply(fit.theta)  # the simulator holds the kept material
     uncertainty = laplace_intervals(fit.linearisation, parameters, n, cfg.interval_level,
                                     {"log10_E": cfg.model_error_log10_E, "nu": cfg.model_error_nu})
+    mark_coarse_edge(uncertainty, coarse)
     return JointResult(log10_E=theta["log10_E"], nu=theta["nu"], damping_ratio=float(sim.damping_ratio),
                        floor_friction=floor_friction(sim),
                        linear_velocity=[theta[f"linear_velocity_{a}"] for a in "xyz"],
