@@ -59,3 +59,19 @@ def test_bench_fem_times_both_hessian_strategies_on_one_mesh(capsys):
     assert result["trajectory_max_difference_m"] < 1e-5
     for suffix in ("", "_always_projected"):
         assert 1 <= result[f"newton_iterations_mean{suffix}"] <= result[f"newton_iterations_max{suffix}"] < 100
+
+
+def test_reconstruct_prints_the_material_with_its_intervals_and_what_the_video_says():
+    """The lines `vid2sim reconstruct` prints of a material.json: E and ν, then each interval with its note (found,
+    not identifiable, at the coarse search's end); an asset without an uncertainty record gets the first line only."""
+    from vid2sim.cli.reconstruct import material_lines
+
+    material = {"E": 9.98e3, "log10_E": 3.999, "nu": 0.293, "uncertainty": {
+        "level": 0.68,
+        "log10_E": {"interval": [3.793, 4.205], "note": "found; at the lower end of the coarse search (log10 E 4)"},
+        "nu": {"interval": [0.194, 0.392], "note": "not identifiable from this video"}}}
+    assert material_lines(material) == [
+        "E = 9980 Pa (log10 E = 3.999), nu = 0.293",
+        "  log10 E: 68 % interval [3.793, 4.205]; found; at the lower end of the coarse search (log10 E 4)",
+        "  nu: 68 % interval [0.194, 0.392]; not identifiable from this video"]
+    assert material_lines({"E": 1e5, "log10_E": 5.0, "nu": 0.3}) == ["E = 1e+05 Pa (log10 E = 5.000), nu = 0.300"]

@@ -22,10 +22,26 @@ def run(args: argparse.Namespace) -> int:
     config = reconstruct_config(args)
     path = reconstruct(args.scene, out, config, progress=not args.quiet, restart=args.restart, device=device)
     material = json.loads((path / "material.json").read_text())
-    print(f"wrote {path}: E = {material['E']:.4g} Pa (log10 E = {material['log10_E']:.3f}), nu = {material['nu']:.3f}")
+    lines = material_lines(material)
+    print("\n".join([f"wrote {path}: {lines[0]}"] + lines[1:]))
     if not args.no_report:
         write_asset_report(path / "report", path, args.scene, quiet=args.quiet, device=device)
     return 0
+
+
+def material_lines(material: dict) -> list[str]:
+    """What ``reconstruct`` prints of a material.json: E and ν, then for log10 E and ν their interval and what the
+    video says of them (the uncertainty's note: "found", "not identifiable from this video", or found at an end of
+    the coarse search), where the record has them."""
+    lines = [f"E = {material['E']:.4g} Pa (log10 E = {material['log10_E']:.3f}), nu = {material['nu']:.3f}"]
+    unc = material.get("uncertainty") or {}
+    level = unc.get("level")
+    for key, label in (("log10_E", "log10 E"), ("nu", "nu")):
+        entry = unc.get(key)
+        if isinstance(entry, dict) and isinstance(entry.get("interval"), list) and level is not None:
+            lo, hi = entry["interval"]
+            lines.append(f"  {label}: {100 * level:.0f} % interval [{lo:.3f}, {hi:.3f}]; {entry.get('note', '')}")
+    return lines
 
 
 def register(sub: argparse._SubParsersAction) -> None:
