@@ -158,7 +158,7 @@ def test_a_direction_the_clip_does_not_see_is_not_identifiable_and_keeps_the_pri
 
 
 def test_a_fit_at_an_end_of_the_coarse_grid_says_so():
-    """Log10 E found at the grid's end whose loss falls all the way to it is flagged (the best friction's grid when
+    """Log10 E found at the grid's end where its lowest loss lies is flagged (the best friction's grid when
     the search tried several), and only when the fit stayed within half a step of that end; an interior minimum,
     a fit that moved away, and no search are not."""
     grid = (4.0, 4.25, 4.5, 4.75, 5.0)

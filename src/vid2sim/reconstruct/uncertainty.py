@@ -137,9 +137,9 @@ def coarse_edge(coarse: Sequence[Mapping[str, float]], value: float) -> str | No
 
 def mark_coarse_edge(record: dict[str, Any], coarse: Sequence[Mapping[str, float]]) -> None:
     """Record in a :func:`laplace_intervals` record whether log10 E was found at an end of the coarse search
-    (:func:`coarse_edge`; ``log10_E["at_coarse_edge"]``, None when not) and say so in its note: the grid's loss
-    fell all the way to its end, so a material beyond the search may fit the video better, and the interval is
-    the fit's local curvature only, not the loss's profile."""
+    (:func:`coarse_edge`; ``log10_E["at_coarse_edge"]``, None when not) and say so in its note: the grid's lowest
+    loss is at its end, so a material beyond the search may fit the video better, and the interval is the fit's
+    local curvature only, not the loss's profile."""
     entry = record.get("log10_E")
     if not isinstance(entry, dict):
         return
@@ -148,9 +148,9 @@ def mark_coarse_edge(record: dict[str, Any], coarse: Sequence[Mapping[str, float
     if edge is not None:
         grid = [r["log10_E"] for r in coarse]
         end = min(grid) if edge == "lower" else max(grid)
-        entry["note"] = (f"{entry['note']}; at the {edge} end of the coarse search (log10 E {end:g}), whose loss "
-                         f"falls all the way to it: a {'softer' if edge == 'lower' else 'stiffer'} material than "
-                         "the search covers may fit the video better (widen --joint.coarse_log10_E to look)")
+        entry["note"] = (f"{entry['note']}; at the {edge} end of the coarse search (log10 E {end:g}), where its "
+                         f"lowest loss is: a {'softer' if edge == 'lower' else 'stiffer'} material than the search "
+                         "covers may fit the video better (widen --joint.coarse_log10_E to look)")
 
 
 def information_by_frame(lin: Linearisation, parameters: Sequence[Parameter]) -> dict[str, list[float]]:
