@@ -462,6 +462,43 @@ def test_a_spinning_dumbbell_with_one_view_missing_part_of_it() -> None:
     assert metric.scale_sigma >= 0.5 * abs(err), (metric.scale_sigma, err)
 
 
+def test_the_typical_shadow_is_the_shadow_not_the_faint_darkenings() -> None:
+    """A camera that sees a little of the object's shadow (ratio 0.45) and many faint darkenings just past the noise
+    (penumbrae, compression; ratio 0.95): the darkest ratio that passes as shadow lies below the shadow, not between
+    it and the faint ones (counted alone, the faint ones won the mode and the shadow scored as object)."""
+    rng = np.random.default_rng(0)
+    a = np.concatenate([rng.normal(0.45, 0.01, 800), rng.normal(0.95, 0.01, 4000)]).astype(np.float32)
+    floor = mk._shadow_floor(a, np.ones(a.shape, bool), mk.MaskConfig())
+    assert floor is not None and 0.3 < floor < 0.43, floor
+
+
+def test_soft_edges_leave_the_shadow_that_borders_the_object() -> None:
+    """A dark object whose own shadow borders its bottom (anti-aliased, 8× supersampled truth, sensor noise): the soft
+    coverage follows the true one and its centroid stays on the object's, not pulled into the shadow (explained as
+    object colour plus a plate scaled per pixel, the shadow read as a rim of object that shifted the centroid 1 px
+    down)."""
+    rng = np.random.default_rng(0)
+    H = W = 64
+    k = 8
+    yy, xx = (np.mgrid[: H * k, : W * k] + 0.5) / k
+    disc = ((yy - 28.3) ** 2 + (xx - 31.7) ** 2 < 12.5**2).astype(np.float64)
+    shadow = ((yy - 33.0) ** 2 / 1.2 + (xx - 34.0) ** 2 < 14.0**2) * (1.0 - disc)
+
+    def down(a: np.ndarray) -> np.ndarray:
+        return a.reshape(H, k, W, k).mean((1, 3))
+
+    alpha = down(disc)
+    shade = np.where(alpha > 0.999, 1.0, 1.0 - 0.55 * down(shadow) / np.maximum(1.0 - alpha, 1e-9))
+    plate = np.array([0.6, 0.55, 0.65]) * (1 + 0.05 * ndimage.gaussian_filter(rng.normal(size=(H, W)), 2))[..., None]
+    frame = alpha[..., None] * np.array([0.30, 0.26, 0.36]) + ((1 - alpha) * shade)[..., None] * plate
+    frame += rng.normal(0.0, 0.004, frame.shape)
+    soft = mk.soft_edges(alpha > 0.5, frame.astype(np.float32), plate.astype(np.float32), 0.004)
+    rows = np.arange(H)[:, None] + 0.5
+    shift = (soft * rows).sum() / soft.sum() - (alpha * rows).sum() / alpha.sum()
+    assert abs(shift) < 0.25, shift
+    assert np.abs(soft - alpha).sum() / alpha.sum() < 0.1
+
+
 def test_masks_on_the_object_box_equal_the_whole_frame() -> None:
     """masks_from_plate cleans and softens each frame on the box around what its test found: the same masks,
     confidence and stray share as the clean-up and soft edges over the whole frame."""
