@@ -472,6 +472,24 @@ def test_the_typical_shadow_is_the_shadow_not_the_faint_darkenings() -> None:
     assert floor is not None and 0.3 < floor < 0.43, floor
 
 
+def test_clean_keeps_the_outline_the_opening_would_take_but_not_specks_or_bridged_blobs() -> None:
+    """An object whose outline the test finds as a comb (teeth 2 px deep: stripes coloured like the background between
+    them), a speck, and a blob joined to the object by a 2 px bridge: the teeth stay, the speck, the blob and all
+    but the bridge's first pixels go."""
+    H = W = 256
+    yy, xx = np.mgrid[:H, :W]
+    r = np.hypot(yy - 100, xx - 100)
+    teeth = (r >= 30) & (r < 32) & ((np.degrees(np.arctan2(yy - 100, xx - 100)) // 8) % 2 == 0)
+    speck = (np.abs(yy - 40) < 2) & (np.abs(xx - 200) < 2)
+    blob = (np.abs(yy - 100) < 8) & (np.abs(xx - 180) < 8)
+    bridge = (np.abs(yy - 100) < 1) & (xx >= 100) & (xx < 175)
+    found = (r < 30) | teeth | speck | blob | bridge
+    m = mk.clean(found, mk.MaskConfig(), H / 128.0)
+    assert (m & teeth).sum() == teeth.sum()
+    assert not (m & speck).any() and not (m & blob).any()
+    assert (m & bridge & (xx > 140)).sum() == 0
+
+
 def test_soft_edges_leave_the_shadow_that_borders_the_object() -> None:
     """A dark object whose own shadow borders its bottom (anti-aliased, 8× supersampled truth, sensor noise): the soft
     coverage follows the true one and its centroid stays on the object's, not pulled into the shadow (explained as
