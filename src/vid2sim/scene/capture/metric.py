@@ -48,12 +48,6 @@ class MetricConfig:
             direction is uncertain; the floor's plane, from hundreds of points, is not).
         robust_hull_views: track the robust hull's centroid (one view's mask may disagree,
             :mod:`~vid2sim.scene.capture.hull`) in frames with at least this many whole views; 0: the strict hull's.
-        low_flight_clearance: warn when the object's lowest point stays, over the free flight the scale is
-            measured on (median over its frames), less than this share of the object's size above the floor: its
-            shadow then borders its masks through the flight, and the masks' errors change with its height, which
-            bends the tracked parabola (docs/capture.md: on 12 capture twins every scale more than 2 % off came
-            from a flight under 0.2 of the object's size, 3–6 % low; four such flights were within 2 %, and the
-            three above it within 1.4 %).
     """
 
     gravity: float = 9.81
@@ -65,7 +59,6 @@ class MetricConfig:
     upright_cameras: bool = True
     floor_normal_agreement_deg: float = 10.0
     robust_hull_views: int = 4
-    low_flight_clearance: float = 0.2
 
     def to_json(self) -> dict:
         return asdict(self)
@@ -492,10 +485,6 @@ def solve_metric_frame(track: Track, dt: float, config: MetricConfig, scene_fram
         scale_val, scale_sigma, parts, fit = _measure_scale(track, fit, dt, gravity, floor_est, config, notes)
         scale_source = "free flight"
         clearance = flight_clearance(track, fit.frames, gravity.up, floor_est.offset)
-        if clearance < config.low_flight_clearance:
-            notes.append(f"the object flies low: its lowest point stays {clearance:.2f} of its size above the floor "
-                         "(median over the free flight), so its shadow borders its masks and the scale may be "
-                         "biased (3-6 % low on such capture twins); drop it from higher, or give --scale")
     else:
         scale_val, scale_sigma, scale_source, clearance = float(scale), 0.0, "user", float("nan")
     R = rotation_to_down(gravity.down)
