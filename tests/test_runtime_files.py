@@ -124,3 +124,13 @@ def test_a_new_folder_write_removes_what_a_killed_writer_left(tmp_path):
     assert not any(p.exists() for p in left)
     assert all(p.exists() for p in kept)
     assert remove_leftovers(out) == []
+
+
+def test_a_json_number_is_not_a_bool_and_a_finite_one_not_nan_or_inf() -> None:
+    import json
+
+    from vid2sim.runtime.jsonvalues import is_finite_number, is_number
+
+    values = json.loads('[1, 2.5, -0.0, true, false, null, "3", [1], NaN, Infinity, -Infinity]')
+    assert [is_number(v) for v in values] == [True, True, True, False, False, False, False, False, True, True, True]
+    assert [is_finite_number(v) for v in values] == [True, True, True] + [False] * 8

@@ -60,6 +60,7 @@ from vid2sim.physics.solver import SimState, Simulator
 from vid2sim.physics.tet_modes import tet_frequencies
 from vid2sim.runtime.device import resolve_device
 from vid2sim.runtime.errors import InputError
+from vid2sim.runtime.jsonvalues import is_number
 from vid2sim.scene.folder import SceneConfig
 from vid2sim.scene.reading import load_scene
 from vid2sim.splats.cameras import Camera
@@ -93,11 +94,6 @@ def scene_groups(renders: torch.Tensor, targets: torch.Tensor, config: Any) -> d
     return {"dynamic": _group(renders, targets, obs_v, [f for f in obs_f if f > 0]),
             "future": _group(renders, targets, obs_v, held_f),
             "novel_views": _group(renders, targets, held_v, list(range(1, T)))}
-
-
-def _is_number(value: Any) -> bool:
-    """A JSON number (int or float, not a bool)."""
-    return isinstance(value, (int, float)) and not isinstance(value, bool)
 
 
 def start_material(asset_path: str | Path) -> dict[str, Any] | None:
@@ -136,7 +132,7 @@ def start_material(asset_path: str | Path) -> dict[str, Any] | None:
             return None
     except (OSError, json.JSONDecodeError, AttributeError) as exc:
         raise InputError(f"{folder}: cannot read the start material from log.json / config.json ({exc})") from exc
-    numbers = _is_number(E) and _is_number(nu)
+    numbers = is_number(E) and is_number(nu)
     if not (numbers and E > 0):
         raise InputError(f"{where}: the {source} material needs E > 0 and nu as numbers, got E={E!r}, nu={nu!r}")
     return {"E": float(E), "log10_E": math.log10(float(E)), "nu": float(nu), "source": source}
@@ -160,7 +156,7 @@ def joint_fit_record(extra: dict[str, Any]) -> dict[str, Any] | None:
     (the coarse search's start), ``validation_loss`` (the kept state's) and ``improved`` (1.0 when the kept state is
     lower than the start, 0.0 otherwise), or None for an asset that does not record both."""
     start, kept = extra.get("start_validation_loss"), extra.get("validation_loss")
-    if not (_is_number(start) and _is_number(kept)):
+    if not (is_number(start) and is_number(kept)):
         return None
     return {"start_validation_loss": float(start), "validation_loss": float(kept), "improved": float(kept < start),
             "method": extra.get("joint_method")}
@@ -205,7 +201,7 @@ def evaluate(asset_path: str | Path, scene_path: str | Path, fovvdp: bool = Fals
     if tet is not None:
         report.update(_motion_errors(tet, centres, sim, states, scene.config))
         meta_nu = scene.config.metadata.get("nu")
-        nu = float(meta_nu) if _is_number(meta_nu) else float(asset.material["nu"])
+        nu = float(meta_nu) if is_number(meta_nu) else float(asset.material["nu"])
         stiffness = solid_stiffness(asset_path, tet, nu)
         if stiffness is not None:
             report["geometry_stiffness"] = stiffness
@@ -286,7 +282,7 @@ def true_floor_friction(meta: dict[str, Any]) -> float | None:
         value = (meta.get("newton") or {}).get("contact", {}).get("friction")
     if value is None and meta.get("truth") == "fem":
         value = 0.0
-    return float(value) if _is_number(value) else None
+    return float(value) if is_number(value) else None
 
 
 def _material_record(asset: Asset, asset_path: str | Path, meta: dict[str, Any]) -> dict[str, Any]:

@@ -7,19 +7,15 @@ e.g. ``evaluation['dynamic']['psnr'] must be a number, got 'high'``. Unknown ext
 from __future__ import annotations
 
 import json
-import math
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 from vid2sim.report.config import ReportInputError
+from vid2sim.runtime.jsonvalues import is_finite_number as _is_number
 
 GROUPS = ("dynamic", "future", "novel_views")
 SCENE_KEYS = ("name", "scene", "asset", "status", "error", "evaluation", "report", "seconds")
-
-
-def _is_number(value: Any) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
 
 
 def _number(value: Any, where: str, optional: bool = True) -> None:

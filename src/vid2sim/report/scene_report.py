@@ -37,6 +37,7 @@ from vid2sim.report.config import ReportConfig, ReportInputError
 from vid2sim.report.inputs import GROUPS, check_evaluation
 from vid2sim.report.plots import optimisation_figure, psnr_figure
 from vid2sim.runtime.files import write_folder_atomic
+from vid2sim.runtime.jsonvalues import is_finite_number as _isnum
 from vid2sim.scene.folder import Scene
 from vid2sim.scene.reading import load_scene
 
@@ -750,10 +751,6 @@ def _view_panels(scene: Any, targets: Tensor, renders: Tensor, cfg: ReportConfig
     masks = scene.float_masks() if hasattr(scene, "float_masks") else scene.masks.float()
     boxes = [M.crop_box(masks[v], renders[v]) if cfg.crop else (0, Hh, 0, Ww) for v in range(V)]
     return _ViewPanels(gt8, rd8, err8, boxes)
-
-
-def _isnum(x: Any) -> bool:
-    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
 
 
 def _mean(values: Sequence[float]) -> float | None:

@@ -30,6 +30,7 @@ from vid2sim.report.inputs import check_suite
 from vid2sim.report.plots import material_scatter
 from vid2sim.report.scene_report import check_out
 from vid2sim.runtime.files import write_folder_atomic
+from vid2sim.runtime.jsonvalues import is_finite_number as _isnum
 from vid2sim.scene.reading import load_scene
 
 #: suite means key → (label, unit, decimals, scale of the shown value)
@@ -54,10 +55,6 @@ MEAN_LABELS = {
 
 METRIC_COLUMNS = ("observed PSNR / SSIM", "future PSNR / SSIM", "novel views PSNR / SSIM", "E (Pa)", "ν",
                   "|Δ log10 E|", "|Δ ν|", "Chamfer (cm)", "centre of mass off (cm)")
-
-
-def _isnum(x: Any) -> bool:
-    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
 
 
 def _thumbnail(scene: Mapping[str, Any], target: Path, config: ReportConfig) -> bool:

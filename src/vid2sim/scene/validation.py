@@ -24,6 +24,7 @@ from typing import Any, Iterable
 import numpy as np
 
 from vid2sim.runtime.errors import InputError
+from vid2sim.runtime.jsonvalues import is_number
 
 __all__ = [
     "SceneFormatError",
@@ -125,10 +126,6 @@ def read_json(path: Path, name: str, root: Path | None = None) -> Any:
         ) from exc
 
 
-def _is_number(value: Any) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool)
-
-
 def _is_int(value: Any) -> bool:
     """An int, or a float with an integral value (JSON writers sometimes emit 800.0 for 800)."""
     if isinstance(value, bool):
@@ -164,7 +161,7 @@ def check_keys(
 def _number(obj: dict, key: str, where: str, problems: Problems) -> float | None:
     """The finite number at ``obj[key]`` (None and a problem when it is something else)."""
     value = obj[key]
-    if not _is_number(value) or not math.isfinite(float(value)):
+    if not is_number(value) or not math.isfinite(float(value)):
         problems.add(f"{where}: {key} must be a finite number, got {_show(value)}")
         return None
     return float(value)
@@ -206,19 +203,19 @@ def config_problems(
     Shared by ``SceneConfig.__post_init__`` and the ``scene.json`` parser so both say the same thing.
     """
     out: list[str] = []
-    if not _is_number(dt) or not math.isfinite(float(dt)):
+    if not is_number(dt) or not math.isfinite(float(dt)):
         out.append(f"dt must be a finite number of seconds, got {_show(dt)}")
     elif float(dt) <= 0:
         out.append(f"dt must be > 0, got {dt:g}")
     if (
         not isinstance(gravity, (list, tuple))
         or len(gravity) != 3
-        or not all(_is_number(g) and math.isfinite(float(g)) for g in gravity)
+        or not all(is_number(g) and math.isfinite(float(g)) for g in gravity)
     ):
         out.append(f"gravity must be 3 finite numbers (m/s², world frame), got {_show(gravity)}")
     elif floor_height is not None and all(float(g) == 0.0 for g in gravity):
         out.append("floor_height needs a non-zero gravity (the floor is perpendicular to it), got gravity [0, 0, 0]")
-    if floor_height is not None and (not _is_number(floor_height) or not math.isfinite(float(floor_height))):
+    if floor_height is not None and (not is_number(floor_height) or not math.isfinite(float(floor_height))):
         out.append(f"floor_height must be a finite number (metres) or null, got {_show(floor_height)}")
     lists = {
         "observed_frames": observed_frames,
@@ -319,7 +316,7 @@ def parse_scene_json(obj: Any, problems: Problems, name: str = "scene.json") -> 
         problems.add(f"{name}: {message}")
     if "fps" in obj and len(problems) == before:
         fps = obj["fps"]
-        if not _is_number(fps) or not float(fps) > 0:
+        if not is_number(fps) or not float(fps) > 0:
             problems.add(f"{name}: fps must be a positive number, got {_show(fps)}")
         elif abs(float(fps) * float(merged["dt"]) - 1.0) > 1e-6:
             problems.add(
@@ -358,7 +355,7 @@ def parse_matrix(value: Any) -> np.ndarray | None:
     """A (4, 4) float64 array from a 4x4 or 3x4 nested list of numbers (None if it is not one)."""
     if not isinstance(value, list) or len(value) not in (3, 4):
         return None
-    if not all(isinstance(row, list) and len(row) == 4 and all(_is_number(x) for x in row) for row in value):
+    if not all(isinstance(row, list) and len(row) == 4 and all(is_number(x) for x in row) for row in value):
         return None
     m = np.array(value, dtype=np.float64)
     if m.shape[0] == 3:
