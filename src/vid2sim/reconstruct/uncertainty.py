@@ -113,14 +113,8 @@ def laplace_intervals(lin: Linearisation, parameters: Sequence[Parameter], n: fl
     return out
 
 
-def coarse_edge(coarse: Sequence[Mapping[str, float]], value: float) -> str | None:
-    """``"lower"`` or ``"upper"`` when the coarse search's best loss lies at that end of its log10 E grid (the grid of
-    the best floor friction, when it searched several) and the fit's ``value`` stayed within half a grid step of that
-    end; None otherwise (no search, an interior minimum, or a fit that moved away from the edge).
-
-    Args:
-        coarse: the coarse search's records, ``{"log10_E", "loss"}`` (and ``"floor_friction"``) each.
-    """
+def _edge_and_end(coarse: Sequence[Mapping[str, float]], value: float) -> tuple[str, float] | None:
+    """:func:`coarse_edge`'s answer and the log10 E of that end of the grid."""
     if not coarse:
         return None
     best = min(coarse, key=lambda r: r["loss"])
@@ -129,10 +123,22 @@ def coarse_edge(coarse: Sequence[Mapping[str, float]], value: float) -> str | No
         return None
     half = 0.5 * min(b - a for a, b in zip(grid, grid[1:]))
     if best["log10_E"] == grid[0] and value <= grid[0] + half:
-        return "lower"
+        return "lower", grid[0]
     if best["log10_E"] == grid[-1] and value >= grid[-1] - half:
-        return "upper"
+        return "upper", grid[-1]
     return None
+
+
+def coarse_edge(coarse: Sequence[Mapping[str, float]], value: float) -> str | None:
+    """``"lower"`` or ``"upper"`` when the coarse search's best loss lies at that end of its log10 E grid (the grid of
+    the best floor friction, when it searched several) and the fit's ``value`` stayed within half a grid step of that
+    end; None otherwise (no search, an interior minimum, or a fit that moved away from the edge).
+
+    Args:
+        coarse: the coarse search's records, ``{"log10_E", "loss"}`` (and ``"floor_friction"``) each.
+    """
+    found = _edge_and_end(coarse, value)
+    return None if found is None else found[0]
 
 
 def mark_coarse_edge(record: dict[str, Any], coarse: Sequence[Mapping[str, float]]) -> None:
@@ -143,11 +149,10 @@ def mark_coarse_edge(record: dict[str, Any], coarse: Sequence[Mapping[str, float
     entry = record.get("log10_E")
     if not isinstance(entry, dict):
         return
-    edge = coarse_edge(coarse, entry["value"])
-    entry["at_coarse_edge"] = edge
-    if edge is not None:
-        grid = [r["log10_E"] for r in coarse]
-        end = min(grid) if edge == "lower" else max(grid)
+    found = _edge_and_end(coarse, entry["value"])
+    entry["at_coarse_edge"] = None if found is None else found[0]
+    if found is not None:
+        edge, end = found
         entry["note"] = (f"{entry['note']}; at the {edge} end of the coarse search (log10 E {end:g}), where its "
                          f"lowest loss is: a {'softer' if edge == 'lower' else 'stiffer'} material than the search "
                          "covers may fit the video better (widen --joint.coarse_log10_E to look)")

@@ -24,7 +24,7 @@ from typing import Any, Iterable
 import numpy as np
 
 from vid2sim.runtime.errors import InputError
-from vid2sim.runtime.jsonvalues import is_number
+from vid2sim.runtime.jsonvalues import is_finite_number, is_number
 
 __all__ = [
     "SceneFormatError",
@@ -161,7 +161,7 @@ def check_keys(
 def _number(obj: dict, key: str, where: str, problems: Problems) -> float | None:
     """The finite number at ``obj[key]`` (None and a problem when it is something else)."""
     value = obj[key]
-    if not is_number(value) or not math.isfinite(float(value)):
+    if not is_finite_number(value):
         problems.add(f"{where}: {key} must be a finite number, got {_show(value)}")
         return None
     return float(value)
@@ -203,19 +203,19 @@ def config_problems(
     Shared by ``SceneConfig.__post_init__`` and the ``scene.json`` parser so both say the same thing.
     """
     out: list[str] = []
-    if not is_number(dt) or not math.isfinite(float(dt)):
+    if not is_finite_number(dt):
         out.append(f"dt must be a finite number of seconds, got {_show(dt)}")
     elif float(dt) <= 0:
         out.append(f"dt must be > 0, got {dt:g}")
     if (
         not isinstance(gravity, (list, tuple))
         or len(gravity) != 3
-        or not all(is_number(g) and math.isfinite(float(g)) for g in gravity)
+        or not all(is_finite_number(g) for g in gravity)
     ):
         out.append(f"gravity must be 3 finite numbers (m/s², world frame), got {_show(gravity)}")
     elif floor_height is not None and all(float(g) == 0.0 for g in gravity):
         out.append("floor_height needs a non-zero gravity (the floor is perpendicular to it), got gravity [0, 0, 0]")
-    if floor_height is not None and (not is_number(floor_height) or not math.isfinite(float(floor_height))):
+    if floor_height is not None and not is_finite_number(floor_height):
         out.append(f"floor_height must be a finite number (metres) or null, got {_show(floor_height)}")
     lists = {
         "observed_frames": observed_frames,
