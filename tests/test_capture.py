@@ -488,6 +488,58 @@ def test_clean_keeps_the_outline_the_opening_would_take_but_not_specks_or_bridge
     assert (m & bridge & (xx > 140)).sum() == 0
 
 
+def test_holes_that_show_the_background_stay_open_and_patches_are_filled() -> None:
+    """A ring whose hole shows the background stays a ring: over a plain wall in full light (the plate at its own
+    brightness), and over a textured room with the ring's shadow across most of the hole (the room's texture). A
+    disc with a dark patch that passes for shadow (the wall's colour at half its brightness) is filled, and so is a
+    disc with a patch in the room's colours but not the texture behind it. The ring's hole in shadow over the plain
+    wall is filled too: nothing tells it from such a dark patch (the documented limit)."""
+    rng = np.random.default_rng(3)
+    H = W = 128
+    yy, xx = np.mgrid[:H, :W]
+
+    def room(y: np.ndarray, x: np.ndarray) -> np.ndarray:
+        return np.stack([0.45 + 0.2 * np.sin(x / 3.0) * np.cos(y / 4.0), 0.5 + 0.15 * np.cos(x / 5.0 + y / 7.0),
+                         0.45 + 0.15 * np.sin(y / 3.5)], -1)
+
+    r = np.hypot(yy - 60, xx - 64)
+    ring, disc, hole = (r < 30) & (r > 11), r < 30, r < 9
+    textured = room(yy, xx)
+    plain = np.broadcast_to(np.array([0.5, 0.5, 0.45]), (H, W, 3))
+
+    def masks(plate: np.ndarray, paint) -> np.ndarray:
+        frames = np.repeat(plate[None], 3, 0).copy()
+        for f in frames:
+            paint(f)
+        frames += rng.normal(0.0, 0.008, frames.shape)
+        return mk.masks_from_plate(np.clip(frames, 0, 1).astype(np.float32), plate.astype(np.float32)).masks[1] > 0.5
+
+    def ring_lit(f: np.ndarray) -> None:
+        f[ring] = [0.85, 0.25, 0.15]
+
+    def ring_shadowed(f: np.ndarray) -> None:
+        f[(yy > 54) & (r < 40) & ~ring] *= 0.55  # its shadow falls across most of the hole
+        f[ring] = [0.85, 0.25, 0.15]
+
+    for plate, paint in ((plain, ring_lit), (textured, ring_shadowed)):
+        m = masks(plate, paint)
+        assert not m[hole].any()
+        assert (m & ring).sum() / (m | ring).sum() > 0.97
+        assert mk.holes_filled(m[None].astype(np.float32))[0][hole].all()  # the track's silhouette
+
+    def disc_dark_patch(f: np.ndarray) -> None:
+        f[disc] = [0.85, 0.25, 0.15]
+        f[hole] = 0.5 * plain[hole]
+
+    def disc_room_patch(f: np.ndarray) -> None:
+        f[disc] = [0.85, 0.25, 0.15]
+        f[hole] = room(yy + 11, xx + 7)[hole]  # the room's colours, not what lies behind the patch
+
+    assert masks(plain, disc_dark_patch)[hole].all()
+    assert masks(textured, disc_room_patch)[hole].all()
+    assert masks(plain, ring_shadowed)[hole].all()
+
+
 def test_soft_edges_leave_the_shadow_that_borders_the_object() -> None:
     """A dark object whose own shadow borders its bottom (anti-aliased, 8× supersampled truth, sensor noise): the soft
     coverage follows the true one and its centroid stays on the object's, not pulled into the shadow (explained as
@@ -536,7 +588,7 @@ def test_masks_on_the_object_box_equal_the_whole_frame() -> None:
     detected = mk.hysteresis(score, config.high, config.low)
     scale = H / 128.0
     for t in range(5):
-        m = mk.clean(detected[t], config, scale)
+        m = mk.clean(detected[t], config, scale, mk.see_through(frames[t], B, sigma, config, scale))
         soft = mk.soft_edges(m, frames[t], plate, sigma, config.edge_width, config.edge_depth)
         outside = ~mk.dilate(m, mk.CROSS, max(1, int(round(2 * scale))))
         np.testing.assert_allclose(got.masks[t], soft, atol=1e-6)

@@ -44,7 +44,7 @@ from vid2sim.scene.capture.errors import CaptureError
 from vid2sim.scene.capture.frames import frame_count, read_frames, read_masks, read_rgb
 from vid2sim.scene.capture.jsonify import jsonable
 from vid2sim.scene.capture.layout import CALIBRATIONS, CaptureLayout, discover_capture
-from vid2sim.scene.capture.masks import MaskConfig, MaskResult, masks_from_plate, summarise
+from vid2sim.scene.capture.masks import MaskConfig, MaskResult, holes_filled, masks_from_plate, summarise
 from vid2sim.scene.capture.metric import (
     MetricConfig,
     MetricFrame,
@@ -161,7 +161,7 @@ def parse_axis(text: str) -> tuple[float, float, float]:
 class ViewData:
     """One camera after stages 1–4: its pinhole camera (reduced), frames (T, H, W, 3) float32, plate (or None),
     masks and their report (all reduced), and where each came from; for the object's track, the masks before the
-    reduction (T, k·H, k·W) as uint8 coverage and their camera."""
+    reduction (T, k·H, k·W) as uint8 coverage, their holes filled (:func:`~.masks.holes_filled`), and their camera."""
 
     name: str
     camera: CaptureCamera
@@ -318,7 +318,7 @@ def load_views(layout: CaptureLayout, cameras: dict[str, CaptureCamera], T: int,
             if src.plate is not None:
                 _check_static(name, src.plate, frames, plate, result, first_frames, config)
         k = config.downscale
-        track_masks = np.round(np.clip(result.masks, 0.0, 1.0) * 255).astype(np.uint8)
+        track_masks = np.round(np.clip(holes_filled(result.masks), 0.0, 1.0) * 255).astype(np.uint8)
         if k > 1:
             frames = reduce(frames, k, True)
             plate = None if plate is None else reduce(plate, k, True)
