@@ -13,10 +13,11 @@ with σ the camera's noise level (measured on the frames), τ the chromatic chan
 (coloured ambient light) and ``a_min`` the darkest shadow. Pixels with s above ``high`` seed the object; pixels
 above ``low`` join it when connected to a seed in space *or time* (6-connected in (t, y, x)), so a weak edge
 that was strong a frame earlier survives and isolated noise does not. Each frame is then opened, closed, its holes
-filled — except those through which the plate's own texture is seen (:func:`see_through`) — and its largest
-component kept (and the fringe of found pixels the opening took, :func:`clean`). At the
-boundary the mask is made soft: a pixel's coverage is its colour's position between the background just outside
-(the plate, darkened by the shadow measured there) and the nearby object colour (:func:`soft_edges`).
+filled — except those through which the plate is seen, at its own brightness or its texture in shadow
+(:func:`see_through`) — and its largest component kept (and the fringe of found pixels the opening took,
+:func:`clean`). At the boundary the mask is made soft: a pixel's coverage is its colour's position between the
+background just outside (the plate, darkened by the shadow measured there) and the nearby object colour
+(:func:`soft_edges`).
 
 Each mask comes with its area, a confidence (the share of its pixels that the colour test supports directly, not
 through filling) and flags: ``border`` (the object touches the image border), ``empty`` (no object) and
@@ -356,8 +357,8 @@ def holes_filled(masks: np.ndarray) -> np.ndarray:
     """(T, H, W) coverage with every hole of each frame's mask (coverage above ½) filled: the silhouette whose
     outline alone counts. The object's track uses it: whether a hole opens depends on its light (a hole in the
     object's own shadow is filled, :func:`see_through`), and the shadow follows the object's height, so the masks'
-    own holes would move the tracked centre with the height (the metric scale 1.4–2.4 % lower on three capture
-    twins with holes)."""
+    own holes would move the tracked centre with the height (the metric scale 1.0–2.4 % lower on three of four
+    capture twins with holes)."""
     out = np.array(masks, dtype=np.float32, copy=True)
     for t, m in enumerate(out):
         inside = m > 0.5
