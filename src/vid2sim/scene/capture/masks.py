@@ -193,6 +193,12 @@ class PlateTexture:
         return cov / np.sqrt(np.maximum(vg * self.var, 1e-12))
 
 
+def texture_window(config: MaskConfig, scale: float) -> int:
+    """The side (odd, at least 3 px) of the windows the texture tests compare frame and plate in:
+    ``shadow_texture_window`` scaled by ``scale`` = the image height / 128."""
+    return max(3, int(round(config.shadow_texture_window * scale)) | 1)
+
+
 def _shadow_floor(a: np.ndarray, shadow_like: np.ndarray, config: MaskConfig) -> float | None:
     """The darkest brightness ratio that still passes as this camera's shadow (``MaskConfig.shadow_band``), from
     the ratios ``a`` of the shadow-like pixels; None when fewer than 50 are."""
@@ -241,8 +247,7 @@ def object_score(frames: np.ndarray, plate: np.ndarray, sigma: float, config: Ma
     floor_ratio = _shadow_floor(a, shadow_like, config)
     del shadow_like
     if config.shadow_min_correlation > -1:
-        window = max(3, int(round(config.shadow_texture_window * frames.shape[1] / 128.0)) | 1)
-        texture = PlateTexture((B[0] + B[1] + B[2]) / 3.0, window)
+        texture = PlateTexture((B[0] + B[1] + B[2]) / 3.0, texture_window(config, frames.shape[1] / 128.0))
     for t in range(T):
         at, st = a[t], score[t]
         if floor_ratio is not None:
@@ -329,7 +334,7 @@ def see_through(frame: np.ndarray, plate: np.ndarray, sigma: float, config: Mask
         if not maps:
             f = blur(frame, config.blur_sigma)
             maps["ratio"] = (f * plate).sum(-1) / np.maximum((plate * plate).sum(-1), 1e-6)
-            texture = PlateTexture(plate.mean(-1), max(3, int(round(config.shadow_texture_window * scale)) | 1))
+            texture = PlateTexture(plate.mean(-1), texture_window(config, scale))
             maps["std"], maps["ncc"] = texture.std, texture.correlation(f.mean(-1))
         if np.median(maps["ratio"][hole]) >= config.hole_min_brightness:
             return True
