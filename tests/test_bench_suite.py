@@ -97,7 +97,7 @@ def test_suite_json_schema_means_and_table(local_run, suite_dir, tiny_config):
         "dynamic_psnr", "dynamic_ssim", "future_psnr", "future_ssim", "novel_psnr", "novel_ssim",
         "abs_error_log10_E", "abs_error_nu", "start_abs_error_log10_E", "start_abs_error_nu", "chamfer_observed",
         "chamfer_future", "centre_of_mass_frame_0", "centre_of_mass_observed", "centre_of_mass_future",
-        "solid_frequency_ratio", "interval_covers_log10_E",
+        "solid_frequency_ratio", "solid_volume_ratio", "solid_bottom_offset", "interval_covers_log10_E",
         "interval_covers_nu", "joint_improved", "seconds"}
     index = json.loads((suite_dir / "index.json").read_text())
     assert [r["name"] for r in result["scenes"]] == [s["name"] for s in index["scenes"]] == ["scene_000", "scene_001"]

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from vid2sim.synthetic.embedding import apply_embedding, embed_points
+from vid2sim.synthetic.embedding import apply_embedding, embed_points, inside_tets
 
 
 def grid_tets(n: int = 3, size: float = 1.0) -> tuple[torch.Tensor, torch.Tensor]:
@@ -39,6 +39,19 @@ def _tet_volume(v, t):
 def test_grid_tets_fill_the_cube():
     v, t = grid_tets(3, 2.0)
     assert float(_tet_volume(v, t).sum()) == pytest.approx(8.0)
+
+
+def test_inside_tets_is_the_cube():
+    """Points of [-0.5, 1.5]³ are inside the unit cube's tets exactly where they are inside the cube; the tets'
+    vertices (on the boundary) count as inside."""
+    v, t = grid_tets(3)
+    pts = torch.rand(4000, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(1)) * 2 - 0.5
+    expected = ((pts >= 0) & (pts <= 1)).all(dim=1).numpy()
+    assert 0.05 < expected.mean() < 0.25  # both kinds are tested
+    np.testing.assert_array_equal(inside_tets(pts, v, t), expected)
+    assert inside_tets(v, v, t).all() and inside_tets(pts.float().numpy(), v, t).shape == (4000,)
+    with pytest.raises(ValueError, match=r"inside_tets: points must be \(P, 3\)"):
+        inside_tets(pts[:, :2], v, t)
 
 
 def test_round_trip_inside_points():

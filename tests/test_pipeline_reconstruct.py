@@ -217,6 +217,36 @@ def test_start_material_reads_the_prior_or_stage1_and_names_a_bad_file(tmp_path)
         start_material(tmp_path)
 
 
+def test_solid_against_truth_measures_the_hulls_excess_below_and_above_the_object():
+    """A solid that is the truth's box grown 5 cm down (its interior samples a cell-centred grid): volume 1.25 ×,
+    a fifth of it outside the object, its lowest point 5 cm under the truth's and its highest level with it;
+    heights follow gravity's direction (along −y neither reaches past the other)."""
+    from types import SimpleNamespace
+
+    from vid2sim.evaluate.scores import solid_against_truth
+    from vid2sim.meshing.tetra import box_tet_mesh
+
+    truth = box_tet_mesh((0.4, 0.2, 0.2), (4, 2, 2), origin=(-0.2, -0.1, -0.1))
+    tet = {"vertices": torch.as_tensor(truth.vertices, dtype=torch.float32)[None], "tets": torch.as_tensor(truth.tets)}
+    n = (40, 20, 25)  # 1 cm cells over 0.4 × 0.2 × 0.25 m
+    lo, size = torch.tensor([-0.2, -0.1, -0.15]), torch.tensor([0.4, 0.2, 0.25])
+    grid = torch.stack(torch.meshgrid(*[(torch.arange(k) + 0.5) / k for k in n], indexing="ij"), -1).reshape(-1, 3)
+    points = lo + grid * size
+    corners = lo + torch.tensor([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], dtype=torch.float32) * size
+    asset = SimpleNamespace(points=points, contact_points=corners, volume=0.4 * 0.2 * 0.25, gravity=[0.0, 0.0, -9.8])
+    solid = solid_against_truth(asset, tet)
+    assert solid["truth_volume_m3"] == pytest.approx(0.016, rel=1e-6)
+    assert solid["volume_m3"] == pytest.approx(0.02) and solid["volume_ratio"] == pytest.approx(1.25, rel=1e-6)
+    assert solid["outside_truth_fraction"] == pytest.approx(0.2)
+    assert solid["bottom_offset_m"] == pytest.approx(-0.05, abs=1e-6)
+    assert solid["top_offset_m"] == pytest.approx(0.0, abs=1e-6)
+    asset.gravity = [0.0, -9.8, 0.0]  # "up" is +y, where neither reaches past the other
+    sideways = solid_against_truth(asset, tet)
+    assert sideways["bottom_offset_m"] == pytest.approx(0.0, abs=1e-6)
+    assert sideways["top_offset_m"] == pytest.approx(0.0, abs=1e-6)
+    assert sideways["outside_truth_fraction"] == solid["outside_truth_fraction"]
+
+
 def test_solid_stiffness_compares_the_reconstructed_solids_lowest_mode_with_the_truths(tmp_path):
     """A solid twice the truth's size vibrates at half its frequency (ω ∝ √(E/ρ)/L): ratio ½, so its shape alone
     makes a fitted E 2² too large (−2 log10 ½ = +0.602 decade); the asset's grid of ν is interpolated; an asset

@@ -153,6 +153,12 @@ def test_tables_show_the_evaluation_numbers(scene_report, tiny_asset):
     assert float(value) == stiffness["lowest_frequency_ratio"] and text == "1.300"
     value, text = metrics["geometry_stiffness.implied_log10_E_offset"]
     assert float(value) == stiffness["implied_log10_E_offset"] and text == "-0.228"
+    solid = evaluation["solid"]  # evaluate's own, on the tiny scene's truth: a 24² hull is bigger than the object
+    assert 1.0 < solid["volume_ratio"] < 3.0 and 0.0 < solid["outside_truth_fraction"] < 0.7
+    value, text = metrics["solid.volume_ratio"]
+    assert float(value) == solid["volume_ratio"] and text == f"{solid['volume_ratio']:.3f}"
+    value, text = metrics["solid.bottom_offset_m"]
+    assert float(value) == solid["bottom_offset_m"] and text == f"{100 * solid['bottom_offset_m']:+.2f} cm"
 
 
 def test_videos_hold_every_frame_in_three_panels_matching_the_data(scene_report, tiny_scene):
@@ -313,6 +319,10 @@ def test_bad_inputs_raise_named_errors(scene_report, tiny_asset, tiny_scene, tmp
     bad["geometry_stiffness"]["lowest_frequency_ratio"] = None
     with pytest.raises(ReportInputError, match=r"evaluation\['geometry_stiffness'\]\['lowest_frequency_ratio'\] "
                                                r"must be a number, got None"):
+        write_report(tmp_path / "r", tiny_asset, scene=tiny_scene, evaluation=bad, renders=renders)
+    bad = json.loads(json.dumps(evaluation))
+    bad["solid"]["bottom_offset_m"] = "low"
+    with pytest.raises(ReportInputError, match=r"evaluation\['solid'\]\['bottom_offset_m'\] must be a number"):
         write_report(tmp_path / "r", tiny_asset, scene=tiny_scene, evaluation=bad, renders=renders)
     with pytest.raises(ReportInputError, match=r"renders must be a tensor of the scene's shape"):
         write_report(tmp_path / "r", tiny_asset, scene=tiny_scene, evaluation=evaluation, renders=renders[:, :2])

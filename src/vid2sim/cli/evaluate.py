@@ -46,6 +46,12 @@ def run(args: argparse.Namespace) -> int:
     if shape is not None:
         lines.append(f"the solid's lowest elastic mode: {shape['lowest_frequency_ratio']:.3f} x the truth's "
                      f"(its shape alone implies log10 E {shape['implied_log10_E_offset']:+.3f})")
+    solid = report.get("solid")
+    if solid is not None:
+        lines.append(f"the simulation solid: {solid['volume_ratio']:.3f} x the truth's volume, "
+                     f"{100 * solid['outside_truth_fraction']:.1f} % of it outside the object; its lowest point "
+                     f"{100 * solid['bottom_offset_m']:+.2f} cm, its highest {100 * solid['top_offset_m']:+.2f} cm "
+                     "from the object's (frame 0, along gravity)")
     print("\n".join(lines + [f"wrote {out}"]))
     if not args.no_report:
         write_asset_report(Path(args.asset) / "report", args.asset, args.scene, quiet=args.quiet, evaluation=report,

@@ -85,6 +85,12 @@ def check_evaluation(evaluation: Any, name: str = "evaluation") -> dict[str, Any
             _number(stiffness.get(key), f"{name}['geometry_stiffness'][{key!r}]", optional=False)
         for key in ("nu", "omega_asset", "omega_truth"):
             _number(stiffness.get(key), f"{name}['geometry_stiffness'][{key!r}]")
+    solid = evaluation.get("solid")
+    if solid is not None:
+        if not isinstance(solid, Mapping):
+            raise ReportInputError(f"{name}['solid'] must be a dict, got {type(solid).__name__}")
+        for key in ("volume_ratio", "outside_truth_fraction", "bottom_offset_m", "top_offset_m"):
+            _number(solid.get(key), f"{name}['solid'][{key!r}]", optional=False)
     for part in ("chamfer", "centre_of_mass"):
         distances = evaluation.get(part)
         if distances is None:

@@ -417,7 +417,7 @@ class _Builder:
         ev = self.evaluation or {}
         found, truth, errors = self._material_comparison(ev)
         self._summary_section(ev, found, truth, errors)
-        self._material_section(found, truth, errors, ev.get("geometry_stiffness"))
+        self._material_section(found, truth, errors, ev.get("geometry_stiffness"), ev.get("solid"))
         self._metrics_section(ev)
 
     def _material_comparison(self, ev: dict[str, Any]) -> tuple[dict[str, Any], dict[str, Any], dict[str, Any]]:
@@ -487,9 +487,10 @@ class _Builder:
                                                                f'<div class="cards">{"".join(cards)}</div>', intro)))
 
     def _material_section(self, found: dict[str, Any], truth: dict[str, Any], errors: dict[str, Any],
-                          stiffness: dict[str, Any] | None = None) -> None:
+                          stiffness: dict[str, Any] | None = None, solid: dict[str, Any] | None = None) -> None:
         """The material table: each parameter at the start, found, truth, error and interval; under it, with the
-        evaluation's ``geometry_stiffness``, the reconstructed solid's lowest elastic mode against the truth's."""
+        evaluation's ``geometry_stiffness``, the reconstructed solid's lowest elastic mode against the truth's, and
+        with its ``solid``, the solid's volume and reach against the truth's body."""
         start = next((e for e in self.log.get("iterations", []) if isinstance(e, dict) and e.get("iteration") == 0), {})
         rows = []
         specs = [("Young's modulus E (Pa)", "E", H.fmt_sci, None),
@@ -530,6 +531,17 @@ class _Builder:
                      f"log10 E {offset_html} decade. A score of the geometry (a hull that welds an object’s lobes "
                      "is stiffer than the object), not a correction to apply: a soft object’s motion is its squash "
                      "at the contact rather than this mode.</p>")
+        if solid:
+            spans = {key: H.num_span(solid[key], text, key=f"solid.{key}") for key, text in (
+                ("volume_ratio", f"{solid['volume_ratio']:.3f}"),
+                ("outside_truth_fraction", f"{100 * solid['outside_truth_fraction']:.1f} %"),
+                ("bottom_offset_m", f"{100 * solid['bottom_offset_m']:+.2f} cm"),
+                ("top_offset_m", f"{100 * solid['top_offset_m']:+.2f} cm"))}
+            body += ('<p class="note">The simulation solid has '
+                     f"{spans['volume_ratio']}× the truth’s volume, {spans['outside_truth_fraction']} of it outside "
+                     f"the object; at frame 0 its lowest point is {spans['bottom_offset_m']} and its highest "
+                     f"{spans['top_offset_m']} from the object’s, along gravity. The bottom meets the floor first: "
+                     "a hull that reaches below the object bounces differently, and E is fitted to that bounce.</p>")
         self.sections.append(("material", "Material", H.section(
             "material", "Material found vs truth",
             body,

@@ -46,6 +46,8 @@ MEAN_LABELS = {
     "centre_of_mass_observed": ("centre of mass off, observed", "cm", 2, 100.0),
     "centre_of_mass_future": ("centre of mass off, future", "cm", 2, 100.0),
     "solid_frequency_ratio": ("the solid's lowest elastic mode over the truth's", "", 3, 1.0),
+    "solid_volume_ratio": ("the solid's volume over the truth's", "", 3, 1.0),
+    "solid_bottom_offset": ("the solid's lowest point above the truth's (frame 0)", "cm", 2, 100.0),
     "interval_covers_log10_E": ("scenes whose log10 E interval holds the truth", "", 2, 1.0),
     "interval_covers_nu": ("scenes whose ν interval holds the truth", "", 2, 1.0),
     "joint_improved": ("scenes where the joint fit beats its start on validation", "", 2, 1.0),

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 import torch
+from scipy.spatial import cKDTree
 from torch import Tensor
 
 from vid2sim.physics.tet_modes import TET_EDGES
@@ -48,6 +49,47 @@ def _point_tet_distance(points: np.ndarray, tet_points: np.ndarray, bary: np.nda
     return dist
 
 
+def _candidate_pairs(points: np.ndarray, corners: np.ndarray, distance: float) -> tuple[np.ndarray, np.ndarray]:
+    """Every (point, tetrahedron) pair that may lie within ``distance`` of each other, as index arrays (P', ),
+    (P', ) sorted by point: a tetrahedron within d of a point has its centroid within (the largest
+    centroid-to-corner distance + d) of it. ``points`` (M, 3), ``corners`` (Nt, 4, 3)."""
+    centroids = corners.mean(axis=1)
+    radius = float(np.linalg.norm(corners - centroids[:, None], axis=2).max())
+    reach = radius * (1.0 + 1e-9) + distance  # a tet's own corners are found despite rounding
+    cand = cKDTree(centroids).query_ball_point(points, r=reach, workers=1)
+    lens = np.fromiter((len(c) for c in cand), dtype=np.int64, count=len(points))
+    pidx = np.repeat(np.arange(len(points)), lens)
+    tidx = np.concatenate([np.asarray(c, dtype=np.int64) for c in cand]) if len(pidx) else np.zeros(0, np.int64)
+    return pidx, tidx
+
+
+def inside_tets(points: Tensor | np.ndarray, tet_vertices: Tensor | np.ndarray,
+                tets: Tensor | np.ndarray) -> np.ndarray:
+    """Which points lie inside a tet mesh (in a tetrahedron, its boundary included up to 1e-9 barycentric).
+
+    Args:
+        points: (P, 3). tet_vertices: (Nv, 3). tets: (Nt, 4) corner indices into ``tet_vertices``.
+    Returns:
+        (P,) bool.
+    """
+    pts = np.asarray(torch.as_tensor(points).detach().cpu(), dtype=np.float64)
+    verts = np.asarray(torch.as_tensor(tet_vertices).detach().cpu(), dtype=np.float64)
+    tt = np.asarray(torch.as_tensor(tets).detach().cpu(), dtype=np.int64)
+    if pts.ndim != 2 or pts.shape[1] != 3 or verts.ndim != 2 or verts.shape[1] != 3 or tt.ndim != 2 \
+            or tt.shape[1] != 4 or len(tt) == 0:
+        raise ValueError(f"inside_tets: points must be (P, 3), tet_vertices (Nv, 3) and tets (Nt, 4), got "
+                         f"{pts.shape}, {verts.shape} and {tt.shape}")
+    corners = verts[tt]
+    pidx, tidx = _candidate_pairs(pts, corners, 0.0)
+    inside = np.zeros(len(pts), dtype=bool)
+    chunk = 1 << 20
+    for s in range(0, len(pidx), chunk):
+        pi, ti = pidx[s: s + chunk], tidx[s: s + chunk]
+        hit = _barycentric(pts[pi], corners[ti]).min(axis=1) >= -1e-9
+        inside[pi[hit]] = True
+    return inside
+
+
 def embed_points(
     points: Tensor,
     tet_vertices: Tensor,
@@ -72,8 +114,6 @@ def embed_points(
     Raises:
         ValueError: bad shapes, degenerate tetrahedra, or points farther than ``max_distance``.
     """
-    from scipy.spatial import cKDTree
-
     pts_t = torch.as_tensor(points)
     dtype = pts_t.dtype if pts_t.is_floating_point() else torch.float32
     pts = pts_t.detach().cpu().to(torch.float64).numpy()
@@ -98,20 +138,13 @@ def embed_points(
     if len(pts) == 0:
         return torch.zeros(0, dtype=torch.long), torch.zeros(0, 4, dtype=dtype)
 
-    # every tetrahedron within distance d of a point has its centroid within (circumradius bound + d)
-    centroids = corners.mean(axis=1)
-    reach = float(np.linalg.norm(corners - centroids[:, None], axis=2).max()) + max_distance
-    tree = cKDTree(centroids)
-    cand = tree.query_ball_point(pts, r=reach, workers=1)
-    lens = np.fromiter((len(c) for c in cand), dtype=np.int64, count=len(pts))
-    far = np.flatnonzero(lens == 0)
+    pidx, tidx = _candidate_pairs(pts, corners, max_distance)
+    far = np.setdiff1d(np.arange(len(pts)), pidx)
     if len(far):
         raise ValueError(
             f"{len(far)} of {len(pts)} points lie farther than max_distance={max_distance:.4g} from the tet mesh "
             f"(first: point {int(far[0])} at {pts[far[0]].tolist()})"
         )
-    pidx = np.repeat(np.arange(len(pts)), lens)
-    tidx = np.concatenate([np.asarray(c, dtype=np.int64) for c in cand])
     tet_index = np.empty(len(pts), dtype=np.int64)
     bary = np.empty((len(pts), 4))
     best_score = np.full(len(pts), -np.inf)
