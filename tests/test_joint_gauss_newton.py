@@ -340,6 +340,32 @@ def test_the_coarse_search_picks_the_floors_friction_with_E():
         assert floor_friction(sim) == expected and abs(float(sim.log10_E) - 4.8) < 0.2
 
 
+def test_the_coarse_search_picks_the_contact_surface_the_video_was_made_with():
+    """The model's own drop, offered two contact surfaces: the "hull", with a keel (the true surface plus points 3 cm
+    under its bottom, as a 4-view hull's), and the true one. The coarse search tries E on both, keeps the true
+    surface and its E, and leaves the simulator with that surface."""
+    from vid2sim.reconstruct.stages.joint import coarse_search
+
+    sim, gaussians, cams, images = _own_motion(6, 4.8, 0.3, 0.05, [0.3, 0.0, -1.0], [0.0, 0.0, 0.0])
+    true_points, true_areas = sim.contact_points, sim.contact_weights
+    bottom = true_points[true_points[:, 2] < float(true_points[:, 2].min()) + 0.02]
+    keel = torch.cat([true_points, bottom - torch.tensor([0.0, 0.0, 0.03], dtype=bottom.dtype)])
+    keel_areas = torch.cat([true_areas, true_areas[: len(bottom)]])
+    sim.set_contact(keel, keel_areas)
+    cfg = JointConfig(fit_friction=False, coarse_log10_E=(4.4, 4.8, 5.2), contact_search=True)
+    rig = GaussianRig(sim, gaussians)
+    records = coarse_search(sim, rig, lambda: sim.rigid_velocity_state([0.3, 0.0, -1.0], [0.0, 0.0, 0.0],
+                                                                       [0.0, 0.0, 0.0]),
+                            Observations(images, cams), cfg, contacts={"hull": (keel, keel_areas),
+                                                                       "floor-carved": (true_points, true_areas)})
+    assert [(r["contact_surface"], r["log10_E"]) for r in records] == [
+        (c, e) for c in ("hull", "floor-carved") for e in (4.4, 4.8, 5.2)]
+    best = min(records, key=lambda r: r["loss"])
+    assert best["contact_surface"] == "floor-carved" and best["log10_E"] == 4.8 and best["loss"] < 1e-8
+    assert min(r["loss"] for r in records if r["contact_surface"] == "hull") > 1e-5  # the keel changes the bounce
+    assert torch.equal(sim.contact_points, true_points) and abs(float(sim.log10_E) - 4.8) < 0.05
+
+
 @pytest.mark.slow
 def test_a_clip_without_contact_says_the_material_is_not_identifiable():
     """Free flight without spin (no floor): nothing deforms the body, so the images carry no information about E,

@@ -559,6 +559,8 @@ def test_config_json_loads_back_and_bad_settings_name_their_path(tmp_path):
 
 
 def test_a_drop_that_meets_the_floor_by_frame_1_still_reconstructs(tiny_scene, tmp_path, monkeypatch, tiny_config):
+    """... and (the same run) the coarse search over the contact surface (``joint.contact_trim``): every grid point
+    records its surface, the asset keeps the best one's, and its contact points are that surface."""
     from vid2sim.reconstruct.stages import velocity as initial_state
 
     real = initial_state.estimate_initial_velocity
@@ -573,9 +575,19 @@ def test_a_drop_that_meets_the_floor_by_frame_1_still_reconstructs(tiny_scene, t
     monkeypatch.setattr(initial_state, "estimate_initial_velocity", early_contact)
     config = tiny_config()
     config.motion_appearance.iterations = 0  # and the last stage switched off
+    config.joint.contact_search = True
     out = reconstruct(tiny_scene, tmp_path / "asset", config, progress=False)
     assert calls == [pytest.approx(-0.7), None]  # then frames 0 and 1 without the floor test
     extra = json.loads((out / "asset.json").read_text())["extra"]
+    log = json.loads((out / "log.json").read_text())
+    coarse, carve = log["coarse_search"], log["contact_candidates"]
+    surfaces = {r.get("contact_surface") for r in coarse}
+    # the search tries the floor-carved surface where the tracked poses put some of the hull below the floor
+    assert 0 <= carve["floor_carved_voxels"] < carve["voxels"] and carve["tracked_frames"] == 5
+    assert surfaces == ({"hull", "floor-carved"} if carve["floor_carved_voxels"] else {None})
+    assert len(coarse) == 2 * 2 * len(surfaces)  # × friction × E
+    assert extra["contact_surface"] == (min(coarse, key=lambda r: r["loss"]).get("contact_surface") or "hull")
+    assert load_asset(out).contact_points.shape[1] == 3
     assert extra["initial_velocity_estimate"]["contact_before_frame_1"] is True
     assert extra["initial_velocity_estimate"]["frames_used"] == 2
     assert "motion_appearance" not in extra

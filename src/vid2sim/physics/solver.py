@@ -688,23 +688,13 @@ class Simulator:
         if not (isinstance(length_scale, (int, float)) and math.isfinite(length_scale) and length_scale > 0):
             raise ValueError(f"length_scale must be a positive finite number of metres, got {length_scale!r}")
         self.length_scale = float(length_scale)
+        self.contact_points: Tensor | None = None
+        self.contact_weights: Tensor | None = None
         if contact_points is None:
             if contact_weights is not None:
                 raise ValueError("contact_weights were given without contact_points")
         else:
-            if contact_points.ndim != 2 or contact_points.shape[1] != 3 or contact_points.shape[0] == 0:
-                raise ValueError(
-                    f"contact_points must have shape (Nc, 3) with Nc >= 1, got {tuple(contact_points.shape)}"
-                )
-            if contact_weights is None:
-                contact_weights = torch.ones(contact_points.shape[0], dtype=dtype, device=device)
-            if contact_weights.shape != contact_points.shape[:1] or not bool((contact_weights > 0).all()):
-                raise ValueError(f"contact_weights must be positive with shape ({contact_points.shape[0]},), "
-                                 f"got {tuple(contact_weights.shape)}")
-            if not bool(torch.isfinite(contact_points).all()):
-                raise ValueError("contact_points must be finite")
-        self.contact_points = contact_points
-        self.contact_weights = contact_weights
+            self.set_contact(contact_points, contact_weights)
         H = field.num_handles_total
         self.num_dofs = 12 * H
         self._perm = z_to_y_index(H, device)
@@ -757,6 +747,22 @@ class Simulator:
         if float(zeta.detach()) == 0.0 and not zeta.requires_grad:
             return None
         return retardation_time(zeta, self.effective_youngs_modulus(), self.density, self.length_scale)
+
+    def set_contact(self, points: Tensor, weights: Tensor | None = None) -> None:
+        """Make ``points`` (Nc, 3), rest positions, where the barrier energies act, with ``weights`` (Nc,) > 0 (None:
+        ones); converted to the simulator's dtype and device."""
+        dtype, device = self.X.dtype, self.X.device
+        points = points.to(device=device, dtype=dtype)
+        if points.ndim != 2 or points.shape[1] != 3 or points.shape[0] == 0:
+            raise ValueError(f"contact_points must have shape (Nc, 3) with Nc >= 1, got {tuple(points.shape)}")
+        weights = torch.ones(points.shape[0], dtype=dtype, device=device) if weights is None \
+            else weights.to(device=device, dtype=dtype)
+        if weights.shape != points.shape[:1] or not bool((weights > 0).all()):
+            raise ValueError(f"contact_weights must be positive with shape ({points.shape[0]},), "
+                             f"got {tuple(weights.shape)}")
+        if not bool(torch.isfinite(points).all()):
+            raise ValueError("contact_points must be finite")
+        self.contact_points, self.contact_weights = points, weights
 
     def substeps(self) -> int:
         """Implicit steps per frame: ``config.substeps``, or the automatic count for the current E, density

@@ -305,6 +305,11 @@ class JointConfig:
             the observed frames from 11.2 to 1.2 cm; on our frictionless FEM's drop it found 0.004 (docs/results.md,
             "Floor friction"). Off: the floor keeps ``simulator.floor_friction``.
         coarse_log10_E: grid of the coarse search (empty: skip it).
+        contact_search: also try, in the coarse search, the contact surface without the voxels that the rigid poses
+            tracked from the masks put below the floor (``reconstruct.stages.points.floor_carved_contact``), and
+            keep the surface of the best grid point. Off by default. Four views from above leave the hull reaching
+            below the object, and that keel meets the floor first: on a stiff scene of the seed-2 suite the hull
+            was fitted 0.86 decade soft, and 0.31 decade stiff with that surface (docs/results.md).
         coarse_scale: image scale of the coarse search, the Gauss–Newton fit and the first ``coarse_fraction`` of the
             iterations (targets and renders, made at full size, area-averaged to it).
         coarse_fraction: fraction of the iterations rendered at ``coarse_scale`` (then full resolution).
@@ -348,6 +353,7 @@ class JointConfig:
     friction_bounds: tuple[float, float] = (0.0, 2.0)
     coarse_friction: tuple[float, ...] = (0.0, 0.5)
     coarse_log10_E: tuple[float, ...] = (4.0, 4.25, 4.5, 4.75, 5.0, 5.25, 5.5, 5.75, 6.0)
+    contact_search: bool = False
     coarse_scale: float = 0.5
     coarse_fraction: float = 0.5
     views_per_iteration: int | None = None

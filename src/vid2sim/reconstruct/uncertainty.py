@@ -118,7 +118,8 @@ def _edge_and_end(coarse: Sequence[Mapping[str, float]], value: float) -> tuple[
     if not coarse:
         return None
     best = min(coarse, key=lambda r: r["loss"])
-    grid = sorted(r["log10_E"] for r in coarse if r.get("floor_friction") == best.get("floor_friction"))
+    grid = sorted(r["log10_E"] for r in coarse if r.get("floor_friction") == best.get("floor_friction")
+                  and r.get("contact_surface") == best.get("contact_surface"))
     if len(grid) < 2:
         return None
     half = 0.5 * min(b - a for a, b in zip(grid, grid[1:]))
@@ -131,11 +132,13 @@ def _edge_and_end(coarse: Sequence[Mapping[str, float]], value: float) -> tuple[
 
 def coarse_edge(coarse: Sequence[Mapping[str, float]], value: float) -> str | None:
     """``"lower"`` or ``"upper"`` when the coarse search's best loss lies at that end of its log10 E grid (the grid of
-    the best floor friction, when it searched several) and the fit's ``value`` stayed within half a grid step of that
-    end; None otherwise (no search, an interior minimum, or a fit that moved away from the edge).
+    the best floor friction and contact surface, when it searched several) and the fit's ``value`` stayed within
+    half a grid step of that end; None otherwise (no search, an interior minimum, or a fit that moved away from the
+    edge).
 
     Args:
-        coarse: the coarse search's records, ``{"log10_E", "loss"}`` (and ``"floor_friction"``) each.
+        coarse: the coarse search's records, ``{"log10_E", "loss"}`` (and ``"floor_friction"``, ``"contact_surface"``)
+            each.
     """
     found = _edge_and_end(coarse, value)
     return None if found is None else found[0]

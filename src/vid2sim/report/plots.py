@@ -138,17 +138,19 @@ def optimisation_figure(path: Path, log: Mapping[str, Any], found: Mapping[str, 
 
 def _coarse_panel(ax: Any, log: Mapping[str, Any], entries: list, found: Mapping[str, Any],
                   truth: Mapping[str, Any]) -> None:
-    """The coarse search's loss over log10 E (one line per floor friction it tried), with the start, the found and
-    the true E."""
+    """The coarse search's loss over log10 E (one line per floor friction and contact surface it tried), with the
+    start, the found and the true E."""
     coarse = [c for c in log.get("coarse_search", []) if isinstance(c, Mapping)]
     if coarse:
         ys = [c["loss"] for c in coarse]
-        frictions = sorted({c.get("floor_friction") for c in coarse}, key=lambda mu: -1.0 if mu is None else mu)
-        for k, mu in enumerate(frictions):  # one line per floor friction of the search (one without)
-            row = [c for c in coarse if c.get("floor_friction") == mu]
+        groups = sorted({(c.get("contact_surface") or "", c.get("floor_friction")) for c in coarse},
+                        key=lambda g: (g[0], -1.0 if g[1] is None else g[1]))
+        for k, (surface, mu) in enumerate(groups):  # one line per contact surface and floor friction searched
+            row = [c for c in coarse if c.get("floor_friction") == mu and (c.get("contact_surface") or "") == surface]
+            what = ([] if mu is None else [f"floor friction {mu:g}"]) + ([f"{surface} contact"] if surface else [])
             ax.plot([c["log10_E"] for c in row], [c["loss"] for c in row], color=LINE_COLOUR, marker="o", ms=5,
-                    lw=1.4, alpha=1.0 - 0.5 * k / max(1, len(frictions) - 1),
-                    label="loss on the grid" if mu is None else f"loss, floor friction {mu:g}")
+                    lw=1.4, alpha=1.0 - 0.5 * k / max(1, len(groups) - 1),
+                    label="loss on the grid" if not what else "loss, " + ", ".join(what))
         start = next((e["log10_E"] for e in entries if e.get("iteration") == 0), None)
         if isinstance(start, (int, float)):
             ax.axvline(start, color="#7a5af8", ls="-.", lw=1.3, label=f"start {start:.2f}")

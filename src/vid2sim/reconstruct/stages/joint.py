@@ -60,6 +60,7 @@ from vid2sim.reconstruct.gauss_newton import (
 )
 from vid2sim.reconstruct.runner import Context, State
 from vid2sim.reconstruct.stages.networks import cpu_state
+from vid2sim.reconstruct.stages.points import floor_carved_contact, track_poses
 from vid2sim.reconstruct.stages.stage1 import prior_material
 from vid2sim.reconstruct.uncertainty import information_by_frame, laplace_intervals, mark_coarse_edge
 from vid2sim.runtime.files import read_json, save_torch_atomic, write_json_atomic
@@ -119,7 +120,10 @@ class JointResult:
         floor_friction: the floor's Coulomb coefficient (fitted with ``fit_friction``, else the simulator's).
         linear_velocity, angular_velocity: (3,) the initial rigid velocity about ``centre``.
         validation_loss: the best validation loss (mean squared image error, all observed frames and views).
-        coarse: the coarse search, one ``{"log10_E", "loss"}`` per grid value.
+        coarse: the coarse search, one ``{"log10_E", "loss"}`` per grid value (and ``"floor_friction"``,
+            ``"contact_surface"`` when those are searched too).
+        contact_surface: the name of the contact surface the fit used ("hull": the solid's own;
+            ``JointConfig.contact_search``).
         centre_of_mass_offset: (3,) m, how far the search moved the lumped masses' centre (zeros: no search, or
             none of its candidates did better); the simulator's ``mass_volumes`` carry it.
         centre_of_mass_search: the search, one ``{"offset", "loss"}`` per candidate.
@@ -154,6 +158,7 @@ class JointResult:
     uncertainty: dict[str, Any] = field(default_factory=dict)
     information_by_frame: dict[str, list[float]] = field(default_factory=dict)
     stop: str = ""
+    contact_surface: str = "hull"
 
 
 def coarse_minimum(values: Sequence[float], losses: Sequence[float]) -> float:
@@ -425,6 +430,7 @@ def joint_optimisation(
     config: JointConfig | None = None,
     progress: bool = True,
     on_iteration: Callable[[dict[str, float]], None] | None = None,
+    contacts: dict[str, tuple[Tensor, Tensor]] | None = None,
 ) -> JointResult:
     """Fit the material, the initial velocity (and, with ``method`` "windows", the networks) of ``sim`` to the
     observed video; report how well the video determines the material.
@@ -444,6 +450,8 @@ def joint_optimisation(
         linear_velocity, angular_velocity: (3,) initial rigid velocity estimate about ``centre`` (3,).
         config: :class:`JointConfig`.
         on_iteration: called with each log entry.
+        contacts: the contact surfaces the coarse search tries, by name: (S, 3) points and (S,) areas each
+            (``JointConfig.contact_search``); None: ``sim``'s own only. ``sim`` is left with the chosen one.
     Returns:
         :class:`JointResult`.
     """
@@ -461,7 +469,8 @@ def joint_optimisation(
     def start_state() -> SimState:
         return sim.rigid_velocity_state(linear_velocity, angular_velocity, c)
 
-    coarse = coarse_search(sim, rig, start_state, coarse_obs, cfg, progress)
+    coarse = coarse_search(sim, rig, start_state, coarse_obs, cfg, progress, contacts)
+    surface = str(coarse_best(coarse).get("contact_surface", "hull")) if coarse else "hull"
     com_offset, com_records = [0.0, 0.0, 0.0], []
     if cfg.centre_of_mass_step > 0:
         com_offset, com_records = centre_of_mass_search(sim, rig, start_state, coarse_obs,
@@ -490,43 +499,63 @@ def joint_optimisation(
                        validation_loss=fit.validation_loss, coarse=coarse, centre_of_mass_offset=com_offset,
                        centre_of_mass_search=com_records, log=fit.log, seconds=time.perf_counter() - t_start,
                        method=cfg.method, start_validation_loss=fit.start_validation_loss, uncertainty=uncertainty,
-                       information_by_frame=information_by_frame(fit.linearisation, parameters), stop=fit.stop)
+                       information_by_frame=information_by_frame(fit.linearisation, parameters), stop=fit.stop,
+                       contact_surface=surface)
 
 
 def coarse_search(sim: Simulator, rig: GaussianRig, start: Callable[[], SimState], obs: Observations,
-                  cfg: JointConfig, progress: bool = False) -> list[dict[str, float]]:
+                  cfg: JointConfig, progress: bool = False,
+                  contacts: dict[str, tuple[Tensor, Tensor]] | None = None) -> list[dict[str, Any]]:
     """The coarse search over log10 E (``cfg.coarse_log10_E``; none when empty): the whole clip's
     :func:`clip_loss` at each grid value from ``start()``; the simulator is left at :func:`coarse_minimum`.
-    With ``cfg.fit_friction`` and a floor, the same over E at each floor friction of ``cfg.coarse_friction``, and the
-    simulator is left at the friction whose best grid loss is lowest (and that friction's E): friction changes
-    which E explains the bounce. Returns one ``{"log10_E", "loss"}`` (and ``"floor_friction"``) per grid value."""
+    With ``cfg.fit_friction`` and a floor, the same over E at each floor friction of ``cfg.coarse_friction``: friction
+    changes which E explains the bounce. With ``contacts`` (contact surfaces by name, :func:`joint_optimisation`), the
+    same again for each surface. The simulator is left with the friction and surface whose best grid loss is lowest,
+    at that pair's E. Returns one ``{"log10_E", "loss"}`` (and ``"floor_friction"``, ``"contact_surface"``) per grid
+    value."""
     from tqdm.auto import tqdm
 
-    coarse: list[dict[str, float]] = []
+    coarse: list[dict[str, Any]] = []
     if not cfg.coarse_log10_E:
         return coarse
-    frictions = [None]
+    frictions: list[float | None] = [None]
     if cfg.fit_friction and any(isinstance(e, Floor) for e in sim.externals):
         frictions = sorted({floor_friction(sim), *cfg.coarse_friction})
-    grid = [(mu, value) for mu in frictions for value in cfg.coarse_log10_E]
-    bar = tqdm(grid, desc="coarse search over log10 E" + (" and the floor's friction" if len(frictions) > 1 else ""),
-               disable=not progress, leave=False)
-    for mu, value in bar:
+    surfaces: list[str | None] = list(contacts) if contacts and len(contacts) > 1 else [None]
+    grid = [(surface, mu, value) for surface in surfaces for mu in frictions for value in cfg.coarse_log10_E]
+    searched = " and the floor's friction" if len(frictions) > 1 else ""
+    searched += " and the contact surface" if len(surfaces) > 1 else ""
+    bar = tqdm(grid, desc="coarse search over log10 E" + searched, disable=not progress, leave=False)
+    for surface, mu, value in bar:
+        if surface is not None and (not coarse or coarse[-1].get("contact_surface") != surface):
+            sim.set_contact(*contacts[surface])
         with torch.no_grad():
             sim.log10_E.fill_(value)
         if mu is not None:
             set_floor_friction(sim, mu)
         loss, _ = clip_loss(sim, rig, _detached(start()), obs, cfg.frame_decay)
-        coarse.append({"log10_E": value, "loss": loss} if mu is None
-                      else {"log10_E": value, "floor_friction": mu, "loss": loss})
+        row: dict[str, Any] = {"log10_E": value, "loss": loss}
+        if mu is not None:
+            row["floor_friction"] = mu
+        if surface is not None:
+            row["contact_surface"] = surface
+        coarse.append(row)
         bar.set_postfix(log10_E=value, loss=f"{loss:.2e}")
-    best = min(frictions, key=lambda mu: min(r["loss"] for r in coarse if r.get("floor_friction") == mu))
-    rows = [r for r in coarse if r.get("floor_friction") == best]
+    best = coarse_best(coarse)
+    rows = [r for r in coarse if r.get("floor_friction") == best.get("floor_friction")
+            and r.get("contact_surface") == best.get("contact_surface")]
     with torch.no_grad():
         sim.log10_E.fill_(coarse_minimum([r["log10_E"] for r in rows], [r["loss"] for r in rows]))
-    if best is not None:
-        set_floor_friction(sim, best)
+    if "floor_friction" in best:
+        set_floor_friction(sim, best["floor_friction"])
+    if "contact_surface" in best:
+        sim.set_contact(*contacts[best["contact_surface"]])
     return coarse
+
+
+def coarse_best(coarse: Sequence[dict[str, Any]]) -> dict[str, Any]:
+    """The coarse search's row with the lowest loss (its friction and contact surface are the ones kept)."""
+    return min(coarse, key=lambda r: r["loss"])
 
 
 def _full_resolution_validation(clip: ClipResiduals, rig: GaussianRig, observations: Observations,
@@ -789,12 +818,18 @@ class JointStage:
         if state.stage1["ran"]:  # the coarse grid centred on Stage I's E
             joint_cfg = replace(cfg.joint, coarse_log10_E=tuple(state.stage1["coarse_log10_E"]))
         sim = build_simulator(ctx, state, state.cubature.mass_volumes)
+        contacts, record = None, None
+        if joint_cfg.contact_search and o.floor_height is not None:
+            contacts, record = contact_candidates(ctx, state)
         result = joint_optimisation(sim, state.gaussians, Observations(o.images, o.cameras), v["linear"],
-                                    v["angular"], v["centre"], joint_cfg, progress=ctx.progress)
+                                    v["angular"], v["centre"], joint_cfg, progress=ctx.progress, contacts=contacts)
+        if result.contact_surface != "hull":
+            points, areas = contacts[result.contact_surface]
+            save_torch_atomic({"points": points.cpu(), "areas": areas.cpu()}, ctx.path("contact_joint.pt"))
         save_torch_atomic(cpu_state(state.skinning), ctx.path("skinning_joint.pt"))
         if state.jacobian is not None:
             save_torch_atomic(cpu_state(state.jacobian), ctx.path("jacobian_joint.pt"))
-        write_json_atomic(ctx.path("joint.json"), asdict(result))
+        write_json_atomic(ctx.path("joint.json"), {**asdict(result), "contact_candidates": record})
 
     def load(self, ctx: Context, state: State) -> None:
         result = state.joint = read_json(ctx.path("joint.json"), "the joint optimisation's result")
@@ -807,7 +842,25 @@ class JointStage:
                                     "start_validation_loss": result.get("start_validation_loss"),
                                     "validation_loss": result["validation_loss"],
                                     "information_by_frame": result.get("information_by_frame", {})})
+        if result.get("contact_candidates"):
+            state.log["contact_candidates"] = result["contact_candidates"]
         state.asset = assemble_asset(ctx, state)
+
+
+def contact_candidates(ctx: Context, state: State) -> tuple[dict[str, tuple[Tensor, Tensor]], dict[str, Any]]:
+    """The contact surfaces the coarse search tries (``JointConfig.contact_search``): the hull's own and, when the
+    rigid poses tracked from the masks put some of its voxels below the floor, the surface without them
+    (:func:`~vid2sim.reconstruct.stages.points.floor_carved_contact`); and a record of the carve for joint.json."""
+    o, obj, points_cfg = ctx.observed, state.obj_cpu, ctx.config.points
+    poses = track_poses(obj.points, o.masks_cpu, o.cameras_cpu, max_points=points_cfg.track_points,
+                        seed=points_cfg.seed)
+    contacts = {"hull": (obj.contact_points, obj.contact_areas)}
+    carved, areas, removed = floor_carved_contact(obj, poses.rotations, poses.translations, o.floor_height,
+                                                  config=points_cfg)
+    if removed:
+        contacts["floor-carved"] = (carved, areas)
+    return contacts, {"floor_carved_voxels": removed, "voxels": obj.kept_voxels, "tracked_frames": poses.num_frames,
+                      "residuals_px": [round(float(x), 4) for x in poses.residuals_px]}
 
 
 def assemble_asset(ctx: Context, state: State) -> Asset:
@@ -830,10 +883,14 @@ def assemble_asset(ctx: Context, state: State) -> Asset:
     if result.get("uncertainty"):
         material["uncertainty"] = result["uncertainty"]
     index = cub.index.cpu()
+    contact_points, contact_areas = obj_cpu.contact_points, obj_cpu.contact_areas
+    if result.get("contact_surface", "hull") != "hull":  # the coarse search's choice (JointConfig.contact_search)
+        chosen = torch.load(ctx.path("contact_joint.pt"), weights_only=True)
+        contact_points, contact_areas = chosen["points"], chosen["areas"]
     return Asset(gaussians=state.gaussians.to("cpu"), field=copy.deepcopy(state.skinning).to("cpu"),
                  jacobian=copy.deepcopy(state.jacobian).to("cpu") if state.jacobian is not None else None,
                  material=material, cubature_points=obj_cpu.points[index], cubature_weights=cub.weights.cpu(),
-                 contact_points=obj_cpu.contact_points, contact_areas=obj_cpu.contact_areas, points=obj_cpu.points,
+                 contact_points=contact_points, contact_areas=contact_areas, points=obj_cpu.points,
                  volume=obj.volume, sim_config=cfg.simulator.integration,
                  mass_volumes=None if mass_volumes is None else mass_volumes.detach().cpu(),
                  gravity=list(o.gravity), floor_height=o.floor_height, floor_stiffness=AREA_CONTACT_STIFFNESS,
@@ -849,4 +906,5 @@ def assemble_asset(ctx: Context, state: State) -> Asset:
                         "gaussians": state.gaussians.num, "initial_velocity_estimate": state.velocity,
                         "validation_loss": result["validation_loss"],
                         "start_validation_loss": result.get("start_validation_loss"),
-                        "joint_method": result.get("method", "windows"), "centre_of_mass_offset": offset.tolist()})
+                        "joint_method": result.get("method", "windows"), "centre_of_mass_offset": offset.tolist(),
+                        "contact_surface": result.get("contact_surface", "hull")})

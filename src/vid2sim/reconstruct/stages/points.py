@@ -169,6 +169,64 @@ def object_points(masks: Tensor, cameras: Sequence[Camera], gaussians: Gaussians
     return points_from_occupancy(occ, lo, voxel, cfg, hull_voxels=hull)
 
 
+def contact_surface(occ: Tensor, origin: Tensor, voxel: float, max_points: int, seed: int) -> tuple[Tensor, Tensor]:
+    """The contact points of a voxel solid: its surface voxels' centres (S, 3) and their exposed face area (S,) m²
+    (× 2/3, a staircase's mean overestimate), reduced to at most ``max_points`` by farthest-point sampling, each
+    kept point carrying the area of the surface voxels nearest to it. ``occ`` (A, B, C) bool; ``origin`` (3,)."""
+    dtype = torch.float32
+    lo = origin.to(dtype)
+    s_idx = torch.nonzero(surface_voxels(occ))
+    p = torch.nn.functional.pad(occ.float()[None, None], (1, 1, 1, 1, 1, 1))[0, 0]
+    i, j, k = (s_idx + 1).T
+    exposed = sum(1.0 - p[i + di, j + dj, k + dk] for di, dj, dk in
+                  ((1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0), (0, 0, 1), (0, 0, -1)))
+    contact = lo + (s_idx.to(dtype) + 0.5) * voxel
+    areas = exposed.to(dtype) * voxel ** 2 / 1.5  # a staircase overestimates a surface's area by 3/2 on average
+    if contact.shape[0] > max_points:
+        keep = farthest_point_sampling(contact, max_points, seed=seed)
+        nearest = torch.cdist(contact, contact[keep]).argmin(dim=1)
+        areas = torch.zeros(len(keep), dtype=dtype).index_add_(0, nearest, areas)
+        contact = contact[keep]
+    return contact, areas
+
+
+def floor_carved_contact(obj: ObjectPoints, rotations: np.ndarray, translations: np.ndarray, floor_height: float,
+                         margin_voxels: float = 1.0, config: PointsConfig | None = None
+                         ) -> tuple[Tensor, Tensor, int]:
+    """The contact surface of ``obj``'s voxels without those that a tracked rigid pose puts below the floor.
+
+    A 4-view hull reaches below the object where no camera sees it from below, and that keel is what meets the floor
+    first. Posed by the rigid poses tracked from the masks (:func:`track_poses`: frame t maps X to R_t X + T_t), a
+    voxel centre lower than ``margin_voxels`` voxels under the floor (the plane z = ``floor_height``) in any frame
+    cannot be the object's if the pose is right — but a soft object squashes at the contact and a track drifts, so
+    this surface is a candidate for the joint stage's coarse search (``JointConfig.contact_search``) to judge by the
+    video, never taken unseen. The mass and the interior points stay the hull's.
+
+    Args:
+        rotations: (T, 3, 3); translations: (T, 3).
+    Returns:
+        (S, 3) contact points and (S,) areas as :func:`contact_surface`, and the number of voxels removed.
+    Raises:
+        ValueError: poses of mismatched shapes, or a carve that leaves fewer than 8 voxels.
+    """
+    cfg = config or PointsConfig()
+    R, T = np.asarray(rotations, dtype=np.float64), np.asarray(translations, dtype=np.float64)
+    if R.ndim != 3 or R.shape[1:] != (3, 3) or T.shape != (R.shape[0], 3):
+        raise ValueError(f"floor_carved_contact: rotations must be (T, 3, 3) and translations (T, 3), got {R.shape} "
+                         f"and {T.shape}")
+    occ = obj.occupancy.cpu()
+    idx = torch.nonzero(occ)
+    centres = (obj.origin.cpu().double() + (idx.double() + 0.5) * obj.voxel).numpy()
+    lowest = np.min(np.einsum("tj,nj->tn", R[:, 2, :], centres) + T[:, None, 2], axis=0)  # (N,) over the frames
+    keep = lowest >= floor_height - margin_voxels * obj.voxel
+    if keep.sum() < 8:
+        raise ValueError(f"floor_carved_contact: only {int(keep.sum())} of {len(keep)} voxels stay above the floor")
+    carved = torch.zeros_like(occ)
+    carved[tuple(idx[torch.from_numpy(keep)].T)] = True
+    contact, areas = contact_surface(carved, obj.origin.cpu(), obj.voxel, cfg.max_contact_points, cfg.seed)
+    return contact.to(obj.contact_points), areas.to(obj.contact_areas), int((~keep).sum())
+
+
 def points_from_occupancy(occ: Tensor, origin: Tensor, voxel: float, config: PointsConfig | None = None,
                           hull_voxels: int | None = None) -> ObjectPoints:
     """The :class:`ObjectPoints` of a carved voxel grid: interior samples, volume, contact points (step 3 of
@@ -192,20 +250,7 @@ def points_from_occupancy(occ: Tensor, origin: Tensor, voxel: float, config: Poi
                          "(hull {hull}); check the masks and cameras, or raise PointsConfig.resolution")
     gen = torch.Generator().manual_seed(cfg.seed)
     points = sample_in_voxels(occ, lo, voxel, cfg.num_points, gen)
-    surface = surface_voxels(occ)
-    s_idx = torch.nonzero(surface)
-    p = torch.nn.functional.pad(occ.float()[None, None], (1, 1, 1, 1, 1, 1))[0, 0]
-    i, j, k = (s_idx + 1).T
-    exposed = sum(1.0 - p[i + di, j + dj, k + dk] for di, dj, dk in
-                  ((1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0), (0, 0, 1), (0, 0, -1)))
-    contact = lo + (s_idx.to(dtype) + 0.5) * voxel
-    areas = exposed.to(dtype) * voxel ** 2 / 1.5  # a staircase overestimates a surface's area by 3/2 on average
-    if contact.shape[0] > cfg.max_contact_points:
-
-        keep = farthest_point_sampling(contact, cfg.max_contact_points, seed=cfg.seed)
-        nearest = torch.cdist(contact, contact[keep]).argmin(dim=1)
-        areas = torch.zeros(len(keep), dtype=dtype).index_add_(0, nearest, areas)
-        contact = contact[keep]
+    contact, areas = contact_surface(occ, lo, voxel, cfg.max_contact_points, cfg.seed)
     box_lo, box_hi = points.min(0).values, points.max(0).values
     return ObjectPoints(points=points, volume=kept * voxel ** 3, contact_points=contact, contact_areas=areas,
                         centre=0.5 * (box_lo + box_hi), scale=float((box_hi - box_lo).norm()), voxel=voxel,

@@ -1,0 +1,74 @@
+"""The contact surface without the hull's keel (reconstruct.stages.points.floor_carved_contact): a 4-view hull reaches
+below the object, and the joint stage's coarse search can try the contact surface without the voxels that the tracked
+rigid poses put below the floor (JointConfig.contact_search)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from vid2sim.reconstruct.config import PointsConfig
+from vid2sim.reconstruct.stages.points import contact_surface, floor_carved_contact, points_from_occupancy
+
+BIG = PointsConfig(num_points=500, max_contact_points=10_000)
+
+
+def _box(layers: int = 8):
+    """A 6 × 4 × ``layers`` box of 1 cm voxels in a 10³ grid whose corner is the origin: its occupancy and points."""
+    occ = torch.zeros(10, 10, 10, dtype=torch.bool)
+    occ[2:8, 3:7, 1:1 + layers] = True
+    return occ, points_from_occupancy(occ, torch.zeros(3), 0.01, BIG)
+
+
+def test_the_contact_surface_is_the_boxs_faces_with_their_area():
+    """Every surface voxel of a 6 × 4 × 8 box, each with its exposed faces' area × 2/3: in all, 2/3 of the box's
+    surface (the staircase correction); the points' own contact surface is the same."""
+    occ, obj = _box()
+    points, areas = contact_surface(occ, torch.zeros(3), 0.01, 10_000, seed=0)
+    assert points.shape == (6 * 4 * 8 - 4 * 2 * 6, 3)
+    surface = 2 * (0.06 * 0.04 + 0.06 * 0.08 + 0.04 * 0.08)
+    assert float(areas.sum()) == pytest.approx(surface / 1.5, rel=1e-5)
+    assert torch.equal(points, obj.contact_points) and torch.equal(areas, obj.contact_areas)
+
+
+def _rotation_y(angle: float) -> np.ndarray:
+    c, s = np.cos(angle), np.sin(angle)
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def test_the_floor_carve_removes_what_any_pose_puts_below_the_floor():
+    """Voxel centres lie at z = 0.015 … 0.085. Posed 4 cm down (frame 1) the two lowest layers (centres at −0.025 and
+    −0.015) lie more than a voxel (1 cm) under the floor z = 0; posed unmoved (frame 0) nothing does: the carve
+    takes those two layers, and the new bottom is a full face again. Tilted 90° about y about the box's centre, one
+    side's layers go instead. Poses that put nothing below keep the hull's own surface, and a carve that would leave
+    fewer than 8 voxels, or poses of the wrong shape, are errors."""
+    occ, obj = _box()
+    still = (np.stack([np.eye(3), np.eye(3)]), np.array([[0.0, 0.0, 0.0], [0.0, 0.0, -0.04]]))
+    points, areas, removed = floor_carved_contact(obj, *still, floor_height=0.0, config=BIG)
+    assert removed == 2 * 6 * 4
+    z = obj.contact_points[:, 2]
+    assert float(points[:, 2].min()) == pytest.approx(float(z.min()) + 0.02, abs=1e-6)
+    assert float(points[:, 2].max()) == pytest.approx(float(z.max()), abs=1e-6)
+    assert float(areas.sum()) == pytest.approx(2 * (0.06 * 0.04 + 0.06 * 0.06 + 0.04 * 0.06) / 1.5, rel=1e-5)
+    # a quarter turn about y through the box's centre (0.05, 0.05, 0.05): x ↦ z; the floor under its lowest layer
+    R = _rotation_y(np.pi / 2)
+    c = np.array([0.05, 0.05, 0.05])
+    tilted = (R[None], (c - R @ c)[None] + np.array([0.0, 0.0, 0.0]))
+    posed_z = (obj.contact_points.double().numpy() @ R.T + tilted[1][0])[:, 2]
+    floor = float(posed_z.min()) + 0.015  # the lowest posed layer is 1.5 cm under it: only that layer goes
+    points, _, removed = floor_carved_contact(obj, *tilted, floor_height=floor, config=BIG)
+    assert removed == 8 * 4  # one x-layer of the 6 × 4 × 8 box
+    assert float(points[:, 0].max()) == pytest.approx(float(obj.contact_points[:, 0].max()) - 0.01, abs=1e-6)
+    none = floor_carved_contact(obj, *still, floor_height=-1.0, config=BIG)
+    assert none[2] == 0 and torch.equal(none[0], obj.contact_points)
+    with pytest.raises(ValueError, match="only 0 of 192 voxels"):
+        floor_carved_contact(obj, *still, floor_height=1.0, config=BIG)
+    with pytest.raises(ValueError, match=r"rotations must be \(T, 3, 3\)"):
+        floor_carved_contact(obj, np.eye(3), np.zeros(3), floor_height=0.0)
+
+
+def test_joint_config_contact_search_is_off_by_default():
+    from vid2sim.reconstruct.config import JointConfig
+
+    assert JointConfig().contact_search is False
