@@ -72,3 +72,31 @@ def test_joint_config_contact_search_is_off_by_default():
     from vid2sim.reconstruct.config import JointConfig
 
     assert JointConfig().contact_search is False
+
+
+def test_the_joint_stages_candidates_record_the_carve_and_skip_one_that_sinks_the_hull(monkeypatch):
+    """contact_candidates offers the hull's surface, and the floor-carved one when the tracked poses put voxels below
+    the floor; poses that would sink nearly all of it offer the hull alone and say why (the run goes on)."""
+    from types import SimpleNamespace
+
+    from vid2sim.reconstruct.stages import joint
+
+    _, obj = _box()
+    poses = SimpleNamespace(rotations=np.stack([np.eye(3)] * 2), translations=np.array([[0, 0, 0], [0, 0, -0.04]]),
+                            num_frames=2, residuals_px=np.array([0.1, 0.2]))
+    monkeypatch.setattr(joint, "track_poses", lambda *args, **kwargs: poses)
+    state = SimpleNamespace(obj_cpu=obj)
+
+    def candidates(floor: float):
+        ctx = SimpleNamespace(observed=SimpleNamespace(masks_cpu=None, cameras_cpu=None, floor_height=floor),
+                              config=SimpleNamespace(points=BIG))
+        return joint.contact_candidates(ctx, state)
+
+    contacts, record = candidates(0.0)
+    assert list(contacts) == ["hull", "floor-carved"] and record["floor_carved_voxels"] == 48
+    assert record["voxels"] == 192 and record["tracked_frames"] == 2 and record["residuals_px"] == [0.1, 0.2]
+    contacts, record = candidates(-1.0)
+    assert list(contacts) == ["hull"] and record["floor_carved_voxels"] == 0
+    contacts, record = candidates(1.0)
+    assert list(contacts) == ["hull"] and record["floor_carved_voxels"] is None
+    assert "only 0 of 192 voxels" in record["skipped"]

@@ -850,17 +850,23 @@ class JointStage:
 def contact_candidates(ctx: Context, state: State) -> tuple[dict[str, tuple[Tensor, Tensor]], dict[str, Any]]:
     """The contact surfaces the coarse search tries (``JointConfig.contact_search``): the hull's own and, when the
     rigid poses tracked from the masks put some of its voxels below the floor, the surface without them
-    (:func:`~vid2sim.reconstruct.stages.points.floor_carved_contact`); and a record of the carve for joint.json."""
+    (:func:`~vid2sim.reconstruct.stages.points.floor_carved_contact`); and a record of the carve for joint.json
+    (``skipped`` says why there is no carved surface when the poses would sink nearly all of the hull)."""
     o, obj, points_cfg = ctx.observed, state.obj_cpu, ctx.config.points
     poses = track_poses(obj.points, o.masks_cpu, o.cameras_cpu, max_points=points_cfg.track_points,
                         seed=points_cfg.seed)
     contacts = {"hull": (obj.contact_points, obj.contact_areas)}
-    carved, areas, removed = floor_carved_contact(obj, poses.rotations, poses.translations, o.floor_height,
-                                                  config=points_cfg)
+    record: dict[str, Any] = {"voxels": obj.kept_voxels, "tracked_frames": poses.num_frames,
+                              "residuals_px": [round(float(x), 4) for x in poses.residuals_px]}
+    try:
+        carved, areas, removed = floor_carved_contact(obj, poses.rotations, poses.translations, o.floor_height,
+                                                      config=points_cfg)
+    except ValueError as exc:  # the poses sink (nearly) all of it: no surface to offer; the record says why
+        record.update(floor_carved_voxels=None, skipped=str(exc))
+        return contacts, record
     if removed:
         contacts["floor-carved"] = (carved, areas)
-    return contacts, {"floor_carved_voxels": removed, "voxels": obj.kept_voxels, "tracked_frames": poses.num_frames,
-                      "residuals_px": [round(float(x), 4) for x in poses.residuals_px]}
+    return contacts, {"floor_carved_voxels": removed, **record}
 
 
 def assemble_asset(ctx: Context, state: State) -> Asset:
