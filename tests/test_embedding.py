@@ -50,6 +50,9 @@ def test_inside_tets_is_the_cube():
     assert 0.05 < expected.mean() < 0.25  # both kinds are tested
     np.testing.assert_array_equal(inside_tets(pts, v, t), expected)
     assert inside_tets(v, v, t).all() and inside_tets(pts.float().numpy(), v, t).shape == (4000,)
+    flat = torch.cat([t, torch.tensor([[0, 1, 2, 3], [0, 0, 5, 9]])])  # a flat tet (0-3 lie on one line) and a repeat
+    np.testing.assert_array_equal(inside_tets(pts, v, flat), expected)  # degenerate tets hold nothing, raise nothing
+    assert not inside_tets(pts, v, torch.tensor([[0, 0, 5, 9]])).any()
     with pytest.raises(ValueError, match=r"inside_tets: points must be \(P, 3\)"):
         inside_tets(pts[:, :2], v, t)
 

@@ -245,6 +245,8 @@ def test_solid_against_truth_measures_the_hulls_excess_below_and_above_the_objec
     assert sideways["bottom_offset_m"] == pytest.approx(0.0, abs=1e-6)
     assert sideways["top_offset_m"] == pytest.approx(0.0, abs=1e-6)
     assert sideways["outside_truth_fraction"] == solid["outside_truth_fraction"]
+    flat = {"vertices": torch.zeros(1, 4, 3), "tets": torch.tensor([[0, 1, 2, 3]])}
+    assert solid_against_truth(asset, flat) is None  # a truth without volume: nothing to compare with
 
 
 def test_solid_stiffness_compares_the_reconstructed_solids_lowest_mode_with_the_truths(tmp_path):

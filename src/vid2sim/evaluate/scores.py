@@ -211,7 +211,9 @@ def evaluate(asset_path: str | Path, scene_path: str | Path, fovvdp: bool = Fals
         stiffness = solid_stiffness(asset_path, tet, nu)
         if stiffness is not None:
             report["geometry_stiffness"] = stiffness
-        report["solid"] = solid_against_truth(asset, tet)
+        solid = solid_against_truth(asset, tet)
+        if solid is not None:
+            report["solid"] = solid
     if true_motion:
         report["true_motion"] = _true_motion(asset, tet, targets, cameras, scene.config, scene_path, progress)
     report["timing"] = {"seconds": time.perf_counter() - t0}
@@ -280,7 +282,7 @@ def solid_stiffness(asset_path: str | Path, tet: dict[str, Tensor], nu: float) -
             "implied_log10_E_offset": -2.0 * math.log10(ratio)}
 
 
-def solid_against_truth(asset: Asset, tet: dict[str, Tensor]) -> dict[str, Any]:
+def solid_against_truth(asset: Asset, tet: dict[str, Tensor]) -> dict[str, Any] | None:
     """The reconstructed simulation solid against the truth's body at frame 0 (module docstring).
 
     ``asset``'s solid is its interior samples ``points`` (N, 3) and ``volume`` (its contact points, on the
@@ -291,11 +293,13 @@ def solid_against_truth(asset: Asset, tet: dict[str, Tensor]) -> dict[str, Any]:
         {"volume_m3", "truth_volume_m3", "volume_ratio", "outside_truth_fraction" (the share of the asset's
         interior samples outside the truth's tets: the hull's excess), "bottom_offset_m" and "top_offset_m"
         (the solid's lowest and highest point minus the truth's: negative at the bottom, positive at the top,
-        where the solid reaches beyond the object)}.
+        where the solid reaches beyond the object)}; None when the truth's tets have no volume at frame 0.
     """
     tets = tet["tets"].long()
     corners = tet["vertices"][0, : int(tets.max()) + 1].double()
     truth_volume = float(torch.linalg.det(corners[tets[:, 1:]] - corners[tets[:, :1]]).abs().sum()) / 6.0
+    if not truth_volume > 0:
+        return None
     points = asset.points.detach().cpu().double()
     outside = ~inside_tets(points, corners, tets)
     g = torch.as_tensor(asset.gravity, dtype=torch.float64)

@@ -66,6 +66,7 @@ def _candidate_pairs(points: np.ndarray, corners: np.ndarray, distance: float) -
 def inside_tets(points: Tensor | np.ndarray, tet_vertices: Tensor | np.ndarray,
                 tets: Tensor | np.ndarray) -> np.ndarray:
     """Which points lie inside a tet mesh (in a tetrahedron, its boundary included up to 1e-9 barycentric).
+    Degenerate (zero-volume) tetrahedra hold no point.
 
     Args:
         points: (P, 3). tet_vertices: (Nv, 3). tets: (Nt, 4) corner indices into ``tet_vertices``.
@@ -80,8 +81,12 @@ def inside_tets(points: Tensor | np.ndarray, tet_vertices: Tensor | np.ndarray,
         raise ValueError(f"inside_tets: points must be (P, 3), tet_vertices (Nv, 3) and tets (Nt, 4), got "
                          f"{pts.shape}, {verts.shape} and {tt.shape}")
     corners = verts[tt]
-    pidx, tidx = _candidate_pairs(pts, corners, 0.0)
+    diag = float(np.linalg.norm(verts.max(0) - verts.min(0)))
+    corners = corners[np.abs(np.linalg.det(corners[:, 1:] - corners[:, :1])) > 1e-14 * diag ** 3]
     inside = np.zeros(len(pts), dtype=bool)
+    if len(corners) == 0:
+        return inside
+    pidx, tidx = _candidate_pairs(pts, corners, 0.0)
     chunk = 1 << 20
     for s in range(0, len(pidx), chunk):
         pi, ti = pidx[s: s + chunk], tidx[s: s + chunk]
