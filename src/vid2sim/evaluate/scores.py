@@ -181,7 +181,9 @@ def evaluate(asset_path: str | Path, scene_path: str | Path, fovvdp: bool = Fals
         optionally ``fovvdp``), ``material`` (fitted, truth, errors when known; ``start``: Stage II's starting
         material and its errors, :func:`start_material`; ``uncertainty``, ``interval_covers_truth`` and ``fit``
         when the asset records them), ``chamfer`` and ``centre_of_mass`` (per
-        frame and means over observed and future frames, when the scene has a ``tet_trajectory``), ``timing``.
+        frame and means over observed and future frames, when the scene has a ``tet_trajectory``), with that
+        truth also ``solid`` (:func:`solid_against_truth`) and, for a calibrated asset, ``geometry_stiffness``,
+        and ``timing``.
         With ``return_renders=True``: the pair (that dict, the renders (V, T, H, W, 3) in [0, 1] it scored,
         every scene camera and frame).
     """
