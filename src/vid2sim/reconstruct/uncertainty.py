@@ -113,11 +113,16 @@ def laplace_intervals(lin: Linearisation, parameters: Sequence[Parameter], n: fl
     return out
 
 
+def coarse_best(coarse: Sequence[Mapping[str, Any]]) -> Mapping[str, Any]:
+    """The coarse search's row with the lowest loss (its friction and contact surface are the ones the fit keeps)."""
+    return min(coarse, key=lambda r: r["loss"])
+
+
 def _edge_and_end(coarse: Sequence[Mapping[str, float]], value: float) -> tuple[str, float] | None:
     """:func:`coarse_edge`'s answer and the log10 E of that end of the grid."""
     if not coarse:
         return None
-    best = min(coarse, key=lambda r: r["loss"])
+    best = coarse_best(coarse)
     grid = sorted(r["log10_E"] for r in coarse if r.get("floor_friction") == best.get("floor_friction")
                   and r.get("contact_surface") == best.get("contact_surface"))
     if len(grid) < 2:

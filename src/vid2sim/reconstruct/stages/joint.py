@@ -62,7 +62,7 @@ from vid2sim.reconstruct.runner import Context, State
 from vid2sim.reconstruct.stages.networks import cpu_state
 from vid2sim.reconstruct.stages.points import floor_carved_contact, track_poses
 from vid2sim.reconstruct.stages.stage1 import prior_material
-from vid2sim.reconstruct.uncertainty import information_by_frame, laplace_intervals, mark_coarse_edge
+from vid2sim.reconstruct.uncertainty import coarse_best, information_by_frame, laplace_intervals, mark_coarse_edge
 from vid2sim.runtime.files import read_json, save_torch_atomic, write_json_atomic
 from vid2sim.splats.cameras import Camera
 from vid2sim.splats.gaussians import Gaussians
@@ -551,11 +551,6 @@ def coarse_search(sim: Simulator, rig: GaussianRig, start: Callable[[], SimState
     if "contact_surface" in best:
         sim.set_contact(*contacts[best["contact_surface"]])
     return coarse
-
-
-def coarse_best(coarse: Sequence[dict[str, Any]]) -> dict[str, Any]:
-    """The coarse search's row with the lowest loss (its friction and contact surface are the ones kept)."""
-    return min(coarse, key=lambda r: r["loss"])
 
 
 def _full_resolution_validation(clip: ClipResiduals, rig: GaussianRig, observations: Observations,
