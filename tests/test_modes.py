@@ -8,7 +8,9 @@ import pytest
 from vid2sim.meshing.tetra import box_tet_mesh
 from vid2sim.physics.sparse_lu import SymmetricLU, nested_dissection
 from vid2sim.physics.tet_modes import (
+    LOCAL_MODE_PARTICIPATION,
     lowest_elastic_modes,
+    mode_participation,
     quadratic_tet_nodes,
     reference_mass,
     rigid_modes,
@@ -96,6 +98,54 @@ def test_the_frequency_curve_over_nu_matches_direct_solves():
         tet_frequency_curve(X, T, (0.3, 0.5))
     with pytest.raises(ValueError, match="anchors"):
         tet_frequency_curve(X, T, (0.3,), anchors=1)
+
+
+def _cube_with_fin(fin_cells=8):
+    """A free 0.6 m cube (6³ cells) with a 0.1 × 0.1 m fin of ``fin_cells`` cells on one face (the fin 3.6 % of
+    the mass at 8 cells), on one conforming structured mesh; and the cube's mesh alone."""
+    cube = box_tet_mesh((0.6, 0.6, 0.6), (6, 6, 6))
+    fin = box_tet_mesh((0.1 * fin_cells, 0.1, 0.1), (fin_cells, 1, 1), origin=(0.6, 0.2, 0.2))
+    V = np.concatenate([cube.vertices.numpy(), fin.vertices.numpy()])
+    T = np.concatenate([cube.tets.numpy(), fin.tets.numpy() + len(cube.vertices)])
+    _, first, index = np.unique(np.round(V / 0.05).astype(np.int64), axis=0, return_index=True, return_inverse=True)
+    return V[first], index.ravel()[T], cube
+
+
+def test_mode_participation_is_the_share_of_the_mass_a_mode_moves():
+    """1 for a translation; the part's share of the (diagonal) mass for a translation of a part alone; the fin's
+    own bending modes, the lowest of the cube with its fin, move under 3 % of its mass."""
+    V, T, _ = _cube_with_fin()
+    K, M, nodes = tet_stiffness_and_mass(V, T, 1.0, 0.3, 1.0, order=2)
+    translation = rigid_modes(nodes)[:, :1]
+    assert mode_participation(translation, M)[0] == pytest.approx(1.0, rel=1e-12)
+    on_fin = np.zeros_like(translation)
+    fin = np.repeat(nodes[:, 0] > 0.6 + 1e-9, 3)
+    on_fin[fin, 0] = 1.0  # the fin beyond the cube's face translates, the rest stays
+    m = M.diagonal().reshape(-1, 3).mean(1)
+    assert mode_participation(on_fin, M)[0] == pytest.approx(m[nodes[:, 0] > 0.6 + 1e-9].sum() / m.sum(), rel=1e-12)
+    w2, vectors = lowest_elastic_modes(K, M, nodes, 4)
+    share = mode_participation(vectors, M)
+    assert np.all(share[:2] < 0.03) and share.shape == (4,)  # the fin's two bending modes come first
+
+
+def test_the_frequency_curve_leaves_out_a_fin_s_local_modes():
+    """A fin on a cube vibrates alone far below the cube (0.17 against 2.96 rad/s at E = ρ = 1): with
+    ``min_participation`` the curve skips its modes (recorded in ``left_out``) and gives the cube's own modes, within
+    2 % of the cube without the fin; without it the fin's modes come first. The fin has nine modes below the cube's
+    third, more than the first room left for them: the room is doubled until they fit."""
+    V, T, cube = _cube_with_fin()
+    every = tet_frequency_curve(V, T, (0.3,), k=3)
+    left_out = []
+    body = tet_frequency_curve(V, T, (0.3,), k=3, min_participation=LOCAL_MODE_PARTICIPATION, left_out=left_out)
+    alone = tet_frequency_curve(cube.vertices, cube.tets, (0.3,), k=3)
+    assert every[0, 0] < 0.2 < 2.9 < alone[0, 0]
+    np.testing.assert_allclose(body, alone, rtol=0.02)
+    assert len(left_out) == 1 and left_out[0]["nu"] == 0.3 and len(left_out[0]["omega"]) == 9
+    assert left_out[0]["omega"][:3] == pytest.approx(every[0].tolist(), rel=1e-6)
+    assert max(left_out[0]["participation"]) < LOCAL_MODE_PARTICIPATION
+    assert np.array_equal(tet_frequency_curve(V, T, (0.3,), k=3, min_participation=0.0), every)
+    with pytest.raises(ValueError, match="min_participation"):
+        tet_frequency_curve(V, T, (0.3,), k=3, min_participation=1.0)
 
 
 def test_bad_inputs():

@@ -252,7 +252,8 @@ def test_solid_against_truth_measures_the_hulls_excess_below_and_above_the_objec
 def test_solid_stiffness_compares_the_reconstructed_solids_lowest_mode_with_the_truths(tmp_path):
     """A solid twice the truth's size vibrates at half its frequency (ω ∝ √(E/ρ)/L): ratio ½, so its shape alone
     makes a fitted E 2² too large (−2 log10 ½ = +0.602 decade); the asset's grid of ν is interpolated; an asset
-    without the record gives None, a malformed record an error naming log.json."""
+    without the record gives None, a malformed record an error naming log.json; the truth's local modes are left
+    out as the calibration left out the solid's."""
     from vid2sim.evaluate.scores import solid_stiffness
     from vid2sim.meshing.tetra import box_tet_mesh
     from vid2sim.physics.tet_modes import tet_frequencies
@@ -277,6 +278,21 @@ def test_solid_stiffness_compares_the_reconstructed_solids_lowest_mode_with_the_
     log.write_text(json.dumps({"stiffness_calibration": {"solid_frequencies": {"nu": [0.2, 0.4], "omega": [1.0]}}}))
     with pytest.raises(InputError, match="log.json.*solid_frequencies"):
         solid_stiffness(tmp_path, tet, 0.3)
+    # a truth with a thin fin (2 % of its mass, vibrating alone at a fifth of the box's lowest frequency): the
+    # calibration's rule for local modes (its min_participation) leaves the fin's modes out of the truth's side too
+    fin = box_tet_mesh((0.25, 0.05, 0.05), (5, 1, 1), origin=(0.4, 0.05, 0.05))
+    fine = box_tet_mesh((0.4, 0.2, 0.2), (8, 4, 4))
+    V = np.concatenate([fine.vertices.numpy(), fin.vertices.numpy()])
+    T = np.concatenate([fine.tets.numpy(), fin.tets.numpy() + len(fine.vertices)])
+    _, first, index = np.unique(np.round(V / 0.025).astype(np.int64), axis=0, return_index=True, return_inverse=True)
+    finned = {"vertices": torch.as_tensor(V[first], dtype=torch.float32)[None],
+              "tets": torch.as_tensor(index.ravel()[T])}
+    box_omega = tet_frequencies(fine.vertices, fine.tets, 1.0, 0.3, 1.0, k=1, order=2).tolist()
+    record = {"solid_frequencies": {"nu": [0.3], "omega": [box_omega]}}
+    log.write_text(json.dumps({"stiffness_calibration": {**record, "min_participation": 0.05}}))
+    assert solid_stiffness(tmp_path, finned, 0.3)["lowest_frequency_ratio"] == pytest.approx(1.0, abs=0.02)
+    log.write_text(json.dumps({"stiffness_calibration": record}))  # a record from before the rule: every mode
+    assert solid_stiffness(tmp_path, finned, 0.3)["lowest_frequency_ratio"] > 5
 
 
 def test_evaluate_true_motion_scores_the_gaussians_on_the_ground_truths_motion(tiny_asset, tiny_scene, tmp_path,

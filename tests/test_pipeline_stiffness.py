@@ -67,9 +67,10 @@ def test_calibration_from_samples_matches_the_one_from_a_mesh_of_the_solid():
 
 def test_the_tet_reference_runs_in_a_child_process_and_feeds_the_calibration(tmp_path):
     """TetReferenceJob: the same reference as in this process (fTetWild's meshes differ run to run in their last
-    tets, so to 1 %), written to its file; calibrate_stiffness takes it instead of the points and checks its grid;
-    the child's bad-input error comes back as the same ValueError."""
-    from vid2sim.reconstruct.stages.calibration import TetReferenceJob, tet_reference
+    tets, so to 1 %), written to its file; calibrate_stiffness takes it instead of the points and checks its grid
+    and its rule for local modes; the child's bad-input error comes back as the same ValueError."""
+    from vid2sim.physics.tet_modes import LOCAL_MODE_PARTICIPATION
+    from vid2sim.reconstruct.stages.calibration import TetReferenceJob, stored_reference, tet_reference
 
     points = _bar(100000, 3).numpy()
     job = TetReferenceJob(points, tmp_path / "ref.json", nus=(0.3, 0.45), k=6, cells=32)
@@ -85,5 +86,12 @@ def test_the_tet_reference_runs_in_a_child_process_and_feeds_the_calibration(tmp
     assert out["tets"] == there["tets"] and out["stiffness_curve"]["nu"] == [0.3, 0.45]
     with pytest.raises(ValueError, match="computed for nu"):
         calibrate_stiffness(field, cubature, weights, None, 0.3, nus=(0.3, 0.4), factors=2, reference=there)
+    # the local modes' rule is part of the reference: another rule's calibration refuses it, a resumed run ignores it
+    assert there["min_participation"] == LOCAL_MODE_PARTICIPATION and out["left_out_modes"] == there["left_out_modes"]
+    with pytest.raises(ValueError, match="min_participation"):
+        calibrate_stiffness(field, cubature, weights, None, 0.3, nus=(0.3, 0.45), factors=2, reference=there,
+                            min_participation=0.0)
+    assert stored_reference(tmp_path / "ref.json", (0.3, 0.45), 6, LOCAL_MODE_PARTICIPATION) == there
+    assert stored_reference(tmp_path / "ref.json", (0.3, 0.45), 6, 0.0) is None
     with pytest.raises(ValueError, match="no closed surface"):
         TetReferenceJob(np.zeros((3, 3)), tmp_path / "bad.json", nus=(0.3,), k=1).result()

@@ -62,7 +62,7 @@ from vid2sim.metrics.geometry import boundary_faces, material_errors, surface_ch
 from vid2sim.metrics.images import image_metrics
 from vid2sim.metrics.trajectory import tet_centre_of_mass
 from vid2sim.physics.solver import SimState, Simulator
-from vid2sim.physics.tet_modes import tet_frequencies
+from vid2sim.physics.tet_modes import tet_frequency_curve
 from vid2sim.runtime.device import resolve_device
 from vid2sim.runtime.errors import InputError
 from vid2sim.runtime.jsonvalues import is_number
@@ -247,7 +247,9 @@ def solid_stiffness(asset_path: str | Path, tet: dict[str, Tensor], nu: float) -
     ``solid_frequencies``: quadratic tets on a mesh of the reconstructed solid, ω at E = ρ = 1 on a grid of ν,
     interpolated at ``nu``); the truth's is quadratic tets on the truth's mesh at frame 0 (``tet``: the
     ``tet_trajectory`` extra, ``vertices`` (T, N, 3), ``tets`` (Nt, 4); with quadratic truths the first
-    max(tets) + 1 vertices are the tets' corners). Both are free–free, linear elasticity at rest.
+    max(tets) + 1 vertices are the tets' corners). Both are free–free, linear elasticity at rest, and both leave
+    out the local modes the calibration left out (the record's ``min_participation``; 0 in records written
+    before it was kept).
 
     Args:
         nu: the Poisson ratio both are compared at (the truth's).
@@ -268,6 +270,7 @@ def solid_stiffness(asset_path: str | Path, tet: dict[str, Tensor], nu: float) -
             return None
         nus = np.asarray(solid["nu"], dtype=float)
         omega = np.asarray(solid["omega"], dtype=float)
+        share = float(record.get("min_participation", 0.0))
     except (OSError, json.JSONDecodeError, AttributeError, KeyError, TypeError, ValueError) as exc:
         raise InputError(f"{log_path}: cannot read stiffness_calibration.solid_frequencies ({exc})") from exc
     if nus.ndim != 1 or omega.ndim != 2 or omega.shape[0] != len(nus) or len(nus) == 0 or omega.shape[1] == 0 \
@@ -278,7 +281,7 @@ def solid_stiffness(asset_path: str | Path, tet: dict[str, Tensor], nu: float) -
     asset_omega = float(np.interp(nu, nus, omega[:, 0]))
     tets = tet["tets"].long()
     corners = tet["vertices"][0, : int(tets.max()) + 1].double()
-    truth_omega = float(tet_frequencies(corners, tets, 1.0, nu, 1.0, k=1, order=2)[0])
+    truth_omega = float(tet_frequency_curve(corners, tets, (nu,), k=1, order=2, min_participation=share)[0, 0])
     ratio = asset_omega / truth_omega
     return {"nu": nu, "omega_asset": asset_omega, "omega_truth": truth_omega, "lowest_frequency_ratio": ratio,
             "implied_log10_E_offset": -2.0 * math.log10(ratio)}

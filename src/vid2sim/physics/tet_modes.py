@@ -235,8 +235,30 @@ def lowest_elastic_modes(K: sp.spmatrix, M: sp.spmatrix, nodes: np.ndarray, k: i
     return w2[keep], vectors[:, keep]
 
 
+def mode_participation(vectors: np.ndarray, M: sp.spmatrix) -> np.ndarray:
+    """The share of the body's mass each mode moves: (Σ m_i |φ_i|²)² / (Σ m_i · Σ m_i |φ_i|⁴).
+
+    1 for a translation, about f for a mode that moves a part holding a fraction f of the mass alone (a flap
+    hinged on the body), 0.1–0.8 for the bending, twisting and squashing modes of a compact solid. The nodal
+    masses m_i are M's diagonal (positive also for quadratic tets' consistent mass, whose row sums are not).
+
+    Args:
+        vectors: (3N, m) mode shapes, node-major xyz; M: (3N, 3N) the mass matrix.
+    Returns:
+        (m,) in (0, 1].
+    """
+    m = np.asarray(M.diagonal(), dtype=float).reshape(-1, 3).mean(1)
+    a = (np.asarray(vectors, dtype=float).reshape(len(m), 3, -1) ** 2).sum(1)  # (N, m) |φ_i|²
+    return (m @ a) ** 2 / (m.sum() * (m @ a ** 2))
+
+
+#: a mode that moves less than this share of the mass (:func:`mode_participation`) is a local flap, not the body's
+LOCAL_MODE_PARTICIPATION = 0.05
+
+
 def tet_frequency_curve(vertices: Tensor | np.ndarray, tets: Tensor | np.ndarray, poisson_ratios: Sequence[float],
-                        k: int = 1, order: int = 2, anchors: int = 3) -> np.ndarray:
+                        k: int = 1, order: int = 2, anchors: int = 3, min_participation: float = 0.0,
+                        left_out: list[dict] | None = None) -> np.ndarray:
     """:func:`tet_frequencies` at E = 1, ρ = 1 for many ν, by Rayleigh–Ritz on a few solved ν.
 
     The stiffness is linear in the Lamé parameters, K(ν) = μ(ν) K_μ + λ(ν) K_λ. The lowest modes are solved
@@ -246,11 +268,22 @@ def tet_frequency_curve(vertices: Tensor | np.ndarray, tets: Tensor | np.ndarray
     the direct solve on the ``bench identify`` shapes (tested against :func:`tet_frequencies`) and within 3e-4
     on a reconstructed solid's 6 500 tets (six modes, ten ν).
 
+    With ``min_participation`` > 0 the modes that move less than that share of the mass
+    (:func:`mode_participation`) are left out and the k lowest of the others returned: a thin sliver that a
+    reconstructed solid carries on a hinge of a few tets vibrates alone, below the body's own modes, and no
+    smooth deformation of the body has it (measured on a visual hull: two such modes, participation 0.001, below
+    the body's lowest, 0.56–0.84).
+
     Args:
         poisson_ratios: (n,) values of ν in (−1, 0.5).
         k: elastic frequencies per ν; order: as :func:`tet_frequencies`; anchors: ν solved directly (≥ 2).
+        min_participation: in [0, 1); 0 keeps every mode.
+        left_out: when given a list, one entry per ν is appended: {"nu", "omega", "participation"} of the modes
+            left out below the k-th kept one.
     Returns:
         (n, k) ω at E = 1, ρ = 1 (scale by √(E/ρ)).
+    Raises:
+        ValueError: bad arguments, or more than 24 modes below the k-th kept one are left out.
     """
     from scipy.linalg import eigh
 
@@ -261,6 +294,8 @@ def tet_frequency_curve(vertices: Tensor | np.ndarray, tets: Tensor | np.ndarray
         raise ValueError(f"k must be an integer >= 1, got {k!r}")
     if isinstance(anchors, bool) or not isinstance(anchors, int) or anchors < 2:
         raise ValueError(f"anchors must be an integer >= 2, got {anchors!r}")
+    if not 0.0 <= min_participation < 1.0:
+        raise ValueError(f"min_participation must be in [0, 1), got {min_participation!r}")
     K_mu, M, nodes = tet_stiffness_and_mass(vertices, tets, 2.0, 0.0, 1.0, order)  # μ = 1, λ = 0
     K_lam = tet_stiffness_and_mass(vertices, tets, 2.5, 0.25, 1.0, order)[0] - K_mu  # μ = λ = 1, minus μ = 1
     if 3 * len(nodes) < k + 7:
@@ -269,18 +304,39 @@ def tet_frequency_curve(vertices: Tensor | np.ndarray, tets: Tensor | np.ndarray
     def lame(nu: float) -> tuple[float, float]:
         return 1 / (2 * (1 + nu)), nu / ((1 + nu) * (1 - 2 * nu))
 
-    vectors = [rigid_modes(nodes)]
-    for nu in np.unique(np.quantile(nus, np.linspace(0.0, 1.0, anchors))):
-        mu, lam = lame(float(nu))
+    spare = 0 if min_participation == 0.0 else 4  # room for modes left out; doubled while it is too little
+    while True:
         # three more modes than asked: the span then also holds the higher modes that cross below the k-th
         # (on a reconstructed solid's 6 500 tets: within 2.7e-4 of direct solves at ten ν; 5.3e-3 with none)
-        vectors.append(lowest_elastic_modes((mu * K_mu + lam * K_lam).tocsc(), M, nodes, k + 3)[1])
-    u, s, _ = np.linalg.svd(np.concatenate(vectors, axis=1), full_matrices=False)
-    Q = u[:, s > 1e-10 * s[0]]  # an orthonormal basis of their span (the rigid modes repeat)
-    Km, Kl, Mq = (Q.T @ (A @ Q) for A in (K_mu, K_lam, M))
-    out = np.empty((len(nus), k))
-    for i, nu in enumerate(nus):
-        mu, lam = lame(float(nu))
-        w2 = eigh(mu * Km + lam * Kl, Mq, eigvals_only=True)
-        out[i] = np.sqrt(np.clip(w2[6:6 + k], 0.0, None))
-    return out
+        solved = min(k + 3 + spare, 3 * len(nodes) - 7)
+        vectors = [rigid_modes(nodes)]
+        for nu in np.unique(np.quantile(nus, np.linspace(0.0, 1.0, anchors))):
+            mu, lam = lame(float(nu))
+            vectors.append(lowest_elastic_modes((mu * K_mu + lam * K_lam).tocsc(), M, nodes, solved)[1])
+        u, s, _ = np.linalg.svd(np.concatenate(vectors, axis=1), full_matrices=False)
+        Q = u[:, s > 1e-10 * s[0]]  # an orthonormal basis of their span (the rigid modes repeat)
+        Km, Kl, Mq = (Q.T @ (A @ Q) for A in (K_mu, K_lam, M))
+        out, dropped = np.empty((len(nus), k)), []
+        for i, nu in enumerate(nus):
+            mu, lam = lame(float(nu))
+            if min_participation == 0.0:
+                w2 = eigh(mu * Km + lam * Kl, Mq, eigvals_only=True)
+                out[i] = np.sqrt(np.clip(w2[6:6 + k], 0.0, None))
+                continue
+            w2, y = eigh(mu * Km + lam * Kl, Mq, subset_by_index=[6, 6 + solved - 1])
+            share = mode_participation(Q @ y, M)
+            kept = np.flatnonzero(share >= min_participation)[:k]
+            if len(kept) < k:
+                break
+            low = np.flatnonzero(share[: kept[-1]] < min_participation)
+            out[i] = np.sqrt(np.clip(w2[kept], 0.0, None))
+            dropped.append({"nu": float(nu), "omega": np.sqrt(np.clip(w2[low], 0.0, None)).tolist(),
+                            "participation": share[low].tolist()})
+        else:
+            if left_out is not None:
+                left_out.extend(dropped)
+            return out
+        if spare >= 24 or solved == 3 * len(nodes) - 7:
+            raise ValueError(f"more than {spare} modes below the {k}-th that moves at least {min_participation} "
+                             "of the mass: the mesh is mostly loose slivers")
+        spare *= 2

@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 from typing import Any, Literal
 
 from vid2sim.physics.solver import SimConfig
+from vid2sim.physics.tet_modes import LOCAL_MODE_PARTICIPATION
 from vid2sim.runtime import config as configs
 from vid2sim.runtime.errors import ConfigError
 from vid2sim.splats.fitting import FitConfig
@@ -243,12 +244,17 @@ class CalibrationConfig:
             factor at the prior ν.
         cells: the surface grid's cells along the longest side for the reference mesh.
         points: samples of the kept voxels that grid is made from.
+        min_participation: the reference mesh's modes that move less than this share of the mass are left out
+            (a sliver of the hull on a hinge of a few tets vibrates alone, below the body's modes; matched, it
+            softened a seed-2 scene's subspace 7×; :func:`vid2sim.physics.tet_modes.mode_participation`); 0 keeps
+            every mode.
     """
 
     enabled: bool = True
     nu: Literal["two_factor", "curve", "prior"] = "two_factor"
     cells: int = 96
     points: int = 200_000
+    min_participation: float = LOCAL_MODE_PARTICIPATION
 
     def __post_init__(self) -> None:
         if self.nu not in ("curve", "two_factor", "prior"):
@@ -256,6 +262,8 @@ class CalibrationConfig:
         for name in ("cells", "points"):
             if getattr(self, name) < 1:
                 raise ConfigError(f"CalibrationConfig.{name} must be >= 1, got {getattr(self, name)}")
+        if not 0.0 <= self.min_participation < 1.0:
+            raise ConfigError(f"CalibrationConfig.min_participation must be in [0, 1), got {self.min_participation}")
 
 
 @dataclass

@@ -33,7 +33,7 @@ from vid2sim.physics.modes import (
     stiffness_calibration_curve,
     subspace_frequencies,
 )
-from vid2sim.physics.tet_modes import tet_frequency_curve
+from vid2sim.physics.tet_modes import LOCAL_MODE_PARTICIPATION, tet_frequency_curve
 from vid2sim.reconstruct.config import CalibrationConfig
 from vid2sim.reconstruct.runner import Context, State
 from vid2sim.reconstruct.silhouettes import solid_surface
@@ -45,7 +45,7 @@ RESULT, REFERENCE = "stiffness.json", "stiffness_reference.json"
 
 
 def tet_reference(points: np.ndarray, nus: tuple[float, ...], k: int, edge_length: float = 0.08,
-                  cells: int = 64, seed: int = 0) -> dict:
+                  cells: int = 64, seed: int = 0, min_participation: float = LOCAL_MODE_PARTICIPATION) -> dict:
     """The continuum's side of the calibration: quadratic tets on a mesh of the solid ``points`` fill.
 
     It needs only the interior samples, not the skinning field, so a reconstruction computes it in a child
@@ -53,11 +53,13 @@ def tet_reference(points: np.ndarray, nus: tuple[float, ...], k: int, edge_lengt
 
     Args:
         points: (N, 3) samples filling the solid (m); nus: the ν grid; k: elastic frequencies per ν.
-        edge_length, cells, seed: as :func:`calibrate_stiffness`.
+        edge_length, cells, seed, min_participation: as :func:`calibrate_stiffness`.
     Returns:
         {"nus": list, "k": k, "frequencies": (len(nus), k) nested list of ω at E = ρ = 1, "tets",
         "mesh_volume_m3", "dropped_volume_fraction" (the mesh's pieces other than the largest face-connected one,
-        left out: :func:`vid2sim.meshing.tetra.largest_connected_part`), "seconds"}.
+        left out: :func:`vid2sim.meshing.tetra.largest_connected_part`), "min_participation", "left_out_modes"
+        ({"nu", "omega", "participation"} of the local modes left out below the k-th kept one, at the grid's ν
+        nearest 0.3), "seconds"}.
     Raises:
         ValueError: no closed surface could be made from the points.
     """
@@ -72,9 +74,14 @@ def tet_reference(points: np.ndarray, nus: tuple[float, ...], k: int, edge_lengt
     # the level set also wraps small blobs of stray samples; as separate pieces (or pieces hinged on a vertex)
     # they would add rigid motions that the eigensolve reports as the lowest "elastic" frequencies
     X, T, dropped = largest_connected_part(mesh.vertices, mesh.tets)
-    frequencies = tet_frequency_curve(X, T, tuple(float(v) for v in nus), k=k, order=2)
+    # a sliver of the hull hinged on a few tets vibrates alone below the body's modes: not the body's stiffness
+    left_out: list[dict] = []
+    frequencies = tet_frequency_curve(X, T, tuple(float(v) for v in nus), k=k, order=2,
+                                      min_participation=min_participation, left_out=left_out)
+    middle = min(left_out, key=lambda entry: abs(entry["nu"] - 0.3)) if left_out else None
     return {"nus": [float(v) for v in nus], "k": int(k), "frequencies": frequencies.tolist(), "tets": int(len(T)),
             "mesh_volume_m3": float(tet_volumes(X, T).abs().sum()), "dropped_volume_fraction": dropped,
+            "min_participation": float(min_participation), "left_out_modes": middle,
             "seconds": time.perf_counter() - t0}
 
 
@@ -105,7 +112,7 @@ class TetReferenceJob:
 
     Args:
         points: (N, 3) interior samples; path: where the result is written; arguments: :func:`tet_reference`'s
-            other arguments (nus, k, edge_length, cells, seed).
+            other arguments (nus, k, edge_length, cells, seed, min_participation).
     """
 
     def __init__(self, points: np.ndarray, path: str | Path, **arguments) -> None:
@@ -153,7 +160,8 @@ class TetReferenceJob:
 def calibrate_stiffness(field, cubature: Tensor, weights: Tensor, points: Tensor | None, poisson_ratio: float,
                         edge_length: float = 0.08, cells: int = 64, seed: int = 0,
                         nus: tuple[float, ...] | None = None, factors: int = 1, reference: dict | None = None,
-                        volumetric: str = "pointwise", mass_volumes: Tensor | None = None) -> dict:
+                        volumetric: str = "pointwise", mass_volumes: Tensor | None = None,
+                        min_participation: float = LOCAL_MODE_PARTICIPATION) -> dict:
     """The stiffness factor s of a reconstruction (``Simulator(stiffness_scale=s)``).
 
     Args:
@@ -173,12 +181,15 @@ def calibrate_stiffness(field, cubature: Tensor, weights: Tensor, points: Tensor
         volumetric: the simulator's volumetric term ("pointwise" or "projected"), recorded in the result.
         mass_volumes: (K,) the volumes the simulator lumps its mass on (``Simulator(mass_volumes=)``; None:
             ``weights``): the subspace's frequencies use the simulator's own mass.
+        min_participation: the tets' modes that move less than this share of the mass are left out
+            (:func:`vid2sim.physics.tet_modes.tet_frequency_curve`); 0 keeps them.
     Returns:
         {"stiffness_scale": s at ``poisson_ratio``, "stiffness_curve": the curve's ``to_dict()`` or None,
         "tets": mesh size, "mesh_volume_m3", "points_volume_ratio" (the mesh's volume over the weights' sum),
         "solid_frequencies": {"nu": the grid, "omega": (len(nu), k) nested list} the reconstructed solid's own
         lowest elastic ω at E = ρ = 1 (rad/s; ``vid2sim evaluate`` compares them with the truth's mesh),
-        "seconds" (the reference's and the fit's)}.
+        "min_participation", "left_out_modes" (:func:`tet_reference`'s), "seconds" (the reference's and the
+        fit's)}.
     Raises:
         ValueError: no closed surface could be made from the points, or ``reference`` is for another grid.
     """
@@ -189,10 +200,13 @@ def calibrate_stiffness(field, cubature: Tensor, weights: Tensor, points: Tensor
     if reference is None:
         if points is None:
             raise ValueError("calibrate_stiffness needs the interior points or their tet reference")
-        reference = tet_reference(points.detach().double().cpu().numpy(), grid, k, edge_length, cells, seed)
-    if reference["nus"] != list(grid) or reference["k"] != k:
-        raise ValueError(f"the tet reference was computed for nu {reference['nus']} and k = {reference['k']}, "
-                         f"the calibration needs nu {list(grid)} and k = {k}")
+        reference = tet_reference(points.detach().double().cpu().numpy(), grid, k, edge_length, cells, seed,
+                                  min_participation)
+    if reference["nus"] != list(grid) or reference["k"] != k \
+            or reference.get("min_participation") != float(min_participation):
+        raise ValueError(f"the tet reference was computed for nu {reference['nus']}, k = {reference['k']} and "
+                         f"min_participation {reference.get('min_participation')}, the calibration needs nu "
+                         f"{list(grid)}, k = {k} and min_participation {float(min_participation)}")
     frequencies = np.asarray(reference["frequencies"], dtype=float)
     if nus is not None:
         curve = stiffness_calibration_curve(field, cubature, weights, None, None, grid, factors=factors,
@@ -213,6 +227,7 @@ def calibrate_stiffness(field, cubature: Tensor, weights: Tensor, points: Tensor
             "points_volume_ratio": volume / float(weights.sum()), "volumetric": volumetric,
             "mass": "cubature" if mass_volumes is None else "moments",
             "solid_frequencies": {"nu": list(grid), "omega": frequencies.tolist()},
+            "min_participation": float(min_participation), "left_out_modes": reference.get("left_out_modes"),
             "seconds": reference["seconds"] + time.perf_counter() - t0}
 
 
@@ -225,8 +240,9 @@ def calibration_points(obj: ObjectPoints, config: CalibrationConfig, seed: int) 
                             torch.Generator().manual_seed(seed))
 
 
-def stored_reference(path: Path, nus: tuple[float, ...], k: int) -> dict | None:
-    """The tet reference a finished :class:`TetReferenceJob` left at ``path`` for this grid and k, or None."""
+def stored_reference(path: Path, nus: tuple[float, ...], k: int, min_participation: float) -> dict | None:
+    """The tet reference a finished :class:`TetReferenceJob` left at ``path`` for this grid, k and
+    ``min_participation``, or None."""
     if not path.is_file():
         return None
     try:
@@ -234,7 +250,8 @@ def stored_reference(path: Path, nus: tuple[float, ...], k: int) -> dict | None:
     except (json.JSONDecodeError, UnicodeDecodeError):
         return None
     reference = stored.get("reference") if isinstance(stored, dict) and stored.get("ok") else None
-    if not isinstance(reference, dict) or reference.get("nus") != [float(v) for v in nus] or reference.get("k") != k:
+    if not isinstance(reference, dict) or reference.get("nus") != [float(v) for v in nus] or reference.get("k") != k \
+            or reference.get("min_participation") != float(min_participation):
         return None
     return reference
 
@@ -266,10 +283,13 @@ class CalibrationStage:
         """Start the tet reference in a child process, unless it is not needed or already stored."""
         curve, k = self._grid(ctx)
         cfg = ctx.config
-        if not (cfg.calibration.enabled and curve) or stored_reference(ctx.path(REFERENCE), CURVE_NUS, k) is not None:
+        share = cfg.calibration.min_participation
+        if not (cfg.calibration.enabled and curve) or \
+                stored_reference(ctx.path(REFERENCE), CURVE_NUS, k, share) is not None:
             return
         self.job = TetReferenceJob(calibration_points(state.obj_cpu, cfg.calibration, cfg.seed).numpy(),
-                                   ctx.path(REFERENCE), nus=CURVE_NUS, k=k, cells=cfg.calibration.cells, seed=cfg.seed)
+                                   ctx.path(REFERENCE), nus=CURVE_NUS, k=k, cells=cfg.calibration.cells, seed=cfg.seed,
+                                   min_participation=share)
         ctx.jobs.append(self.job)
 
     def title(self, ctx: Context, state: State) -> str | None:
@@ -281,8 +301,8 @@ class CalibrationStage:
         cfg, obj, cub = ctx.config, state.obj, state.cubature
         curve, k = self._grid(ctx)
         if curve:
-            reference = self.job.result() if self.job is not None else stored_reference(ctx.path(REFERENCE),
-                                                                                          CURVE_NUS, k)
+            reference = self.job.result() if self.job is not None else stored_reference(
+                ctx.path(REFERENCE), CURVE_NUS, k, cfg.calibration.min_participation)
             dense = None
         else:  # one factor at the prior's ν (Stage I may have set it): computed here
             reference, dense = None, calibration_points(state.obj_cpu, cfg.calibration, cfg.seed)
@@ -290,7 +310,8 @@ class CalibrationStage:
         record = calibrate_stiffness(state.skinning, obj.points[cub.index], cub.weights, dense, prior_nu,
                                      cells=cfg.calibration.cells, seed=cfg.seed, nus=CURVE_NUS if curve else None,
                                      factors=2 if cfg.calibration.nu == "two_factor" else 1, reference=reference,
-                                     volumetric=cfg.simulator.volumetric, mass_volumes=cub.mass_volumes)
+                                     volumetric=cfg.simulator.volumetric, mass_volumes=cub.mass_volumes,
+                                     min_participation=cfg.calibration.min_participation)
         write_json_atomic(ctx.path(RESULT), record)
 
     def load(self, ctx: Context, state: State) -> None:
