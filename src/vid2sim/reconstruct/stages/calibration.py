@@ -59,7 +59,7 @@ def tet_reference(points: np.ndarray, nus: tuple[float, ...], k: int, edge_lengt
         "mesh_volume_m3", "dropped_volume_fraction" (the mesh's pieces other than the largest face-connected one,
         left out: :func:`vid2sim.meshing.tetra.largest_connected_part`), "min_participation", "left_out_modes"
         ({"nu", "omega", "participation"} of the local modes left out below the k-th kept one, at the grid's ν
-        nearest 0.3), "seconds"}.
+        nearest 0.3; None when there are none), "seconds"}.
     Raises:
         ValueError: no closed surface could be made from the points.
     """
@@ -79,6 +79,7 @@ def tet_reference(points: np.ndarray, nus: tuple[float, ...], k: int, edge_lengt
     frequencies = tet_frequency_curve(X, T, tuple(float(v) for v in nus), k=k, order=2,
                                       min_participation=min_participation, left_out=left_out)
     middle = min(left_out, key=lambda entry: abs(entry["nu"] - 0.3)) if left_out else None
+    middle = middle if middle and middle["omega"] else None
     return {"nus": [float(v) for v in nus], "k": int(k), "frequencies": frequencies.tolist(), "tets": int(len(T)),
             "mesh_volume_m3": float(tet_volumes(X, T).abs().sum()), "dropped_volume_fraction": dropped,
             "min_participation": float(min_participation), "left_out_modes": middle,
