@@ -71,6 +71,23 @@ def subspace_stiffness_parts(X: Tensor, w: Tensor, dw: Tensor, volume: float, we
     return K_mu, Tp, M
 
 
+def spanned_once(M: np.ndarray, *others: np.ndarray) -> tuple[np.ndarray, ...]:
+    """M and ``others`` (each (m, m)) restricted to the directions the subspace spans once.
+
+    A skinning subspace can span a direction twice: on a rod the handles w = z and w = z² give the LBS columns
+    z·z and z²·1, which coincide. Its mass is then singular there, and its stiffness with it (the direction moves
+    nothing), so the generalised eigenproblem is not defined; the Ritz values of the subspace are those of the
+    pencil on M's range. The range is spanned by M's eigenvectors whose eigenvalue exceeds 1e-10 of the largest;
+    when all do, the matrices are returned as they are.
+    """
+    lam, Q = np.linalg.eigh(0.5 * (M + M.T))
+    keep = lam > 1e-10 * lam.max()
+    if keep.all():
+        return (M, *others)
+    Q = Q[:, keep]
+    return tuple(Q.T @ A @ Q for A in (M, *others))
+
+
 def subspace_frequencies(field, points: Tensor, volumes: Tensor, youngs_modulus: float, poisson_ratio: float,
                          density: float, k: int = 6, volumetric: str = "pointwise",
                          mass_volumes: Tensor | None = None) -> np.ndarray:
@@ -97,7 +114,7 @@ def subspace_frequencies(field, points: Tensor, volumes: Tensor, youngs_modulus:
         if mass_volumes is not None:
             b = lbs_rows(points, w)
             M = torch.kron(torch.eye(3, dtype=b.dtype, device=b.device), b.T @ (b * mass_volumes[:, None]))
-    Kn, Mn = K.double().cpu().numpy(), M.double().cpu().numpy()
+    Mn, Kn = spanned_once(M.double().cpu().numpy(), K.double().cpu().numpy())
     lam = eigh(Kn, Mn + 1e-14 * np.trace(Mn) / len(Mn) * np.eye(len(Mn)), eigvals_only=True)
     if len(lam) < k + 6:
         raise ValueError(f"the subspace has {len(lam)} degrees of freedom; k = {k} needs at least {k + 6}")
@@ -224,6 +241,7 @@ def _two_factor_curve(field, points: Tensor, volumes: Tensor, reference: np.ndar
         if mass_volumes is not None:
             b = lbs_rows(points, w)
             M = np.kron(np.eye(3), (b.T @ (b * mass_volumes[:, None])).double().cpu().numpy())
+    M, K_mu, K_lam = spanned_once(M, K_mu, K_lam)
     M = M + 1e-14 * np.trace(M) / len(M) * np.eye(len(M))
     if len(M) < k + 6:
         raise ValueError(f"the subspace has {len(M)} degrees of freedom; the two-factor calibration needs {k + 6}")
