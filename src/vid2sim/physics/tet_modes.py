@@ -283,7 +283,7 @@ def tet_frequency_curve(vertices: Tensor | np.ndarray, tets: Tensor | np.ndarray
     Returns:
         (n, k) ω at E = 1, ρ = 1 (scale by √(E/ρ)).
     Raises:
-        ValueError: bad arguments, or more than 24 modes below the k-th kept one are left out.
+        ValueError: bad arguments, or more than 32 modes below the k-th kept one would be left out.
     """
     from scipy.linalg import eigh
 
