@@ -57,6 +57,7 @@ from vid2sim.asset.motion import (
     simulated_centre_of_mass,
     true_motion_gaussians,
 )
+from vid2sim.meshing.tetra import tet_volumes
 from vid2sim.metrics.fvvdp import fovvdp as fovvdp_score
 from vid2sim.metrics.geometry import boundary_faces, material_errors, surface_chamfer
 from vid2sim.metrics.images import image_metrics
@@ -302,7 +303,7 @@ def solid_against_truth(asset: Asset, tet: dict[str, Tensor]) -> dict[str, Any] 
     """
     tets = tet["tets"].long()
     corners = tet["vertices"][0, : int(tets.max()) + 1].double()
-    truth_volume = float(torch.linalg.det(corners[tets[:, 1:]] - corners[tets[:, :1]]).abs().sum()) / 6.0
+    truth_volume = float(tet_volumes(corners, tets).abs().sum())
     if not truth_volume > 0:
         return None
     points = asset.points.detach().cpu().double()
