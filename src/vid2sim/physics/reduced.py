@@ -512,7 +512,10 @@ class StepProblem:
     @property
     def y_start(self) -> Tensor:
         """Newton's starting point: the extrapolation of :meth:`BDFStep.start` when the step has history,
-        else the inertial target ŷ."""
+        else the inertial target ŷ; a step of friction's fixed point (``friction_state`` given) starts from that
+        state, the solution of the same step with the normal force one iteration older, which lies close."""
+        if self.friction_state is not None:
+            return self.friction_state.detach()
         if self.ydot_prev2 is None:
             return self.y_pred
         return self.step.start(self.y_prev, self.ydot_prev, self.ydot_prev2)
