@@ -102,6 +102,39 @@ def test_levenberg_marquardt_solves_a_nonlinear_fit_and_holds_a_bound():
     assert fit.theta[0] == pytest.approx(sum(y * x for y, x in zip(clip.y, e)) / sum(x * x for x in e), rel=1e-4)
 
 
+class CountingClip(DecayClip):
+    """:class:`DecayClip` with measurements off by ±0.01 (so that the fit's loss stays finite), counting its
+    rollouts."""
+
+    def __init__(self, a: float, k: float) -> None:
+        super().__init__(a, k)
+        self.y = [y + 0.01 * (-1) ** t for t, y in enumerate(self.y)]
+        self.rollouts = 0
+
+    def simulate(self, theta, substeps=None):
+        self.rollouts += 1
+        return list(theta)
+
+
+def test_levenberg_marquardt_stops_without_trials_when_the_model_predicts_too_little():
+    """Near the decay's best fit, with a tolerance above what a step could still gain, the fit stops at the first
+    Jacobian without simulating a trial step (the start and one perturbed rollout per parameter, no more), says so,
+    and logs the predicted decrease, which matches the one a step makes when the tolerance lets it."""
+    clip = CountingClip(2.0, 0.3)
+    params = [Parameter("a", 0.0, 10.0, 1e-6), Parameter("k", 0.0, 2.0, 1e-6)]
+    best = levenberg_marquardt(clip, params, [1.0, 0.8], n=12.0, iterations=40, tolerance=1e-12).theta
+    start = [best[0] + 0.003, best[1]]
+    clip.rollouts = 0
+    loose = levenberg_marquardt(clip, params, start, n=12.0, iterations=10, tolerance=1.0)
+    assert loose.stop.startswith("converged: the Gauss–Newton model predicts")
+    assert clip.rollouts == 1 + 2 and loose.theta == start  # the start, then one per parameter
+    entry = loose.log[-1]
+    assert not entry["accepted"] and 0 < entry["predicted_decrease"] < 1.0
+    tight = levenberg_marquardt(clip, params, start, n=12.0, iterations=1, tolerance=1e-12)
+    made = tight.log[0]["objective"] - tight.log[1]["objective"]
+    assert tight.log[1]["accepted"] and made == pytest.approx(tight.log[1]["predicted_decrease"], rel=0.05)
+
+
 def test_marquardt_step_holds_a_coordinate_at_its_bound_and_solves_for_the_rest():
     H = torch.tensor([[2.0, 1.0], [1.0, 2.0]], dtype=torch.float64)
     g = torch.tensor([2.0, -1.0], dtype=torch.float64)  # the unconstrained step: Δ = (−5/3, 4/3)
@@ -415,3 +448,47 @@ def test_the_scenes_true_floor_friction_is_read_from_its_metadata():
     assert true_floor_friction({"truth": "newton", "newton": {"contact": {"friction": 0.5}}}) == 0.5
     assert true_floor_friction({"truth": "fem"}) == 0.0
     assert true_floor_friction({}) is None and true_floor_friction({"floor_friction": "rough"}) is None
+
+
+def test_grid_descent_walks_to_the_local_minimum_and_evaluates_each_point_once():
+    """From any start the walk ends at the grid's minimum of a unimodal loss, evaluating a contiguous stretch once
+    each; on a loss with two valleys it stops in the start's; at an end it stops there; a start off the grid is a
+    named error."""
+    from vid2sim.reconstruct.stages.joint import grid_descent
+
+    def walk(losses, start):
+        calls = []
+        found = grid_descent(len(losses), start, lambda i: calls.append(i) or losses[i])
+        return found, calls
+
+    unimodal = [5.0, 4.0, 3.0, 2.0, 1.0, 2.0, 3.0, 4.0, 5.0]
+    for start in range(9):
+        found, calls = walk(unimodal, start)
+        assert found == 4 and len(calls) == len(set(calls))
+        assert sorted(calls) == list(range(min(calls), max(calls) + 1))
+        assert len(calls) <= abs(start - 4) + 3
+    assert walk(unimodal, 4)[1] == [3, 4, 5]
+    two_valleys = [3.0, 1.0, 3.0, 4.0, 2.0, 0.5, 2.0]
+    assert walk(two_valleys, 2)[0] == 1 and walk(two_valleys, 3)[0] == 5
+    assert walk([1.0, 2.0, 3.0], 2) == (0, [1, 2, 0])
+    with pytest.raises(ValueError, match="outside the grid"):
+        grid_descent(3, 3, lambda i: 0.0)
+
+
+def test_the_coarse_search_walks_the_second_frictions_grid_from_the_first_ones_best():
+    """With five grid values the first friction runs them all and the second only walks downhill from the first's
+    best E, so it tries fewer; every row tried is recorded in ascending E per friction, and the picked pair is the
+    lowest of all rows."""
+    from vid2sim.reconstruct.stages.joint import coarse_search
+
+    sim, gaussians, cams, images = _own_motion(6, 4.8, 0.3, 0.05, [1.2, 0.0, -1.0], [0.0, 0.0, 0.0], friction=0.0)
+    cfg = JointConfig(fit_friction=True, coarse_log10_E=(5.6, 4.0, 4.4, 4.8, 5.2), coarse_friction=(0.0, 0.5))
+    records = coarse_search(sim, GaussianRig(sim, gaussians),
+                            lambda: sim.rigid_velocity_state([1.2, 0.0, -1.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]),
+                            Observations(images, cams), cfg)
+    first = [r["log10_E"] for r in records if r["floor_friction"] == 0.0]
+    second = [r["log10_E"] for r in records if r["floor_friction"] == 0.5]
+    assert first == [4.0, 4.4, 4.8, 5.2, 5.6]
+    assert second == sorted(second) and 2 <= len(second) < 5
+    best = min(records, key=lambda r: r["loss"])
+    assert floor_friction(sim) == best["floor_friction"] == 0.0

@@ -227,6 +227,13 @@ def marquardt_step(hessian: Tensor, gradient: Tensor, theta: Sequence[float], pa
     return [min(max(float(theta[j] + delta[j]), lower[j]), upper[j]) for j in range(p)]
 
 
+def predicted_decrease(hessian: Tensor, gradient: Tensor, theta: Sequence[float], trial: Sequence[float]) -> float:
+    """The decrease of Φ the Gauss–Newton model (Φ's ``hessian`` (p, p) and ``gradient`` (p,) at θ) predicts for the
+    move from θ to ``trial``: −(gᵀΔ + ½ ΔᵀHΔ)."""
+    delta = torch.tensor(list(trial), dtype=torch.float64) - torch.tensor(list(theta), dtype=torch.float64)
+    return float(-(gradient @ delta + 0.5 * delta @ (hessian @ delta)))
+
+
 @dataclass
 class FitResult:
     """What :func:`levenberg_marquardt` found.
@@ -262,8 +269,9 @@ def levenberg_marquardt(model: ClipModel, parameters: Sequence[Parameter], theta
         parameters: the p parameters (bounds, difference steps, priors); θ0 must lie in the bounds.
         n: the effective number of measurements (:func:`effective_images`).
         iterations: at most this many Jacobians (each p + 1 rollouts, plus the trial steps).
-        tolerance: stop when an accepted step lowers Φ by less than this (Φ is in units of log-likelihood, so
-            1e-3 is a change of the loss of 2e-3 / n of itself).
+        tolerance: stop when an accepted step lowers Φ by less than this, or when the Gauss–Newton model predicts
+            less for the first trial step (:func:`predicted_decrease`; then no trial is simulated). Φ is in units of
+            log-likelihood: 0.05 is a change of the loss of 0.1 / n of itself.
         patience: stop when ``validate`` has not improved on its best for this many accepted steps.
         validate: θ, its trajectory → the validation loss (e.g. the clip at full resolution); the kept θ is
             the best by it, the start included. None: the last accepted θ is kept.
@@ -288,11 +296,16 @@ def levenberg_marquardt(model: ClipModel, parameters: Sequence[Parameter], theta
         t0 = time.perf_counter()
         lin = linearise(model, parameters, theta, trajectory)  # the trajectory used θ's automatic substeps
         hessian, gradient = posterior_curvature(lin, parameters, n)
-        rollouts, accepted = p + 1, False
+        rollouts, accepted, predicted, settled = p + 1, False, None, False
         for _ in range(6):
             trial = marquardt_step(hessian, gradient, theta, parameters, damping)
             if trial == theta:
                 break
+            if predicted is None:
+                predicted = predicted_decrease(hessian, gradient, theta, trial)
+                settled = predicted < tolerance
+                if settled:
+                    break
             try:
                 trial_trajectory = model.simulate(trial)
                 trial_loss = trajectory_loss(model, trial_trajectory)
@@ -304,14 +317,16 @@ def levenberg_marquardt(model: ClipModel, parameters: Sequence[Parameter], theta
                 accepted = True
                 break
             damping *= 4.0
-        entry: dict[str, Any] = {"iteration": it, "damping": damping, "accepted": accepted, "rollouts": rollouts}
+        entry: dict[str, Any] = {"iteration": it, "damping": damping, "accepted": accepted, "rollouts": rollouts,
+                                 "predicted_decrease": predicted}
         if not accepted:
             entry.update(loss=loss, objective=phi, **dict(zip((q.name for q in parameters), theta)),
                          ms=1000 * (time.perf_counter() - t0))
             log.append(entry)
             if on_iteration is not None:
                 on_iteration(entry)
-            stop = "no step lowers the objective"
+            stop = "converged: the Gauss–Newton model predicts a decrease below the tolerance" if settled \
+                else "no step lowers the objective"
             break
         decrease = phi - trial_phi
         theta, trajectory, loss, phi = trial, trial_trajectory, trial_loss, trial_phi

@@ -510,9 +510,12 @@ def coarse_search(sim: Simulator, rig: GaussianRig, start: Callable[[], SimState
     :func:`clip_loss` at each grid value from ``start()``; the simulator is left at :func:`coarse_minimum`.
     With ``cfg.fit_friction`` and a floor, the same over E at each floor friction of ``cfg.coarse_friction``: friction
     changes which E explains the bounce. With ``contacts`` (contact surfaces by name, :func:`joint_optimisation`), the
-    same again for each surface. The simulator is left with the friction and surface whose best grid loss is lowest,
-    at that pair's E. Returns one ``{"log10_E", "loss"}`` (and ``"floor_friction"``, ``"contact_surface"``) per grid
-    value."""
+    same again for each surface. The first (surface, friction) pair runs the whole grid; each further pair walks it
+    downhill from the best E found so far (:func:`grid_descent`) and stops at a minimum of its own on the grid, both
+    neighbours tried, or at an end of the grid: a frictional rollout costs 2–3 frictionless ones, and on 19 scenes a
+    friction of 0.5 moved the grid's best E by at most 5 steps. The simulator is left with the friction and surface
+    whose best grid loss is lowest, at that pair's E. Returns one ``{"log10_E", "loss"}`` (and ``"floor_friction"``,
+    ``"contact_surface"``) per log10 E tried, each pair's rows in ascending E."""
     from tqdm.auto import tqdm
 
     coarse: list[dict[str, Any]] = []
@@ -522,35 +525,70 @@ def coarse_search(sim: Simulator, rig: GaussianRig, start: Callable[[], SimState
     if cfg.fit_friction and any(isinstance(e, Floor) for e in sim.externals):
         frictions = sorted({floor_friction(sim), *cfg.coarse_friction})
     surfaces: list[str | None] = list(contacts) if contacts and len(contacts) > 1 else [None]
-    grid = [(surface, mu, value) for surface in surfaces for mu in frictions for value in cfg.coarse_log10_E]
+    values = sorted(float(v) for v in cfg.coarse_log10_E)
     searched = " and the floor's friction" if len(frictions) > 1 else ""
     searched += " and the contact surface" if len(surfaces) > 1 else ""
-    bar = tqdm(grid, desc="coarse search over log10 E" + searched, disable=not progress, leave=False)
-    for surface, mu, value in bar:
-        if surface is not None and (not coarse or coarse[-1].get("contact_surface") != surface):
+    bar = tqdm(total=len(surfaces) * len(frictions) * len(values), desc="coarse search over log10 E" + searched,
+               disable=not progress, leave=False)
+    for k, (surface, mu) in enumerate((surface, mu) for surface in surfaces for mu in frictions):
+        if surface is not None:
             sim.set_contact(*contacts[surface])
-        with torch.no_grad():
-            sim.log10_E.fill_(value)
         if mu is not None:
             set_floor_friction(sim, mu)
-        loss, _ = clip_loss(sim, rig, _detached(start()), obs, cfg.frame_decay)
-        row: dict[str, Any] = {"log10_E": value, "loss": loss}
-        if mu is not None:
-            row["floor_friction"] = mu
-        if surface is not None:
-            row["contact_surface"] = surface
-        coarse.append(row)
-        bar.set_postfix(log10_E=value, loss=f"{loss:.2e}")
+        rows: dict[int, dict[str, Any]] = {}
+
+        def loss_at(i: int) -> float:
+            with torch.no_grad():
+                sim.log10_E.fill_(values[i])
+            loss, _ = clip_loss(sim, rig, _detached(start()), obs, cfg.frame_decay)
+            row: dict[str, Any] = {"log10_E": values[i], "loss": loss}
+            if mu is not None:
+                row["floor_friction"] = mu
+            if surface is not None:
+                row["contact_surface"] = surface
+            rows[i] = row
+            bar.update(1)
+            bar.set_postfix(log10_E=values[i], loss=f"{loss:.2e}")
+            return loss
+
+        if k == 0:
+            for i in range(len(values)):
+                loss_at(i)
+        else:
+            grid_descent(len(values), values.index(coarse_best(coarse)["log10_E"]), loss_at)
+        coarse.extend(rows[i] for i in sorted(rows))
+    bar.close()
     best = coarse_best(coarse)
-    rows = [r for r in coarse if r.get("floor_friction") == best.get("floor_friction")
-            and r.get("contact_surface") == best.get("contact_surface")]
+    rows_best = [r for r in coarse if r.get("floor_friction") == best.get("floor_friction")
+                 and r.get("contact_surface") == best.get("contact_surface")]
     with torch.no_grad():
-        sim.log10_E.fill_(coarse_minimum([r["log10_E"] for r in rows], [r["loss"] for r in rows]))
+        sim.log10_E.fill_(coarse_minimum([r["log10_E"] for r in rows_best], [r["loss"] for r in rows_best]))
     if "floor_friction" in best:
         set_floor_friction(sim, best["floor_friction"])
     if "contact_surface" in best:
         sim.set_contact(*contacts[best["contact_surface"]])
     return coarse
+
+
+def grid_descent(n: int, start: int, loss_at: Callable[[int], float]) -> int:
+    """Walk a grid of ``n`` points downhill from index ``start``: ``loss_at`` of it and its neighbours, then of the
+    lowest one's, until the lowest is the one walked to (both its neighbours tried and higher) or an end of the grid.
+    Each index is evaluated once. Returns the index of that local minimum."""
+    if not 0 <= start < n:
+        raise ValueError(f"the start index {start} lies outside the grid of {n} points")
+    seen: dict[int, float] = {}
+
+    def f(i: int) -> float:
+        if i not in seen:
+            seen[i] = loss_at(i)
+        return seen[i]
+
+    i = start
+    while True:
+        best = min((j for j in (i - 1, i, i + 1) if 0 <= j < n), key=f)
+        if best == i:
+            return i
+        i = best
 
 
 def _full_resolution_validation(clip: ClipResiduals, rig: GaussianRig, observations: Observations,
