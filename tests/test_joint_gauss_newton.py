@@ -492,3 +492,24 @@ def test_the_coarse_search_walks_the_second_frictions_grid_from_the_first_ones_b
     assert second == sorted(second) and 2 <= len(second) < 5
     best = min(records, key=lambda r: r["loss"])
     assert floor_friction(sim) == best["floor_friction"] == 0.0
+
+
+def test_the_kept_states_jacobian_is_reused_when_a_later_step_made_it():
+    """When the validation keeps an earlier θ than the last, its intervals come from the Jacobian made at it during
+    the fit, not from a new one: no rollouts after the last iteration's, and the same blocks as a fresh one."""
+    clip = CountingClip(2.0, 0.3)
+    params = [Parameter("a", 0.0, 10.0, 1e-6), Parameter("k", 0.0, 2.0, 1e-6)]
+    calls = []
+
+    def validate(theta, trajectory):  # prefers the first step's θ over every later one
+        calls.append(list(theta))
+        return 0.0 if len(calls) == 2 else 1.0
+
+    fit = levenberg_marquardt(clip, params, [1.0, 0.8], n=12.0, iterations=3, tolerance=1e-12, validate=validate,
+                              patience=5)
+    assert fit.theta == calls[1] and fit.log[-1]["accepted"] and fit.theta != calls[-1]
+    # the start, then each iteration's (its logged count includes θ's own trajectory, already made); nothing after
+    expected = 1 + sum(e["rollouts"] - 1 for e in fit.log[1:])
+    assert clip.rollouts == expected
+    fresh = linearise(clip, params, fit.theta)
+    assert torch.equal(fit.linearisation.frame_hessian, fresh.frame_hessian)

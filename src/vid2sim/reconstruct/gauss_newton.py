@@ -292,9 +292,11 @@ def levenberg_marquardt(model: ClipModel, parameters: Sequence[Parameter], theta
                                   **dict(zip((q.name for q in parameters), theta)),
                                   **({"validation_loss": best_val} if best_val is not None else {})}]
     damping, stop, lin = 1e-2, f"{iterations} iterations", None
+    made: dict[tuple[float, ...], Linearisation] = {}  # every θ's Jacobian, for the kept θ's intervals
     for it in range(1, iterations + 1):
         t0 = time.perf_counter()
         lin = linearise(model, parameters, theta, trajectory)  # the trajectory used θ's automatic substeps
+        made[tuple(theta)] = lin
         hessian, gradient = posterior_curvature(lin, parameters, n)
         rollouts, accepted, predicted, settled = p + 1, False, None, False
         for _ in range(6):
@@ -351,7 +353,8 @@ def levenberg_marquardt(model: ClipModel, parameters: Sequence[Parameter], theta
         if validate is not None and since_best >= patience:
             stop = f"the validation loss has not improved for {patience} steps"
             break
-    final = lin if lin is not None and lin.theta == best_theta else \
+    kept = tuple(best_theta)
+    final = made[kept] if kept in made else \
         linearise(model, parameters, best_theta, trajectory if theta == best_theta else None)
     return FitResult(best_theta, final, best_phi, best_val, start_val, log, stop)
 
