@@ -6,6 +6,7 @@ On a GPU machine, ``python -m pytest -m cuda`` runs exactly the GPU checks.
 """
 
 import os
+import shutil
 from pathlib import Path
 
 import pytest
@@ -85,6 +86,28 @@ def tiny_config():
     return _tiny_reconstruct_config
 
 
+def _built_once(tmp_path_factory, name: str, build) -> Path:
+    """``build(folder)`` (a new folder → the path it made) once per test run: under pytest-xdist the workers share
+    one build in the run's common temporary folder, the first to need it making it under a file lock while the
+    others wait (the tiny asset took about 40 s of each worker on two cores). Its users only read it (those that
+    write copy it first), as they did within one worker."""
+    worker = os.environ.get("PYTEST_XDIST_WORKER")
+    if not worker:
+        return build(tmp_path_factory.mktemp(name))
+    from filelock import FileLock
+
+    root = tmp_path_factory.getbasetemp().parent / "shared"
+    root.mkdir(exist_ok=True)
+    done = root / f"{name}.done"
+    with FileLock(str(root / f"{name}.lock")):
+        if not done.is_file():
+            folder = root / name
+            shutil.rmtree(folder, ignore_errors=True)
+            folder.mkdir()
+            done.write_text(str(build(folder)))
+    return Path(done.read_text())
+
+
 @pytest.fixture(scope="session")
 def tiny_scene(tmp_path_factory):
     """A 4-view (1 held out), 40x40, 6-frame synthetic drop scene folder.
@@ -95,11 +118,11 @@ def tiny_scene(tmp_path_factory):
     that way)."""
     from vid2sim.synthetic.scenes import SyntheticSceneConfig, make_scene
 
-    out = tmp_path_factory.mktemp("scene") / "drop"
     tets = Path(__file__).parent / "data" / "tiny_scene_tets.npz"
     config = SyntheticSceneConfig.preset("small", seed=1, frames=6, observed_frames=5, resolution=40, views=4,
                                          held_out_views=1, substeps=4, tet_mesh=str(tets))
-    return make_scene(config, out, progress=False)
+    return _built_once(tmp_path_factory, "tiny_scene", lambda folder: make_scene(config, folder / "drop",
+                                                                                  progress=False))
 
 
 @pytest.fixture(scope="session")
@@ -109,10 +132,10 @@ def tiny_asset(tiny_scene, tmp_path_factory):
 
     from vid2sim.reconstruct.pipeline import reconstruct
 
-    out = tmp_path_factory.mktemp("asset") / "asset"
     config = _tiny_reconstruct_config()
     config.simulator.mass = "moments"
-    return reconstruct(tiny_scene, out, config, progress=False)
+    return _built_once(tmp_path_factory, "tiny_asset", lambda folder: reconstruct(tiny_scene, folder / "asset", config,
+                                                                                  progress=False))
 
 
 def box_points(n: int, seed: int, size=(0.6, 0.4, 0.6), dtype=torch.float64) -> torch.Tensor:

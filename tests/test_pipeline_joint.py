@@ -391,10 +391,12 @@ def test_an_asset_keeps_its_stiffness_curve_and_the_rig_uses_it_at_its_nu(tmp_pa
 
 @pytest.mark.slow
 def test_bench_speed_joint_section_times_one_iteration():
-    from vid2sim.apps.bench.joint_speed import run
+    from vid2sim.apps.bench.joint_speed import QUICK_GAUSSIANS, QUICK_RESOLUTION, run
 
     result = run(torch.device("cpu"), quick=True)
-    assert result["joint_settings"]["gaussians"] == 6000 and result["joint_settings"]["views"] == 4
+    settings = result["joint_settings"]
+    assert (settings["gaussians"], settings["views"]) == (QUICK_GAUSSIANS, 4)
+    assert (settings["resolution"], settings["gauss_newton_resolution"]) == (QUICK_RESOLUTION, QUICK_RESOLUTION // 2)
     for key in ("joint_iter_ms", "joint_iter_ms_half_resolution", "joint_iter_ms_with_networks",
                 "joint_iter_ms_with_networks_neural_jacobian", "joint_gauss_newton_step_ms"):
         assert 0 < result[key] < 60_000

@@ -60,6 +60,9 @@ from vid2sim.reconstruct.stages.joint import (
 from vid2sim.splats.cameras import camera_ring
 from vid2sim.splats.gaussians import Gaussians
 
+#: the small preset's cap of Gaussians and its observed views' resolution; ``quick``'s smaller ones
+GAUSSIANS, RESOLUTION = 6000, 128
+QUICK_GAUSSIANS, QUICK_RESOLUTION = 1500, 64
 #: the bench drop's initial velocity about the box's centre: linear (m/s) and angular (rad/s)
 START_LINEAR_VELOCITY = (0.1, 0.0, -1.0)
 START_ANGULAR_VELOCITY = (0.0, 1.0, 0.0)
@@ -83,8 +86,9 @@ class JointBench:
 
     Attributes:
         sim: the simulator (floor with 1 000 area-weighted contact points, E guessed at 10^5.3).
-        rig: the 6 000 Gaussians on the box's surface, moved by ``sim``.
-        full: the target images (V = 4, T = 10, 128, 128, 3) and cameras; ``half`` the same at 64².
+        rig: the 6 000 Gaussians on the box's surface (``quick``: 1 500), moved by ``sim``.
+        full: the target images (V = 4, T = 10, 128, 128, 3; ``quick``: 64²) and cameras; ``half`` the same at
+            half the resolution.
         fixed: the rig's basis at the Gaussians with the networks fixed (``rig.basis()``).
         window_start: the state the 4-frame window starts from (frame 5).
     """
@@ -157,9 +161,11 @@ class JointBench:
 
 def build_joint_bench(device: torch.device, settings: PhysicsBenchSettings | None = None,
                       quick: bool = False) -> JointBench:
-    """The joint setting of the module docstring (``quick``: a 20-iteration skinning pretraining)."""
+    """The joint setting of the module docstring (``quick``: a 20-iteration skinning pretraining, 1 500 Gaussians
+    and 64² images, a check that the figures come out at a quarter of the cost)."""
 
     s = settings or PhysicsBenchSettings()
+    n, resolution = (QUICK_GAUSSIANS, QUICK_RESOLUTION) if quick else (GAUSSIANS, RESOLUTION)
     if quick:
         s = replace(s, skinning_pretrain_iters=20)
     base, pts = build_standard_simulator(s, device)
@@ -168,17 +174,17 @@ def build_joint_bench(device: torch.device, settings: PhysicsBenchSettings | Non
     sim = Simulator(base.field, base.X, base.vol, base.material,
                     [Gravity(), Floor(height=s.floor_height, stiffness=AREA_CONTACT_STIFFNESS)], base.config,
                     length_scale=1.0, contact_points=contact.to(pts), contact_weights=areas.to(pts))
-    centres, _ = _box_surface(6000, size.double().cpu(), s.seed + 1)
+    centres, _ = _box_surface(n, size.double().cpu(), s.seed + 1)
     g = torch.Generator().manual_seed(s.seed)
-    gaussians = Gaussians.from_values(centres.to(pts), torch.full((6000,), 0.012, device=device),
-                                      (0.2 + 0.6 * torch.rand(6000, 3, generator=g)).to(pts),
-                                      torch.full((6000,), 0.9, device=device))
-    cams = camera_ring(4, 2.4, 20.0, 128, 128, fov_x_deg=40.0, target=(0.0, 0.0, -0.4))
+    gaussians = Gaussians.from_values(centres.to(pts), torch.full((n,), 0.012, device=device),
+                                      (0.2 + 0.6 * torch.rand(n, 3, generator=g)).to(pts),
+                                      torch.full((n,), 0.9, device=device))
+    cams = camera_ring(4, 2.4, 20.0, resolution, resolution, fov_x_deg=40.0, target=(0.0, 0.0, -0.4))
     rig = GaussianRig(sim, gaussians)
     start = sim.rigid_velocity_state(list(START_LINEAR_VELOCITY), list(START_ANGULAR_VELOCITY), [0.0, 0.0, 0.0])
     with torch.no_grad():
         states = [start] + sim.rollout(start, 9)
-        target = render_states(rig, states, Observations(torch.zeros(4, 10, 128, 128, 3), cams),
+        target = render_states(rig, states, Observations(torch.zeros(4, 10, resolution, resolution, 3), cams),
                                range(4)).transpose(0, 1)  # (V, T, H, W, 3)
     full = Observations(target, cams)
     with torch.no_grad():
@@ -227,7 +233,8 @@ def run(device: torch.device, quick: bool = False, settings: PhysicsBenchSetting
         "joint_iter_ms_with_networks": closed_form,
         "joint_iter_ms_with_networks_neural_jacobian": neural,
         "joint_gauss_newton_step_ms": gauss_newton,
-        "joint_settings": {"gaussians": 6000, "views": 4, "resolution": 128, "window": 4, "contact_points": 1000,
+        "joint_settings": {"gaussians": bench.rig.gaussians.num, "views": 4,
+                           "resolution": int(bench.full.images.shape[2]), "window": 4, "contact_points": 1000,
                            "substeps": sim.substeps(), "gauss_newton_parameters": gauss_newton_parameters,
-                           "gauss_newton_resolution": 64},
+                           "gauss_newton_resolution": int(bench.half.images.shape[2])},
     }
