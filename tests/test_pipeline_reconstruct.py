@@ -86,6 +86,7 @@ def test_a_calibrated_reconstruction_records_and_uses_its_stiffness_scale(tiny_s
     cfg = tiny_config()
     cfg.calibration.enabled, cfg.calibration.cells, cfg.calibration.points = True, 24, 20000
     cfg.calibration.nu, cfg.simulator.volumetric = "curve", "projected"  # the projected volumetric term end to end
+    cfg.joint.gauss_newton_iterations = 0  # the coarse search's material: the fit is not what this test checks
     # the caller's thread count is restored (one per pytest-xdist worker on 2 cores: setting two here, beside the
     # other worker and the child, oversubscribed them, 78 s in the suite); giving the child one of two: next test
     threads = torch.get_num_threads()
@@ -594,6 +595,7 @@ def test_a_drop_that_meets_the_floor_by_frame_1_still_reconstructs(tiny_scene, t
     config = tiny_config()
     config.motion_appearance.iterations = 0  # and the last stage switched off
     config.joint.contact_search = True
+    config.joint.gauss_newton_iterations = 0  # the coarse search is what this test checks, not the fit after it
     out = reconstruct(tiny_scene, tmp_path / "asset", config, progress=False)
     assert calls == [pytest.approx(-0.7), None]  # then frames 0 and 1 without the floor test
     extra = json.loads((out / "asset.json").read_text())["extra"]
@@ -647,6 +649,7 @@ def test_stage1_sets_the_prior_the_coarse_grid_and_the_skinning_start(tiny_scene
         str(ckpt),
         True,
     )  # Stage I needs the template's 10 handles
+    cfg.joint.gauss_newton_iterations = cfg.motion_appearance.iterations = 0  # what follows the coarse search
     out = reconstruct(tiny_scene, tmp_path / "asset", cfg, progress=False)
     s1 = json.loads((out / "log.json").read_text())["stage1"]
     assert s1["ran"] and s1["checkpoint"] == str(ckpt) and s1["seconds"] > 0
