@@ -137,13 +137,13 @@ def test_variants_apply_to_the_preset_or_the_given_config(tiny_config):
     # everything else is the given config's; the given config is untouched
     assert {k: v for k, v in s1.to_dict().items() if k not in ("stage1", "joint")} == \
         {k: v for k, v in base.to_dict().items() if k not in ("stage1", "joint")}
-    assert base.stage1.enabled is False and base.stage1.predictor is None and base.joint.gauss_newton_iterations == 2
+    assert base.stage1.enabled is False and base.stage1.predictor is None and base.joint.gauss_newton_iterations == 1
     # the iterations are the default method's (Gauss-Newton steps); Stage I alone runs none of either method
     assert (full.joint.method, full.joint.gauss_newton_iterations, full.joint.iterations) == ("gauss_newton", 7, 2)
     assert (s1.joint.gauss_newton_iterations, s1.joint.iterations) == (0, 0)
     windows = dataclasses.replace(base, joint=dataclasses.replace(base.joint, method="windows"))
     adam = variant_configs(SuiteConfig(reconstruct=windows, iterations=7))["stage2_prior"].reconstruct_config()
-    assert (adam.joint.iterations, adam.joint.gauss_newton_iterations) == (7, 2)
+    assert (adam.joint.iterations, adam.joint.gauss_newton_iterations) == (7, 1)
     assert [configs[n].iterations for n in NAMES] == [0, 7, 7] and all(configs[n].threads == 1 for n in NAMES)
     # Stage I alone does not depend on the iterations; the preset's settings are used without a config
     assert variant_configs(SuiteConfig(iterations=3))["stage1_only"].to_dict() == \

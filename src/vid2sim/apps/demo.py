@@ -50,7 +50,7 @@ TINY = {"gaussians": {"iterations": 30, "densify": {"max_gaussians": 5000}},
         "appearance": {"iterations": 5}, "motion_appearance": {"iterations": 5},
         "networks": {"handles": 3, "skinning_iterations": 10}, "simulator": {"cubature": 60},
         "calibration": {"enabled": False},
-        "joint": {"iterations": 2, "gauss_newton_iterations": 2, "coarse_log10_E": [4.5, 5.0], "validate_every": 1,
+        "joint": {"iterations": 2, "gauss_newton_iterations": 1, "coarse_log10_E": [4.5, 5.0], "validate_every": 1,
                   "window": 2}}
 
 

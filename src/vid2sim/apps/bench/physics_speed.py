@@ -110,7 +110,7 @@ def run(device: torch.device, quick: bool = False, settings: PhysicsBenchSetting
         s.skinning_pretrain_iters, s.train_timing_iters = 20, 2
     repeats = 1 if quick else 7  # medians over several runs: a shared 2-core machine is noisy
     sim, pts = build_standard_simulator(s, device)
-    timer = _Timer(sim, sim.rest_state(), s, device, repeats)
+    timer = _Timer(sim, sim.rest_state(), s, device, repeats, warmup=0 if quick else 1)
     default = sim.config
     one_step = replace(default, substeps=1, integrator="implicit_euler")
     frames, states, ie_states = _frame_figures(timer, pts, default, one_step, quick)
@@ -121,13 +121,15 @@ def run(device: torch.device, quick: bool = False, settings: PhysicsBenchSetting
 
 @dataclass
 class _Timer:
-    """Times ``sim`` from its ``rest`` state on ``device``: medians over ``repeats`` runs."""
+    """Times ``sim`` from its ``rest`` state on ``device``: medians over ``repeats`` runs after ``warmup`` runs
+    (``quick``: none, a check that the figures come out)."""
 
     sim: Simulator
     rest: SimState
     settings: PhysicsBenchSettings
     device: torch.device
     repeats: int
+    warmup: int = 1
 
     def rollout(self, config: SimConfig) -> tuple[float, list[SimState]]:
         """ms per frame of the ``settings.steps`` frames from rest with ``config``, without gradients, and those
@@ -136,7 +138,7 @@ class _Timer:
         sim.config = config
         with torch.no_grad():
             states = sim.rollout(self.rest, s.steps)
-            ms = time_ms(lambda: sim.rollout(self.rest, s.steps), self.device, self.repeats)
+            ms = time_ms(lambda: sim.rollout(self.rest, s.steps), self.device, self.repeats, self.warmup)
         return ms / s.steps, states
 
 
@@ -232,7 +234,7 @@ def _window_ms(timer: _Timer, config: SimConfig, start: SimState, params: list[t
             loss = sum(((sim.positions(sim.X, st.z) - cub_target) ** 2).mean() for st in out)
         torch.autograd.grad(loss, params, allow_unused=True)
 
-    return time_ms(run_window, timer.device, timer.repeats)
+    return time_ms(run_window, timer.device, timer.repeats, timer.warmup)
 
 
 def _training_figures(sim: Simulator, pts: torch.Tensor, s: PhysicsBenchSettings, device: torch.device

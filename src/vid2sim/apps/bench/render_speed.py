@@ -86,7 +86,7 @@ def time_render(
 
 def run(device: torch.device, quick: bool = False) -> dict[str, float | str]:
     """Renderer timings (see module docstring). ``device`` is ignored for ``render_ms`` (always CPU)."""
-    repeats = 3 if quick else 7
+    repeats = 1 if quick else 7
     result: dict[str, float | str] = {
         "render_ms": time_render(20_000, 4, 128, torch.device("cpu"), backend="torch", repeats=repeats)
     }
