@@ -112,6 +112,23 @@ def _built_once(tmp_path_factory, name: str, build) -> Path:
 
 
 @pytest.fixture(scope="session")
+def ray_slot(tmp_path_factory):
+    """A context manager factory: ``with ray_slot():`` holds the run's one slot for a local Ray instance. Under
+    pytest-xdist the workers take it in turn (a file lock in the run's common temporary folder): two local
+    instances side by side, each with its own worker processes, beside a third pytest worker oversubscribed two
+    cores several times over (a 11 s Ray test took 100 s). A worker waiting for the slot leaves the cores to the
+    others."""
+    from contextlib import nullcontext
+
+    if not os.environ.get("PYTEST_XDIST_WORKER"):
+        return nullcontext
+    from filelock import FileLock
+
+    path = str(tmp_path_factory.getbasetemp().parent / "ray.lock")
+    return lambda: FileLock(path)
+
+
+@pytest.fixture(scope="session")
 def tiny_scene(tmp_path_factory):
     """A 4-view (1 held out), 40x40, 6-frame synthetic drop scene folder.
 

@@ -43,16 +43,16 @@ _RUNS: dict[str, dict] = {}
 
 
 @pytest.fixture(scope="module")
-def ray_local():
+def ray_local(ray_slot):
     """A local Ray instance (2 CPUs) for the whole module, started through the runner's own "local" mode,
-    or None without Ray. Every Ray call below reuses it."""
+    or None without Ray. Every Ray call below reuses it; it holds the run's Ray slot (tests/conftest.py)."""
     from vid2sim.runtime.ray_runner import ray_session
 
     if importlib.util.find_spec("ray") is None:
         yield None
         return
     t0 = time.perf_counter()
-    with ray_session("local", num_cpus=2) as ray:  # a failure to start Ray fails the tests that need it
+    with ray_slot(), ray_session("local", num_cpus=2) as ray:  # a failure to start Ray fails the tests that need it
         TIMINGS["ray_start_s"] = time.perf_counter() - t0
         yield ray
     for key, value in TIMINGS.items():

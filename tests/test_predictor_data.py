@@ -233,11 +233,12 @@ def test_two_runs_give_identical_shards_and_resume_remakes_only_what_is_missing(
     assert _sha(fresh / made[0]) == _sha(other / made[0])
 
 
-def test_ray_local_instance_gives_identical_shards(dataset, tmp_path):
+def test_ray_local_instance_gives_identical_shards(dataset, tmp_path, ray_slot):
     pytest.importorskip("ray")
     out, _ = dataset
     cfg = TrainingDataConfig(**{**TINY, "objects": 1})
-    index = make_training_data(cfg, tmp_path / "r", threads=1, ray_address="local", progress=False)
+    with ray_slot():
+        index = make_training_data(cfg, tmp_path / "r", threads=1, ray_address="local", progress=False)
     assert index["complete"] and index["last_run"]["ray_address"] == "local"
     assert _sha(tmp_path / "r" / "object_000000.npz") == _sha(out / "object_000000.npz")
 
