@@ -17,9 +17,9 @@ import torch
 def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
     """``-n auto`` (pyproject.toml's default): one worker per core and one more, at most 8 (each holds about
     1.5 GB). The extra one keeps the cores busy while another waits on a child process, a Ray start, a file lock
-    or the disk; each worker still gets one torch thread (:func:`pytest_configure`). On 2 cores: 16.5 min with two
-    workers (`2e98ed1`), 16.0 with three (`a466679`, which also cut the tiny preset's second Gauss–Newton step),
-    15.1 once local Ray instances took turns (`4334169`), 14.8 with the slowest files first (`376da9f`)."""
+    or the disk; each worker still gets one torch thread (:func:`pytest_configure`). On 2 cores, the tests of `a466679`:
+    16.5 min with two workers, 16.0 with three; 15.1 once local Ray instances took turns (`4334169`), 14.8 and 15.5
+    with the slowest files first (`376da9f`)."""
     cores = os.cpu_count() or 1
     return max(1, min(8, cores + 1))
 
