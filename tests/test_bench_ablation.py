@@ -297,7 +297,9 @@ def test_three_variants_stage_one_where_it_belongs_and_ablation_json(run):
     out, result, ckpt = run["out"], run["result"], run["ckpt"]
     assert sorted(p.name for p in out.iterdir()) == sorted(NAMES + [ABLATION_JSON])
     assert _json(out / ABLATION_JSON) == result
-    assert set(result) == {"suite", "preset", "predictor", "variants", "iterations_to_converge", "failed"}
+    assert set(result) == {"suite", "preset", "predictor", "variants", "iterations_to_converge", "failed",
+                           "shared_stages_up_to"}
+    assert result["shared_stages_up_to"] == "appearance"  # the snapshots' folder is gone (listing above)
     assert result["suite"] == str(run["suite"].resolve()) and result["predictor"] == str(ckpt.resolve())
     assert result["failed"] == 0 and list(result["variants"]) == NAMES
     assert (result["iterations_to_converge"]["tolerance_log10_E"], result["iterations_to_converge"]["tolerance_nu"]) \
@@ -320,6 +322,16 @@ def test_three_variants_stage_one_where_it_belongs_and_ablation_json(run):
         assert scene["stage1"] == logs[name]["stage1"]
         config = _json(out / name / SUITE_CONFIG_JSON)["reconstruct"]
         assert config["stage1"]["enabled"] == (name != "stage2_prior") and config["networks"]["handles"] == 10
+    # the first variant fitted the stages up to the appearance; the others started from its snapshot, and their
+    # timings and seconds still count those stages
+    shared = ("gaussians", "points", "velocity", "appearance")
+    first = logs["stage1_only"]["timings_seconds"]
+    assert logs["stage1_only"]["restored"] is None
+    for name in ("stage1_stage2", "stage2_prior"):
+        assert logs[name]["restored"] == {"stage": "appearance",
+                                          "seconds": pytest.approx(sum(first.get(s, 0.0) for s in shared))}
+        assert {s: logs[name]["timings_seconds"].get(s) for s in shared} == {s: first.get(s) for s in shared}
+        assert result["variants"][name]["scenes"][0]["seconds"] > logs[name]["restored"]["seconds"]
     # Stage I ran in the Stage I variants (with the given checkpoint) and not in the "w/o Stage I" one
     for name in ("stage1_only", "stage1_stage2"):
         assert logs[name]["stage1"]["ran"] is True and logs[name]["stage1"]["checkpoint"] == str(ckpt.resolve())

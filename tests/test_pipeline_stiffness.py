@@ -92,7 +92,11 @@ def test_the_tet_reference_runs_in_a_child_process_and_feeds_the_calibration(tmp
     with pytest.raises(ValueError, match="min_participation"):
         calibrate_stiffness(field, cubature, weights, None, 0.3, nus=(0.3, 0.45), factors=2, reference=there,
                             min_participation=0.0)
-    assert stored_reference(tmp_path / "ref.json", (0.3, 0.45), 6, LOCAL_MODE_PARTICIPATION) == there
-    assert stored_reference(tmp_path / "ref.json", (0.3, 0.45), 6, 0.0) is None
+    # stored with a digest of its inputs: reused for the same points and arguments only
+    arguments = {"nus": (0.3, 0.45), "k": 6, "cells": 32}
+    assert stored_reference(tmp_path / "ref.json", points, arguments) == there
+    assert stored_reference(tmp_path / "ref.json", points, {**arguments, "cells": 48}) is None
+    assert stored_reference(tmp_path / "ref.json", points, {**arguments, "min_participation": 0.0}) is None
+    assert stored_reference(tmp_path / "ref.json", points[1:], arguments) is None
     with pytest.raises(ValueError, match="no closed surface"):
         TetReferenceJob(np.zeros((3, 3)), tmp_path / "bad.json", nus=(0.3,), k=1).result()

@@ -23,6 +23,7 @@ from vid2sim.reconstruct.runner import (
     Context,
     Observed,
     ReconstructionError,
+    StageSnapshots,
     State,
     WorkFolder,
     cache_keys,
@@ -72,7 +73,8 @@ def observed(scene: Scene, device: torch.device) -> Observed:
 
 
 def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConfig | None = None,
-                progress: bool = True, restart: bool = False, device: str | torch.device | None = None) -> Path:
+                progress: bool = True, restart: bool = False, device: str | torch.device | None = None,
+                snapshots: StageSnapshots | None = None) -> Path:
     """Reconstruct the scene folder ``scene_path`` into the asset folder ``out`` (see the module docstring).
 
     ``device`` (None: CUDA when available, else the CPU) runs the Gaussian fits, the networks' training and
@@ -80,6 +82,11 @@ def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConf
     device is not part of the configuration: a run interrupted on one device resumes on another, and the asset
     is written with CPU tensors. While the stiffness calibration's tet reference runs in its child process (one
     thread), the stages run on one torch thread fewer than the caller's; the count is restored on return.
+
+    ``snapshots`` shares stages with other reconstructions of this scene
+    (:class:`~vid2sim.reconstruct.runner.StageSnapshots`): the run starts from the latest snapshot whose settings
+    match and saves one when each stage it names finishes. ``log.json`` ``"restored"`` names the stage restored and
+    the seconds its stages took where they ran (None when nothing was restored).
 
     Returns:
         the asset folder (readable with :func:`vid2sim.asset.load_asset`).
@@ -95,7 +102,7 @@ def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConf
     scene = load_scene(scene_path)
     check_scene(scene)
     stages = all_stages()
-    work = WorkFolder(out, cache_keys(stages, cfg, str(scene.root.resolve())), restart)
+    work = WorkFolder(out, cache_keys(stages, cfg, str(scene.root.resolve())), restart, snapshots)
     ctx = Context(config=cfg, scene=scene, observed=observed(scene, dev), device=dev, work=work, progress=progress,
                   threads=threads)
     torch.manual_seed(cfg.seed)
@@ -103,7 +110,10 @@ def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConf
         state = run_stages(stages, ctx, State())
     finally:
         torch.set_num_threads(threads)
-    log = {"timings_seconds": work.timings, "device": str(dev),
+    restored = None if work.restored is None else {
+        "stage": work.restored, "seconds": sum(work.timings.get(s.name, 0.0)
+                                                for s in stages[:STAGES.index(work.restored) + 1])}
+    log = {"timings_seconds": work.timings, "restored": restored, "device": str(dev),
            "device_name": torch.cuda.get_device_name(dev) if dev.type == "cuda" else "cpu", **state.log}
     save_asset(state.asset, out, config=cfg.to_dict(), log=log)
     shutil.rmtree(work.dir, ignore_errors=True)

@@ -9,7 +9,13 @@ finished stage and a finished stage's outputs are the same whether computed now 
 Each stage names the config sections it depends on (``sections``). Its cache key is those sections' values and
 the keys of the stages before it (every stage depends on the ones before), plus the scene; a finished stage whose
 key differs from the stored one is an error naming the stage (resume with the same settings, or ``--restart``).
-Settings of stages that have not run yet may change between runs.
+Settings of stages that have not run yet may change between runs. Each stage runs with torch's global generator
+seeded from the config's seed and its own name (:func:`stage_seed`), so a resumed run computes what an
+uninterrupted one does.
+
+Reconstructions of one scene whose settings agree up to a stage can share that stage's outputs
+(:class:`StageSnapshots`): the first saves a copy of its work folder when the stage finishes, the others start
+from the copy (``bench ablation``'s variants share the stages up to the appearance).
 
 A stage may also have a ``start`` method: called as soon as the stages before it are loaded, it may start work
 in a child process (:class:`BackgroundJob`) that its ``run`` joins later; while one runs, the stages in between
@@ -20,6 +26,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import shutil
 import time
 from dataclasses import dataclass, field
@@ -204,12 +211,75 @@ def cache_keys(stages: Sequence[Stage], config: ReconstructConfig, scene: str) -
     return keys
 
 
+def stage_seed(seed: int, stage: str) -> int:
+    """The seed of torch's global generator while ``stage`` runs: a hash of the config's ``seed`` and the stage's
+    name (so it does not depend on which stages ran in this process before it)."""
+    return int.from_bytes(hashlib.sha256(f"{seed}:{stage}".encode()).digest()[:7], "little")
+
+
+@dataclass(frozen=True)
+class StageSnapshots:
+    """Copies of a work folder taken as named stages finish, shared by reconstructions of the same scene.
+
+    ``dir/STAGE-KEY/`` holds the work folder as it was when ``STAGE`` finished with cache key ``KEY`` (its files,
+    ``done`` markers and timings; not ``keys.json``). A reconstruction given the same snapshots and whose key for
+    such a stage is the same (same scene, same settings up to that stage) starts from the latest one instead of
+    running the stages up to it; its ``timings.json`` then holds the seconds those stages took when they ran, so a
+    run's reported time is what it would have cost alone. A snapshot is written whole (a temporary folder renamed
+    into place) and never replaced.
+
+    Attributes:
+        dir: the snapshots' folder (one per scene: the keys hold the scene's path, but one folder a scene keeps
+            them apart for a reader); stages: the stages after which a snapshot is saved.
+    """
+
+    dir: Path
+    stages: tuple[str, ...]
+
+    def path(self, stage: str, key: str) -> Path:
+        """The snapshot of ``stage`` finished with cache ``key``."""
+        return Path(self.dir) / f"{stage}-{key[:24]}"
+
+    def restore(self, work: Path, keys: dict[str, str]) -> str | None:
+        """Copy into the folder ``work`` the latest snapshot that matches ``keys`` (stage name → cache key, in the
+        stages' order), unless ``work`` has already finished that stage; returns the stage restored, or None."""
+        for stage in reversed(list(keys)):
+            if stage in self.stages and self.path(stage, keys[stage]).is_dir():
+                if (work / f"{stage}.done").is_file():
+                    return None
+                for item in self.path(stage, keys[stage]).iterdir():
+                    if item.is_file():
+                        shutil.copy2(item, work / item.name)
+                return stage
+        return None
+
+    def save(self, work: Path, stage: str, key: str) -> None:
+        """Copy the folder ``work`` as the snapshot of ``stage`` (cache ``key``), unless there is one."""
+        target = self.path(stage, key)
+        if target.is_dir():
+            return
+        target.parent.mkdir(parents=True, exist_ok=True)
+        tmp = target.parent / f".{target.name}.{os.getpid()}.tmp"
+        shutil.rmtree(tmp, ignore_errors=True)
+        tmp.mkdir()
+        for item in work.iterdir():  # temporary files (".NAME.…") and the keys of the stages to come stay out
+            if item.is_file() and not item.name.startswith(".") and item.name != "keys.json":
+                shutil.copy2(item, tmp / item.name)
+        try:
+            tmp.rename(target)
+        except OSError:  # another run saved it first
+            shutil.rmtree(tmp, ignore_errors=True)
+
+
 class WorkFolder:
     """The stage cache beside the output folder: ``.OUT.work/`` with ``keys.json`` (each stage's cache key),
-    ``STAGE.done`` markers, ``timings.json`` and the stages' files."""
+    ``STAGE.done`` markers, ``timings.json`` and the stages' files; with ``snapshots``, it starts from the latest
+    matching snapshot and saves one as each of their stages finishes (:class:`StageSnapshots`)."""
 
-    def __init__(self, out: Path, keys: dict[str, str], restart: bool) -> None:
+    def __init__(self, out: Path, keys: dict[str, str], restart: bool,
+                 snapshots: StageSnapshots | None = None) -> None:
         self.dir = out.parent / f".{out.name}.work"
+        self.keys, self.snapshots = dict(keys), snapshots
         if restart and self.dir.exists():
             shutil.rmtree(self.dir)
         self.dir.mkdir(parents=True, exist_ok=True)
@@ -225,6 +295,8 @@ class WorkFolder:
             raise ReconstructionError(f"{self.dir} holds an interrupted reconstruction of an older vid2sim; run with "
                                       "--restart to start over")
         write_json_atomic(keys_path, keys)
+        #: the stage whose snapshot this folder started from (None: none)
+        self.restored = snapshots.restore(self.dir, keys) if snapshots is not None else None
         self.timings_path = self.dir / "timings.json"
         self.timings = read_json(self.timings_path, "stage timings", ReconstructionError) \
             if self.timings_path.is_file() else {}
@@ -239,6 +311,8 @@ class WorkFolder:
             self.timings[stage] = seconds
             write_json_atomic(self.timings_path, self.timings)
         (self.dir / f"{stage}.done").write_text("")
+        if self.snapshots is not None and stage in self.snapshots.stages:
+            self.snapshots.save(self.dir, stage, self.keys[stage])
 
 
 def run_stages(stages: Sequence[Stage], ctx: Context, state: State) -> State:
@@ -257,6 +331,7 @@ def run_stages(stages: Sequence[Stage], ctx: Context, state: State) -> State:
             t0 = time.perf_counter()
             if title is not None:
                 ctx.say(f"[{i + 1}/{len(stages)}] {title}")
+                torch.manual_seed(stage_seed(ctx.config.seed, stage.name))
                 stage.run(ctx, state)
             ctx.work.finish(stage.name, time.perf_counter() - t0 if title is not None else None)
         stage.load(ctx, state)

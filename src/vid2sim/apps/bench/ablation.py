@@ -13,7 +13,14 @@ Three variants of the reconstruction (:data:`VARIANTS`, in this order) each run 
 
 Each variant's folder is an ordinary ``bench suite`` results folder (``suite.json``, ``suite_config.json``,
 ``NAME/asset``, ``NAME/evaluation.json``, reports), so the ablation resumes exactly as ``bench suite`` does:
-finished scenes are skipped, failed and unfinished ones retried. ``OUT/ablation.json`` (written atomically
+finished scenes are skipped, failed and unfinished ones retried.
+
+The variants' settings agree up to the appearance stage (:func:`last_shared_stage`): the first variant saves a
+snapshot of each scene's reconstruction there (``OUT/.shared/NAME``,
+:class:`~vid2sim.reconstruct.runner.StageSnapshots`) and the others start from it, so the Gaussians, the points,
+the initial velocity and the appearance are fitted once a scene, not three times. Each variant's ``seconds``
+still counts those stages (what the variant costs alone). The snapshots are deleted when every variant has
+finished every scene. ``OUT/ablation.json`` (written atomically
 at the end) gathers the three, with the Stage II iterations each scene needed to converge
 (:func:`iterations_to_converge`); :func:`format_ablation_table` prints the paper's ablation layout, one row
 per variant.
@@ -30,6 +37,7 @@ import dataclasses
 import importlib.util
 import json
 import math
+import shutil
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Mapping, Sequence
@@ -44,6 +52,8 @@ from vid2sim.apps.bench.suite import (
 )
 from vid2sim.predictor.predict import DEFAULT_PREDICTOR
 from vid2sim.predictor.template import load_template
+from vid2sim.reconstruct.runner import StageSnapshots, cache_keys
+from vid2sim.reconstruct.stages import all_stages
 from vid2sim.report import write_suite_report
 from vid2sim.runtime.errors import InputError
 from vid2sim.runtime.files import write_json_atomic
@@ -53,6 +63,7 @@ if TYPE_CHECKING:
     from vid2sim.reconstruct.pipeline import ReconstructConfig
 
 ABLATION_JSON = "ablation.json"
+SHARED_DIR = ".shared"  # the stage snapshots the variants share, one folder a scene
 TOLERANCE_LOG10_E = 0.05  # decades
 TOLERANCE_NU = 0.01
 
@@ -182,6 +193,18 @@ def variant_configs(config: SuiteConfig | None = None, predictor: str | None = N
             for v in VARIANTS}
 
 
+def last_shared_stage(configs: Sequence["ReconstructConfig"]) -> str | None:
+    """The last reconstruction stage whose cache key is the same under every config of ``configs`` (so all stages
+    up to it compute the same outputs on a scene), or None when they differ from the first stage."""
+    keys = [cache_keys(all_stages(), c, "scene") for c in configs]
+    shared = None
+    for stage in keys[0]:
+        if any(k[stage] != keys[0][stage] for k in keys[1:]):
+            break
+        shared = stage
+    return shared
+
+
 def _check_stage1_possible(config: SuiteConfig, predictor: str | None) -> str:
     """Raise ValueError when Stage I could not run with these settings; returns the checkpoint's path."""
 
@@ -271,7 +294,8 @@ def run_ablation(suite_dir: str | Path, out_dir: str | Path, config: SuiteConfig
         the content of ``out_dir/ablation.json``: ``{"suite": path, "preset": str, "predictor": path,
         "variants": {name: {"label", "out", "means", "failed", "scenes"}}, "iterations_to_converge":
         {"tolerance_log10_E", "tolerance_nu", "definition", "variants": {name: {"mean", "mean_log10_E",
-        "mean_nu", "per_scene": {scene: int | None}, "not_settled": [scene, ...]}}}, "failed": int}``.
+        "mean_nu", "per_scene": {scene: int | None}, "not_settled": [scene, ...]}}}, "failed": int,
+        "shared_stages_up_to": the last stage the variants shared (:func:`last_shared_stage`) or None}``.
         ``means`` holds the :data:`vid2sim.apps.bench.suite.METRICS` means over the variant's finished scenes and
         ``iterations_to_converge`` (+ ``_log10_E``, ``_nu``) means over those where it is defined; ``scenes``
         are :func:`vid2sim.apps.bench.suite.run_scene` records with ``stage1`` (log.json's) and ``convergence``
@@ -300,6 +324,8 @@ def run_ablation(suite_dir: str | Path, out_dir: str | Path, config: SuiteConfig
         check_ray(ray_address)
     for name, cfg in configs.items():  # a resumed variant with other settings: refused before any work
         check_out(out / name, {"suite": str(suite), **cfg.to_dict()})
+    shared = last_shared_stage([c.reconstruct_config() for c in configs.values()])
+    snapshots = StageSnapshots(out / SHARED_DIR, (shared,)) if shared is not None else None
 
     variants: dict[str, Any] = {}
     convergence: dict[str, Any] = {}
@@ -307,7 +333,8 @@ def run_ablation(suite_dir: str | Path, out_dir: str | Path, config: SuiteConfig
         if progress:
             tqdm.write(f"[ablation {i + 1}/{len(VARIANTS)}] {variant.name}: {variant.label}")
         cfg = configs[variant.name]
-        result = run_suite(suite, out / variant.name, cfg, progress=progress, ray_address=ray_address)
+        result = run_suite(suite, out / variant.name, cfg, progress=progress, ray_address=ray_address,
+                           snapshots=snapshots)
         records = [_annotate(r, variant) for r in result["scenes"]]
         marked = [r for r, before in zip(records, result["scenes"]) if r["status"] != before["status"]]
         if marked:  # the variant's own suite.json and report must not count them as Stage I results either
@@ -336,8 +363,10 @@ def run_ablation(suite_dir: str | Path, out_dir: str | Path, config: SuiteConfig
                                 "(and |nu - final| <= tolerance_nu) for every later iteration; final = the "
                                 "asset's material (best validation); max of the two; 0 for stage1_only",
                   "variants": convergence},
-              "failed": sum(v["failed"] for v in variants.values())}
+              "failed": sum(v["failed"] for v in variants.values()), "shared_stages_up_to": shared}
     write_json_atomic(out / ABLATION_JSON, result)
+    if result["failed"] == 0:  # a rerun retries failed scenes: their snapshots stay until then
+        shutil.rmtree(out / SHARED_DIR, ignore_errors=True)
     return result
 
 

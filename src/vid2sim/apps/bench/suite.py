@@ -32,6 +32,7 @@ from typing import TYPE_CHECKING, Any
 
 from vid2sim.evaluate.scores import evaluate, write_evaluation
 from vid2sim.reconstruct.pipeline import ReconstructConfig, reconstruct
+from vid2sim.reconstruct.runner import StageSnapshots
 from vid2sim.report import write_report, write_suite_report
 from vid2sim.runtime.errors import ConfigError, InputError
 from vid2sim.runtime.files import write_json_atomic
@@ -138,6 +139,8 @@ class SceneTask:
     scene: str
     out: str
     config: SuiteConfig = field(default_factory=SuiteConfig)
+    #: stage snapshots shared with other runs on this scene (:class:`~vid2sim.reconstruct.runner.StageSnapshots`)
+    snapshots: StageSnapshots | None = None
 
 
 def run_scene(task: SceneTask, progress: bool = False) -> dict[str, Any]:
@@ -148,7 +151,8 @@ def run_scene(task: SceneTask, progress: bool = False) -> dict[str, Any]:
         the scene record of suite.json: ``name``, ``scene``, ``asset`` (path or None), ``status`` ("ok" |
         "failed"), ``error`` (``"Type: message"`` or None), ``evaluation`` (the evaluation.json dict or
         None), ``report`` (the scene's HTML report folder, ``OUT/NAME/report``), ``seconds`` (wall time of reconstruct +
-        evaluate, including the stage times an interrupted earlier run recorded; the report's time is not counted).
+        evaluate, including the stage times an interrupted earlier run recorded and those of stages restored from a
+        snapshot (log.json ``restored``); the report's time is not counted).
     """
     import torch
 
@@ -166,7 +170,9 @@ def run_scene(task: SceneTask, progress: bool = False) -> dict[str, Any]:
         out.mkdir(parents=True, exist_ok=True)
         t0 = time.perf_counter()
         if not (asset / "asset.json").is_file():  # save_asset moves a complete folder into place
-            reconstruct(task.scene, asset, task.config.reconstruct_config(), progress=progress)
+            reconstruct(task.scene, asset, task.config.reconstruct_config(), progress=progress,
+                        snapshots=task.snapshots)
+            earlier += _restored_seconds(asset)
         else:
             earlier = _finished_asset_seconds(asset)
         record["asset"] = str(asset)
@@ -203,6 +209,14 @@ def _interrupted_stage_seconds(asset: Path) -> float:
     try:
         timings = json.loads((work / "timings.json").read_text())
         return float(sum(v for k, v in timings.items() if (work / f"{k}.done").is_file()))
+    except (OSError, ValueError, TypeError, AttributeError):
+        return 0.0
+
+
+def _restored_seconds(asset: Path) -> float:
+    """Seconds of the stages a finished asset restored from a snapshot (its log.json ``restored``), 0 if none."""
+    try:
+        return float((json.loads((asset / "log.json").read_text()).get("restored") or {}).get("seconds", 0.0))
     except (OSError, ValueError, TypeError, AttributeError):
         return 0.0
 
@@ -262,7 +276,8 @@ def read_index(suite_dir: str | Path) -> list[str]:
 
 
 def run_suite(suite_dir: str | Path, out_dir: str | Path, config: SuiteConfig | None = None,
-              progress: bool = True, ray_address: str | None = None) -> dict[str, Any]:
+              progress: bool = True, ray_address: str | None = None,
+              snapshots: StageSnapshots | None = None) -> dict[str, Any]:
     """Reconstruct and evaluate every scene of the suite at ``suite_dir`` into ``out_dir`` (module docstring).
 
     Args:
@@ -272,6 +287,8 @@ def run_suite(suite_dir: str | Path, out_dir: str | Path, config: SuiteConfig | 
         progress: a progress bar over the scenes.
         ray_address: run every unfinished scene as a Ray task there ("local", "auto", "HOST:PORT", …;
             :mod:`vid2sim.runtime.ray_runner`) instead of one after the other here.
+        snapshots: stage snapshots shared with other suites over the same scenes (``bench ablation``'s variants):
+            scene NAME's are in ``snapshots.dir / NAME`` (a folder the Ray workers can reach, like ``out_dir``).
     Returns:
         the content of ``out_dir/suite.json``: ``{"suite": path, "preset": str, "scenes": [record, ...],
         "means": {key: float | None}, "failed": int}`` with the scene records of :func:`run_scene` in the
@@ -293,7 +310,9 @@ def run_suite(suite_dir: str | Path, out_dir: str | Path, config: SuiteConfig | 
     names = read_index(suite)
     settings = {"suite": str(suite), **config.to_dict()}
     _prepare_out(out, settings)
-    tasks = [SceneTask(name, str(suite / name), str(out / name), config) for name in names]
+    tasks = [SceneTask(name, str(suite / name), str(out / name), config,
+                       None if snapshots is None else dataclasses.replace(snapshots, dir=Path(snapshots.dir) / name))
+             for name in names]
     records: list[dict[str, Any] | None] = [_finished_record(t) for t in tasks]
     todo = [i for i, r in enumerate(records) if r is None]
     bar = tqdm(total=len(tasks), initial=len(tasks) - len(todo), desc="suite", unit="scene", disable=not progress)

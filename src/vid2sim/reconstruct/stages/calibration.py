@@ -18,6 +18,7 @@ tets on a mesh of the same solid. A reconstruction has no such mesh; it has inte
 
 from __future__ import annotations
 
+import hashlib
 import json
 import time
 from pathlib import Path
@@ -35,7 +36,7 @@ from vid2sim.physics.modes import (
 )
 from vid2sim.physics.tet_modes import LOCAL_MODE_PARTICIPATION, tet_frequency_curve
 from vid2sim.reconstruct.config import CalibrationConfig
-from vid2sim.reconstruct.runner import Context, State
+from vid2sim.reconstruct.runner import Context, ReconstructionError, State
 from vid2sim.reconstruct.silhouettes import solid_surface
 from vid2sim.reconstruct.stages.points import ObjectPoints, sample_in_voxels
 from vid2sim.reconstruct.stages.stage1 import prior_material
@@ -86,13 +87,22 @@ def tet_reference(points: np.ndarray, nus: tuple[float, ...], k: int, edge_lengt
             "seconds": time.perf_counter() - t0}
 
 
+def reference_inputs(points: np.ndarray, arguments: dict) -> str:
+    """A digest of :func:`tet_reference`'s inputs (the points' bytes and the other arguments): a stored reference
+    is reused only for the same inputs (:func:`stored_reference`)."""
+    digest = hashlib.sha256(np.ascontiguousarray(points, dtype=np.float64).tobytes())
+    digest.update(json.dumps(arguments, sort_keys=True, default=list).encode())
+    return digest.hexdigest()
+
+
 def _reference_worker(points_path: str, arguments: dict, path: str) -> None:
     """Child process of :class:`TetReferenceJob`: :func:`tet_reference` of the points saved at ``points_path``
-    (.npy) into the JSON file ``path``."""
+    (.npy) into the JSON file ``path``, with the digest of its inputs."""
     torch.set_num_threads(1)
     points = np.load(points_path, allow_pickle=False)
     try:
-        out = {"ok": True, "reference": tet_reference(points, **arguments)}
+        out = {"ok": True, "reference": tet_reference(points, **arguments),
+               "inputs": reference_inputs(points, arguments)}
     except ValueError as exc:  # a bad input (no surface): reported to the parent as the same error
         out = {"ok": False, "error": str(exc)}
     write_text_atomic(path, json.dumps(out))
@@ -241,20 +251,19 @@ def calibration_points(obj: ObjectPoints, config: CalibrationConfig, seed: int) 
                             torch.Generator().manual_seed(seed))
 
 
-def stored_reference(path: Path, nus: tuple[float, ...], k: int, min_participation: float) -> dict | None:
-    """The tet reference a finished :class:`TetReferenceJob` left at ``path`` for this grid, k and
-    ``min_participation``, or None."""
+def stored_reference(path: Path, points: np.ndarray, arguments: dict) -> dict | None:
+    """The tet reference a finished :class:`TetReferenceJob` left at ``path`` for these ``points`` and
+    :func:`tet_reference` ``arguments`` (a dict of nus, k, edge_length, cells, seed, min_participation), or None."""
     if not path.is_file():
         return None
     try:
         stored = json.loads(path.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError):
         return None
-    reference = stored.get("reference") if isinstance(stored, dict) and stored.get("ok") else None
-    if not isinstance(reference, dict) or reference.get("nus") != [float(v) for v in nus] or reference.get("k") != k \
-            or reference.get("min_participation") != float(min_participation):
+    if not (isinstance(stored, dict) and stored.get("ok") and isinstance(stored.get("reference"), dict)
+            and stored.get("inputs") == reference_inputs(points, arguments)):
         return None
-    return reference
+    return stored["reference"]
 
 
 class CalibrationStage:
@@ -280,18 +289,23 @@ class CalibrationStage:
         """Whether :meth:`start` can run (the object's points are loaded)."""
         return state.obj_cpu is not None
 
-    def start(self, ctx: Context, state: State) -> None:
-        """Start the tet reference in a child process, unless it is not needed or already stored."""
-        curve, k = self._grid(ctx)
+    def _reference_inputs(self, ctx: Context, state: State) -> tuple[np.ndarray, dict]:
+        """The points and the other arguments of :func:`tet_reference` for this run."""
         cfg = ctx.config
-        share = cfg.calibration.min_participation
-        if not (cfg.calibration.enabled and curve) or \
-                stored_reference(ctx.path(REFERENCE), CURVE_NUS, k, share) is not None:
+        return (calibration_points(state.obj_cpu, cfg.calibration, cfg.seed).numpy(),
+                {"nus": CURVE_NUS, "k": self._grid(ctx)[1], "cells": cfg.calibration.cells, "seed": cfg.seed,
+                 "min_participation": cfg.calibration.min_participation})
+
+    def start(self, ctx: Context, state: State) -> None:
+        """Start the tet reference in a child process, unless it is not needed or already stored for the same
+        inputs (a resumed run, or a run that started from another's snapshot)."""
+        cfg = ctx.config
+        if not (cfg.calibration.enabled and self._grid(ctx)[0]):
             return
-        self.job = TetReferenceJob(calibration_points(state.obj_cpu, cfg.calibration, cfg.seed).numpy(),
-                                   ctx.path(REFERENCE), nus=CURVE_NUS, k=k, cells=cfg.calibration.cells, seed=cfg.seed,
-                                   min_participation=share)
-        ctx.jobs.append(self.job)
+        points, arguments = self._reference_inputs(ctx, state)
+        if stored_reference(ctx.path(REFERENCE), points, arguments) is None:
+            self.job = TetReferenceJob(points, ctx.path(REFERENCE), **arguments)
+            ctx.jobs.append(self.job)
 
     def title(self, ctx: Context, state: State) -> str | None:
         if not ctx.config.calibration.enabled:
@@ -300,10 +314,13 @@ class CalibrationStage:
 
     def run(self, ctx: Context, state: State) -> None:
         cfg, obj, cub = ctx.config, state.obj, state.cubature
-        curve, k = self._grid(ctx)
+        curve = self._grid(ctx)[0]
         if curve:
             reference = self.job.result() if self.job is not None else stored_reference(
-                ctx.path(REFERENCE), CURVE_NUS, k, cfg.calibration.min_participation)
+                ctx.path(REFERENCE), *self._reference_inputs(ctx, state))
+            if reference is None:  # start() found it stored; something removed or changed it since
+                raise ReconstructionError(f"the stiffness calibration's tet reference {ctx.path(REFERENCE)} is gone or "
+                                          "was made from other points; rerun with --restart")
             dense = None
         else:  # one factor at the prior's ν (Stage I may have set it): computed here
             reference, dense = None, calibration_points(state.obj_cpu, cfg.calibration, cfg.seed)

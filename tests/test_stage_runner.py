@@ -1,0 +1,81 @@
+"""The reconstruction's stage runner on stand-in stages: each stage runs with its own seed (a resumed run
+computes what an uninterrupted one does) and stage snapshots let runs of one scene share their first stages."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import torch
+
+from vid2sim.reconstruct.config import ReconstructConfig
+from vid2sim.reconstruct.runner import Context, StageSnapshots, State, WorkFolder, cache_keys, run_stages
+
+
+class Draw:
+    """A stand-in stage: draws from torch's global generator, writes it with what it read, counts its runs."""
+
+    def __init__(self, name: str, section: str, runs: dict[str, int]) -> None:
+        self.name, self.sections, self.runs = name, (section,), runs
+
+    def title(self, ctx, state):
+        return self.name
+
+    def run(self, ctx, state):
+        self.runs[self.name] = self.runs.get(self.name, 0) + 1
+        before = [state.log[k] for k in sorted(state.log)]
+        (ctx.work.dir / f"{self.name}.json").write_text(json.dumps([torch.rand(3).tolist(), before]))
+
+    def load(self, ctx, state):
+        state.log[self.name] = json.loads((ctx.work.dir / f"{self.name}.json").read_text())
+
+
+def _run(out: Path, config: ReconstructConfig, snapshots: StageSnapshots | None, runs: dict[str, int],
+         only: int | None = None) -> tuple[State, WorkFolder]:
+    stages = [Draw("a", "gaussians", runs), Draw("b", "points", runs), Draw("c", "networks", runs)]
+    work = WorkFolder(out, cache_keys(stages, config, "scene"), restart=False, snapshots=snapshots)
+    ctx = Context(config=config, scene=None, observed=None, device=torch.device("cpu"), work=work, progress=False,
+                  threads=torch.get_num_threads())
+    torch.manual_seed(12345)  # the global generator's state before the run does not matter
+    return run_stages(stages[:only], ctx, State()), work
+
+
+def test_each_stage_draws_the_same_numbers_whether_the_stages_before_it_ran_or_were_resumed(tmp_path):
+    runs: dict[str, int] = {}
+    whole, _ = _run(tmp_path / "one", ReconstructConfig(), None, runs)
+    _run(tmp_path / "two", ReconstructConfig(), None, runs, only=2)  # interrupted after b
+    torch.rand(100)  # the generator moves on in between
+    resumed, _ = _run(tmp_path / "two", ReconstructConfig(), None, runs)
+    assert runs == {"a": 2, "b": 2, "c": 2} and resumed.log == whole.log
+    draws = [whole.log[k][0] for k in "abc"]
+    assert draws[0] != draws[1] != draws[2]  # stages draw different numbers
+    other = ReconstructConfig()
+    other.seed += 1
+    assert _run(tmp_path / "three", other, None, {})[0].log["a"][0] != draws[0]  # the config's seed decides
+
+
+def test_runs_of_one_scene_share_stages_through_snapshots_when_their_settings_agree(tmp_path):
+    snapshots = StageSnapshots(tmp_path / "shared", ("b",))
+    runs: dict[str, int] = {}
+    first, work = _run(tmp_path / "first", ReconstructConfig(), snapshots, runs)
+    (saved,) = list((tmp_path / "shared").iterdir())
+    assert saved.name.startswith("b-") and work.restored is None
+    assert sorted(p.name for p in saved.iterdir()) == ["a.done", "a.json", "b.done", "b.json", "timings.json"]
+    # the same settings up to b: a and b come from the snapshot, with the seconds they took there; c runs
+    second, work = _run(tmp_path / "second", ReconstructConfig(), snapshots, runs)
+    assert runs == {"a": 1, "b": 1, "c": 2} and work.restored == "b"
+    assert second.log == first.log  # c read what the first run's a and b wrote, and drew the same numbers
+    stored = json.loads((saved / "timings.json").read_text())
+    assert {k: work.timings[k] for k in "ab"} == stored and work.timings["c"] >= 0
+    # other settings of c only: still shared; of b: nothing to restore (b's key differs), everything runs
+    changed = ReconstructConfig()
+    changed.networks.handles += 1
+    assert _run(tmp_path / "third", changed, snapshots, runs)[1].restored == "b" and runs["b"] == 1
+    changed = ReconstructConfig()
+    changed.points.resolution += 1
+    _, work = _run(tmp_path / "fourth", changed, snapshots, runs)
+    assert work.restored is None and runs == {"a": 2, "b": 2, "c": 4}
+    assert len(list((tmp_path / "shared").iterdir())) == 2  # its own snapshot of b, beside the first
+    # a folder that has already finished b is not overwritten
+    again, work = _run(tmp_path / "second", ReconstructConfig(), snapshots, runs)
+    assert work.restored is None and again.log == first.log and runs == {"a": 2, "b": 2, "c": 4}
