@@ -107,20 +107,29 @@ def tiny_config():
     return _tiny_reconstruct_config
 
 
+def _run_lock(tmp_path_factory, name: str):
+    """A file lock that every pytest-xdist worker of this run shares (in the run's common temporary folder), or
+    None outside pytest-xdist (one process: nothing to share)."""
+    if not os.environ.get("PYTEST_XDIST_WORKER"):
+        return None
+    from filelock import FileLock
+
+    root = tmp_path_factory.getbasetemp().parent / "shared"
+    root.mkdir(exist_ok=True)
+    return FileLock(str(root / f"{name}.lock"))
+
+
 def _built_once(tmp_path_factory, name: str, build) -> Path:
     """``build(folder)`` (a new folder → the path it made) once per test run: under pytest-xdist the workers share
     one build in the run's common temporary folder, the first to need it making it under a file lock while the
     others wait (the tiny asset took about 40 s of each worker on two cores). Its users only read it (those that
     write copy it first), as they did within one worker."""
-    worker = os.environ.get("PYTEST_XDIST_WORKER")
-    if not worker:
+    lock = _run_lock(tmp_path_factory, name)
+    if lock is None:
         return build(tmp_path_factory.mktemp(name))
-    from filelock import FileLock
-
-    root = tmp_path_factory.getbasetemp().parent / "shared"
-    root.mkdir(exist_ok=True)
+    root = Path(lock.lock_file).parent
     done = root / f"{name}.done"
-    with FileLock(str(root / f"{name}.lock")):
+    with lock:
         if not done.is_file():
             folder = root / name
             shutil.rmtree(folder, ignore_errors=True)
@@ -138,12 +147,8 @@ def ray_slot(tmp_path_factory):
     others."""
     from contextlib import nullcontext
 
-    if not os.environ.get("PYTEST_XDIST_WORKER"):
-        return nullcontext
-    from filelock import FileLock
-
-    path = str(tmp_path_factory.getbasetemp().parent / "ray.lock")
-    return lambda: FileLock(path)
+    lock = _run_lock(tmp_path_factory, "ray")
+    return nullcontext if lock is None else lambda: lock
 
 
 @pytest.fixture(scope="session")

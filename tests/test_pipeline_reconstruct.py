@@ -17,10 +17,12 @@ from vid2sim.cli import reconstruct as cli_reconstruct
 from vid2sim.reconstruct import pipeline as reconstruct_module
 from vid2sim.reconstruct.config import PointsConfig
 from vid2sim.reconstruct.pipeline import (
+    STAGES,
     ReconstructConfig,
     ReconstructionError,
     reconstruct,
 )
+from vid2sim.reconstruct.runner import StageSnapshots
 from vid2sim.scene.reading import load_scene
 from vid2sim.scene.writing import write_scene
 
@@ -707,16 +709,21 @@ def test_stage1_is_skipped_with_a_recorded_reason(tiny_asset, tiny_scene, tmp_pa
 
 
 def test_cli_no_stage1_and_predictor_flags(tiny_scene, tmp_path, monkeypatch):
-    seen = []
+    seen, shared = [], []
 
-    def fake(scene, out, config, progress=True, restart=False, device=None):
+    def fake(scene, out, config, progress=True, restart=False, device=None, snapshots=None):
         seen.append(config)
+        shared.append(snapshots)
         raise SystemExit(0)
 
     monkeypatch.setattr(cli_reconstruct, "reconstruct", fake)  # the name the command calls
     with pytest.raises(SystemExit):
         main(["reconstruct", str(tiny_scene), str(tmp_path / "a"), "--no-stage1", "--quiet"])
     assert seen[-1].stage1.enabled is False and seen[-1].stage1.predictor is None
+    assert shared[-1] is None  # no snapshots unless asked
+    with pytest.raises(SystemExit):
+        main(["reconstruct", str(tiny_scene), str(tmp_path / "a"), "--share-stages", str(tmp_path / "s"), "--quiet"])
+    assert shared[-1] == StageSnapshots(tmp_path / "s", STAGES[:-1])  # every stage but the asset's last
     with pytest.raises(SystemExit):
         main(["reconstruct", str(tiny_scene), str(tmp_path / "a"), "--quiet"])
     assert seen[-1].stage1.enabled is False  # off by default while the shipped predictor misses its targets
@@ -760,10 +767,11 @@ def test_cli_no_stage1_and_predictor_flags(tiny_scene, tmp_path, monkeypatch):
 def test_cli_iterations_are_the_joint_methods(tiny_scene, tmp_path, monkeypatch, capsys):
     """``--iterations`` sets the Gauss-Newton steps of the default method and the Adam iterations of the windows;
     given beside the field it stands for, or negative, it is refused before any work."""
-    seen = []
+    seen, shared = [], []
 
-    def fake(scene, out, config, progress=True, restart=False, device=None):
+    def fake(scene, out, config, progress=True, restart=False, device=None, snapshots=None):
         seen.append(config)
+        shared.append(snapshots)
         raise SystemExit(0)
 
     monkeypatch.setattr(cli_reconstruct, "reconstruct", fake)

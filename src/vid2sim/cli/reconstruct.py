@@ -9,7 +9,8 @@ from pathlib import Path
 from vid2sim.cli.common import UserError, add_threads_option, set_threads
 from vid2sim.cli.reconstruct_options import add_reconstruct_options, reconstruct_config
 from vid2sim.cli.report import write_asset_report
-from vid2sim.reconstruct.pipeline import reconstruct
+from vid2sim.reconstruct.pipeline import STAGES, reconstruct
+from vid2sim.reconstruct.runner import StageSnapshots
 from vid2sim.runtime.device import resolve_device
 
 
@@ -20,7 +21,10 @@ def run(args: argparse.Namespace) -> int:
     if out.exists() and not args.overwrite:
         raise UserError(f"{out} exists; pass --overwrite to replace it")
     config = reconstruct_config(args)
-    path = reconstruct(args.scene, out, config, progress=not args.quiet, restart=args.restart, device=device)
+    # every stage but the last: its output is the asset itself
+    snapshots = StageSnapshots(Path(args.share_stages), STAGES[:-1]) if args.share_stages else None
+    path = reconstruct(args.scene, out, config, progress=not args.quiet, restart=args.restart, device=device,
+                       snapshots=snapshots)
     material = json.loads((path / "material.json").read_text())
     lines = material_lines(material)
     print("\n".join([f"wrote {path}: {lines[0]}"] + lines[1:]))
@@ -49,14 +53,18 @@ def register(sub: argparse._SubParsersAction) -> None:
     rec = sub.add_parser("reconstruct", help="reconstruct a scene folder into a simulation-ready asset "
                          "(Gaussians, skinning field, material)",
                          usage="vid2sim reconstruct SCENE OUT [--preset {small,full}] [--config FILE] "
-                               "[--SECTION.FIELD VALUE ...] [--device DEVICE] [--restart] [--overwrite] [--no-report] "
-                               "[--threads N] [--quiet]")
+                               "[--SECTION.FIELD VALUE ...] [--device DEVICE] [--restart] [--share-stages DIR] "
+                               "[--overwrite] [--no-report] [--threads N] [--quiet]")
     rec.add_argument("scene", help="scene folder (scene.json + transforms.json)")
     rec.add_argument("out", help="asset folder to create (docs/asset-format.md)")
     add_reconstruct_options(rec)
     rec.add_argument("--device", default=None, help="torch device of the Gaussian fits, networks and joint "
                      "optimisation (default: cuda if available, else cpu; the asset is the same format either way)")
     rec.add_argument("--restart", action="store_true", help="discard an interrupted run's finished stages")
+    rec.add_argument("--share-stages", metavar="DIR", default=None,
+                     help="keep a snapshot of each finished stage in DIR; a later reconstruction of the same scene "
+                          "with the same DIR whose settings agree up to a stage starts after it (try other joint "
+                          "settings without fitting the Gaussians again); log.json 'restored' says what it reused")
     rec.add_argument("--overwrite", action="store_true", help="replace an existing asset folder")
     rec.add_argument("--no-report", action="store_true", help="do not write the HTML report (OUT/report/index.html: "
                      "the asset against the scene, docs/report.md)")
