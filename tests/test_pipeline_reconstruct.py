@@ -724,6 +724,10 @@ def test_cli_no_stage1_and_predictor_flags(tiny_scene, tmp_path, monkeypatch):
     with pytest.raises(SystemExit):
         main(["reconstruct", str(tiny_scene), str(tmp_path / "a"), "--share-stages", str(tmp_path / "s"), "--quiet"])
     assert shared[-1] == StageSnapshots(tmp_path / "s", STAGES[:-1])  # every stage but the asset's last
+    (tmp_path / "f").write_text("")
+    count = len(shared)
+    assert main(["reconstruct", str(tiny_scene), str(tmp_path / "a"), "--share-stages", str(tmp_path / "f"),
+                 "--quiet"]) == 2 and len(shared) == count  # refused before any work
     with pytest.raises(SystemExit):
         main(["reconstruct", str(tiny_scene), str(tmp_path / "a"), "--quiet"])
     assert seen[-1].stage1.enabled is False  # off by default while the shipped predictor misses its targets

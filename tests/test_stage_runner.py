@@ -9,7 +9,15 @@ from pathlib import Path
 import torch
 
 from vid2sim.reconstruct.config import ReconstructConfig
-from vid2sim.reconstruct.runner import Context, StageSnapshots, State, WorkFolder, cache_keys, run_stages
+from vid2sim.reconstruct.runner import (
+    Context,
+    StageSnapshots,
+    State,
+    WorkFolder,
+    cache_keys,
+    run_stages,
+    scene_fingerprint,
+)
 
 
 class Draw:
@@ -79,3 +87,18 @@ def test_runs_of_one_scene_share_stages_through_snapshots_when_their_settings_ag
     # a folder that has already finished b is not overwritten
     again, work = _run(tmp_path / "second", ReconstructConfig(), snapshots, runs)
     assert work.restored is None and again.log == first.log and runs == {"a": 2, "b": 2, "c": 4}
+
+
+def test_a_scene_made_again_in_the_same_place_is_another_scene_to_the_cache(tmp_path):
+    scene = tmp_path / "scene"
+    (scene / "images").mkdir(parents=True)
+    (scene / "scene.json").write_text("{}")
+    (scene / "images" / "c00_t000.png").write_bytes(b"x" * 10)
+    first = scene_fingerprint(scene)
+    assert first.startswith(str(scene.resolve()) + "#") and scene_fingerprint(tmp_path / "scene" / ".") == first
+    (scene / ".hidden").write_text("a viewer's cache")  # hidden files are not the scene's
+    assert scene_fingerprint(scene) == first
+    (scene / "images" / "c00_t000.png").write_bytes(b"y" * 11)  # a frame written again
+    assert scene_fingerprint(scene) != first
+    keys = [cache_keys([Draw("a", "gaussians", {})], ReconstructConfig(), s) for s in (first, scene_fingerprint(scene))]
+    assert keys[0]["a"] != keys[1]["a"]

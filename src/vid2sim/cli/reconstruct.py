@@ -20,6 +20,9 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.exists() and not args.overwrite:
         raise UserError(f"{out} exists; pass --overwrite to replace it")
+    if args.share_stages and Path(args.share_stages).exists() and not Path(args.share_stages).is_dir():
+        raise UserError(f"--share-stages {args.share_stages}: exists and is not a folder (the folder of stage "
+                        "snapshots)")
     config = reconstruct_config(args)
     # every stage but the last: its output is the asset itself
     snapshots = StageSnapshots(Path(args.share_stages), STAGES[:-1]) if args.share_stages else None

@@ -28,6 +28,7 @@ from vid2sim.reconstruct.runner import (
     WorkFolder,
     cache_keys,
     run_stages,
+    scene_fingerprint,
 )
 from vid2sim.reconstruct.stages import STAGES, all_stages
 from vid2sim.runtime.device import resolve_device
@@ -102,7 +103,7 @@ def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConf
     scene = load_scene(scene_path)
     check_scene(scene)
     stages = all_stages()
-    work = WorkFolder(out, cache_keys(stages, cfg, str(scene.root.resolve())), restart, snapshots)
+    work = WorkFolder(out, cache_keys(stages, cfg, scene_fingerprint(scene.root)), restart, snapshots)
     ctx = Context(config=cfg, scene=scene, observed=observed(scene, dev), device=dev, work=work, progress=progress,
                   threads=threads)
     torch.manual_seed(cfg.seed)

@@ -201,6 +201,18 @@ def _section(config: ReconstructConfig, dotted: str) -> Any:
     return configs.to_dict(value) if hasattr(value, "__dataclass_fields__") else value
 
 
+def scene_fingerprint(root: Path) -> str:
+    """The scene folder ``root`` as a cache key knows it: its resolved path and a digest of its files' names, sizes
+    and modification times (not their content: a stat per file), so a scene made again in the same place does not
+    resume, or restore snapshots of, the old one's stages."""
+    root = Path(root).resolve()
+    digest = hashlib.sha256()
+    for path in sorted(p for p in root.rglob("*") if p.is_file() and not p.name.startswith(".")):
+        stat = path.stat()
+        digest.update(f"{path.relative_to(root)}\0{stat.st_size}\0{stat.st_mtime_ns}\n".encode())
+    return f"{root}#{digest.hexdigest()[:16]}"
+
+
 def cache_keys(stages: Sequence[Stage], config: ReconstructConfig, scene: str) -> dict[str, str]:
     """Each stage's cache key: a hash of the scene, the seed, its sections and the key of the stage before it."""
     keys, previous = {}, hashlib.sha256(json.dumps({"scene": scene, "seed": config.seed}).encode()).hexdigest()
@@ -290,7 +302,8 @@ class WorkFolder:
             if self.done(name) and stored.get(name) != keys[name]:
                 raise ReconstructionError(
                     f"{self.dir} holds an interrupted reconstruction whose {name!r} stage ran with other settings or "
-                    "on another scene; run with the same settings to resume it, or with --restart to start over")
+                    "on another scene (or the scene's files changed since); run with the same settings to resume it, "
+                    "or with --restart to start over")
         if (self.dir / "key.json").is_file() and not keys_path.is_file():  # a work folder of an older version
             raise ReconstructionError(f"{self.dir} holds an interrupted reconstruction of an older vid2sim; run with "
                                       "--restart to start over")
