@@ -62,7 +62,6 @@ def main() -> None:
     shutil.rmtree(snapshots, ignore_errors=True)
     copy = snapshots / found[0].name
     shutil.copytree(found[0], copy)
-    (copy / "stiffness_reference.points.npy").unlink(missing_ok=True)
     hull = ObjectPoints(**torch.load(copy / "points.pt", weights_only=True))
     fem = np.load(scene / "fem_result.npz")
     occ = voxels_inside(torch.tensor(fem["trajectory"][0]), torch.tensor(fem["tets"]), hull.origin, hull.voxel,

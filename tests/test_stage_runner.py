@@ -33,6 +33,7 @@ class Draw:
         self.runs[self.name] = self.runs.get(self.name, 0) + 1
         before = [state.log[k] for k in sorted(state.log)]
         (ctx.work.dir / f"{self.name}.json").write_text(json.dumps([torch.rand(3).tolist(), before]))
+        (ctx.work.dir / f".{self.name}.input").write_text("a transient input (hidden): snapshots leave it out")
 
     def load(self, ctx, state):
         state.log[self.name] = json.loads((ctx.work.dir / f"{self.name}.json").read_text())

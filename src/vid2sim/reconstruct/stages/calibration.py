@@ -131,7 +131,8 @@ class TetReferenceJob:
 
         self.path = Path(path)
         self.path.unlink(missing_ok=True)
-        points_path = self.path.with_suffix(".points.npy")
+        # a hidden name: a transient input, which stage snapshots leave out (runner.StageSnapshots)
+        self._points_path = points_path = self.path.parent / f".{self.path.stem}.points.npy"
         np.save(points_path, np.asarray(points, dtype=np.float64))
         context = multiprocessing.get_context("spawn")
         self._process = context.Process(target=_reference_worker, daemon=True,
@@ -161,7 +162,7 @@ class TetReferenceJob:
                 "script, the script's top-level code must be under 'if __name__ == \"__main__\":' (the child imports "
                 "the main module again); otherwise see the child's error above, or set "
                 "--no-calibrate-stiffness (calibration.enabled false)")
-        self.path.with_suffix(".points.npy").unlink(missing_ok=True)
+        self._points_path.unlink(missing_ok=True)
         out = json.loads(self.path.read_text())
         if not out["ok"]:
             raise ValueError(out["error"])
