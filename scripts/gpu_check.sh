@@ -48,7 +48,8 @@ phase() {
   echo "== $name (at most ${cap} s)"
   local t0 status ms
   t0=$(date +%s%N)
-  timeout --kill-after=10 "$cap" "$@" >"$RESULT/$name.log" 2>&1
+  # through bash, so that COMMAND may be one of this script's functions (exported below)
+  timeout --kill-after=10 "$cap" bash -c '"$@"' bash "$@" >"$RESULT/$name.log" 2>&1
   status=$?
   ms=$((($(date +%s%N) - t0) / 1000000))
   printf '%s\t%s\t%d.%d\n' "$name" "$status" $((ms / 1000)) $((ms % 1000 / 100)) >>"$PHASES"
@@ -60,6 +61,8 @@ install_wheels() {
   python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target "$SITE" \
     "$WHEELS"/*.whl
 }
+export RESULT WHEELS SITE
+export -f install_wheels
 phase install 90 install_wheels
 export PYTHONPATH="$PWD/src:$SITE${PYTHONPATH:+:$PYTHONPATH}"
 export PATH="$SITE/bin:$PATH"
@@ -75,11 +78,25 @@ from gsplat.cuda._backend import _C
 assert _C is not None, 'gsplat did not compile (no CUDA toolkit found?)'
 print('gsplat built for sm_' + '$TORCH_CUDA_ARCH_LIST'.replace('.', ''))"
 
-phase pytest_cuda 300 python3 -m pytest -m cuda -p no:cacheprovider -q -rfEs --junitxml="$RESULT/pytest_cuda.xml"
-phase bench_speed 120 sh -c "python3 -m vid2sim bench speed --device cuda --json >'$RESULT/bench_speed.json'"
-phase reconstruct_full 400 python3 -m vid2sim reconstruct "$SCENE" "$RESULT/asset" --preset full --device cuda \
-  --no-report --overwrite --quiet
-phase evaluate_full 90 python3 -m vid2sim evaluate "$RESULT/asset" "$SCENE" --out "$RESULT/evaluation.json" \
+# the GPU tests spread test by test over 8 workers (--dist load: test_cuda_commands.py's commands run side by side;
+# the module fixture is then built by each worker that needs it), each result on its own line (-v), so that a run cut
+# short by the budget still says which passed
+phase pytest_cuda 220 python3 -m pytest -m cuda -p no:cacheprovider -v -rfEs -n 8 --dist load \
+  --junitxml="$RESULT/pytest_cuda.xml"
+# bench speed a section at a time, each into its own JSON, so that one cut short by the budget loses only itself
+bench_sections() {
+  local section
+  for section in joint physics render; do
+    python3 -m vid2sim bench speed --device cuda --only "$section" --json >"$RESULT/bench_$section.json" || return
+  done
+}
+export -f bench_sections
+phase bench_speed 120 bench_sections
+# the full reconstruction gets what is left but the evaluation's share; not --quiet, so its log has each stage
+left=$((BUDGET - ($(date +%s) - START) - 45))
+phase reconstruct_full "$left" python3 -m vid2sim reconstruct "$SCENE" "$RESULT/asset" --preset full --device cuda \
+  --no-report --overwrite
+phase evaluate_full 45 python3 -m vid2sim evaluate "$RESULT/asset" "$SCENE" --out "$RESULT/evaluation.json" \
   --device cuda --no-report --quiet
 
 python3 - "$RESULT" "$SCENE" "$BUDGET" <<'PY'
@@ -124,7 +141,10 @@ try:
     figures["pytest_cuda"] = counts
 except (OSError, ET.ParseError):
     figures["pytest_cuda"] = None
-figures["bench_speed"] = read_json(result / "bench_speed.json")
+bench = {}
+for section in ("joint", "physics", "render"):
+    bench.update(read_json(result / f"bench_{section}.json") or {})
+figures["bench_speed"] = bench or None
 material = read_json(result / "asset" / "material.json")
 evaluation = read_json(result / "evaluation.json")
 full = {"scene": str(scene), "preset": "full", "seconds": phases.get("reconstruct_full", {}).get("seconds")}
