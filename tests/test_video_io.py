@@ -82,6 +82,31 @@ def test_odd_sizes_and_fractional_fps(tmp_path: Path) -> None:
     assert psnr(back, torch.from_numpy(frames)) > 35.0
 
 
+def test_encoders_pass_ffmpeg_a_plain_float_rate(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """imageio-ffmpeg 0.6 (what ``imageio-ffmpeg>=0.4.9`` allows; the GPU check's wheel) asserts that ``fps`` is a
+    float or an int: a ``Fraction`` crashed the report's and the simulation's videos on first use there. Both
+    encoders run here under that contract."""
+    import imageio_ffmpeg
+
+    from vid2sim.report import media
+    from vid2sim.scene.video import ffmpeg_rate
+
+    real, rates = imageio_ffmpeg.write_frames, []
+
+    def strict(path, size, *args, fps=16, **kwargs):
+        assert type(fps) in (float, int), f"fps must be float, got {type(fps).__name__}"
+        rates.append(fps)
+        return real(path, size, *args, fps=fps, **kwargs)
+
+    monkeypatch.setattr(imageio_ffmpeg, "write_frames", strict)
+    frames = smooth_frames(3, 16, 16)
+    write_video(tmp_path / "a.mp4", frames, fps=30000 / 1001)
+    media.encode_video(tmp_path / "b", frames, fps=5, fmt="webm")
+    assert rates == [ffmpeg_rate(30000 / 1001), 5.0]
+    assert ffmpeg_rate(30000 / 1001) == 30000 / 1001 and ffmpeg_rate(1 / 0.05) == 20.0
+    assert probe_video(tmp_path / "a.mp4").fps == pytest.approx(30000 / 1001, rel=1e-4)  # ffprobe prints 29.97
+
+
 def test_lossless_round_trip_is_bit_exact(tmp_path: Path) -> None:
     rng = np.random.default_rng(0)
     noise = rng.integers(0, 256, (5, 15, 22, 3), dtype=np.uint8)  # worst case for a codec

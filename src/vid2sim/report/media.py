@@ -334,15 +334,15 @@ def encode_video(path: Path, frames: np.ndarray, fps: float, crf: int = 32, fmt:
 
 
 def _encode_webm(path: Path, frames: np.ndarray, fps: float, crf: int, threads: int) -> Path:
-    from fractions import Fraction
-
     import imageio_ffmpeg
+
+    from vid2sim.scene.video import ffmpeg_rate
 
     T, H, W, _ = frames.shape
     if H % 2 or W % 2:
         raise InputError(f"VP9 4:2:0 needs even sides, got {W}x{H}")
     writer = imageio_ffmpeg.write_frames(
-        str(path), (W, H), pix_fmt_in="rgb24", pix_fmt_out="yuv420p", fps=Fraction(fps).limit_denominator(1001),
+        str(path), (W, H), pix_fmt_in="rgb24", pix_fmt_out="yuv420p", fps=ffmpeg_rate(fps),
         codec="libvpx-vp9", macro_block_size=1, ffmpeg_log_level="error",
         output_params=["-crf", str(crf), "-b:v", "0", "-deadline", "realtime", "-cpu-used", "6", "-row-mt", "1",
                        "-threads", str(max(1, threads)), "-g", str(max(1, T)), "-an"])

@@ -72,6 +72,13 @@ def _ffmpeg():
     return imageio_ffmpeg
 
 
+def ffmpeg_rate(fps: float | Fraction) -> float:
+    """The frame rate to hand ``imageio_ffmpeg.write_frames``: the rate rounded to a fraction with a denominator of
+    at most 1001 (so 30000/1001 stays NTSC's rate), as a float. imageio-ffmpeg 0.8 takes a float back to that
+    fraction; 0.6 accepts only floats and ints (a ``Fraction`` fails its assertion) and writes two decimals."""
+    return float(Fraction(fps).limit_denominator(1001))
+
+
 def _check_readable(path: Path) -> None:
     if not path.exists():
         raise VideoError(f"video file '{path}' not found")
@@ -225,7 +232,7 @@ def write_video(
             (int(width), int(height)),
             pix_fmt_in="rgb24",
             pix_fmt_out=pix_fmt,
-            fps=Fraction(fps).limit_denominator(1001) if not isinstance(fps, Fraction) else fps,
+            fps=ffmpeg_rate(fps),
             quality=q,
             codec=codec,
             macro_block_size=1,
