@@ -328,13 +328,15 @@ def load_asset(folder: str | Path, device: torch.device | str = "cpu") -> Asset:
         sim_config = SimConfig(**meta["sim_config"])
     except (KeyError, TypeError, ValueError) as exc:
         raise AssetFormatError(f"{folder / FILES['asset']}: sim_config is invalid ({exc})") from None
-    gaussians = load_ply(folder / FILES["gaussians"], device=device)
+    # the Gaussians and their shading are read and unshaded on the CPU, then moved, so that the loaded asset is the
+    # same on every device (a CUDA unshade differs from the CPU's in the last bits, and an export of it in its bytes)
+    gaussians = load_ply(folder / FILES["gaussians"], device="cpu")
     shading = None
     shading_path = folder / FILES["shading"]
     if shading_path.is_file():
         try:
             with np.load(shading_path, allow_pickle=False) as z:
-                shading = Shading(*(torch.from_numpy(np.asarray(z[k])).to(device=device, dtype=gaussians.means.dtype)
+                shading = Shading(*(torch.from_numpy(np.asarray(z[k])).to(dtype=gaussians.means.dtype)
                                     for k in ("normals", "light", "ambient_logit")))
         except (KeyError, ValueError) as exc:
             raise AssetFormatError(f"{shading_path}: {exc}") from None
@@ -342,6 +344,8 @@ def load_asset(folder: str | Path, device: torch.device | str = "cpu") -> Asset:
             raise AssetFormatError(f"{shading_path}: {shading.num} normals for the {gaussians.num} Gaussians of "
                                    f"{FILES['gaussians']}")
         gaussians = replace(gaussians, sh=shading.unshade(gaussians.sh))
+        shading = Shading(*(t.to(device) for t in (shading.normals, shading.light, shading.ambient_logit)))
+    gaussians = gaussians.to(device)
     return Asset(gaussians=gaussians, field=field_, jacobian=jac, shading=shading,
                  material=material, cubature_points=arrays["cubature_points"],
                  cubature_weights=arrays["cubature_weights"], contact_points=arrays["contact_points"],
