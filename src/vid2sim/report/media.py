@@ -25,7 +25,7 @@ from torch import Tensor
 
 from vid2sim.report.config import FUTURE_COLOUR, OBSERVED_COLOUR
 from vid2sim.runtime.errors import InputError
-from vid2sim.scene.video import probe_video
+from vid2sim.scene.video import ffmpeg_rate, probe_video
 
 HEADER_HEIGHT = 50
 """Pixels of the strip of column headings above the panels of a video or strip."""
@@ -335,8 +335,6 @@ def encode_video(path: Path, frames: np.ndarray, fps: float, crf: int = 32, fmt:
 
 def _encode_webm(path: Path, frames: np.ndarray, fps: float, crf: int, threads: int) -> Path:
     import imageio_ffmpeg
-
-    from vid2sim.scene.video import ffmpeg_rate
 
     T, H, W, _ = frames.shape
     if H % 2 or W % 2:
