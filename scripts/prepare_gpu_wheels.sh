@@ -5,8 +5,9 @@
 #   .whl/                 wheels of vid2sim's dependencies that the GPU machine's image lacks (CPython 3.12,
 #                         manylinux x86-64; gsplat 1.5.3 is a pure-Python wheel whose CUDA code gpu_check.sh
 #                         compiles there, for that GPU's architecture only)
-#   .gpu_check/scene/     the scene the check reconstructs with the full preset (make-scene --preset small, seed 0;
-#                         made here so that the GPU's minutes go to the GPU work)
+#   .gpu_check/scene/     the scene the check reconstructs with the full preset: make-scene --preset full, seed 0
+#                         (14 views at 448², 24 frames), as H.264 videos (6.5 MB, so that it travels with the wheels
+#                         under a call's 64 MiB); made here (2.5 min on 2 cores) so that the GPU's minutes go to GPU work
 #
 # Usage: scripts/prepare_gpu_wheels.sh [--no-scene]    (run in the repository's root; both folders are git-ignored)
 #
@@ -39,8 +40,8 @@ du -sh .whl
 
 if [[ "${1:-}" != "--no-scene" && ! -f .gpu_check/scene/scene.json ]]; then
   mkdir -p .gpu_check
-  PYTHONPATH=src${PYTHONPATH:+:$PYTHONPATH} python3 -m vid2sim make-scene .gpu_check/scene --preset small --seed 0 \
-    --quiet
+  PYTHONPATH=src${PYTHONPATH:+:$PYTHONPATH} python3 -m vid2sim make-scene .gpu_check/scene --preset full --seed 0 \
+    --layout video --quiet
 fi
 du -sh .gpu_check 2>/dev/null || true
 echo "ready: carry .whl and .gpu_check to the GPU machine and run scripts/gpu_check.sh there"
