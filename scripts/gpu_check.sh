@@ -91,7 +91,7 @@ phase pytest_cuda 220 python3 -m pytest -m cuda -p no:cacheprovider -v -rfEs -n 
 # bench speed a section at a time, each into its own JSON, so that one cut short by the budget loses only itself
 bench_sections() {
   local section
-  for section in joint physics render; do
+  for section in training joint render physics; do
     python3 -m vid2sim bench speed --device cuda --only "$section" --json >"$RESULT/bench_$section.json" || return
   done
 }
@@ -147,7 +147,7 @@ try:
 except (OSError, ET.ParseError):
     figures["pytest_cuda"] = None
 bench = {}
-for section in ("joint", "physics", "render"):
+for section in ("training", "joint", "render", "physics"):
     bench.update(read_json(result / f"bench_{section}.json") or {})
 figures["bench_speed"] = bench or None
 material = read_json(result / "asset" / "material.json")

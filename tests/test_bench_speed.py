@@ -15,12 +15,15 @@ def _finite_positive(result: dict, keys: list[str]) -> None:
         assert isinstance(result[k], (int, float)) and math.isfinite(result[k]) and result[k] > 0, (k, result[k])
 
 
-def test_bench_speed_physics_and_render_quick(capsys):
-    assert main(["bench", "speed", "--only", "physics", "render", "--quick", "--json", "--threads", "1"]) == 0
+def test_bench_speed_physics_training_and_render_quick(capsys):
+    assert main(["bench", "speed", "--only", "physics", "training", "render", "--quick", "--json", "--threads",
+                 "1"]) == 0
     result = json.loads(capsys.readouterr().out)
     assert result["device"] == "cpu" and result["threads"] == 1
     _finite_positive(result, ["sim_step_ms", "sim_frame_ms", "sim_window_ms", "render_ms",
-                              "skinning_train_ms_per_iter", "jacobian_train_ms_per_iter"])
+                              "skinning_train_ms_per_iter", "skinning_train_it_per_s", "skinning_iter_ops",
+                              "jacobian_train_ms_per_iter"])
+    assert abs(result["skinning_train_it_per_s"] * result["skinning_train_ms_per_iter"] - 1e3) < 1e-6
     assert result["sim_frame_substeps"] >= 4
     # the drop rests on the floor: penetration is a small fraction of the 1 m object
     assert 0 <= result["sim_floor_penetration_m"] < 0.05

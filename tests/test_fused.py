@@ -242,7 +242,8 @@ def test_joint_iteration_dispatches_few_operators():
 
 
 def test_skinning_iteration_dispatches_few_operators():
-    from vid2sim.apps.bench.physics_speed import box_points, skinning_iteration_ops
+    from vid2sim.apps.bench.physics_speed import box_points
+    from vid2sim.apps.bench.training_speed import skinning_iteration_ops
 
     field = SkinningField(num_handles=10, seed=0)
     assert skinning_iteration_ops(field, box_points(20_000, 0, torch.device("cpu"))) <= SKINNING_ITER_OPS_BOUND

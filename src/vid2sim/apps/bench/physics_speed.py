@@ -20,11 +20,6 @@ Figures (medians; every baseline is measured in the same run):
   step per frame; ``sim_window_points_ms`` with the loss on all 20 000 points;
 - ``sim_frame_ms_projected`` and ``sim_window_ms_projected`` — the same frame and window with the projected
   volumetric term (``Simulator(volumetric="projected")``, :mod:`vid2sim.physics.volumetric`);
-- ``skinning_train_ms_per_iter`` and ``jacobian_train_ms_per_iter`` — one data-free training iteration of the
-  skinning field (the paper's random-z objective, 1 000 points) and of the Neural Jacobian;
-  ``skinning_iter_ops`` the top-level aten operators one skinning iteration dispatches
-  (:mod:`vid2sim.apps.bench.op_count`: those of 11 iterations less those of 1, over 10, so without the
-  optimiser's set-up).
 """
 
 from __future__ import annotations
@@ -34,12 +29,10 @@ from typing import Any
 
 import torch
 
-from vid2sim.apps.bench.op_count import count_aten_ops
 from vid2sim.apps.bench.timing import time_ms
 from vid2sim.metrics import trajectory_distance
 from vid2sim.physics.cubature import sample_cubature
 from vid2sim.physics.external import Floor, Gravity
-from vid2sim.physics.neural_jacobian import NeuralJacobian, NeuralJacobianTrainingConfig, train_neural_jacobian
 from vid2sim.physics.skinning import SkinningField, deform
 from vid2sim.physics.skinning_training import SkinningTrainingConfig, train_skinning
 from vid2sim.physics.solver import Material, SimConfig, SimState, Simulator
@@ -88,22 +81,8 @@ def build_standard_simulator(settings: PhysicsBenchSettings, device: torch.devic
     return sim, pts
 
 
-def skinning_iteration_ops(field, points: torch.Tensor, seed: int = 0) -> float:
-    """Top-level aten operators of one data-free skinning iteration (default objective) on a copy of ``field``:
-    those of an 11-iteration run less those of a 1-iteration run, over 10 (the set-up cancels)."""
-    import copy
-
-
-    field = copy.deepcopy(field)
-
-    def train(n: int):
-        return lambda: train_skinning(field, points, SkinningTrainingConfig(iterations=n, seed=seed), progress=False)
-
-    return (count_aten_ops(train(11)).top_level - count_aten_ops(train(1)).top_level) / 10
-
-
 def run(device: torch.device, quick: bool = False, settings: PhysicsBenchSettings | None = None) -> dict[str, Any]:
-    """The figures of the module docstring, plus skinning/Neural Jacobian training ms per iteration."""
+    """The figures of the module docstring (the networks' training: :mod:`vid2sim.apps.bench.training_speed`)."""
 
     s = settings or PhysicsBenchSettings()
     if quick:
@@ -115,8 +94,7 @@ def run(device: torch.device, quick: bool = False, settings: PhysicsBenchSetting
     one_step = replace(default, substeps=1, integrator="implicit_euler")
     frames, states, ie_states = _frame_figures(timer, pts, default, one_step, quick)
     windows = _window_figures(timer, pts, default, one_step, states, ie_states)
-    training = _training_figures(sim, pts, s, device)
-    return {**frames, **windows, **training, "physics_settings": asdict(s)}
+    return {**frames, **windows, "physics_settings": asdict(s)}
 
 
 @dataclass
@@ -235,21 +213,3 @@ def _window_ms(timer: _Timer, config: SimConfig, start: SimState, params: list[t
         torch.autograd.grad(loss, params, allow_unused=True)
 
     return time_ms(run_window, timer.device, timer.repeats, timer.warmup)
-
-
-def _training_figures(sim: Simulator, pts: torch.Tensor, s: PhysicsBenchSettings, device: torch.device
-                      ) -> dict[str, Any]:
-    """ms per data-free training iteration of the skinning field (trained further in place) and of a new Neural
-    Jacobian on the points ``pts`` (N, 3), and the aten operators of one skinning iteration."""
-    iters = s.train_timing_iters
-    skin_ms = time_ms(lambda: train_skinning(sim.field, pts, SkinningTrainingConfig(iterations=iters, seed=s.seed),
-                                             progress=False), device, repeats=1) / iters
-    skin_ops = skinning_iteration_ops(sim.field, pts, s.seed)
-    nj = NeuralJacobian(num_handles_total=sim.field.num_handles_total, seed=s.seed).to(device)
-    nj_ms = time_ms(lambda: train_neural_jacobian(nj, sim.field, pts, NeuralJacobianTrainingConfig(
-        iterations=iters, seed=s.seed), progress=False), device, repeats=1) / iters
-    return {
-        "skinning_train_ms_per_iter": skin_ms,
-        "skinning_iter_ops": skin_ops,
-        "jacobian_train_ms_per_iter": nj_ms,
-    }

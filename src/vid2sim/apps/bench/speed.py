@@ -7,15 +7,15 @@ from typing import Any, Callable
 
 import torch
 
-from vid2sim.apps.bench import joint_speed, modes_speed, physics_speed, render_speed
+from vid2sim.apps.bench import joint_speed, modes_speed, physics_speed, render_speed, training_speed
 from vid2sim.runtime.device import resolve_device
 from vid2sim.runtime.errors import ConfigError
 
 
 def _sections() -> dict[str, Callable[..., dict[str, Any]]]:
 
-    return {"physics": physics_speed.run, "render": render_speed.run, "joint": joint_speed.run,
-            "modes": modes_speed.run}
+    return {"physics": physics_speed.run, "training": training_speed.run, "render": render_speed.run,
+            "joint": joint_speed.run, "modes": modes_speed.run}
 
 
 def run_speed_benchmark(
