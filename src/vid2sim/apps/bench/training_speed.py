@@ -18,6 +18,7 @@ on an H200 (launch-bound), where these figures take seconds.
 from __future__ import annotations
 
 import copy
+from dataclasses import replace
 from typing import Any
 
 import torch
@@ -51,7 +52,7 @@ def run(device: torch.device, quick: bool = False, settings: PhysicsBenchSetting
 
     s = settings or PhysicsBenchSettings()
     if quick:
-        s.skinning_pretrain_iters, s.train_timing_iters = 20, 2
+        s = replace(s, skinning_pretrain_iters=20, train_timing_iters=2)
     repeats, warmup = (1, 0) if quick else (REPEATS, 1)
     sim, pts = build_standard_simulator(s, device)
     iters = s.train_timing_iters
