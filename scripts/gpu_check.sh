@@ -147,8 +147,8 @@ try:
 except (OSError, ET.ParseError):
     figures["pytest_cuda"] = None
 bench = {}
-for section in ("training", "joint", "render", "physics"):
-    bench.update(read_json(result / f"bench_{section}.json") or {})
+for path in sorted(result.glob("bench_*.json")):  # the sections bench_sections wrote
+    bench.update(read_json(path) or {})
 figures["bench_speed"] = bench or None
 material = read_json(result / "asset" / "material.json")
 evaluation = read_json(result / "evaluation.json")
