@@ -202,3 +202,41 @@ def trained_field():
     for p in field.parameters():
         p.requires_grad_(False)
     return field, pts
+
+
+class NoDeviceWaits:
+    """A dispatch mode that raises on every aten operation that makes the host wait for the device on a GPU:
+    reading a value (``.item()``, ``bool``, ``float``, ``int`` go through ``_local_scalar_dense``) or an output
+    whose shape depends on values (``nonzero``, boolean-mask indexing, ``unique``). Code run under it on the CPU
+    can be captured as a CUDA graph as far as waiting goes (vid2sim.runtime.training)."""
+
+    WAITING = ("_local_scalar_dense", "nonzero", "masked_select", "_unique", "unique_dim", "_unique2",
+               "unique_consecutive")
+
+    def __enter__(self):
+        from torch.utils._python_dispatch import TorchDispatchMode
+
+        waiting = self.WAITING
+
+        class _Mode(TorchDispatchMode):
+            def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+                name = func.__name__.split(".")[0]
+                masks = name in ("index", "index_put", "index_put_") and any(
+                    isinstance(i, torch.Tensor) and i.dtype == torch.bool for i in (args[1] if len(args) > 1 else ()))
+                if name in waiting or masks:
+                    raise AssertionError(f"{func.__name__}{' with a boolean mask' if masks else ''} waits for the "
+                                         "device")
+                return func(*args, **(kwargs or {}))
+
+        self._mode = _Mode()
+        self._mode.__enter__()
+        return self
+
+    def __exit__(self, *exc):
+        return self._mode.__exit__(*exc)
+
+
+@pytest.fixture
+def no_device_waits():
+    """:class:`NoDeviceWaits`, to be used as ``with no_device_waits: ...``."""
+    return NoDeviceWaits()

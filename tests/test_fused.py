@@ -199,11 +199,13 @@ def test_batched_frames_deform_the_gaussians_as_each_frame(trained_field):
 
 
 #: Measured when the bounds were set (CPU, torch 2.13): 22 472 top-level aten operators per joint iteration, of
-#: which 7 241 are the torch rasteriser's (the code before: 57 898); 559 per skinning iteration (before: 665);
-#: 7 992 for the small drop with its adjoint below (before: 23 520).
+#: which 7 241 are the torch rasteriser's (the code before: 57 898); 559 per random-z skinning iteration (before:
+#: 665), 647 per iteration of the modal objective (the pipeline's, timed by bench speed since the CUDA graphs: on a
+#: GPU they replay as one launch, on a CPU these still dispatch); 7 992 for the small drop with its adjoint below
+#: (before: 23 520).
 JOINT_ITER_OPS_BOUND = 26_000
 JOINT_SIMULATION_OPS_BOUND = 18_000
-SKINNING_ITER_OPS_BOUND = 620
+SKINNING_ITER_OPS_BOUND = 700
 DROP_WITH_ADJOINT_OPS_BOUND = 9_500
 
 

@@ -17,14 +17,15 @@ from torch import Tensor
 
 from vid2sim.physics.materials import lame_parameters
 from vid2sim.physics.reduced import lbs_rows
-from vid2sim.physics.skinning import gradient_basis
+from vid2sim.physics.skinning import gradient_basis, gradient_basis_unchecked
 from vid2sim.physics.stiffness_curve import StiffnessCurve
 from vid2sim.physics.tet_modes import tet_frequencies, tet_frequency_curve
 from vid2sim.physics.volumetric import projection_basis
 
 
 def subspace_stiffness_and_mass(X: Tensor, w: Tensor, dw: Tensor, volume: float, poisson_ratio: float,
-                                weights: Tensor | None = None, volumetric: str = "pointwise") -> tuple[Tensor, Tensor]:
+                                weights: Tensor | None = None, volumetric: str = "pointwise",
+                                trusted: bool = False) -> tuple[Tensor, Tensor]:
     """Linear-elastic stiffness and mass of the LBS subspace at rest, E = 1 and ρ = 1.
 
     The displacement is u(X) = Y b(X) (row-major y layout of :mod:`vid2sim.physics.reduced`) and
@@ -37,16 +38,18 @@ def subspace_stiffness_and_mass(X: Tensor, w: Tensor, dw: Tensor, volume: float,
         weights: (n,) integration weights (volumes); None: ``volume`` / n each.
         volumetric: "pointwise", or "projected": tr ε projected onto the weights' span in the λ term, as
             ``Simulator(volumetric="projected")`` does (:mod:`vid2sim.physics.volumetric`).
+        trusted: the caller made X, w and dw (a training loop): their values are not checked, so nothing waits for
+            the device.
     Returns:
         K, M: (3L, 3L) with L = 4H, differentiable in w and dw.
     """
     mu, lam = lame_parameters(1.0, poisson_ratio)
-    K_mu, K_lam, M = subspace_stiffness_parts(X, w, dw, volume, weights, volumetric)
+    K_mu, K_lam, M = subspace_stiffness_parts(X, w, dw, volume, weights, volumetric, trusted)
     return mu * K_mu + lam * K_lam, M
 
 
 def subspace_stiffness_parts(X: Tensor, w: Tensor, dw: Tensor, volume: float, weights: Tensor | None = None,
-                             volumetric: str = "pointwise") -> tuple[Tensor, Tensor, Tensor]:
+                             volumetric: str = "pointwise", trusted: bool = False) -> tuple[Tensor, Tensor, Tensor]:
     """(K_μ, K_λ, M), each (3L, 3L): the subspace's stiffness at rest is μ K_μ + λ K_λ
     (:func:`subspace_stiffness_and_mass`, whose arguments these are)."""
 
@@ -54,7 +57,7 @@ def subspace_stiffness_parts(X: Tensor, w: Tensor, dw: Tensor, volume: float, we
         raise ValueError(f"volumetric must be 'pointwise' or 'projected', got {volumetric!r}")
     n = X.shape[0]
     v = (float(volume) / n) if weights is None else weights[:, None]
-    G = gradient_basis(X, w, dw)  # (n, 3, L)
+    G = gradient_basis_unchecked(X, w, dw) if trusted else gradient_basis(X, w, dw)  # (n, 3, L)
     L = G.shape[2]
     Gf = G.reshape(n, 3 * L)
     Tp = Gf.T @ (Gf * v)  # [(a, l), (b, m)] = Σ_p v_p G_pal G_pbm

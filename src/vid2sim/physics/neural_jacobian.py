@@ -36,11 +36,12 @@ from torch.nn import functional as Fn
 from vid2sim.physics.input_frame import InputFrame, uniform_
 from vid2sim.physics.skinning import (
     SkinningField,
-    deformation_gradient,
+    deformation_gradient_unchecked,
     dF_dz,
     gradient_basis,
+    gradient_basis_unchecked,
 )
-from vid2sim.physics.skinning_training import sample_handle_transforms
+from vid2sim.physics.skinning_training import RandomDraws
 from vid2sim.runtime.errors import ConfigError
 from vid2sim.runtime.training import Progress, Schedule, optimise
 
@@ -122,7 +123,12 @@ class NeuralJacobian(InputFrame):
 
     def forward(self, X: Tensor) -> Tensor:
         """J: (N, 9, 12H) for rest positions X: (N, 3) (layout of :func:`~vid2sim.physics.skinning.dF_dz`)."""
-        h = self.encode(self._in_parameters_dtype(X, self.output.weight))  # returned in X's dtype
+        self._in_parameters_dtype(X, self.output.weight)  # checks X
+        return self.jacobian_unchecked(X)
+
+    def jacobian_unchecked(self, X: Tensor) -> Tensor:
+        """:meth:`forward` without checking X's values (for a caller that did: nothing waits for the device)."""
+        h = self.encode(X.to(self.output.weight.dtype))  # returned in X's dtype
         for block in self.blocks:
             h = block(h)
         return self.output(h).reshape(X.shape[0], 9, 12 * self.num_handles_total).to(X.dtype)
@@ -174,6 +180,7 @@ def train_neural_jacobian(
     points: Tensor,
     config: NeuralJacobianTrainingConfig | None = None,
     progress: bool = True,
+    cuda_graph: bool = True,
 ) -> list[float]:
     """Train ``net`` in place, data-free, to reproduce ∂F/∂z of ``field`` (which is not modified).
 
@@ -183,6 +190,7 @@ def train_neural_jacobian(
     Args:
         net, field: same H, dtype and device as ``points``.
         points: (N, 3) points in the object (canonical frame).
+        cuda_graph: on CUDA, replay the iteration as a CUDA graph (:mod:`vid2sim.runtime.training`); False: eager.
     Returns:
         the loss at each iteration.
     Raises:
@@ -197,23 +205,25 @@ def train_neural_jacobian(
     gen.manual_seed(int(config.seed))
     H = net.num_handles_total
     eye = torch.eye(3, dtype=points.dtype, device=points.device).reshape(9)
+    draws = RandomDraws(gen, points.shape[0], config, H, True, points, rigid=True)
 
-    def step(it: int) -> tuple[Tensor, dict[str, Tensor]]:
-        idx = torch.randint(points.shape[0], (config.points_per_step,), generator=gen).to(points.device)
+    def step(idx: Tensor, z: Tensor) -> tuple[Tensor, dict[str, Tensor]]:
+        # without checks of values (the points were checked above): it may be captured as a CUDA graph
         X = points[idx]
-        z = sample_handle_transforms(config.batch_size, H, config.z_std, gen, rigid=True).to(points)
         with torch.no_grad():
-            w, dw = field.weights_and_gradients(X)
-            F_true = deformation_gradient(gradient_basis(X, w, dw), z).reshape(config.batch_size, X.shape[0], 9)
-        J = net(X)  # (n, 9, 12H)
+            w, dw = field._weights_and_gradients(X.to(field.last_layer.weight.dtype))
+            G = gradient_basis_unchecked(X, w.to(X.dtype), dw.to(X.dtype))
+            F_true = deformation_gradient_unchecked(G, z).reshape(config.batch_size, X.shape[0], 9)
+        J = net.jacobian_unchecked(X)  # (n, 9, 12H)
         F_pred = eye + torch.einsum("pik,bk->bpi", J, z)
         return (F_pred - F_true).abs().mean(), {}
 
     was_training = net.training
     net.train()
     try:
-        return optimise(params, step, Schedule(config.iterations, config.lr, optimizer="adamw"),
-                        Progress("neural Jacobian (data-free)", progress), "Neural Jacobian training")
+        return optimise(params, step, Schedule(config.iterations, config.lr, optimizer="adamw", cuda_graph=cuda_graph),
+                        Progress("neural Jacobian (data-free)", progress), "Neural Jacobian training",
+                        inputs=draws.next)
     finally:
         net.train(was_training)
 

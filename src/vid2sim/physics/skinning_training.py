@@ -148,7 +148,7 @@ def robust_neo_hookean_energy(F: Tensor, mu: float | Tensor, lam: float | Tensor
         raise ValueError(f"F must have shape (M, 3, 3), got {tuple(F.shape)}")
     if not threshold > 0:
         raise ValueError(f"threshold must be positive, got {threshold}")
-    J = torch.linalg.det(F)
+    J = det3(F)
     # both branches at every point, chosen per point (no synchronisation, no gathers): the exact density where
     # J > threshold (its ln J taken of det F clamped at the threshold so that it is finite everywhere)
     isochoric = 0.5 * mu * ((F * F).sum(dim=(1, 2)) - 3.0)
@@ -191,33 +191,44 @@ def elastic_loss(
     return psi.reshape(B, n).sum(dim=1).mean() * (volume / n)
 
 
-def _ridge_cholesky(A: Tensor, what: str) -> Tensor:
+def _ridge_cholesky(A: Tensor) -> Tensor:
     """The Cholesky factor of the symmetric part of A (m, m) plus a ridge of 1e-12 × its mean diagonal, or, when
     that is not positive definite, of 100 ε of the dtype: a subspace can span a direction twice (on a rod, the
     handles w = z and w = z² give z·[X, 1] and z²·[X, 1], whose columns z·z and z²·1 coincide), and its Gram
     matrices are then singular to the dtype's precision; the ridge leaves that direction, with no mass and no
-    stiffness, out of the Ritz problem (a seed-3 benchmark scene's rod, float32, stopped here without it)."""
+    stiffness, out of the Ritz problem (a seed-3 benchmark scene's rod, float32, stopped here without it).
+
+    The choice is made on the device, without waiting for it (a training iteration may be a CUDA graph): the small
+    ridge is tried without gradients, the ridge it calls for is then factorised with them; where neither works, the
+    factor is NaN, and so is the loss made with it."""
     A = 0.5 * (A + A.T)
     eye = torch.eye(A.shape[0], dtype=A.dtype, device=A.device)
     scale = A.diagonal().mean()
-    factor, info = torch.linalg.cholesky_ex(A + (1e-12 * scale) * eye)
-    if int(info) != 0:
-        factor, info = torch.linalg.cholesky_ex(A + (100 * torch.finfo(A.dtype).eps * scale) * eye)
-    if int(info) != 0:
-        raise FloatingPointError(f"the subspace's {what} is not positive definite even with a ridge at the "
-                                 f"{A.dtype} precision; raise modal_orthogonality_weight")
-    return factor
+    small, large = 1e-12, 100 * torch.finfo(A.dtype).eps
+    with torch.no_grad():
+        info = torch.linalg.cholesky_ex(A + (small * scale) * eye)[1]
+    ridge = torch.where(info == 0, small, large).to(A.dtype) * scale
+    factor, info = torch.linalg.cholesky_ex(A + ridge * eye)
+    return torch.where(info == 0, factor, torch.full_like(factor, math.nan))
+
+
+def _trace_of_solve(factor: Tensor, B: Tensor) -> Tensor:
+    """tr(A⁻¹ B) for A = L Lᵀ with L = ``factor`` (two triangular solves: cuBLAS kernels on a GPU, which a CUDA
+    graph can capture)."""
+    Y = torch.linalg.solve_triangular(factor, B, upper=False)
+    return torch.linalg.solve_triangular(factor.T, Y, upper=True).diagonal().sum()
 
 
 def modal_loss(K: Tensor, M: Tensor, alpha: float, trace_weight: float = 0.0) -> Tensor:
     """−Σ_i α / (λ_i + α) + trace_weight · Σ_i λ_i / (α·n) over the n Ritz eigenvalues λ_i of (K, M); 0-d tensor.
 
     The first sum is −α·tr((K + αM)⁻¹ M), the second tr(M⁻¹K) / (α·n): the mean Ritz value, which keeps the
-    directions the first sum ignores (λ ≫ α) from growing rough between the quadrature points."""
+    directions the first sum ignores (λ ≫ α) from growing rough between the quadrature points. NaN where K + αM
+    or M is not positive definite even with a ridge at the dtype's precision (:func:`_ridge_cholesky`)."""
     n = K.shape[0]
-    loss = -alpha * torch.cholesky_solve(M, _ridge_cholesky(K + alpha * M, "K + alpha M")).diagonal().sum()
+    loss = -alpha * _trace_of_solve(_ridge_cholesky(K + alpha * M), M)
     if trace_weight > 0:
-        loss = loss + trace_weight * torch.cholesky_solve(K, _ridge_cholesky(M, "mass")).diagonal().sum() / (alpha * n)
+        loss = loss + trace_weight * _trace_of_solve(_ridge_cholesky(M), K) / (alpha * n)
     return loss
 
 
@@ -231,19 +242,30 @@ def sample_handle_transforms(
     return z.reshape(batch_size, 12 * num_handles_total)
 
 
-class _RandomDraws:
-    """The random point indices (points_per_step,) and handle transforms (batch_size, 12H) of the training
-    iterations, drawn on the CPU generator in the order the loop used to draw them one iteration at a time (the
-    indices, then the transforms), but :data:`DRAW_CHUNK` iterations at a time and moved to the device in one
-    copy each (a copy from the CPU waits for the device: one per iteration was one synchronisation more)."""
+class RandomDraws:
+    """The random point indices (points_per_step,) and handle transforms (batch_size, 12H) of a data-free
+    training's iterations, drawn on the CPU generator in the order the loops used to draw them one iteration at a
+    time (the indices, then the transforms), but :data:`DRAW_CHUNK` iterations at a time and moved to the device in
+    one copy each (a copy from the CPU waits for the device: one per iteration was one synchronisation more).
 
-    def __init__(self, gen: torch.Generator, n_all: int, config: SkinningTrainingConfig, H: int, modal: bool,
-                 like: Tensor) -> None:
-        self.gen, self.n_all, self.config, self.H, self.modal, self.like = gen, n_all, config, H, modal, like
+    Args:
+        gen: the CPU generator (seeded by the caller).
+        n_all: the number of points drawn from.
+        config: a training config with ``iterations``, ``points_per_step``, ``batch_size`` and ``z_std``.
+        H: handles (learned + rigid).
+        transforms: draw transforms (False: indices only).
+        like: the tensor whose dtype and device the transforms take (the indices take its device).
+        rigid: draw the rigid (last) handle's transform too (else it is 0).
+    """
+
+    def __init__(self, gen: torch.Generator, n_all: int, config, H: int, transforms: bool, like: Tensor,
+                 rigid: bool = False) -> None:
+        self.gen, self.n_all, self.config, self.H, self.transforms, self.like = gen, n_all, config, H, transforms, like
+        self.rigid = rigid
         self.start, self.idx, self.z = 0, None, None
 
     def next(self, it: int) -> tuple[Tensor, Tensor | None]:
-        """(indices, transforms or None for the modal objective) of iteration ``it`` (asked for in order)."""
+        """(indices, transforms or None) of iteration ``it`` (asked for in order)."""
         if self.idx is None or it - self.start >= self.idx.shape[0]:
             self._draw(it)
         k = it - self.start
@@ -255,8 +277,8 @@ class _RandomDraws:
         idx, z = [], []
         for _ in range(n):
             idx.append(torch.randint(self.n_all, (c.points_per_step,), generator=self.gen))
-            if not self.modal:
-                z.append(sample_handle_transforms(c.batch_size, self.H, c.z_std, self.gen))
+            if self.transforms:
+                z.append(sample_handle_transforms(c.batch_size, self.H, c.z_std, self.gen, rigid=self.rigid))
         self.start = it
         self.idx = torch.stack(idx).to(self.like.device)
         self.z = torch.stack(z).to(dtype=self.like.dtype, device=self.like.device) if z else None
@@ -285,6 +307,7 @@ def train_skinning(
     config: SkinningTrainingConfig | None = None,
     progress: bool = True,
     volume: float = 1.0,
+    cuda_graph: bool = True,
 ) -> list[float]:
     """Train ``field`` in place, data-free (see the module docstring for the loss).
 
@@ -296,6 +319,8 @@ def train_skinning(
             ``last_layer_only=True`` updates only the output layer; all other parameters stay bit-identical.
         progress: show a tqdm bar.
         volume: the object's volume (integration weight volume/n per point).
+        cuda_graph: on CUDA, replay the iteration as a CUDA graph (:mod:`vid2sim.runtime.training`; the same
+            results to rounding, several times faster); False: eager.
     Returns:
         the total loss at each iteration (length ``config.iterations``).
     Raises:
@@ -319,15 +344,19 @@ def train_skinning(
     if modal and not size > 0:
         raise ValueError("the modal objective needs points that span a volume (their bounding box is a point)")
     alpha = config.modal_shift / size**2
-    draws = _RandomDraws(gen, points.shape[0], config, H, modal, points)
+    draws = RandomDraws(gen, points.shape[0], config, H, not modal, points)
 
-    def step(it: int) -> tuple[Tensor, dict[str, Tensor]]:
+    def inputs(it: int) -> tuple[Tensor, ...]:
         idx, z = draws.next(it)
+        return (idx,) if z is None else (idx, z)
+
+    def step(idx: Tensor, z: Tensor | None = None) -> tuple[Tensor, dict[str, Tensor]]:
+        # without checks of values (the points were checked above): it may be captured as a CUDA graph
         X = points[idx]
-        w, dw = field._weights_and_gradients(X)  # the points were checked above
+        w, dw = field._weights_and_gradients(X)
         lo = orthogonality_loss(w[:, :-1])
         if modal:
-            K, M = subspace_stiffness_and_mass(X, w, dw, float(volume), config.poisson_ratio)
+            K, M = subspace_stiffness_and_mass(X, w, dw, float(volume), config.poisson_ratio, trusted=True)
             le = modal_loss(K, M, alpha, config.modal_trace_weight)
             return le + config.modal_orthogonality_weight * lo, {"modal": le, "ortho": lo}
         G = gradient_basis_unchecked(X, w, dw)
@@ -337,7 +366,7 @@ def train_skinning(
     was_training = field.training
     field.train()
     try:  # foreach: one multi-tensor update (the same values)
-        return optimise(params, step, Schedule(config.iterations, config.lr, foreach=True),
-                        Progress("skinning (data-free)", progress), "skinning training")
+        return optimise(params, step, Schedule(config.iterations, config.lr, foreach=True, cuda_graph=cuda_graph),
+                        Progress("skinning (data-free)", progress), "skinning training", inputs=inputs)
     finally:
         field.train(was_training)
