@@ -11,7 +11,8 @@
 # Environment: GPU_CHECK_BUDGET_S (default 530): the whole run's seconds; each phase is stopped at what is left of
 #   them (its status then 124, recorded in the JSON). WHEELS (default .whl), SCENE (default .gpu_check/scene).
 #   GPU_CHECK_PHASES (default all: install build_gsplat pytest_cuda bench_speed reconstruct_full evaluate_full): the
-#   phases to run, to repeat some of them on a warm machine.
+#   phases to run, to repeat some of them on a warm machine. GPU_CHECK_BENCH (default training joint render
+#   physics): bench speed's sections, in this order.
 # Exit status: 0 when every phase succeeded, else 1 (the JSON is written either way).
 set -uo pipefail
 cd "$(dirname "$0")/.."
@@ -91,7 +92,7 @@ phase pytest_cuda 220 python3 -m pytest -m cuda -p no:cacheprovider -v -rfEs -n 
 # bench speed a section at a time, each into its own JSON, so that one cut short by the budget loses only itself
 bench_sections() {
   local section
-  for section in training joint render physics; do
+  for section in ${GPU_CHECK_BENCH:-training joint render physics}; do
     python3 -m vid2sim bench speed --device cuda --only "$section" --json >"$RESULT/bench_$section.json" || return
   done
 }
