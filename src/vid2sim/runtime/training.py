@@ -69,6 +69,7 @@ class Schedule:
         rates = []
         for _ in range(self.iterations):
             rates.append(float(opt.param_groups[0]["lr"]))
+            opt.step()  # no gradient, no update: the scheduler's order as the loop's
             sched.step()
         return rates
 
@@ -152,6 +153,10 @@ def _make_optimizer(params: list[Tensor], schedule: Schedule, capturable: bool) 
     return kind(params, lr=lr, foreach=schedule.foreach, capturable=True)
 
 
+def _detached(parts: Mapping[str, Tensor | float]) -> dict[str, Tensor | float]:
+    return {k: v.detach() if isinstance(v, Tensor) else v for k, v in parts.items()}
+
+
 class _EagerLoop:
     """One iteration at a time: the loss read back (the iteration's one synchronisation) before the update."""
 
@@ -163,6 +168,7 @@ class _EagerLoop:
     def run(self, it: int) -> tuple[list[float], Mapping[str, Tensor | float]]:
         """Iteration ``it``: ([its loss], its parts); no update when the loss is not finite."""
         loss, parts = self.call(it)
+        parts = _detached(parts)
         value = float(loss.detach())
         if not math.isfinite(value):  # before the update: the parameters stay those of the last finite loss
             return [value], parts
@@ -205,6 +211,7 @@ class _GraphLoop:
     def _eager(self, it: int, drawn: tuple[Tensor, ...]) -> tuple[list[float], Mapping[str, Tensor | float]]:
         self.lr.fill_(self.rates[it])
         loss, parts = self.step(*drawn)
+        parts = _detached(parts)  # nothing of this iteration's autograd graph outlives it (its streams' nodes)
         value = float(loss.detach())
         if math.isfinite(value):
             self._update(loss)
