@@ -98,11 +98,11 @@ bench_sections() {
 }
 export -f bench_sections
 phase bench_speed 120 bench_sections
-# the full reconstruction gets what is left but the evaluation's share; not --quiet, so its log has each stage
-left=$((BUDGET - ($(date +%s) - START) - 45))
+# the full reconstruction gets what is left but the evaluation's share (70 s at full size on an H200); not --quiet, so its log has each stage
+left=$((BUDGET - ($(date +%s) - START) - 90))
 phase reconstruct_full "$left" python3 -m vid2sim reconstruct "$SCENE" "$RESULT/asset" --preset full --device cuda \
   --no-report --overwrite
-phase evaluate_full 45 python3 -m vid2sim evaluate "$RESULT/asset" "$SCENE" --out "$RESULT/evaluation.json" \
+phase evaluate_full 90 python3 -m vid2sim evaluate "$RESULT/asset" "$SCENE" --out "$RESULT/evaluation.json" \
   --device cuda --no-report --quiet
 
 python3 - "$RESULT" "$SCENE" "$BUDGET" "$WANTED" <<'PY'
