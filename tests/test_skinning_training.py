@@ -263,3 +263,19 @@ def test_cuda_graphed_skinning_training_matches_the_eager_one(objective):
     if objective == "random_z":  # the modal loss leaves the weights' mixing free (its gauge), so they drift apart
         X = pts[:500]
         assert torch.allclose(fg.weights_and_gradients(X)[0], fe.weights_and_gradients(X)[0], rtol=0.05, atol=2e-3)
+
+
+def test_a_modal_loss_without_a_definite_ridge_is_nan_and_the_training_says_what_to_raise(monkeypatch):
+    """No ridge at the dtype's precision makes an indefinite mass definite: the loss is NaN (read on the device, no
+    exception inside the step), and the training's error names the setting that keeps the Gram matrices definite."""
+    import vid2sim.physics.skinning_training as module
+    from vid2sim.physics.skinning_training import modal_loss
+
+    eye = torch.eye(6, dtype=torch.float64)
+    assert math.isfinite(float(modal_loss(2 * eye, eye, 1.0, trace_weight=1e-2)))
+    assert math.isnan(float(modal_loss(eye, -2 * eye, 1.0)))  # K + αM = -I
+    monkeypatch.setattr(module, "modal_loss", lambda K, M, alpha, w: modal_loss(K, -M, alpha, w))
+    field = SkinningField(num_handles=2, width=8, hidden_layers=1, seed=0).double()
+    with pytest.raises(FloatingPointError, match=r"iteration 0 \(modal nan.*raise modal_orthogonality_weight"):
+        train_skinning(field, _box(300), SkinningTrainingConfig(iterations=3, points_per_step=100,
+                                                                objective="modal"), progress=False)

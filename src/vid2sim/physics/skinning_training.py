@@ -368,5 +368,11 @@ def train_skinning(
     try:  # foreach: one multi-tensor update (the same values)
         return optimise(params, step, Schedule(config.iterations, config.lr, foreach=True, cuda_graph=cuda_graph),
                         Progress("skinning (data-free)", progress), "skinning training", inputs=inputs)
+    except FloatingPointError as error:
+        if modal and "modal nan" in str(error):  # modal_loss is NaN where no ridge made the Gram matrices definite
+            raise FloatingPointError(f"{error}; a NaN modal term means the subspace's mass or stiffness is not "
+                                     "positive definite even with a ridge at the dtype's precision: raise "
+                                     "modal_orthogonality_weight") from None
+        raise
     finally:
         field.train(was_training)

@@ -10,7 +10,8 @@ first :data:`GRAPH_WARMUP` iterations eagerly, captures one whole iteration (los
 update) in a CUDA graph and replays it for the others: one launch per iteration. The optimiser is then
 ``capturable`` (its step count and learning rate live on the device; the schedule's rate is written there before
 each replay), and the losses are read back and checked every :data:`GRAPH_CHECK_EVERY` iterations instead of at
-each: a loss that became NaN or infinite is still reported at the iteration it first did.
+each: a loss that became NaN or infinite is still reported at the iteration it first did (the parameters are
+then those at the end of its block, not the last finite ones an eager loop leaves).
 """
 
 from __future__ import annotations
