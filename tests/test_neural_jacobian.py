@@ -124,3 +124,12 @@ def test_cuda_training_step_runs_and_matches_layout():
     )
     assert losses[-1] < losses[0]
     assert net(pts[:4]).shape == (4, 9, 36)
+
+
+@pytest.mark.cuda
+def test_training_names_parameters_on_another_device_than_the_points():
+    field = SkinningField(num_handles=2, width=8, hidden_layers=1, seed=0)
+    net = NeuralJacobian(num_handles_total=3, encoding_dim=16, widths=(16, 16), seed=0)
+    with pytest.raises(ValueError, match=r"points are on cuda:0 but the Neural Jacobian's parameters are on cpu"):
+        train_neural_jacobian(net, field, _points(300).float().cuda(), NeuralJacobianTrainingConfig(iterations=2),
+                              progress=False)

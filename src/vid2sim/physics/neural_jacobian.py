@@ -172,6 +172,10 @@ def _check_pair(net: NeuralJacobian, field: SkinningField, points: Tensor) -> No
         raise ValueError(f"points must be a tensor of shape (N, 3) with N >= 1, got {shape}")
     if not bool(torch.isfinite(points).all()):
         raise ValueError("points contain NaN or infinite values")
+    for name, module in (("Neural Jacobian", net), ("skinning field", field)):
+        device = next(module.parameters()).device
+        if device != points.device:
+            raise ValueError(f"points are on {points.device} but the {name}'s parameters are on {device}")
 
 
 def train_neural_jacobian(
