@@ -154,6 +154,14 @@ def _make_optimizer(params: list[Tensor], schedule: Schedule, capturable: bool) 
     return kind(params, lr=lr, foreach=schedule.foreach, capturable=True)
 
 
+def _update(params: list[Tensor], loss: Tensor, opt: torch.optim.Optimizer) -> None:
+    """One optimiser step on the gradients of ``loss`` with respect to ``params`` alone."""
+    grads = torch.autograd.grad(loss, params)
+    for p, g in zip(params, grads):
+        p.grad = g
+    opt.step()
+
+
 def _detached(parts: Mapping[str, Tensor | float]) -> dict[str, Tensor | float]:
     return {k: v.detach() if isinstance(v, Tensor) else v for k, v in parts.items()}
 
@@ -173,10 +181,7 @@ class _EagerLoop:
         value = float(loss.detach())
         if not math.isfinite(value):  # before the update: the parameters stay those of the last finite loss
             return [value], parts
-        grads = torch.autograd.grad(loss, self.params)
-        for p, g in zip(self.params, grads):
-            p.grad = g
-        self.opt.step()
+        _update(self.params, loss, self.opt)
         self.sched.step()
         return [value], parts
 
@@ -203,19 +208,13 @@ class _GraphLoop:
         self.what = what
         self.eager_only = False
 
-    def _update(self, loss: Tensor) -> None:
-        grads = torch.autograd.grad(loss, self.params)
-        for p, g in zip(self.params, grads):
-            p.grad = g
-        self.opt.step()
-
     def _eager(self, it: int, drawn: tuple[Tensor, ...]) -> tuple[list[float], Mapping[str, Tensor | float]]:
         self.lr.fill_(self.rates[it])
         loss, parts = self.step(*drawn)
         parts = _detached(parts)  # nothing of this iteration's autograd graph outlives it (its streams' nodes)
         value = float(loss.detach())
         if math.isfinite(value):
-            self._update(loss)
+            _update(self.params, loss, self.opt)
         return [value], parts
 
     def _capture(self, drawn: tuple[Tensor, ...]) -> None:
@@ -229,7 +228,7 @@ class _GraphLoop:
             loss, parts = self.step(*self.static)
             self.names = list(parts)
             self.record = torch.stack([loss.detach(), *(v.detach().to(loss) for v in parts.values())])
-            self._update(loss)
+            _update(self.params, loss, self.opt)
         self.graph = graph
 
     def run(self, it: int) -> tuple[list[float], Mapping[str, Tensor | float | list[float]]]:

@@ -82,12 +82,9 @@ def run(device: torch.device, quick: bool = False, settings: PhysicsBenchSetting
         figures[f"jacobian_train_ms_per_iter{suffix}"] = time_ms(lambda: train_neural_jacobian(
             nj, sim.field, pts, jac, progress=False, cuda_graph=graph), device, repeats, warmup) / iters
     return {
-        "skinning_train_ms_per_iter": figures["skinning_train_ms_per_iter"],
+        **figures,
         "skinning_train_it_per_s": 1e3 / figures["skinning_train_ms_per_iter"],
-        "skinning_train_ms_per_iter_eager": figures["skinning_train_ms_per_iter_eager"],
         "skinning_iter_ops": skinning_iteration_ops(sim.field, pts, s.seed),
-        "jacobian_train_ms_per_iter": figures["jacobian_train_ms_per_iter"],
-        "jacobian_train_ms_per_iter_eager": figures["jacobian_train_ms_per_iter_eager"],
         "training_settings": {"objective": OBJECTIVE, "skinning_pretrain_iters": s.skinning_pretrain_iters,
                               "timed_iters": iters,
                               "repeats": repeats, "num_points": s.num_points, "num_handles": s.num_handles},
