@@ -97,6 +97,7 @@ def test_suite_json_schema_means_and_table(local_run, suite_dir, tiny_config):
         "dynamic_psnr", "dynamic_ssim", "future_psnr", "future_ssim", "novel_psnr", "novel_ssim",
         "abs_error_log10_E", "abs_error_nu", "start_abs_error_log10_E", "start_abs_error_nu", "chamfer_observed",
         "chamfer_future", "centre_of_mass_frame_0", "centre_of_mass_observed", "centre_of_mass_future",
+        "rotation_observed", "rotation_future", "first_contact_added_centre_of_mass", "first_contact_added_rotation",
         "solid_frequency_ratio", "solid_volume_ratio", "solid_bottom_offset", "interval_covers_log10_E",
         "interval_covers_nu", "joint_improved", "seconds"}
     index = json.loads((suite_dir / "index.json").read_text())
@@ -133,6 +134,7 @@ def test_suite_json_schema_means_and_table(local_run, suite_dir, tiny_config):
         "start_abs_error_nu": [e["material"]["start"]["abs_error_nu"] for e in evs],
         "chamfer_future": [e["chamfer"]["future_mean"] for e in evs],
         "centre_of_mass_future": [e["centre_of_mass"]["future_mean"] for e in evs],
+        "rotation_observed": [e["orientation"]["observed_mean_deg"] for e in evs],
         "seconds": [r["seconds"] for r in result["scenes"]],
     }
     for key, values in expected.items():

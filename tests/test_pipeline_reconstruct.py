@@ -192,6 +192,21 @@ def test_evaluate_reports_views_frames_material_and_chamfer(tiny_asset, tiny_sce
     assert com["observed_mean"] == pytest.approx(sum(com["per_frame"][:5]) / 5)  # observed frames 0..4
     assert com["frame_0"] == com["per_frame"][0]
     assert com["future_mean"] == pytest.approx(com["per_frame"][5])
+    turn = report["orientation"]  # the simulated body's rotation from frame 0 against the truth's
+    assert len(turn["per_frame_deg"]) == 6 and turn["per_frame_deg"][0] == pytest.approx(0.0, abs=1e-5)
+    assert all(0 <= a < 30 for a in turn["per_frame_deg"])
+    assert turn["observed_mean_deg"] == pytest.approx(sum(turn["per_frame_deg"][:5]) / 5)
+    contacts = report["contacts"]  # the truth's contacts with the floor, each with the errors around it
+    assert len(contacts["truth"]) == 1  # the drop lands once within its 6 frames
+    assert contacts["first_added_rotation_deg"] == contacts["truth"][0]["rotation_deg"]["added"]
+    for event in contacts["truth"]:
+        assert 1 <= event["frames"][0] <= event["frames"][1] <= 4
+        assert event["before"] == event["frames"][0] - 1 and event["after"] == event["frames"][1] + 1
+        after = event["after"]
+        assert event["centre_of_mass_m"]["after"] == com["per_frame"][after]
+        assert event["rotation_deg"]["added"] == pytest.approx(turn["per_frame_deg"][after]
+                                                               - turn["per_frame_deg"][event["before"]])
+    assert all(1 <= a <= b <= 4 for a, b in contacts["simulated_frames"])
     # Stage II's start (the tiny config's prior, E 1e5 and ν 0.3: the truth here) with its errors
     prior = json.loads((asset / "config.json").read_text())["prior"]
     assert material["start"] == {"E": prior["E"], "log10_E": pytest.approx(math.log10(prior["E"])),

@@ -42,6 +42,17 @@ def run(args: argparse.Namespace) -> int:
             lines.append(f"{what}: " + (f"{100 * first:.2f} cm at frame 0, " if first is not None else "")
                          + f"{100 * report[key]['observed_mean']:.2f} cm observed"
                          + (f", {100 * future:.2f} cm future" if future is not None else ""))
+    turn = report.get("orientation")
+    if turn is not None:
+        future = turn["future_mean_deg"]
+        lines.append(f"rotation off the truth's: {turn['observed_mean_deg']:.1f} deg observed"
+                     + (f", {future:.1f} deg future" if future is not None else ""))
+        for event in report["contacts"]["truth"]:
+            com, rot = event["centre_of_mass_m"], event["rotation_deg"]
+            first, last = event["frames"]
+            lines.append(f"  contact at frames {first}-{last}: from frame {event['before']} to {event['after']} the "
+                         f"centre of mass error {100 * com['before']:.2f} -> {100 * com['after']:.2f} cm, the rotation "
+                         f"error {rot['before']:.1f} -> {rot['after']:.1f} deg")
     shape = report.get("geometry_stiffness")
     if shape is not None:
         lines.append(f"the solid's lowest elastic mode: {shape['lowest_frequency_ratio']:.3f} x the truth's "

@@ -1,9 +1,10 @@
-"""Metrics: trajectory distances, image quality (PSNR, SSIM, optional FovVideoVDP), geometry (Chamfer
+"""Metrics: trajectory distances, body rotations and contacts, image quality (PSNR, SSIM, optional FovVideoVDP), geometry (Chamfer
 distance, surface sampling) and material-parameter errors — the library behind ``vid2sim evaluate``.
 
 ``fovvdp`` imports its CC BY-NC dependency ``pyfvvdp`` only when called (``pip install "vid2sim[fvvdp]"``).
 """
 
+from vid2sim.metrics.contacts import ContactEvent, body_rotations, contact_events, rotation_angles
 from vid2sim.metrics.fvvdp import fovvdp
 from vid2sim.metrics.geometry import (
     ChamferDistance,
@@ -27,10 +28,13 @@ from vid2sim.metrics.trajectory import (
 
 __all__ = [
     "ChamferDistance",
+    "ContactEvent",
     "TrajectoryDistance",
+    "body_rotations",
     "carry_by_tets",
     "chamfer",
     "chamfer_distance",
+    "contact_events",
     "deformation",
     "fovvdp",
     "gaussian_window",
@@ -40,6 +44,7 @@ __all__ = [
     "nonrigid_distance",
     "psnr",
     "rigidly_aligned",
+    "rotation_angles",
     "sample_surface",
     "ssim",
     "ssim_map",
