@@ -251,6 +251,13 @@ def test_report_has_per_scene_figures_and_means(report):
     assert 0 <= at_truth["observed_nonrigid_percent"] <= at_truth["observed_percent"] + 1e-9
     assert 0 <= at_truth["future_nonrigid_percent"] <= at_truth["future_percent"] + 1e-9
     assert at_truth["peak_deformation_percent"]["truth"] > 0 and at_truth["peak_deformation_percent"]["reduced"] > 0
+    # the rotation off the truth's from the exact start: none at frame 0, and the drop bounces within its frames
+    turn, contacts = at_truth["orientation"], at_truth["contacts"]
+    assert turn["per_frame_deg"][0] == pytest.approx(0.0, abs=1e-5) and len(turn["per_frame_deg"]) == config.frames
+    assert contacts["truth"] and contacts["simulated_frames"]
+    assert contacts["truth"][0]["rotation_deg"]["before"] < 1.0  # free flight from the exact start: the same turn
+    assert result["summary"]["mean_model_error_first_contact_added_rotation_deg"] == pytest.approx(
+        contacts["first_added_rotation_deg"])
     assert (
         row["reduced_time_convergence_at_truth"]["refined_substeps"]
         == 4 * row["reduced_time_convergence_at_truth"]["substeps"]
@@ -489,4 +496,5 @@ def test_summary_counts_the_fits_a_failed_line_search_ended():
                                                     "reduced_over_linear_tets")}}
 
     assert summarise([row(0), row(1), row(1)])["summary"]["fit_line_search_failures"] == 2
+    assert "mean_model_error_rotation_observed_deg" not in summarise([row(0)])["summary"]  # rows without it
     assert summarise([row(0)])["summary"]["fit_line_search_failures"] == 0

@@ -65,3 +65,31 @@ def test_contact_events_find_a_bounce_between_frames_a_resting_contact_and_no_fr
     assert contact_events(torch.tensor([0.0, 1.0]), dt, g) == []
     with pytest.raises(ValueError, match="dt > 0"):
         contact_events(torch.zeros(5), 0.0, g)
+
+
+def test_motion_around_contacts_charges_a_bounce_with_the_turn_it_adds():
+    """A reference body bounces; the 'simulated' one follows it exactly but turns 10° more about z from the frame
+    after the bounce: the orientation error is 0 before and 10° after, the bounce adds 10° and no centre-of-mass
+    error, and both bodies' contact frames are the same."""
+    from vid2sim.metrics.contacts import motion_around_contacts
+
+    g, dt, T = 9.8, 0.05, 12
+    t0 = math.sqrt(2 * 0.5 / g)
+    heights = [0.5 - 0.5 * g * (t if t < t0 else 2 * t0 - t) ** 2 for t in (k * dt for k in range(T))]
+    rest = torch.randn(30, 3, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    rest = rest - rest.mean(0)  # centred: the centre of mass follows the heights
+    spin = [_axis_angle((1.0, 0.0, 0.0), 0.2 * k) for k in range(T)]
+    truth = torch.stack([rest @ spin[k].T + torch.tensor([0.0, 0.0, heights[k]]) for k in range(T)])
+    extra = _axis_angle((0.0, 0.0, 1.0), math.radians(10.0))
+    sim = torch.stack([(rest @ (extra @ spin[k]).T if k >= 8 else rest @ spin[k].T) + torch.tensor([0, 0, heights[k]])
+                       for k in range(T)])
+    m = torch.ones(30, dtype=torch.float64)
+    out = motion_around_contacts(sim, m, truth, m, [0.0] * T, dt, (0.0, 0.0, -g), range(1, 8), range(8, T))
+    angles = out["orientation"]["per_frame_deg"]
+    assert angles[:8] == pytest.approx([0.0] * 8, abs=1e-5) and angles[8:] == pytest.approx([10.0] * 4, abs=1e-5)
+    assert out["orientation"]["future_mean_deg"] == pytest.approx(10.0, abs=1e-5)
+    (event,) = out["contacts"]["truth"]
+    assert (event["before"], event["after"]) == (5, 8)
+    assert out["contacts"]["first_added_rotation_deg"] == pytest.approx(10.0, abs=1e-5)
+    assert out["contacts"]["first_added_centre_of_mass_m"] == 0.0
+    assert out["contacts"]["simulated_frames"] == [event["frames"]]

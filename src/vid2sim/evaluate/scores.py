@@ -62,7 +62,7 @@ from vid2sim.asset.motion import (
     true_motion_gaussians,
 )
 from vid2sim.meshing.tetra import tet_volumes
-from vid2sim.metrics.contacts import body_rotations, contact_events, rotation_angles
+from vid2sim.metrics.contacts import motion_around_contacts
 from vid2sim.metrics.fvvdp import fovvdp as fovvdp_score
 from vid2sim.metrics.geometry import boundary_faces, material_errors, surface_chamfer
 from vid2sim.metrics.images import image_metrics
@@ -377,9 +377,8 @@ def _motion_errors(tet: dict[str, Tensor], centres: list[Tensor], sim: Simulator
     faces = boundary_faces(tet["tets"])
     per_frame = [surface_chamfer(centres[t].double(), tet["vertices"][t].double(), faces, seed=t)
                  for t in range(T)]
-    sim_com = simulated_centre_of_mass(sim, states).cpu()
-    true_com = tet_centre_of_mass(tet["vertices"][:T], tet["tets"])
-    offset = (sim_com - true_com).norm(dim=1).tolist()
+    offset = (simulated_centre_of_mass(sim, states).cpu()
+              - tet_centre_of_mass(tet["vertices"][:T], tet["tets"])).norm(dim=1).tolist()
     return {
         "chamfer": {
             "per_frame": per_frame,
@@ -394,57 +393,23 @@ def _motion_errors(tet: dict[str, Tensor], centres: list[Tensor], sim: Simulator
             "future_mean": sum(offset[f] for f in held_f) / len(held_f) if held_f else None,
             "units": "m (distance between the simulated body's centre of mass and the ground truth's)",
         },
-        **contact_errors(tet, sim, states, sim_com, true_com, offset, config),
+        **contact_errors(tet, sim, states, offset, config),
     }
 
 
-def contact_errors(tet: dict[str, Tensor], sim: Simulator, states: list[SimState], sim_com: Tensor,
-                   true_com: Tensor, offset: list[float], config: SceneConfig) -> dict[str, Any]:
-    """The report's ``orientation`` (the angle between the simulated body's rotation from frame 0 and the truth's,
-    per frame and as means) and ``contacts`` (each of the truth's contacts with the floor, with the centre-of-mass
-    and rotation errors on the frames just before and after it and what the contact added to them; and the frames
-    of the simulated body's own contacts), from the centres of mass ``sim_com``, ``true_com`` (T, 3) and their
-    distances ``offset`` (T,) of :func:`_motion_errors`."""
+def contact_errors(tet: dict[str, Tensor], sim: Simulator, states: list[SimState], offset: list[float],
+                   config: SceneConfig) -> dict[str, Any]:
+    """The report's ``orientation`` and ``contacts`` (:func:`vid2sim.metrics.motion_around_contacts`) of the
+    simulated body (the simulator's mass points over ``states``) against the truth's tets (their centroids, each
+    with its frame-0 volume), with the centre-of-mass distances ``offset`` (T,) of :func:`_motion_errors`."""
     T = len(offset)
-    obs_f, held_f = list(config.observed_frames), list(config.held_out_frames)
     vertices, tets = tet["vertices"][:T].double(), tet["tets"].long()
-    corners = vertices[:, tets]  # (T, Nt, 4, 3)
-    volumes = torch.linalg.det(corners[0, :, 1:] - corners[0, :, :1]).abs()
     with torch.no_grad():
         points = torch.stack([sim.positions(sim.X, s.z).double().cpu() for s in states])
         masses = sim.masses().double().cpu()
-    true_r = body_rotations(corners.mean(2), volumes)
-    angles = rotation_angles(body_rotations(points, masses), true_r)
-    up = torch.tensor(config.up, dtype=torch.float64)
-    g = math.sqrt(sum(c * c for c in config.gravity))
-
-    def around(values: list[float], event: Any) -> dict[str, float]:
-        return {"before": values[event.before], "after": values[event.after],
-                "added": values[event.after] - values[event.before]}
-
-    events = contact_events(true_com @ up, float(config.dt), g)
-    first = (around(offset, events[0])["added"], around(angles, events[0])["added"]) if events else (None, None)
-    return {
-        "orientation": {
-            "per_frame_deg": angles,
-            "observed_mean_deg": sum(angles[f] for f in obs_f) / len(obs_f),
-            "future_mean_deg": sum(angles[f] for f in held_f) / len(held_f) if held_f else None,
-            "units": "degrees (the angle between the simulated body's rotation from frame 0 and the truth's, each "
-                     "the mass-weighted best rigid fit of its points)",
-        },
-        "contacts": {
-            "truth": [{"frames": [e.first, e.last], "before": e.before, "after": e.after,
-                       "centre_of_mass_m": around(offset, e), "rotation_deg": around(angles, e)} for e in events],
-            "first_added_centre_of_mass_m": first[0],
-            "first_added_rotation_deg": first[1],
-            "simulated_frames": [[e.first, e.last] for e in contact_events(sim_com @ up, float(config.dt), g)],
-            "what": "the frames around which the floor pushed the body (its centre of mass's height departs from "
-                    "free fall by more than half of gravity), the truth's with the errors on the frame before and "
-                    "after each and what the contact added (first_added_*: the first contact's); the simulated "
-                    "body's frames for comparison",
-        },
-    }
-
+    return motion_around_contacts(points, masses, vertices[:, tets].mean(2), tet_volumes(vertices[0], tets).abs(),
+                                  offset, float(config.dt), config.gravity, list(config.observed_frames),
+                                  list(config.held_out_frames))
 
 def _true_motion(asset: Asset, tet: dict[str, Tensor] | None, targets: Tensor, cameras: list[Camera],
                  config: SceneConfig, scene_path: str | Path, progress: bool) -> dict[str, Any]:

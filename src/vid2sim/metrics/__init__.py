@@ -1,10 +1,16 @@
-"""Metrics: trajectory distances, body rotations and contacts, image quality (PSNR, SSIM, optional FovVideoVDP), geometry (Chamfer
-distance, surface sampling) and material-parameter errors — the library behind ``vid2sim evaluate``.
+"""Metrics: trajectory distances, body rotations and contacts, image quality (PSNR, SSIM, optional FovVideoVDP),
+geometry (Chamfer distance, surface sampling) and material-parameter errors — the library behind ``vid2sim evaluate``.
 
 ``fovvdp`` imports its CC BY-NC dependency ``pyfvvdp`` only when called (``pip install "vid2sim[fvvdp]"``).
 """
 
-from vid2sim.metrics.contacts import ContactEvent, body_rotations, contact_events, rotation_angles
+from vid2sim.metrics.contacts import (
+    ContactEvent,
+    body_rotations,
+    contact_events,
+    motion_around_contacts,
+    rotation_angles,
+)
 from vid2sim.metrics.fvvdp import fovvdp
 from vid2sim.metrics.geometry import (
     ChamferDistance,
@@ -39,6 +45,7 @@ __all__ = [
     "fovvdp",
     "gaussian_window",
     "image_metrics",
+    "motion_around_contacts",
     "material_errors",
     "nearest_neighbours",
     "nonrigid_distance",

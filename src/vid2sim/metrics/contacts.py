@@ -11,13 +11,16 @@ bounce"):
 - :func:`contact_events`: the frames around which the floor pushed a body, from its centre of mass alone: in free
   flight the second difference of the height is −|g| dt²; a frame whose second difference is above
   −``threshold`` |g| dt² had a net upward push from the floor within one frame either side (a bounce between two
-  frames included, which a test of the lowest point at the frames would miss).
+  frames included, which a test of the lowest point at the frames would miss);
+- :func:`motion_around_contacts`: the two together for a simulated body against a reference, as ``vid2sim
+  evaluate`` and ``bench identify`` report them.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any, Sequence
 
 import torch
 from torch import Tensor
@@ -111,3 +114,57 @@ def contact_events(centre_heights: Tensor, dt: float, gravity: float, threshold:
         else:
             events.append(ContactEvent(t, t))
     return events
+
+
+def motion_around_contacts(points: Tensor, masses: Tensor, true_points: Tensor, true_masses: Tensor,
+                           offset: Sequence[float], dt: float, gravity: Sequence[float], observed: Sequence[int],
+                           future: Sequence[int]) -> dict[str, Any]:
+    """A simulated body's rotation and its errors around each of the reference's contacts with the floor.
+
+    Args:
+        points, masses: (T, N, 3) the simulated body's points per frame and (N,) their masses.
+        true_points, true_masses: (T, M, 3) and (M,) the same of the reference (the ground truth).
+        offset: (T,) the distance between the two centres of mass per frame (m).
+        dt: time between frames (s); gravity: (3,) the gravity vector (m/s², along −up).
+        observed, future: the frames averaged as the observed and the future means (future may be empty).
+
+    Returns:
+        {"orientation": per-frame angles (deg) between the two bodies' rotations from frame 0 and their means,
+        "contacts": the reference's contacts (:func:`contact_events` of its centre of mass) each with the
+        centre-of-mass and rotation errors on the frames before and after it and what it added, the first contact's
+        additions, and the simulated body's own contact frames}.
+    """
+    angles = rotation_angles(body_rotations(points, masses), body_rotations(true_points, true_masses))
+    g = torch.as_tensor(gravity, dtype=torch.float64)
+    up = -g / g.norm()
+
+    def centre_heights(x: Tensor, m: Tensor) -> Tensor:
+        w = torch.as_tensor(m).double().cpu()
+        return (w[None, :, None] * torch.as_tensor(x).double().cpu()).sum(1) @ up / w.sum()
+
+    def around(values: Sequence[float], event: ContactEvent) -> dict[str, float]:
+        return {"before": values[event.before], "after": values[event.after],
+                "added": values[event.after] - values[event.before]}
+
+    events = contact_events(centre_heights(true_points, true_masses), dt, float(g.norm()))
+    simulated = contact_events(centre_heights(points, masses), dt, float(g.norm()))
+    return {
+        "orientation": {
+            "per_frame_deg": angles,
+            "observed_mean_deg": sum(angles[f] for f in observed) / len(observed),
+            "future_mean_deg": sum(angles[f] for f in future) / len(future) if future else None,
+            "units": "degrees (the angle between the simulated body's rotation from frame 0 and the truth's, each "
+                     "the mass-weighted best rigid fit of its points)",
+        },
+        "contacts": {
+            "truth": [{"frames": [e.first, e.last], "before": e.before, "after": e.after,
+                       "centre_of_mass_m": around(offset, e), "rotation_deg": around(angles, e)} for e in events],
+            "first_added_centre_of_mass_m": around(offset, events[0])["added"] if events else None,
+            "first_added_rotation_deg": around(angles, events[0])["added"] if events else None,
+            "simulated_frames": [[e.first, e.last] for e in simulated],
+            "what": "the frames around which the floor pushed the body (its centre of mass's height departs from "
+                    "free fall by more than half of gravity), the truth's with the errors on the frame before and "
+                    "after each and what the contact added (first_added_*: the first contact's); the simulated "
+                    "body's frames for comparison",
+        },
+    }

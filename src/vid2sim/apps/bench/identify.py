@@ -42,7 +42,13 @@ import numpy as np
 import torch
 
 from vid2sim.meshing.tetra import sample_points_in_tets, tet_volumes, tetrahedralize
-from vid2sim.metrics import deformation, nonrigid_distance, rigidly_aligned, trajectory_distance
+from vid2sim.metrics import (
+    deformation,
+    motion_around_contacts,
+    nonrigid_distance,
+    rigidly_aligned,
+    trajectory_distance,
+)
 from vid2sim.metrics.images import image_metrics
 from vid2sim.physics import Floor, Gravity, Material, SimState, Simulator, SkinningField
 from vid2sim.physics.contact_compliance import TetCompliance, contact_layer_from_simulation
@@ -526,10 +532,16 @@ def model_errors(scene: PerfectGeometry, config: IdentifyConfig) -> dict:
     """Trajectory errors (percent of the size) on the observed frames 1–15 and the future 16–23; the same
     after aligning each frame rigidly onto the truth (``*_nonrigid_percent``: the shape error, without the
     pose error); and the largest deformation over the frames (distance from the best rigid motion of the
-    rest shape) of the truth and of the reduced model."""
+    rest shape) of the truth and of the reduced model; the rotation off the truth's and the errors around each
+    contact with the floor (:func:`vid2sim.metrics.motion_around_contacts`, the sample points weighted equally:
+    they are uniform in the tets)."""
 
     traj = scene.trajectory(config.frames)
     observed, future = slice(1, config.observed_frames), slice(config.observed_frames, config.frames)
+    truth = scene.truth[: config.frames]
+    gravity = next(e.acceleration for e in scene.simulator.externals if isinstance(e, Gravity))
+    weights = torch.ones(traj.shape[1], dtype=torch.float64)
+    offset = (traj.double().mean(1) - truth.double().mean(1)).norm(dim=1).tolist()
     return {
         "observed_percent": trajectory_distance(traj, scene.truth, scene.size, frames=observed).mean,
         "future_percent": trajectory_distance(traj, scene.truth, scene.size, frames=future).mean,
@@ -539,6 +551,9 @@ def model_errors(scene: PerfectGeometry, config: IdentifyConfig) -> dict:
         "peak_deformation_percent": {"truth": max(deformation(scene.truth[: config.frames], scene.rest_points,
                                                                scene.size)),
                                      "reduced": max(deformation(traj, scene.rest_points, scene.size))},
+        **motion_around_contacts(traj, weights, truth, weights, offset, float(scene.simulator.config.dt), gravity,
+                                 list(range(1, config.observed_frames)),
+                                 list(range(config.observed_frames, config.frames))),
     }
 
 
@@ -909,6 +924,22 @@ def summarise(rows: list[dict]) -> dict:
         ),
         "mean_model_error_future_nonrigid_percent": mean(
             lambda r: r["model_error_at_truth_percent"]["future_nonrigid_percent"]
+        ),
+        # the rotation off the truth's and what the reduced model's first bounce adds to it at the true material (a
+        # scene without a contact adds 0); absent when a row predates these measures
+        **(
+            {
+                "mean_model_error_rotation_observed_deg": mean(lambda r: r["model_error_at_truth_percent"][
+                    "orientation"]["observed_mean_deg"]),
+                "mean_model_error_rotation_future_deg": mean(lambda r: r["model_error_at_truth_percent"][
+                    "orientation"]["future_mean_deg"]),
+                "mean_model_error_first_contact_added_rotation_deg": mean(lambda r: r["model_error_at_truth_percent"][
+                    "contacts"]["first_added_rotation_deg"] or 0.0),
+                "mean_model_error_first_contact_added_centre_of_mass_m": mean(lambda r: r[
+                    "model_error_at_truth_percent"]["contacts"]["first_added_centre_of_mass_m"] or 0.0),
+            }
+            if rows and all("orientation" in r["model_error_at_truth_percent"] for r in rows)
+            else {}
         ),
         "mean_fitted_error_observed_percent": mean(lambda r: r["trajectory_error_fitted_percent"]["observed_percent"]),
         "mean_fitted_error_future_percent": mean(lambda r: r["trajectory_error_fitted_percent"]["future_percent"]),
