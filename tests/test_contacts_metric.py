@@ -7,13 +7,12 @@ import pytest
 import torch
 
 from vid2sim.metrics.contacts import body_rotations, contact_events, rotation_angles
+from vid2sim.simulate.rotations import axis_angle_to_matrix
 
 
 def _axis_angle(axis, angle: float) -> torch.Tensor:
-    a = torch.tensor(axis, dtype=torch.float64)
-    a = a / a.norm()
-    K = torch.tensor([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]], dtype=torch.float64)
-    return torch.eye(3, dtype=torch.float64) + math.sin(angle) * K + (1 - math.cos(angle)) * K @ K
+    """The rotation about ``axis`` by ``angle`` radians."""
+    return axis_angle_to_matrix([*axis, math.degrees(angle)])
 
 
 def test_body_rotations_recover_a_rigid_turn_and_ignore_translation_and_a_symmetric_squash():
