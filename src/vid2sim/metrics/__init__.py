@@ -24,6 +24,7 @@ from vid2sim.metrics.geometry import (
 from vid2sim.metrics.images import gaussian_window, image_metrics, psnr, ssim, ssim_map
 from vid2sim.metrics.trajectory import (
     TrajectoryDistance,
+    best_rotation,
     carry_by_tets,
     deformation,
     nonrigid_distance,
@@ -36,6 +37,7 @@ __all__ = [
     "ChamferDistance",
     "ContactEvent",
     "TrajectoryDistance",
+    "best_rotation",
     "body_rotations",
     "carry_by_tets",
     "chamfer",

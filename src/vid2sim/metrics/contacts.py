@@ -25,6 +25,8 @@ from typing import Any, Sequence
 import torch
 from torch import Tensor
 
+from vid2sim.metrics.trajectory import best_rotation
+
 
 def body_rotations(points: Tensor, masses: Tensor | None = None) -> Tensor:
     """The rotation of a body from its first frame to each frame, (T, 3, 3) float64.
@@ -43,14 +45,7 @@ def body_rotations(points: Tensor, masses: Tensor | None = None) -> Tensor:
     m = torch.ones(X.shape[1], dtype=X.dtype) if masses is None else torch.as_tensor(masses).detach().double().cpu()
     if m.shape != (X.shape[1],) or not bool((m > 0).all()):
         raise ValueError(f"masses must be ({X.shape[1]},) and positive, got shape {tuple(m.shape)}")
-    m = (m / m.sum()).to(X.device)
-    centred = X - (m[None, :, None] * X).sum(1, keepdim=True)
-    cov = torch.einsum("n,tni,nj->tij", m, centred, centred[0])  # Σ m b aᵀ, b at frame t, a at frame 0
-    U, _, Vh = torch.linalg.svd(cov)
-    d = torch.sign(torch.linalg.det(U @ Vh))
-    D = torch.ones(X.shape[0], 3, dtype=X.dtype, device=X.device)
-    D[:, 2] = d
-    return (U * D[:, None, :]) @ Vh  # U diag(1, 1, d) Vh
+    return best_rotation(X[:1].expand_as(X), X, m.to(X.device))
 
 
 def rotation_angles(a: Tensor, b: Tensor) -> list[float]:

@@ -62,17 +62,27 @@ def trajectory_distance(a: Tensor | np.ndarray, b: Tensor | np.ndarray, size: fl
     return TrajectoryDistance(float(sel.mean()), float(sel.max()), [float(v) for v in per], idx)
 
 
-def rigidly_aligned(source: Tensor, target: Tensor) -> Tensor:
-    """``source`` moved per frame by the rigid motion (rotation + translation, no reflection) that best
-    maps it onto ``target`` in the least-squares sense (Kabsch), both (T, N, 3) or (N, 3)."""
+def best_rotation(source: Tensor, target: Tensor, weights: Tensor | None = None) -> Tensor:
+    """The proper rotation R (…, 3, 3) minimising Σ_p w_p ‖R (a_p − ā) − (b_p − b̄)‖² (Kabsch, no reflection) for
+    points ``source`` a and ``target`` b, both (…, N, 3), ā and b̄ their weighted means; ``weights`` (N,) > 0
+    (default equal). Differentiable (through the SVD) where the fit is unique."""
     A, B = source.to(torch.float64), target.to(torch.float64)
-    ca, cb = A.mean(-2, keepdim=True), B.mean(-2, keepdim=True)
-    U, _, Vh = torch.linalg.svd((A - ca).transpose(-1, -2) @ (B - cb))  # H = Σ a bᵀ = U S Vh
-    d = torch.sign(torch.linalg.det(Vh.transpose(-1, -2) @ U.transpose(-1, -2)))
+    w = torch.ones(A.shape[-2], dtype=A.dtype, device=A.device) if weights is None else weights.to(A)
+    w = (w / w.sum())[:, None]
+    a, b = A - (w * A).sum(-2, keepdim=True), B - (w * B).sum(-2, keepdim=True)
+    U, _, Vh = torch.linalg.svd(b.transpose(-1, -2) @ (w * a))  # Σ w b aᵀ = U S Vh
+    d = torch.sign(torch.linalg.det(U @ Vh))
     D = torch.ones(*d.shape, 3, dtype=A.dtype, device=A.device)
     D[..., 2] = d
-    R = (Vh.transpose(-1, -2) * D[..., None, :]) @ U.transpose(-1, -2)  # R = V diag(1, 1, d) Uᵀ
-    return (A - ca) @ R.transpose(-1, -2) + cb
+    return (U * D[..., None, :]) @ Vh  # U diag(1, 1, d) Vh
+
+
+def rigidly_aligned(source: Tensor, target: Tensor) -> Tensor:
+    """``source`` moved per frame by the rigid motion (rotation + translation, no reflection) that best
+    maps it onto ``target`` in the least-squares sense (:func:`best_rotation`), both (T, N, 3) or (N, 3)."""
+    A, B = source.to(torch.float64), target.to(torch.float64)
+    R = best_rotation(A, B)
+    return (A - A.mean(-2, keepdim=True)) @ R.transpose(-1, -2) + B.mean(-2, keepdim=True)
 
 
 def nonrigid_distance(a: Tensor | np.ndarray, b: Tensor | np.ndarray, size: float,
