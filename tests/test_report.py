@@ -140,6 +140,9 @@ def test_tables_show_the_evaluation_numbers(scene_report, tiny_asset):
     value, text = metrics["centre_of_mass.future_mean"]
     assert float(value) == evaluation["centre_of_mass"]["future_mean"]
     assert text == f"{100 * evaluation['centre_of_mass']['future_mean']:.2f}"
+    value, text = metrics["orientation.observed_mean_deg"]
+    assert float(value) == evaluation["orientation"]["observed_mean_deg"]
+    assert text == f"{evaluation['orientation']['observed_mean_deg']:.1f}"
     material = json.loads((Path(tiny_asset) / "material.json").read_text())
     assert float(metrics["found.E"][0]) == material["E"]
     assert float(metrics["found.nu"][0]) == material["nu"]
@@ -323,6 +326,10 @@ def test_bad_inputs_raise_named_errors(scene_report, tiny_asset, tiny_scene, tmp
     bad = json.loads(json.dumps(evaluation))
     bad["solid"]["bottom_offset_m"] = "low"
     with pytest.raises(ReportInputError, match=r"evaluation\['solid'\]\['bottom_offset_m'\] must be a number"):
+        write_report(tmp_path / "r", tiny_asset, scene=tiny_scene, evaluation=bad, renders=renders)
+    bad = json.loads(json.dumps(evaluation))
+    bad["orientation"]["per_frame_deg"][1] = "tilted"
+    with pytest.raises(ReportInputError, match=r"evaluation\['orientation'\]\['per_frame_deg'\]"):
         write_report(tmp_path / "r", tiny_asset, scene=tiny_scene, evaluation=bad, renders=renders)
     with pytest.raises(ReportInputError, match=r"renders must be a tensor of the scene's shape"):
         write_report(tmp_path / "r", tiny_asset, scene=tiny_scene, evaluation=evaluation, renders=renders[:, :2])

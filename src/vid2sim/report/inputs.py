@@ -100,6 +100,13 @@ def check_evaluation(evaluation: Any, name: str = "evaluation") -> dict[str, Any
         for key in ("observed_mean", "future_mean"):
             _number(distances.get(key), f"{name}[{part!r}][{key!r}]")
         _numbers(distances.get("per_frame"), f"{name}[{part!r}]['per_frame']")
+    turn = evaluation.get("orientation")
+    if turn is not None:
+        if not isinstance(turn, Mapping):
+            raise ReportInputError(f"{name}['orientation'] must be a dict, got {type(turn).__name__}")
+        for key in ("observed_mean_deg", "future_mean_deg"):
+            _number(turn.get(key), f"{name}['orientation'][{key!r}]")
+        _numbers(turn.get("per_frame_deg"), f"{name}['orientation']['per_frame_deg']")
     return dict(evaluation)
 
 

@@ -553,12 +553,13 @@ class _Builder:
             "is the prior's.")))
 
     def _metrics_section(self, ev: dict[str, Any]) -> None:
-        """The metrics table: PSNR, SSIM (FoVVDP when evaluated), Chamfer and centre of mass per group."""
+        """The metrics table: PSNR, SSIM (FoVVDP when evaluated), Chamfer, centre of mass and rotation per group."""
         ch = ev.get("chamfer") or {}
         com = ev.get("centre_of_mass") or {}
+        turn = ev.get("orientation") or {}
         has_fov = any(_isnum((ev.get(g) or {}).get("fovvdp_jod")) for g in GROUPS)
         headers = ["", "views", "frames", "PSNR (dB)", "SSIM"] + (["FoVVDP (JOD)"] if has_fov else []) \
-            + ["Chamfer (cm)", "centre of mass off (cm)"]
+            + ["Chamfer (cm)", "centre of mass off (cm)", "rotation off (deg)"]
         rows = []
         chamfer_key = {"dynamic": "observed_mean", "future": "future_mean"}
         for group in GROUPS:
@@ -577,12 +578,16 @@ class _Builder:
             mv = com.get(chamfer_key[group]) if group in chamfer_key else None
             cells.append(H.num_cell(mv, H.fmt(100 * mv, 2) if _isnum(mv) else "—",
                                     key=f"centre_of_mass.{chamfer_key[group]}" if group in chamfer_key else ""))
+            tv = turn.get(f"{chamfer_key[group]}_deg") if group in chamfer_key else None
+            cells.append(H.num_cell(tv, H.fmt(tv, 1) if _isnum(tv) else "—",
+                                    key=f"orientation.{chamfer_key[group]}_deg" if group in chamfer_key else ""))
             rows.append("".join(cells))
         if rows:
             note = ("PSNR and SSIM are means over every (view, frame) image of the group (3DGS-lineage SSIM); "
                     "Chamfer is the mean distance between the simulated Gaussian centres and the ground-truth surface "
-                    "over the observed / future frames, and the centre of mass's the mean distance between the "
-                    "simulated body's centre of mass and the truth's (the cells' data-values are in metres).")
+                    "over the observed / future frames, the centre of mass's the mean distance between the "
+                    "simulated body's centre of mass and the truth's (the cells' data-values are in metres), and the "
+                    "rotation's the mean angle between the simulated body's rotation from frame 0 and the truth's.")
             if has_fov:
                 disp = next(((ev.get(g) or {}).get("fovvdp_display") for g in GROUPS
                              if (ev.get(g) or {}).get("fovvdp_display")), None)
