@@ -34,6 +34,14 @@ def test_body_rotations_recover_a_rigid_turn_and_ignore_translation_and_a_symmet
         body_rotations(torch.zeros(3, 2, 3))
     with pytest.raises(ValueError, match="masses must be"):
         body_rotations(frames, -masses)
+    with pytest.raises(ValueError, match="not all zero"):
+        body_rotations(frames, torch.zeros_like(masses))
+    # a point without mass (a degenerate tet's centroid) does not count: moving it changes nothing
+    massless = masses.clone()
+    massless[0] = 0.0
+    moved = frames.clone()
+    moved[:, 0] += 5.0
+    assert torch.allclose(body_rotations(moved, massless), body_rotations(frames, massless), atol=1e-10)
 
 
 def test_rotation_angles_are_the_relative_rotations_angle_in_degrees():

@@ -411,6 +411,7 @@ def contact_errors(tet: dict[str, Tensor], sim: Simulator, states: list[SimState
                                   offset, float(config.dt), config.gravity, list(config.observed_frames),
                                   list(config.held_out_frames))
 
+
 def _true_motion(asset: Asset, tet: dict[str, Tensor] | None, targets: Tensor, cameras: list[Camera],
                  config: SceneConfig, scene_path: str | Path, progress: bool) -> dict[str, Any]:
     """The report's ``true_motion``: the asset's Gaussians moved by the ground truth's motion (``tet``), rendered

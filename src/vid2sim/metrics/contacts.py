@@ -33,7 +33,8 @@ def body_rotations(points: Tensor, masses: Tensor | None = None) -> Tensor:
 
     Args:
         points: (T, N, 3) positions of the body's points (N ≥ 3, not all on one line at frame 0).
-        masses: (N,) positive weights (default equal).
+        masses: (N,) weights ≥ 0 with a positive sum (default equal; a point of zero mass, e.g. a degenerate
+            tet's centroid, does not count).
 
     Returns:
         R: (T, 3, 3) with R[0] = I: the proper rotation minimising Σ m_p ‖R (x_p(0) − c(0)) − (x_p(t) − c(t))‖²,
@@ -43,8 +44,9 @@ def body_rotations(points: Tensor, masses: Tensor | None = None) -> Tensor:
     if X.ndim != 3 or X.shape[-1] != 3 or X.shape[1] < 3:
         raise ValueError(f"points must have shape (T, N >= 3, 3), got {tuple(X.shape)}")
     m = torch.ones(X.shape[1], dtype=X.dtype) if masses is None else torch.as_tensor(masses).detach().double().cpu()
-    if m.shape != (X.shape[1],) or not bool((m > 0).all()):
-        raise ValueError(f"masses must be ({X.shape[1]},) and positive, got shape {tuple(m.shape)}")
+    if m.shape != (X.shape[1],) or not bool((m >= 0).all()) or not float(m.sum()) > 0:
+        raise ValueError(f"masses must be ({X.shape[1]},), non-negative and not all zero, got shape "
+                         f"{tuple(m.shape)} and sum {float(m.sum()) if m.numel() else 0.0}")
     return best_rotation(X[:1].expand_as(X), X, m.to(X.device))
 
 

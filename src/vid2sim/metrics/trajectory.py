@@ -64,8 +64,8 @@ def trajectory_distance(a: Tensor | np.ndarray, b: Tensor | np.ndarray, size: fl
 
 def best_rotation(source: Tensor, target: Tensor, weights: Tensor | None = None) -> Tensor:
     """The proper rotation R (…, 3, 3) minimising Σ_p w_p ‖R (a_p − ā) − (b_p − b̄)‖² (Kabsch, no reflection) for
-    points ``source`` a and ``target`` b, both (…, N, 3), ā and b̄ their weighted means; ``weights`` (N,) > 0
-    (default equal). Differentiable (through the SVD) where the fit is unique."""
+    points ``source`` a and ``target`` b, both (…, N, 3), ā and b̄ their weighted means; ``weights`` (N,) ≥ 0 with
+    a positive sum (default equal). Differentiable (through the SVD) where the fit is unique."""
     A, B = source.to(torch.float64), target.to(torch.float64)
     w = torch.ones(A.shape[-2], dtype=A.dtype, device=A.device) if weights is None else weights.to(A)
     w = (w / w.sum())[:, None]
