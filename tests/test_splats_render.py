@@ -10,7 +10,7 @@ import torch
 
 from vid2sim.splats.cameras import Camera, camera_ring
 from vid2sim.splats.gaussians import Gaussians, covariances_from_scales_quats
-from vid2sim.splats.rasterize import RasterOptions
+from vid2sim.splats.rasterize import RasterOptions, auto_tile_size
 from vid2sim.splats.render import render, render_gaussians, resolve_backend
 from vid2sim.splats.sh import eval_sh
 
@@ -100,6 +100,35 @@ def test_images_match_brute_force_reference(seed, opacity, opts):
         assert torch.allclose(out.depth[v], depth, atol=1e-10)
     if opacity[0] > 0.8:
         assert float(out.alpha.max()) > 0.9998  # some pixels really did terminate
+
+
+def test_auto_tile_size_follows_the_footprint():
+    half = lambda h: torch.full((10, 2), h, dtype=torch.int32)  # noqa: E731
+    assert auto_tile_size(half(3), backward=False) == 4 and auto_tile_size(half(5), backward=False) == 8
+    assert auto_tile_size(half(5), backward=True) == 4 and auto_tile_size(half(7), backward=True) == 8
+    assert auto_tile_size(torch.zeros(0, 2, dtype=torch.int32), backward=True) == 4
+
+
+@pytest.mark.parametrize("grad", [False, True])
+def test_default_tiling_is_chosen_per_render_and_changes_no_pixel(monkeypatch, grad):
+    """Large splats take 8-pixel tiles, small ones 4 (more so with a backward pass); the image is the reference's
+    either way, and so are the gradients."""
+    render_module = importlib.import_module("vid2sim.splats.render")  # the package's `render` is the function
+    used = []
+    original = render_module.bin_gaussians
+    monkeypatch.setattr(render_module, "bin_gaussians", lambda *a: used.append(a[-1]) or original(*a))
+    cams = camera_ring(1, 2.5, 20.0, 48, 40, fov_x_deg=45.0)
+    bg = torch.tensor([1.0, 0.5, 0.2], dtype=F64)
+    for scale, tile in (((0.01, 0.02), 4), ((0.1, 0.2), 8)):
+        means, scales, quats, ops, cols = (t.requires_grad_(grad) for t in _scene(30, 4, scale=scale))
+        out = render(means, ops, cols, cams, quats=quats, scales=scales, background=bg)
+        assert used[-1] == tile
+        rgb, _, _ = reference_render(means, covariances_from_scales_quats(scales, quats), ops, cols, cams[0], bg)
+        assert torch.allclose(out.rgb[0], rgb, atol=1e-12)
+        if grad:
+            g_out = torch.autograd.grad(out.rgb.sum(), [means, ops])
+            g_ref = torch.autograd.grad(rgb.sum(), [means, ops])
+            assert all(torch.allclose(a, b, atol=1e-9) for a, b in zip(g_out, g_ref))
 
 
 def test_sh_colours_and_offscreen_gaussians_match_reference():

@@ -30,7 +30,7 @@ from vid2sim.splats.deform import DeformedGaussians
 from vid2sim.splats.gaussians import Gaussians, covariances_from_scales_quats
 from vid2sim.splats.gsplat_backend import render_gsplat
 from vid2sim.splats.projection import project_gaussians
-from vid2sim.splats.rasterize import RasterOptions, bin_gaussians, composite, untile
+from vid2sim.splats.rasterize import RasterOptions, auto_tile_size, bin_gaussians, composite, untile
 from vid2sim.splats.sh import eval_sh, num_sh_bases, sh_basis
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -257,7 +257,9 @@ def render(
     depths = ent[:, 5]
     feat = torch.cat([col, depths[:, None]], dim=1)  # (M, D + 1)
     radii = proj.radii.reshape(-1, 2).index_select(0, flat)
-    bins = bin_gaussians(params, radii, depths, v_idx, n_views, width, height, opts.tile_size)
+    tile = opts.tile_size if opts.tile_size is not None else auto_tile_size(radii, torch.is_grad_enabled() and any(
+        t is not None and t.requires_grad for t in (means, opacities, colors, quats, scales, covars)))
+    bins = bin_gaussians(params, radii, depths, v_idx, n_views, width, height, tile)
     acc = composite(params, feat, bins, opts)  # (n_tiles, D + 2, P)
     img = untile(acc, bins, width, height)  # (V, H, W, D + 2)
     alpha = img[..., channels + 1 :]
