@@ -105,21 +105,21 @@ def test_images_match_brute_force_reference(seed, opacity, opts):
 def test_auto_tile_size_follows_the_footprint():
     half = lambda h: torch.full((10, 2), h, dtype=torch.int32)  # noqa: E731
     assert auto_tile_size(half(3), backward=False) == 4 and auto_tile_size(half(5), backward=False) == 8
-    assert auto_tile_size(half(5), backward=True) == 4 and auto_tile_size(half(7), backward=True) == 8
-    assert auto_tile_size(torch.zeros(0, 2, dtype=torch.int32), backward=True) == 4
+    assert auto_tile_size(half(20), backward=True) == 4
+    assert auto_tile_size(torch.zeros(0, 2, dtype=torch.int32), backward=False) == 4
 
 
 @pytest.mark.parametrize("grad", [False, True])
 def test_default_tiling_is_chosen_per_render_and_changes_no_pixel(monkeypatch, grad):
-    """Large splats take 8-pixel tiles, small ones 4 (more so with a backward pass); the image is the reference's
-    either way, and so are the gradients."""
+    """Large splats take 8-pixel tiles in a forward-only render, small ones and differentiated renders 4; the image
+    is the reference's either way, and so are the gradients."""
     render_module = importlib.import_module("vid2sim.splats.render")  # the package's `render` is the function
     used = []
     original = render_module.bin_gaussians
     monkeypatch.setattr(render_module, "bin_gaussians", lambda *a: used.append(a[-1]) or original(*a))
     cams = camera_ring(1, 2.5, 20.0, 48, 40, fov_x_deg=45.0)
     bg = torch.tensor([1.0, 0.5, 0.2], dtype=F64)
-    for scale, tile in (((0.01, 0.02), 4), ((0.1, 0.2), 8)):
+    for scale, tile in (((0.01, 0.02), 4), ((0.1, 0.2), 4 if grad else 8)):
         means, scales, quats, ops, cols = (t.requires_grad_(grad) for t in _scene(30, 4, scale=scale))
         out = render(means, ops, cols, cams, quats=quats, scales=scales, background=bg)
         assert used[-1] == tile

@@ -84,25 +84,27 @@ AUTO_TILE_SIZES = (4, 8)
 
 
 def auto_tile_size(radii: Tensor, backward: bool) -> int:
-    """The faster tile edge for entries of these footprints: 8 pixels when their median bounding-box half size
-    reaches 6 pixels (4 for a forward-only render), else 4.
+    """The faster tile edge for a render: 8 pixels for a forward-only render whose entries' median bounding-box half
+    size reaches 4 pixels, else 4.
 
     Small tiles list a Gaussian in more tiles (binning, sorting, gathering per intersection); large ones evaluate
-    more pixels it does not reach. Measured (``benchmark_scene`` shells of 3 000–100 000 Gaussians, 4 views at
-    128²–448², 1 thread, median of 3; forward / forward + backward ms, tile 4 against 8): median half size 4.5 px
-    253 / 473 against 235 / 665; 6.5 px 1 188 / 2 282 against 799 / 1 988; 8 px 571 / 1 108 against 393 / 991;
-    13.5 px 1 675 / 3 142 against 706 / 2 013; 33.5 px 1 214 / 2 377 against 597 / 1 539. Tile 16 was slower than 8
-    in every case. On a fitted asset at the full preset (8 261 Gaussians, 12 views at 448², half size 8 px) the
-    forward renders of the Gauss–Newton fit take 1.6 s against 2.6 s with tile 4.
+    more pixels it does not reach. Forward only (``benchmark_scene`` shells of 3 000–100 000 Gaussians, 4 views at
+    128²–448², 1 thread, median of 3; ms with tile 4 against 8): median half size 4.5 px 253 against 235, 8 px 571
+    against 393, 13.5 px 1 675 against 706, 33.5 px 1 214 against 597; a fitted asset at the full preset (8 261
+    Gaussians, 12 views at 448², half size 8 px: the Gauss–Newton fit's renders) 2.6 s against 1.6 s; the small
+    preset's (6 000 Gaussians, 128², 3 px) 0.48 s against 0.51 s. Tile 16 was slower than 8 in every case. With a
+    backward pass the tile stays 4: the full preset's frame-0 Gaussian fit (half sizes 7–9 px) takes 158–162 s for
+    200 steps with it against 169 s with 8, and ``bench speed``'s joint setting (4 px) 504 against 826 ms, although
+    synthetic shells of half size 6.5–33.5 px are 1.1–1.6× faster with 8.
 
     Args:
         radii: (M, 2) the visible entries' bounding-box half sizes in pixels.
         backward: whether the render will be differentiated.
     """
-    if radii.shape[0] == 0:
+    if backward or radii.shape[0] == 0:
         return AUTO_TILE_SIZES[0]
     half = float(radii.to(torch.float32).mean(1).median())
-    return AUTO_TILE_SIZES[1] if half >= (6.0 if backward else 4.0) else AUTO_TILE_SIZES[0]
+    return AUTO_TILE_SIZES[1] if half >= 4.0 else AUTO_TILE_SIZES[0]
 
 
 @dataclass
