@@ -4,6 +4,11 @@ Figures (milliseconds, median of several runs):
 
 - ``render_ms`` — always measured on the CPU with the pure-PyTorch backend: 20 000 Gaussians (SH
   degree 3), 4 views at 128 × 128, forward + backward of a loss on RGB, alpha and depth.
+- ``render_forward_ms_448`` — CPU, pure-PyTorch backend: 20 000 Gaussians, 12 views at 448 × 448, a forward
+  render only (what the Gauss–Newton fit, the validation, ``evaluate`` and ``simulate`` do at the full preset),
+  with the automatic tile (:func:`vid2sim.splats.rasterize.auto_tile_size`); ``render_forward_tile4_ratio`` its
+  time over the same render with 4-pixel tiles, timed alternately in the same run (below 1: the tile choice pays).
+  ``--quick``: 2 views.
 - ``render_ms_cuda_448`` — only when CUDA is available: 100 000 Gaussians, 12 views at 448 × 448,
   forward + backward, with ``backend="auto"`` (gsplat when it is installed, the torch backend on
   the GPU otherwise); ``render_cuda_backend`` names the backend that ran.
@@ -17,11 +22,14 @@ object fills about 70 % of each image.
 from __future__ import annotations
 
 import math
+import statistics
+from typing import Callable
 
 import torch
 
 from vid2sim.apps.bench.timing import time_ms
 from vid2sim.splats.cameras import Camera, camera_ring
+from vid2sim.splats.rasterize import RasterOptions
 from vid2sim.splats.render import render, resolve_backend
 from vid2sim.splats.sh import num_sh_bases, rgb_to_sh_dc
 
@@ -84,12 +92,33 @@ def time_render(
     return time_ms(step, device, repeats=repeats, warmup=1)
 
 
+def time_forward_448(n_views: int, repeats: int) -> tuple[float, float]:
+    """(median ms of a forward render of 20 000 benchmark Gaussians in ``n_views`` 448² views with the automatic
+    tile, its median ratio to the same render with 4-pixel tiles), the two timed alternately on the CPU."""
+    scene = {k: v.detach() for k, v in benchmark_scene(20_000).items()}
+    cams = benchmark_cameras(n_views, 448)
+    cpu = torch.device("cpu")
+
+    def step(options: RasterOptions | None) -> Callable[[], object]:
+        return lambda: render(scene["means"], scene["opacities"], scene["sh"], cams, quats=scene["quats"],
+                              scales=scene["scales"], sh_degree=3, backend="torch", raster_options=options)
+
+    auto, tile4 = [], []
+    with torch.no_grad():
+        for _ in range(repeats):
+            auto.append(time_ms(step(None), cpu, repeats=1, warmup=0))
+            tile4.append(time_ms(step(RasterOptions(tile_size=4)), cpu, repeats=1, warmup=0))
+    return statistics.median(auto), statistics.median(a / b for a, b in zip(auto, tile4))
+
+
 def run(device: torch.device, quick: bool = False) -> dict[str, float | str]:
     """Renderer timings (see module docstring). ``device`` is ignored for ``render_ms`` (always CPU)."""
     repeats = 1 if quick else 7
     result: dict[str, float | str] = {
         "render_ms": time_render(20_000, 4, 128, torch.device("cpu"), backend="torch", repeats=repeats)
     }
+    result["render_forward_ms_448"], result["render_forward_tile4_ratio"] = time_forward_448(
+        2 if quick else 12, 1 if quick else 3)
     if torch.cuda.is_available():
         cuda = device if device.type == "cuda" else torch.device("cuda")
         result["render_ms_cuda_448"] = time_render(100_000, 12, 448, cuda, backend="auto", repeats=repeats)
