@@ -11,6 +11,7 @@ from scipy.ndimage import gaussian_filter
 
 from vid2sim.metrics import image_metrics, psnr, ssim, ssim_map
 from vid2sim.metrics.fvvdp import fovvdp
+from vid2sim.metrics.images import _separable_blur, gaussian_window
 from vid2sim.splats import losses
 
 
@@ -95,6 +96,27 @@ def test_ssim_border_is_zero_padded_like_3dgs():
     ours = ssim_map(torch.from_numpy(x), torch.from_numpy(y)).numpy()
     np.testing.assert_allclose(ours, ref, atol=1e-10)
     assert ssim(x, y) == pytest.approx(ref.mean(), abs=1e-10)
+
+
+@pytest.mark.parametrize("padding", ["same", "valid"])
+def test_ssim_float64_sums_equal_the_float32_convolutions_and_are_differentiable(padding):
+    """float64 blurs with shifted sums, other dtypes with depthwise convolutions: the same map, and the sums'
+    gradient is the finite differences'."""
+    x = torch.from_numpy(smooth_images(2, 23, 19, seed=5))
+    y = torch.from_numpy(np.clip(smooth_images(2, 23, 19, seed=6) + 0.1, 0, 1))
+    m64 = ssim_map(x, y, padding=padding)
+    m32 = ssim_map(x.float(), y.float(), padding=padding)
+    assert m64.dtype == torch.float64 and m32.dtype == torch.float32
+    assert (m64 - m32.double()).abs().max() < 1e-4  # float32's own round-off in the variances
+    g = gaussian_window(11, 1.5, torch.float64, x.device)
+    pad = 5 if padding == "same" else 0
+    images = x.permute(0, 3, 1, 2)
+    direct = torch.nn.functional.conv2d(images, torch.outer(g, g).expand(3, 1, 11, 11), padding=pad, groups=3)
+    assert (_separable_blur(images, g, pad) - direct).abs().max() < 1e-14
+    assert (_separable_blur(images.float(), g.float(), pad).double() - direct).abs().max() < 1e-6
+    small_x = x[:1, :13, :12, :2].clone().requires_grad_()
+    assert torch.autograd.gradcheck(lambda a: ssim_map(a, y[:1, :13, :12, :2], window=5, padding=padding),
+                                    (small_x,))
 
 
 def test_training_loss_uses_the_valid_variant_and_stays_differentiable():

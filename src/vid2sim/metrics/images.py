@@ -91,13 +91,10 @@ def ssim_map(render: ArrayLike, target: ArrayLike, window: int = 11, sigma: floa
     if padding == "valid" and (H < window or W < window):
         raise ValueError(f"images of {H}x{W} are smaller than the {window}x{window} SSIM window")
     g = gaussian_window(window, sigma, a.dtype, a.device)
-    kx = g.reshape(1, 1, 1, window).expand(C, 1, 1, window)
-    ky = g.reshape(1, 1, window, 1).expand(C, 1, window, 1)
     pad = window // 2 if padding == "same" else 0
 
     def blur(x: Tensor) -> Tensor:
-        # Separable: zero padding per direction equals the 2-D convolution's zero padding.
-        return F.conv2d(F.conv2d(x, kx, padding=(0, pad), groups=C), ky, padding=(pad, 0), groups=C)
+        return _separable_blur(x, g, pad)
 
     x = a.permute(0, 3, 1, 2)
     y = b.permute(0, 3, 1, 2)
@@ -109,6 +106,35 @@ def ssim_map(render: ArrayLike, target: ArrayLike, window: int = 11, sigma: floa
     s = ((2 * mu_x * mu_y + c1) * (2 * cov + c2)) / ((mu_x * mu_x + mu_y * mu_y + c1) * (var_x + var_y + c2))
     s = s.permute(0, 2, 3, 1)
     return s[0] if single else s
+
+
+def _separable_blur(x: Tensor, g: Tensor, pad: int) -> Tensor:
+    """(N, C, H, W) x correlated with the window g ⊗ g (k taps) after zero padding by ``pad`` on each side:
+    (N, C, H + 2·pad − k + 1, W + 2·pad − k + 1), differentiable.
+
+    Two equal computations, the faster for the dtype: float64 (the evaluation's precision) as k shifted, weighted
+    sums per direction, for which PyTorch's CPU convolution has no fast kernel; other dtypes as two depthwise
+    convolutions (oneDNN on a CPU for the channels-last images SSIM passes, cuDNN on a GPU). Twelve 448² images in
+    float64, "same" (1 thread, median of 3): 1.9 s with the sums against 8.5 s with the convolutions; the Gaussian
+    fit's float32 loss on two 448² views, forward and backward: 0.09 s with the convolutions against 0.32 s with the
+    sums. The two agree to 1e-14 (tests/test_metrics_images.py)."""
+    k = g.numel()
+    if x.dtype != torch.float64:
+        C = x.shape[1]
+        kx = g.reshape(1, 1, 1, k).expand(C, 1, 1, k)
+        ky = g.reshape(1, 1, k, 1).expand(C, 1, k, 1)
+        # separable: zero padding per direction equals the 2-D convolution's zero padding
+        return F.conv2d(F.conv2d(x, kx, padding=(0, pad), groups=C), ky, padding=(pad, 0), groups=C)
+    weights = g.tolist()
+    for dim in (-1, -2):
+        if pad:
+            x = F.pad(x, (pad, pad) if dim == -1 else (0, 0, pad, pad))
+        size = x.shape[dim] - k + 1
+        out = x.narrow(dim, 0, size) * weights[0]
+        for j in range(1, k):
+            out.add_(x.narrow(dim, j, size), alpha=weights[j])
+        x = out
+    return x
 
 
 def _per_image_mse(a: Tensor, b: Tensor) -> Tensor:
