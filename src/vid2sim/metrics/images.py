@@ -92,13 +92,9 @@ def ssim_map(render: ArrayLike, target: ArrayLike, window: int = 11, sigma: floa
         raise ValueError(f"images of {H}x{W} are smaller than the {window}x{window} SSIM window")
     g = gaussian_window(window, sigma, a.dtype, a.device)
     pad = window // 2 if padding == "same" else 0
-
-    def blur(x: Tensor) -> Tensor:
-        return _separable_blur(x, g, pad)
-
     x = a.permute(0, 3, 1, 2)
     y = b.permute(0, 3, 1, 2)
-    mu_x, mu_y, xx, yy, xy = blur(torch.cat([x, y, x * x, y * y, x * y], dim=0)).split(N, dim=0)
+    mu_x, mu_y, xx, yy, xy = _separable_blur(torch.cat([x, y, x * x, y * y, x * y], dim=0), g, pad).split(N, dim=0)
     var_x = xx - mu_x * mu_x
     var_y = yy - mu_y * mu_y
     cov = xy - mu_x * mu_y
