@@ -173,16 +173,19 @@ def test_evaluate_reports_views_frames_material_and_chamfer(tiny_asset, tiny_sce
     asset = shutil.copytree(tiny_asset, tmp_path / "asset")  # the HTML report is written into the asset folder
     out = tmp_path / "eval.json"
     assert main(["evaluate", str(asset), str(tiny_scene), "--out", str(out), "--quiet"]) == 0
-    assert "  at the start (prior: E = 1.000e+05 Pa, nu = 0.300): |d log10 E| = 0.000, |d nu| = 0.000" \
-        in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "  at the start (prior: E = 1.000e+05 Pa, nu = 0.300): |d log10 E| = 0.000, |d nu| = 0.000" in printed
     report = json.loads(out.read_text())
     shown = json.loads((asset / "report" / "report.json").read_text())  # the report shows the same evaluation
     assert (asset / "report" / "index.html").is_file()
     assert shown["evaluation"]["dynamic"]["psnr"] == report["dynamic"]["psnr"]
     assert report["dynamic"]["frames"] == [1, 2, 3, 4] and report["future"]["frames"] == [5]
     assert report["novel_views"]["views"] == [2]  # the held-out ring camera
-    for key in ("dynamic", "future", "novel_views"):
+    rest = report["rest"]  # the asset at rest: the observed views of frame 0
+    assert rest["frames"] == [0] and 2 not in rest["views"] and rest["views"] == report["dynamic"]["views"]
+    for key in ("dynamic", "future", "novel_views", "rest"):
         assert 5 < report[key]["psnr"] < 60 and 0 < report[key]["ssim"] <= 1
+    assert "rest: PSNR" in printed
     material = report["material"]
     assert material["truth"] == {"E": 1e5, "nu": 0.3}
     assert material["abs_error_log10_E"] == pytest.approx(abs(material["fitted"]["log10_E"] - 5.0), abs=1e-6)

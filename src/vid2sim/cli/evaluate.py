@@ -21,7 +21,7 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out) if args.out else Path(args.asset) / "evaluation.json"
     write_evaluation(report, out)
     lines = []
-    for key in ("dynamic", "future", "novel_views"):
+    for key in ("dynamic", "future", "novel_views", "rest"):
         if report[key]:
             lines.append(f"{key}: PSNR {report[key]['psnr']:.2f} dB, SSIM {report[key]['ssim']:.4f}")
     for key, group in report.get("true_motion", {}).items():

@@ -36,7 +36,8 @@ from vid2sim.scene.reading import load_scene
 #: suite means key → (label, unit, decimals, scale of the shown value)
 MEAN_LABELS = {
     "dynamic_psnr": ("PSNR observed", "dB", 2, 1.0), "future_psnr": ("PSNR future", "dB", 2, 1.0),
-    "novel_psnr": ("PSNR novel views", "dB", 2, 1.0), "dynamic_ssim": ("SSIM observed", "", 4, 1.0),
+    "novel_psnr": ("PSNR novel views", "dB", 2, 1.0), "rest_psnr": ("PSNR at rest (frame 0)", "dB", 2, 1.0),
+    "dynamic_ssim": ("SSIM observed", "", 4, 1.0),
     "future_ssim": ("SSIM future", "", 4, 1.0), "novel_ssim": ("SSIM novel views", "", 4, 1.0),
     "abs_error_log10_E": ("|Δ log10 E|", "decades", 3, 1.0), "abs_error_nu": ("|Δ ν|", "", 3, 1.0),
     "start_abs_error_log10_E": ("|Δ log10 E| at the start (prior or Stage I)", "decades", 3, 1.0),
