@@ -549,6 +549,8 @@ def test_presets_and_config_errors():
     small, full = ReconstructConfig.preset("small"), ReconstructConfig.preset("full")
     assert small.joint.iterations < full.joint.iterations == 400  # the paper's 400 at full size
     assert full.joint.lr_log10_E == 5e-3 and full.joint.lr_nu == 1e-3 and full.joint.window == 4
+    # the last stage: the Gaussians' geometry too with 4 views of 128², colours only with 12 of 448² (docs/results.md)
+    assert small.motion_appearance.geometry and not full.motion_appearance.geometry
     with pytest.raises(ValueError, match="jacobian"):
         NetworksConfig(jacobian="finite_differences")
     with pytest.raises(ValueError, match="skinning_objective must be one of"):
