@@ -129,7 +129,7 @@ def test_page_parses_and_every_file_it_references_exists(scene_report):
 def test_tables_show_the_evaluation_numbers(scene_report, tiny_asset):
     out, evaluation, _ = scene_report
     metrics = _parse(out / "index.html").metrics
-    for group in ("dynamic", "future", "novel_views"):
+    for group in ("dynamic", "future", "novel_views", "rest"):  # rest: the observed views at frame 0
         for key, digits in (("psnr", 2), ("ssim", 4)):
             value, text = metrics[f"{group}.{key}"]
             assert float(value) == evaluation[group][key]

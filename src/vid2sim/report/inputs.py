@@ -14,7 +14,7 @@ from typing import Any
 from vid2sim.report.config import ReportInputError
 from vid2sim.runtime.jsonvalues import is_finite_number as _is_number
 
-GROUPS = ("dynamic", "future", "novel_views")
+GROUPS = ("dynamic", "future", "novel_views", "rest")
 SCENE_KEYS = ("name", "scene", "asset", "status", "error", "evaluation", "report", "seconds")
 
 
@@ -38,7 +38,7 @@ def _numbers(value: Any, where: str) -> None:
 def check_evaluation(evaluation: Any, name: str = "evaluation") -> dict[str, Any]:
     """Check an evaluation dict (the output of :func:`vid2sim.evaluate.scores.evaluate`); returns it.
 
-    Checked: it is a dict; ``dynamic`` / ``future`` / ``novel_views``, when present and non-empty, are dicts
+    Checked: it is a dict; ``dynamic`` / ``future`` / ``novel_views`` / ``rest``, when present and non-empty, are dicts
     whose ``psnr``, ``ssim``, ``fovvdp_jod`` are numbers, whose per-frame lists hold numbers, one per entry
     of ``frames``; ``material`` is a dict whose ``fitted`` / ``truth`` hold numbers; ``geometry_stiffness``, when
     present, holds a numeric ``lowest_frequency_ratio`` and ``implied_log10_E_offset``; ``chamfer`` has numeric

@@ -41,7 +41,8 @@ from vid2sim.runtime.jsonvalues import is_finite_number as _isnum
 from vid2sim.scene.folder import Scene
 from vid2sim.scene.reading import load_scene
 
-GROUP_TITLES = {"dynamic": "Dynamic reconstruction", "future": "Future prediction", "novel_views": "Novel views"}
+GROUP_TITLES = {"dynamic": "Dynamic reconstruction", "future": "Future prediction", "novel_views": "Novel views",
+                "rest": "At rest (frame 0)"}
 
 
 # ---------------------------------------------------------------------------------------------------------
