@@ -550,8 +550,8 @@ PRESETS: dict[str, dict[str, Any]] = {
               "joint": {"iterations": 100, "validate_every": 25, "lr_skinning": 0.0, "lr_jacobian": 0.0}},
     # the paper's sizes. The last stage refits colours and opacities only: with 12 views the frame-0 fit is sharp
     # (40-45 dB on its views), and moving the Gaussians along a simulated motion that is off after the bounce blurs
-    # it. On the 12-scene suite's first three scenes colours only gave +0.5 dB on the observed frames, +0.3 on the
-    # held-out views, -0.3 on the future frames and +7.4 dB at rest (frame 0) (docs/results.md).
+    # it. On four full scenes colours only gave +0.5 dB on the observed frames, +0.3 on the held-out views, -0.5 on
+    # the future frames (which the geometry's blur hedges) and +6.5 dB at rest (frame 0) (docs/results.md).
     "full": {"gaussians": {"iterations": 1000, "views_per_step": 2},
              "networks": {"skinning_iterations": 2000},
              "joint": {"iterations": 400, "views_per_iteration": 4},
