@@ -330,6 +330,7 @@ def test_evaluate_true_motion_scores_the_gaussians_on_the_ground_truths_motion(t
     assert tm["dynamic"]["frames"] == report["dynamic"]["frames"] and tm["future"]["frames"] == [5]
     for key in ("dynamic", "future", "novel_views"):
         assert 5 < tm[key]["psnr"] < 60 and 0 < tm[key]["ssim"] <= 1
+    assert "rest" not in tm and "psnr" in report["rest"]  # frame 0 is the rest pose under either motion
     assert "on the true motion" in capsys.readouterr().out
     asset = load_asset(tiny_asset)
     carried = true_motion_gaussians(asset, load_scene(tiny_scene).extras["tet_trajectory"])
