@@ -8,6 +8,7 @@ from pathlib import Path
 from vid2sim.cli.common import add_device_option, add_threads_option, set_threads
 from vid2sim.cli.report import write_asset_report
 from vid2sim.evaluate.scores import evaluate, write_evaluation
+from vid2sim.report.inputs import GROUPS
 from vid2sim.runtime.device import resolve_device
 
 
@@ -21,7 +22,7 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out) if args.out else Path(args.asset) / "evaluation.json"
     write_evaluation(report, out)
     lines = []
-    for key in ("dynamic", "future", "novel_views", "rest"):
+    for key in GROUPS:
         if report[key]:
             lines.append(f"{key}: PSNR {report[key]['psnr']:.2f} dB, SSIM {report[key]['ssim']:.4f}")
     for key, group in report.get("true_motion", {}).items():
