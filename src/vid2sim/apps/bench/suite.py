@@ -369,7 +369,9 @@ def check_out(out: Path, settings: dict[str, Any]) -> None:
         raise FileExistsError(f"{out} exists and is not a folder")
     if path.is_file():
         previous = json.loads(path.read_text())
-        keys = ("suite", "preset", "iterations", "fovvdp", "reconstruct")  # threads may change between runs
+        # the resolved ReconstructConfig, not the preset's name: a run pinned with --config resumes after a release
+        # changed the preset (its name then reads "custom"); threads may change between runs
+        keys = ("suite", "iterations", "fovvdp", "reconstruct")
         differ = [k for k in keys if previous.get(k) != settings.get(k)]
         if differ:
             raise InputError(f"{out} holds a suite run with other settings ({', '.join(differ)} differ; see "
