@@ -21,6 +21,9 @@ from vid2sim.reconstruct.gauss_newton import (
     levenberg_marquardt,
     linearise,
     marquardt_step,
+    objective,
+    track_loss,
+    trajectory_loss,
 )
 from vid2sim.reconstruct.stages.joint import (
     ClipResiduals,
@@ -59,6 +62,9 @@ class LinearClip:
     def residuals(self, trajectories, frame):
         return torch.stack([self.A[frame] @ th - self.b[frame] for th in trajectories])
 
+    def track_residuals(self, trajectories):
+        return None
+
 
 class DecayClip:
     """r_t(a, k) = a·exp(−k t) − y_t, one residual per frame: a nonlinear least-squares problem."""
@@ -77,6 +83,9 @@ class DecayClip:
     def residuals(self, trajectories, frame):
         return torch.tensor([[th[0] * math.exp(-th[1] * frame) - self.y[frame]] for th in trajectories],
                             dtype=torch.float64)
+
+    def track_residuals(self, trajectories):
+        return None
 
 
 def test_effective_images_count_images_by_their_weights():
@@ -188,6 +197,46 @@ def test_a_direction_the_clip_does_not_see_is_not_identifiable_and_keeps_the_pri
         [0.3 - 0.1 * 0.9944578832097535, 0.3 + 0.1 * 0.9944578832097535])
     assert record["seen"]["identifiable"] is True and record["seen"]["value"] == pytest.approx(2.0, abs=0.05)
     assert information_by_frame(fit.linearisation, params)["unseen"] == [0.0] * 10
+
+
+class TrackedClip(LinearClip):
+    """The linear clip with a track: c(θ) = (C θ − d) / σ, measurements of known standard deviation σ."""
+
+    def __init__(self, A, b, C, d, sd):
+        super().__init__(A, b)
+        self.C, self.d, self.sd = C, d, sd
+
+    def track_residuals(self, trajectories):
+        return torch.stack([(self.C @ th - self.d) / self.sd for th in trajectories])
+
+
+def test_a_track_term_pins_what_the_images_do_not_see_and_the_fit_minimises_the_whole_objective():
+    """The images see only the first parameter; a track of 4 measurements (σ = 0.05) sees the second. The fit lands
+    where Φ (images, track and prior) is stationary, the second parameter moves from its prior to the track's value,
+    is identifiable, and its interval is the track's: σ / √4 (the prior's 0.1 barely narrows it)."""
+    g = torch.Generator().manual_seed(1)
+    A = torch.zeros(10, 3, 2, dtype=torch.float64)
+    A[:, :, 0] = torch.randn(10, 3, generator=g, dtype=torch.float64)
+    b = A[:, :, 0] * 2.0 + 0.1 * torch.randn(10, 3, generator=g, dtype=torch.float64)
+    C = torch.tensor([[0.0, 1.0]] * 4, dtype=torch.float64)
+    d = torch.full((4,), 0.42, dtype=torch.float64)
+    params = [Parameter("seen", -10, 10, 1e-3, 0.0, 5.0), Parameter("unseen", 0.0, 0.49, 1e-3, 0.3, 0.1)]
+    clip = TrackedClip(A, b, C, d, 0.05)
+    fit = levenberg_marquardt(clip, params, [0.0, 0.3], n=10.0, iterations=20, tolerance=1e-10)
+    assert fit.log[-1]["track_loss"] == pytest.approx(fit.linearisation.track_loss)
+    # Φ is stationary at the fit: its forward differences vanish
+    for j, h in enumerate((1e-6, 1e-6)):
+        def phi(theta):
+            trajectory = clip.simulate(theta)
+            return objective(trajectory_loss(clip, trajectory), theta, params, 10.0, track_loss(clip, trajectory))
+        moved = list(fit.theta)
+        moved[j] += h
+        assert abs(phi(moved) - phi(fit.theta)) / h < 1e-3
+    prior_weight = 0.1 ** -2 / (0.1 ** -2 + 4 / 0.05 ** 2)  # the posterior mean of two Gaussians
+    assert fit.theta[1] == pytest.approx(0.3 * prior_weight + 0.42 * (1 - prior_weight), abs=1e-6)
+    record = laplace_intervals(fit.linearisation, params, 10.0, 0.68)
+    assert record["unseen"]["identifiable"] is True and record["unseen"]["data_sd"] == pytest.approx(0.025, rel=1e-3)
+    assert record["unseen"]["noise_sd"] == pytest.approx((0.1 ** -2 + 4 / 0.05 ** 2) ** -0.5, rel=1e-3)
 
 
 def test_a_fit_at_an_end_of_the_coarse_grid_says_so():

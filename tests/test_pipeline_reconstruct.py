@@ -467,15 +467,18 @@ def test_an_interrupted_reconstruction_resumes_after_its_last_finished_stage(
     tiny_scene, tmp_path, monkeypatch, tiny_config
 ):
     """An interrupted run resumes after its last finished stage and leaves nothing that looks finished; with the
-    centre-of-mass search on, the offset the joint stage found moves the asset's lumped masses."""
+    centre-of-mass search on, the offset the joint stage found moves the asset's lumped masses; with a hull track,
+    the joint stage carves one hull per observed frame and log.json records the fit's distance from it."""
     from vid2sim.reconstruct.stages import joint as joint_module
 
     out = tmp_path / "asset"
     config = tiny_config()
     config.joint.centre_of_mass_step = 0.05
+    config.joint.track_sd = 0.02
     real, offset = joint_module.joint_optimisation, [0.004, 0.0, -0.003]
 
     def then_moved(*args, **kwargs):  # the real stage (its search runs), its offset replaced by a known one
+        assert kwargs["track"].shape == (5, 3)  # the hull track of the 5 observed frames
         result = real(*args, **kwargs)
         assert len(result.centre_of_mass_search) >= 7
         return dataclasses.replace(result, centre_of_mass_offset=offset)
@@ -513,7 +516,12 @@ def test_an_interrupted_reconstruction_resumes_after_its_last_finished_stage(
     assert torch.allclose(moved, torch.tensor(offset, dtype=torch.float64), atol=1e-6)
     assert float(m.sum()) == pytest.approx(float(w.sum()), rel=1e-6)
     assert json.loads((out / "asset.json").read_text())["extra"]["centre_of_mass_offset"] == pytest.approx(offset)
-    assert len(json.loads((out / "log.json").read_text())["centre_of_mass_search"]) >= 7
+    log = json.loads((out / "log.json").read_text())
+    assert len(log["centre_of_mass_search"]) >= 7
+    track = log["joint_fit"]["track"]
+    assert len(track["hull_centroids"]) == 5 and len(track["displacement_error"]) == 4
+    assert track["sd"] == pytest.approx(0.02 * asset.length_scale)
+    assert "track_loss" in log["iterations"][0]
     # a finished stage with other settings is refused, naming it; settings of stages not yet run may change
     other = tiny_config()
     other.networks.handles = 4

@@ -227,6 +227,22 @@ def test_report_without_a_scene_renders_the_asset_in_a_ring(tiny_asset, tmp_path
     assert np.abs(video[0] - video[-1]).mean() > 0.005
 
 
+def test_the_optimisation_section_says_how_closely_the_fit_followed_the_hull_track(tiny_asset, tmp_path):
+    from vid2sim.apps.report import asset_report
+    from vid2sim.report import ReportConfig
+
+    asset = tmp_path / "asset"
+    shutil.copytree(tiny_asset, asset, ignore=shutil.ignore_patterns("report"))
+    log = json.loads((asset / "log.json").read_text())
+    log["joint_fit"]["track"] = {"sd": 0.005, "hull_centroids": [[0.0, 0.0, 0.0]] * 3,
+                                 "displacement_error": [0.003, 0.004]}
+    (asset / "log.json").write_text(json.dumps(log))
+    cfg = ReportConfig(ring_views=1, ring_resolution=16, ring_frames=2, panel_size=32)
+    html = (asset_report(tmp_path / "ring", asset, progress=False, config=cfg) / "index.html").read_text()
+    assert "followed the hull track" in html and "(σ = 5.0 mm)" in html
+    assert "within 3.5 mm RMS of it (at most 4.0 mm)" in html
+
+
 def test_simulations_of_the_asset_get_a_new_situations_section(tiny_asset, tmp_path):
     from vid2sim.apps.report import asset_report
     from vid2sim.report import ReportConfig

@@ -341,6 +341,11 @@ class JointConfig:
             validation's whole-clip losses, τ = ``frame_decay`` frames (default 4, beyond the paper); None:
             equal weights (the paper's mean over the clip). See :func:`clip_loss`. On the quadratic-tet
             small suite (8 scenes) τ = 4 gave |Δlog10 E| 0.30 against 0.37 with equal weights.
+        track_sd: the standard deviation of the hull track (the displacement of each observed frame's visual-hull
+            centroid from frame 0's, :mod:`vid2sim.reconstruct.hull_track`) as a fraction of the object's diagonal;
+            with it, the Gauss–Newton fit also matches the simulated centre of mass's displacement to that track
+            (:class:`~vid2sim.reconstruct.stages.joint.ClipResiduals`). None (the default): no track term.
+        track_resolution: voxels per side of each frame's hull for the track.
         seed: seeds the windows and view subsets.
     """
 
@@ -379,6 +384,8 @@ class JointConfig:
     frame_decay: float | None = 4.0
     centre_of_mass_step: float = 0.0
     centre_of_mass_rounds: int = 2
+    track_sd: float | None = None
+    track_resolution: int = 64
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -421,6 +428,12 @@ class JointConfig:
                 or not 0 <= float(self.centre_of_mass_step) < 0.5:
             raise ConfigError("JointConfig.centre_of_mass_step must be a fraction of the object's size in [0, 0.5), "
                              f"got {self.centre_of_mass_step!r}")
+        if self.track_sd is not None and (isinstance(self.track_sd, bool) or not isinstance(self.track_sd, (int, float))
+                                          or not 0 < float(self.track_sd) < math.inf):
+            raise ConfigError(f"JointConfig.track_sd must be a finite number > 0 or None, got {self.track_sd!r}")
+        if isinstance(self.track_resolution, bool) or not isinstance(self.track_resolution, int) \
+                or self.track_resolution < 8:
+            raise ConfigError(f"JointConfig.track_resolution must be an integer >= 8, got {self.track_resolution!r}")
         if self.centre_of_mass_rounds < 1:
             raise ConfigError(f"JointConfig.centre_of_mass_rounds must be >= 1, got {self.centre_of_mass_rounds}")
         if any(not 0 <= float(mu) < math.inf for mu in self.coarse_friction):

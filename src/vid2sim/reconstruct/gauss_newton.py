@@ -10,14 +10,16 @@ each frame says about each parameter all come from it.
 
 The fit minimises a posterior, not the bare image loss:
 
-    Φ(θ) = n/2 · log L(θ) + ½ Σ_j ((θ_j − μ_j) / σ_j)²
+    Φ(θ) = n/2 · log L(θ) + ½ ‖c(θ)‖² + ½ Σ_j ((θ_j − μ_j) / σ_j)²
 
 where L is the weighted mean squared image error of the whole clip (``Σ_t ‖r_t‖²``, the residual blocks of
 :class:`ClipModel`), n the number of independent measurements it holds (the effective number of images,
 :func:`effective_images`) and (μ_j, σ_j) a Gaussian prior on the material (none on the velocities). The
 logarithm profiles out the unknown image noise variance (σ̂² = L/n at the optimum). A direction the images do
 not constrain stays at the prior instead of wandering along a flat valley, and
-:func:`vid2sim.reconstruct.uncertainty.laplace_intervals` then says so.
+:func:`vid2sim.reconstruct.uncertainty.laplace_intervals` then says so. c are the model's *track* residuals, when it
+has them (:meth:`ClipModel.track_residuals`): measurements of known standard deviation, already divided by it (the
+joint stage's body position from the visual hulls), so their term needs no profiling.
 
 Every step is accepted only if it lowers Φ, evaluated on a fresh rollout at the automatic substep count;
 otherwise the Marquardt damping grows and the step shrinks. Parameters stay inside their bounds (a step that
@@ -81,6 +83,10 @@ class ClipModel(Protocol):
     def residuals(self, trajectories: Sequence[Any], frame: int) -> Tensor:
         """(len(trajectories), n_t) weighted residuals of block ``frame`` (0 … frames−1) of each trajectory."""
 
+    def track_residuals(self, trajectories: Sequence[Any]) -> Tensor | None:
+        """(len(trajectories), m) track residuals c of each trajectory, each divided by its standard deviation
+        (module docstring), or None: no track term."""
+
 
 @dataclass
 class Linearisation:
@@ -93,6 +99,8 @@ class Linearisation:
         frame_hessian: (F, p, p) J_tᵀ J_t per frame block, float64.
         frame_gradient: (F, p) J_tᵀ r_t per frame block, float64.
         steps: (p,) the difference steps used (negative where a step up would have left the bounds or failed).
+        track_loss: ‖c‖², the track residuals' squared norm (0 without a track).
+        track_hessian, track_gradient: (p, p) J_cᵀ J_c and (p,) J_cᵀ c, float64 (zeros without a track).
     """
 
     theta: list[float]
@@ -101,6 +109,16 @@ class Linearisation:
     frame_hessian: Tensor
     frame_gradient: Tensor
     steps: list[float]
+    track_loss: float = 0.0
+    track_hessian: Tensor | None = None
+    track_gradient: Tensor | None = None
+
+    def __post_init__(self) -> None:
+        p = len(self.theta)
+        if self.track_hessian is None:
+            self.track_hessian = torch.zeros(p, p, dtype=torch.float64)
+        if self.track_gradient is None:
+            self.track_gradient = torch.zeros(p, dtype=torch.float64)
 
     @property
     def loss(self) -> float:
@@ -160,7 +178,14 @@ def linearise(model: ClipModel, parameters: Sequence[Parameter], theta: Sequence
             frame_loss[t] = float(r.double() @ r.double())
             frame_hessian[t] = (J @ J.T).double()
             frame_gradient[t] = (J @ r).double()
-    return Linearisation(theta, n, frame_loss, frame_hessian, frame_gradient, steps)
+    lin = Linearisation(theta, n, frame_loss, frame_hessian, frame_gradient, steps)
+    with torch.no_grad():
+        R = model.track_residuals([base] + variants)
+    if R is not None:
+        R = R.double()
+        J = (R[1:] - R[0]) / step_t[:, None]  # (p, m)
+        lin.track_loss, lin.track_hessian, lin.track_gradient = float(R[0] @ R[0]), J @ J.T, J @ R[0]
+    return lin
 
 
 def effective_images(frame_weights: Sequence[float], views: int) -> float:
@@ -180,23 +205,25 @@ def prior_precision(parameters: Sequence[Parameter]) -> tuple[Tensor, Tensor]:
     return precision, mean
 
 
-def objective(loss: float, theta: Sequence[float], parameters: Sequence[Parameter], n: float) -> float:
-    """Φ(θ) = n/2 · log L + ½ Σ_j ((θ_j − μ_j)/σ_j)² (module docstring); +inf for a non-finite loss."""
-    if not math.isfinite(loss):
+def objective(loss: float, theta: Sequence[float], parameters: Sequence[Parameter], n: float,
+              track: float = 0.0) -> float:
+    """Φ(θ) = n/2 · log L + ½ ‖c‖² + ½ Σ_j ((θ_j − μ_j)/σ_j)² (module docstring; ``track`` = ‖c‖²); +inf for a
+    non-finite loss."""
+    if not (math.isfinite(loss) and math.isfinite(track)):
         return math.inf
     precision, mean = prior_precision(parameters)
     d = torch.tensor(list(theta), dtype=torch.float64) - mean
-    return 0.5 * n * math.log(max(loss, 1e-300)) + 0.5 * float((precision * d * d).sum())
+    return 0.5 * n * math.log(max(loss, 1e-300)) + 0.5 * track + 0.5 * float((precision * d * d).sum())
 
 
 def posterior_curvature(lin: Linearisation, parameters: Sequence[Parameter], n: float) -> tuple[Tensor, Tensor]:
-    """The Gauss–Newton Hessian (p, p) and gradient (p,) of Φ at ``lin.theta``: n JᵀJ / L + P and
-    n Jᵀr / L + P (θ − μ)."""
+    """The Gauss–Newton Hessian (p, p) and gradient (p,) of Φ at ``lin.theta``: n JᵀJ / L + J_cᵀJ_c + P and
+    n Jᵀr / L + J_cᵀc + P (θ − μ)."""
     precision, mean = prior_precision(parameters)
     scale = n / max(lin.loss, 1e-300)
     theta = torch.tensor(lin.theta, dtype=torch.float64)
-    hessian = scale * lin.hessian + torch.diag(precision)
-    gradient = scale * lin.gradient + precision * (theta - mean)
+    hessian = scale * lin.hessian + lin.track_hessian + torch.diag(precision)
+    gradient = scale * lin.gradient + lin.track_gradient + precision * (theta - mean)
     return hessian, gradient
 
 
@@ -242,10 +269,12 @@ class FitResult:
         theta: (p,) the kept parameters (the best by ``validate``, or by Φ without it).
         linearisation: the Gauss–Newton blocks at ``theta`` (for the uncertainty and the information by frame).
         objective: Φ at ``theta``.
-        validation_loss: ``validate(theta)`` (None without ``validate``).
+        validation_loss: ``validate(theta)`` (None without ``validate``); with a track term the kept θ is the best
+            by n/2 · log(validation loss) + ½ ‖c‖², the validated Φ without its prior.
         start_validation_loss: ``validate`` of the start (None without it).
         log: one dict per iteration: ``iteration``, ``loss`` (L), ``objective`` (Φ), ``damping`` (Marquardt's λ),
-            ``accepted``, ``rollouts``, ``ms``, the parameters by name, and ``validation_loss`` when validated.
+            ``accepted``, ``rollouts``, ``ms``, the parameters by name, ``validation_loss`` when validated and
+            ``track_loss`` (‖c‖²) with a track term.
         stop: why it stopped.
     """
 
@@ -274,7 +303,8 @@ def levenberg_marquardt(model: ClipModel, parameters: Sequence[Parameter], theta
             log-likelihood: 0.05 is a change of the loss of 0.1 / n of itself.
         patience: stop when ``validate`` has not improved on its best for this many accepted steps.
         validate: θ, its trajectory → the validation loss (e.g. the clip at full resolution); the kept θ is
-            the best by it, the start included. None: the last accepted θ is kept.
+            the best by it (with a track term, by n/2 · log of it + ½ ‖c‖²), the start included. None: the last
+            accepted θ is kept.
     Returns:
         :class:`FitResult`; the model's simulator is left at an arbitrary θ (set it from ``theta``).
     """
@@ -284,13 +314,19 @@ def levenberg_marquardt(model: ClipModel, parameters: Sequence[Parameter], theta
         if not q.lower <= x <= q.upper:
             raise ValueError(f"the start of {q.name} ({x}) lies outside its bounds [{q.lower}, {q.upper}]")
     trajectory = model.simulate(theta)
-    loss = trajectory_loss(model, trajectory)
-    phi = objective(loss, theta, parameters, n)
+    loss, track = trajectory_loss(model, trajectory), track_loss(model, trajectory)
+    phi = objective(loss, theta, parameters, n, track or 0.0)
+
+    def score(value: float, track: float | None) -> float:  # the keep-best criterion of a validation loss
+        return 0.5 * n * math.log(max(value, 1e-300)) + 0.5 * (track or 0.0)
+
     best_val = validate(theta, trajectory) if validate is not None else None
+    best_score = score(best_val, track) if best_val is not None else None
     start_val, best_theta, best_phi, since_best = best_val, list(theta), phi, 0
     log: list[dict[str, Any]] = [{"iteration": 0, "loss": loss, "objective": phi, "accepted": True, "rollouts": 1,
                                   **dict(zip((q.name for q in parameters), theta)),
-                                  **({"validation_loss": best_val} if best_val is not None else {})}]
+                                  **({"validation_loss": best_val} if best_val is not None else {}),
+                                  **({"track_loss": track} if track is not None else {})}]
     damping, stop, lin = 1e-2, f"{iterations} iterations", None
     made: dict[tuple[float, ...], Linearisation] = {}  # every θ's Jacobian, for the kept θ's intervals
     for it in range(1, iterations + 1):
@@ -310,11 +346,11 @@ def levenberg_marquardt(model: ClipModel, parameters: Sequence[Parameter], theta
                     break
             try:
                 trial_trajectory = model.simulate(trial)
-                trial_loss = trajectory_loss(model, trial_trajectory)
+                trial_loss, trial_track = trajectory_loss(model, trial_trajectory), track_loss(model, trial_trajectory)
             except SimulationError:
-                trial_loss = math.inf
+                trial_loss, trial_track = math.inf, None
             rollouts += 1
-            trial_phi = objective(trial_loss, trial, parameters, n)
+            trial_phi = objective(trial_loss, trial, parameters, n, trial_track or 0.0)
             if trial_phi < phi:
                 accepted = True
                 break
@@ -323,7 +359,7 @@ def levenberg_marquardt(model: ClipModel, parameters: Sequence[Parameter], theta
                                  "predicted_decrease": predicted}
         if not accepted:
             entry.update(loss=loss, objective=phi, **dict(zip((q.name for q in parameters), theta)),
-                         ms=1000 * (time.perf_counter() - t0))
+                         **({"track_loss": track} if track is not None else {}), ms=1000 * (time.perf_counter() - t0))
             log.append(entry)
             if on_iteration is not None:
                 on_iteration(entry)
@@ -331,14 +367,16 @@ def levenberg_marquardt(model: ClipModel, parameters: Sequence[Parameter], theta
                 else "no step lowers the objective"
             break
         decrease = phi - trial_phi
-        theta, trajectory, loss, phi = trial, trial_trajectory, trial_loss, trial_phi
+        theta, trajectory, loss, track, phi = trial, trial_trajectory, trial_loss, trial_track, trial_phi
         damping = max(damping / 3.0, 1e-6)
         entry.update(loss=loss, objective=phi, **dict(zip((q.name for q in parameters), theta)))
+        if track is not None:
+            entry["track_loss"] = track
         if validate is not None:
             value = validate(theta, trajectory)
             entry["validation_loss"] = value
-            if value < best_val:
-                best_val, best_theta, best_phi, since_best = value, list(theta), phi, 0
+            if score(value, track) < best_score:
+                best_val, best_score, best_theta, best_phi, since_best = value, score(value, track), list(theta), phi, 0
             else:
                 since_best += 1
         else:
@@ -363,3 +401,10 @@ def trajectory_loss(model: ClipModel, trajectory: Any) -> float:
     """L = Σ_t ‖r_t‖² of one trajectory."""
     with torch.no_grad():
         return float(sum(float((model.residuals([trajectory], t)[0].double() ** 2).sum()) for t in range(model.frames)))
+
+
+def track_loss(model: ClipModel, trajectory: Any) -> float | None:
+    """‖c‖² of one trajectory's track residuals (None when the model has no track term)."""
+    with torch.no_grad():
+        c = model.track_residuals([trajectory])
+    return None if c is None else float((c[0].double() ** 2).sum())

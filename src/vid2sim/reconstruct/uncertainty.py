@@ -3,10 +3,11 @@
 At the fit θ̂ of :mod:`vid2sim.reconstruct.gauss_newton` the posterior Φ is approximated by a Gaussian
 (a Laplace approximation) whose precision is Φ's Gauss–Newton Hessian,
 
-    Λ = n JᵀJ / L̂ + P,
+    Λ = n JᵀJ / L̂ + J_cᵀJ_c + P,
 
-the data's part scaled by the residual variance L̂/n (the loss per independent measurement left at the fit) and P
-the prior's diagonal precision. The marginal standard deviation of a parameter is √(Λ⁻¹)_jj, and its interval at
+the images' part scaled by the residual variance L̂/n (the loss per independent measurement left at the fit), J_c the
+Jacobian of the track residuals when the fit has them (already divided by their standard deviation) and P the
+prior's diagonal precision. The marginal standard deviation of a parameter is √(Λ⁻¹)_jj, and its interval at
 level c is θ̂_j ± z σ_j, z the standard normal quantile of (1 + c)/2, clipped to the parameter's bounds.
 
 A parameter is *identifiable from this video* when the images alone constrain it more tightly than the prior
@@ -91,7 +92,7 @@ def laplace_intervals(lin: Linearisation, parameters: Sequence[Parameter], n: fl
         if not (math.isfinite(value) and value >= 0):
             raise ValueError(f"the model error of {name} must be a finite number >= 0, got {value}")
     loss = max(lin.loss, 1e-300)
-    data = (n / loss) * lin.hessian
+    data = (n / loss) * lin.hessian + lin.track_hessian
     precision, _ = prior_precision(parameters)
     posterior_sd = _marginal_sd(data + torch.diag(precision))
     data_sd = _marginal_sd(data)

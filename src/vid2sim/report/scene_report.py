@@ -630,6 +630,14 @@ class _Builder:
         else:
             steps = "joint iterations" + (" (the log does not name the method)" if method is None else "")
             training = "The training loss of each iteration (grey: the paper's random window of frames and views)"
+        track = fit.get("track") if isinstance(fit, dict) else None
+        track_note = ""
+        if isinstance(track, dict) and track.get("displacement_error"):
+            errors = [float(x) for x in track["displacement_error"]]
+            rms = (sum(x * x for x in errors) / len(errors)) ** 0.5
+            track_note = (" The fit also followed the hull track, the visual hulls' centroids over the observed "
+                          f"frames (σ = {1000 * float(track['sd']):.1f} mm): the kept motion's centre of mass moves "
+                          f"from frame 0 within {1000 * rms:.1f} mm RMS of it (at most {1000 * max(errors):.1f} mm).")
         self.sections.append(("optimisation", "Optimisation", H.section(
             "optimisation", "Joint optimisation of the material and the motion",
             '<div class="figure"><img src="media/optimisation.svg" alt="optimisation curves" '
@@ -637,7 +645,7 @@ class _Builder:
             f"{n} {steps}. {training} "
             "and the validation rollout over all observed frames at full resolution (blue; the asset keeps the best, "
             "★); log10 E, ν and ζ per iteration against the value found (blue dotted) and the truth (red dashed); "
-            "the coarse grid search of E that picks the start; the wall time of each iteration.")))
+            "the coarse grid search of E that picks the start; the wall time of each iteration." + track_note)))
 
     def _timings_section(self, total: float) -> None:
         rows = []

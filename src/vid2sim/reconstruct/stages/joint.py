@@ -45,7 +45,7 @@ import torch
 from torch import Tensor
 
 from vid2sim.asset.folder import Asset
-from vid2sim.asset.motion import GaussianRig
+from vid2sim.asset.motion import GaussianRig, simulated_centre_of_mass
 from vid2sim.physics.external import AREA_CONTACT_STIFFNESS, Floor, Gravity
 from vid2sim.physics.mass import centre_shifted_volumes
 from vid2sim.physics.solver import Material, SimState, Simulator
@@ -58,6 +58,7 @@ from vid2sim.reconstruct.gauss_newton import (
     levenberg_marquardt,
     linearise,
 )
+from vid2sim.reconstruct.hull_track import hull_centroids
 from vid2sim.reconstruct.runner import Context, State
 from vid2sim.reconstruct.stages.networks import cpu_state
 from vid2sim.reconstruct.stages.points import floor_carved_contact, track_poses
@@ -139,6 +140,9 @@ class JointResult:
         information_by_frame: per parameter, the share of its information each observed frame 1 … T−1 gives
             (:func:`~vid2sim.reconstruct.uncertainty.information_by_frame`).
         stop: why the fit stopped.
+        track: with a hull track (``JointConfig.track_sd``): ``{"sd" (m), "hull_centroids" (T × 3, m),
+            "displacement_error" (T−1 distances, m, between the kept fit's centre-of-mass displacement from frame 0
+            and the track's)}``; empty without one.
     """
 
     log10_E: float
@@ -159,6 +163,7 @@ class JointResult:
     information_by_frame: dict[str, list[float]] = field(default_factory=dict)
     stop: str = ""
     contact_surface: str = "hull"
+    track: dict[str, Any] = field(default_factory=dict)
 
 
 def coarse_minimum(values: Sequence[float], losses: Sequence[float]) -> float:
@@ -368,15 +373,29 @@ class ClipResiduals:
     velocity about ``centre``; block t is frame t + 1 rendered in every view of ``obs``, minus the video, times
     √(w_t / (V·H·W·3)) (``frame_weights``), so that the blocks' squared norms sum to :func:`clip_loss`.
 
+    With a ``track`` (the visual hulls' centroids, :func:`~vid2sim.reconstruct.hull_track.hull_centroids`), the track
+    residuals compare displacements from frame 0: (c(t) − c(0)) − (h(t) − h(0)) for t = 1 … T−1, c the simulated
+    centre of mass and h the track, divided by ``track_sd``. A hull's centroid is off the centre of mass by nearly
+    the same vector in every frame; the difference cancels it.
+
     Args:
         names: the parameters' names in θ's order (:func:`physical_parameters`).
+        track: (T, 3) the track's positions of frames 0 … T−1 (m), or None: no track term.
+        track_sd: its displacements' standard deviation (m).
     """
 
     def __init__(self, sim: Simulator, rig: GaussianRig, obs: Observations, centre: Sequence[float],
-                 decay: float | None, names: Sequence[str]) -> None:
+                 decay: float | None, names: Sequence[str], track: Tensor | None = None,
+                 track_sd: float | None = None) -> None:
         self.sim, self.rig, self.obs, self.centre, self.names = sim, rig, obs, [float(c) for c in centre], list(names)
         V, T = obs.images.shape[:2]
         self.frames = T - 1
+        if track is not None:
+            if tuple(track.shape) != (T, 3) or track_sd is None or not track_sd > 0:
+                raise ValueError(f"the track must have shape (T={T}, 3) and a standard deviation > 0, got "
+                                 f"{tuple(track.shape)} and {track_sd}")
+            track = (track[1:] - track[0]).double().cpu()  # (T−1, 3) displacements from frame 0
+        self.track, self.track_sd = track, track_sd
         pixels = V * obs.images[0, 0].numel()
         self.scales = [math.sqrt(w / pixels) for w in frame_weights(T, decay)]
         with torch.no_grad():
@@ -419,6 +438,16 @@ class ClipResiduals:
             target = self.obs.images[:, frame + 1].to(renders)
             return ((renders - target) * self.scales[frame]).reshape(len(trajectories), -1)
 
+    def track_residuals(self, trajectories: Sequence[list[SimState]]) -> Tensor | None:
+        """(len(trajectories), 3(T−1)) float64 track residuals (class docstring), or None without a track."""
+        if self.track is None:
+            return None
+        out = []
+        for states in trajectories:
+            c = simulated_centre_of_mass(self.sim, states).cpu()  # (T, 3)
+            out.append((((c[1:] - c[0]) - self.track) / self.track_sd).reshape(-1))
+        return torch.stack(out)
+
 
 def joint_optimisation(
     sim: Simulator,
@@ -431,6 +460,7 @@ def joint_optimisation(
     progress: bool = True,
     on_iteration: Callable[[dict[str, float]], None] | None = None,
     contacts: dict[str, tuple[Tensor, Tensor]] | None = None,
+    track: Tensor | None = None,
 ) -> JointResult:
     """Fit the material, the initial velocity (and, with ``method`` "windows", the networks) of ``sim`` to the
     observed video; report how well the video determines the material.
@@ -452,6 +482,9 @@ def joint_optimisation(
         on_iteration: called with each log entry.
         contacts: the contact surfaces the coarse search tries, by name: (S, 3) points and (S,) areas each
             (``JointConfig.contact_search``); None: ``sim``'s own only. ``sim`` is left with the chosen one.
+        track: (T, 3) the body's observed positions (the hull track, :mod:`vid2sim.reconstruct.hull_track`) that
+            the fit also matches, with standard deviation ``config.track_sd`` × the object's length scale
+            (:class:`ClipResiduals`); None: the images alone.
     Returns:
         :class:`JointResult`.
     """
@@ -477,7 +510,10 @@ def joint_optimisation(
                                                         cfg.centre_of_mass_step * sim.length_scale,
                                                         cfg.centre_of_mass_rounds, cfg.frame_decay, progress)
     parameters = physical_parameters(sim, cfg, prior, float(sim.config.dt))
-    clip = ClipResiduals(sim, rig, coarse_obs, c, cfg.frame_decay, [q.name for q in parameters])
+    if track is not None and (cfg.track_sd is None or cfg.method != "gauss_newton"):
+        raise ValueError("a track needs JointConfig.track_sd, its standard deviation, and the gauss_newton method")
+    clip = ClipResiduals(sim, rig, coarse_obs, c, cfg.frame_decay, [q.name for q in parameters], track,
+                         None if track is None else cfg.track_sd * sim.length_scale)
     start = [float(sim.log10_E), float(sim.nu)] + ([float(sim.damping_ratio)] if cfg.fit_damping else []) \
         + ([floor_friction(sim)] if "floor_friction" in clip.names else []) \
         + [float(x) for x in linear_velocity] + [float(x) for x in angular_velocity]
@@ -492,6 +528,11 @@ def joint_optimisation(
     uncertainty = laplace_intervals(fit.linearisation, parameters, n, cfg.interval_level,
                                     {"log10_E": cfg.model_error_log10_E, "nu": cfg.model_error_nu})
     mark_coarse_edge(uncertainty, coarse)
+    track_record: dict[str, Any] = {}
+    if track is not None:
+        kept = clip.track_residuals([clip.simulate(fit.theta)])[0].reshape(-1, 3) * clip.track_sd
+        track_record = {"sd": clip.track_sd, "hull_centroids": track.double().tolist(),
+                        "displacement_error": kept.norm(dim=1).tolist()}
     return JointResult(log10_E=theta["log10_E"], nu=theta["nu"], damping_ratio=float(sim.damping_ratio),
                        floor_friction=floor_friction(sim),
                        linear_velocity=[theta[f"linear_velocity_{a}"] for a in "xyz"],
@@ -500,7 +541,7 @@ def joint_optimisation(
                        centre_of_mass_search=com_records, log=fit.log, seconds=time.perf_counter() - t_start,
                        method=cfg.method, start_validation_loss=fit.start_validation_loss, uncertainty=uncertainty,
                        information_by_frame=information_by_frame(fit.linearisation, parameters), stop=fit.stop,
-                       contact_surface=surface)
+                       contact_surface=surface, track=track_record)
 
 
 def coarse_search(sim: Simulator, rig: GaussianRig, start: Callable[[], SimState], obs: Observations,
@@ -854,8 +895,12 @@ class JointStage:
         contacts, record = None, None
         if joint_cfg.contact_search and o.floor_height is not None:
             contacts, record = contact_candidates(ctx, state)
+        track = None
+        if joint_cfg.track_sd is not None and joint_cfg.method == "gauss_newton":
+            track = hull_centroids(o.masks_cpu, o.cameras_cpu, joint_cfg.track_resolution, progress=ctx.progress)
         result = joint_optimisation(sim, state.gaussians, Observations(o.images, o.cameras), v["linear"],
-                                    v["angular"], v["centre"], joint_cfg, progress=ctx.progress, contacts=contacts)
+                                    v["angular"], v["centre"], joint_cfg, progress=ctx.progress, contacts=contacts,
+                                    track=track)
         if result.contact_surface != "hull":
             points, areas = contacts[result.contact_surface]
             save_torch_atomic({"points": points.cpu(), "areas": areas.cpu()}, ctx.path("contact_joint.pt"))
@@ -874,7 +919,8 @@ class JointStage:
                          joint_fit={"method": result.get("method", "windows"), "stop": result.get("stop", ""),
                                     "start_validation_loss": result.get("start_validation_loss"),
                                     "validation_loss": result["validation_loss"],
-                                    "information_by_frame": result.get("information_by_frame", {})})
+                                    "information_by_frame": result.get("information_by_frame", {}),
+                                    "track": result.get("track", {})})
         if result.get("contact_candidates"):
             state.log["contact_candidates"] = result["contact_candidates"]
         state.asset = assemble_asset(ctx, state)
