@@ -346,6 +346,9 @@ class JointConfig:
             with it, the Gauss–Newton fit also matches the simulated centre of mass's displacement to that track
             (:class:`~vid2sim.reconstruct.stages.joint.ClipResiduals`). None (the default): no track term.
         track_resolution: voxels per side of each frame's hull for the track.
+        track_volume_tolerance: a frame whose hull's volume differs from frame 0's by more than this fraction has its
+            standard deviation widened by the ratio (the body deformed; :meth:`HullTrack.frame_sd
+            <vid2sim.reconstruct.hull_track.HullTrack.frame_sd>`); None: ``track_sd`` in every frame.
         seed: seeds the windows and view subsets.
     """
 
@@ -386,6 +389,7 @@ class JointConfig:
     centre_of_mass_rounds: int = 2
     track_sd: float | None = None
     track_resolution: int = 64
+    track_volume_tolerance: float | None = 0.05
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -420,17 +424,15 @@ class JointConfig:
             raise ConfigError(f"JointConfig.views_per_iteration must be >= 1 or None, got {self.views_per_iteration}")
         if self.refresh_every < 1 or self.validate_every < 1:
             raise ConfigError("JointConfig.refresh_every and validate_every must be >= 1")
-        if self.frame_decay is not None and (isinstance(self.frame_decay, bool)
-                                             or not isinstance(self.frame_decay, (int, float))
-                                             or not 0 < float(self.frame_decay) < math.inf):
-            raise ConfigError(f"JointConfig.frame_decay must be a finite number > 0 or None, got {self.frame_decay!r}")
+        for name in ("frame_decay", "track_sd", "track_volume_tolerance"):
+            value = getattr(self, name)
+            if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float))
+                                      or not 0 < float(value) < math.inf):
+                raise ConfigError(f"JointConfig.{name} must be a finite number > 0 or None, got {value!r}")
         if isinstance(self.centre_of_mass_step, bool) or not isinstance(self.centre_of_mass_step, (int, float)) \
                 or not 0 <= float(self.centre_of_mass_step) < 0.5:
             raise ConfigError("JointConfig.centre_of_mass_step must be a fraction of the object's size in [0, 0.5), "
                              f"got {self.centre_of_mass_step!r}")
-        if self.track_sd is not None and (isinstance(self.track_sd, bool) or not isinstance(self.track_sd, (int, float))
-                                          or not 0 < float(self.track_sd) < math.inf):
-            raise ConfigError(f"JointConfig.track_sd must be a finite number > 0 or None, got {self.track_sd!r}")
         if isinstance(self.track_resolution, bool) or not isinstance(self.track_resolution, int) \
                 or self.track_resolution < 8:
             raise ConfigError(f"JointConfig.track_resolution must be an integer >= 8, got {self.track_resolution!r}")

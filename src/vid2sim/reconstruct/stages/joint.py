@@ -58,7 +58,7 @@ from vid2sim.reconstruct.gauss_newton import (
     levenberg_marquardt,
     linearise,
 )
-from vid2sim.reconstruct.hull_track import hull_centroids
+from vid2sim.reconstruct.hull_track import HullTrack, hull_track
 from vid2sim.reconstruct.runner import Context, State
 from vid2sim.reconstruct.stages.networks import cpu_state
 from vid2sim.reconstruct.stages.points import floor_carved_contact, track_poses
@@ -140,9 +140,10 @@ class JointResult:
         information_by_frame: per parameter, the share of its information each observed frame 1 … T−1 gives
             (:func:`~vid2sim.reconstruct.uncertainty.information_by_frame`).
         stop: why the fit stopped.
-        track: with a hull track (``JointConfig.track_sd``): ``{"sd" (m), "hull_centroids" (T × 3, m),
-            "displacement_error" (T−1 distances, m, between the kept fit's centre-of-mass displacement from frame 0
-            and the track's)}``; empty without one.
+        track: with a hull track (``JointConfig.track_sd``): ``{"sd" (m), "frame_sd" (T−1 standard deviations, m,
+            :meth:`~vid2sim.reconstruct.hull_track.HullTrack.frame_sd`), "hull_centroids" (T × 3, m), "hull_volumes"
+            (T, m³), "displacement_error" (T−1 distances, m, between the kept fit's centre-of-mass displacement from
+            frame 0 and the track's)}``; empty without one.
     """
 
     log10_E: float
@@ -373,28 +374,30 @@ class ClipResiduals:
     velocity about ``centre``; block t is frame t + 1 rendered in every view of ``obs``, minus the video, times
     √(w_t / (V·H·W·3)) (``frame_weights``), so that the blocks' squared norms sum to :func:`clip_loss`.
 
-    With a ``track`` (the visual hulls' centroids, :func:`~vid2sim.reconstruct.hull_track.hull_centroids`), the track
+    With a ``track`` (the visual hulls' centroids, :func:`~vid2sim.reconstruct.hull_track.hull_track`), the track
     residuals compare displacements from frame 0: (c(t) − c(0)) − (h(t) − h(0)) for t = 1 … T−1, c the simulated
     centre of mass and h the track, divided by ``track_sd``. A hull's centroid is off the centre of mass by nearly
-    the same vector in every frame; the difference cancels it.
+    the same vector in every frame while the body keeps its shape; the difference cancels it.
 
     Args:
         names: the parameters' names in θ's order (:func:`physical_parameters`).
         track: (T, 3) the track's positions of frames 0 … T−1 (m), or None: no track term.
-        track_sd: its displacements' standard deviation (m).
+        track_sd: its displacements' standard deviation (m): one number, or (T−1,) one per frame 1 … T−1.
     """
 
     def __init__(self, sim: Simulator, rig: GaussianRig, obs: Observations, centre: Sequence[float],
                  decay: float | None, names: Sequence[str], track: Tensor | None = None,
-                 track_sd: float | None = None) -> None:
+                 track_sd: float | Tensor | None = None) -> None:
         self.sim, self.rig, self.obs, self.centre, self.names = sim, rig, obs, [float(c) for c in centre], list(names)
         V, T = obs.images.shape[:2]
         self.frames = T - 1
         if track is not None:
-            if tuple(track.shape) != (T, 3) or track_sd is None or not track_sd > 0:
-                raise ValueError(f"the track must have shape (T={T}, 3) and a standard deviation > 0, got "
-                                 f"{tuple(track.shape)} and {track_sd}")
+            sd = None if track_sd is None else torch.as_tensor(track_sd, dtype=torch.float64).cpu()
+            if tuple(track.shape) != (T, 3) or sd is None or sd.numel() not in (1, T - 1) or not bool((sd > 0).all()):
+                raise ValueError(f"the track must have shape (T={T}, 3) and standard deviations > 0 (one, or one per "
+                                 f"frame 1 … T−1), got {tuple(track.shape)} and {track_sd}")
             track = (track[1:] - track[0]).double().cpu()  # (T−1, 3) displacements from frame 0
+            track_sd = sd.reshape(-1, 1).expand(T - 1, 1)
         self.track, self.track_sd = track, track_sd
         pixels = V * obs.images[0, 0].numel()
         self.scales = [math.sqrt(w / pixels) for w in frame_weights(T, decay)]
@@ -445,7 +448,7 @@ class ClipResiduals:
         out = []
         for states in trajectories:
             c = simulated_centre_of_mass(self.sim, states).cpu()  # (T, 3)
-            out.append((((c[1:] - c[0]) - self.track) / self.track_sd).reshape(-1))
+            out.append((((c[1:] - c[0]) - self.track) / self.track_sd).reshape(-1))  # track_sd: (T−1, 1)
         return torch.stack(out)
 
 
@@ -460,7 +463,7 @@ def joint_optimisation(
     progress: bool = True,
     on_iteration: Callable[[dict[str, float]], None] | None = None,
     contacts: dict[str, tuple[Tensor, Tensor]] | None = None,
-    track: Tensor | None = None,
+    track: HullTrack | None = None,
 ) -> JointResult:
     """Fit the material, the initial velocity (and, with ``method`` "windows", the networks) of ``sim`` to the
     observed video; report how well the video determines the material.
@@ -482,9 +485,10 @@ def joint_optimisation(
         on_iteration: called with each log entry.
         contacts: the contact surfaces the coarse search tries, by name: (S, 3) points and (S,) areas each
             (``JointConfig.contact_search``); None: ``sim``'s own only. ``sim`` is left with the chosen one.
-        track: (T, 3) the body's observed positions (the hull track, :mod:`vid2sim.reconstruct.hull_track`) that
-            the fit also matches, with standard deviation ``config.track_sd`` × the object's length scale
-            (:class:`ClipResiduals`); None: the images alone.
+        track: the body's observed positions (the hull track, :mod:`vid2sim.reconstruct.hull_track`) that the fit
+            also matches, with standard deviation ``config.track_sd`` × the object's length scale, widened where the
+            hull's volume changed by more than ``config.track_volume_tolerance`` (:class:`ClipResiduals`); None: the
+            images alone.
     Returns:
         :class:`JointResult`.
     """
@@ -512,8 +516,9 @@ def joint_optimisation(
     parameters = physical_parameters(sim, cfg, prior, float(sim.config.dt))
     if track is not None and (cfg.track_sd is None or cfg.method != "gauss_newton"):
         raise ValueError("a track needs JointConfig.track_sd, its standard deviation, and the gauss_newton method")
-    clip = ClipResiduals(sim, rig, coarse_obs, c, cfg.frame_decay, [q.name for q in parameters], track,
-                         None if track is None else cfg.track_sd * sim.length_scale)
+    frame_sd = None if track is None else track.frame_sd(cfg.track_sd * sim.length_scale, cfg.track_volume_tolerance)
+    clip = ClipResiduals(sim, rig, coarse_obs, c, cfg.frame_decay, [q.name for q in parameters],
+                         None if track is None else track.centroids, frame_sd)
     start = [float(sim.log10_E), float(sim.nu)] + ([float(sim.damping_ratio)] if cfg.fit_damping else []) \
         + ([floor_friction(sim)] if "floor_friction" in clip.names else []) \
         + [float(x) for x in linear_velocity] + [float(x) for x in angular_velocity]
@@ -531,7 +536,8 @@ def joint_optimisation(
     track_record: dict[str, Any] = {}
     if track is not None:
         kept = clip.track_residuals([clip.simulate(fit.theta)])[0].reshape(-1, 3) * clip.track_sd
-        track_record = {"sd": clip.track_sd, "hull_centroids": track.double().tolist(),
+        track_record = {"sd": cfg.track_sd * sim.length_scale, "frame_sd": frame_sd.tolist(),
+                        "hull_centroids": track.centroids.tolist(), "hull_volumes": track.volumes.tolist(),
                         "displacement_error": kept.norm(dim=1).tolist()}
     return JointResult(log10_E=theta["log10_E"], nu=theta["nu"], damping_ratio=float(sim.damping_ratio),
                        floor_friction=floor_friction(sim),
@@ -897,7 +903,7 @@ class JointStage:
             contacts, record = contact_candidates(ctx, state)
         track = None
         if joint_cfg.track_sd is not None and joint_cfg.method == "gauss_newton":
-            track = hull_centroids(o.masks_cpu, o.cameras_cpu, joint_cfg.track_resolution, progress=ctx.progress)
+            track = hull_track(o.masks_cpu, o.cameras_cpu, joint_cfg.track_resolution, progress=ctx.progress)
         result = joint_optimisation(sim, state.gaussians, Observations(o.images, o.cameras), v["linear"],
                                     v["angular"], v["centre"], joint_cfg, progress=ctx.progress, contacts=contacts,
                                     track=track)
