@@ -560,6 +560,8 @@ def test_presets_and_config_errors():
     assert full.joint.lr_log10_E == 5e-3 and full.joint.lr_nu == 1e-3 and full.joint.window == 4
     # the last stage: the Gaussians' geometry too with 4 views of 128², colours only with 12 of 448² (docs/results.md)
     assert small.motion_appearance.geometry and not full.motion_appearance.geometry
+    # the hull track: the full preset's 12 views locate the body within millimetres, the small preset's 4 do not
+    assert small.joint.track_sd is None and full.joint.track_sd == 0.01
     with pytest.raises(ValueError, match="jacobian"):
         NetworksConfig(jacobian="finite_differences")
     with pytest.raises(ValueError, match="skinning_objective must be one of"):
