@@ -72,10 +72,11 @@ def _killed_run(source, index: dict, out, objects: int) -> TrainingDataConfig:
 
 
 def _embedded(config: TrainingDataConfig, tet: TetMesh, index: int = 0):
-    from vid2sim.synthetic.embedding import embed_points
+    """The object's prepared mesh and its surface embedded in ``tet`` as the shard's maker embedded it."""
+    from vid2sim.predictor.fem_truth import embed_surface
 
     prepared = prepare_object(config, object_specs(config)[index])
-    return prepared, embed_points(prepared.posed.double(), tet.vertices, tet.tets)
+    return prepared, embed_surface(prepared.posed, tet, config)
 
 
 # ---- the samples -----------------------------------------------------------------------------------------

@@ -260,6 +260,19 @@ def _one_draw(config: "TrainingDataConfig", spec: "ObjectSpec", prepared, tet: "
                     "cpu": time.process_time() - cpu0}
 
 
+
+def embed_surface(posed: torch.Tensor, tet: "TetMesh",
+                  config: "TrainingDataConfig") -> tuple[torch.Tensor, torch.Tensor]:
+    """The object's surface vertices (V, 3) in its tet mesh: (V,) tet indices and (V, 4) barycentric weights
+    (:func:`~vid2sim.synthetic.embedding.embed_points`).
+
+    fTetWild keeps the tets' boundary within its envelope of the surface, but a surface vertex can lie a hair farther
+    from the tets (0.01013 of the diagonal against an envelope of 0.01 once, an irreproducible fTetWild run): the
+    embedding allows twice the envelope, and never less than its own default of 1 %."""
+    posed = posed.double()
+    diagonal = float((posed.max(0).values - posed.min(0).values).norm())
+    return embed_points(posed, tet.vertices, tet.tets, max_distance=max(0.01, 2 * config.fem.tet_envelope) * diagonal)
+
 def make_fem_shard(config: "TrainingDataConfig", spec: "ObjectSpec", template=None, work_dir: Path | None = None,
                    tet_mesh: "TetMesh | None" = None, threads: int = 1,
                    on_draw: Callable[[str, int, dict, float], None] | None = None,
@@ -296,14 +309,8 @@ def make_fem_shard(config: "TrainingDataConfig", spec: "ObjectSpec", template=No
     else:
         tet, _ = object_tet_mesh(prepared.posed, prepared.mesh.faces, config.fem, work_dir, prepared.mesh.name,
                                  threads)
-    # fTetWild keeps the tets' boundary within its envelope of the surface, but a surface vertex can lie a hair farther
-    # from the tets (0.01013 of the diagonal against an envelope of 0.01 once, an irreproducible fTetWild run): the
-    # embedding allows twice the envelope, and never less than its own default of 1 %
-    posed = prepared.posed.double()
-    diagonal = float((posed.max(0).values - posed.min(0).values).norm())
     try:
-        embedding = embed_points(posed, tet.vertices, tet.tets,
-                                 max_distance=max(0.01, 2 * config.fem.tet_envelope) * diagonal)
+        embedding = embed_surface(prepared.posed, tet, config)
     except ValueError as exc:
         raise ValueError(f"{spec.name}: the surface of {prepared.mesh.name} does not fit its tet mesh: {exc}") from None
     timings["tetrahedralize"] = time.perf_counter() - t0

@@ -323,10 +323,9 @@ def levenberg_marquardt(model: ClipModel, parameters: Sequence[Parameter], theta
     best_val = validate(theta, trajectory) if validate is not None else None
     best_score = score(best_val, track) if best_val is not None else None
     start_val, best_theta, best_phi, since_best = best_val, list(theta), phi, 0
-    log: list[dict[str, Any]] = [{"iteration": 0, "loss": loss, "objective": phi, "accepted": True, "rollouts": 1,
-                                  **dict(zip((q.name for q in parameters), theta)),
-                                  **({"validation_loss": best_val} if best_val is not None else {}),
-                                  **({"track_loss": track} if track is not None else {})}]
+    log: list[dict[str, Any]] = [{"iteration": 0, "accepted": True, "rollouts": 1,
+                                  **_values(parameters, theta, loss, phi, track),
+                                  **({"validation_loss": best_val} if best_val is not None else {})}]
     damping, stop, lin = 1e-2, f"{iterations} iterations", None
     made: dict[tuple[float, ...], Linearisation] = {}  # every θ's Jacobian, for the kept θ's intervals
     for it in range(1, iterations + 1):
@@ -344,13 +343,8 @@ def levenberg_marquardt(model: ClipModel, parameters: Sequence[Parameter], theta
                 settled = predicted < tolerance
                 if settled:
                     break
-            try:
-                trial_trajectory = model.simulate(trial)
-                trial_loss, trial_track = trajectory_loss(model, trial_trajectory), track_loss(model, trial_trajectory)
-            except SimulationError:
-                trial_loss, trial_track = math.inf, None
+            trial_trajectory, trial_loss, trial_track, trial_phi = _evaluated(model, parameters, trial, n)
             rollouts += 1
-            trial_phi = objective(trial_loss, trial, parameters, n, trial_track or 0.0)
             if trial_phi < phi:
                 accepted = True
                 break
@@ -358,8 +352,7 @@ def levenberg_marquardt(model: ClipModel, parameters: Sequence[Parameter], theta
         entry: dict[str, Any] = {"iteration": it, "damping": damping, "accepted": accepted, "rollouts": rollouts,
                                  "predicted_decrease": predicted}
         if not accepted:
-            entry.update(loss=loss, objective=phi, **dict(zip((q.name for q in parameters), theta)),
-                         **({"track_loss": track} if track is not None else {}), ms=1000 * (time.perf_counter() - t0))
+            entry.update(**_values(parameters, theta, loss, phi, track), ms=1000 * (time.perf_counter() - t0))
             log.append(entry)
             if on_iteration is not None:
                 on_iteration(entry)
@@ -369,9 +362,7 @@ def levenberg_marquardt(model: ClipModel, parameters: Sequence[Parameter], theta
         decrease = phi - trial_phi
         theta, trajectory, loss, track, phi = trial, trial_trajectory, trial_loss, trial_track, trial_phi
         damping = max(damping / 3.0, 1e-6)
-        entry.update(loss=loss, objective=phi, **dict(zip((q.name for q in parameters), theta)))
-        if track is not None:
-            entry["track_loss"] = track
+        entry.update(_values(parameters, theta, loss, phi, track))
         if validate is not None:
             value = validate(theta, trajectory)
             entry["validation_loss"] = value
@@ -395,6 +386,25 @@ def levenberg_marquardt(model: ClipModel, parameters: Sequence[Parameter], theta
     final = made[kept] if kept in made else \
         linearise(model, parameters, best_theta, trajectory if theta == best_theta else None)
     return FitResult(best_theta, final, best_phi, best_val, start_val, log, stop)
+
+
+def _evaluated(model: ClipModel, parameters: Sequence[Parameter], theta: list[float],
+               n: float) -> tuple[Any, float, float | None, float]:
+    """θ's trajectory, loss L, track loss ‖c‖² (None without a track) and Φ; L and Φ are +inf (and the trajectory
+    None) where the simulation fails."""
+    try:
+        trajectory = model.simulate(theta)
+        loss, track = trajectory_loss(model, trajectory), track_loss(model, trajectory)
+    except SimulationError:
+        return None, math.inf, None, math.inf
+    return trajectory, loss, track, objective(loss, theta, parameters, n, track or 0.0)
+
+
+def _values(parameters: Sequence[Parameter], theta: Sequence[float], loss: float, phi: float,
+            track: float | None) -> dict[str, Any]:
+    """A log entry's state: ``loss``, ``objective``, the parameters by name, and ``track_loss`` with a track."""
+    return {"loss": loss, "objective": phi, **dict(zip((q.name for q in parameters), theta)),
+            **({"track_loss": track} if track is not None else {})}
 
 
 def trajectory_loss(model: ClipModel, trajectory: Any) -> float:

@@ -272,7 +272,6 @@ def centre_of_mass_search(sim: Simulator, rig: GaussianRig, start: Callable[[], 
     """
     from tqdm.auto import tqdm
 
-
     base = sim.mass_volumes
     tried: dict[tuple[float, float, float], float] = {}
     records: list[dict[str, Any]] = []
