@@ -370,7 +370,12 @@ def check_out(out: Path, settings: dict[str, Any]) -> None:
     if path.is_file():
         previous = json.loads(path.read_text())
         # the resolved ReconstructConfig, not the preset's name: a run pinned with --config resumes after a release
-        # changed the preset (its name then reads "custom"); threads may change between runs
+        # changed the preset (its name then reads "custom"); the earlier settings read as this release reads a
+        # config.json, so that a setting added since, at its default, is no difference; threads may change
+        try:
+            previous["reconstruct"] = ReconstructConfig.from_dict(previous["reconstruct"]).to_dict()
+        except (ConfigError, KeyError, TypeError, ValueError):
+            pass  # not a config this release reads: compared as it is, and so refused
         keys = ("suite", "iterations", "fovvdp", "reconstruct")
         differ = [k for k in keys if previous.get(k) != settings.get(k)]
         if differ:
