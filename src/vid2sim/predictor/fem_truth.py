@@ -260,7 +260,6 @@ def _one_draw(config: "TrainingDataConfig", spec: "ObjectSpec", prepared, tet: "
                     "cpu": time.process_time() - cpu0}
 
 
-
 def embed_surface(posed: torch.Tensor, tet: "TetMesh",
                   config: "TrainingDataConfig") -> tuple[torch.Tensor, torch.Tensor]:
     """The object's surface vertices (V, 3) in its tet mesh: (V,) tet indices and (V, 4) barycentric weights
@@ -272,6 +271,7 @@ def embed_surface(posed: torch.Tensor, tet: "TetMesh",
     posed = posed.double()
     diagonal = float((posed.max(0).values - posed.min(0).values).norm())
     return embed_points(posed, tet.vertices, tet.tets, max_distance=max(0.01, 2 * config.fem.tet_envelope) * diagonal)
+
 
 def make_fem_shard(config: "TrainingDataConfig", spec: "ObjectSpec", template=None, work_dir: Path | None = None,
                    tet_mesh: "TetMesh | None" = None, threads: int = 1,

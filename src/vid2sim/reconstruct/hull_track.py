@@ -22,6 +22,7 @@ from typing import Sequence
 import torch
 from torch import Tensor
 
+from vid2sim.physics.mass import voxel_moments
 from vid2sim.splats.cameras import Camera
 from vid2sim.splats.visual_hull import visual_hull
 
@@ -73,7 +74,7 @@ def hull_track(masks: Tensor, cameras: Sequence[Camera], resolution: int = 64, t
                                                threshold=threshold)
         except ValueError as exc:
             raise ValueError(f"frame {t}: {exc}") from None
-        index = torch.nonzero(occupancy).double()
-        centroids.append(lo.double().cpu() + (index.mean(0) + 0.5) * voxel)
-        volumes.append(index.shape[0] * float(voxel) ** 3)
+        moments = voxel_moments(occupancy.cpu(), lo.cpu(), float(voxel))  # (volume, first moments, …)
+        centroids.append(moments[1:4] / moments[0])
+        volumes.append(float(moments[0]))
     return HullTrack(torch.stack(centroids), torch.tensor(volumes, dtype=torch.float64))
