@@ -183,6 +183,8 @@ def test_bad_mass_settings_are_refused():
         IdentifyConfig.from_dict({"simulator": {"mass": "dense"}})
     with pytest.raises(ValueError, match="SimulatorConfig.mass"):
         SimulatorConfig(mass="dense")
+    with pytest.raises(ValueError, match="SimulatorConfig.cubature_weights must be one of"):
+        SimulatorConfig(cubature_weights="cells")
     assert IdentifyConfig().simulator.mass == "moments" and ReconstructConfig().simulator.mass == "cubature"
 
 

@@ -88,6 +88,7 @@ def test_a_calibrated_reconstruction_records_and_uses_its_stiffness_scale(tiny_s
     cfg = tiny_config()
     cfg.calibration.enabled, cfg.calibration.cells, cfg.calibration.points = True, 24, 20000
     cfg.calibration.nu, cfg.simulator.volumetric = "curve", "projected"  # the projected volumetric term end to end
+    cfg.simulator.cubature_weights = "voronoi"  # cell volumes for the energy and the mass, end to end
     cfg.joint.gauss_newton_iterations = 0  # the coarse search's material: the fit is not what this test checks
     # the caller's thread count is restored (one per pytest-xdist worker on 2 cores: setting two here, beside the
     # other worker and the child, oversubscribed them, 78 s in the suite); giving the child one of two: next test
@@ -95,6 +96,15 @@ def test_a_calibrated_reconstruction_records_and_uses_its_stiffness_scale(tiny_s
     asset = load_asset(reconstruct(tiny_scene, tmp_path / "asset", cfg, progress=False))
     assert torch.get_num_threads() == threads
     assert asset.material["volumetric"] == "projected" == asset.simulator().volumetric
+    # the Voronoi cells: unequal, positive, summing to the solid's volume; the simulator integrates and lumps on them
+    from vid2sim.physics.cubature import voronoi_weights
+
+    w = asset.cubature_weights
+    assert bool((w > 0).all()) and float(w.std()) > 0.05 * float(w.mean())
+    assert float(w.sum()) == pytest.approx(asset.volume, rel=1e-5) and asset.mass_volumes is None
+    assert torch.allclose(w.double(), voronoi_weights(asset.points.double(), torch.cdist(
+        asset.cubature_points.double(), asset.points.double()).argmin(1), asset.volume), rtol=1e-5)
+    assert torch.allclose(asset.simulator().masses(), asset.material["density"] * w.to(torch.float64), rtol=1e-5)
     log = json.loads((tmp_path / "asset" / "log.json").read_text())
     # the curve s(ν): stored with the asset, used at whatever ν it simulates
     from vid2sim.physics.stiffness_curve import StiffnessCurve

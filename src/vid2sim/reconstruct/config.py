@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 from typing import Any, Literal
 
 from vid2sim.physics.solver import SimConfig
+from vid2sim.physics.cubature import CUBATURE_WEIGHTS
 from vid2sim.physics.tet_modes import LOCAL_MODE_PARTICIPATION
 from vid2sim.runtime import config as configs
 from vid2sim.runtime.errors import ConfigError
@@ -203,7 +204,9 @@ class SimulatorConfig:
         volumetric: the volumetric term, "pointwise" or "projected" onto the skinning weights' span
             (:mod:`vid2sim.physics.volumetric`: no volumetric locking, so λ needs no factor of its own; calibrate
             it with ``calibration.nu`` "curve").
-        mass: lumped masses: "cubature" (the cubature volumes as sampled; the default) or "moments" (those volumes
+        cubature_weights: the cubature points' integration volumes, "equal" (the paper's: the volume / K each) or
+            "voronoi" (each point's cell, :func:`~vid2sim.physics.cubature.voronoi_weights`).
+        mass: lumped masses: "cubature" (the cubature volumes; the default) or "moments" (those volumes
             corrected so that the mass, centre of mass and inertia tensor are the kept voxels',
             :mod:`vid2sim.physics.mass`).
         integration: time integration (time-converged BDF2 substeps by default).
@@ -214,6 +217,7 @@ class SimulatorConfig:
 
     cubature: int = 500
     volumetric: Literal["pointwise", "projected"] = "pointwise"
+    cubature_weights: Literal["equal", "voronoi"] = "equal"
     mass: Literal["cubature", "moments"] = "cubature"
     integration: SimConfig = field(default_factory=SimConfig)
     floor_friction: float = 0.0
@@ -223,6 +227,9 @@ class SimulatorConfig:
             raise ConfigError(f"SimulatorConfig.cubature must be >= 1, got {self.cubature}")
         if self.volumetric not in ("pointwise", "projected"):
             raise ConfigError(f"SimulatorConfig.volumetric must be 'pointwise' or 'projected', got {self.volumetric!r}")
+        if self.cubature_weights not in CUBATURE_WEIGHTS:
+            raise ConfigError(f"SimulatorConfig.cubature_weights must be one of {CUBATURE_WEIGHTS}, "
+                              f"got {self.cubature_weights!r}")
         if self.mass not in ("moments", "cubature"):
             raise ConfigError(f"SimulatorConfig.mass must be 'moments' or 'cubature', got {self.mass!r}")
         if isinstance(self.floor_friction, bool) or not isinstance(self.floor_friction, (int, float)) \

@@ -487,7 +487,7 @@ class Cubature:
 
     Attributes:
         index: (K,) indices into the object's points (farthest-point sampled).
-        weights: (K,) their integration volumes in m³ (the object's volume / K each).
+        weights: (K,) their integration volumes in m³ (the object's volume / K each, or their Voronoi cells).
         mass_volumes: (K,) the volumes their lumped masses are made of when the masses are corrected to the
             kept voxels' moments (``simulator.mass`` "moments"), else None (the masses are ``weights``).
     """
@@ -497,9 +497,10 @@ class Cubature:
     mass_volumes: Tensor | None
 
 
-def simulation_cubature(obj: ObjectPoints, count: int, mass: str, seed: int) -> Cubature:
-    """The :class:`Cubature` of ``count`` points of ``obj`` (on its device), with masses by ``mass``."""
-    index, weights = sample_cubature(obj.points, count, volume=obj.volume, seed=seed)
+def simulation_cubature(obj: ObjectPoints, count: int, mass: str, seed: int, weights: str = "equal") -> Cubature:
+    """The :class:`Cubature` of ``count`` points of ``obj`` (on its device), with integration volumes by
+    ``weights`` (:func:`~vid2sim.physics.cubature.sample_cubature`) and masses by ``mass``."""
+    index, weights = sample_cubature(obj.points, count, volume=obj.volume, seed=seed, weights=weights)
     mass_volumes = None
     if mass == "moments":  # the kept voxels' mass, centre of mass and inertia, exactly
         mass_volumes = moment_matched_volumes(obj.points[index], weights,
@@ -533,4 +534,4 @@ class PointsStage:
         state.obj = replace(state.obj_cpu, **{k: getattr(state.obj_cpu, k).to(ctx.device) for k in
                                               ("points", "contact_points", "contact_areas", "centre")})
         sim = ctx.config.simulator
-        state.cubature = simulation_cubature(state.obj, sim.cubature, sim.mass, ctx.config.seed)
+        state.cubature = simulation_cubature(state.obj, sim.cubature, sim.mass, ctx.config.seed, sim.cubature_weights)
