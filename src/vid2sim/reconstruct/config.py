@@ -13,8 +13,8 @@ import math
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
-from vid2sim.physics.solver import SimConfig
 from vid2sim.physics.cubature import CUBATURE_WEIGHTS
+from vid2sim.physics.solver import SimConfig
 from vid2sim.physics.tet_modes import LOCAL_MODE_PARTICIPATION
 from vid2sim.runtime import config as configs
 from vid2sim.runtime.errors import ConfigError
