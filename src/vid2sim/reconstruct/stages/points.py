@@ -497,10 +497,10 @@ class Cubature:
     mass_volumes: Tensor | None
 
 
-def simulation_cubature(obj: ObjectPoints, count: int, mass: str, seed: int, weights: str = "equal") -> Cubature:
+def simulation_cubature(obj: ObjectPoints, count: int, mass: str, seed: int, volumes: str = "equal") -> Cubature:
     """The :class:`Cubature` of ``count`` points of ``obj`` (on its device), with integration volumes by
-    ``weights`` (:func:`~vid2sim.physics.cubature.sample_cubature`) and masses by ``mass``."""
-    index, weights = sample_cubature(obj.points, count, volume=obj.volume, seed=seed, weights=weights)
+    ``volumes`` ("equal" or "voronoi", :func:`~vid2sim.physics.cubature.sample_cubature`) and masses by ``mass``."""
+    index, weights = sample_cubature(obj.points, count, volume=obj.volume, seed=seed, weights=volumes)
     mass_volumes = None
     if mass == "moments":  # the kept voxels' mass, centre of mass and inertia, exactly
         mass_volumes = moment_matched_volumes(obj.points[index], weights,
