@@ -5,16 +5,11 @@ import torch
 from test_joint_gauss_newton import _own_motion
 from test_pipeline_joint import _ellipsoid_points, _masks_of
 
-from vid2sim.asset.motion import simulated_centre_of_mass
+from vid2sim.asset.motion import GaussianRig, simulated_centre_of_mass
+from vid2sim.reconstruct.clip import Observations
 from vid2sim.reconstruct.config import JointConfig
 from vid2sim.reconstruct.hull_track import HullTrack, hull_track
-from vid2sim.reconstruct.stages.joint import (
-    ClipResiduals,
-    GaussianRig,
-    Observations,
-    joint_optimisation,
-    set_floor_friction,
-)
+from vid2sim.reconstruct.stages.joint import ClipResiduals, joint_optimisation, set_floor_friction
 from vid2sim.runtime.errors import ConfigError
 from vid2sim.splats.cameras import camera_ring
 

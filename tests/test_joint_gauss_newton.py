@@ -14,6 +14,7 @@ import torch
 from test_pipeline_joint import _scene_setup
 
 from vid2sim.asset.motion import GaussianRig
+from vid2sim.reconstruct.clip import Observations, frame_weights, render_states
 from vid2sim.reconstruct.config import JointConfig
 from vid2sim.reconstruct.gauss_newton import (
     Parameter,
@@ -27,12 +28,9 @@ from vid2sim.reconstruct.gauss_newton import (
 )
 from vid2sim.reconstruct.stages.joint import (
     ClipResiduals,
-    Observations,
     floor_friction,
-    frame_weights,
     joint_optimisation,
     physical_parameters,
-    render_states,
     set_floor_friction,
 )
 from vid2sim.reconstruct.uncertainty import (

@@ -19,12 +19,9 @@ from vid2sim.physics import (
 )
 from vid2sim.physics.external import AREA_CONTACT_STIFFNESS
 from vid2sim.physics.solver import SimConfig
+from vid2sim.reconstruct.clip import Observations, render_states
 from vid2sim.reconstruct.config import JointConfig, PointsConfig
-from vid2sim.reconstruct.stages.joint import (
-    Observations,
-    joint_optimisation,
-    render_states,
-)
+from vid2sim.reconstruct.stages.joint import joint_optimisation
 from vid2sim.reconstruct.stages.points import object_points
 from vid2sim.splats.cameras import camera_ring
 from vid2sim.splats.gaussians import Gaussians
@@ -129,7 +126,7 @@ def test_clip_loss_weights_its_frames():
     weighted loss is the weighted sum of the per-frame image errors."""
     import math
 
-    from vid2sim.reconstruct.stages.joint import clip_loss, frame_weights
+    from vid2sim.reconstruct.clip import clip_loss, frame_weights
 
     assert frame_weights(5, None) == pytest.approx([0.25] * 4)
     w = frame_weights(5, 2.0)
@@ -171,7 +168,7 @@ def test_a_scaled_loss_sees_the_full_renders_through_the_same_filter_as_its_targ
     """At a coarse scale the targets are area-averaged and so are the renders (made at the cameras' full size):
     a state whose full-size renders are the targets has zero loss at every scale. Rendering the Gaussians by
     half-size cameras instead leaves a floor (the footprint of a splat smaller than a pixel does not average)."""
-    from vid2sim.reconstruct.stages.joint import clip_loss, downsample
+    from vid2sim.reconstruct.clip import clip_loss, downsample
 
     sim, gaussians, cams = _scene_setup()
     rig = GaussianRig(sim, gaussians)

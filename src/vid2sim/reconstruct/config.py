@@ -346,8 +346,8 @@ class JointConfig:
         centre_of_mass_rounds: rounds of that search, each with half the step of the one before.
         frame_decay: weights exp(−(t − 1)/τ) on the frames t = 1 … T−1 of the coarse search's and the
             validation's whole-clip losses, τ = ``frame_decay`` frames (default 4, beyond the paper); None:
-            equal weights (the paper's mean over the clip). See :func:`clip_loss`. On the quadratic-tet
-            small suite (8 scenes) τ = 4 gave |Δlog10 E| 0.30 against 0.37 with equal weights.
+            equal weights (the paper's mean over the clip). See :func:`~vid2sim.reconstruct.clip.clip_loss`. On the
+            quadratic-tet small suite (8 scenes) τ = 4 gave |Δlog10 E| 0.30 against 0.37 with equal weights.
         track_sd: the standard deviation of the hull track (the displacement of each observed frame's visual-hull
             centroid from frame 0's, :mod:`vid2sim.reconstruct.hull_track`) as a fraction of the object's diagonal;
             with it, the Gauss–Newton fit also matches the simulated centre of mass's displacement to that track

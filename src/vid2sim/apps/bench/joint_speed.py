@@ -47,16 +47,10 @@ from vid2sim.asset.motion import GaussianRig
 from vid2sim.physics.external import AREA_CONTACT_STIFFNESS, Floor, Gravity
 from vid2sim.physics.neural_jacobian import NeuralJacobian
 from vid2sim.physics.solver import Simulator
+from vid2sim.reconstruct.clip import Observations, image_loss, render_states
 from vid2sim.reconstruct.config import JointConfig
 from vid2sim.reconstruct.gauss_newton import linearise, trajectory_loss
-from vid2sim.reconstruct.stages.joint import (
-    ClipResiduals,
-    Observations,
-    image_loss,
-    physical_parameters,
-    render_states,
-    simulator_prior,
-)
+from vid2sim.reconstruct.stages.joint import ClipResiduals, physical_parameters, simulator_prior
 from vid2sim.splats.cameras import camera_ring
 from vid2sim.splats.gaussians import Gaussians
 

@@ -19,14 +19,9 @@ Then ``JointConfig.method``:
   every step is accepted only if it lowers the posterior objective; the kept state is the best by the
   full-resolution validation loss, the start included, and the fit stops when that has not improved for
   ``gauss_newton_patience`` steps. The networks stay as trained data-free.
-* "windows" (the paper's): Adam on (log10 E, ν, skinning MLP, Jacobian net) with learning rates (5e-3,
-  1e-3, 5e-7, 5e-7) and the initial velocity, windows of Δs = 4 frames starting at a random frame
-  s ∈ [s′, T − Δs], loss = mean squared image error over the views
-  (docs/architecture.md, "The paper's numbers"). Beyond the paper: a
-  window starts from the state at frame s of the latest whole rollout (no gradients before s), refreshed every
-  ``refresh_every`` iterations, and windows at s = 0 carry gradients to the initial velocity; views subsampled
-  per iteration (``views_per_iteration``) and a coarse-to-fine resolution schedule; every ``validate_every``
-  iterations the whole observed clip is validated and the best state kept.
+* "windows" (the paper's): Adam on random windows of 4 frames, the networks too (:mod:`vid2sim.reconstruct.windows`).
+
+The observations, renders of simulated states and the image losses are :mod:`vid2sim.reconstruct.clip`'s.
 
 At the kept state the Gauss–Newton curvature of the whole clip gives the material's Laplace intervals and says
 whether each parameter is identifiable from the video at all, and which frames inform it
@@ -50,13 +45,20 @@ from vid2sim.physics.external import AREA_CONTACT_STIFFNESS, Floor, Gravity
 from vid2sim.physics.mass import centre_shifted_volumes
 from vid2sim.physics.solver import Material, SimState, Simulator
 from vid2sim.physics.stiffness_curve import StiffnessCurve
+from vid2sim.reconstruct.clip import (
+    Observations,
+    clip_loss,
+    detached_state,
+    frame_weights,
+    image_loss,
+    render_states,
+)
 from vid2sim.reconstruct.config import JointConfig
 from vid2sim.reconstruct.gauss_newton import (
     FitResult,
     Parameter,
     effective_images,
     levenberg_marquardt,
-    linearise,
 )
 from vid2sim.reconstruct.hull_track import HullTrack, hull_track
 from vid2sim.reconstruct.runner import Context, State
@@ -64,52 +66,9 @@ from vid2sim.reconstruct.stages.networks import cpu_state
 from vid2sim.reconstruct.stages.points import floor_carved_contact, track_poses
 from vid2sim.reconstruct.stages.stage1 import prior_material
 from vid2sim.reconstruct.uncertainty import coarse_best, information_by_frame, laplace_intervals, mark_coarse_edge
+from vid2sim.reconstruct.windows import windowed_adam
 from vid2sim.runtime.files import read_json, save_torch_atomic, write_json_atomic
-from vid2sim.splats.cameras import Camera
 from vid2sim.splats.gaussians import Gaussians
-from vid2sim.splats.render import render
-
-
-@dataclass
-class Observations:
-    """The observed video as the optimisation sees it.
-
-    Attributes:
-        images: (V, T, H, W, 3) observed frames 0 … T−1 of the observed views, composited on white, float.
-        cameras: the V cameras.
-        background: RGB background (white for vid2sim scenes).
-    """
-
-    images: Tensor
-    cameras: list[Camera]
-    background: tuple[float, float, float] = (1.0, 1.0, 1.0)
-
-    def at_scale(self, scale: float) -> "Observations":
-        """The same observations at ``scale`` × the resolution: area-averaged images, the same cameras.
-
-        The renders of a scaled loss are made at the cameras' full resolution and area-averaged to the images' size
-        (:func:`render_states`), so that both sides of the loss pass through the same filter. Gaussians rendered
-        directly by half-size cameras are not the average of their full-size render (a splat's footprint does not
-        shrink with the pixel grid below a pixel): on the small suite that left a floor of 3.6e-3 in the frame-0 loss
-        at half resolution against 4e-5 at full, 70 % of the coarse search's loss at its minimum (docs/architecture.md,
-        "The coarse losses' resolution"). At the small preset rendering at full size costs about the same on the CPU
-        (the per-Gaussian work dominates); at 448² the pixels count."""
-        if scale == 1.0:
-            return self
-        V, T, H, W, _ = self.images.shape
-        h, w = max(8, round(H * scale)), max(8, round(W * scale))
-        return Observations(downsample(self.images.reshape(V * T, H, W, 3), (h, w)).reshape(V, T, h, w, 3),
-                            self.cameras, self.background)
-
-
-def downsample(images: Tensor, size: tuple[int, int]) -> Tensor:
-    """(..., H, W, 3) images area-averaged to (..., h, w, 3) (the input itself when the size is already (h, w))."""
-    if tuple(images.shape[-3:-1]) == tuple(size):
-        return images
-    lead = images.shape[:-3]
-    x = images.reshape(-1, *images.shape[-3:]).permute(0, 3, 1, 2)
-    x = torch.nn.functional.interpolate(x, size=size, mode="area")
-    return x.permute(0, 2, 3, 1).reshape(*lead, *size, 3)
 
 
 @dataclass
@@ -182,73 +141,6 @@ def coarse_minimum(values: Sequence[float], losses: Sequence[float]) -> float:
             value = min(max(-b / (2 * a), x0), x2)
     return value
 
-def _detached(state: SimState) -> SimState:
-    d = (lambda t: None if t is None else t.detach())
-    return SimState(d(state.z), d(state.zdot), state.t, d(state.Fp_inv), z_prev=d(state.z_prev),
-                    zdot_prev=d(state.zdot_prev), h_prev=state.h_prev)
-
-
-def render_states(rig: GaussianRig, states: Sequence[SimState], obs: Observations, views: Sequence[int],
-                  basis: tuple[Tensor, Tensor] | None = None) -> Tensor:
-    """(len(states), len(views), H, W, 3) renders of the states in the given views of ``obs``, at the size of
-    ``obs.images`` (rendered by the cameras at their own size and area-averaged to it, :meth:`Observations.at_scale`).
-
-    All frames go to the renderer in one call (per-view Gaussians: frame t's Gaussians for frame t's
-    cameras), which composites them together; with gsplat that is one batched launch. On the CPU it saves
-    6 % at the small preset's 4 frames × 4 views (forward + backward 390 → 368 ms, 1 thread)."""
-
-    basis = rig.basis() if basis is None else basis
-    cams = [obs.cameras[v] for v in views]
-    nv = len(cams)
-    size = tuple(obs.images.shape[2:4])
-    if rig.shading is not None:  # colours differ per frame: one call per frame
-        frames = [rig.deformed(s.z, basis) for s in states]
-        out = torch.stack([render(d.means, d.opacities, d.sh, cams, covars=d.covars, sh_degree=d.sh_degree,
-                                  background=list(obs.background)).rgb for d in frames])
-        return downsample(out, size)
-    means, covars = rig.deformed_frames(torch.stack([s.z for s in states]), basis)  # all frames in one batch
-    g = rig.gaussians
-    out = render(means.repeat_interleave(nv, dim=0), g.opacities, g.sh, cams * len(states),  # (T·V, N, 3)
-                 covars=covars.repeat_interleave(nv, dim=0), sh_degree=g.sh_degree, background=list(obs.background)).rgb
-    return downsample(out.reshape(len(states), nv, *out.shape[1:]), size)
-
-
-def image_loss(renders: Tensor, targets: Tensor) -> Tensor:
-    """The mean squared image error (the paper's loss), a scalar."""
-    return ((renders - targets) ** 2).mean()
-
-
-def frame_weights(frames: int, decay: float | None) -> list[float]:
-    """Weights of frames 1 … frames−1 in a whole-clip loss, summing to 1: exp(−(t − 1)/decay), or equal
-    when ``decay`` is None."""
-    raw = [1.0 if decay is None else math.exp(-(t - 1) / decay) for t in range(1, frames)]
-    total = sum(raw)
-    return [w / total for w in raw]  # empty for a one-frame clip
-
-
-def clip_loss(sim: Simulator, rig: GaussianRig, start: SimState, obs: Observations,
-              decay: float | None = None) -> tuple[float, list[SimState]]:
-    """Weighted mean squared image error of the whole observed clip (frames 1 … T−1, all views; weights
-    :func:`frame_weights`), without gradients, and the simulated states of frames 0 … T−1 (frame 0 =
-    ``start``).
-
-    Equal weights (``decay`` None) judge the clip as a whole, and its late frames weigh as much as the first
-    bounce. After that bounce a stiff object rocks on the frictionless floor, and where it rocks to drifts
-    chaotically with small errors of the model; a whole-clip loss then favours the material whose rocking
-    happens to match, often a softer one. Decaying weights favour the first contact, where E acts most
-    directly."""
-    T = obs.images.shape[1]
-    weights = frame_weights(T, decay)
-    with torch.no_grad():
-        states = [start] + sim.rollout(start, T - 1)
-        basis = rig.basis()
-        total = 0.0
-        for t in range(1, T):
-            r = render_states(rig, [states[t]], obs, range(len(obs.cameras)), basis)[0]
-            total += weights[t - 1] * float(image_loss(r, obs.images[:, t].to(r)))
-    return total, states
-
-
 def centre_of_mass_search(sim: Simulator, rig: GaussianRig, start: Callable[[], SimState], obs: Observations,
                           step: float, rounds: int, decay: float | None = None,
                           progress: bool = False) -> tuple[list[float], list[dict[str, Any]]]:
@@ -282,7 +174,7 @@ def centre_of_mass_search(sim: Simulator, rig: GaussianRig, start: Callable[[], 
         if key not in tried:
             try:
                 sim.mass_volumes = centre_shifted_volumes(sim.X, base, torch.tensor(key, dtype=torch.float64)).to(base)
-                tried[key] = clip_loss(sim, rig, _detached(start()), obs, decay)[0]
+                tried[key] = clip_loss(sim, rig, detached_state(start()), obs, decay)[0]
             except ValueError:  # no positive masses on these points have that centre
                 tried[key] = math.inf
             finally:
@@ -310,16 +202,6 @@ def centre_of_mass_search(sim: Simulator, rig: GaussianRig, start: Callable[[], 
     bar.close()
     sim.mass_volumes = centre_shifted_volumes(sim.X, base, torch.tensor(best, dtype=torch.float64)).to(base)
     return best, records
-
-
-def first_moving_frame(images: Tensor, threshold: float = 1e-3) -> int:
-    """s′: the first frame (≥ 1) whose images differ from frame 0 by a mean squared error above ``threshold``
-    (the paper's start of the window range); 1 when every frame differs."""
-    T = images.shape[1]
-    for t in range(1, T):
-        if float(((images[:, t] - images[:, 0]) ** 2).mean()) > threshold:
-            return t
-    return 1
 
 
 #: forward-difference steps of the Gauss–Newton Jacobian: log10 E (decades), ν, ζ, and the initial velocity as a
@@ -469,10 +351,10 @@ def joint_optimisation(
 
     A coarse search over log10 E picks the start (and optionally a search over the centre of mass), then
     ``config.method`` fits: Gauss–Newton on the physical parameters over the whole clip (:func:`_gauss_newton`), or
-    the paper's Adam on windows (:func:`_windowed_adam`). Either way the kept state is the best by the whole-clip
-    validation loss, the coarse search's start included, and the material's uncertainty is the Laplace
-    approximation at it, widened by the model's own error (``cfg.model_error_log10_E``, ``cfg.model_error_nu``;
-    :func:`vid2sim.reconstruct.uncertainty.laplace_intervals`).
+    the paper's Adam on windows (:func:`~vid2sim.reconstruct.windows.windowed_adam`). Either way the kept state is
+    the best by the whole-clip validation loss, the coarse search's start included, and the material's uncertainty
+    is the Laplace approximation at it, widened by the model's own error (``cfg.model_error_log10_E``,
+    ``cfg.model_error_nu``; :func:`vid2sim.reconstruct.uncertainty.laplace_intervals`).
 
     Args:
         sim: the simulator built on the object's points (its material is the prior, the prior's mean; it is
@@ -525,7 +407,7 @@ def joint_optimisation(
     if cfg.method == "gauss_newton":
         fit = _gauss_newton(clip, parameters, start, n, rig, observations, cfg, progress, on_iteration)
     else:
-        fit = _windowed_adam(sim, rig, observations, coarse_obs, start, c, cfg, clip, parameters, progress,
+        fit = windowed_adam(sim, rig, observations, coarse_obs, start, c, cfg, clip, parameters, progress,
                              on_iteration)
     theta = dict(zip(clip.names, fit.theta))
     clip.apply(fit.theta)  # the simulator holds the kept material
@@ -586,7 +468,7 @@ def coarse_search(sim: Simulator, rig: GaussianRig, start: Callable[[], SimState
         def loss_at(i: int) -> float:
             with torch.no_grad():
                 sim.log10_E.fill_(values[i])
-            loss, _ = clip_loss(sim, rig, _detached(start()), obs, cfg.frame_decay)
+            loss, _ = clip_loss(sim, rig, detached_state(start()), obs, cfg.frame_decay)
             row: dict[str, Any] = {"log10_E": values[i], "loss": loss}
             if mu is not None:
                 row["floor_friction"] = mu
@@ -676,177 +558,6 @@ def _gauss_newton(clip: ClipResiduals, parameters: list[Parameter], start: list[
                                    _full_resolution_validation(clip, rig, observations, cfg.frame_decay), report)
     finally:
         bar.close()
-
-
-def _windowed_adam(sim: Simulator, rig: GaussianRig, observations: Observations, coarse_obs: Observations,
-                   start: list[float], centre: list[float], cfg: JointConfig, clip: ClipResiduals,
-                   parameters: list[Parameter], progress: bool,
-                   on_iteration: Callable[[dict[str, Any]], None] | None) -> FitResult:
-    """The paper's Adam on random windows of ``cfg.window`` frames (module docstring), from the coarse search's
-    start; the best state by the whole-clip validation is kept and linearised for the uncertainty."""
-    from tqdm.auto import tqdm
-
-    V, T = observations.images.shape[:2]
-    gen = torch.Generator().manual_seed(cfg.seed)
-    fit = _AdamFit(sim, rig, observations, cfg, start, centre)
-    groups = _adam_groups(sim, cfg, [fit.v_lin, fit.v_ang])
-    toggled, was = _train_only(sim, [p for g in groups for p in g["params"]])
-    opt = torch.optim.Adam(groups)
-    fixed_basis = _fixed_basis(sim, rig, cfg)
-    best_loss, states = fit.validate()
-    start_loss, best = best_loss, fit.snapshot()
-    log: list[dict[str, Any]] = [{"iteration": 0, "validation_loss": best_loss, "log10_E": best["theta"][0],
-                                  "nu": best["theta"][1]}]
-    s_lo, s_hi = _window_starts(observations.images, cfg.window)
-    n_views = V if cfg.views_per_iteration is None else min(V, cfg.views_per_iteration)
-    bar = tqdm(range(1, cfg.iterations + 1), desc="joint optimisation", disable=not progress)
-    try:
-        for it in bar:
-            t0 = time.perf_counter()
-            scale = cfg.coarse_scale if it <= cfg.coarse_fraction * cfg.iterations else 1.0
-            obs = coarse_obs if scale != 1.0 else observations
-            s = int(torch.randint(s_lo, s_hi + 1, (1,), generator=gen))
-            views = sorted(torch.randperm(V, generator=gen)[:n_views].tolist())
-            loss = fit.window_step(opt, obs, s, views, states, fixed_basis)
-            entry = {"iteration": it, "loss": loss, "log10_E": float(sim.log10_E.detach()),
-                     "nu": float(sim.nu.detach()), "damping_ratio": float(sim.damping_ratio.detach()),
-                     "window_start": s, "scale": scale,
-                     "ms": 1000 * (time.perf_counter() - t0)}
-            if it % cfg.validate_every == 0 or it == cfg.iterations:
-                value, states = fit.validate()
-                entry["validation_loss"] = value
-                if value < best_loss:
-                    best_loss, best = value, fit.snapshot()
-            elif it % cfg.refresh_every == 0:
-                states = fit.clip_states(T)
-            log.append(entry)
-            if on_iteration is not None:
-                on_iteration(entry)
-            bar.set_postfix(loss=f"{entry['loss']:.2e}", log10_E=f"{entry['log10_E']:.3f}", nu=f"{entry['nu']:.3f}")
-    finally:
-        for p, flag in zip(toggled, was):
-            p.requires_grad_(flag)
-    kept = fit.keep(best, parameters)
-    with torch.no_grad():
-        clip.basis = rig.basis()  # the kept networks' quantities at the Gaussians
-    return FitResult(kept, linearise(clip, parameters, kept), math.nan, best_loss, start_loss, log,
-                     f"{cfg.iterations} iterations")
-
-
-class _AdamFit:
-    """What the windowed Adam optimises besides the simulator's own parameters: the initial velocity v (3,) and
-    ω (3,) about ``centre``, seen as θ = [log10 E, ν, (damping ratio,) v, ω] and snapshots of the networks."""
-
-    def __init__(self, sim: Simulator, rig: GaussianRig, observations: Observations, cfg: JointConfig,
-                 start: list[float], centre: list[float]) -> None:
-        dtype, device = sim.X.dtype, sim.X.device
-        self.sim, self.rig, self.observations, self.cfg, self.centre = sim, rig, observations, cfg, centre
-        self.v_lin = torch.tensor(start[-6:-3], dtype=dtype, device=device).requires_grad_(True)
-        self.v_ang = torch.tensor(start[-3:], dtype=dtype, device=device).requires_grad_(True)
-
-    def initial_state(self) -> SimState:
-        """The state at t = 0: the rest shape moving rigidly with (v, ω) about ``centre`` (with their graph)."""
-        return self.sim.rigid_velocity_state(self.v_lin, self.v_ang, self.centre)
-
-    def theta(self) -> list[float]:
-        """θ = [log10 E, ν, (damping ratio,) v (3), ω (3)] now, as numbers."""
-        sim = self.sim
-        return [float(sim.log10_E.detach()), float(sim.nu.detach())] \
-            + ([float(sim.damping_ratio.detach())] if self.cfg.fit_damping else []) \
-            + [float(x) for x in self.v_lin.detach()] + [float(x) for x in self.v_ang.detach()]
-
-    def snapshot(self) -> dict:
-        """θ and copies of the networks' state dicts."""
-        sim = self.sim
-        return {"theta": self.theta(), "field": copy.deepcopy(sim.field.state_dict()),
-                "jacobian": copy.deepcopy(sim.jacobian.state_dict()) if sim.jacobian is not None else None}
-
-    def validate(self) -> tuple[float, list[SimState]]:
-        """The whole clip's loss in every observed view at full resolution, and its T states."""
-        return clip_loss(self.sim, self.rig, _detached(self.initial_state()), self.observations, self.cfg.frame_decay)
-
-    def clip_states(self, T: int) -> list[SimState]:
-        """The T states of the whole clip from the current θ, without gradients."""
-        with torch.no_grad():
-            s0 = _detached(self.initial_state())
-            return [s0] + self.sim.rollout(s0, T - 1)
-
-    def window_step(self, opt: torch.optim.Optimizer, obs: Observations, s: int, views: list[int],
-                    states: list[SimState], fixed_basis: Any) -> float:
-        """One Adam step on the window of ``cfg.window`` frames after frame ``s`` (started from ``states[s]``, or
-        from the initial velocity when s = 0) in ``views``; ν and the damping ratio are clamped after it. Returns
-        the window's image loss."""
-        sim, cfg = self.sim, self.cfg
-        start_state = self.initial_state() if s == 0 else _detached(states[s])
-        opt.zero_grad(set_to_none=True)
-        window_states = sim.rollout(start_state, cfg.window)
-        renders = render_states(self.rig, window_states, obs, views, fixed_basis)
-        target = obs.images[views][:, s + 1: s + 1 + cfg.window].transpose(0, 1).to(renders)
-        loss = image_loss(renders, target)
-        loss.backward()
-        opt.step()
-        with torch.no_grad():
-            sim.nu.clamp_(*cfg.nu_bounds)
-            sim.damping_ratio.clamp_(0.0, 1.0)
-        return float(loss.detach())
-
-    def keep(self, best: dict, parameters: list[Parameter]) -> list[float]:
-        """Load the networks of the ``best`` snapshot; returns its θ clamped to the ``parameters``' bounds."""
-        sim = self.sim
-        with torch.no_grad():
-            sim.field.load_state_dict(best["field"])
-            if best["jacobian"] is not None:
-                sim.jacobian.load_state_dict(best["jacobian"])
-        return [min(max(x, q.lower), q.upper) for x, q in zip(best["theta"], parameters)]
-
-
-def _adam_groups(sim: Simulator, cfg: JointConfig, velocity: list[Tensor]) -> list[dict[str, Any]]:
-    """Adam's parameter groups with their learning rates: log10 E, ν, the initial ``velocity`` (v, ω), and the
-    skinning field, the Neural Jacobian and the damping ratio when ``cfg`` fits them."""
-    groups = [{"params": [sim.log10_E], "lr": cfg.lr_log10_E}, {"params": [sim.nu], "lr": cfg.lr_nu},
-              {"params": velocity, "lr": cfg.lr_velocity}]
-    if cfg.lr_skinning > 0:
-        groups.append({"params": [p for p in sim.field.parameters()], "lr": cfg.lr_skinning})
-    if sim.use_neural_jacobian and cfg.lr_jacobian > 0:
-        groups.append({"params": list(sim.jacobian.parameters()), "lr": cfg.lr_jacobian})
-    if cfg.fit_damping:
-        groups.append({"params": [sim.damping_ratio], "lr": cfg.lr_damping})
-    return groups
-
-
-def _train_only(sim: Simulator, trainable: list[Tensor]) -> tuple[list[Tensor], list[bool]]:
-    """Make ``trainable`` require gradients and freeze the networks' other parameters for the loop: otherwise every
-    rollout's skinning basis would carry a graph and each step's adjoint would differentiate it for nothing.
-    Returns the parameters toggled and their former ``requires_grad``, to restore."""
-    net_params = [p for p in sim.field.parameters()]
-    chosen = {id(p) for p in trainable}
-    frozen = [p for p in net_params + (list(sim.jacobian.parameters()) if sim.jacobian is not None else [])
-              if id(p) not in chosen]
-    toggled = trainable + frozen
-    was = [p.requires_grad for p in toggled]
-    for p in trainable:
-        p.requires_grad_(True)
-    for p in frozen:
-        p.requires_grad_(False)
-    return toggled, was
-
-
-def _fixed_basis(sim: Simulator, rig: GaussianRig, cfg: JointConfig) -> Any:
-    """The networks' quantities at the Gaussians, computed once when no network is optimised (else None)."""
-    networks_trained = cfg.lr_skinning > 0 or (sim.use_neural_jacobian and cfg.lr_jacobian > 0)
-    if networks_trained:
-        return None
-    with torch.no_grad():
-        return rig.basis()
-
-
-def _window_starts(images: Tensor, window: int) -> tuple[int, int]:
-    """The range [s_lo, s_hi] of window starts for the observed ``images`` (V, T, H, W, 3): s ∈ [s′ − 1, T − 1 − Δs]
-    compares frames s + 1 … s + Δs (s′ the first moving frame); s = 0 reaches the initial velocity."""
-    T = images.shape[1]
-    s_hi = T - 1 - window
-    s_lo = min(first_moving_frame(images) - 1, s_hi)
-    return s_lo, s_hi
 
 
 # ---- the stage -------------------------------------------------------------------------------------------------
