@@ -256,6 +256,22 @@ def test_cli_bench_suite_prints_the_table_and_exit_codes(local_run, suite_dir, t
     assert "holds no suite_config.json" in capsys.readouterr().err
 
 
+def test_cli_bench_suite_passes_rerun_changed_to_each_reconstruction(suite_dir, tmp_path, monkeypatch):
+    import vid2sim.apps.bench.suite as reconstruct_module  # where the suite looks reconstruct up
+
+    seen = []
+
+    def fake(scene, out, config, progress=False, snapshots=None, rerun_changed=False):
+        seen.append(rerun_changed)
+        raise ValueError("stop here")
+
+    monkeypatch.setattr(reconstruct_module, "reconstruct", fake)
+    assert main(["bench", "suite", str(suite_dir), str(tmp_path / "a"), "--threads", "1", "--quiet"]) == 1
+    assert main(["bench", "suite", str(suite_dir), str(tmp_path / "b"), "--threads", "1", "--quiet",
+                 "--rerun-changed"]) == 1
+    assert seen == [False, False, True, True]
+
+
 def test_ray_suite_gives_the_local_numbers(ray_local, local_run, suite_dir, tiny_config, tmp_path, monkeypatch):
     import vid2sim.apps.bench.suite as reconstruct_module  # where the suite looks reconstruct up
 

@@ -538,7 +538,7 @@ def test_an_interrupted_reconstruction_resumes_after_its_last_finished_stage(
     (tmp_path / ".asset2.work").mkdir()
     (tmp_path / ".asset2.work" / "keys.json").write_text(json.dumps({"networks": "an older key"}))
     (tmp_path / ".asset2.work" / "networks.done").write_text("")
-    with pytest.raises(ReconstructionError, match="'networks' stage ran with other settings.*--restart"):
+    with pytest.raises(ReconstructionError, match="'networks' stage ran with other settings.*--rerun-changed"):
         reconstruct(tiny_scene, tmp_path / "asset2", other, progress=False)
 
 
@@ -752,12 +752,20 @@ def test_stage1_is_skipped_with_a_recorded_reason(tiny_asset, tiny_scene, tmp_pa
 def test_cli_no_stage1_and_predictor_flags(tiny_scene, tmp_path, monkeypatch):
     seen, shared = [], []
 
-    def fake(scene, out, config, progress=True, restart=False, device=None, snapshots=None):
+    reruns = []
+
+    def fake(scene, out, config, progress=True, restart=False, device=None, snapshots=None, rerun_changed=False):
         seen.append(config)
         shared.append(snapshots)
+        reruns.append((restart, rerun_changed))
         raise SystemExit(0)
 
     monkeypatch.setattr(cli_reconstruct, "reconstruct", fake)  # the name the command calls
+    with pytest.raises(SystemExit):
+        main(["reconstruct", str(tiny_scene), str(tmp_path / "a"), "--rerun-changed", "--quiet"])
+    assert reruns == [(False, True)]
+    assert main(["reconstruct", str(tiny_scene), str(tmp_path / "a"), "--rerun-changed", "--restart",
+                 "--quiet"]) == 2 and len(reruns) == 1  # one or the other, refused before any work
     with pytest.raises(SystemExit):
         main(["reconstruct", str(tiny_scene), str(tmp_path / "a"), "--no-stage1", "--quiet"])
     assert seen[-1].stage1.enabled is False and seen[-1].stage1.predictor is None
@@ -814,7 +822,7 @@ def test_cli_iterations_are_the_joint_methods(tiny_scene, tmp_path, monkeypatch,
     given beside the field it stands for, or negative, it is refused before any work."""
     seen, shared = [], []
 
-    def fake(scene, out, config, progress=True, restart=False, device=None, snapshots=None):
+    def fake(scene, out, config, progress=True, restart=False, device=None, snapshots=None, rerun_changed=False):
         seen.append(config)
         shared.append(snapshots)
         raise SystemExit(0)

@@ -6,11 +6,13 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import pytest
 import torch
 
 from vid2sim.reconstruct.config import ReconstructConfig
 from vid2sim.reconstruct.runner import (
     Context,
+    ReconstructionError,
     StageSnapshots,
     State,
     WorkFolder,
@@ -40,9 +42,10 @@ class Draw:
 
 
 def _run(out: Path, config: ReconstructConfig, snapshots: StageSnapshots | None, runs: dict[str, int],
-         only: int | None = None) -> tuple[State, WorkFolder]:
+         only: int | None = None, rerun_changed: bool = False) -> tuple[State, WorkFolder]:
     stages = [Draw("a", "gaussians", runs), Draw("b", "points", runs), Draw("c", "networks", runs)]
-    work = WorkFolder(out, cache_keys(stages, config, "scene"), restart=False, snapshots=snapshots)
+    work = WorkFolder(out, cache_keys(stages, config, "scene"), restart=False, snapshots=snapshots,
+                      rerun_changed=rerun_changed)
     ctx = Context(config=config, scene=None, observed=None, device=torch.device("cpu"), work=work, progress=False,
                   threads=torch.get_num_threads())
     torch.manual_seed(12345)  # the global generator's state before the run does not matter
@@ -103,3 +106,19 @@ def test_a_scene_made_again_in_the_same_place_is_another_scene_to_the_cache(tmp_
     assert scene_fingerprint(scene) != first
     keys = [cache_keys([Draw("a", "gaussians", {})], ReconstructConfig(), s) for s in (first, scene_fingerprint(scene))]
     assert keys[0]["a"] != keys[1]["a"]
+
+
+def test_an_interrupted_run_with_other_settings_is_refused_or_rerun_from_the_first_changed_stage(tmp_path):
+    runs: dict[str, int] = {}
+    first, _ = _run(tmp_path / "out", ReconstructConfig(), None, runs)  # a, b and c finished (not yet the asset)
+    changed = ReconstructConfig()
+    changed.points.resolution += 1  # b's section: b and c change, a does not
+    with pytest.raises(ReconstructionError, match="'b' stage ran with other settings.*--rerun-changed"):
+        _run(tmp_path / "out", changed, None, runs)
+    assert runs == {"a": 1, "b": 1, "c": 1} and (tmp_path / ".out.work" / "b.done").is_file()  # nothing discarded
+    rerun, work = _run(tmp_path / "out", changed, None, runs, rerun_changed=True)
+    assert work.rerun == ["b", "c"] and runs == {"a": 1, "b": 2, "c": 2}
+    assert rerun.log["a"] == first.log["a"]  # a kept, b and c run again in their turn (their own seeds)
+    assert rerun.log["b"][0] == first.log["b"][0] and rerun.log["c"] == first.log["c"]
+    _, work = _run(tmp_path / "out", changed, None, runs, rerun_changed=True)  # now they agree: nothing to rerun
+    assert work.rerun == [] and runs == {"a": 1, "b": 2, "c": 2}

@@ -26,8 +26,11 @@ def run(args: argparse.Namespace) -> int:
     config = reconstruct_config(args)
     # every stage but the last: its output is the asset itself
     snapshots = StageSnapshots(Path(args.share_stages), STAGES[:-1]) if args.share_stages else None
+    if args.restart and args.rerun_changed:
+        raise UserError("--restart discards every finished stage and --rerun-changed keeps those whose settings "
+                        "agree: give one of them")
     path = reconstruct(args.scene, out, config, progress=not args.quiet, restart=args.restart, device=device,
-                       snapshots=snapshots)
+                       snapshots=snapshots, rerun_changed=args.rerun_changed)
     material = json.loads((path / "material.json").read_text())
     lines = material_lines(material)
     print("\n".join([f"wrote {path}: {lines[0]}"] + lines[1:]))
@@ -56,7 +59,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     rec = sub.add_parser("reconstruct", help="reconstruct a scene folder into a simulation-ready asset "
                          "(Gaussians, skinning field, material)",
                          usage="vid2sim reconstruct SCENE OUT [--preset {small,full}] [--config FILE] "
-                               "[--SECTION.FIELD VALUE ...] [--device DEVICE] [--restart] [--share-stages DIR] "
+                               "[--SECTION.FIELD VALUE ...] [--device DEVICE] [--restart | --rerun-changed] "
+                               "[--share-stages DIR] "
                                "[--overwrite] [--no-report] [--threads N] [--quiet]")
     rec.add_argument("scene", help="scene folder (scene.json + transforms.json)")
     rec.add_argument("out", help="asset folder to create (docs/asset-format.md)")
@@ -64,6 +68,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     rec.add_argument("--device", default=None, help="torch device of the Gaussian fits, networks and joint "
                      "optimisation (default: cuda if available, else cpu; the asset is the same format either way)")
     rec.add_argument("--restart", action="store_true", help="discard an interrupted run's finished stages")
+    rec.add_argument("--rerun-changed", action="store_true",
+                     help="resume an interrupted run whose settings (or this release's) differ from a stage on: keep "
+                          "the finished stages before it, run it and the later ones again (log.json 'rerun')")
     rec.add_argument("--share-stages", metavar="DIR", default=None,
                      help="keep a snapshot of each finished stage in DIR; a later reconstruction of the same scene "
                           "with the same DIR whose settings agree up to a stage starts after it (try other joint "

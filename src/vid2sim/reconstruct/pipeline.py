@@ -75,7 +75,7 @@ def observed(scene: Scene, device: torch.device) -> Observed:
 
 def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConfig | None = None,
                 progress: bool = True, restart: bool = False, device: str | torch.device | None = None,
-                snapshots: StageSnapshots | None = None) -> Path:
+                snapshots: StageSnapshots | None = None, rerun_changed: bool = False) -> Path:
     """Reconstruct the scene folder ``scene_path`` into the asset folder ``out`` (see the module docstring).
 
     ``device`` (None: CUDA when available, else the CPU) runs the Gaussian fits, the networks' training and
@@ -88,6 +88,11 @@ def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConf
     (:class:`~vid2sim.reconstruct.runner.StageSnapshots`): the run starts from the latest snapshot whose settings
     match and saves one when each stage it names finishes. ``log.json`` ``"restored"`` names the stage restored and
     the seconds its stages took where they ran (None when nothing was restored).
+
+    An interrupted run in ``out``'s work folder resumes after its last finished stage when the settings agree up to
+    it. ``restart`` discards it; ``rerun_changed`` keeps its finished stages up to the first whose settings differ
+    and runs that one and the later ones again (``log.json`` ``"rerun"`` names them); otherwise a difference is
+    refused (:class:`~vid2sim.reconstruct.runner.WorkFolder`).
 
     Returns:
         the asset folder (readable with :func:`vid2sim.asset.load_asset`).
@@ -103,7 +108,7 @@ def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConf
     scene = load_scene(scene_path)
     check_scene(scene)
     stages = all_stages()
-    work = WorkFolder(out, cache_keys(stages, cfg, scene_fingerprint(scene.root)), restart, snapshots)
+    work = WorkFolder(out, cache_keys(stages, cfg, scene_fingerprint(scene.root)), restart, snapshots, rerun_changed)
     ctx = Context(config=cfg, scene=scene, observed=observed(scene, dev), device=dev, work=work, progress=progress,
                   threads=threads)
     torch.manual_seed(cfg.seed)
@@ -114,7 +119,7 @@ def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConf
     restored = None if work.restored is None else {
         "stage": work.restored, "seconds": sum(work.timings.get(s.name, 0.0)
                                                 for s in stages[:STAGES.index(work.restored) + 1])}
-    log = {"timings_seconds": work.timings, "restored": restored, "device": str(dev),
+    log = {"timings_seconds": work.timings, "restored": restored, "rerun": work.rerun, "device": str(dev),
            "device_name": torch.cuda.get_device_name(dev) if dev.type == "cuda" else "cpu", **state.log}
     save_asset(state.asset, out, config=cfg.to_dict(), log=log)
     shutil.rmtree(work.dir, ignore_errors=True)

@@ -286,10 +286,16 @@ class StageSnapshots:
 class WorkFolder:
     """The stage cache beside the output folder: ``.OUT.work/`` with ``keys.json`` (each stage's cache key),
     ``STAGE.done`` markers, ``timings.json`` and the stages' files; with ``snapshots``, it starts from the latest
-    matching snapshot and saves one as each of their stages finishes (:class:`StageSnapshots`)."""
+    matching snapshot and saves one as each of their stages finishes (:class:`StageSnapshots`).
+
+    A finished stage whose key differs from ``keys`` (other settings, another scene, or a release that added a
+    setting to its sections) is refused, so that a slip of the command line does not discard hours of work;
+    ``restart`` discards the whole folder first, and ``rerun_changed`` keeps the finished stages before the first
+    changed one and marks that one and every later one unfinished (``rerun``), as if the run had been interrupted
+    there (the keys chain: every stage after a changed one has changed too)."""
 
     def __init__(self, out: Path, keys: dict[str, str], restart: bool,
-                 snapshots: StageSnapshots | None = None) -> None:
+                 snapshots: StageSnapshots | None = None, rerun_changed: bool = False) -> None:
         self.dir = out.parent / f".{out.name}.work"
         self.keys, self.snapshots = dict(keys), snapshots
         if restart and self.dir.exists():
@@ -298,12 +304,21 @@ class WorkFolder:
         keys_path = self.dir / "keys.json"
         stored = read_json(keys_path, "a reconstruction's work folder keys", ReconstructionError) \
             if keys_path.is_file() else {}
-        for name in keys:
+        #: the finished stages that ``rerun_changed`` marked unfinished because their settings changed
+        self.rerun: list[str] = []
+        names = list(keys)
+        for i, name in enumerate(names):
             if self.done(name) and stored.get(name) != keys[name]:
-                raise ReconstructionError(
-                    f"{self.dir} holds an interrupted reconstruction whose {name!r} stage ran with other settings or "
-                    "on another scene (or the scene's files changed since); run with the same settings to resume it, "
-                    "or with --restart to start over")
+                if not rerun_changed:
+                    raise ReconstructionError(
+                        f"{self.dir} holds an interrupted reconstruction whose {name!r} stage ran with other settings "
+                        "or on another scene (or the scene's files changed since); run with the same settings to "
+                        "resume it, with --rerun-changed to keep the stages before it and run it and the later ones "
+                        "again, or with --restart to start over")
+                self.rerun = [n for n in names[i:] if self.done(n)]
+                for n in self.rerun:
+                    (self.dir / f"{n}.done").unlink()
+                break
         if (self.dir / "key.json").is_file() and not keys_path.is_file():  # a work folder of an older version
             raise ReconstructionError(f"{self.dir} holds an interrupted reconstruction of an older vid2sim; run with "
                                       "--restart to start over")

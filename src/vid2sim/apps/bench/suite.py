@@ -146,6 +146,9 @@ class SceneTask:
     config: SuiteConfig = field(default_factory=SuiteConfig)
     #: stage snapshots shared with other runs on this scene (:class:`~vid2sim.reconstruct.runner.StageSnapshots`)
     snapshots: StageSnapshots | None = None
+    #: an interrupted reconstruction whose settings differ from a stage on runs that stage and the later ones again
+    #: (``reconstruct(rerun_changed=)``) instead of failing
+    rerun_changed: bool = False
 
 
 def run_scene(task: SceneTask, progress: bool = False) -> dict[str, Any]:
@@ -176,7 +179,7 @@ def run_scene(task: SceneTask, progress: bool = False) -> dict[str, Any]:
         t0 = time.perf_counter()
         if not (asset / "asset.json").is_file():  # save_asset moves a complete folder into place
             reconstruct(task.scene, asset, task.config.reconstruct_config(), progress=progress,
-                        snapshots=task.snapshots)
+                        snapshots=task.snapshots, rerun_changed=task.rerun_changed)
             earlier += _restored_seconds(asset)
         else:
             earlier = _finished_asset_seconds(asset)
@@ -282,7 +285,7 @@ def read_index(suite_dir: str | Path) -> list[str]:
 
 def run_suite(suite_dir: str | Path, out_dir: str | Path, config: SuiteConfig | None = None,
               progress: bool = True, ray_address: str | None = None,
-              snapshots: StageSnapshots | None = None) -> dict[str, Any]:
+              snapshots: StageSnapshots | None = None, rerun_changed: bool = False) -> dict[str, Any]:
     """Reconstruct and evaluate every scene of the suite at ``suite_dir`` into ``out_dir`` (module docstring).
 
     Args:
@@ -294,6 +297,8 @@ def run_suite(suite_dir: str | Path, out_dir: str | Path, config: SuiteConfig | 
             :mod:`vid2sim.runtime.ray_runner`) instead of one after the other here.
         snapshots: stage snapshots shared with other suites over the same scenes (``bench ablation``'s variants):
             scene NAME's are in ``snapshots.dir / NAME`` (a folder the Ray workers can reach, like ``out_dir``).
+        rerun_changed: a scene's interrupted reconstruction whose settings differ from a stage on (a release that
+            added a setting, say) keeps its stages before that one and runs the rest again, instead of failing.
     Returns:
         the content of ``out_dir/suite.json``: ``{"suite": path, "preset": str, "scenes": [record, ...],
         "means": {key: float | None}, "failed": int}`` with the scene records of :func:`run_scene` in the
@@ -316,7 +321,8 @@ def run_suite(suite_dir: str | Path, out_dir: str | Path, config: SuiteConfig | 
     settings = {"suite": str(suite), **config.to_dict()}
     _prepare_out(out, settings)
     tasks = [SceneTask(name, str(suite / name), str(out / name), config,
-                       None if snapshots is None else dataclasses.replace(snapshots, dir=Path(snapshots.dir) / name))
+                       None if snapshots is None else dataclasses.replace(snapshots, dir=Path(snapshots.dir) / name),
+                       rerun_changed)
              for name in names]
     records: list[dict[str, Any] | None] = [_finished_record(t) for t in tasks]
     todo = [i for i, r in enumerate(records) if r is None]

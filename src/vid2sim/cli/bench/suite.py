@@ -20,7 +20,8 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--threads must be >= 1, got {args.threads}")
     config = SuiteConfig(preset=args.preset, reconstruct=reconstruct_config(args), threads=args.threads)
     try:
-        result = run_suite(args.suite, args.out, config, progress=not args.quiet, ray_address=args.ray_address)
+        result = run_suite(args.suite, args.out, config, progress=not args.quiet, ray_address=args.ray_address,
+                           rerun_changed=args.rerun_changed)
     except RayUnavailable as exc:
         raise UserError(str(exc)) from exc
     print(format_table(result))
@@ -44,4 +45,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "(resumed if it holds a suite_config.json)")
     add_reconstruct_options(bsuite)
     add_suite_run_options(bsuite)
+    bsuite.add_argument("--rerun-changed", action="store_true",
+                        help="a scene's interrupted reconstruction whose settings differ from a stage on (a release "
+                             "that added a setting, say) keeps the stages before it and runs the rest again, instead "
+                             "of failing")
     bsuite.set_defaults(func=run, lock_output="out")  # one writer per OUT (runtime.locks)
