@@ -23,6 +23,7 @@ from vid2sim.apps.bench.suite import (
     SuiteConfig,
     format_table,
     run_suite,
+    suite_so_far,
 )
 from vid2sim.cli import main
 from vid2sim.synthetic.scenes import (
@@ -350,3 +351,23 @@ def test_ray_address_without_ray_says_how_to_install_it(suite_dir, tmp_path, mon
     assert main(["make-benchmark", str(tmp_path / "b"), "--n", "1", "--ray-address", "local", *TINY_FLAGS]) == 2
     assert 'pip install "vid2sim[ray]"' in capsys.readouterr().err
     assert not (tmp_path / "b").exists()
+
+
+def test_bench_table_reads_a_results_folder_as_it_stands(local_run, tmp_path, capsys):
+    out = tmp_path / "out"
+    shutil.copytree(local_run["out"], out)
+    assert main(["bench", "table", str(out)]) == 0  # a finished suite: the run's own table
+    assert capsys.readouterr().out.strip() == format_table(local_run["result"]).strip()
+    (out / "scene_001" / EVALUATION_JSON).unlink()  # not finished yet
+    so_far = suite_so_far(out)
+    assert [r["status"] for r in so_far["scenes"]] == ["ok", "pending"] and so_far["failed"] == 0
+    assert so_far["means"]["dynamic_psnr"] == local_run["result"]["scenes"][0]["evaluation"]["dynamic"]["psnr"]
+    table = format_table(so_far)
+    assert "pending" in next(line for line in table.splitlines() if line.startswith("PSNR"))
+    assert "mean over the 1 finished (1 pending)" in table and "FAILED" not in table
+    (out / "scene_001" / "error.txt").write_text("Traceback ...\nValueError: the scene broke\n")
+    so_far = suite_so_far(out)
+    assert so_far["scenes"][1]["status"] == "failed" and so_far["failed"] == 1
+    assert "FAILED scene_001: ValueError: the scene broke" in format_table(so_far)
+    assert main(["bench", "table", str(tmp_path)]) == 2  # not a results folder: one line, no traceback
+    assert "suite_config.json not found" in capsys.readouterr().err

@@ -420,7 +420,42 @@ def suite_summary(suite: str, preset: str, records: list[dict[str, Any]]) -> dic
         values = [v for v in (_metric(r, key) for r in ok) if v is not None and math.isfinite(v)]
         means[key] = sum(values) / len(values) if values else None
     return {"suite": suite, "preset": preset, "scenes": records, "means": means,
-            "failed": sum(r["status"] != "ok" for r in records)}
+            "failed": sum(r["status"] == "failed" for r in records)}
+
+
+def suite_so_far(out_dir: str | Path) -> dict[str, Any]:
+    """The :func:`suite_summary` of a ``bench suite`` results folder as it stands, finished or still running: the
+    scenes with an evaluation.json are "ok", those with only an error.txt "failed" (``error``: its last line), the
+    others "pending" (not reached yet, or running). Reads the folder only.
+
+    Raises:
+        InputError: ``out_dir`` holds no readable suite_config.json (not a ``bench suite`` results folder), or the
+            suite it names is not there any more.
+    """
+    out = Path(out_dir)
+    path = out / SUITE_CONFIG_JSON
+    try:
+        settings = json.loads(path.read_text())
+        suite, preset = str(settings["suite"]), str(settings["preset"])
+    except FileNotFoundError:
+        raise InputError(f"{path} not found: OUT must be a results folder of vid2sim bench suite") from None
+    except (ValueError, KeyError, TypeError) as exc:
+        raise InputError(f"{path} is not a bench suite settings file: {exc!r}") from None
+    try:
+        names = read_index(suite)
+    except FileNotFoundError as exc:
+        raise InputError(f"the suite {suite} named in {path} is not readable: {exc}") from None
+    records = []
+    for name in names:
+        task = SceneTask(name, str(Path(suite) / name), str(out / name))
+        record = _finished_record(task)
+        if record is None:
+            error = out / name / ERROR_TXT
+            lines = error.read_text(errors="replace").strip().splitlines() if error.is_file() else []
+            record = {"name": name, "scene": task.scene, "asset": None, "status": "failed" if lines else "pending",
+                      "error": lines[-1] if lines else None, "evaluation": None, "report": None, "seconds": 0.0}
+        records.append(record)
+    return suite_summary(suite, preset, records)
 
 
 # the table: (group label, row label, suite key, scale, decimals)
@@ -462,8 +497,9 @@ def short_name(name: str) -> str:
 
 def format_table(result: dict[str, Any]) -> str:
     """The suite as aligned text in the paper's Table 1 layout: rows = metric × subset, columns = the
-    scenes (short names) then the mean over the finished scenes; a failed scene's column reads "failed",
-    a metric a scene does not have "-". Failed scenes and their errors are listed below the table."""
+    scenes (short names) then the mean over the finished scenes; a failed or pending scene's column reads "failed"
+    or "pending" (:func:`suite_so_far`), a metric a scene does not have "-". Failed scenes and their errors are
+    listed below the table."""
     records = result["scenes"]
     head = [short_name(r["name"]) for r in records] + ["mean"]
     rows: list[list[str]] = []
@@ -471,7 +507,7 @@ def format_table(result: dict[str, Any]) -> str:
         cells = []
         for r in records:
             value = _metric(r, key) if r["status"] == "ok" else None
-            cells.append("failed" if r["status"] != "ok" else _fmt(value, scale, decimals))
+            cells.append(r["status"] if r["status"] != "ok" else _fmt(value, scale, decimals))
         cells.append(_fmt(result["means"].get(key), scale, decimals))
         rows.append([group, sub] + cells)
     w0 = max(len(r[0]) for r in rows)
@@ -481,11 +517,13 @@ def format_table(result: dict[str, Any]) -> str:
     lines.append("-" * len(lines[0]))
     for row in rows:
         lines.append(f"{row[0]:<{w0}}  {row[1]:<{w1}}" + "".join(f"  {c:>{w}}" for c, w in zip(row[2:], widths)))
-    ok = len(records) - result["failed"]
-    lines.append(f"{len(records)} scene{'s' if len(records) != 1 else ''}, mean over the {ok} finished; "
+    ok = sum(r["status"] == "ok" for r in records)
+    pending = sum(r["status"] == "pending" for r in records)
+    waiting = f" ({pending} pending)" if pending else ""
+    lines.append(f"{len(records)} scene{'s' if len(records) != 1 else ''}, mean over the {ok} finished{waiting}; "
                  f"preset {result['preset']}; suite {result['suite']}")
     for r in records:
-        if r["status"] != "ok":
+        if r["status"] == "failed":
             lines.append(f"FAILED {r['name']}: {r['error']}")
     return "\n".join(lines)
 

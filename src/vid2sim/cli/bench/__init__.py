@@ -6,7 +6,7 @@ import argparse
 import importlib
 
 #: the kinds, each a module of this package
-KINDS = ("speed", "jacobian", "fem", "predictability", "identify", "suite", "ablation", "fuzz", "capture")
+KINDS = ("speed", "jacobian", "fem", "predictability", "identify", "suite", "table", "ablation", "fuzz", "capture")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
