@@ -267,6 +267,8 @@ class MotionAppearanceStage:
         save_ply(refined.to("cpu"), ctx.path(PLY))
         if shading is not None:
             save_torch_atomic(shading.to("cpu").__dict__, ctx.path(SHADING))
+        else:  # an earlier run of this stage with shading (rerun with other settings) must not lend it its shading
+            ctx.path(SHADING).unlink(missing_ok=True)
         write_json_atomic(ctx.path(RECORD), record)
 
     def load(self, ctx: Context, state: State) -> None:
