@@ -64,7 +64,6 @@ def downsample(images: Tensor, size: tuple[int, int]) -> Tensor:
     return x.permute(0, 2, 3, 1).reshape(*lead, *size, 3)
 
 
-
 def detached_state(state: SimState) -> SimState:
     """``state`` with every tensor detached from its graph (the same step and time)."""
     d = (lambda t: None if t is None else t.detach())

@@ -39,11 +39,10 @@ def first_moving_frame(images: Tensor, threshold: float = 1e-3) -> int:
     return 1
 
 
-
 def windowed_adam(sim: Simulator, rig: GaussianRig, observations: Observations, coarse_obs: Observations,
-                   start: list[float], centre: list[float], cfg: JointConfig, clip: ClipResiduals,
-                   parameters: list[Parameter], progress: bool,
-                   on_iteration: Callable[[dict[str, Any]], None] | None) -> FitResult:
+                  start: list[float], centre: list[float], cfg: JointConfig, clip: ClipResiduals,
+                  parameters: list[Parameter], progress: bool,
+                  on_iteration: Callable[[dict[str, Any]], None] | None) -> FitResult:
     """The paper's Adam on random windows of ``cfg.window`` frames (module docstring), from the coarse search's
     start; the best state by the whole-clip validation is kept and linearised for the uncertainty."""
     from tqdm.auto import tqdm

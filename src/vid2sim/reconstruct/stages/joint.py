@@ -141,6 +141,7 @@ def coarse_minimum(values: Sequence[float], losses: Sequence[float]) -> float:
             value = min(max(-b / (2 * a), x0), x2)
     return value
 
+
 def centre_of_mass_search(sim: Simulator, rig: GaussianRig, start: Callable[[], SimState], obs: Observations,
                           step: float, rounds: int, decay: float | None = None,
                           progress: bool = False) -> tuple[list[float], list[dict[str, Any]]]:
