@@ -167,8 +167,7 @@ def run_scene(task: SceneTask, progress: bool = False) -> dict[str, Any]:
 
     out = Path(task.out)
     asset = out / "asset"
-    record: dict[str, Any] = {"name": task.name, "scene": task.scene, "asset": None, "status": "failed",
-                              "error": None, "evaluation": None, "report": None, "seconds": 0.0}
+    record = _unfinished_record(task, "failed")
     threads = torch.get_num_threads()
     start = time.perf_counter()
     earlier = _interrupted_stage_seconds(asset)
@@ -235,6 +234,12 @@ def _finished_asset_seconds(asset: Path) -> float:
         return float(sum(json.loads((asset / "log.json").read_text())["timings_seconds"].values()))
     except (OSError, ValueError, TypeError, KeyError, AttributeError):
         return 0.0
+
+
+def _unfinished_record(task: SceneTask, status: str, error: str | None = None) -> dict[str, Any]:
+    """The record of a scene without a finished evaluation: ``status`` "failed" (with its ``error``) or "pending"."""
+    return {"name": task.name, "scene": task.scene, "asset": None, "status": status, "error": error,
+            "evaluation": None, "report": None, "seconds": 0.0}
 
 
 def _finished_record(task: SceneTask) -> dict[str, Any] | None:
@@ -348,9 +353,7 @@ def run_suite(suite_dir: str | Path, out_dir: str | Path, config: SuiteConfig | 
             def gathered(i: int, result: Any) -> None:
                 if isinstance(result, BaseException):  # the worker or its node died: the task never returned
                     t = tasks[i]
-                    result = {"name": t.name, "scene": t.scene, "asset": None, "status": "failed",
-                              "error": f"{type(result).__name__}: {result}", "evaluation": None,
-                              "report": None, "seconds": 0.0}
+                    result = _unfinished_record(t, "failed", f"{type(result).__name__}: {result}")
                 done(i, result)
 
             threads = config.threads or 1  # a task reserves this many CPUs and uses as many torch threads
@@ -452,8 +455,7 @@ def suite_so_far(out_dir: str | Path) -> dict[str, Any]:
         if record is None:
             error = out / name / ERROR_TXT
             lines = error.read_text(errors="replace").strip().splitlines() if error.is_file() else []
-            record = {"name": name, "scene": task.scene, "asset": None, "status": "failed" if lines else "pending",
-                      "error": lines[-1] if lines else None, "evaluation": None, "report": None, "seconds": 0.0}
+            record = _unfinished_record(task, "failed", lines[-1]) if lines else _unfinished_record(task, "pending")
         records.append(record)
     return suite_summary(suite, preset, records)
 
