@@ -371,3 +371,55 @@ def test_bench_table_reads_a_results_folder_as_it_stands(local_run, tmp_path, ca
     assert "FAILED scene_001: ValueError: the scene broke" in format_table(so_far)
     assert main(["bench", "table", str(tmp_path)]) == 2  # not a results folder: one line, no traceback
     assert "suite_config.json not found" in capsys.readouterr().err
+
+
+def test_a_suite_made_and_run_in_shards(local_run, suite_dir, tiny_config, tmp_path, monkeypatch, capsys):
+    import vid2sim.apps.bench.suite as suite_module  # where the suite looks reconstruct and evaluate up
+
+    # make-benchmark --scenes: a shard of the suite; index.json lists what is made, complete once all are
+    suite = tmp_path / "suite"
+    shutil.copytree(suite_dir, suite)
+    shutil.rmtree(suite / "scene_001")
+    assert main(["make-benchmark", str(suite), "--n", "2", "--scenes", "0", *TINY_FLAGS]) == 0  # made: kept
+    assert capsys.readouterr().out.strip() == f"wrote {suite} (1 scene of 2, index.json)"
+    index = json.loads((suite / "index.json").read_text())
+    assert index["n"] == 2 and not index["complete"] and [s["name"] for s in index["scenes"]] == ["scene_000"]
+    assert not (suite / "scene_001").exists()
+    with pytest.raises(ValueError, match="scene index 2 is not one of the suite's 2"):
+        make_benchmark(2, suite, preset="small", progress=False, scenes=[2], **TINY)
+    assert main(["make-benchmark", str(suite), "--n", "2", "--scenes", "5:", *TINY_FLAGS]) == 2
+    assert "selects none of the suite's 2 scenes" in capsys.readouterr().err
+    with pytest.raises(SystemExit):  # argparse's usage error
+        main(["make-benchmark", str(suite), "--n", "2", "--scenes", "x", *TINY_FLAGS])
+    assert "expected A:B" in capsys.readouterr().err
+
+    # bench suite --scenes runs the made shard of the unfinished suite; the whole suite is refused
+    out = tmp_path / "out"
+    shutil.copytree(local_run["out"], out)
+    settings = json.loads((out / SUITE_CONFIG_JSON).read_text())
+    (out / SUITE_CONFIG_JSON).write_text(json.dumps({**settings, "suite": str(suite.resolve())}))
+    shutil.rmtree(out / "scene_001")
+
+    def must_not_run(*args, **kwargs):
+        raise AssertionError("a finished scene was run again")
+
+    monkeypatch.setattr(suite_module, "reconstruct", must_not_run)
+    monkeypatch.setattr(suite_module, "evaluate", must_not_run)
+    config = SuiteConfig(reconstruct=tiny_config(), threads=1)
+    shard = run_suite(suite, out, config, progress=False, scenes=slice(0, 1))
+    assert [r["name"] for r in shard["scenes"]] == ["scene_000"] and shard["failed"] == 0
+    assert _numbers(shard["scenes"][0]["evaluation"]) == _numbers(local_run["result"]["scenes"][0]["evaluation"])
+    with pytest.raises(ValueError, match="did not make its scene_001 yet"):
+        run_suite(suite, out, config, progress=False)
+    with pytest.raises(ValueError, match=r"the selected scene_001 yet.*--scenes"):
+        run_suite(suite, out, config, progress=False, scenes=slice(1, None))
+    so_far = suite_so_far(out)  # bench table: the scene not made yet is pending
+    assert [(r["name"], r["status"]) for r in so_far["scenes"]] == [("scene_000", "ok"), ("scene_001", "pending")]
+
+    # on the finished suite a shard's suite.json holds the scenes finished in OUT besides the shard's own
+    out = tmp_path / "out_full"
+    shutil.copytree(local_run["out"], out)
+    result = run_suite(suite_dir, out, config, progress=False, scenes=slice(1, 2))
+    assert result["means"] == local_run["result"]["means"] and len(result["scenes"]) == 2
+    assert main(["bench", "suite", str(suite_dir), str(tmp_path / "out2"), "--scenes", "7:9", "--quiet"]) == 2
+    assert "--scenes selects none of the 2 scenes" in capsys.readouterr().err

@@ -35,6 +35,29 @@ def add_device_option(p: argparse.ArgumentParser, what: str) -> None:
                    help=f"torch device of {what} (default: cuda if available, else cpu)")
 
 
+def scene_slice(text: str) -> slice:
+    """argparse type of ``--scenes A:B``: the suite's scenes A to B - 1 (either end may be left out: ``8:``,
+    ``:4``; one index ``5`` is ``5:6``), as a slice of ``range(n)``."""
+    parts = text.split(":")
+    try:
+        if len(parts) == 1:
+            start = int(parts[0])
+            return slice(start, start + 1)
+        if len(parts) == 2:
+            return slice(int(parts[0]) if parts[0].strip() else None, int(parts[1]) if parts[1].strip() else None)
+    except ValueError:
+        pass
+    raise argparse.ArgumentTypeError(f"expected A:B (scene indices, B excluded: 8:12, 8:, :4) or one index, got "
+                                     f"{text!r}")
+
+
+def add_scenes_option(p: argparse.ArgumentParser, verb: str) -> None:
+    """--scenes A:B of the commands that work on a shard of a suite."""
+    p.add_argument("--scenes", type=scene_slice, default=None, metavar="A:B",
+                   help=f"{verb} only the suite's scenes A to B-1 (8:12, 8:, :4, or one index), a shard: other runs, "
+                        "here or on other machines, do the rest into the same folder (default: all)")
+
+
 def add_suite_run_options(p: argparse.ArgumentParser) -> None:
     """--ray-address, --threads and --quiet of the commands that run a benchmark suite."""
     p.add_argument("--ray-address", default=None, metavar="ADDR",

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from vid2sim.cli.common import UserError, set_threads
+from vid2sim.cli.common import UserError, add_scenes_option, set_threads
 from vid2sim.cli.scene_options import (
     add_scene_options,
     generation_errors,
@@ -20,9 +20,13 @@ def run(args: argparse.Namespace) -> int:
     set_threads(args.threads)
     if args.n < 1:
         raise UserError(f"--n must be >= 1 (the number of scenes), got {args.n}")
+    scenes = None if args.scenes is None else list(range(args.n))[args.scenes]
+    if scenes == []:
+        raise UserError(f"--scenes selects none of the suite's {args.n} scenes (0 to {args.n - 1})")
     try:
         path = make_benchmark(args.n, args.out, preset=args.preset, seed=args.seed, progress=not args.quiet,
                               workers=args.workers, ray_address=args.ray_address, tets_from=args.tets_from,
+                              scenes=scenes,
                               **scene_overrides(args))
     except RayUnavailable as exc:
         raise UserError(str(exc)) from exc
@@ -32,7 +36,9 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(str(exc)) from exc
     except ValueError as exc:
         raise scene_config_error(exc) from exc
-    print(f"wrote {path} ({args.n} scene{'s' if args.n != 1 else ''}, index.json)")
+    made = args.n if scenes is None else len(scenes)
+    shard = "" if scenes is None else f" of {args.n}"
+    print(f"wrote {path} ({made} scene{'s' if made != 1 else ''}{shard}, index.json)")
     return 0
 
 
@@ -49,6 +55,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     suite.add_argument("--tets-from", default=None, metavar="SUITE",
                        help="reuse the tet mesh of scene i of another suite for scene i (instead of fTetWild, which is "
                             "not reproducible): e.g. a --truth newton suite of the same drops on the same tets")
+    add_scenes_option(suite, "make")
     add_scene_options(suite, material_options=False, default_element_order=2)
     suite.set_defaults(func=run, lock_output="out")  # one writer per OUT (runtime.locks)
 

@@ -36,6 +36,7 @@ import json
 import math
 import time
 import zipfile
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -619,7 +620,7 @@ def benchmark_overrides(preset: str, overrides: dict[str, Any]) -> dict[str, Any
 
 def make_benchmark(n: int, out_dir: str | Path, preset: str = "full", seed: int = 0, progress: bool = True,
                    workers: int = 1, ray_address: str | None = None, tets_from: str | Path | None = None,
-                   **overrides: Any) -> Path:
+                   scenes: Sequence[int] | None = None, **overrides: Any) -> Path:
     """Write a suite of ``n`` synthetic scenes ``scene_000`` … and an ``index.json`` of their ground truth.
 
     Scene i has the object/pose seed, E and ν of :func:`benchmark_parameters`; ``overrides`` are
@@ -645,7 +646,9 @@ def make_benchmark(n: int, out_dir: str | Path, preset: str = "full", seed: int 
     fTetWild is not reproducible, so scenes made twice (here or there) differ slightly after meshing.
     With ``tets_from`` (another suite's folder) scene i reuses the tet mesh of that suite's scene i (its
     ``fem_result.npz`` or ``newton_result.npz``) instead of running fTetWild: a second truth of the same drops on the
-    same tets (``truth="newton"``, docs/benchmarks.md). Returns ``out_dir``.
+    same tets (``truth="newton"``, docs/benchmarks.md). With ``scenes`` (indices in ``range(n)``) only those
+    scenes are made, a shard of the suite (another machine or a later run makes the rest into the same folder):
+    ``index.json`` lists every scene made so far and is ``complete`` once all ``n`` are. Returns ``out_dir``.
 
     Raises:
         FileExistsError: ``out_dir`` is a file, or a non-empty folder that is not a benchmark.
@@ -657,6 +660,7 @@ def make_benchmark(n: int, out_dir: str | Path, preset: str = "full", seed: int 
     from tqdm.auto import tqdm
 
     params = benchmark_parameters(n, seed)
+    wanted = _scene_indices(scenes, n)
     overrides = benchmark_overrides(preset, overrides)
     configs = _suite_configs(preset, params, overrides, tets_from, ray_address)
     root = Path(out_dir)
@@ -667,18 +671,34 @@ def make_benchmark(n: int, out_dir: str | Path, preset: str = "full", seed: int 
         _check_previous_suite(index_path, header)
         _check_no_scenes_beyond(root, n)
     names = [f"scene_{i:03d}" for i in range(n)]
-    todo = _scenes_to_make(root, names, configs)
+    todo = [i for i in _scenes_to_make(root, names, configs) if i in wanted]
     created = not root.exists()
     root.mkdir(parents=True, exist_ok=True)
     index = _SuiteIndex(index_path, header, configs, names)
     try:
-        with tqdm(total=n, desc="benchmark scenes", unit="scene", disable=not progress) as bar:
+        with tqdm(total=len(wanted), initial=len(wanted) - len(todo), desc="benchmark scenes", unit="scene",
+                  disable=not progress) as bar:
             _make_suite_scenes(index, root, todo, workers, ray_address, bar)
     except BaseException:
         if created and not index.entries and not any(root.iterdir()):
             root.rmdir()  # make_scene leaves nothing behind, so the folder is empty
         raise
     return root
+
+
+def _scene_indices(scenes: Sequence[int] | None, n: int) -> set[int]:
+    """The set of scene indices a run makes: ``scenes`` (ValueError for one outside ``range(n)``, or none), or
+    all ``n``."""
+    if scenes is None:
+        return set(range(n))
+    wanted = set()
+    for i in scenes:
+        if isinstance(i, bool) or not isinstance(i, int) or not 0 <= i < n:
+            raise ValueError(f"make_benchmark: scene index {i!r} is not one of the suite's {n} (0 to {n - 1})")
+        wanted.add(i)
+    if not wanted:
+        raise ValueError(f"make_benchmark: no scene selected of the suite's {n}")
+    return wanted
 
 
 def _suite_configs(preset: str, params: list[dict[str, float | int]], overrides: dict[str, Any],
@@ -766,9 +786,8 @@ def _make_suite_scenes(index: _SuiteIndex, root: Path, todo: list[int], workers:
     updating the index and the bar as each finishes."""
     waiting = set(todo)
     for i in range(len(index.configs)):
-        if i not in waiting:
+        if i not in waiting and (root / index.names[i]).is_dir():  # made earlier (a shard's others may not be)
             index.finished(i)
-            bar.update(1)
     if ray_address is None:
         for i in todo:
             make_scene(index.configs[i], root / index.names[i], progress=False, workers=workers)

@@ -261,12 +261,13 @@ def _finished_record(task: SceneTask) -> dict[str, Any] | None:
             "seconds": seconds}
 
 
-def read_index(suite_dir: str | Path) -> list[str]:
-    """The scene names of a finished ``make-benchmark`` suite (its ``index.json``), in order.
+def suite_index(suite_dir: str | Path) -> tuple[list[str], list[str]]:
+    """The scene names of a ``make-benchmark`` suite (its ``index.json``): all of them, in order, and those made
+    so far (all unless the suite was made in shards that have not all run, ``make-benchmark --scenes``).
 
     Raises:
-        FileNotFoundError: no ``index.json``. ValueError: not a benchmark index, an unfinished suite, or a
-            listed scene folder that is missing.
+        FileNotFoundError: no ``index.json``. InputError: not a benchmark index, or a listed scene folder that is
+            missing.
     """
     root = Path(suite_dir)
     path = root / "index.json"
@@ -274,23 +275,45 @@ def read_index(suite_dir: str | Path) -> list[str]:
         raise FileNotFoundError(f"{path} not found: SUITE must be a folder written by vid2sim make-benchmark")
     try:
         index = json.loads(path.read_text())
-        names = [str(s["name"]) for s in index["scenes"]]
+        made = [str(s["name"]) for s in index["scenes"]]
+        n = int(index.get("n", len(made)))
     except (ValueError, KeyError, TypeError) as exc:
         raise InputError(f"{path} is not a make-benchmark index (expected 'scenes': [{{'name': ...}}, ...]): "
                          f"{exc!r}") from None
-    n = index.get("n", len(names))
-    if not index.get("complete", True) or len(names) != n:
-        raise InputError(f"{path} lists {len(names)} of its {n} scenes: make-benchmark did not finish; run it "
-                         "again with the same settings to complete the suite")
-    missing = [name for name in names if not (root / name).is_dir()]
+    missing = [name for name in made if not (root / name).is_dir()]
     if missing:
         raise InputError(f"{path} lists scenes whose folders are missing: {', '.join(missing)}")
-    return names
+    if index.get("complete", True) and len(made) == n:
+        return made, made
+    return [f"scene_{i:03d}" for i in range(n)], made  # make-benchmark names scene i so
+
+
+def read_index(suite_dir: str | Path, scenes: slice | None = None) -> list[str]:
+    """The scene names of a finished ``make-benchmark`` suite (its ``index.json``), in order; with ``scenes``
+    only that slice of them, which must be made (the rest of the suite need not be).
+
+    Raises:
+        FileNotFoundError: no ``index.json``. InputError: not a benchmark index, an unfinished suite (or a
+            selected scene not made yet), a selection of no scene, or a listed scene folder that is missing.
+    """
+    names, made = suite_index(suite_dir)
+    path = Path(suite_dir) / "index.json"
+    selected = names if scenes is None else names[scenes]
+    if not selected:
+        raise InputError(f"--scenes selects none of the {len(names)} scenes of {path}")
+    unmade = [name for name in selected if name not in made]
+    if unmade:
+        what = "its" if scenes is None else "the selected"
+        raise InputError(f"{path} lists {len(made)} of its {len(names)} scenes: make-benchmark did not make "
+                         f"{what} {', '.join(unmade)} yet; run it again with the same settings to complete the "
+                         "suite" + ("" if scenes is None else " (or that shard, --scenes)"))
+    return selected
 
 
 def run_suite(suite_dir: str | Path, out_dir: str | Path, config: SuiteConfig | None = None,
               progress: bool = True, ray_address: str | None = None,
-              snapshots: StageSnapshots | None = None, rerun_changed: bool = False) -> dict[str, Any]:
+              snapshots: StageSnapshots | None = None, rerun_changed: bool = False,
+              scenes: slice | None = None) -> dict[str, Any]:
     """Reconstruct and evaluate every scene of the suite at ``suite_dir`` into ``out_dir`` (module docstring).
 
     Args:
@@ -304,11 +327,14 @@ def run_suite(suite_dir: str | Path, out_dir: str | Path, config: SuiteConfig | 
             scene NAME's are in ``snapshots.dir / NAME`` (a folder the Ray workers can reach, like ``out_dir``).
         rerun_changed: a scene's interrupted reconstruction whose settings differ from a stage on (a release that
             added a setting, say) keeps its stages before that one and runs the rest again, instead of failing.
+        scenes: run only this slice of the suite's scenes (a shard; they must be made, the others need not be).
+            Other runs, here or elsewhere, may do the rest into the same ``out_dir``.
     Returns:
         the content of ``out_dir/suite.json``: ``{"suite": path, "preset": str, "scenes": [record, ...],
         "means": {key: float | None}, "failed": int}`` with the scene records of :func:`run_scene` in the
         order of ``index.json`` and the means (keys :data:`METRICS`) over the scenes with status "ok"
-        (None when no finished scene has that metric).
+        (None when no finished scene has that metric). With ``scenes``, the records are this run's and those
+        of the other scenes already finished in ``out_dir``.
     Raises:
         FileNotFoundError / ValueError: not a finished suite; ``out_dir`` is a foreign non-empty folder or
             holds a run made with other settings.
@@ -322,7 +348,8 @@ def run_suite(suite_dir: str | Path, out_dir: str | Path, config: SuiteConfig | 
         check_ray(ray_address)
     suite = Path(suite_dir).resolve()
     out = Path(out_dir).resolve()
-    names = read_index(suite)
+    chosen = read_index(suite, scenes)
+    names, selected = (chosen if scenes is None else suite_index(suite)[0]), set(chosen)
     settings = {"suite": str(suite), **config.to_dict()}
     _prepare_out(out, settings)
     tasks = [SceneTask(name, str(suite / name), str(out / name), config,
@@ -330,8 +357,9 @@ def run_suite(suite_dir: str | Path, out_dir: str | Path, config: SuiteConfig | 
                        rerun_changed)
              for name in names]
     records: list[dict[str, Any] | None] = [_finished_record(t) for t in tasks]
-    todo = [i for i, r in enumerate(records) if r is None]
-    bar = tqdm(total=len(tasks), initial=len(tasks) - len(todo), desc="suite", unit="scene", disable=not progress)
+    todo = [i for i, r in enumerate(records) if r is None and names[i] in selected]
+    bar = tqdm(total=len(selected), initial=len(selected) - len(todo), desc="suite", unit="scene",
+               disable=not progress)
     failed: list[str] = []
 
     def done(i: int, record: dict[str, Any]) -> None:
@@ -445,7 +473,7 @@ def suite_so_far(out_dir: str | Path) -> dict[str, Any]:
     except (ValueError, KeyError, TypeError) as exc:
         raise InputError(f"{path} is not a bench suite settings file: {exc!r}") from None
     try:
-        names = read_index(suite)
+        names = suite_index(suite)[0]
     except FileNotFoundError as exc:
         raise InputError(f"the suite {suite} named in {path} is not readable: {exc}") from None
     records = []

@@ -9,6 +9,7 @@ import sys
 from vid2sim.apps.bench.suite import SUITE_JSON, SuiteConfig, format_table, run_suite
 from vid2sim.cli.common import (
     UserError,
+    add_scenes_option,
     add_suite_run_options,
 )
 from vid2sim.cli.reconstruct_options import add_reconstruct_options, reconstruct_config
@@ -21,7 +22,7 @@ def run(args: argparse.Namespace) -> int:
     config = SuiteConfig(preset=args.preset, reconstruct=reconstruct_config(args), threads=args.threads)
     try:
         result = run_suite(args.suite, args.out, config, progress=not args.quiet, ray_address=args.ray_address,
-                           rerun_changed=args.rerun_changed)
+                           rerun_changed=args.rerun_changed, scenes=args.scenes)
     except RayUnavailable as exc:
         raise UserError(str(exc)) from exc
     print(format_table(result))
@@ -45,6 +46,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "(resumed if it holds a suite_config.json)")
     add_reconstruct_options(bsuite)
     add_suite_run_options(bsuite)
+    add_scenes_option(bsuite, "reconstruct and evaluate")
     bsuite.add_argument("--rerun-changed", action="store_true",
                         help="a scene's interrupted reconstruction whose settings differ from a stage on (a release "
                              "that added a setting, say) keeps the stages before it and runs the rest again, instead "
