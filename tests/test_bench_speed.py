@@ -31,6 +31,14 @@ def test_bench_speed_physics_training_and_render_quick(capsys):
     assert 0 <= result["sim_step_time_convergence_percent"] < 20
 
 
+def test_bench_speed_predictor_quick(capsys):
+    assert main(["bench", "speed", "--only", "predictor", "--quick", "--json", "--threads", "1"]) == 0
+    result = json.loads(capsys.readouterr().out)
+    _finite_positive(result, ["predictor_checkpoint_mb", "predictor_load_s", "predictor_inference_s",
+                              "transformers_import_s"])  # transformers is a test dependency
+    assert result["predictor_checkpoint_mb"] < 20  # issue #52's size ceiling
+
+
 def test_bench_jacobian_quick(capsys):
     assert main(["bench", "jacobian", "--iterations", "5", "--quick", "--quiet", "--threads", "1"]) == 0
     result = json.loads(capsys.readouterr().out)

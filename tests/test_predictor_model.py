@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import importlib
 import json
+import os
 
 import pytest
 import torch
@@ -68,7 +69,7 @@ def test_forward_shapes_mean_pooling_and_label_units():
     x = torch.randn(3, 4, 3, 16, 16)
     z = m(x)
     assert z["log10_E"].shape == (3,) and z["nu"].shape == (3,) and z["last_layer"].shape == (3, 650)
-    tokens = m.backbone(pixel_values=x).last_hidden_state
+    tokens = m.backbone(x, m.position_table)
     assert tokens.shape == (3, 2 * 2 * 2, 48)  # (4/2) x (16/8)^2 tokens
     torch.testing.assert_close(m.features(x), tokens.mean(1))
     stats = {"log10_E": {"mean": torch.tensor(5.0), "std": torch.tensor(0.5)},
@@ -142,6 +143,56 @@ def test_position_table_matches_transformers_and_interpolates():
     torch.testing.assert_close(out[1, 2], 1 + 20 + 100 * cols)
     with pytest.raises(ValueError, match="rows"):
         interpolate_position_table(table, (2, 3, 4), (2, 3, 3))
+
+
+@pytest.mark.parametrize("mean_pooling", [True, False])
+def test_backbone_is_transformers_videomae_to_float_precision(mean_pooling):
+    """Our encoder and ``transformers.VideoMAEModel`` share parameter names, outputs and gradients."""
+    from transformers import VideoMAEConfig, VideoMAEModel
+
+    from vid2sim.predictor.videomae import VideoMAEBackbone
+
+    torch.manual_seed(5)
+    ref = VideoMAEModel(VideoMAEConfig(image_size=16, num_frames=4, patch_size=8, tubelet_size=2, hidden_size=24,
+                                       num_hidden_layers=2, num_attention_heads=3, intermediate_size=40,
+                                       use_mean_pooling=mean_pooling))
+    for p in ref.parameters():  # not the initial zeros / ones: every parameter matters
+        p.data.normal_(0, 0.3)
+    ours = VideoMAEBackbone(ref.config.to_dict())
+    assert ours.config.to_dict()["model_type"] == "videomae"
+    ours.load_state_dict(ref.state_dict())  # strict: the same names and shapes
+    table = torch.randn(1, 2 * 2 * 2, 24)
+    ref.embeddings.position_embeddings = table
+    x = torch.randn(3, 4, 3, 16, 16, requires_grad=True)
+    a = ours(x, table)
+    b = ref(pixel_values=x).last_hidden_state
+    torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-5)
+    w = torch.randn_like(a)
+    (ga,) = torch.autograd.grad((a * w).sum(), x)
+    (gb,) = torch.autograd.grad((b * w).sum(), x)
+    torch.testing.assert_close(ga, gb, rtol=1e-4, atol=1e-5)
+    with pytest.raises(ValueError, match="video must be"):
+        ours(torch.randn(1, 4, 3, 8, 8), table)
+    with pytest.raises(ValueError, match="position table"):
+        ours(x, table[:, :4])
+
+
+def test_using_the_shipped_predictor_does_not_import_transformers():
+    """Loading and running a predictor needs neither transformers nor its import (seconds; docs/predictor.md)."""
+    import subprocess
+    import sys
+
+    code = ("import sys, torch\n"
+            "from vid2sim.predictor.predict import DEFAULT_PREDICTOR, predict_video\n"
+            "from vid2sim.predictor.train import load_predictor\n"
+            "m = load_predictor(DEFAULT_PREDICTOR)\n"
+            "out = predict_video(m, torch.rand(16, 3, 64, 64))\n"
+            "assert 0 <= out['nu'] <= 0.49, out\n"
+            "print(sorted(k for k in sys.modules if k.split('.')[0] == 'transformers'))\n")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
+                          env={**os.environ, "OMP_NUM_THREADS": "1"})
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "[]"
 
 
 def test_user_checkpoint_of_another_size_is_loaded_locally_with_interpolated_positions(tmp_path):

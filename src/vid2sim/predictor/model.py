@@ -1,7 +1,9 @@
 """The Stage I network: a VideoMAE backbone, mean-pooled tokens, and heads for log10 E, ν and the skinning
 field's last layer (paper §4.1; docs/architecture.md, "The paper's numbers").
 
-- **Backbone**: ``transformers.VideoMAEModel``. By default a small configuration trained from scratch
+- **Backbone**: VideoMAE's encoder (:class:`~vid2sim.predictor.videomae.VideoMAEBackbone`, parameters named and
+  outputs as ``transformers.VideoMAEModel``'s; transformers is needed only to read a user's checkpoint and to
+  pre-train). By default a small configuration trained from scratch
   (:class:`PredictorConfig` defaults: 64² input, 16 frames, 16² patches, tubelets of 2 → 128 tokens; width
   192, 4 layers, 3 heads, MLP 768: 1.8 M backbone parameters). Any VideoMAE checkpoint on the local disk (a
   folder, or a model id already in the Hugging Face cache; loaded with ``local_files_only=True``) can replace
@@ -32,6 +34,7 @@ import torch
 from torch import Tensor, nn
 from torch.nn import functional as Fn
 
+from vid2sim.predictor.videomae import BackboneConfig, VideoMAEBackbone, square_side
 from vid2sim.runtime.errors import ConfigError
 
 #: the skinning field's last layer: 10 handles × (64 weights + 1 bias)
@@ -140,47 +143,45 @@ def _grid(image_size: int, num_frames: int, patch: int, tubelet: int) -> tuple[i
     return (num_frames // tubelet, image_size // patch, image_size // patch)
 
 
-def build_backbone(cfg: PredictorConfig, backbone_config: dict | None = None) -> tuple[nn.Module, Tensor]:
+def build_backbone(cfg: PredictorConfig, backbone_config: dict | None = None) -> tuple[VideoMAEBackbone, Tensor]:
     """The VideoMAE backbone and its (1, N, D) position table (module docstring).
 
-    ``backbone_config`` (a ``VideoMAEConfig.to_dict()``, as stored in a predictor checkpoint) builds the
-    architecture with untrained weights and a zero table, both to be filled from a state dict; it wins over
-    ``cfg``.
+    ``backbone_config`` (a ``VideoMAEConfig`` dict, as stored in a predictor checkpoint) builds the architecture
+    with untrained weights and a zero table, both to be filled from a state dict; it wins over ``cfg``. Only
+    ``cfg.pretrained`` needs transformers (to read a user's checkpoint).
 
     Raises:
-        OSError: ``cfg.pretrained`` is not a local checkpoint. ImportError: transformers is missing.
+        OSError: ``cfg.pretrained`` is not a local checkpoint. ImportError: ``cfg.pretrained`` given and
+            transformers is missing.
     """
+    if backbone_config is not None:
+        model = VideoMAEBackbone(dict(backbone_config))
+        return model, torch.zeros(1, model.config.num_patches, model.config.hidden_size)
+    if cfg.pretrained is None:
+        torch.manual_seed(cfg.seed)
+        model = VideoMAEBackbone(BackboneConfig(
+            image_size=cfg.image_size, num_frames=cfg.num_frames, patch_size=cfg.patch_size,
+            tubelet_size=cfg.tubelet_size, hidden_size=cfg.hidden_size, num_hidden_layers=cfg.num_layers,
+            num_attention_heads=cfg.num_heads, intermediate_size=cfg.intermediate_size, use_mean_pooling=True))
+        table = sinusoid_table(model.config.num_patches, cfg.hidden_size)[None]
+        return model, table
     try:
         from transformers import VideoMAEConfig, VideoMAEModel
     except ImportError as exc:  # pragma: no cover - depends on the environment
-        raise ImportError("the Stage I predictor needs transformers (pip install transformers)") from exc
-
-    if backbone_config is not None:
-        model = VideoMAEModel(VideoMAEConfig.from_dict(dict(backbone_config)))
-        return model, torch.zeros(1, model.embeddings.num_patches, int(model.config.hidden_size))
-    if cfg.pretrained is None:
-        torch.manual_seed(cfg.seed)
-        mc = VideoMAEConfig(image_size=cfg.image_size, num_frames=cfg.num_frames, patch_size=cfg.patch_size,
-                            tubelet_size=cfg.tubelet_size, hidden_size=cfg.hidden_size,
-                            num_hidden_layers=cfg.num_layers, num_attention_heads=cfg.num_heads,
-                            intermediate_size=cfg.intermediate_size, use_mean_pooling=True)
-        model = VideoMAEModel(mc)
-        table = sinusoid_table(model.embeddings.num_patches, cfg.hidden_size)[None]
-        return model, table
+        raise ImportError("reading a pretrained VideoMAE checkpoint needs transformers (pip install transformers)") \
+            from exc
     src = VideoMAEConfig.from_pretrained(cfg.pretrained, local_files_only=True)
-    old = _grid(_side(src.image_size), src.num_frames, _side(src.patch_size), src.tubelet_size)
-    model = VideoMAEModel.from_pretrained(cfg.pretrained, local_files_only=True, image_size=cfg.image_size,
-                                          num_frames=cfg.num_frames)
-    if cfg.image_size % _side(src.patch_size) or cfg.num_frames % src.tubelet_size:
+    old = _grid(square_side(src.image_size), src.num_frames, square_side(src.patch_size), src.tubelet_size)
+    if cfg.image_size % square_side(src.patch_size) or cfg.num_frames % src.tubelet_size:
         raise ValueError(f"PredictorConfig: image_size {cfg.image_size} / num_frames {cfg.num_frames} must be "
                          f"multiples of {cfg.pretrained}'s patch size {src.patch_size} / tubelet {src.tubelet_size}")
-    new = _grid(cfg.image_size, cfg.num_frames, _side(src.patch_size), src.tubelet_size)
+    read = VideoMAEModel.from_pretrained(cfg.pretrained, local_files_only=True, image_size=cfg.image_size,
+                                         num_frames=cfg.num_frames)
+    model = VideoMAEBackbone(read.config.to_dict())
+    model.load_state_dict(read.state_dict())
+    new = _grid(cfg.image_size, cfg.num_frames, square_side(src.patch_size), src.tubelet_size)
     table = interpolate_position_table(sinusoid_table(math.prod(old), src.hidden_size), old, new)
     return model, table
-
-
-def _side(v: Any) -> int:
-    return int(v[0]) if isinstance(v, (tuple, list)) else int(v)
 
 
 class LabelPredictor(nn.Module):
@@ -219,8 +220,8 @@ class PhysicsPredictor(LabelPredictor):
         self.config = cfg = config or PredictorConfig()
         self.backbone, table = build_backbone(cfg, backbone_config)
         bc = self.backbone.config
-        self.width = int(bc.hidden_size)
-        self.image_size, self.num_frames = _side(bc.image_size), int(bc.num_frames)
+        self.width = bc.hidden_size
+        self.image_size, self.num_frames = bc.image_size, bc.num_frames
         self.register_buffer("position_table", table.float())
         torch.manual_seed(cfg.seed + 1)
         self.head_E = mlp(head_widths(self.width))
@@ -253,10 +254,7 @@ class PhysicsPredictor(LabelPredictor):
         if video.shape[1] != self.num_frames or tuple(video.shape[-2:]) != (self.image_size, self.image_size):
             raise ValueError(f"video must have {self.num_frames} frames of {self.image_size}x{self.image_size}, got "
                              f"{tuple(video.shape)}")
-        # the table in use: transformers keeps it as a plain attribute of the embeddings
-        self.backbone.embeddings.position_embeddings = self.position_table
-        tokens = self.backbone(pixel_values=video).last_hidden_state
-        return tokens.mean(dim=1)
+        return self.backbone(video, self.position_table).mean(dim=1)
 
     def forward(self, video: Tensor) -> dict[str, Tensor]:
         """Standardised predictions: {"log10_E": (B,), "nu": (B,), "last_layer": (B, 650)}."""

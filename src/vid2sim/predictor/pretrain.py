@@ -98,8 +98,8 @@ def build_pretraining_model(model: "PhysicsPredictor", decoder_layers: int, seed
 def token_grid(model: "PhysicsPredictor") -> tuple[int, int, int]:
     """(t, h, w) token grid of ``model``'s backbone."""
     bc = model.backbone.config
-    p = int(bc.patch_size[0]) if isinstance(bc.patch_size, (tuple, list)) else int(bc.patch_size)
-    return (model.num_frames // int(bc.tubelet_size), model.image_size // p, model.image_size // p)
+    p = bc.patch_size
+    return (model.num_frames // bc.tubelet_size, model.image_size // p, model.image_size // p)
 
 
 def pretrain_settings(cfg: "TrainConfig") -> dict[str, Any]:

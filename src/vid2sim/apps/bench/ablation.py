@@ -34,7 +34,6 @@ from __future__ import annotations
 
 import copy
 import dataclasses
-import importlib.util
 import json
 import math
 import shutil
@@ -218,8 +217,6 @@ def _check_stage1_possible(config: SuiteConfig, predictor: str | None) -> str:
     if not path.is_file():
         raise InputError(f"predictor: no checkpoint file at {path} (train one with `vid2sim train-predictor`, "
                          "or pass the path of one)")
-    if importlib.util.find_spec("transformers") is None:
-        raise InputError("Stage I needs the transformers package to load the predictor (pip install transformers)")
     return str(path.resolve())
 
 

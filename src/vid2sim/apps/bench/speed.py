@@ -1,4 +1,4 @@
-"""``vid2sim bench speed``: one JSON object of timings for the simulator and the renderer."""
+"""``vid2sim bench speed``: one JSON object of timings for the simulator, the renderer and the Stage I predictor."""
 
 from __future__ import annotations
 
@@ -7,7 +7,14 @@ from typing import Any, Callable
 
 import torch
 
-from vid2sim.apps.bench import joint_speed, modes_speed, physics_speed, render_speed, training_speed
+from vid2sim.apps.bench import (
+    joint_speed,
+    modes_speed,
+    physics_speed,
+    predictor_speed,
+    render_speed,
+    training_speed,
+)
 from vid2sim.runtime.device import resolve_device
 from vid2sim.runtime.errors import ConfigError
 
@@ -15,7 +22,7 @@ from vid2sim.runtime.errors import ConfigError
 def _sections() -> dict[str, Callable[..., dict[str, Any]]]:
 
     return {"physics": physics_speed.run, "training": training_speed.run, "render": render_speed.run,
-            "joint": joint_speed.run, "modes": modes_speed.run}
+            "joint": joint_speed.run, "modes": modes_speed.run, "predictor": predictor_speed.run}
 
 
 def run_speed_benchmark(

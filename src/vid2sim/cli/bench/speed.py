@@ -28,7 +28,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     speed.add_argument("--device", default=None, help="torch device (default: cuda if available, else cpu)")
     speed.add_argument(
         "--only", nargs="*", default=None, metavar="SECTION",
-        help="run only these sections (physics, training, render, joint, modes); default: all",
+        help="run only these sections (physics, training, render, joint, modes, predictor); default: all",
     )
     speed.add_argument("--quick", action="store_true",
                        help="fewer repetitions, and the joint section at 1 500 Gaussians and 64² (a smoke test: the "

@@ -6,7 +6,7 @@ and the skinning field's last layer. They become the prior material, the centre 
 over log10 E (its grid shifted, spacing kept), and the skinning field's starting point (the template's hidden layers
 with the predicted last layer) for the data-free skinning training. It is skipped — and the reason is written to
 ``log.json`` ``stage1`` — when switched off (the default while the shipped predictor misses its accuracy targets,
-docs/predictor.md; the paper's "w/o Stage I"), when the checkpoint is missing or transformers is not installed:
+docs/predictor.md; the paper's "w/o Stage I"), or when the checkpoint is missing or cannot be read:
 the prior then is ``prior.E``/``prior.nu`` and the field a seeded initialisation. With ``networks.handles`` other
 than the template's (10) it gives the material only (the predicted last layer is for 10 handles), and ``log.json``
 says so (``skinning_start`` false).
@@ -72,7 +72,7 @@ def run_stage1(cfg: ReconstructConfig, images: torch.Tensor, cameras: list, dt: 
     t0 = time.perf_counter()
     try:
         model = load_predictor(path)
-    except ImportError as exc:  # transformers is not installed
+    except ImportError as exc:  # a checkpoint whose backbone needs a package that is not installed
         reason = f"the predictor cannot be loaded: {exc}"
         say(progress, f"      Stage I skipped: {reason}")
         return {"ran": False, "reason": reason, "checkpoint": str(path)}
