@@ -304,8 +304,9 @@ def read_index(suite_dir: str | Path, scenes: slice | None = None) -> list[str]:
     unmade = [name for name in selected if name not in made]
     if unmade:
         what = "its" if scenes is None else "the selected"
+        listed = ", ".join(unmade[:5]) + (f" and {len(unmade) - 5} more" if len(unmade) > 5 else "")
         raise InputError(f"{path} lists {len(made)} of its {len(names)} scenes: make-benchmark did not make "
-                         f"{what} {', '.join(unmade)} yet; run it again with the same settings to complete the "
+                         f"{what} {listed} yet; run it again with the same settings to complete the "
                          "suite" + ("" if scenes is None else " (or that shard, --scenes)"))
     return selected
 
