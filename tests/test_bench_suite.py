@@ -381,7 +381,7 @@ def test_a_suite_made_and_run_in_shards(local_run, suite_dir, tiny_config, tmp_p
     shutil.copytree(suite_dir, suite)
     shutil.rmtree(suite / "scene_001")
     assert main(["make-benchmark", str(suite), "--n", "2", "--scenes", "0", *TINY_FLAGS]) == 0  # made: kept
-    assert capsys.readouterr().out.strip() == f"wrote {suite} (1 scene of 2, index.json)"
+    assert capsys.readouterr().out.strip() == f"wrote {suite} (a shard of 1 scene; index.json lists 1 of the suite's 2)"
     index = json.loads((suite / "index.json").read_text())
     assert index["n"] == 2 and not index["complete"] and [s["name"] for s in index["scenes"]] == ["scene_000"]
     assert not (suite / "scene_001").exists()

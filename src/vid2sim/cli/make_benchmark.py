@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 
 from vid2sim.cli.common import UserError, add_scenes_option, set_threads
 from vid2sim.cli.scene_options import (
@@ -36,9 +37,12 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(str(exc)) from exc
     except ValueError as exc:
         raise scene_config_error(exc) from exc
-    made = args.n if scenes is None else len(scenes)
-    shard = "" if scenes is None else f" of {args.n}"
-    print(f"wrote {path} ({made} scene{'s' if made != 1 else ''}{shard}, index.json)")
+    if scenes is None:
+        print(f"wrote {path} ({args.n} scene{'s' if args.n != 1 else ''}, index.json)")
+    else:
+        listed = len(json.loads((path / "index.json").read_text())["scenes"])
+        print(f"wrote {path} (a shard of {len(scenes)} scene{'s' if len(scenes) != 1 else ''}; index.json lists "
+              f"{listed} of the suite's {args.n})")
     return 0
 
 
