@@ -52,13 +52,6 @@ class PointsConfig:
         carve_margin_px: a later frame carves a voxel only if its centre projects more than this many pixels
             outside a mask, on the mask's sub-pixel signed distance (0: at the mask's 0.5 iso-line; on the small
             suite 0.25 gave the same images and a worse E, README).
-        photo_threshold: photo-consistency carving of the solid at frame 0 (:mod:`vid2sim.reconstruct.photo_carving`):
-            a surface voxel seen by ``photo_min_views`` views or more whose colours spread by more than this (RMS over
-            RGB of the standard deviation across the views, colours in [0, 1]) is carved, round by round; None: off
-            (the default; it needs views all around the object, docs/results.md).
-        photo_rounds: its rounds at most.
-        photo_min_views: views a surface voxel must be seen by to be judged (>= 2).
-        photo_max_fraction: it stops before a round that would take more than this fraction of the solid.
     """
 
     resolution: int = 64
@@ -76,23 +69,8 @@ class PointsConfig:
     coverage_tolerance: float = 0.01
     track_points: int = 5000
     carve_margin_px: float = 0.0
-    photo_threshold: float | None = None
-    photo_rounds: int = 12
-    photo_min_views: int = 2
-    photo_max_fraction: float = 0.25
 
     def __post_init__(self) -> None:
-        if self.photo_threshold is not None and not (
-                isinstance(self.photo_threshold, (int, float)) and not isinstance(self.photo_threshold, bool)
-                and math.isfinite(self.photo_threshold) and self.photo_threshold > 0):
-            raise ConfigError(f"PointsConfig.photo_threshold must be None (off) or a finite number > 0, got "
-                              f"{self.photo_threshold!r}")
-        for name, low in (("photo_rounds", 1), ("photo_min_views", 2)):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < low:
-                raise ConfigError(f"PointsConfig.{name} must be an integer >= {low}, got {value!r}")
-        if not (isinstance(self.photo_max_fraction, (int, float)) and 0 < self.photo_max_fraction < 1):
-            raise ConfigError(f"PointsConfig.photo_max_fraction must lie in (0, 1), got {self.photo_max_fraction!r}")
         if self.frame_rounds < 0 or self.track_points < 4:
             raise ConfigError(f"PointsConfig.frame_rounds must be >= 0 and track_points >= 4, got {self.frame_rounds}, "
                              f"{self.track_points}")

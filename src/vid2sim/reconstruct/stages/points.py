@@ -62,7 +62,6 @@ from torch import Tensor
 from vid2sim.physics.cubature import farthest_point_sampling, sample_cubature
 from vid2sim.physics.mass import moment_matched_volumes, voxel_moments
 from vid2sim.reconstruct.config import PointsConfig
-from vid2sim.reconstruct.photo_carving import photo_carve
 from vid2sim.reconstruct.runner import Context, State
 from vid2sim.reconstruct.silhouettes import PoseFit, prepare_silhouette, surface_samples
 from vid2sim.runtime.files import read_json, save_torch_atomic, write_json_atomic
@@ -510,9 +509,8 @@ def simulation_cubature(obj: ObjectPoints, count: int, mass: str, seed: int, vol
 
 
 class PointsStage:
-    """Fills the object with points (:func:`object_points`), carves the hull with the later frames
-    (:func:`carve_with_frames`, ``config.points``) and, when ``points.photo_threshold`` is set, by photo-consistency
-    (:func:`~vid2sim.reconstruct.photo_carving.photo_carve`); writes ``points.pt`` and ``carving.json``."""
+    """Fills the object with points (:func:`object_points`) and carves the hull with the later frames
+    (:func:`carve_with_frames`, ``config.points``); writes ``points.pt`` and ``carving.json``."""
 
     name = "points"
     sections = ("points",)
@@ -523,19 +521,9 @@ class PointsStage:
             f" (the hull carved with the later frames, {rounds} rounds)" if rounds else "")
 
     def run(self, ctx: Context, state: State) -> None:
-        o, cfg = ctx.observed, ctx.config.points
+        o = ctx.observed
         carved, carving = carve_with_frames(o.masks_cpu, o.cameras_cpu, o.dt, o.gravity, state.gaussians.to("cpu"),
-                                            cfg, progress=ctx.progress)
-        if cfg.photo_threshold is not None:
-            photo = photo_carve(carved.occupancy, carved.origin, carved.voxel, o.images_cpu[:, 0], o.masks_cpu[:, 0],
-                                o.cameras_cpu, cfg.photo_threshold, cfg.photo_rounds, cfg.photo_min_views,
-                                cfg.photo_max_fraction, cfg.mask_threshold)
-            carved = points_from_occupancy(photo.occupancy, carved.origin, carved.voxel, cfg,
-                                           hull_voxels=carved.hull_voxels)
-            carving["photo"] = photo.record()
-            if ctx.progress:
-                print(f"      photo-consistency: {photo.start_voxels - photo.end_voxels} of {photo.start_voxels} "
-                      f"voxels carved in {len(photo.rounds)} rounds", flush=True)
+                                            ctx.config.points, progress=ctx.progress)
         save_torch_atomic({k: v for k, v in asdict(carved).items()}, ctx.path("points.pt"))
         write_json_atomic(ctx.path("carving.json"), carving)
 
