@@ -39,6 +39,7 @@ from vid2sim.reconstruct.uncertainty import (
     information_by_frame,
     laplace_intervals,
     mark_coarse_edge,
+    mark_unmoved,
 )
 from vid2sim.runtime.errors import ConfigError
 
@@ -260,6 +261,28 @@ def test_a_fit_at_an_end_of_the_coarse_grid_says_so():
     record = {"log10_E": {"value": 4.5, "note": "found"}}
     mark_coarse_edge(record, valley)
     assert record["log10_E"] == {"value": 4.5, "note": "found", "at_coarse_edge": None}
+
+
+def test_a_value_the_fit_did_not_move_is_not_reported_as_found():
+    """A fit whose every step was refused keeps its start: ν at the prior, log10 E at the coarse search's grid
+    value. Where the images constrain them, the note says they were left there, not found."""
+    record = {"log10_E": {"value": 5.0, "note": "found", "prior_mean": 5.0, "data_sd": 0.01},
+              "nu": {"value": 0.3, "note": "found", "prior_mean": 0.3, "data_sd": 0.061},
+              "damping_ratio": {"value": 0.05, "note": NOT_IDENTIFIABLE, "prior_mean": 0.05, "data_sd": 0.2},
+              "floor_friction": {"value": 0.31, "note": "found", "prior_mean": 0.0, "data_sd": 0.01}}
+    mark_unmoved(record, {"log10_E": 5.25, "nu": 0.3, "damping_ratio": 0.05, "floor_friction": 0.31,
+                          "linear_velocity_x": 0.1})
+    assert record["log10_E"]["moved"] and record["log10_E"]["note"] == "found"  # the fit moved it: found
+    assert not record["nu"]["moved"]
+    assert record["nu"]["note"].startswith("left at the prior's value: the images constrain it (data sd 0.061)")
+    assert record["damping_ratio"]["note"] == NOT_IDENTIFIABLE  # already says the images do not tell
+    assert record["floor_friction"]["note"].startswith("left at the coarse search's value")
+    # with the coarse search's edge note after it, both are said
+    record = {"log10_E": {"value": 4.0, "note": "found", "prior_mean": 5.0, "data_sd": 0.01}}
+    mark_unmoved(record, {"log10_E": 4.0})
+    mark_coarse_edge(record, [{"log10_E": e, "loss": 1.0 + e} for e in (4.0, 4.25, 4.5, 4.75, 5.0)])
+    note = record["log10_E"]["note"]
+    assert note.startswith("left at the coarse search's value") and "; at the lower end" in note
 
 
 def test_the_models_own_error_widens_what_the_images_determine_and_not_what_they_do_not():

@@ -41,8 +41,8 @@ def run(args: argparse.Namespace) -> int:
 
 def material_lines(material: dict) -> list[str]:
     """What ``reconstruct`` prints of a material.json: E and ν, then for log10 E and ν their interval and what the
-    video says of them (the uncertainty's note: "found", "not identifiable from this video", or found at an end of
-    the coarse search), where the record has them."""
+    video says of them (the uncertainty's note: "found", "not identifiable from this video", left at its start when
+    the fit moved nothing, or found at an end of the coarse search), where the record has them."""
     lines = [f"E = {material['E']:.4g} Pa (log10 E = {material['log10_E']:.3f}), nu = {material['nu']:.3f}"]
     unc = material.get("uncertainty") or {}
     level = unc.get("level")

@@ -114,6 +114,23 @@ def laplace_intervals(lin: Linearisation, parameters: Sequence[Parameter], n: fl
     return out
 
 
+def mark_unmoved(record: dict[str, Any], start: Mapping[str, float]) -> None:
+    """Record in a :func:`laplace_intervals` record which parameters the fit left exactly where it started
+    (``moved`` false) and say so in the note of those the images constrain: no step lowered the validation loss, so
+    the value is the start's — the prior's, or for log10 E the coarse search's grid value — and the interval is the
+    curvature there, not around a minimum the fit found. ``start``: the fit's starting value per parameter name."""
+    for name, entry in record.items():
+        if not isinstance(entry, dict) or "value" not in entry or name not in start:
+            continue
+        s = float(start[name])
+        entry["moved"] = abs(float(entry["value"]) - s) > 1e-12 * max(1.0, abs(s))
+        if entry["moved"] or not str(entry.get("note", "")).startswith("found"):
+            continue
+        source = "the prior's" if s == entry.get("prior_mean") else "the coarse search's"
+        entry["note"] = (f"left at {source} value: the images constrain it (data sd {entry.get('data_sd') or 0:.3g}) "
+                         "but no step of the fit lowered the validation loss" + entry["note"][len("found"):])
+
+
 def coarse_best(coarse: Sequence[Mapping[str, Any]]) -> Mapping[str, Any]:
     """The coarse search's row with the lowest loss (its friction and contact surface are the ones the fit keeps)."""
     return min(coarse, key=lambda r: r["loss"])

@@ -65,7 +65,13 @@ from vid2sim.reconstruct.runner import Context, State
 from vid2sim.reconstruct.stages.networks import cpu_state
 from vid2sim.reconstruct.stages.points import floor_carved_contact, track_poses
 from vid2sim.reconstruct.stages.stage1 import prior_material
-from vid2sim.reconstruct.uncertainty import coarse_best, information_by_frame, laplace_intervals, mark_coarse_edge
+from vid2sim.reconstruct.uncertainty import (
+    coarse_best,
+    information_by_frame,
+    laplace_intervals,
+    mark_coarse_edge,
+    mark_unmoved,
+)
 from vid2sim.reconstruct.windows import windowed_adam
 from vid2sim.runtime.files import read_json, save_torch_atomic, write_json_atomic
 from vid2sim.splats.gaussians import Gaussians
@@ -414,6 +420,7 @@ def joint_optimisation(
     clip.apply(fit.theta)  # the simulator holds the kept material
     uncertainty = laplace_intervals(fit.linearisation, parameters, n, cfg.interval_level,
                                     {"log10_E": cfg.model_error_log10_E, "nu": cfg.model_error_nu})
+    mark_unmoved(uncertainty, dict(zip(clip.names, start)))
     mark_coarse_edge(uncertainty, coarse)
     track_record: dict[str, Any] = {}
     if track is not None:
