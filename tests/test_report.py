@@ -243,6 +243,22 @@ def test_the_optimisation_section_says_how_closely_the_fit_followed_the_hull_tra
     assert "within 3.5 mm RMS of it (at most 4.0 mm)" in html
 
 
+def test_a_material_the_fit_left_at_its_start_is_said_so(tiny_asset, tmp_path):
+    from vid2sim.apps.report import asset_report
+    from vid2sim.report import ReportConfig
+
+    asset = tmp_path / "asset"
+    shutil.copytree(tiny_asset, asset, ignore=shutil.ignore_patterns("report"))
+    material = json.loads((asset / "material.json").read_text())
+    nu = material["uncertainty"]["nu"]
+    material["uncertainty"]["nu"] = {**nu, "identifiable": True, "moved": False,
+                                     "note": "left at the prior's value: ..."}
+    (asset / "material.json").write_text(json.dumps(material))
+    cfg = ReportConfig(ring_views=1, ring_resolution=16, ring_frames=2, panel_size=32)
+    html = (asset_report(tmp_path / "ring", asset, progress=False, config=cfg) / "index.html").read_text()
+    assert html.count("left at its start: no step of the fit lowered the validation loss") == 2  # card and table
+
+
 def test_simulations_of_the_asset_get_a_new_situations_section(tiny_asset, tmp_path):
     from vid2sim.apps.report import asset_report
     from vid2sim.report import ReportConfig

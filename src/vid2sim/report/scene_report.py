@@ -78,6 +78,16 @@ def _same_folder(a: Any, b: Any) -> bool:
         return False
 
 
+def _video_says(entry: dict[str, Any]) -> str:
+    """What the report adds after a material value of the uncertainty ``entry`` (material.json): that the video does
+    not determine it, or that the fit left it at its start (every step refused), or nothing."""
+    if not entry.get("identifiable", True):
+        return " · not identifiable from this video"
+    if entry.get("moved") is False:
+        return " · left at its start: no step of the fit lowered the validation loss"
+    return ""
+
+
 @dataclass
 class RingRenders:
     """An asset's own drop rendered in a ring of cameras (the report without a scene).
@@ -461,10 +471,10 @@ class _Builder:
                 unit="Pa",
             )
         )
-        nu_known = ((self.material.get("uncertainty") or {}).get("nu") or {}).get("identifiable", True)
+        nu_entry = (self.material.get("uncertainty") or {}).get("nu") or {}
         cards.append(H.card("Poisson's ratio ν", H.fmt(found["nu"], 3),
                             (f"truth {H.fmt(truth['nu'], 3)}" if _isnum(truth.get("nu")) else "truth unknown")
-                            + ("" if nu_known else " · not identifiable from this video")))
+                            + _video_says(nu_entry)))
         if _isnum(errors.get("log10_E")):
             cards.append(H.card("|Δ log10 E|", H.fmt(errors["log10_E"], 3), "target ≤ 0.2",
                                 "good" if errors["log10_E"] <= 0.2 else "bad", unit="decades"))
@@ -607,8 +617,7 @@ class _Builder:
             return '<td class="na">—</td>'
         lo, hi = entry["interval"]
         text = f"{H.fmt_sci(10 ** lo)} … {H.fmt_sci(10 ** hi)}" if key == "E" else f"{f(lo)} … {f(hi)}"
-        if not entry.get("identifiable", True):
-            text += " · not identifiable from this video"
+        text += _video_says(entry)
         if entry.get("at_coarse_edge"):
             text += f" · at the coarse search's {entry['at_coarse_edge']} end"
         return H.num_cell(hi - lo, text, key=f"interval.{key}")
