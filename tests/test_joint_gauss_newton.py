@@ -270,16 +270,23 @@ def test_a_value_the_fit_did_not_move_is_not_reported_as_found():
               "nu": {"value": 0.3, "note": "found", "prior_mean": 0.3, "data_sd": 0.061},
               "damping_ratio": {"value": 0.05, "note": NOT_IDENTIFIABLE, "prior_mean": 0.05, "data_sd": 0.2},
               "floor_friction": {"value": 0.31, "note": "found", "prior_mean": 0.0, "data_sd": 0.01}}
-    mark_unmoved(record, {"log10_E": 5.25, "nu": 0.3, "damping_ratio": 0.05, "floor_friction": 0.31,
-                          "linear_velocity_x": 0.1})
-    assert record["log10_E"]["moved"] and record["log10_E"]["note"] == "found"  # the fit moved it: found
+    kept = {"log10_E": 5.0, "nu": 0.3, "damping_ratio": 0.05, "floor_friction": 0.31}
+    # a fit that moved log10 E: ν stayed put (not moved) but keeps its note, the fit did not stop at its start
+    partly = {k: dict(v) for k, v in record.items()}
+    mark_unmoved(partly, {**kept, "log10_E": 5.25}, kept_start=False)
+    assert partly["log10_E"]["moved"] and not partly["nu"]["moved"]
+    assert partly["log10_E"]["note"] == "found" and partly["nu"]["note"] == "found"
+    # a fit that kept its start: every step refused
+    mark_unmoved(record, kept, kept_start=True)
+    assert not record["log10_E"]["moved"]
+    assert record["log10_E"]["note"].startswith("left at the prior's value")
     assert not record["nu"]["moved"]
     assert record["nu"]["note"].startswith("left at the prior's value: the images constrain it (data sd 0.061)")
     assert record["damping_ratio"]["note"] == NOT_IDENTIFIABLE  # already says the images do not tell
     assert record["floor_friction"]["note"].startswith("left at the coarse search's value")
     # with the coarse search's edge note after it, both are said
     record = {"log10_E": {"value": 4.0, "note": "found", "prior_mean": 5.0, "data_sd": 0.01}}
-    mark_unmoved(record, {"log10_E": 4.0})
+    mark_unmoved(record, {"log10_E": 4.0}, kept_start=True)
     mark_coarse_edge(record, [{"log10_E": e, "loss": 1.0 + e} for e in (4.0, 4.25, 4.5, 4.75, 5.0)])
     note = record["log10_E"]["note"]
     assert note.startswith("left at the coarse search's value") and "; at the lower end" in note

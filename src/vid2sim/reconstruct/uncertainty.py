@@ -114,17 +114,19 @@ def laplace_intervals(lin: Linearisation, parameters: Sequence[Parameter], n: fl
     return out
 
 
-def mark_unmoved(record: dict[str, Any], start: Mapping[str, float]) -> None:
+def mark_unmoved(record: dict[str, Any], start: Mapping[str, float], kept_start: bool) -> None:
     """Record in a :func:`laplace_intervals` record which parameters the fit left exactly where it started
-    (``moved`` false) and say so in the note of those the images constrain: no step lowered the validation loss, so
-    the value is the start's — the prior's, or for log10 E the coarse search's grid value — and the interval is the
-    curvature there, not around a minimum the fit found. ``start``: the fit's starting value per parameter name."""
+    (``moved`` false) and, when the whole fit kept its start (``kept_start``: no step lowered the validation loss),
+    say so in the note of those the images constrain: the value is the start's — the prior's, or for log10 E the
+    coarse search's grid value — and the interval is the curvature there, not around a minimum the fit found. (A
+    parameter that stayed put while others moved, at a bound say, keeps its note.) ``start``: the fit's starting
+    value per parameter name."""
     for name, entry in record.items():
         if not isinstance(entry, dict) or "value" not in entry or name not in start:
             continue
         s = float(start[name])
         entry["moved"] = abs(float(entry["value"]) - s) > 1e-12 * max(1.0, abs(s))
-        if entry["moved"] or not str(entry.get("note", "")).startswith("found"):
+        if entry["moved"] or not kept_start or not str(entry.get("note", "")).startswith("found"):
             continue
         source = "the prior's" if s == entry.get("prior_mean") else "the coarse search's"
         entry["note"] = (f"left at {source} value: the images constrain it (data sd {entry.get('data_sd') or 0:.3g}) "

@@ -420,7 +420,7 @@ def joint_optimisation(
     clip.apply(fit.theta)  # the simulator holds the kept material
     uncertainty = laplace_intervals(fit.linearisation, parameters, n, cfg.interval_level,
                                     {"log10_E": cfg.model_error_log10_E, "nu": cfg.model_error_nu})
-    mark_unmoved(uncertainty, dict(zip(clip.names, start)))
+    mark_unmoved(uncertainty, dict(zip(clip.names, start)), kept_start=list(fit.theta) == list(start))
     mark_coarse_edge(uncertainty, coarse)
     track_record: dict[str, Any] = {}
     if track is not None:
