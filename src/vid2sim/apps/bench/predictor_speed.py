@@ -26,6 +26,10 @@ from typing import Any
 
 import torch
 
+from vid2sim.apps.bench.timing import time_ms
+from vid2sim.predictor.predict import DEFAULT_PREDICTOR, predict_video
+from vid2sim.predictor.train import load_predictor
+
 LOAD_REPEATS = 5
 """Fresh processes per load figure (the median is reported)."""
 
@@ -69,10 +73,6 @@ def _fresh_process_seconds(code: str, *args: str, repeats: int) -> float:
 
 def run(device: torch.device, quick: bool = False) -> dict[str, Any]:
     """The figures of the module docstring on ``device`` (``quick``: one fresh process and 3 predictions)."""
-    from vid2sim.apps.bench.timing import time_ms
-    from vid2sim.predictor.predict import DEFAULT_PREDICTOR, predict_video
-    from vid2sim.predictor.train import load_predictor
-
     load_repeats = 1 if quick else LOAD_REPEATS
     model = load_predictor(DEFAULT_PREDICTOR).to(device)
     video = torch.rand(model.num_frames, 3, model.image_size, model.image_size, device=device)
