@@ -139,10 +139,6 @@ def interpolate_position_table(table: Tensor, old_grid: tuple[int, int, int], ne
     return out.reshape(t.shape[1], -1).T[None].contiguous()
 
 
-def _grid(image_size: int, num_frames: int, patch: int, tubelet: int) -> tuple[int, int, int]:
-    return (num_frames // tubelet, image_size // patch, image_size // patch)
-
-
 def build_backbone(cfg: PredictorConfig, backbone_config: dict | None = None) -> tuple[VideoMAEBackbone, Tensor]:
     """The VideoMAE backbone and its (1, N, D) position table (module docstring).
 
@@ -171,7 +167,7 @@ def build_backbone(cfg: PredictorConfig, backbone_config: dict | None = None) ->
         raise ImportError("reading a pretrained VideoMAE checkpoint needs transformers (pip install transformers)") \
             from exc
     src = VideoMAEConfig.from_pretrained(cfg.pretrained, local_files_only=True)
-    old = _grid(square_side(src.image_size), src.num_frames, square_side(src.patch_size), src.tubelet_size)
+    old = BackboneConfig.from_dict(src.to_dict()).token_grid
     if cfg.image_size % square_side(src.patch_size) or cfg.num_frames % src.tubelet_size:
         raise ValueError(f"PredictorConfig: image_size {cfg.image_size} / num_frames {cfg.num_frames} must be "
                          f"multiples of {cfg.pretrained}'s patch size {src.patch_size} / tubelet {src.tubelet_size}")
@@ -179,8 +175,7 @@ def build_backbone(cfg: PredictorConfig, backbone_config: dict | None = None) ->
                                          num_frames=cfg.num_frames)
     model = VideoMAEBackbone(read.config.to_dict())
     model.load_state_dict(read.state_dict())
-    new = _grid(cfg.image_size, cfg.num_frames, square_side(src.patch_size), src.tubelet_size)
-    table = interpolate_position_table(sinusoid_table(math.prod(old), src.hidden_size), old, new)
+    table = interpolate_position_table(sinusoid_table(math.prod(old), src.hidden_size), old, model.config.token_grid)
     return model, table
 
 

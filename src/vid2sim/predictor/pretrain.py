@@ -97,9 +97,7 @@ def build_pretraining_model(model: "PhysicsPredictor", decoder_layers: int, seed
 
 def token_grid(model: "PhysicsPredictor") -> tuple[int, int, int]:
     """(t, h, w) token grid of ``model``'s backbone."""
-    bc = model.backbone.config
-    p = bc.patch_size
-    return (model.num_frames // bc.tubelet_size, model.image_size // p, model.image_size // p)
+    return model.backbone.config.token_grid
 
 
 def pretrain_settings(cfg: "TrainConfig") -> dict[str, Any]:

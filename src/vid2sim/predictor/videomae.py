@@ -86,9 +86,16 @@ class BackboneConfig:
         return {**asdict(self), "model_type": "videomae"}
 
     @property
+    def token_grid(self) -> tuple[int, int, int]:
+        """(t, h, w): the tokens of a video in time, rows and columns (frames / tubelet, side / patch, side / patch)."""
+        side = self.image_size // self.patch_size
+        return (self.num_frames // self.tubelet_size, side, side)
+
+    @property
     def num_patches(self) -> int:
-        """Tokens per video: (frames / tubelet) · (side / patch)²."""
-        return (self.num_frames // self.tubelet_size) * (self.image_size // self.patch_size) ** 2
+        """Tokens per video: t · h · w of :attr:`token_grid`."""
+        t, h, w = self.token_grid
+        return t * h * w
 
 
 class _PatchEmbeddings(nn.Module):

@@ -296,7 +296,11 @@ def read_index(suite_dir: str | Path, scenes: slice | None = None) -> list[str]:
         FileNotFoundError: no ``index.json``. InputError: not a benchmark index, an unfinished suite (or a
             selected scene not made yet), a selection of no scene, or a listed scene folder that is missing.
     """
-    names, made = suite_index(suite_dir)
+    return select_scenes(suite_dir, *suite_index(suite_dir), scenes)
+
+
+def select_scenes(suite_dir: str | Path, names: list[str], made: list[str], scenes: slice | None) -> list[str]:
+    """:func:`read_index`'s answer from the suite's :func:`suite_index` (``names``, ``made``)."""
     path = Path(suite_dir) / "index.json"
     selected = names if scenes is None else names[scenes]
     if not selected:
@@ -349,8 +353,8 @@ def run_suite(suite_dir: str | Path, out_dir: str | Path, config: SuiteConfig | 
         check_ray(ray_address)
     suite = Path(suite_dir).resolve()
     out = Path(out_dir).resolve()
-    chosen = read_index(suite, scenes)
-    names, selected = (chosen if scenes is None else suite_index(suite)[0]), set(chosen)
+    names, made = suite_index(suite)
+    selected = set(select_scenes(suite, names, made, scenes))
     settings = {"suite": str(suite), **config.to_dict()}
     _prepare_out(out, settings)
     tasks = [SceneTask(name, str(suite / name), str(out / name), config,
