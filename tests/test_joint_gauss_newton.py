@@ -124,6 +124,44 @@ class CountingClip(DecayClip):
         return list(theta)
 
 
+class SteppedClip(CountingClip):
+    """:class:`CountingClip` whose automatic substep count jumps from 5 to 6 at a = ``jump``, and whose discrete
+    solution then moves by ±0.01, alternating over the frames (as the reduced simulator's moves where √E crosses
+    a count: a little, and nearly independently of the parameters' effect)."""
+
+    def __init__(self, a: float, k: float, jump: float) -> None:
+        super().__init__(a, k)
+        self.jump = jump
+
+    def substeps(self, theta):
+        return 5 if theta[0] < self.jump else 6
+
+    def simulate(self, theta, substeps=None):
+        self.rollouts += 1
+        return list(theta), self.substeps(theta) if substeps is None else substeps
+
+    def residuals(self, trajectories, frame):
+        return torch.tensor([[th[0] * math.exp(-th[1] * frame) - self.y[frame] - 0.01 * (n - 5) * (-1) ** frame]
+                             for th, n in trajectories], dtype=torch.float64)
+
+
+def test_levenberg_marquardt_compares_a_trial_with_theta_at_the_same_substep_count():
+    """Just below a jump of the substep count, every step toward the best fit crosses it, and the jump raises the
+    loss by more than the step lowers it: compared with θ at θ's own count, every trial is rejected and the fit stops
+    at its start. Compared at the trial's count, as the fit does, the steps are taken,
+    each lowers the objective of one discrete problem, and the fit ends on the best fit at the new count."""
+    clip = SteppedClip(2.0, 0.3, jump=1.9701)
+    params = [Parameter("a", 0.0, 10.0, 1e-6), Parameter("k", 0.0, 2.0, 1e-6)]
+    start = [1.97, 0.3]
+    fit = levenberg_marquardt(clip, params, start, n=12.0, iterations=20, tolerance=1e-9)
+    assert fit.log[1]["accepted"] and fit.theta[0] > clip.jump
+    start_at_6 = trajectory_loss(clip, clip.simulate(start, 6))
+    assert fit.linearisation.substeps == 6 and fit.linearisation.loss < 0.7 * start_at_6
+    assert float(fit.linearisation.gradient.abs().max()) < 1e-5  # the best fit of the count-6 problem
+    # the rule this replaces, Φ(trial at its own count) < Φ(θ at θ's own count), rejects the first step
+    assert fit.log[1]["objective"] > fit.log[0]["objective"]
+
+
 def test_levenberg_marquardt_stops_without_trials_when_the_model_predicts_too_little():
     """Near the decay's best fit, with a tolerance above what a step could still gain, the fit stops at the first
     Jacobian without simulating a trial step (the start and one perturbed rollout per parameter, no more), says so,

@@ -21,8 +21,11 @@ not constrain stays at the prior instead of wandering along a flat valley, and
 has them (:meth:`ClipModel.track_residuals`): measurements of known standard deviation, already divided by it (the
 joint stage's body position from the visual hulls), so their term needs no profiling.
 
-Every step is accepted only if it lowers Φ, evaluated on a fresh rollout at the automatic substep count;
-otherwise the Marquardt damping grows and the step shrinks. Parameters stay inside their bounds (a step that
+Every step is accepted only if it lowers Φ on a fresh rollout, compared with θ at the same substep count: the
+larger of θ's and the trial's automatic counts. The count jumps by one where √E crosses a step (at 7 substeps, every
+0.11 decade of E), and the jump's change of the discrete solution can exceed what a damped step gains: compared
+across counts, every step toward the minimum could be rejected and the fit stop where it started. Otherwise the
+Marquardt damping grows and the step shrinks. Parameters stay inside their bounds (a step that
 would leave the box along a coordinate at its bound holds that coordinate).
 """
 
@@ -272,7 +275,9 @@ class FitResult:
         validation_loss: ``validate(theta)`` (None without ``validate``); with a track term the kept θ is the best
             by n/2 · log(validation loss) + ½ ‖c‖², the validated Φ without its prior.
         start_validation_loss: ``validate`` of the start (None without it).
-        log: one dict per iteration: ``iteration``, ``loss`` (L), ``objective`` (Φ), ``damping`` (Marquardt's λ),
+        log: one dict per iteration: ``iteration``, ``loss`` (L), ``objective`` (Φ, both at the state's own automatic
+            substep count: a step accepted on the comparison at a common count may show a higher Φ than the entry
+            before), ``damping`` (Marquardt's λ),
             ``accepted``, ``rollouts``, ``ms``, the parameters by name, ``validation_loss`` when validated and
             ``track_loss`` (‖c‖²) with a track term.
         stop: why it stopped.
@@ -334,6 +339,7 @@ def levenberg_marquardt(model: ClipModel, parameters: Sequence[Parameter], theta
         made[tuple(theta)] = lin
         hessian, gradient = posterior_curvature(lin, parameters, n)
         rollouts, accepted, predicted, settled = p + 1, False, None, False
+        reference = {lin.substeps: phi}  # Φ at θ by substep count (the trial comparison's common discretisation)
         for _ in range(6):
             trial = marquardt_step(hessian, gradient, theta, parameters, damping)
             if trial == theta:
@@ -343,10 +349,22 @@ def levenberg_marquardt(model: ClipModel, parameters: Sequence[Parameter], theta
                 settled = predicted < tolerance
                 if settled:
                     break
-            trial_trajectory, trial_loss, trial_track, trial_phi = _evaluated(model, parameters, trial, n)
+            count = max(lin.substeps, model.substeps(trial))
+            if count not in reference:  # the trial needs more substeps than θ: θ again at the trial's count
+                reference[count] = _evaluated(model, parameters, theta, n, count)[3]
+                rollouts += 1
+            trial_trajectory, trial_loss, trial_track, trial_phi = _evaluated(model, parameters, trial, n, count)
             rollouts += 1
-            if trial_phi < phi:
-                accepted = True
+            if trial_phi < reference[count] and count != model.substeps(trial):
+                # better at θ's (higher) count; the next Jacobian needs the trial at its own automatic count
+                compared = trial_phi
+                trial_trajectory, trial_loss, trial_track, trial_phi = _evaluated(model, parameters, trial, n)
+                rollouts += 1
+                if math.isfinite(trial_phi):
+                    accepted, decrease = True, reference[count] - compared
+                    break
+            elif trial_phi < reference[count]:
+                accepted, decrease = True, reference[count] - trial_phi
                 break
             damping *= 4.0
         entry: dict[str, Any] = {"iteration": it, "damping": damping, "accepted": accepted, "rollouts": rollouts,
@@ -359,7 +377,6 @@ def levenberg_marquardt(model: ClipModel, parameters: Sequence[Parameter], theta
             stop = "converged: the Gauss–Newton model predicts a decrease below the tolerance" if settled \
                 else "no step lowers the objective"
             break
-        decrease = phi - trial_phi
         theta, trajectory, loss, track, phi = trial, trial_trajectory, trial_loss, trial_track, trial_phi
         damping = max(damping / 3.0, 1e-6)
         entry.update(_values(parameters, theta, loss, phi, track))
@@ -389,11 +406,11 @@ def levenberg_marquardt(model: ClipModel, parameters: Sequence[Parameter], theta
 
 
 def _evaluated(model: ClipModel, parameters: Sequence[Parameter], theta: list[float],
-               n: float) -> tuple[Any, float, float | None, float]:
-    """θ's trajectory, loss L, track loss ‖c‖² (None without a track) and Φ; L and Φ are +inf (and the trajectory
-    None) where the simulation fails."""
+               n: float, substeps: int | None = None) -> tuple[Any, float, float | None, float]:
+    """θ's trajectory (``substeps`` per frame; None: θ's automatic count), loss L, track loss ‖c‖² (None without a
+    track) and Φ; L and Φ are +inf (and the trajectory None) where the simulation fails."""
     try:
-        trajectory = model.simulate(theta)
+        trajectory = model.simulate(theta, substeps)
         loss, track = trajectory_loss(model, trajectory), track_loss(model, trajectory)
     except SimulationError:
         return None, math.inf, None, math.inf
