@@ -353,6 +353,9 @@ def levenberg_marquardt(model: ClipModel, parameters: Sequence[Parameter], theta
             if count not in reference:  # the trial needs more substeps than θ: θ again at the trial's count
                 reference[count] = _evaluated(model, parameters, theta, n, count)[3]
                 rollouts += 1
+            if not math.isfinite(reference[count]):  # θ fails at the trial's count: nothing to compare with
+                damping *= 4.0
+                continue
             trial_trajectory, trial_loss, trial_track, trial_phi = _evaluated(model, parameters, trial, n, count)
             rollouts += 1
             if trial_phi < reference[count] and count != model.substeps(trial):
