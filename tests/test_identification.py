@@ -10,8 +10,7 @@ The object's tet mesh is frozen (``tests/data/identification_tets.npz``): fTetWi
 (even on one thread), and at this toy size the recovered E follows them. Over 6 fresh meshes of the same surface
 |Δlog10 E| was 0.028, 0.113, 0.166, 0.197, 0.270 and 0.464 (4 of 6 within half the prior's 0.477 — the test's
 bound), so with fresh meshes the test failed one run in three. The frozen mesh is one of those six, the one near
-their median (0.166); with it the reconstruction is the same on every run (measured twice: 0.166, ν 0.302;
-0.116 by the release before the velocity difference steps were sized in pixels, 0.043 and ν 0.294 since).
+their median (0.166); with it the reconstruction is the same on every run (measured twice: 0.166, ν 0.302).
 """
 
 import json

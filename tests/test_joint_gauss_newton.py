@@ -27,13 +27,11 @@ from vid2sim.reconstruct.gauss_newton import (
     trajectory_loss,
 )
 from vid2sim.reconstruct.stages.joint import (
-    VELOCITY_STEP_PIXELS,
     ClipResiduals,
     floor_friction,
     joint_optimisation,
     physical_parameters,
     set_floor_friction,
-    velocity_step,
 )
 from vid2sim.reconstruct.uncertainty import (
     NOT_IDENTIFIABLE,
@@ -44,7 +42,6 @@ from vid2sim.reconstruct.uncertainty import (
     mark_unmoved,
 )
 from vid2sim.runtime.errors import ConfigError
-from vid2sim.splats.cameras import camera_ring, pixels_per_metre
 
 # ---- the method on models whose answer is known ------------------------------------------------------------------
 
@@ -163,26 +160,6 @@ def test_levenberg_marquardt_compares_a_trial_with_theta_at_the_same_substep_cou
     assert float(fit.linearisation.gradient.abs().max()) < 1e-5  # the best fit of the count-6 problem
     # the rule this replaces, Φ(trial at its own count) < Φ(θ at θ's own count), rejects the first step
     assert fit.log[1]["objective"] > fit.log[0]["objective"]
-
-
-def test_the_velocity_step_moves_the_object_by_its_pixels_at_the_last_frame():
-    """The velocity difference step is sized in pixels: a camera ring 2.4 m from the object, 64² and 40° wide; a step
-    of the linear velocity held for the clip moves a point across the view by VELOCITY_STEP_PIXELS by its last
-    frame, and a point at the object's size from the centre by as much under the angular step."""
-    cams = camera_ring(4, 2.4, 0.0, 64, 64, fov_x_deg=40.0)
-    scale = pixels_per_metre(cams, [0.0, 0.0, 0.0])
-    assert scale == pytest.approx(float(cams[0].K[0, 0]) / 2.4, rel=1e-6)
-    length, frames = 0.3, 16
-    step = velocity_step(length, scale, frames)
-    cam = cams[0]
-    right = cam.world_to_camera[0, :3].double()  # the camera's x axis in the world: motion across the view
-    moved = (right * step * length * (frames - 1)).float()
-    (a, b), _ = cam.project(torch.stack([torch.zeros(3), moved]))
-    assert float((b - a).norm()) == pytest.approx(VELOCITY_STEP_PIXELS, rel=1e-3)
-    with pytest.raises(ValueError, match="behind every camera"):
-        pixels_per_metre(cams[:1], (cams[0].center * 2.0).tolist())
-    with pytest.raises(ValueError, match="at least 2 frames"):
-        velocity_step(length, scale, 1)
 
 
 def test_levenberg_marquardt_stops_without_trials_when_the_model_predicts_too_little():

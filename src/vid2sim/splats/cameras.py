@@ -121,20 +121,6 @@ class Camera:
         return pix, z
 
 
-def pixels_per_metre(cameras: Sequence[Camera], point: Sequence[float]) -> float:
-    """The image scale at a world point (3,): the median over ``cameras`` of fx / the point's depth (pixels per metre
-    of motion across the view)."""
-    p = torch.tensor([float(x) for x in point] + [1.0], dtype=torch.float64)
-    scales = []
-    for cam in cameras:
-        depth = float(cam.world_to_camera.double().cpu()[2] @ p)
-        if depth > 0:
-            scales.append(float(cam.K[0, 0]) / depth)
-    if not scales:
-        raise ValueError(f"the point {[float(x) for x in point]} is behind every camera")
-    return float(torch.tensor(scales).median())
-
-
 def stack_cameras(cameras: "Camera | Sequence[Camera]") -> tuple[Tensor, Tensor, int, int]:
     """Batch cameras that share one image size.
 

@@ -74,7 +74,6 @@ from vid2sim.reconstruct.uncertainty import (
 )
 from vid2sim.reconstruct.windows import windowed_adam
 from vid2sim.runtime.files import read_json, save_torch_atomic, write_json_atomic
-from vid2sim.splats.cameras import pixels_per_metre
 from vid2sim.splats.gaussians import Gaussians
 
 
@@ -212,28 +211,12 @@ def centre_of_mass_search(sim: Simulator, rig: GaussianRig, start: Callable[[], 
     return best, records
 
 
-#: forward-difference steps of the Gauss–Newton Jacobian: log10 E (decades), ν, ζ, the floor's friction, and — where
-#: the cameras are not known (:func:`velocity_step`) — the initial velocity as a fraction of the object's size per
-#: frame (linear, m/s per m/frame) and radians per frame (angular).
+#: forward-difference steps of the Gauss–Newton Jacobian: log10 E (decades), ν, ζ, and the initial velocity as a
+#: fraction of the object's size per frame (linear, m/s per m/frame) and radians per frame (angular). Each moves
+#: the observed frames by a fraction of a pixel to a few pixels at the small preset: large enough that the
+#: rasteriser's cutoffs and Newton's tolerance are noise, small enough for a secant of a smooth loss.
 DIFFERENCE_STEPS = {"log10_E": 0.01, "nu": 0.01, "damping_ratio": 0.005, "floor_friction": 0.02, "linear": 0.002,
                     "angular": 0.002}
-#: how far (pixels at the fit's resolution) a velocity step moves the object's edge by the clip's last frame: large
-#: enough that the rasteriser's cutoffs and Newton's tolerance are noise, small enough that the images respond
-#: linearly. The fixed step of 0.002 per frame moved it by 4.1 pixels at the full preset (scene 9 of the full
-#: suite): the forward and backward differences of the velocity columns then pointed apart (cosines 0.29–0.47
-#: linear, 0.78–0.86 angular; at 1 pixel 0.76–0.97), and the Gauss–Newton step lowered the loss by 0.09 % where its
-#: model promised 5.4 % (at 1 pixel: 2.1 % of a promised 3.3 %). At the tests' 40² it moved it by a quarter pixel.
-VELOCITY_STEP_PIXELS = 1.0
-
-
-def velocity_step(length: float, scale: float, frames: int) -> float:
-    """The velocity difference step (a fraction of the object's size ``length`` (m) per frame, and radians per
-    frame) that moves the object's edge by :data:`VELOCITY_STEP_PIXELS` at frame ``frames`` − 1, at ``scale``
-    pixels per metre (:func:`pixels_per_metre`)."""
-    if not (length > 0 and scale > 0 and frames >= 2):
-        raise ValueError(f"velocity_step needs a positive length and scale and at least 2 frames, got {length}, "
-                         f"{scale}, {frames}")
-    return VELOCITY_STEP_PIXELS / (length * scale * (frames - 1))
 
 
 def floor_friction(sim: Simulator) -> float:
@@ -253,13 +236,10 @@ def set_floor_friction(sim: Simulator, value: float) -> None:
     sim.externals = [replace(e, friction=value) if isinstance(e, Floor) else e for e in sim.externals]
 
 
-def physical_parameters(sim: Simulator, cfg: JointConfig, prior: dict[str, float], dt: float,
-                        velocity_fraction: float | None = None) -> list[Parameter]:
+def physical_parameters(sim: Simulator, cfg: JointConfig, prior: dict[str, float], dt: float) -> list[Parameter]:
     """The Gauss–Newton fit's parameters: log10 E, ν, ζ (with ``cfg.fit_damping``), the floor's friction μ (with
     ``cfg.fit_friction``, when there is a floor), each with the prior of ``cfg`` centred on ``prior`` (the start
-    material and friction), then the initial linear (m/s) and angular (rad/s) velocity without a prior, whose
-    difference steps are ``velocity_fraction`` of the object's size per frame (:func:`velocity_step`; None:
-    :data:`DIFFERENCE_STEPS`')."""
+    material and friction), then the initial linear (m/s) and angular (rad/s) velocity without a prior."""
     L = sim.length_scale
     out = [Parameter("log10_E", *cfg.log10_E_bounds, DIFFERENCE_STEPS["log10_E"], prior["log10_E"],
                      cfg.prior_sd_log10_E),
@@ -270,9 +250,7 @@ def physical_parameters(sim: Simulator, cfg: JointConfig, prior: dict[str, float
     if cfg.fit_friction and cfg.method == "gauss_newton" and any(isinstance(e, Floor) for e in sim.externals):
         out.append(Parameter("floor_friction", *cfg.friction_bounds, DIFFERENCE_STEPS["floor_friction"],
                              prior["floor_friction"], cfg.prior_sd_friction))
-    linear, angular = (DIFFERENCE_STEPS["linear"], DIFFERENCE_STEPS["angular"]) if velocity_fraction is None \
-        else (velocity_fraction, velocity_fraction)
-    v, w = linear * L / dt, angular / dt
+    v, w = DIFFERENCE_STEPS["linear"] * L / dt, DIFFERENCE_STEPS["angular"] / dt
     out += [Parameter(f"linear_velocity_{a}", -math.inf, math.inf, v) for a in "xyz"]
     out += [Parameter(f"angular_velocity_{a}", -math.inf, math.inf, w) for a in "xyz"]
     return out
@@ -423,8 +401,7 @@ def joint_optimisation(
         com_offset, com_records = centre_of_mass_search(sim, rig, start_state, coarse_obs,
                                                         cfg.centre_of_mass_step * sim.length_scale,
                                                         cfg.centre_of_mass_rounds, cfg.frame_decay, progress)
-    step = velocity_step(sim.length_scale, pixels_per_metre(coarse_obs.cameras, c), T)
-    parameters = physical_parameters(sim, cfg, prior, float(sim.config.dt), step)
+    parameters = physical_parameters(sim, cfg, prior, float(sim.config.dt))
     if track is not None and (cfg.track_sd is None or cfg.method != "gauss_newton"):
         raise ValueError("a track needs JointConfig.track_sd, its standard deviation, and the gauss_newton method")
     frame_sd = None if track is None else track.frame_sd(cfg.track_sd * sim.length_scale, cfg.track_volume_tolerance)
