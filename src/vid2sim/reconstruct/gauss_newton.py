@@ -349,25 +349,11 @@ def levenberg_marquardt(model: ClipModel, parameters: Sequence[Parameter], theta
                 settled = predicted < tolerance
                 if settled:
                     break
-            count = max(lin.substeps, model.substeps(trial))
-            if count not in reference:  # the trial needs more substeps than θ: θ again at the trial's count
-                reference[count] = _evaluated(model, parameters, theta, n, count)[3]
-                rollouts += 1
-            if not math.isfinite(reference[count]):  # θ fails at the trial's count: nothing to compare with
-                damping *= 4.0
-                continue
-            trial_trajectory, trial_loss, trial_track, trial_phi = _evaluated(model, parameters, trial, n, count)
-            rollouts += 1
-            if trial_phi < reference[count] and count != model.substeps(trial):
-                # better at θ's (higher) count; the next Jacobian needs the trial at its own automatic count
-                compared = trial_phi
-                trial_trajectory, trial_loss, trial_track, trial_phi = _evaluated(model, parameters, trial, n)
-                rollouts += 1
-                if math.isfinite(trial_phi):
-                    accepted, decrease = True, reference[count] - compared
-                    break
-            elif trial_phi < reference[count]:
-                accepted, decrease = True, reference[count] - trial_phi
+            found, used = _compared(model, parameters, theta, trial, n, lin.substeps, reference)
+            rollouts += used
+            if found is not None:
+                trial_trajectory, trial_loss, trial_track, trial_phi, decrease = found
+                accepted = True
                 break
             damping *= 4.0
         entry: dict[str, Any] = {"iteration": it, "damping": damping, "accepted": accepted, "rollouts": rollouts,
@@ -406,6 +392,32 @@ def levenberg_marquardt(model: ClipModel, parameters: Sequence[Parameter], theta
     final = made[kept] if kept in made else \
         linearise(model, parameters, best_theta, trajectory if theta == best_theta else None)
     return FitResult(best_theta, final, best_phi, best_val, start_val, log, stop)
+
+
+def _compared(model: ClipModel, parameters: Sequence[Parameter], theta: list[float], trial: list[float], n: float,
+              own: int, reference: dict[int, float]) -> tuple[tuple | None, int]:
+    """Simulate ``trial`` and compare it with θ at one substep count (module docstring): the larger of θ's (``own``)
+    and the trial's automatic counts; ``reference`` holds Φ(θ) by count and gains the counts simulated here.
+
+    Returns ((the trial's trajectory, L, ‖c‖² and Φ at its own automatic count, the decrease of Φ at the common
+    count) where the trial lowers Φ, else None; the number of rollouts simulated)."""
+    count, rollouts = max(own, model.substeps(trial)), 0
+    if count not in reference:  # the trial needs more substeps than θ: θ again at the trial's count
+        reference[count] = _evaluated(model, parameters, theta, n, count)[3]
+        rollouts += 1
+    if not math.isfinite(reference[count]):  # θ fails at the trial's count: nothing to compare with
+        return None, rollouts
+    evaluated = _evaluated(model, parameters, trial, n, count)
+    rollouts += 1
+    decrease = reference[count] - evaluated[3]
+    if not decrease > 0:
+        return None, rollouts
+    if count != model.substeps(trial):  # better at θ's higher count; the next Jacobian needs the trial's own count
+        evaluated = _evaluated(model, parameters, trial, n)
+        rollouts += 1
+        if not math.isfinite(evaluated[3]):
+            return None, rollouts
+    return (*evaluated, decrease), rollouts
 
 
 def _evaluated(model: ClipModel, parameters: Sequence[Parameter], theta: list[float],
