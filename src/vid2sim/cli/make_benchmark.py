@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 import argparse
-import json
 
+from vid2sim.apps.bench.suite import suite_index
 from vid2sim.cli.common import UserError, add_scenes_option, set_threads
 from vid2sim.cli.scene_options import (
     add_scene_options,
@@ -40,7 +40,7 @@ def run(args: argparse.Namespace) -> int:
     if scenes is None:
         print(f"wrote {path} ({args.n} scene{'s' if args.n != 1 else ''}, index.json)")
     else:
-        listed = len(json.loads((path / "index.json").read_text())["scenes"])
+        listed = len(suite_index(path)[1])
         print(f"wrote {path} (a shard of {len(scenes)} scene{'s' if len(scenes) != 1 else ''}; index.json lists "
               f"{listed} of the suite's {args.n})")
     return 0

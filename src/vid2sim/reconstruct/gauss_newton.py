@@ -401,7 +401,8 @@ def _compared(model: ClipModel, parameters: Sequence[Parameter], theta: list[flo
 
     Returns ((the trial's trajectory, L, ‖c‖² and Φ at its own automatic count, the decrease of Φ at the common
     count) where the trial lowers Φ, else None; the number of rollouts simulated)."""
-    count, rollouts = max(own, model.substeps(trial)), 0
+    trial_count = model.substeps(trial)
+    count, rollouts = max(own, trial_count), 0
     if count not in reference:  # the trial needs more substeps than θ: θ again at the trial's count
         reference[count] = _evaluated(model, parameters, theta, n, count)[3]
         rollouts += 1
@@ -412,7 +413,7 @@ def _compared(model: ClipModel, parameters: Sequence[Parameter], theta: list[flo
     decrease = reference[count] - evaluated[3]
     if not decrease > 0:
         return None, rollouts
-    if count != model.substeps(trial):  # better at θ's higher count; the next Jacobian needs the trial's own count
+    if count != trial_count:  # better at θ's higher count; the next Jacobian needs the trial's own count
         evaluated = _evaluated(model, parameters, trial, n)
         rollouts += 1
         if not math.isfinite(evaluated[3]):
