@@ -215,9 +215,9 @@ def centre_of_mass_search(sim: Simulator, rig: GaussianRig, start: Callable[[], 
 #: fraction of the object's size per frame (linear, m/s per m/frame) and radians per frame (angular). Each moves
 #: the observed frames by a fraction of a pixel to a few pixels at the small preset: large enough that the
 #: rasteriser's cutoffs and Newton's tolerance are noise, small enough for a secant of a smooth loss. At the full
-#: preset the velocity's steps move the last frame by about 4 pixels and their forward and backward differences disagree;
-#: steps of one pixel made a truer Jacobian and fits that matched the observed clip better but predicted the future
-#: frames worse (0.05–6.2 dB on four scenes, docs/results.md), so these stay.
+#: preset the velocity's steps move the last frame by about 4 pixels and their forward and backward differences
+#: disagree; steps of one pixel made a truer Jacobian and fits that matched the observed clip better but predicted
+#: the future frames worse (0.05–6.2 dB on four scenes, docs/results.md), so these stay.
 DIFFERENCE_STEPS = {"log10_E": 0.01, "nu": 0.01, "damping_ratio": 0.005, "floor_friction": 0.02, "linear": 0.002,
                     "angular": 0.002}
 
