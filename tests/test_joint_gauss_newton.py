@@ -28,6 +28,7 @@ from vid2sim.reconstruct.gauss_newton import (
 )
 from vid2sim.reconstruct.stages.joint import (
     ClipResiduals,
+    _held_out_validation,
     floor_friction,
     joint_optimisation,
     physical_parameters,
@@ -449,6 +450,48 @@ def test_gauss_newton_recovers_E_nu_and_damping_of_the_models_own_motion():
     # before the first contact the images say nothing about the material: its information comes after it
     info = result.information_by_frame
     assert sum(info["log10_E"]) == pytest.approx(1.0) and info["log10_E"][0] < 1e-3
+
+
+def test_held_out_frames_judge_the_fit_and_are_left_out_of_it():
+    """With the last 2 of 8 frames held out, the fit sees frames 0 … 5 only (its information spans frames 1 … 5) and
+    still recovers the model's own material; the validation that judges it is the held-out frames' mean image loss,
+    the fitted frames' trajectory continued to them (equal to a fresh rollout of the whole clip's, off the truth)."""
+    sim, gaussians, cams, images = _own_motion(8, 4.5, 0.42, 0.1, [0.1, 0.0, -1.0], [0.0, 1.0, 0.0])
+    with torch.no_grad():
+        sim.log10_E.fill_(5.0)
+        sim.nu.fill_(0.3)
+        sim.damping_ratio.fill_(0.05)
+    cfg = JointConfig(
+        method="gauss_newton", fit_damping=True, coarse_log10_E=(4.0, 4.4, 4.8, 5.2, 5.6), coarse_scale=1.0,
+        gauss_newton_iterations=6, model_error_log10_E=0.0, model_error_nu=0.0, held_out_frames=2,
+    )
+    obs = Observations(images, cams)
+    result = joint_optimisation(sim, gaussians, obs, [0.12, 0.0, -0.95], [0.0, 0.9, 0.0], [0.0, 0.0, 0.0], cfg,
+                                progress=False)
+    assert abs(result.log10_E - 4.5) < 0.02 and abs(result.nu - 0.42) < 0.02
+    assert len(result.information_by_frame["log10_E"]) == 5
+    assert result.validation_loss < 0.01 * result.start_validation_loss
+
+    rig = GaussianRig(sim, gaussians)
+    names = ["log10_E", "nu"] + [f"{k}_velocity_{a}" for k in ("linear", "angular") for a in "xyz"]
+    clip = ClipResiduals(sim, rig, Observations(images[:, :6], cams), [0.0, 0.0, 0.0], None, names)
+    theta = [4.8, 0.35, 0.1, 0.0, -1.0, 0.0, 1.0, 0.0]
+    value = _held_out_validation(clip, rig, obs)(theta, clip.simulate(theta))
+    with torch.no_grad():
+        start = clip.apply(theta)
+        states = [start] + sim.rollout(start, 7)
+        renders = render_states(rig, states[6:], obs, [0, 1])  # (2 frames, 2 views, 32, 32, 3), float32
+    assert value == pytest.approx(float(((renders - images[:, 6:].transpose(0, 1)) ** 2).mean()), rel=1e-5)
+    with pytest.raises(ValueError, match="held_out_frames=7 leaves 1 of the 8"):
+        joint_optimisation(sim, gaussians, obs, [0.12, 0.0, -0.95], [0.0, 0.9, 0.0], [0.0, 0.0, 0.0],
+                           dataclasses.replace(cfg, held_out_frames=7), progress=False)
+
+
+def test_held_out_frames_are_a_count_for_the_gauss_newton_fit():
+    with pytest.raises(ConfigError, match="held_out_frames must be an integer >= 0"):
+        JointConfig(held_out_frames=-1)
+    with pytest.raises(ConfigError, match="needs the gauss_newton method"):
+        JointConfig(method="windows", held_out_frames=2)
 
 
 @pytest.mark.slow

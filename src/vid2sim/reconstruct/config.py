@@ -296,6 +296,12 @@ class JointConfig:
             deviation; on 12 scenes the steps after the first below it moved log10 E by at most 0.004 and ν by at
             most 0.001, and cost up to three Jacobians (p + 1 rollouts each) per scene.
         gauss_newton_patience: stop when the validation loss has not improved for this many accepted steps.
+        held_out_frames: the last this many observed frames are left out of the Gauss–Newton fit (its residuals,
+            its track and its effective number of images) and judge its steps instead: the kept θ is the best by
+            their loss at full resolution (equal weights), the start included, and the patience counts steps that
+            did not improve it. 0 (the default): the validation is the fit's own frames at full resolution. A fit
+            that matches the observed frames better by moving parameters that do not carry the motion forward then
+            stops where the frames it did not see say so (docs/results.md, "Held-out frames").
         prior_sd_log10_E, prior_sd_nu, prior_sd_damping: standard deviations of the Gaussian prior on log10 E, ν
             and ζ, centred on the start material (``prior``, or Stage I's prediction): the Gauss–Newton fit's
             regulariser, and the yardstick of identifiability (a parameter the images constrain less tightly than
@@ -363,6 +369,7 @@ class JointConfig:
     gauss_newton_iterations: int = 8
     gauss_newton_tolerance: float = 0.05
     gauss_newton_patience: int = 2
+    held_out_frames: int = 0
     prior_sd_log10_E: float = 1.0
     prior_sd_nu: float = 0.1
     prior_sd_damping: float = 0.05
@@ -405,6 +412,12 @@ class JointConfig:
         if self.gauss_newton_iterations < 0 or self.gauss_newton_patience < 1:
             raise ConfigError("JointConfig.gauss_newton_iterations must be >= 0 and gauss_newton_patience >= 1, got "
                               f"{self.gauss_newton_iterations}, {self.gauss_newton_patience}")
+        if isinstance(self.held_out_frames, bool) or not isinstance(self.held_out_frames, int) \
+                or self.held_out_frames < 0:
+            raise ConfigError(f"JointConfig.held_out_frames must be an integer >= 0, got {self.held_out_frames!r}")
+        if self.held_out_frames and self.method != "gauss_newton":
+            raise ConfigError("JointConfig.held_out_frames needs the gauss_newton method (the windows validate on the "
+                              f"whole clip), got method {self.method!r}")
         for name in ("gauss_newton_tolerance", "prior_sd_log10_E", "prior_sd_nu", "prior_sd_damping",
                      "prior_sd_friction"):
             value = getattr(self, name)

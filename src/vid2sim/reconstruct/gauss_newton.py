@@ -295,7 +295,8 @@ class FitResult:
 def levenberg_marquardt(model: ClipModel, parameters: Sequence[Parameter], theta0: Sequence[float], n: float,
                         iterations: int = 8, tolerance: float = 1e-3, patience: int = 2,
                         validate: Callable[[list[float], Any], float] | None = None,
-                        on_iteration: Callable[[dict[str, Any]], None] | None = None) -> FitResult:
+                        on_iteration: Callable[[dict[str, Any]], None] | None = None,
+                        validation_with_track: bool = True) -> FitResult:
     """Minimise Φ (module docstring) from θ0 by Levenberg–Marquardt with forward-difference Jacobians.
 
     Args:
@@ -310,6 +311,8 @@ def levenberg_marquardt(model: ClipModel, parameters: Sequence[Parameter], theta
         validate: θ, its trajectory → the validation loss (e.g. the clip at full resolution); the kept θ is
             the best by it (with a track term, by n/2 · log of it + ½ ‖c‖²), the start included. None: the last
             accepted θ is kept.
+        validation_with_track: whether the keep-best criterion adds the model's track term (False where ``validate``
+            judges frames the model's residuals and track leave out: the criterion is then the validation loss alone).
     Returns:
         :class:`FitResult`; the model's simulator is left at an arbitrary θ (set it from ``theta``).
     """
@@ -323,7 +326,7 @@ def levenberg_marquardt(model: ClipModel, parameters: Sequence[Parameter], theta
     phi = objective(loss, theta, parameters, n, track or 0.0)
 
     def score(value: float, track: float | None) -> float:  # the keep-best criterion of a validation loss
-        return 0.5 * n * math.log(max(value, 1e-300)) + 0.5 * (track or 0.0)
+        return 0.5 * n * math.log(max(value, 1e-300)) + (0.5 * (track or 0.0) if validation_with_track else 0.0)
 
     best_val = validate(theta, trajectory) if validate is not None else None
     best_score = score(best_val, track) if best_val is not None else None

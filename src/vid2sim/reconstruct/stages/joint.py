@@ -43,7 +43,7 @@ from vid2sim.asset.folder import Asset
 from vid2sim.asset.motion import GaussianRig, simulated_centre_of_mass
 from vid2sim.physics.external import AREA_CONTACT_STIFFNESS, Floor, Gravity
 from vid2sim.physics.mass import centre_shifted_volumes
-from vid2sim.physics.solver import Material, SimState, Simulator
+from vid2sim.physics.solver import Material, SimState, SimulationError, Simulator
 from vid2sim.physics.stiffness_curve import StiffnessCurve
 from vid2sim.reconstruct.clip import (
     Observations,
@@ -407,13 +407,19 @@ def joint_optimisation(
     parameters = physical_parameters(sim, cfg, prior, float(sim.config.dt))
     if track is not None and (cfg.track_sd is None or cfg.method != "gauss_newton"):
         raise ValueError("a track needs JointConfig.track_sd, its standard deviation, and the gauss_newton method")
-    frame_sd = None if track is None else track.frame_sd(cfg.track_sd * sim.length_scale, cfg.track_volume_tolerance)
-    clip = ClipResiduals(sim, rig, coarse_obs, c, cfg.frame_decay, [q.name for q in parameters],
-                         None if track is None else track.centroids, frame_sd)
+    fitted = T - cfg.held_out_frames  # frames 0 … fitted−1 inform the fit; the rest judge it (held_out_frames)
+    if fitted < 2:
+        raise ValueError(f"JointConfig.held_out_frames={cfg.held_out_frames} leaves {fitted} of the {T} observed "
+                         "frames to fit: at least 2 are needed (frame 0 and one after it)")
+    frame_sd = None if track is None else \
+        track.frame_sd(cfg.track_sd * sim.length_scale, cfg.track_volume_tolerance)[:fitted - 1]
+    fit_obs = Observations(coarse_obs.images[:, :fitted], coarse_obs.cameras, coarse_obs.background)
+    clip = ClipResiduals(sim, rig, fit_obs, c, cfg.frame_decay, [q.name for q in parameters],
+                         None if track is None else track.centroids[:fitted], frame_sd)
     start = [float(sim.log10_E), float(sim.nu)] + ([float(sim.damping_ratio)] if cfg.fit_damping else []) \
         + ([floor_friction(sim)] if "floor_friction" in clip.names else []) \
         + [float(x) for x in linear_velocity] + [float(x) for x in angular_velocity]
-    n = effective_images(frame_weights(T, cfg.frame_decay), len(observations.cameras))
+    n = effective_images(frame_weights(fitted, cfg.frame_decay), len(observations.cameras))
     if cfg.method == "gauss_newton":
         fit = _gauss_newton(clip, parameters, start, n, rig, observations, cfg, progress, on_iteration)
     else:
@@ -547,11 +553,33 @@ def _full_resolution_validation(clip: ClipResiduals, rig: GaussianRig, observati
     return validate
 
 
+def _held_out_validation(clip: ClipResiduals, rig: GaussianRig, observations: Observations
+                         ) -> Callable[[list[float], list[SimState]], float]:
+    """θ, its trajectory of the fitted frames → the mean loss of the observed frames after them (the held-out frames,
+    :attr:`JointConfig.held_out_frames`) in every observed view at full resolution, the trajectory continued to them
+    at θ (+inf where the simulation fails there: such a θ is not kept)."""
+    def validate(theta: list[float], trajectory: list[SimState]) -> float:
+        T, fitted = observations.images.shape[1], len(trajectory)
+        clip.apply(theta)
+        total = 0.0
+        with torch.no_grad():
+            try:
+                later = clip.sim.rollout(trajectory[-1], T - fitted)
+            except SimulationError:
+                return math.inf
+            for t, state in zip(range(fitted, T), later):
+                r = render_states(rig, [state], observations, range(len(observations.cameras)), clip.basis)[0]
+                total += float(image_loss(r, observations.images[:, t].to(r)))
+        return total / (T - fitted)
+    return validate
+
+
 def _gauss_newton(clip: ClipResiduals, parameters: list[Parameter], start: list[float], n: float, rig: GaussianRig,
                   observations: Observations, cfg: JointConfig, progress: bool,
                   on_iteration: Callable[[dict[str, Any]], None] | None) -> FitResult:
     """Levenberg–Marquardt from the coarse search's start
-    (:func:`~vid2sim.reconstruct.gauss_newton.levenberg_marquardt`), kept by the full-resolution validation loss."""
+    (:func:`~vid2sim.reconstruct.gauss_newton.levenberg_marquardt`), kept by the full-resolution validation loss: of
+    the fitted frames, or of the held-out frames after them (:attr:`JointConfig.held_out_frames`)."""
     from tqdm.auto import tqdm
 
     bar = tqdm(total=cfg.gauss_newton_iterations, desc="Gauss-Newton fit of the material and velocity",
@@ -564,9 +592,11 @@ def _gauss_newton(clip: ClipResiduals, parameters: list[Parameter], start: list[
             on_iteration(entry)
 
     try:
+        held_out = cfg.held_out_frames > 0
+        validate = _held_out_validation(clip, rig, observations) if held_out else \
+            _full_resolution_validation(clip, rig, observations, cfg.frame_decay)
         return levenberg_marquardt(clip, parameters, start, n, cfg.gauss_newton_iterations, cfg.gauss_newton_tolerance,
-                                   cfg.gauss_newton_patience,
-                                   _full_resolution_validation(clip, rig, observations, cfg.frame_decay), report)
+                                   cfg.gauss_newton_patience, validate, report, validation_with_track=not held_out)
     finally:
         bar.close()
 
