@@ -421,11 +421,9 @@ def test_the_clip_jacobian_agrees_with_the_adjoint_gradient():
     assert torch.allclose(fd, adjoint, rtol=2e-3, atol=1e-4 * float(adjoint.abs().max()))
 
 
-@pytest.mark.slow
-def test_gauss_newton_recovers_E_nu_and_damping_of_the_models_own_motion():
-    """Images of the model's own drop at log10 E = 4.5, ν = 0.42, ζ = 0.1 (off the prior 5, 0.3, 0.05 in all
-    three, the initial velocity off by 5 %): the coarse search and the Gauss–Newton fit recover all three, with
-    intervals that hold them, say they are identifiable, and a validation loss far below the start's."""
+def _own_motion_off_the_prior():
+    """The model's own 8-frame drop at log10 E = 4.5, ν = 0.42, ζ = 0.1 with the simulator set to the prior (5, 0.3,
+    0.05), and the Gauss–Newton settings that fit it (ζ too; no model error: the model's own motion)."""
     sim, gaussians, cams, images = _own_motion(8, 4.5, 0.42, 0.1, [0.1, 0.0, -1.0], [0.0, 1.0, 0.0])
     with torch.no_grad():
         sim.log10_E.fill_(5.0)
@@ -433,8 +431,17 @@ def test_gauss_newton_recovers_E_nu_and_damping_of_the_models_own_motion():
         sim.damping_ratio.fill_(0.05)
     cfg = JointConfig(
         method="gauss_newton", fit_damping=True, coarse_log10_E=(4.0, 4.4, 4.8, 5.2, 5.6), coarse_scale=1.0,
-        gauss_newton_iterations=6, model_error_log10_E=0.0, model_error_nu=0.0,  # the model's own motion
+        gauss_newton_iterations=6, model_error_log10_E=0.0, model_error_nu=0.0,
     )
+    return sim, gaussians, cams, images, cfg
+
+
+@pytest.mark.slow
+def test_gauss_newton_recovers_E_nu_and_damping_of_the_models_own_motion():
+    """Images of the model's own drop at log10 E = 4.5, ν = 0.42, ζ = 0.1 (off the prior 5, 0.3, 0.05 in all
+    three, the initial velocity off by 5 %): the coarse search and the Gauss–Newton fit recover all three, with
+    intervals that hold them, say they are identifiable, and a validation loss far below the start's."""
+    sim, gaussians, cams, images, cfg = _own_motion_off_the_prior()
     result = joint_optimisation(sim, gaussians, Observations(images, cams), [0.12, 0.0, -0.95], [0.0, 0.9, 0.0],
                                 [0.0, 0.0, 0.0], cfg, progress=False)
     assert result.method == "gauss_newton"
@@ -456,15 +463,8 @@ def test_held_out_frames_judge_the_fit_and_are_left_out_of_it():
     """With the last 2 of 8 frames held out, the fit sees frames 0 … 5 only (its information spans frames 1 … 5) and
     still recovers the model's own material; the validation that judges it is the held-out frames' mean image loss,
     the fitted frames' trajectory continued to them (equal to a fresh rollout of the whole clip's, off the truth)."""
-    sim, gaussians, cams, images = _own_motion(8, 4.5, 0.42, 0.1, [0.1, 0.0, -1.0], [0.0, 1.0, 0.0])
-    with torch.no_grad():
-        sim.log10_E.fill_(5.0)
-        sim.nu.fill_(0.3)
-        sim.damping_ratio.fill_(0.05)
-    cfg = JointConfig(
-        method="gauss_newton", fit_damping=True, coarse_log10_E=(4.0, 4.4, 4.8, 5.2, 5.6), coarse_scale=1.0,
-        gauss_newton_iterations=6, model_error_log10_E=0.0, model_error_nu=0.0, held_out_frames=2,
-    )
+    sim, gaussians, cams, images, cfg = _own_motion_off_the_prior()
+    cfg = dataclasses.replace(cfg, held_out_frames=2)
     obs = Observations(images, cams)
     result = joint_optimisation(sim, gaussians, obs, [0.12, 0.0, -0.95], [0.0, 0.9, 0.0], [0.0, 0.0, 0.0], cfg,
                                 progress=False)

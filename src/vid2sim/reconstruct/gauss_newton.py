@@ -324,16 +324,11 @@ def levenberg_marquardt(model: ClipModel, parameters: Sequence[Parameter], theta
     trajectory = model.simulate(theta)
     loss, track = trajectory_loss(model, trajectory), track_loss(model, trajectory)
     phi = objective(loss, theta, parameters, n, track or 0.0)
-
-    def score(value: float, track: float | None) -> float:  # the keep-best criterion of a validation loss
-        return 0.5 * n * math.log(max(value, 1e-300)) + (0.5 * (track or 0.0) if validation_with_track else 0.0)
-
-    best_val = validate(theta, trajectory) if validate is not None else None
-    best_score = score(best_val, track) if best_val is not None else None
-    start_val, best_theta, best_phi, since_best = best_val, list(theta), phi, 0
+    keep = _KeepBest(validate, n, validation_with_track)
+    start_val = keep.offer(theta, trajectory, phi, track)
     log: list[dict[str, Any]] = [{"iteration": 0, "accepted": True, "rollouts": 1,
                                   **_values(parameters, theta, loss, phi, track),
-                                  **({"validation_loss": best_val} if best_val is not None else {})}]
+                                  **({"validation_loss": start_val} if start_val is not None else {})}]
     damping, stop, lin = 1e-2, f"{iterations} iterations", None
     made: dict[tuple[float, ...], Linearisation] = {}  # every θ's Jacobian, for the kept θ's intervals
     for it in range(1, iterations + 1):
@@ -372,15 +367,9 @@ def levenberg_marquardt(model: ClipModel, parameters: Sequence[Parameter], theta
         theta, trajectory, loss, track, phi = trial, trial_trajectory, trial_loss, trial_track, trial_phi
         damping = max(damping / 3.0, 1e-6)
         entry.update(_values(parameters, theta, loss, phi, track))
-        if validate is not None:
-            value = validate(theta, trajectory)
+        value = keep.offer(theta, trajectory, phi, track)
+        if value is not None:
             entry["validation_loss"] = value
-            if score(value, track) < best_score:
-                best_val, best_score, best_theta, best_phi, since_best = value, score(value, track), list(theta), phi, 0
-            else:
-                since_best += 1
-        else:
-            best_theta, best_phi = list(theta), phi
         entry["ms"] = 1000 * (time.perf_counter() - t0)
         log.append(entry)
         if on_iteration is not None:
@@ -388,13 +377,46 @@ def levenberg_marquardt(model: ClipModel, parameters: Sequence[Parameter], theta
         if decrease < tolerance:
             stop = "converged: the last step lowered the objective by less than the tolerance"
             break
-        if validate is not None and since_best >= patience:
+        if validate is not None and keep.since >= patience:
             stop = f"the validation loss has not improved for {patience} steps"
             break
-    kept = tuple(best_theta)
+    kept = tuple(keep.theta)
     final = made[kept] if kept in made else \
-        linearise(model, parameters, best_theta, trajectory if theta == best_theta else None)
-    return FitResult(best_theta, final, best_phi, best_val, start_val, log, stop)
+        linearise(model, parameters, keep.theta, trajectory if theta == keep.theta else None)
+    return FitResult(keep.theta, final, keep.phi, keep.value, start_val, log, stop)
+
+
+@dataclass
+class _KeepBest:
+    """The θ :func:`levenberg_marquardt` keeps: the best by the score of ``validate``'s loss (n/2 · log of it, plus
+    ½ ‖c‖² of the model's track where ``with_track``), the start included; without ``validate``, the last accepted θ.
+
+    Attributes:
+        theta, phi, value: the kept θ, its Φ and its validation loss (None without ``validate``).
+        since: accepted steps offered since the kept one (the patience's count).
+    """
+
+    validate: Callable[[list[float], Any], float] | None
+    n: float
+    with_track: bool
+    theta: list[float] = field(default_factory=list)
+    phi: float = math.inf
+    value: float | None = None
+    score: float = math.inf
+    since: int = 0
+
+    def offer(self, theta: Sequence[float], trajectory: Any, phi: float, track: float | None) -> float | None:
+        """Judge an accepted θ (the start first, which is kept whatever its score); returns its validation loss."""
+        if self.validate is None:
+            self.theta, self.phi = list(theta), phi
+            return None
+        value = self.validate(list(theta), trajectory)
+        score = 0.5 * self.n * math.log(max(value, 1e-300)) + (0.5 * (track or 0.0) if self.with_track else 0.0)
+        if not self.theta or score < self.score:
+            self.theta, self.phi, self.value, self.score, self.since = list(theta), phi, value, score, 0
+        else:
+            self.since += 1
+        return value
 
 
 def _compared(model: ClipModel, parameters: Sequence[Parameter], theta: list[float], trial: list[float], n: float,

@@ -407,19 +407,11 @@ def joint_optimisation(
     parameters = physical_parameters(sim, cfg, prior, float(sim.config.dt))
     if track is not None and (cfg.track_sd is None or cfg.method != "gauss_newton"):
         raise ValueError("a track needs JointConfig.track_sd, its standard deviation, and the gauss_newton method")
-    fitted = T - cfg.held_out_frames  # frames 0 … fitted−1 inform the fit; the rest judge it (held_out_frames)
-    if fitted < 2:
-        raise ValueError(f"JointConfig.held_out_frames={cfg.held_out_frames} leaves {fitted} of the {T} observed "
-                         "frames to fit: at least 2 are needed (frame 0 and one after it)")
-    frame_sd = None if track is None else \
-        track.frame_sd(cfg.track_sd * sim.length_scale, cfg.track_volume_tolerance)[:fitted - 1]
-    fit_obs = Observations(coarse_obs.images[:, :fitted], coarse_obs.cameras, coarse_obs.background)
-    clip = ClipResiduals(sim, rig, fit_obs, c, cfg.frame_decay, [q.name for q in parameters],
-                         None if track is None else track.centroids[:fitted], frame_sd)
+    clip, frame_sd = _fitted_clip(sim, rig, coarse_obs, c, cfg, [q.name for q in parameters], track)
     start = [float(sim.log10_E), float(sim.nu)] + ([float(sim.damping_ratio)] if cfg.fit_damping else []) \
         + ([floor_friction(sim)] if "floor_friction" in clip.names else []) \
         + [float(x) for x in linear_velocity] + [float(x) for x in angular_velocity]
-    n = effective_images(frame_weights(fitted, cfg.frame_decay), len(observations.cameras))
+    n = effective_images(frame_weights(clip.frames + 1, cfg.frame_decay), len(observations.cameras))
     if cfg.method == "gauss_newton":
         fit = _gauss_newton(clip, parameters, start, n, rig, observations, cfg, progress, on_iteration)
     else:
@@ -446,6 +438,24 @@ def joint_optimisation(
                        method=cfg.method, start_validation_loss=fit.start_validation_loss, uncertainty=uncertainty,
                        information_by_frame=information_by_frame(fit.linearisation, parameters), stop=fit.stop,
                        contact_surface=surface, track=track_record)
+
+
+def _fitted_clip(sim: Simulator, rig: GaussianRig, obs: Observations, centre: Sequence[float], cfg: JointConfig,
+                 names: Sequence[str], track: HullTrack | None) -> tuple[ClipResiduals, Tensor | None]:
+    """The clip the Gauss–Newton fit sees: the observed frames 0 … T−1 of ``obs`` less the last
+    ``cfg.held_out_frames`` (which judge the fit instead), with the track's positions of the same frames; and the
+    track's (fitted frames − 1,) standard deviations (None without a track)."""
+    T = obs.images.shape[1]
+    fitted = T - cfg.held_out_frames
+    if fitted < 2:
+        raise ValueError(f"JointConfig.held_out_frames={cfg.held_out_frames} leaves {fitted} of the {T} observed "
+                         "frames to fit: at least 2 are needed (frame 0 and one after it)")
+    frame_sd = None if track is None else \
+        track.frame_sd(cfg.track_sd * sim.length_scale, cfg.track_volume_tolerance)[:fitted - 1]
+    fit_obs = Observations(obs.images[:, :fitted], obs.cameras, obs.background)
+    clip = ClipResiduals(sim, rig, fit_obs, centre, cfg.frame_decay, names,
+                         None if track is None else track.centroids[:fitted], frame_sd)
+    return clip, frame_sd
 
 
 def coarse_search(sim: Simulator, rig: GaussianRig, start: Callable[[], SimState], obs: Observations,
