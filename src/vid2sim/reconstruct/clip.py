@@ -124,9 +124,18 @@ def clip_loss(sim: Simulator, rig: GaussianRig, start: SimState, obs: Observatio
     weights = frame_weights(T, decay)
     with torch.no_grad():
         states = [start] + sim.rollout(start, T - 1)
-        basis = rig.basis()
-        total = 0.0
-        for t in range(1, T):
-            r = render_states(rig, [states[t]], obs, range(len(obs.cameras)), basis)[0]
-            total += weights[t - 1] * float(image_loss(r, obs.images[:, t].to(r)))
-    return total, states
+        losses = frame_losses(rig, states[1:], obs, range(1, T), rig.basis())
+    return sum(w * v for w, v in zip(weights, losses)), states
+
+
+def frame_losses(rig: GaussianRig, states: Sequence[SimState], obs: Observations, frames: Sequence[int],
+                 basis: tuple[Tensor, Tensor] | None = None) -> list[float]:
+    """The image loss (:func:`image_loss`, every view of ``obs``) of each observed frame in ``frames`` (indices into
+    ``obs.images``' frame axis), ``states[i]`` the simulated state of ``frames[i]``; one frame rendered at a time,
+    without gradients."""
+    with torch.no_grad():
+        out = []
+        for state, t in zip(states, frames):
+            r = render_states(rig, [state], obs, range(len(obs.cameras)), basis)[0]
+            out.append(float(image_loss(r, obs.images[:, t].to(r))))
+    return out

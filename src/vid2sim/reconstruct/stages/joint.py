@@ -49,8 +49,8 @@ from vid2sim.reconstruct.clip import (
     Observations,
     clip_loss,
     detached_state,
+    frame_losses,
     frame_weights,
-    image_loss,
     render_states,
 )
 from vid2sim.reconstruct.config import JointConfig
@@ -552,14 +552,8 @@ def _full_resolution_validation(clip: ClipResiduals, rig: GaussianRig, observati
     states re-rendered; at ``coarse_scale`` 1 the fit's own loss)."""
     def validate(theta: list[float], trajectory: list[SimState]) -> float:
         T = observations.images.shape[1]
-        weights = frame_weights(T, decay)
-        total = 0.0
-        with torch.no_grad():
-            basis = clip.basis
-            for t in range(1, T):
-                r = render_states(rig, [trajectory[t]], observations, range(len(observations.cameras)), basis)[0]
-                total += weights[t - 1] * float(image_loss(r, observations.images[:, t].to(r)))
-        return total
+        losses = frame_losses(rig, trajectory[1:T], observations, range(1, T), clip.basis)
+        return sum(w * v for w, v in zip(frame_weights(T, decay), losses))
     return validate
 
 
@@ -571,16 +565,12 @@ def _held_out_validation(clip: ClipResiduals, rig: GaussianRig, observations: Ob
     def validate(theta: list[float], trajectory: list[SimState]) -> float:
         T, fitted = observations.images.shape[1], len(trajectory)
         clip.apply(theta)
-        total = 0.0
-        with torch.no_grad():
-            try:
+        try:
+            with torch.no_grad():
                 later = clip.sim.rollout(trajectory[-1], T - fitted)
-            except SimulationError:
-                return math.inf
-            for t, state in zip(range(fitted, T), later):
-                r = render_states(rig, [state], observations, range(len(observations.cameras)), clip.basis)[0]
-                total += float(image_loss(r, observations.images[:, t].to(r)))
-        return total / (T - fitted)
+        except SimulationError:
+            return math.inf
+        return sum(frame_losses(rig, later, observations, range(fitted, T), clip.basis)) / (T - fitted)
     return validate
 
 
