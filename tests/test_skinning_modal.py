@@ -283,7 +283,16 @@ def test_two_factor_curve_matches_six_modes_better_than_one_factor_and_the_simul
     for nu in (0.5 * (a + b) for a, b in zip(CURVE_NUS, CURVE_NUS[1:])):
         mu, lam = lame_parameters(1.0, nu)
         lowest = math.sqrt(_ritz(whole.at(nu) * mu * K_mu + whole.lam_at(nu) * lam * K_lam, M)[6])
-        print(nu, lowest / np.interp(nu, CURVE_NUS, whole_reference[:, 0]))
+        assert abs(math.log(lowest / np.interp(nu, CURVE_NUS, whole_reference[:, 0]))) < 5e-3, nu
+    # the same branch for a slightly different mesh: 0.5 % noise on the tets' frequencies moves the factors a
+    # little (fitted ν by ν, such noise moved log s_λ by up to 8 on benchmark solids)
+    rng = np.random.default_rng(0)
+    for _ in range(2):
+        noisy = whole_reference * np.exp(0.005 * rng.standard_normal(whole_reference.shape))
+        other = stiffness_calibration_curve(field, cubature, volumes, None, None, CURVE_NUS, factors=2,
+                                            reference=noisy)
+        assert np.abs(np.log(np.array(other.lam_scale) / whole.lam_scale)).max() < math.log(2)
+        assert np.abs(np.log(np.array(other.scale) / whole.scale)).max() < 0.05
     sim = Simulator(field, cubature, volumes, Material(2e5, 0.35), [], SimConfig(), stiffness_scale=two)
     mu, lam = sim.lame()
     mu0, lam0 = lame_parameters(2e5, 0.35)
