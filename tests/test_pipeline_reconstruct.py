@@ -88,7 +88,7 @@ def test_a_calibrated_reconstruction_records_and_uses_its_stiffness_scale(tiny_s
     cfg = tiny_config()
     cfg.calibration.enabled, cfg.calibration.cells, cfg.calibration.points = True, 24, 20000
     cfg.calibration.nu, cfg.simulator.volumetric = "curve", "projected"  # the projected volumetric term end to end
-    cfg.simulator.cubature_weights = "voronoi"  # cell volumes for the energy and the mass, end to end
+    assert cfg.simulator.cubature_weights == "voronoi"  # the default: cell volumes for the energy and the mass
     cfg.joint.gauss_newton_iterations = 0  # the coarse search's material: the fit is not what this test checks
     # the caller's thread count is restored (one per pytest-xdist worker on 2 cores: setting two here, beside the
     # other worker and the child, oversubscribed them, 78 s in the suite); giving the child one of two: next test

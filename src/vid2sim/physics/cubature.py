@@ -6,8 +6,9 @@ integration weight volume / k (volume 1 in the canonical frame), so Σ_p v_p Ψ(
 FPS spaces the points evenly, but their cells are not equal: a point on the boundary or in a thin part
 stands for less volume than one inside. ``weights="voronoi"`` gives each cubature point the volume of its
 cell instead: volume × the share of all sample points nearest to it (the sample is uniform in the volume).
-On a box it integrates polynomials 2.5–4.5× more accurately (tested). On the skinning subspace's lowest
-frequencies it made no consistent difference, so "equal" stays the default (docs/architecture.md).
+On a box it integrates polynomials 2.5–4.5× more accurately (tested), and the lumped masses' centre and
+inertia become the solid's. ``reconstruct`` uses it by default (``SimulatorConfig.cubature_weights``); this
+module's functions keep the paper's equal weights as theirs.
 """
 
 from __future__ import annotations

@@ -204,8 +204,10 @@ class SimulatorConfig:
         volumetric: the volumetric term, "pointwise" or "projected" onto the skinning weights' span
             (:mod:`vid2sim.physics.volumetric`: no volumetric locking, so λ needs no factor of its own; calibrate
             it with ``calibration.nu`` "curve").
-        cubature_weights: the cubature points' integration volumes, "equal" (the paper's: the volume / K each) or
-            "voronoi" (each point's cell, :func:`~vid2sim.physics.cubature.voronoi_weights`).
+        cubature_weights: the cubature points' integration volumes and lumped masses, "voronoi" (each point's cell,
+            :func:`~vid2sim.physics.cubature.voronoi_weights`; the default since it was measured on eight full-preset
+            scenes, docs/results.md "Voronoi cell volumes by default") or "equal" (the paper's: the volume / K
+            each, which puts farthest-point sampling's boundary layer at a whole cell's mass).
         mass: lumped masses: "cubature" (the cubature volumes; the default) or "moments" (those volumes
             corrected so that the mass, centre of mass and inertia tensor are the kept voxels',
             :mod:`vid2sim.physics.mass`).
@@ -217,7 +219,7 @@ class SimulatorConfig:
 
     cubature: int = 500
     volumetric: Literal["pointwise", "projected"] = "pointwise"
-    cubature_weights: Literal["equal", "voronoi"] = "equal"
+    cubature_weights: Literal["equal", "voronoi"] = "voronoi"
     mass: Literal["cubature", "moments"] = "cubature"
     integration: SimConfig = field(default_factory=SimConfig)
     floor_friction: float = 0.0
