@@ -206,7 +206,7 @@ class SimulatorConfig:
             it with ``calibration.nu`` "curve").
         cubature_weights: the cubature points' integration volumes and lumped masses, "voronoi" (each point's cell,
             :func:`~vid2sim.physics.cubature.voronoi_weights`; the default since it was measured on eight full-preset
-            scenes, docs/results.md "Voronoi cell volumes by default") or "equal" (the paper's: the volume / K
+            scenes, docs/architecture.md "Voronoi volumes are the default") or "equal" (the paper's: the volume / K
             each, which puts farthest-point sampling's boundary layer at a whole cell's mass).
         mass: lumped masses: "cubature" (the cubature volumes; the default) or "moments" (those volumes
             corrected so that the mass, centre of mass and inertia tensor are the kept voxels',
