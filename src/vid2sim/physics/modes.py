@@ -293,9 +293,6 @@ def _two_factor_curve(field, points: Tensor, volumes: Tensor, reference: np.ndar
     weights = np.array([TWO_FACTOR_LOWEST_WEIGHT] + [1.0] * (k - 1))
     n = len(nus)
     lame = [lame_parameters(1.0, float(nu)) for nu in nus]
-    for nu, ref in zip(nus, reference):
-        if not (ref > 0).all():
-            raise ValueError(f"the tets' lowest elastic frequencies must be positive at nu = {nu}, got {ref}")
 
     def ritz(i: int, log_s: float, log_lam: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Ritz values ω² (k,) at the grid's i-th ν and their derivatives in log s and log s_λ (k,) each."""
@@ -307,6 +304,8 @@ def _two_factor_curve(field, points: Tensor, volumes: Tensor, reference: np.ndar
 
     one = []  # the one-factor solution: the lowest mode matched with s = s_λ
     for i, nu in enumerate(nus):
+        if not (reference[i] > 0).all():
+            raise ValueError(f"the tets' lowest elastic frequencies must be positive at nu = {nu}, got {reference[i]}")
         lowest = math.sqrt(ritz(i, 0.0, 0.0)[0][0])
         if not (reference[i, 0] / 20 < lowest < 20 * reference[i, 0]):  # e.g. a (near) zero-energy deformation mode
             raise ValueError(f"the subspace's lowest elastic frequency is {lowest:.3g} at nu = {nu}, against the "
