@@ -3,6 +3,7 @@ computes what an uninterrupted one does) and stage snapshots let runs of one sce
 
 from __future__ import annotations
 
+import hashlib
 import json
 from pathlib import Path
 
@@ -20,13 +21,14 @@ from vid2sim.reconstruct.runner import (
     run_stages,
     scene_fingerprint,
 )
+from vid2sim.runtime import config as configs
 
 
 class Draw:
     """A stand-in stage: draws from torch's global generator, writes it with what it read, counts its runs."""
 
     def __init__(self, name: str, section: str, runs: dict[str, int]) -> None:
-        self.name, self.sections, self.runs = name, (section,), runs
+        self.name, self.sections, self.runs, self.revision = name, (section,), runs, 0
 
     def title(self, ctx, state):
         return self.name
@@ -122,3 +124,28 @@ def test_an_interrupted_run_with_other_settings_is_refused_or_rerun_from_the_fir
     assert rerun.log["b"][0] == first.log["b"][0] and rerun.log["c"] == first.log["c"]
     _, work = _run(tmp_path / "out", changed, None, runs, rerun_changed=True)  # now they agree: nothing to rerun
     assert work.rerun == [] and runs == {"a": 1, "b": 2, "c": 2}
+
+
+def test_a_revised_stage_is_not_resumed_or_restored_as_the_old_method(tmp_path):
+    stages = [Draw("a", "gaussians", {}), Draw("b", "points", {}), Draw("c", "networks", {})]
+    before = cache_keys(stages, ReconstructConfig(), "scene")
+    # revision 0 adds nothing to the key: the keys of stages never revised are the ones earlier releases wrote
+    config = ReconstructConfig()
+    start = hashlib.sha256(json.dumps({"scene": "scene", "seed": config.seed}).encode()).hexdigest()
+    text = json.dumps({"previous": start, "sections": {"gaussians": configs.to_dict(config.gaussians)}}, sort_keys=True)
+    assert before["a"] == hashlib.sha256(text.encode()).hexdigest()
+    stages[1].revision = 1  # a release changed b's method: b and every stage after it have new keys, a keeps its
+    after = cache_keys(stages, ReconstructConfig(), "scene")
+    assert after["a"] == before["a"] and after["b"] != before["b"] and after["c"] != before["c"]
+    # a work folder and a snapshot that b's old method finished: refused, and not restored
+    snapshots = StageSnapshots(tmp_path / "shared", ("b",))
+    WorkFolder(tmp_path / "out", before, restart=False, snapshots=snapshots)
+    work_dir = tmp_path / ".out.work"
+    for name in "ab":
+        (work_dir / f"{name}.done").write_text("")
+    snapshots.save(work_dir, "b", before["b"])
+    with pytest.raises(ReconstructionError, match="'b' stage ran with other settings, on another scene or with an "
+                                                  "older version of the stage"):
+        WorkFolder(tmp_path / "out", after, restart=False)
+    assert WorkFolder(tmp_path / "other", after, restart=False, snapshots=snapshots).restored is None
+    assert WorkFolder(tmp_path / "third", before, restart=False, snapshots=snapshots).restored == "b"

@@ -6,8 +6,9 @@ and the outputs of the stages before it (:class:`State`), writes its own outputs
 stage that has not finished, then ``load`` for every stage, so a run interrupted anywhere resumes after its last
 finished stage and a finished stage's outputs are the same whether computed now or read back.
 
-Each stage names the config sections it depends on (``sections``). Its cache key is those sections' values and
-the keys of the stages before it (every stage depends on the ones before), plus the scene; a finished stage whose
+Each stage names the config sections it depends on (``sections``) and the version of its method (``revision``).
+Its cache key is those sections' values, the revision and the keys of the stages before it (every stage depends
+on the ones before), plus the scene; a finished stage whose
 key differs from the stored one is an error naming the stage (resume with the same settings, or ``--restart``).
 Settings of stages that have not run yet may change between runs. Each stage runs with torch's global generator
 seeded from the config's seed and its own name (:func:`stage_seed`), so a resumed run computes what an
@@ -183,6 +184,10 @@ class Stage(Protocol):
     name: str
     #: the config sections (dotted paths) its outputs depend on
     sections: tuple[str, ...]
+    #: the version of the stage's method: raised by a release whose change to the stage's code changes its outputs
+    #: at the same settings, so that work folders and snapshots of the old method are not resumed as the new one's.
+    #: Above 0 it enters the cache key (a stage never revised keeps the key it always had).
+    revision: int
 
     def title(self, ctx: Context, state: State) -> str | None:
         """The progress line when the stage runs, or None when it has nothing to do (it is then skipped)."""
@@ -214,11 +219,14 @@ def scene_fingerprint(root: Path) -> str:
 
 
 def cache_keys(stages: Sequence[Stage], config: ReconstructConfig, scene: str) -> dict[str, str]:
-    """Each stage's cache key: a hash of the scene, the seed, its sections and the key of the stage before it."""
+    """Each stage's cache key: a hash of the scene, the seed, its sections, its revision (when above 0) and the key
+    of the stage before it."""
     keys, previous = {}, hashlib.sha256(json.dumps({"scene": scene, "seed": config.seed}).encode()).hexdigest()
     for stage in stages:
-        text = json.dumps({"previous": previous, "sections": {s: _section(config, s) for s in stage.sections}},
-                          sort_keys=True)
+        key: dict[str, Any] = {"previous": previous, "sections": {s: _section(config, s) for s in stage.sections}}
+        if stage.revision:
+            key["revision"] = stage.revision
+        text = json.dumps(key, sort_keys=True)
         previous = keys[stage.name] = hashlib.sha256(text.encode()).hexdigest()
     return keys
 
@@ -289,7 +297,8 @@ class WorkFolder:
     matching snapshot and saves one as each of their stages finishes (:class:`StageSnapshots`).
 
     A finished stage whose key differs from ``keys`` (other settings, another scene, or a release that added a
-    setting to its sections) is refused, so that a slip of the command line does not discard hours of work;
+    setting to its sections or revised its method) is refused, so that a slip of the command line does not discard
+    hours of work;
     ``restart`` discards the whole folder first, and ``rerun_changed`` keeps the finished stages before the first
     changed one and marks that one and every later one unfinished (``rerun``), as if the run had been interrupted
     there (the keys chain: every stage after a changed one has changed too)."""
@@ -311,8 +320,9 @@ class WorkFolder:
             if self.done(name) and stored.get(name) != keys[name]:
                 if not rerun_changed:
                     raise ReconstructionError(
-                        f"{self.dir} holds an interrupted reconstruction whose {name!r} stage ran with other settings "
-                        "or on another scene (or the scene's files changed since); run with the same settings to "
+                        f"{self.dir} holds an interrupted reconstruction whose {name!r} stage ran with other "
+                        "settings, on another scene or with an older version of the stage (or the scene's files "
+                        "changed since); run with the same settings to "
                         "resume it, with --rerun-changed to keep the stages before it and run it and the later ones "
                         "again, or with --restart to start over")
                 self.rerun = [n for n in names[i:] if self.done(n)]

@@ -57,6 +57,7 @@ class AppearanceStage:
 
     name = "appearance"
     sections = ("appearance", "gaussians")
+    revision = 0
 
     def title(self, ctx: Context, state: State) -> str:
         K = int(state.velocity["frames_used"])

@@ -277,6 +277,8 @@ class CalibrationStage:
 
     name = "calibration"
     sections = ("calibration", "simulator", "prior.nu")
+    #: 1: the two-factor curve is one regularised fit over the ν grid (was a fit per ν)
+    revision = 1
 
     def __init__(self) -> None:
         self.job: TetReferenceJob | None = None

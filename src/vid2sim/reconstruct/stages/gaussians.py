@@ -17,6 +17,7 @@ class GaussiansStage:
 
     name = "gaussians"
     sections = ("gaussians",)
+    revision = 0
 
     def title(self, ctx: Context, state: State) -> str:
         return "fitting Gaussians to frame 0"

@@ -639,6 +639,7 @@ class JointStage:
 
     name = "joint"
     sections = ("joint", "simulator", "prior")
+    revision = 0
 
     def title(self, ctx: Context, state: State) -> str:
         return "joint optimisation of the material, initial velocity and networks"

@@ -245,6 +245,7 @@ class MotionAppearanceStage:
 
     name = "motion_appearance"
     sections = ("motion_appearance", "gaussians")
+    revision = 0
 
     def title(self, ctx: Context, state: State) -> str | None:
         cfg = ctx.config.motion_appearance

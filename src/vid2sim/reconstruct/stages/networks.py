@@ -45,6 +45,7 @@ class NetworksStage:
 
     name = "networks"
     sections = ("networks",)
+    revision = 0
 
     def title(self, ctx: Context, state: State) -> str:
         return "training the skinning field data-free" + (

@@ -514,6 +514,7 @@ class PointsStage:
 
     name = "points"
     sections = ("points",)
+    revision = 0
 
     def title(self, ctx: Context, state: State) -> str:
         rounds = ctx.config.points.frame_rounds

@@ -95,6 +95,7 @@ class Stage1Stage:
 
     name = "stage1"
     sections = ("stage1", "networks.handles", "joint.coarse_log10_E")
+    revision = 0
 
     def title(self, ctx: Context, state: State) -> str:
         return "Stage I: the material and skinning field predicted from the front view"

@@ -593,6 +593,7 @@ class VelocityStage:
 
     name = "velocity"
     sections = ("velocity",)
+    revision = 0
 
     def title(self, ctx: Context, state: State) -> str:
         return "estimating the initial velocity from the pre-contact frames"
