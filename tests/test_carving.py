@@ -15,9 +15,11 @@ from vid2sim.reconstruct.config import PointsConfig
 from vid2sim.reconstruct.stages.points import (
     carve_with_frames,
     gravity_deviation,
+    hits_coverage,
     object_points,
     silhouette_coverage,
     track_poses,
+    voxel_pixel_hits,
 )
 
 pytestmark = pytest.mark.slow  # silhouette fits of several frames
@@ -132,6 +134,27 @@ def test_frame_rounds_zero_is_the_frame0_hull(drop: AnalyticDrop) -> None:
     a, _ = carve_with_frames(drop.masks, drop.cameras, DT, GRAVITY.tolist(), None, cfg)
     b = object_points(drop.masks[:, 0], drop.cameras, None, cfg)
     assert torch.equal(a.occupancy, b.occupancy) and torch.equal(a.points, b.points)
+
+
+def test_a_subsets_pixel_hits_are_the_whole_sets_less_the_removed_voxels(drop: AnalyticDrop) -> None:
+    """The carving scores a trial by subtracting the hits of the voxels it removes: the same pixels, and the same
+    coverage, as projecting the voxels it keeps, posed or not."""
+    obj = object_points(drop.masks[:, 0], drop.cameras, None, PointsConfig(num_points=2000))
+    idx = torch.nonzero(obj.occupancy)
+    removed = torch.rand(len(idx), generator=torch.Generator().manual_seed(0)) < 0.05
+    size = tuple(drop.masks.shape[2:])
+    pose = (Rotation.from_rotvec([0.1, -0.2, 0.3]).as_matrix(), np.array([0.01, 0.0, -0.02]))
+    covers = []
+    for p in (None, pose):
+        whole = voxel_pixel_hits(idx, obj.origin, obj.voxel, drop.cameras, size, p)
+        kept = voxel_pixel_hits(idx[~removed], obj.origin, obj.voxel, drop.cameras, size, p)
+        assert torch.equal(whole - voxel_pixel_hits(idx[removed], obj.origin, obj.voxel, drop.cameras, size, p), kept)
+        occupancy = torch.zeros_like(obj.occupancy)
+        occupancy[tuple(idx[~removed].T)] = True
+        direct = silhouette_coverage(occupancy, obj.origin, obj.voxel, drop.masks[:, 0], drop.cameras, pose=p)
+        assert hits_coverage(kept, drop.masks[:, 0]) == direct
+        covers.append(min(direct))
+    assert covers[0] > 0.97 and covers[1] < covers[0]  # a few voxels removed barely show; posed elsewhere, less
 
 
 @pytest.mark.parametrize("field,value", [("frame_rounds", -1), ("track_points", 2), ("frame_residual_ratio", 0.0),

@@ -369,13 +369,50 @@ def within_silhouettes(points: Tensor, masks: Tensor, viewmats: Tensor, Ks: Tens
     return keep
 
 
+_COVER_OFFSETS = torch.tensor([[0.0, 0.0, 0.0]] + [[a, b, c] for a in (-0.45, 0.45) for b in (-0.45, 0.45)
+                                                     for c in (-0.45, 0.45)])
+
+
+def voxel_pixel_hits(voxels: Tensor, origin: Tensor, voxel: float, cameras: Sequence[Camera], size: tuple[int, int],
+                     pose: tuple[np.ndarray, np.ndarray] | None = None) -> Tensor:
+    """Per view and pixel, how many sample points of the voxels land on it: (V, H·W) int64.
+
+    Each voxel is projected as its centre and 8 points at ±0.45 voxel (voxels are about a pixel wide at the
+    default resolution), so the pixels hit form a solid silhouette. The counts of a set are the sum of its
+    parts', so a subset's hits are the whole set's counts less those of the voxels it leaves out.
+
+    Args:
+        voxels: (N, 3) integer grid indices of the voxels; origin: (3,) the grid's corner; voxel: its edge (m).
+        cameras: the V cameras; size: (H, W) of their images.
+        pose: (R (3, 3), T (3,)) moving the voxels (X ↦ R X + T); None: as they are.
+    """
+
+    H, W = size
+    pts = (origin.float() + (voxels.to(torch.float32)[:, None, :] + 0.5 + _COVER_OFFSETS[None]) * voxel).reshape(-1, 3)
+    if pose is not None:
+        pts = pts @ torch.as_tensor(pose[0], dtype=torch.float32).T + torch.as_tensor(pose[1], dtype=torch.float32)
+    viewmats, Ks, _, _ = stack_cameras(list(cameras))
+    col, row, _ = project_points(pts, viewmats.float(), Ks.float())
+    hits = torch.zeros(len(cameras), H * W, dtype=torch.int64)
+    for v in range(len(cameras)):
+        ok = (col[v] >= 0) & (col[v] < W) & (row[v] >= 0) & (row[v] < H)
+        hits[v] = torch.bincount(row[v][ok] * W + col[v][ok], minlength=H * W)
+    return hits
+
+
+def hits_coverage(hits: Tensor, masks: Tensor, threshold: float = 0.5) -> list[float]:
+    """Per view, the fraction of the mask's pixels (> ``threshold``) with a hit: ``hits`` (V, H·W) from
+    :func:`voxel_pixel_hits`, ``masks`` (V, H, W) in [0, 1]."""
+    inside = masks.reshape(masks.shape[0], -1) > threshold
+    covered = ((hits > 0) & inside).sum(1)
+    return [float(c) / max(1, int(n)) for c, n in zip(covered, inside.sum(1))]
+
+
 def silhouette_coverage(occupancy: Tensor, origin: Tensor, voxel: float, masks: Tensor,
                         cameras: Sequence[Camera], threshold: float = 0.5,
                         pose: tuple[np.ndarray, np.ndarray] | None = None) -> list[float]:
-    """Per view, the fraction of the mask's pixels (> ``threshold``) that the occupied voxels cover.
-
-    Each occupied voxel is projected as its centre and 8 points at ±0.45 voxel (voxels are about a pixel wide
-    at the default resolution), so the covered pixels form a solid silhouette.
+    """Per view, the fraction of the mask's pixels (> ``threshold``) that the occupied voxels cover (each voxel
+    projected as in :func:`voxel_pixel_hits`).
 
     Args:
         occupancy: (A, B, C) bool; origin: (3,) the grid's corner; voxel: its edge (m).
@@ -383,23 +420,8 @@ def silhouette_coverage(occupancy: Tensor, origin: Tensor, voxel: float, masks: 
         pose: (R (3, 3), T (3,)) moving the voxels (X ↦ R X + T) into the frame of ``masks``; None: as they are.
     """
 
-    V, H, W = masks.shape
-    idx = torch.nonzero(occupancy).to(torch.float32)
-    corners = torch.tensor([[0.0, 0.0, 0.0]] + [[a, b, c] for a in (-0.45, 0.45) for b in (-0.45, 0.45)
-                                                 for c in (-0.45, 0.45)])
-    pts = (origin.float() + (idx[:, None, :] + 0.5 + corners[None]) * voxel).reshape(-1, 3)
-    if pose is not None:
-        pts = pts @ torch.as_tensor(pose[0], dtype=torch.float32).T + torch.as_tensor(pose[1], dtype=torch.float32)
-    viewmats, Ks, _, _ = stack_cameras(list(cameras))
-    col, row, _ = project_points(pts, viewmats.float(), Ks.float())
-    out = []
-    for v in range(V):
-        ok = (col[v] >= 0) & (col[v] < W) & (row[v] >= 0) & (row[v] < H)
-        hit = torch.zeros(H * W, dtype=torch.bool)
-        hit[(row[v][ok] * W + col[v][ok])] = True
-        inside = masks[v].reshape(-1) > threshold
-        out.append(float((hit & inside).sum()) / max(1, int(inside.sum())))
-    return out
+    hits = voxel_pixel_hits(torch.nonzero(occupancy), origin, voxel, cameras, tuple(masks.shape[1:]), pose)
+    return hits_coverage(hits, masks, threshold)
 
 
 def carve_with_frames(masks: Tensor, cameras: Sequence[Camera], dt: float, gravity: Sequence[float],
@@ -432,6 +454,7 @@ def carve_with_frames(masks: Tensor, cameras: Sequence[Camera], dt: float, gravi
     centres = (origin.double() + (idx.double() + 0.5) * voxel)
     viewmats, Ks, _, _ = stack_cameras(list(cameras))
     viewmats, Ks = viewmats.float(), Ks.float()
+    size = (int(masks.shape[2]), int(masks.shape[3]))
     obj = obj0
     for r in range(cfg.frame_rounds):
         poses = track_poses(obj.points, masks, cameras, max_points=cfg.track_points, seed=cfg.seed)
@@ -440,11 +463,19 @@ def carve_with_frames(masks: Tensor, cameras: Sequence[Camera], dt: float, gravi
         keep = torch.ones(len(idx), dtype=torch.bool)
         chosen, refused = [], {}
 
-        def cover(occupancy: Tensor, s: int) -> list[float]:
-            pose = (poses.rotations[s], poses.translations[s])
-            return silhouette_coverage(occupancy, origin, voxel, masks[:, s].float(), cameras, cfg.mask_threshold, pose)
+        # per frame that carves, the frame-0 voxels' pixel hits posed there; a trial's hits are those less the
+        # hits of the voxels it removes (a few per cent of them), the same pixels as projecting what it keeps
+        hits: dict[int, Tensor] = {}
 
-        base_cover = {0: cover(occ0, 0)}  # the frames that carve, and what the frame-0 voxels cover of them
+        def voxel_hits(voxels: Tensor, s: int) -> Tensor:
+            return voxel_pixel_hits(voxels, origin, voxel, cameras, size, (poses.rotations[s], poses.translations[s]))
+
+        def cover(s: int, removed: Tensor | None = None) -> list[float]:
+            kept = hits[s] if removed is None else hits[s] - voxel_hits(removed, s)
+            return hits_coverage(kept, masks[:, s].float(), cfg.mask_threshold)
+
+        hits[0] = voxel_hits(idx, 0)
+        base_cover = {0: cover(0)}  # the frames that carve, and what the frame-0 voxels cover of them
         for t in range(1, poses.num_frames):
             if deviation[t] is None or deviation[t] > cfg.free_flight_tolerance:
                 refused[t] = "not in free flight" if deviation[t] is not None else "last frame"
@@ -454,16 +485,16 @@ def carve_with_frames(masks: Tensor, cameras: Sequence[Camera], dt: float, gravi
                 continue
             posed = centres @ torch.from_numpy(poses.rotations[t]).T + torch.from_numpy(poses.translations[t])
             inside = within_silhouettes(posed.float(), masks[:, t], viewmats, Ks, cfg.carve_margin_px)
-            trial = torch.zeros_like(occ0)
-            trial[tuple(idx[keep & inside].T)] = True
-            losses = {s: max(b - c for b, c in zip(base, cover(trial, s))) for s, base in base_cover.items()}
+            removed = idx[~(keep & inside)]
+            losses = {s: max(b - c for b, c in zip(base, cover(s, removed))) for s, base in base_cover.items()}
             worst = max(losses, key=losses.get)
             if losses[worst] > cfg.coverage_tolerance:
                 refused[t] = f"uncovers {100 * losses[worst]:.1f} % of a mask of frame {worst}"
                 continue
             keep &= inside
             chosen.append(t)
-            base_cover[t] = cover(occ0, t)
+            hits[t] = voxel_hits(idx, t)
+            base_cover[t] = cover(t)
         occ = torch.zeros_like(occ0)
         occ[tuple(idx[keep].T)] = True
         obj = points_from_occupancy(occ, origin, voxel, cfg, hull_voxels=obj0.hull_voxels)
