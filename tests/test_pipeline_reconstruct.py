@@ -572,6 +572,8 @@ def test_presets_and_config_errors():
     assert small.motion_appearance.geometry and not full.motion_appearance.geometry
     # the hull track: the full preset's 12 views locate the body within millimetres, the small preset's 4 do not
     assert small.joint.track_sd is None and full.joint.track_sd == 0.01
+    # the solid's voxels: a few pixels of a 448² view at 64, so the full preset carves at 128
+    assert small.points.resolution == 64 and full.points.resolution == 128
     with pytest.raises(ValueError, match="jacobian"):
         NetworksConfig(jacobian="finite_differences")
     with pytest.raises(ValueError, match="skinning_objective must be one of"):
