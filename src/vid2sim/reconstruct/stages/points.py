@@ -388,12 +388,13 @@ def voxel_pixel_hits(voxels: Tensor, origin: Tensor, voxel: float, cameras: Sequ
     """
 
     H, W = size
-    pts = (origin.float() + (voxels.to(torch.float32)[:, None, :] + 0.5 + _COVER_OFFSETS[None]) * voxel).reshape(-1, 3)
+    offsets = _COVER_OFFSETS.to(voxels.device)
+    pts = (origin.float() + (voxels.to(torch.float32)[:, None, :] + 0.5 + offsets[None]) * voxel).reshape(-1, 3)
     if pose is not None:
         pts = pts @ torch.as_tensor(pose[0], dtype=torch.float32).T + torch.as_tensor(pose[1], dtype=torch.float32)
     viewmats, Ks, _, _ = stack_cameras(list(cameras))
     col, row, _ = project_points(pts, viewmats.float(), Ks.float())
-    hits = torch.zeros(len(cameras), H * W, dtype=torch.int64)
+    hits = torch.zeros(len(cameras), H * W, dtype=torch.int64, device=col.device)
     for v in range(len(cameras)):
         ok = (col[v] >= 0) & (col[v] < W) & (row[v] >= 0) & (row[v] < H)
         hits[v] = torch.bincount(row[v][ok] * W + col[v][ok], minlength=H * W)
