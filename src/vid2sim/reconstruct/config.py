@@ -595,7 +595,7 @@ PRESETS: dict[str, dict[str, Any]] = {
     # off over the observed frames, |dlog10 E| 0.18 -> 0.16, |dnu| 0.10 -> 0.14 (docs/results.md). The small
     # preset's 4-view hulls are not that accurate (their track is 7-18 mm off the truth's, as far as its fits are).
     # The solid is carved on 128 voxels a side: at 64 a voxel is 10-13 mm, three pixels of a 448² view, and the
-    # depth carving's tolerance of 0.75 voxel left the solid 7-13 % larger than the object on five of six full scenes;
+    # depth carving's tolerance of 0.75 voxel left the solid 6.5-13 % larger than the object on five of six full scenes;
     # at 128 it is 1-5 % larger (docs/results.md "128 voxels at full size").
     "full": {"gaussians": {"iterations": 1000, "views_per_step": 2},
              "points": {"resolution": 128},
