@@ -376,14 +376,15 @@ class FusedFrame:
         return F.view(S, 3, 3, K).permute(1, 2, 0, 3).reshape(3, 3, S * K)
 
     def metric(self, y: Tensor) -> tuple[Tensor, Tensor]:
-        """(Ft, C = FᵀF) (K, 3, 3) at y; the last two states asked for are remembered (a step's previous state
-        is the next step's state two back, and its converged state is checked before the next step starts)."""
+        """(Ft, C = FᵀF) (K, 3, 3) at y; the last three states asked for are remembered (a step's C_ref is made of
+        its two previous states, and its converged state is checked before the next step starts: the next step
+        then finds all it needs)."""
         for known, Ft, C in self._metrics:
             if known is y:
                 return Ft, C
         Ft = self.deformation(y)
         C = torch.bmm(Ft, Ft.transpose(1, 2))
-        self._metrics = [*self._metrics[-1:], (y, Ft, C)]
+        self._metrics = [*self._metrics[-2:], (y, Ft, C)]
         return Ft, C
 
 
@@ -457,8 +458,8 @@ class StepAdjoint:
     """What a step's backward pass needs (made by :class:`AdjointBatch`).
 
     Attributes:
-        hessian: (D, D) the exact Hessian at the converged state; factor: its Cholesky factor, or None where it is
-            indefinite (then LU).
+        hessian: (D, D) the exact Hessian at the converged state where it is indefinite (then the adjoint solves
+            with LU), else None; factor: its Cholesky factor where it is positive definite, else None.
         rows: (3, D) E: the gradients to (μ, λ, τ) are E λ.
         metric_map: (2, 3, 3, 3, 3, K) the maps of :func:`metric_adjoint_map` to the previous state and the one
             before (2c folded in), or None when undamped.
@@ -466,7 +467,7 @@ class StepAdjoint:
             (a₁/a₀, h a₁/a₀², a₂/a₀, h a₂/a₀²) (ŷ's coefficients).
     """
 
-    hessian: Tensor
+    hessian: Tensor | None
     factor: Tensor | None
     rows: Tensor
     metric_map: Tensor | None
@@ -608,7 +609,7 @@ class FusedStep:
         if data.metric_map is not None:  # through C_ref to the previous states
             dF = torch.mm(Lam, fr.G_soa_cols).view(1, 1, 1, 3, 3, -1)  # dF[x, y, p]
             R = (data.metric_map * dF).sum((3, 4))  # (2, 3, 3, K): [state, e, c, p]
-            history[0::2] += torch.mm(R.view(6, -1), fr.G_soa_rows).view(2, 3, -1)
+            history[0::2].add_(torch.mm(R.view(6, -1), fr.G_soa_rows).view(2, 3, -1))
         return history.view(4, -1), torch.mv(data.rows, lam)
 
 
@@ -641,10 +642,11 @@ class AdjointBatch:
             s.adjoint_data = data
 
 
-def _soa_stack(mats: Sequence[Tensor]) -> Tensor:
-    """Point-major (K, 3, 3) matrices of S steps as one point-last (3, 3, S K) tensor."""
+def _soa_stack(mats: Sequence[Tensor], transpose: bool = False) -> Tensor:
+    """Point-major (K, 3, 3) matrices of S steps as one point-last (3, 3, S K) tensor (``transpose``: of their
+    transposes)."""
     M = torch.stack(list(mats))  # (S, K, 3, 3)
-    return M.permute(2, 3, 0, 1).reshape(3, 3, -1)
+    return M.permute(3, 2, 0, 1).reshape(3, 3, -1) if transpose else M.permute(2, 3, 0, 1).reshape(3, 3, -1)
 
 
 def _adjoint_data(steps: Sequence[FusedStep]) -> list[StepAdjoint]:
@@ -668,14 +670,12 @@ def _adjoint_data(steps: Sequence[FusedStep]) -> list[StepAdjoint]:
     if fr.tau is not None:
         maps = []
         for i, ratio in ((0, a1 / a0), (1, a2 / a0)):  # the state one step back and two (C_ref's terms)
-            prev = _soa_stack(
-                [(s.previous[i] if i < len(s.previous) else s.previous[0]).transpose(1, 2) for s in steps]
-            )
+            prev = _soa_stack([s.previous[i] if i < len(s.previous) else s.previous[0] for s in steps], transpose=True)
             scale = ratio.repeat_interleave(K)
             maps.append(metric_adjoint_map(F, prev, c["alpha"] * scale, (2.0 * scale) * c["beta1"]))
         maps = torch.stack(maps).view(2, 3, 3, 3, 3, S, K)
-    return [StepAdjoint(H[s], factor[s] if bad == 0 else None, rows[s], None if maps is None else maps[..., s, :],
-                        history[s]) for s, bad in enumerate(info.tolist())]
+    return [StepAdjoint(H[s] if bad else None, None if bad else factor[s], rows[s],
+                        None if maps is None else maps[..., s, :], history[s]) for s, bad in enumerate(info.tolist())]
 
 
 #: The row blocks (i, k), i ≤ k, of the Hessian that are assembled; the others are transposes: those of the pairs

@@ -298,7 +298,7 @@ class NewtonCache:
     rotation: Tensor | None = None
     adjoint: AdjointBatch = field(default_factory=AdjointBatch)
     frame: tuple[tuple, FusedFrame] | None = None
-    inverse: Tensor | None = None
+    neg_inverse: Tensor | None = None
     step_matrix: Tensor | None = None
 
     def keep(self, factor: Tensor, problem: StepProblem, y: Tensor, chord: bool = True) -> None:
@@ -310,15 +310,15 @@ class NewtonCache:
         self.factor, self.moments = factor, (problem.X.T @ a, problem.b.T @ a)
         self.stale = False
         self.rotation = torch.eye(3, dtype=y.dtype, device=y.device)
-        self.inverse = torch.cholesky_inverse(factor).contiguous() if chord else None
-        self.step_matrix = None if self.inverse is None else -self.inverse
+        self.neg_inverse = torch.cholesky_inverse(factor).contiguous().neg_() if chord else None  # −H₀⁻¹
+        self.step_matrix = self.neg_inverse
 
     def _turn(self, rotation: Tensor) -> None:
         """Fit the chord step's matrix −(R ⊗ I) H₀⁻¹ (R ⊗ I)ᵀ (D, D) to the rotation R (3, 3): every chord step of the
         substep is then one product. [a, l, b, m] = −Σ_cd R[a, c] H₀⁻¹[(c, l), (d, m)] R[b, d]."""
         self.rotation = rotation
-        D = self.inverse.shape[0]
-        left = torch.mm(-rotation, self.inverse.view(3, -1)).view(D, 3, D // 3)  # [(a, l), d, m]
+        D = self.neg_inverse.shape[0]
+        left = torch.mm(rotation, self.neg_inverse.view(3, -1)).view(D, 3, D // 3)  # [(a, l), d, m]
         self.step_matrix = torch.matmul(rotation, left).view(D, D)
 
     def direction(self, problem: StepProblem, y: Tensor, g: Tensor, refit: bool = True) -> Tensor:
@@ -334,9 +334,8 @@ def _rotation_of(cov: Tensor) -> Tensor:
     """The rotation R (3, 3) minimising Σ m_p ‖R a_p − b_p‖² given cov = Σ m_p b_p a_pᵀ (3, 3) of centred
     reference points a and points b (Kabsch, with the reflection removed)."""
     U, _, Vh = torch.linalg.svd(cov)
-    R = U @ Vh
-    flip = torch.linalg.det(R).sign_().sub_(1.0)  # det R = ±1: 0, or −2 where U Vh reflects
-    return torch.addcmul(R, flip, torch.outer(U.select(1, 2), Vh.select(0, 2)))  # U diag(1, 1, ±1) Vh
+    Vh.select(0, 2).mul_(torch.linalg.det(U @ Vh))  # det(U Vh) = ±1: U diag(1, 1, ±1) Vh has det +1
+    return U @ Vh
 
 
 def _factorize(H: Tensor) -> Tensor | None:
