@@ -276,42 +276,27 @@ class _Slots:
         self.n_blocks = B
 
 
-#: The map from the products :func:`_param_grads` forms to the slot's parameter gradients (18, 6), rows:
-#: n₀…n₅ (0–5), n₀ Qm (6–7), n_{1+j} q_k (8 + 3j + k), m_i v_j (14 + 2i + j); see :func:`_param_grads`.
-_PARAM_GRAD_MAP = {
-    (6, 0): -1.0, (8, 0): -2.0, (12, 0): -1.0,  # ∂μx = −n₀ (Qm)ₓ + a n₁ + b n₂
-    (7, 1): -1.0, (9, 1): -1.0, (13, 1): -2.0,  # ∂μy = −n₀ (Qm)_y + b n₁ + c n₂
-    (14, 2): 1.0, (3, 2): -0.5,  # ∂a = mₓvₓ − ½n₃
-    (15, 3): 1.0, (16, 3): 1.0, (4, 3): -1.0,  # ∂b = mₓv_y + m_yvₓ − n₄
-    (17, 4): 1.0, (5, 4): -0.5,  # ∂c = m_yv_y − ½n₅
-    (0, 5): 1.0,  # ∂log o = n₀
-}
+def _param_grads(d_ncoef: Tensor, ncoef: Tensor, mxy: Tensor, out: Tensor) -> Tensor:
+    """Per-slot ∂L/∂[μx, μy, a, b, c, log o] (…, 6), written into ``out`` and returned, from n = ∂L/∂(−coef) (…, 6).
 
-
-def _param_grad_map(dtype: torch.dtype, device: torch.device) -> Tensor:
-    """:data:`_PARAM_GRAD_MAP` as an (18, 6) tensor."""
-    rows = [[_PARAM_GRAD_MAP.get((row, col), 0.0) for col in range(6)] for row in range(18)]
-    return torch.tensor(rows, dtype=dtype, device=device)
-
-
-def _param_grads(d_ncoef: Tensor, ncoef: Tensor, mxy: Tensor, grad_map: Tensor) -> Tensor:
-    """Per-slot ∂L/∂[μx, μy, a, b, c, log o] (…, 6) from n = ∂L/∂(−coef) (…, 6).
-
-    coef = [½ mᵀQm − log o, −(Qm)ₓ, −(Qm)_y, ½a, b, ½c] with Q = [[a, b], [b, c]] and m = μ − tile centre, so
-    (with q = −[½a, b, ½c], the slots' ``ncoef[..., 3:]``, and v = (n₁, n₂) − ½ n₀ m)
-    ∂μ = −n₀ Qm + Q (n₁, n₂), ∂a = mₓvₓ − ½n₃, ∂b = mₓv_y + m_yvₓ − n₄, ∂c = m_yv_y − ½n₅, ∂log o = n₀:
-    every term is one of 18 products, and the gradients are one matrix product of them with ``grad_map``
-    (:func:`_param_grad_map`).
+    coef = [½ mᵀQm − log o, −(Qm)ₓ, −(Qm)_y, ½a, b, ½c] with Q = [[a, b], [b, c]] and m = μ − tile centre. With
+    the slots' ``ncoef`` = [·, (Qm)ₓ, (Qm)_y, q₀, q₁, q₂] (q = −[½a, b, ½c]) and v = (n₁, n₂) − ½ n₀ m:
+    ∂μ = −n₀ Qm + Q (n₁, n₂), ∂a = mₓvₓ − ½n₃, ∂b = mₓv_y + m_yvₓ − n₄, ∂c = m_yv_y − ½n₅, ∂log o = n₀ —
+    written column by column into the result (a few fused element-wise operations each).
     """
-    n0 = d_ncoef[..., :1]
-    v = torch.addcmul(d_ncoef[..., 1:3], n0, mxy, value=-0.5)
-    products = torch.cat([
-        d_ncoef,
-        n0 * ncoef[..., 1:3],
-        (d_ncoef[..., 1:3, None] * ncoef[..., None, 3:]).flatten(-2),
-        (mxy[..., :, None] * v[..., None, :]).flatten(-2),
-    ], dim=-1)
-    return products @ grad_map
+    n0, n1, n2, n3, n4, n5 = d_ncoef.unbind(-1)
+    qmx, qmy, q0, q1, q2 = ncoef[..., 1:].unbind(-1)
+    mx, my = mxy.unbind(-1)
+    vx = torch.addcmul(n1, n0, mx, value=-0.5)
+    vy = torch.addcmul(n2, n0, my, value=-0.5)
+    d_mx, d_my, d_a, d_b, d_c, d_log_o = out.unbind(-1)
+    torch.mul(n0, qmx, out=d_mx).addcmul_(n1, q0, value=2.0).addcmul_(n2, q1).neg_()  # −n₀(Qm)ₓ + a n₁ + b n₂
+    torch.mul(n0, qmy, out=d_my).addcmul_(n1, q1).addcmul_(n2, q2, value=2.0).neg_()  # −n₀(Qm)_y + b n₁ + c n₂
+    torch.mul(mx, vx, out=d_a).add_(n3, alpha=-0.5)
+    torch.mul(mx, vy, out=d_b).addcmul_(my, vx).sub_(n4)
+    torch.mul(my, vy, out=d_c).add_(n5, alpha=-0.5)
+    d_log_o.copy_(n0)
+    return out
 
 
 def _alpha(ncoef: Tensor, basis: Tensor, alpha_th: float) -> tuple[Tensor, Tensor]:
@@ -403,7 +388,6 @@ class _Composite(torch.autograd.Function):
         basis = _pixel_basis(ts, params.dtype, params.device)
         basis_t = basis.T.contiguous()
         th = _alpha_threshold(params.dtype)
-        grad_map = _param_grad_map(params.dtype, params.device)
         # per-slot gradients [∂μx, ∂μy, ∂a, ∂b, ∂c, ∂log o, ∂f_0 … ∂f_{C-1}]
         d_slots = torch.zeros(slots.n_blocks, K, 6 + C, dtype=params.dtype, device=params.device)
         grad_acc = grad_acc.contiguous()
@@ -429,7 +413,7 @@ class _Composite(torch.autograd.Function):
                 d_alpha.mul_(alpha).mul_(incl).mul_(unclamped)  # ∂L/∂(−σ') = α ∂L/∂α
                 d_ncoef = d_alpha @ basis_t  # (A, K, 6)
                 d = torch.empty(e - s, K, 6 + C, dtype=params.dtype, device=params.device)
-                d[..., :6] = _param_grads(d_ncoef, ncoef, slots.mxy.index_select(0, b), grad_map)
+                _param_grads(d_ncoef, ncoef, slots.mxy.index_select(0, b), d[..., :6])
                 d[..., 6:] = w @ g[:, :C].transpose(1, 2)
                 d_slots.index_copy_(0, b, d)
             g_act = g_act.index_select(0, kept)
