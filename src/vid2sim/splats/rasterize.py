@@ -256,23 +256,17 @@ class _Slots:
         src = (bins.tile_start.index_select(0, blk_tile)[:, None] + rank) * valid
         # padding slots point at entry 0: their α is forced to 0, so they contribute nothing either way
         self.entry = bins.isect_entry.index_select(0, src.reshape(-1)) if B else src.reshape(-1)
-        table = torch.cat([params, feat1], dim=1).index_select(0, self.entry)  # (B·K, 6 + C1)
+        # the slots' parameters point-last (6, B, K): each term below is one contiguous element-wise pass
+        mux, muy, a, b, c, lo = params.t().index_select(1, self.entry).view(6, B, K).unbind(0)
         cx, cy = _tile_centres(blk_tile, bins, dtype)
-        mxy = table[:, :2].reshape(B, K, 2) - torch.stack([cx, cy], dim=-1)
-        mx, my = mxy.unbind(-1)
-        a, b, c, lo = (table[:, i].reshape(B, K) for i in range(2, 6))
-        ncoef = torch.empty(B, K, 6, dtype=dtype, device=dev)
-        bx = torch.add(a * mx, b * my, out=ncoef[..., 1])
-        by = torch.add(b * mx, c * my, out=ncoef[..., 2])
-        torch.mul(a, -0.5, out=ncoef[..., 3])
-        torch.neg(b, out=ncoef[..., 4])
-        torch.mul(c, -0.5, out=ncoef[..., 5])
-        validf = valid.to(dtype)
-        neg_const = lo - 0.5 * (mx * bx + my * by)  # −(½ mᵀQm − log o)
-        ncoef[..., 0] = neg_const * validf + (validf - 1.0) * _PAD_SIGMA
-        self.ncoef = ncoef  # (B, K, 6)
-        self.mxy = mxy  # (B, K, 2)
-        self.feat = table[:, 6:].reshape(B, K, feat1.shape[1]).contiguous()  # (B, K, C1); B may be 0
+        mx, my = mux - cx, muy - cy
+        qmx = torch.addcmul(a * mx, b, my)  # (Qm)ₓ
+        qmy = torch.addcmul(b * mx, c, my)  # (Qm)_y
+        neg_const = lo - 0.5 * (mx * qmx + my * qmy)  # −(½ mᵀQm − log o)
+        neg_const = torch.where(valid, neg_const, neg_const.new_full((), -_PAD_SIGMA))
+        self.ncoef = torch.stack([neg_const, qmx, qmy, -0.5 * a, -b, -0.5 * c], dim=-1)  # (B, K, 6)
+        self.mxy = torch.stack([mx, my], dim=-1)  # (B, K, 2)
+        self.feat = feat1.index_select(0, self.entry).view(B, K, feat1.shape[1])  # (B, K, C1); B may be 0
         self.n_blocks = B
 
 
