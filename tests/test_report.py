@@ -441,10 +441,16 @@ def test_chromium_loads_and_paints_videos_and_plots(scene_report, tmp_path):
     out, _, _ = scene_report
     url = (out / "index.html").resolve().as_uri()
     size = "--window-size=1280,6000"
-    dom = _chromium([size, "--virtual-time-budget=5000", "--dump-dom"], url, tmp_path / "p1")
-    assert dom.returncode == 0, dom.stderr[-2000:]
-    root = dom.stdout[dom.stdout.index("<html"):dom.stdout.index(">", dom.stdout.index("<html"))]
-    attrs = dict(part.split("=", 1) for part in root.replace('"', "").split()[1:] if "=" in part)
+    # The page counts the videos that have decoded a frame when the virtual-time budget runs out; on a loaded
+    # machine (CI runs the suite on two workers) the decoder may still be busy at 5 s, so longer budgets are tried
+    # before judging (the failure names the last count).
+    for attempt, budget in enumerate((5000, 15000, 40000)):
+        dom = _chromium([size, f"--virtual-time-budget={budget}", "--dump-dom"], url, tmp_path / f"p1-{attempt}")
+        assert dom.returncode == 0, dom.stderr[-2000:]
+        root = dom.stdout[dom.stdout.index("<html"):dom.stdout.index(">", dom.stdout.index("<html"))]
+        attrs = dict(part.split("=", 1) for part in root.replace('"', "").split()[1:] if "=" in part)
+        if int(attrs["data-videos-ready"]) == int(attrs["data-videos"]):
+            break
     assert int(attrs["data-videos"]) == 4 and int(attrs["data-videos-ready"]) == 4  # all four VP9 videos decoded
     assert int(attrs["data-images"]) >= 4 and attrs["data-images-ready"] == attrs["data-images"]
     start = dom.stdout.index("data-layout=")
