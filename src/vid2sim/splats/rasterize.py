@@ -316,21 +316,6 @@ def _transmittance(alpha: Tensor, p_in: Tensor) -> tuple[Tensor, Tensor, Tensor,
     return t_before, incl, w, cp[:, -1]
 
 
-def _forward_weights(ncoef: Tensor, basis: Tensor, alpha_th: float, p_in: Tensor) -> tuple[Tensor, Tensor]:
-    """The forward pass's compositing weights w (A, K, P) and the running transmittance after the chunk (A, P): the
-    values of :func:`_alpha` and :func:`_transmittance`, made in place in one buffer (the forward keeps neither α nor
-    the inclusion mask, so it allocates three (A, K, P) tensors fewer)."""
-    A, K, P = ncoef.shape[0], ncoef.shape[1], basis.shape[1]
-    w = torch.matmul(ncoef, basis)
-    F.threshold_(w.exp_().clamp_(max=MAX_ALPHA), alpha_th, 0.0)  # α
-    cp = torch.empty(A, K + 1, P, dtype=w.dtype, device=w.device)
-    cp[:, 0] = p_in
-    torch.sub(1.0, w, out=cp[:, 1:])
-    cp.cumprod_(dim=1)
-    w.mul_(cp[:, :-1]).mul_(cp[:, 1:] > T_EPS)  # α T, zero where the ray is spent
-    return w, cp[:, -1]
-
-
 def _groups(n: int, K: int, P: int, max_elements: int) -> list[tuple[int, int]]:
     per = max(1, max_elements // (K * P))
     return [(s, min(n, s + per)) for s in range(0, n, per)]
@@ -369,7 +354,8 @@ class _Composite(torch.autograd.Function):
             for s, e in _groups(active.numel(), K, P, opts.max_elements):
                 ncoef = slots.ncoef.index_select(0, bids[s:e])
                 f = slots.feat.index_select(0, bids[s:e])
-                w, p_last = _forward_weights(ncoef, basis, th, p_act[s:e])
+                _, alpha = _alpha(ncoef, basis, th)
+                _, _, w, p_last = _transmittance(alpha, p_act[s:e])
                 acc_act[s:e].baddbmm_(f.transpose(1, 2), w)
                 p_next[s:e] = p_last
             c += 1
