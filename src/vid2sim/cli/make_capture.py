@@ -15,7 +15,8 @@ def run(args: argparse.Namespace) -> int:
         config = CaptureTwinConfig(seed=args.seed, resolution_scale=args.resolution_scale,
                                    frame_rate_scale=args.frame_rate_scale,
                                    lead_in_frames=args.lead_in, frames_format=args.format,
-                                   colmap_format=args.colmap_format, write_transforms=not args.no_transforms)
+                                   colmap_format=args.colmap_format, write_transforms=not args.no_transforms,
+                                   photos=args.photos)
     except ValueError as exc:
         raise UserError(str(exc)) from exc
     try:
@@ -49,6 +50,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="H.264 videos (default) or PNG frame folders + capture.json")
     p.add_argument("--colmap-format", choices=["text", "binary", "both", "none"], default="text",
                    help="COLMAP model files to write (default text)")
+    p.add_argument("--photos", type=int, default=0, metavar="N",
+                   help="also write N walkaround photos of the empty room to OUT/photos/, for structure from motion "
+                   "(vid2sim calibrate-capture; default 0)")
     p.add_argument("--no-transforms", action="store_true", help="do not write nerfstudio's transforms.json")
     p.add_argument("--overwrite", action="store_true", help="replace an existing capture twin")
     p.add_argument("--quiet", action="store_true", help="no progress lines")

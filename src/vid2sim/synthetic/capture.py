@@ -36,11 +36,12 @@ from torch import Tensor
 from vid2sim.runtime.files import jsonable, write_folder_atomic
 from vid2sim.scene.capture.cameras import CaptureCamera, rigid
 from vid2sim.scene.capture.colmap import write_colmap
+from vid2sim.scene.capture.layout import PHOTOS_DIR
 from vid2sim.scene.capture.nerfstudio import write_transforms
 from vid2sim.scene.reading import load_scene
 from vid2sim.scene.video import write_video
 from vid2sim.splats.cameras import Camera
-from vid2sim.synthetic.capture_render import Room, Sensor, ShadowMaps, make_room, render_view
+from vid2sim.synthetic.capture_render import Room, Sensor, ShadowMaps, make_room, render_room, render_view
 from vid2sim.synthetic.embedding import apply_embedding, embed_points
 from vid2sim.synthetic.fem import FEMResult
 from vid2sim.synthetic.mesh_render import DEFAULT_LIGHT_DIR
@@ -88,6 +89,11 @@ class CaptureTwinConfig:
         shadow_softness_m: the penumbra's width (Gaussian std, metres on the floor).
         room_half_size, wall_height: the room around the cameras (metres).
         supersample: anti-aliasing of the renders.
+        photos: walkaround photos of the empty room written to ``photos/`` (what a user adds so that structure
+            from motion links cameras too far apart to match each other's plates: ``vid2sim calibrate-capture``),
+            taken on a ring through the cameras at 0.8–1.2 × their distance from the point they look at and
+            ±``photo_height_m`` around their height, with the first camera's intrinsics and no distortion. 0: none.
+        photo_height_m: see ``photos``.
     """
 
     seed: int = 0
@@ -119,6 +125,8 @@ class CaptureTwinConfig:
     room_half_size: float = 4.0
     wall_height: float = 3.0
     supersample: int = 2
+    photos: int = 0
+    photo_height_m: float = 0.3
 
     def __post_init__(self) -> None:
         if self.frames_format not in ("video", "frames"):
@@ -126,6 +134,8 @@ class CaptureTwinConfig:
         if self.colmap_format not in ("text", "binary", "both", "none"):
             raise ValueError("CaptureTwinConfig.colmap_format must be 'text', 'binary', 'both' or 'none', got "
                              f"{self.colmap_format!r}")
+        if isinstance(self.photos, bool) or not isinstance(self.photos, int) or self.photos < 0:
+            raise ValueError(f"CaptureTwinConfig.photos must be an integer >= 0, got {self.photos!r}")
         if self.colmap_format == "none" and not self.write_transforms:
             raise ValueError("CaptureTwinConfig: write at least one calibration (colmap_format or write_transforms)")
         if isinstance(self.resolution_scale, bool) or not isinstance(self.resolution_scale, int) or \
@@ -364,6 +374,8 @@ def write_capture(motion: CaptureMotion, out: str | Path, config: CaptureTwinCon
 
     def write(staging: Path) -> None:
         alphas = _film(staging, motion, rig, room, shadows, config, rng, progress)
+        if config.photos:
+            _photograph(staging / PHOTOS_DIR, rig, room, config, progress)
         true_cal = _write_calibrations(staging, motion, rig, config, rng)
         _write_truth(staging / TRUTH_DIR, motion, rig, config, true_cal, alphas)
 
@@ -426,6 +438,50 @@ def _film(staging: Path, motion: CaptureMotion, rig: _CaptureRig, room: Room, sh
     if config.frames_format == "frames":
         (staging / "capture.json").write_text(json.dumps({"fps": 1.0 / motion.dt}) + "\n")
     return alphas
+
+
+def _look_at(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """World-to-camera (4, 4) of a camera at ``eye`` looking at ``target``, image x level with the floor (z up)."""
+    f = (target - eye) / np.linalg.norm(target - eye)
+    right = np.cross(f, [0.0, 0.0, 1.0])
+    right /= np.linalg.norm(right)
+    R = np.stack([right, np.cross(f, right), f])
+    w2c = np.eye(4)
+    w2c[:3, :3] = R
+    w2c[:3, 3] = -R @ eye
+    return w2c
+
+
+def _photograph(folder: Path, rig: _CaptureRig, room: Room, config: CaptureTwinConfig, progress: bool) -> None:
+    """Render ``config.photos`` walkaround photos of the empty room into ``folder`` (see
+    :class:`CaptureTwinConfig`); their draws come from their own stream, so a twin with photos is otherwise the one
+    without."""
+    rng = np.random.default_rng([int(config.seed), 49])
+    cams = rig.true_world
+    centres = np.array([-c.world_to_camera[:3, :3].T @ c.world_to_camera[:3, 3] for c in cams])
+    axes = np.array([c.world_to_camera[2, :3] for c in cams])
+    # the point nearest every camera's optical axis (least squares)
+    A = sum(np.eye(3) - np.outer(a, a) for a in axes)
+    b = sum((np.eye(3) - np.outer(a, a)) @ c for a, c in zip(axes, centres))
+    target = np.linalg.solve(A, b)
+    offsets = centres - target
+    radius = float(np.linalg.norm(offsets[:, :2], axis=1).mean())
+    height = float(offsets[:, 2].mean())
+    phase = float(np.arctan2(offsets[0, 1], offsets[0, 0]))
+    ref = cams[0]
+    sensor = Sensor(np.ones(3), 0.0, config.noise_std)
+    folder.mkdir()
+    if progress:
+        print(f"[capture twin] {config.photos} walkaround photos of the empty room", flush=True)
+    for k in range(config.photos):
+        a = phase + 2 * np.pi * (k + 0.5) / config.photos
+        r = radius * rng.uniform(0.8, 1.2)
+        eye = target + np.array([r * np.cos(a), r * np.sin(a), height + rng.uniform(-1, 1) * config.photo_height_m])
+        look = target + rng.normal(0.0, 0.05 * radius, 3)
+        cam = Camera(torch.as_tensor(_look_at(eye, look), dtype=torch.float32),
+                     torch.as_tensor(ref.K, dtype=torch.float32), ref.width, ref.height)
+        rgb, _, _ = render_room(room, cam, config.supersample)
+        Image.fromarray(sensor(rgb, rng)).save(folder / f"p{k:03d}.png")
 
 
 def _write_calibrations(staging: Path, motion: CaptureMotion, rig: _CaptureRig, config: CaptureTwinConfig,

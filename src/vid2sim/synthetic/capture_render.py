@@ -67,21 +67,29 @@ def _grid_mesh(origin: np.ndarray, du: np.ndarray, dv: np.ndarray, nu: int, nv: 
 
 
 def make_room(floor_height: float, half_size: float = 4.0, wall_height: float = 3.0, seed: int = 0,
-              cell: float = 0.25, texture_size: int = 256) -> Room:
+              cell: float = 0.25, texture_size: int = 2048) -> Room:
     """A square room of side 2·``half_size`` m centred on the z axis, floor at ``floor_height``, walls
-    ``wall_height`` m high facing inwards; textures (muted value noise, the floor with tile lines) from ``seed``."""
+    ``wall_height`` m high facing inwards; textures from ``seed``.
+
+    Like a real room, nothing repeats: the floor is one texture (muted colour noise, a grain of detail down to a
+    few texels, tile lines every metre), and the four walls are four quarters of another. The detail is what
+    structure from motion matches between the plates (``vid2sim calibrate-capture``)."""
     rng = np.random.default_rng([int(seed), 7])
     n = max(2, int(round(2 * half_size / cell)))
     nh = max(2, int(round(wall_height / cell)))
     o = np.array([-half_size, -half_size, floor_height])
-    fv, ff, fuv = _grid_mesh(o, np.array([2 * half_size, 0, 0]), np.array([0, 2 * half_size, 0]), n, n,
-                             (2 * half_size, 2 * half_size))
+    fv, ff, fuv = _grid_mesh(o, np.array([2 * half_size, 0, 0]), np.array([0, 2 * half_size, 0]), n, n, (1.0, 1.0))
     base = rng.uniform(0.35, 0.7)
     floor_pal = np.clip(base * np.array([1.0, 0.9, 0.75]) + rng.uniform(-0.12, 0.12, (4, 3)) * [1, 1, 1], 0.05, 0.95)
-    floor_tex = noise(texture_size, floor_pal, rng, base_cells=3, octaves=4).numpy()
+    metres = 2 * half_size
+    floor_tex = noise(texture_size, floor_pal, rng, base_cells=int(3 * metres), octaves=4).numpy()
+    floor_tex = _terrazzo(floor_tex * _grain(texture_size, rng, base_cells=int(8 * metres)), rng,
+                          chip_cells=int(40 * metres))
     lines = np.ones((texture_size, texture_size, 1), np.float32)
-    lines[: max(1, texture_size // 64)] = 0.75
-    lines[:, : max(1, texture_size // 64)] = 0.75
+    period, width = texture_size / metres, max(1, texture_size // 512)
+    on_line = (np.arange(texture_size) % period) < width
+    lines[on_line] = 0.75
+    lines[:, on_line] = 0.75
     floor_tex = floor_tex * lines
     walls_v, walls_f, walls_uv = [], [], []
     corners = [np.array([-half_size, -half_size]), np.array([half_size, -half_size]),
@@ -92,14 +100,16 @@ def make_room(floor_height: float, half_size: float = 4.0, wall_height: float = 
         origin = np.array([a[0], a[1], floor_height])
         du = np.array([b[0] - a[0], b[1] - a[1], 0.0])
         dv = np.array([0.0, 0.0, wall_height])
-        v, f, uv = _grid_mesh(origin, du, dv, n, nh, (2 * half_size / 2, wall_height / 2))
+        v, f, uv = _grid_mesh(origin, du, dv, n, nh, (0.25, 1.0))
+        uv[..., 0] += 0.25 * k  # each wall its own quarter of the texture
         walls_v.append(v)
         walls_f.append(f + offset)
         walls_uv.append(uv)
         offset += len(v)
     wall_pal = random_palette(rng, 3) * 0.3 + 0.55
-    wall_tex = noise(texture_size, wall_pal, rng, base_cells=2, octaves=3).numpy()
-    wall_tex = wall_tex * (0.9 + 0.1 * value_noise(texture_size, rng, 8, 2)[..., None])
+    wall_size = texture_size // 2  # the walls are farther from the cameras than the floor in view
+    wall_tex = noise(wall_size, wall_pal, rng, base_cells=8, octaves=4).numpy()
+    wall_tex = _terrazzo(wall_tex * _grain(wall_size, rng, base_cells=32), rng, chip_cells=128)
     # walls face inwards: du × dv points outwards for this winding, so flip the triangles
     wf = np.concatenate(walls_f)[:, ::-1].copy()
     wuv = np.concatenate(walls_uv)[:, ::-1].copy()
@@ -107,6 +117,24 @@ def make_room(floor_height: float, half_size: float = 4.0, wall_height: float = 
     return Room((t(fv), t(ff, torch.long), t(fuv), t(floor_tex)),
                 (t(np.concatenate(walls_v)), t(wf, torch.long), t(wuv), t(wall_tex.astype(np.float32))),
                 float(floor_height))
+
+
+def _terrazzo(texture: np.ndarray, rng: np.random.Generator, chip_cells: int) -> np.ndarray:
+    """``texture`` (S, S, 3) strewn with small hard-edged chips, light and dark, of about one cell of
+    ``chip_cells`` across: the crisp, non-repeating detail a real floor or wall has."""
+    field = value_noise(texture.shape[0], rng, chip_cells, 1)
+    shade = value_noise(texture.shape[0], rng, max(1, chip_cells // 8), 1)[..., None]
+    light = np.clip(texture * 1.6 + 0.1, 0.0, 0.95)
+    dark = texture * 0.35
+    out = np.where((field > 0.78)[..., None], light * (0.8 + 0.2 * shade), texture)
+    return np.where((field < 0.18)[..., None], dark, out).astype(np.float32)
+
+
+def _grain(size: int, rng: np.random.Generator, base_cells: int) -> np.ndarray:
+    """A brightness factor (size, size, 1) around 1 (0.75–1.25) with detail at every scale from ``base_cells``
+    cells across down to a few texels: value noise whose fine octaves keep most of their amplitude."""
+    octaves = max(1, int(np.log2(max(size / 4 / base_cells, 1))) + 1)
+    return (0.75 + 0.5 * value_noise(size, rng, base_cells, octaves, persistence=0.8))[..., None].astype(np.float32)
 
 
 def render_camera(camera: CaptureCamera, pad: float = 1.0) -> tuple[Camera, np.ndarray, np.ndarray]:

@@ -71,9 +71,11 @@ def checkers(size: int, palette: np.ndarray, cells: int) -> Tensor:
     return torch.from_numpy(pal[idx].astype(np.float32))
 
 
-def value_noise(size: int, rng: np.random.Generator, base_cells: int = 4, octaves: int = 4) -> np.ndarray:
+def value_noise(size: int, rng: np.random.Generator, base_cells: int = 4, octaves: int = 4,
+                persistence: float = 0.5) -> np.ndarray:
     """Fractal value noise (size, size) in [0, 1]: random lattice values, smoothstep-interpolated,
-    summed over ``octaves`` with doubling frequency and halving amplitude, then rescaled."""
+    summed over ``octaves`` with doubling frequency and the amplitude times ``persistence`` each octave (0.5:
+    the classic halving; nearer 1 keeps more fine detail), then rescaled."""
     size = _check_size(size)
     x, y = _grid(size)
     total = np.zeros((size, size))
@@ -88,7 +90,7 @@ def value_noise(size: int, rng: np.random.Generator, base_cells: int = 4, octave
         top = lattice[iy, ix] * (1 - sx) + lattice[iy, ix + 1] * sx
         bottom = lattice[iy + 1, ix] * (1 - sx) + lattice[iy + 1, ix + 1] * sx
         total += amp * (top * (1 - sy) + bottom * sy)
-        amp *= 0.5
+        amp *= persistence
     lo, hi = total.min(), total.max()
     return (total - lo) / max(hi - lo, 1e-12)
 

@@ -10,6 +10,7 @@ the calibration and ``capture.json``.
       colmap/cameras.txt + images.txt (+ points3D.txt), or the same .bin     COLMAP model
       transforms.json                    nerfstudio
       capture.json                       optional {"fps": ...}
+      photos/*.png|.jpg                  optional photos of the empty scene, for ``vid2sim calibrate-capture`` only
 
 Anything else in the folder is ignored.
 """
@@ -26,6 +27,8 @@ from vid2sim.scene.capture.errors import CaptureError
 VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv")
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 CALIBRATIONS = ("colmap", "transforms")
+#: extra photos of the empty scene that only structure from motion reads (``vid2sim calibrate-capture``)
+PHOTOS_DIR = "photos"
 
 
 @dataclass
@@ -86,8 +89,9 @@ def _sorted_images(folder: Path) -> list[Path]:
     return sorted(files)
 
 
-def discover_capture(root: str | Path) -> CaptureLayout:
-    """Find the cameras, plates, masks and calibration files of the capture folder ``root``.
+def discover_capture(root: str | Path, require_calibration: bool = True) -> CaptureLayout:
+    """Find the cameras, plates, masks and calibration files of the capture folder ``root`` (a capture without
+    a calibration only with ``require_calibration=False``: what ``calibrate-capture`` starts from).
 
     Raises:
         CaptureError: no capture there, no cameras, a camera with both a video and a frame folder, an empty frame
@@ -143,7 +147,7 @@ def discover_capture(root: str | Path) -> CaptureLayout:
     colmap = root / "colmap"
     has_colmap = colmap.is_dir() and any((colmap / f"cameras.{e}").is_file() for e in ("txt", "bin"))
     transforms = root / "transforms.json"
-    if not has_colmap and not transforms.is_file():
+    if require_calibration and not has_colmap and not transforms.is_file():
         raise CaptureError("no calibration: expected colmap/cameras.txt + images.txt (or .bin) or transforms.json",
                            file=root)
     settings: dict = {}
