@@ -42,7 +42,7 @@ SLOWEST_FILES = {
     "test_bench_ablation.py": 94, "test_simulator.py": 93, "test_simulate.py": 76, "test_pipeline_stiffness.py": 74,
     "test_pipeline_joint.py": 71, "test_predictor_fem_data.py": 69, "test_fuzz.py": 66, "test_skinning_modal.py": 61,
     "test_capture.py": 60, "test_initial_state.py": 52, "test_export.py": 52, "test_devices.py": 46,
-    "test_fused.py": 46, "test_cli_fit.py": 44,
+    "test_fused.py": 46, "test_cli_fit.py": 44, "test_capture_sfm.py": 60,
 }
 
 

@@ -43,6 +43,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "make-scene": ("make_scene", "simulate (FEM) and render one synthetic scene folder"),
     "make-benchmark": ("make_benchmark", "a deterministic suite of synthetic scenes (E, nu sampled)"),
     "make-capture": ("make_capture", "the capture twin of a synthetic scene: what real cameras would have filmed"),
+    "calibrate-capture": ("calibrate_capture", "calibrate a capture by structure from motion (COLMAP) on its "
+                          "clean plates and photos"),
     "import-capture": ("import_capture", "a real capture (videos, calibration, clean plates) in, a scene folder out"),
     "make-training-data": ("make_training_data", "Stage I training samples (simulated, rendered drops)"),
     "train-predictor": ("train_predictor", "train the Stage I predictor"),
