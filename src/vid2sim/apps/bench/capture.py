@@ -25,7 +25,11 @@ from vid2sim.evaluate.scores import evaluate, write_evaluation
 from vid2sim.reconstruct.pipeline import reconstruct
 from vid2sim.runtime.files import write_json_atomic
 from vid2sim.scene.capture import CaptureImportConfig, import_capture
+from vid2sim.scene.capture.colmap import colmap_cameras, read_colmap
+from vid2sim.scene.capture.layout import discover_capture
 from vid2sim.scene.capture.metric import MetricConfig
+from vid2sim.scene.capture.sfm import REPORT_JSON as SFM_REPORT_JSON
+from vid2sim.scene.capture.sfm import SfmConfig, calibrate_capture
 from vid2sim.scene.capture.undistort import reduce, to_opencv_K
 from vid2sim.scene.folder import Scene
 from vid2sim.scene.reading import load_scene
@@ -53,8 +57,51 @@ def soft_iou(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.minimum(a, b).sum()) / den if den > 0 else 1.0
 
 
-def import_figures(capture: str | Path, scene_dir: str | Path) -> dict[str, Any]:
+def similarity_to_model(capture: str | Path) -> dict[str, Any]:
+    """The similarity from the twin's world (metres) to the frame of the COLMAP model in ``capture/colmap/``, fitted
+    on the cameras' centres (Umeyama): the truth of a calibration the twin did not write (``calibrate-capture``).
+
+    Returns:
+        ``{"scale", "rotation", "translation"}`` as in ``truth.json``'s ``world_to_calibration``, and the fit's
+        residuals: ``centre_error_m`` (largest, in metres) and ``rotation_error_deg`` (largest camera rotation
+        error after the similarity).
+    """
+    capture = Path(capture)
+    truth, _ = read_truth(capture)
+    layout = discover_capture(capture)
+    if layout.colmap is None:
+        raise FileNotFoundError(f"{capture} has no COLMAP model (colmap/)")
+    cams = colmap_cameras(read_colmap(layout.colmap), layout.camera_of_name)
+    sim = truth["world_to_calibration"]
+    s0, R0, t0 = sim["scale"], np.array(sim["rotation"]), np.array(sim["translation"])
+    names = sorted(cams)
+    world_w2c = {}
+    for n in names:  # the true cameras, back from the twin's calibration frame to the world
+        w2c = np.array(truth["true_cameras_calibration"][n]["world_to_camera"])
+        R = w2c[:3, :3] @ R0
+        world_w2c[n] = (R, (w2c[:3, 3] + w2c[:3, :3] @ t0) / s0)
+    centre = lambda R, t: -R.T @ t  # noqa: E731
+    a = np.array([centre(*world_w2c[n]) for n in names])
+    b = np.array([centre(cams[n].world_to_camera[:3, :3], cams[n].world_to_camera[:3, 3]) for n in names])
+    am, bm = a - a.mean(0), b - b.mean(0)
+    U, S, Vt = np.linalg.svd(bm.T @ am)
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    R = U @ D @ Vt
+    scale = float((S * np.diag(D)).sum() / (am ** 2).sum())
+    t = b.mean(0) - scale * R @ a.mean(0)
+    centre_error = float(np.linalg.norm(scale * am @ R.T - bm, axis=1).max() / scale)
+    rotation_error = max(math.degrees(math.acos(float(np.clip(
+        (np.trace(cams[n].world_to_camera[:3, :3] @ R @ world_w2c[n][0].T) - 1) / 2, -1, 1)))) for n in names)
+    return {"scale": scale, "rotation": R.tolist(), "translation": t.tolist(), "centre_error_m": centre_error,
+            "rotation_error_deg": rotation_error}
+
+
+def import_figures(capture: str | Path, scene_dir: str | Path, calibration_truth: dict[str, Any] | None = None
+                   ) -> dict[str, Any]:
     """The imported scene ``scene_dir`` of the capture twin ``capture`` judged against the twin's truth.
+
+    ``calibration_truth`` (:func:`similarity_to_model`) stands for the twin's own ``world_to_calibration`` when the
+    import used a calibration the twin did not write.
 
     Returns:
         ``mask_iou`` (mean over views and scene frames of the soft IoU against the true coverage, undistorted the
@@ -65,6 +112,8 @@ def import_figures(capture: str | Path, scene_dir: str | Path) -> dict[str, Any]
 
     capture, scene_dir = Path(capture), Path(scene_dir)
     truth, alpha = read_truth(capture)
+    if calibration_truth is not None:
+        truth = _in_frame(truth, calibration_truth)
     report = json.loads((scene_dir / "capture_report.json").read_text())
     scene = load_scene(scene_dir)
     A, B = report["scene_frames"]
@@ -112,10 +161,19 @@ def import_figures(capture: str | Path, scene_dir: str | Path) -> dict[str, Any]
     }
 
 
+def _in_frame(truth: dict[str, Any], sim: dict[str, Any]) -> dict[str, Any]:
+    """The truth's frame-dependent fields (scale, gravity direction, similarity) in the frame of ``sim``."""
+    g = np.asarray(truth["gravity_world"], dtype=np.float64)
+    return {**truth, "world_to_calibration": {k: sim[k] for k in ("scale", "rotation", "translation")},
+            "units_per_metre": sim["scale"],
+            "gravity_direction_calibration": (np.array(sim["rotation"]) @ (g / np.linalg.norm(g))).tolist()}
+
+
 # ---- the clean scene in the imported scene's frame ---------------------------------------------------------------
 
 
-def clean_in_import_frame(clean_dir: str | Path, capture: str | Path, imported: str | Path, out: str | Path) -> Path:
+def clean_in_import_frame(clean_dir: str | Path, capture: str | Path, imported: str | Path, out: str | Path,
+                          calibration_truth: dict[str, Any] | None = None) -> Path:
     """The clean scene re-expressed in the gauge of its imported twin, so that an asset reconstructed from the
     import can be scored on the clean scene's own cameras and images.
 
@@ -124,10 +182,12 @@ def clean_in_import_frame(clean_dir: str | Path, capture: str | Path, imported: 
     ground-truth tets are mapped by the twin's true world → calibration similarity followed by the import's
     calibration → scene similarity. Colours are those of the import's reference camera (the twin's sensor of that
     camera is applied to the clean object colours; the white background stays white). Scale or gravity errors of the
-    import therefore show in the scores, as they should.
+    import therefore show in the scores, as they should. ``calibration_truth``: as in :func:`import_figures`.
     """
 
     truth, _ = read_truth(capture)
+    if calibration_truth is not None:
+        truth = _in_frame(truth, calibration_truth)
     report = json.loads((Path(imported) / "capture_report.json").read_text())
     imported_scene_json = json.loads((Path(imported) / "scene.json").read_text())
     clean = load_scene(clean_dir)
@@ -186,6 +246,10 @@ class CaptureBenchConfig:
         clean_results: a ``bench suite`` output folder whose ``NAME/evaluation.json`` are reused as the clean runs
             (None: the clean scenes are reconstructed here too, when ``reconstruct``).
         gravity: |g| the importer assumes; None takes the twin's true value (the synthetic world's).
+        sfm: calibrate each twin by structure from motion (``calibrate-capture``: COLMAP on its plates and its
+            ``twin.photos`` walkaround photos) instead of importing the calibration the twin writes (kept aside in
+            ``ground_truth/twin_calibration/``, which the importer never reads). The import is then judged in
+            COLMAP's frame (:func:`similarity_to_model`), and the SfM's own camera errors are reported.
     """
 
     twin: Any = None
@@ -195,6 +259,12 @@ class CaptureBenchConfig:
     threads: int | None = None
     clean_results: str | None = None
     gravity: float | None = None
+    sfm: bool = False
+
+    def __post_init__(self) -> None:
+        if self.sfm and (self.twin is None or self.twin.photos < 1):
+            raise ValueError("CaptureBenchConfig.sfm needs twins with walkaround photos (twin.photos >= 1): COLMAP "
+                             "cannot link cameras far apart from their plates alone")
 
     def to_dict(self) -> dict[str, Any]:
         out = dataclasses.asdict(self)
@@ -239,6 +309,7 @@ def capture_scene(name: str, scene_dir: Path, out: Path, index: int, config: Cap
     if not (capture / "ground_truth" / "truth.json").is_file():
         make_capture_twin(scene_dir, capture, twin_cfg, overwrite=True, progress=progress)
     truth, _ = read_truth(capture)
+    calibration_truth = _calibrated(capture, config) if config.sfm else None
     imported = out / "imported"
     import_json = out / IMPORT_JSON
     if not import_json.is_file():
@@ -257,8 +328,13 @@ def capture_scene(name: str, scene_dir: Path, out: Path, index: int, config: Cap
         t0 = time.perf_counter()
         import_capture(capture, imported, icfg, overwrite=True, progress=progress)
         seconds = time.perf_counter() - t0
-        figures = import_figures(capture, imported)
+        figures = import_figures(capture, imported, calibration_truth)
         figures["import_seconds"] = seconds
+        if calibration_truth is not None:
+            sfm = json.loads((capture / "colmap" / SFM_REPORT_JSON).read_text())
+            figures.update(sfm_centre_error_mm=1000 * calibration_truth["centre_error_m"],
+                           sfm_rotation_error_deg=calibration_truth["rotation_error_deg"],
+                           sfm_reprojection_px=sfm["mean_reprojection_error_px"], sfm_seconds=sfm["seconds"])
         write_json_atomic(import_json, figures)
     record["import"] = json.loads(import_json.read_text())
     if not config.reconstruct:
@@ -270,7 +346,8 @@ def capture_scene(name: str, scene_dir: Path, out: Path, index: int, config: Cap
         asset = out / "asset"
         if not (asset / "asset.json").is_file():
             reconstruct(imported, asset, suite_cfg.reconstruct_config(), progress=progress)
-        gauge = clean_in_import_frame(scene_dir, capture, imported, out / "clean_in_import_frame")
+        gauge = clean_in_import_frame(scene_dir, capture, imported, out / "clean_in_import_frame",
+                                      calibration_truth)
         report = evaluate(asset, gauge, progress=progress)
         write_evaluation(report, evaluation)
     record["capture_run"] = json.loads(evaluation.read_text())
@@ -293,6 +370,19 @@ def capture_scene(name: str, scene_dir: Path, out: Path, index: int, config: Cap
         record["compared"][key] = {"capture": cap, "clean": cl,
                                    "difference": None if cap is None or cl is None else cap - cl}
     return record
+
+
+def _calibrated(capture: Path, config: CaptureBenchConfig) -> dict[str, Any]:
+    """Calibrate the twin ``capture`` by structure from motion once (its own calibration moved aside first), and
+    return the truth of COLMAP's frame (:func:`similarity_to_model`)."""
+    if not (capture / "colmap" / SFM_REPORT_JSON).is_file():
+        aside = capture / "ground_truth" / "twin_calibration"
+        aside.mkdir(exist_ok=True)
+        for name in ("colmap", "transforms.json"):
+            if (capture / name).exists():
+                (capture / name).replace(aside / name)
+        calibrate_capture(capture, SfmConfig(threads=config.threads), progress=False)
+    return similarity_to_model(capture)
 
 
 def run_capture_bench(suite_dir: str | Path, out_dir: str | Path, config: CaptureBenchConfig | None = None,
@@ -325,7 +415,8 @@ def run_capture_bench(suite_dir: str | Path, out_dir: str | Path, config: Captur
     return result
 
 
-IMPORT_FIGURES = ("mask_iou", "mask_iou_worst", "scale_error", "gravity_error_deg", "floor_error_m", "import_seconds")
+IMPORT_FIGURES = ("mask_iou", "mask_iou_worst", "scale_error", "gravity_error_deg", "floor_error_m", "import_seconds",
+                  "sfm_centre_error_mm", "sfm_rotation_error_deg", "sfm_seconds")
 
 
 def _means(records: list[dict[str, Any]]) -> dict[str, Any]:
