@@ -21,6 +21,8 @@ def run(args: argparse.Namespace) -> int:
     print(f"wrote {args.capture}/colmap: {len(report.cameras)} cameras registered ({report.photos_registered} of "
           f"{report.photos} photos linked them), {report.points} points, reprojection error "
           f"{report.mean_reprojection_error_px:.2f} px, {report.seconds:.0f} s; import it with vid2sim import-capture")
+    if report.mapping != "default":
+        print(f"mapping: {report.mapping}")
     for w in report.warnings:
         print(f"warning: {w}")
     return 0

@@ -19,6 +19,9 @@ import tempfile
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Any
+
+import numpy as np
 
 from vid2sim.runtime.files import write_folder_atomic
 from vid2sim.scene.capture.errors import CaptureError
@@ -63,6 +66,7 @@ class SfmReport:
     mean_track_length: float
     seconds: float
     config: dict
+    mapping: str
     warnings: list[str]
 
 
@@ -160,20 +164,8 @@ def _run(pycolmap, capture: Path, out: Path, plates: dict[str, str], photos: lis
         pycolmap.match_exhaustive(db, matching_options=matching, device=pycolmap.Device.cpu)
         if progress:
             print("[calibrate] incremental mapping", flush=True)
-        mapping = pycolmap.IncrementalPipelineOptions()
-        mapping.num_threads = threads
-        # intrinsics held at COLMAP's first guess while the images register, then refined with everything at once:
-        # refined image by image, a plate seen over a small part of its field can collapse to a third of its focal
-        # length with a small reprojection error (measured: docs/capture.md)
-        mapping.ba_refine_focal_length = False
-        mapping.ba_refine_extra_params = False
-        rec = _best_model(pycolmap.incremental_mapping(db, capture, Path(tmp) / "sparse", options=mapping), plates)
-        if rec is not None:
-            final = pycolmap.BundleAdjustmentOptions()
-            final.refine_focal_length = True
-            final.refine_extra_params = True
-            pycolmap.bundle_adjustment(rec, final)
-        report = _keep_plates(rec, plates, photos, config, time.perf_counter() - start)
+        rec, how = _mapping(pycolmap, db, capture, Path(tmp), plates, threads, progress)
+        report = _keep_plates(rec, plates, photos, config, time.perf_counter() - start, how)
 
         def write(staging: Path) -> None:
             rec.write_binary(str(staging))
@@ -183,7 +175,53 @@ def _run(pycolmap, capture: Path, out: Path, plates: dict[str, str], photos: lis
     return report
 
 
-def _keep_plates(rec, plates: dict[str, str], photos: list[str], config: SfmConfig, seconds: float) -> SfmReport:
+def _mapping(pycolmap, db: Path, capture: Path, tmp: Path, plates: dict[str, str], threads: int,
+             progress: bool) -> tuple[Any, str]:
+    """COLMAP's incremental mapping, and how it was run. First COLMAP's own (intrinsics refined as the images
+    register), the most accurate where it holds. Refined image by image, though, a plate seen over a small part of
+    its field can collapse to a quarter of its focal length with a small reprojection error (measured:
+    docs/capture.md); when a plate's focal length is that far from the others' (:func:`_focal_outliers`), the
+    mapping runs again with every camera's intrinsics held at COLMAP's first guess (1.2 × the image's size, no
+    distortion) while the images register, refined in one bundle adjustment at the end."""
+    mapping = pycolmap.IncrementalPipelineOptions()
+    mapping.num_threads = threads
+    rec = _best_model(pycolmap.incremental_mapping(db, capture, tmp / "default", options=mapping), plates)
+    if rec is None or not _focal_outliers(rec, plates):
+        return rec, "default"
+    why = f"intrinsics held while registering (the default's {'; '.join(_focal_outliers(rec, plates))})"
+    if progress:
+        print(f"[calibrate] incremental mapping again, {why}", flush=True)
+    mapping = pycolmap.IncrementalPipelineOptions()
+    mapping.num_threads = threads
+    mapping.ba_refine_focal_length = False
+    mapping.ba_refine_extra_params = False
+    rec = _best_model(pycolmap.incremental_mapping(db, capture, tmp / "held", options=mapping), plates)
+    if rec is not None:
+        final = pycolmap.BundleAdjustmentOptions()
+        final.refine_focal_length = True
+        final.refine_extra_params = True
+        final.print_summary = False
+        pycolmap.bundle_adjustment(rec, final)
+    return rec, why
+
+
+def _focal_outliers(rec, plates: dict[str, str]) -> list[str]:
+    """The plates whose focal length is more than ``FOCAL_OUTLIER`` from the registered plates' median, as
+    "camera C: F px against the median M px"."""
+    focal = {}
+    for cam, name in plates.items():
+        im = rec.find_image_with_name(name)
+        if im is not None and im.has_pose:
+            focal[cam] = float(rec.cameras[im.camera_id].mean_focal_length())
+    if not focal:
+        return []
+    median = float(np.median(list(focal.values())))
+    return [f"camera {cam}: {f:.0f} px against the median {median:.0f} px" for cam, f in focal.items()
+            if abs(f / median - 1) > FOCAL_OUTLIER]
+
+
+def _keep_plates(rec, plates: dict[str, str], photos: list[str], config: SfmConfig, seconds: float,
+                 mapping: str) -> SfmReport:
     """Check that every plate is registered in ``rec``, then deregister the photos (in place)."""
     registered = set() if rec is None else {im.name for im in rec.images.values() if im.has_pose}
     lost = [cam for cam, name in plates.items() if name not in registered]
@@ -205,7 +243,7 @@ def _keep_plates(rec, plates: dict[str, str], photos: list[str], config: SfmConf
                      points=int(rec.num_points3D()),
                      mean_reprojection_error_px=float(rec.compute_mean_reprojection_error()),
                      mean_track_length=float(rec.compute_mean_track_length()), seconds=round(seconds, 1),
-                     config=asdict(config), warnings=_warnings(rec, plates))
+                     config=asdict(config), mapping=mapping, warnings=_warnings(rec, plates))
 
 
 #: below this many pixels on an image's shorter side COLMAP's intrinsics are loosely held (measured: docs/capture.md)
@@ -223,11 +261,7 @@ def _warnings(rec, plates: dict[str, str]) -> list[str]:
         out.append(f"plates of {small} px on their shorter side: below {MIN_SIDE_PX} px COLMAP's focal lengths and "
                    "poses are loosely held (a camera can register at a wrong focal length with a small reprojection "
                    "error); calibrate on full-resolution plates")
-    focal = {cam: float(c.mean_focal_length()) for cam, c in cams.items()}
-    median = float(sorted(focal.values())[len(focal) // 2])
-    for cam, f in focal.items():
-        if abs(f / median - 1) > FOCAL_OUTLIER:
-            out.append(f"camera {cam}: focal length {f:.0f} px against the plates' median {median:.0f} px; unless "
-                       "its lens or zoom differs, COLMAP mis-registered it (add photos near it, or calibrate it "
-                       "with a board)")
+    for outlier in _focal_outliers(rec, plates):
+        out.append(f"{outlier}; unless its lens or zoom differs, COLMAP mis-registered it (add photos near it, or "
+                   "calibrate it with a board)")
     return out
