@@ -6,7 +6,8 @@ from __future__ import annotations
 import argparse
 
 from vid2sim.cli.common import UserError
-from vid2sim.scene.capture.sfm import SFM_MODELS, SfmConfig, calibrate_capture
+from vid2sim.scene.capture.colmap import SUPPORTED_MODELS
+from vid2sim.scene.capture.sfm import SfmConfig, calibrate_capture
 
 
 def run(args: argparse.Namespace) -> int:
@@ -34,7 +35,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                        "pycolmap) on its clean plates and photos/: writes capture/colmap/ (docs/capture.md)")
     p.add_argument("capture", help="capture folder with background/<cam>.png for every camera, and optionally "
                    "photos/ of the empty scene that link cameras far apart")
-    p.add_argument("--camera-model", choices=SFM_MODELS, default="OPENCV",
+    p.add_argument("--camera-model", choices=SUPPORTED_MODELS, default="OPENCV",
                    help="COLMAP camera model, one camera per image (default OPENCV)")
     p.add_argument("--max-features", type=int, default=8192, help="SIFT features per image (default 8192)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing colmap/ folder")

@@ -40,7 +40,7 @@ from vid2sim.scene.capture.layout import PHOTOS_DIR
 from vid2sim.scene.capture.nerfstudio import write_transforms
 from vid2sim.scene.reading import load_scene
 from vid2sim.scene.video import write_video
-from vid2sim.splats.cameras import Camera
+from vid2sim.splats.cameras import Camera, look_at
 from vid2sim.synthetic.capture_render import Room, Sensor, ShadowMaps, make_room, render_room, render_view
 from vid2sim.synthetic.embedding import apply_embedding, embed_points
 from vid2sim.synthetic.fem import FEMResult
@@ -440,26 +440,14 @@ def _film(staging: Path, motion: CaptureMotion, rig: _CaptureRig, room: Room, sh
     return alphas
 
 
-def _look_at(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
-    """World-to-camera (4, 4) of a camera at ``eye`` looking at ``target``, image x level with the floor (z up)."""
-    f = (target - eye) / np.linalg.norm(target - eye)
-    right = np.cross(f, [0.0, 0.0, 1.0])
-    right /= np.linalg.norm(right)
-    R = np.stack([right, np.cross(f, right), f])
-    w2c = np.eye(4)
-    w2c[:3, :3] = R
-    w2c[:3, 3] = -R @ eye
-    return w2c
-
-
 def _photograph(folder: Path, rig: _CaptureRig, room: Room, config: CaptureTwinConfig, progress: bool) -> None:
     """Render ``config.photos`` walkaround photos of the empty room into ``folder`` (see
     :class:`CaptureTwinConfig`); their draws come from their own stream, so a twin with photos is otherwise the one
     without."""
     rng = np.random.default_rng([int(config.seed), 49])
     cams = rig.true_world
-    centres = np.array([-c.world_to_camera[:3, :3].T @ c.world_to_camera[:3, 3] for c in cams])
-    axes = np.array([c.world_to_camera[2, :3] for c in cams])
+    centres = np.array([c.center for c in cams])
+    axes = np.array([c.rotation[2] for c in cams])
     # the point nearest every camera's optical axis (least squares)
     A = sum(np.eye(3) - np.outer(a, a) for a in axes)
     b = sum((np.eye(3) - np.outer(a, a)) @ c for a, c in zip(axes, centres))
@@ -478,8 +466,7 @@ def _photograph(folder: Path, rig: _CaptureRig, room: Room, config: CaptureTwinC
         r = radius * rng.uniform(0.8, 1.2)
         eye = target + np.array([r * np.cos(a), r * np.sin(a), height + rng.uniform(-1, 1) * config.photo_height_m])
         look = target + rng.normal(0.0, 0.05 * radius, 3)
-        cam = Camera(torch.as_tensor(_look_at(eye, look), dtype=torch.float32),
-                     torch.as_tensor(ref.K, dtype=torch.float32), ref.width, ref.height)
+        cam = Camera(look_at(eye, look), torch.as_tensor(ref.K, dtype=torch.float32), ref.width, ref.height)
         rgb, _, _ = render_room(room, cam, config.supersample)
         Image.fromarray(sensor(rgb, rng)).save(folder / f"p{k:03d}.png")
 

@@ -80,9 +80,8 @@ def similarity_to_model(capture: str | Path) -> dict[str, Any]:
         w2c = np.array(truth["true_cameras_calibration"][n]["world_to_camera"])
         R = w2c[:3, :3] @ R0
         world_w2c[n] = (R, (w2c[:3, 3] + w2c[:3, :3] @ t0) / s0)
-    centre = lambda R, t: -R.T @ t  # noqa: E731
-    a = np.array([centre(*world_w2c[n]) for n in names])
-    b = np.array([centre(cams[n].world_to_camera[:3, :3], cams[n].world_to_camera[:3, 3]) for n in names])
+    a = np.array([-Rw.T @ tw for Rw, tw in (world_w2c[n] for n in names)])
+    b = np.array([cams[n].center for n in names])
     am, bm = a - a.mean(0), b - b.mean(0)
     U, S, Vt = np.linalg.svd(bm.T @ am)
     D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
@@ -91,7 +90,7 @@ def similarity_to_model(capture: str | Path) -> dict[str, Any]:
     t = b.mean(0) - scale * R @ a.mean(0)
     centre_error = float(np.linalg.norm(scale * am @ R.T - bm, axis=1).max() / scale)
     rotation_error = max(math.degrees(math.acos(float(np.clip(
-        (np.trace(cams[n].world_to_camera[:3, :3] @ R @ world_w2c[n][0].T) - 1) / 2, -1, 1)))) for n in names)
+        (np.trace(cams[n].rotation @ R @ world_w2c[n][0].T) - 1) / 2, -1, 1)))) for n in names)
     return {"scale": scale, "rotation": R.tolist(), "translation": t.tolist(), "centre_error_m": centre_error,
             "rotation_error_deg": rotation_error}
 

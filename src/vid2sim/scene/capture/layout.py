@@ -67,6 +67,7 @@ class CaptureLayout:
     colmap: Path | None = None
     transforms: Path | None = None
     settings: dict = field(default_factory=dict)
+    photos: list[Path] = field(default_factory=list)
 
     def camera_of_name(self, name: str) -> str | None:
         """The camera a calibration's image name refers to: its file stem, or else the first path component
@@ -162,5 +163,6 @@ def discover_capture(root: str | Path, require_calibration: bool = True) -> Capt
         fps = settings.get("fps")
         if fps is not None and (isinstance(fps, bool) or not isinstance(fps, (int, float)) or not fps > 0):
             raise CaptureError(f"fps must be a positive number, got {fps!r}", file=cj)
+    photos = _sorted_images(root / PHOTOS_DIR) if (root / PHOTOS_DIR).is_dir() else []
     return CaptureLayout(root, dict(sorted(cameras.items())), colmap if has_colmap else None,
-                         transforms if transforms.is_file() else None, settings)
+                         transforms if transforms.is_file() else None, settings, photos)

@@ -24,11 +24,10 @@ from typing import Any
 import numpy as np
 
 from vid2sim.runtime.files import write_folder_atomic
+from vid2sim.scene.capture.colmap import SUPPORTED_MODELS
 from vid2sim.scene.capture.errors import CaptureError
-from vid2sim.scene.capture.layout import IMAGE_SUFFIXES, PHOTOS_DIR, discover_capture
+from vid2sim.scene.capture.layout import PHOTOS_DIR, discover_capture
 
-#: the COLMAP camera models ``calibrate-capture`` may fit (those ``import-capture`` reads)
-SFM_MODELS = ("OPENCV", "RADIAL", "SIMPLE_RADIAL", "PINHOLE", "SIMPLE_PINHOLE")
 REPORT_JSON = "sfm_report.json"
 
 
@@ -47,8 +46,8 @@ class SfmConfig:
     threads: int | None = None
 
     def __post_init__(self) -> None:
-        if self.camera_model not in SFM_MODELS:
-            raise ValueError(f"SfmConfig.camera_model must be one of {', '.join(SFM_MODELS)}, got "
+        if self.camera_model not in SUPPORTED_MODELS:  # those import-capture reads
+            raise ValueError(f"SfmConfig.camera_model must be one of {', '.join(SUPPORTED_MODELS)}, got "
                              f"{self.camera_model!r}")
         if self.max_features < 64:
             raise ValueError(f"SfmConfig.max_features must be >= 64, got {self.max_features}")
@@ -88,10 +87,7 @@ def _inputs(capture: Path) -> tuple[dict[str, str], list[str]]:
         raise CaptureError(f"no clean plate for camera(s) {', '.join(missing)}: structure from motion runs on "
                            "background/<cam>.png (one still of each camera without the object)", file=capture)
     plates = {n: c.plate.relative_to(capture).as_posix() for n, c in layout.cameras.items()}
-    folder = capture / PHOTOS_DIR
-    photos = sorted(p.relative_to(capture).as_posix() for p in folder.iterdir()
-                    if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES) if folder.is_dir() else []
-    return plates, photos
+    return plates, [p.relative_to(capture).as_posix() for p in layout.photos]
 
 
 def _best_model(models: dict, plates: dict[str, str]):
@@ -186,9 +182,10 @@ def _mapping(pycolmap, db: Path, capture: Path, tmp: Path, plates: dict[str, str
     mapping = pycolmap.IncrementalPipelineOptions()
     mapping.num_threads = threads
     rec = _best_model(pycolmap.incremental_mapping(db, capture, tmp / "default", options=mapping), plates)
-    if rec is None or not _focal_outliers(rec, plates):
+    outliers = [] if rec is None else _focal_outliers(rec, plates)
+    if not outliers:
         return rec, "default"
-    why = f"intrinsics held while registering (the default's {'; '.join(_focal_outliers(rec, plates))})"
+    why = f"intrinsics held while registering (the default's {'; '.join(outliers)})"
     if progress:
         print(f"[calibrate] incremental mapping again, {why}", flush=True)
     mapping = pycolmap.IncrementalPipelineOptions()
