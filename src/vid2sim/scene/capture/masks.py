@@ -50,9 +50,10 @@ class MaskConfig:
             darkening) is measured per camera; a band of ``max(shadow_band, 3 MAD)`` below it and everything up to
             the background's brightness pass (``shadow_min_brightness`` bounds it from below; a negative band
             disables the measurement).
-        shadow_min_correlation: the smallest normalised correlation between frame and plate in that window for a
-            darkening to pass as a shadow, where the texture it would keep stands out of the noise (the plate's local
-            std times the darkening above ``shadow_texture_min`` σ).
+        shadow_min_correlation: the least agreement in that window between the frame and the plate darkened as a
+            shadow would (:meth:`PlateTexture.correlation`, a normalised correlation where one darkening covers the
+            window) for a darkening to pass as a shadow, where the texture it would keep stands out of the noise (the
+            plate's local std times the darkening above ``shadow_texture_min`` σ).
         noise_floor: the smallest noise level σ assumed (a perfectly clean synthetic frame would give 0).
         open_radius, close_radius: radii (px at 128 px image height; scaled with the image) of the opening that
             removes specks and the closing that bridges gaps.
@@ -65,7 +66,8 @@ class MaskConfig:
         hole_texture_min: how far (in σ) the plate's brightness must vary within a hole (its local std) for its
             texture to be told from the noise (the second test of :func:`see_through`).
         hole_min_correlation: the least median, over a hole's pixels, of the local correlation between the frame's
-            brightness and the plate's for the hole to be the background seen through the object.
+            brightness and the plate's, darkened as a shadow would (:meth:`PlateTexture.correlation`), for the hole
+            to be the background seen through the object.
         soft_edges: estimate fractional coverage in a band at the boundary (:func:`soft_edges`).
         edge_chroma_weight: the weight of the colour differences (Cb, Cr) against the luma there: below 1 for
             video and JPEG frames, whose colour differences have half the resolution (:func:`soft_edges`).
@@ -173,8 +175,8 @@ def box_mean(image: np.ndarray, window: int) -> np.ndarray:
 
 @dataclass
 class PlateTexture:
-    """The grey plate (H, W) and its local mean and variance in ``window``² windows, for
-    :meth:`correlation`; ``std`` (H, W) is its local standard deviation."""
+    """The grey plate (H, W) and its local statistics in ``window``² windows, for :meth:`correlation`; ``std``
+    (H, W) is its local standard deviation."""
 
     grey: np.ndarray
     window: int
@@ -184,13 +186,19 @@ class PlateTexture:
         self.mean = box_mean(self.grey, self.window)
         self.var = np.maximum(box_mean(self.grey * self.grey, self.window) - self.mean * self.mean, 0.0)
         self.std = np.sqrt(self.var)
+        self.gain_window = max(3, (self.window // 2) | 1)
+        self.power = box_mean(self.grey * self.grey, self.gain_window)
 
     def correlation(self, grey: np.ndarray) -> np.ndarray:
-        """Normalised correlation (H, W) of one grey frame (H, W) with the plate in the windows."""
-        mg = box_mean(grey, self.window)
-        cov = box_mean(grey * self.grey, self.window) - mg * self.mean
-        vg = np.maximum(box_mean(grey * grey, self.window) - mg * mg, 0.0)
-        return cov / np.sqrt(np.maximum(vg * self.var, 1e-12))
+        """How well a shadow explains one grey frame (H, W) in the windows, on the scale of a normalised correlation:
+        (H, W) in [0, 1], ``sqrt(1 − R)``, with ``R`` the energy of the residual ``I − g·B`` over the window against
+        the texture energy ``g²·var(B)`` a shadow would keep there. ``g = box(I·B) / box(B·B)`` is the frame's local
+        darkening, its least-squares ratio to the plate over a window of half the side, so that it follows a
+        shadow's edge across the window (correlated with the plate alone, that edge read as object on a textured
+        floor) but not the plate's texture. An object's own colours leave that texture in the residual (R ≈ 1)."""
+        gain = box_mean(grey * self.grey, self.gain_window) / np.maximum(self.power, 1e-6)
+        residual = box_mean(np.square(grey - gain * self.grey), self.window)
+        return np.sqrt(np.clip(1.0 - residual / np.maximum(np.square(gain) * self.var, 1e-12), 0.0, 1.0))
 
 
 def texture_window(config: MaskConfig, scale: float) -> int:
@@ -219,9 +227,9 @@ def object_score(frames: np.ndarray, plate: np.ndarray, sigma: float, config: Ma
     """The object score s (T, H, W) of blurred frames (T, H, W, 3) against a blurred plate (H, W, 3).
 
     Besides the module docstring's three terms, a darkening that does not keep the plate's texture (normalised
-    correlation below ``shadow_min_correlation`` where the plate is textured) is no shadow: it scores its depth
-    ``(1 − a)·|B| / σ``. Works frame by frame on colour planes (each frame's images stay in the cache; the
-    shadow's brightness band needs every frame's ratios first)."""
+    correlation with the darkened plate, :meth:`PlateTexture.correlation`, below ``shadow_min_correlation`` where
+    the plate is textured) is no shadow: it scores its depth ``(1 − a)·|B| / σ``. Works frame by frame on colour
+    planes (each frame's images stay in the cache; the shadow's brightness band needs every frame's ratios first)."""
     frames = np.asarray(frames, dtype=np.float32)
     B = np.ascontiguousarray(np.moveaxis(np.asarray(plate, dtype=np.float32), -1, 0))
     bb = np.maximum(B[0] * B[0] + B[1] * B[1] + B[2] * B[2], 1e-6)
@@ -312,8 +320,8 @@ def see_through(frame: np.ndarray, plate: np.ndarray, sigma: float, config: Mask
       dark enough to pass for shadow (a ≈ 0.4–0.65 on the capture twins, where keeping every large hole open lost
       IoU); or
     * the plate's own texture shows through it, even in shadow: over its pixels the median normalised correlation
-      between the frame's brightness and the plate's in small windows (the shadow test's
-      ``shadow_texture_window``) is at least ``hole_min_correlation``, where that texture stands out of the noise
+      between the frame's brightness and the plate's, darkened as a shadow would, in small windows (the shadow
+      test's ``shadow_texture_window``) is at least ``hole_min_correlation``, where that texture stands out of the noise
       (the median of the plate's local std above ``hole_texture_min`` σ). A patch of the object keeps its own
       colours as it moves over the room; the hole shows whatever lies behind it.
 
