@@ -183,11 +183,12 @@ class PlateTexture:
 
     def __post_init__(self) -> None:
         self.grey = np.asarray(self.grey, dtype=np.float32)
-        self.mean = box_mean(self.grey, self.window)
-        self.var = np.maximum(box_mean(self.grey * self.grey, self.window) - self.mean * self.mean, 0.0)
+        square = self.grey * self.grey
+        mean = box_mean(self.grey, self.window)
+        self.var = np.maximum(box_mean(square, self.window) - mean * mean, 0.0)
         self.std = np.sqrt(self.var)
         self.gain_window = max(3, (self.window // 2) | 1)
-        self.power = box_mean(self.grey * self.grey, self.gain_window)
+        self.power = box_mean(square, self.gain_window)
 
     def correlation(self, grey: np.ndarray) -> np.ndarray:
         """How well a shadow explains one grey frame (H, W) in the windows, on the scale of a normalised correlation:
