@@ -423,3 +423,23 @@ def test_a_suite_made_and_run_in_shards(local_run, suite_dir, tiny_config, tmp_p
     assert result["means"] == local_run["result"]["means"] and len(result["scenes"]) == 2
     assert main(["bench", "suite", str(suite_dir), str(tmp_path / "out2"), "--scenes", "7:9", "--quiet"]) == 2
     assert "--scenes selects none of the 2 scenes" in capsys.readouterr().err
+
+
+def test_a_results_folder_holding_only_a_killed_writers_temporary_file_is_taken(tmp_path):
+    """A run killed while writing its first suite_config.json leaves only that file's temporary copy: the next run
+    takes the folder (and removes it), while a folder holding anything else is still refused."""
+    from vid2sim.apps.bench.suite import _prepare_out, check_out
+
+    out = tmp_path / "out"
+    out.mkdir()
+    left = out / f".{SUITE_CONFIG_JSON}.k1lled00.tmp"
+    left.write_text('{"sui')
+    settings = {"suite": str(tmp_path / "suite"), **SuiteConfig().to_dict()}
+    check_out(out, settings)
+    _prepare_out(out, settings)
+    assert not left.exists() and json.loads((out / SUITE_CONFIG_JSON).read_text()) == json.loads(json.dumps(settings))
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "notes.txt").write_text("mine")
+    with pytest.raises(FileExistsError, match="not empty"):
+        check_out(other, settings)

@@ -41,7 +41,8 @@ def test_quick_campaign_finds_nothing_within_a_minute_of_cpu(tmp_path):
     assert inputs["cases"] == 20 and not inputs["problems"], inputs["problems"]
     assert inputs["clean_one_line_errors"] == inputs["rejected"] > 0
     assert hostile["checks"] == 10 and hostile["got_through"] == 0 and hostile["code_ran"] == 0, hostile
-    assert kills["killed"] == kills["resumed_equal"] >= 1 and kills["looked_finished_while_not"] == 0, kills
+    assert kills["killed"] == kills["resumed_equal"] >= 1 and kills["looked_finished_while_not"] == 0, \
+        json.dumps(kills["problems"])  # each case's command, moment and why (pytest cuts a long dict short)
     assert kills["second_process_refused"] == f"{kills['killed']} of {kills['killed']}"
     # resumable: the same command again finds every case recorded and runs none
     again = subprocess.run([sys.executable, "-m", "vid2sim", "bench", "fuzz", "--quick", "--threads", "1",

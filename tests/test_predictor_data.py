@@ -203,7 +203,10 @@ def test_shards_hold_the_documented_samples(dataset):
 def test_two_runs_give_identical_shards_and_resume_remakes_only_what_is_missing(dataset, tmp_path):
     out, _ = dataset
     other = tmp_path / "b"
+    other.mkdir()  # as a run killed while writing its first index.json leaves it: its temporary file alone
+    (other / ".index.json.k1lled00.tmp").write_text('{"comp')
     make_training_data(TrainingDataConfig(**TINY), other, workers=2, threads=1, progress=False)
+    assert not (other / ".index.json.k1lled00.tmp").exists()
     for name in ("object_000000.npz", "object_000001.npz"):
         assert _sha(out / name) == _sha(other / name)  # identical bytes, whatever the number of workers
     kept = (other / "object_000000.npz").stat().st_mtime_ns

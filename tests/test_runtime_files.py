@@ -6,12 +6,23 @@ from __future__ import annotations
 import json
 import math
 import os
+import signal
 import stat
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
 
-from vid2sim.runtime.files import jsonable, remove_leftovers, write_folder_atomic
+from vid2sim.runtime.files import (
+    holds_files,
+    is_temp_file,
+    jsonable,
+    remove_leftovers,
+    remove_temp_files,
+    write_folder_atomic,
+)
 from vid2sim.scene.capture import jsonify
 
 RECORD = {"a": (1, 2.5, np.float32(0.25)), 3: [np.int64(7), np.bool_(True), None, "x"], "nan": float("nan"),
@@ -124,6 +135,40 @@ def test_a_new_folder_write_removes_what_a_killed_writer_left(tmp_path):
     assert not any(p.exists() for p in left)
     assert all(p.exists() for p in kept)
     assert remove_leftovers(out) == []
+
+
+def test_the_temporary_file_of_a_writer_killed_mid_file_is_recognised_and_removed(tmp_path):
+    """A SIGKILLed ``write_file_atomic`` leaves its ``.NAME.<8 characters>.tmp``. A folder holding only that is
+    as good as empty to a resumable command (the kill campaign found `make-training-data` killed while writing
+    its first index.json refusing to resume: "not empty and holds no index.json"), and the next run removes it;
+    other hidden files and a user's own ``.tmp`` files stay."""
+    out = tmp_path / "data"
+    out.mkdir()
+    code = ("import sys, time\nfrom vid2sim.runtime.files import write_file_atomic\n"
+            "def write(tmp):\n    open(tmp, 'w').write('{\"comp')\n    print('writing', flush=True)\n"
+            "    time.sleep(60)\n"
+            "write_file_atomic(sys.argv[1], write)\n")
+    src = str(Path(__file__).resolve().parents[1] / "src")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([src, os.environ.get("PYTHONPATH", "")])}
+    proc = subprocess.Popen([sys.executable, "-c", code, str(out / "index.json")], stdout=subprocess.PIPE,
+                            text=True, env=env)
+    try:
+        assert proc.stdout.readline().strip() == "writing"
+    finally:
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait()
+    left = list(out.iterdir())
+    assert len(left) == 1 and is_temp_file(left[0]) and not (out / "index.json").exists()
+    assert not holds_files(out) and not holds_files(tmp_path / "absent")
+    (out / "sub").mkdir()
+    nested = out / "sub" / ".object_000001.npz.ab_cd123.tmp"
+    nested.write_bytes(b"PK")
+    kept = [out / ".notes.tmp", out / ".x.toolong123.tmp", out / "x.abcdefgh.tmp", out / ".index.json.lock"]
+    for p in kept:
+        p.write_text("mine")
+    assert holds_files(out)
+    assert sorted(remove_temp_files(out)) == sorted([left[0], nested])
+    assert all(p.exists() for p in kept) and not left[0].exists() and not nested.exists()
 
 
 def test_a_json_number_is_not_a_bool_and_a_finite_one_not_nan_or_inf() -> None:

@@ -246,7 +246,10 @@ TINY = ["--frames", "3", "--observed-frames", "2", "--resolution", "24", "--view
 
 def test_make_benchmark_writes_an_index_and_resumes(tmp_path, capsys):
     root = tmp_path / "bench"
+    root.mkdir()  # as a run killed while writing its first index.json leaves it: its temporary file alone
+    (root / ".index.json.k1lled00.tmp").write_text('{"comp')
     assert main(["make-benchmark", str(root), "--n", "1", "--preset", "small", "--seed", "5", "--quiet", *TINY]) == 0
+    assert not (root / ".index.json.k1lled00.tmp").exists()
     index = json.loads((root / "index.json").read_text())
     assert index["complete"] and [s["name"] for s in index["scenes"]] == ["scene_000"]
     stamps = {p: os.stat(root / p / "fem_result.npz").st_mtime_ns for p in ("scene_000",)}

@@ -14,6 +14,7 @@ import json
 import math
 import os
 import pickle
+import re
 import shutil
 import tempfile
 import uuid
@@ -62,6 +63,36 @@ def write_text_atomic(path: str | Path, text: str) -> Path:
 def write_json_atomic(path: str | Path, obj: Any, indent: int | None = 2) -> Path:
     """Write ``obj`` as JSON (with a final newline) to ``path`` atomically; returns the path."""
     return write_text_atomic(path, json.dumps(obj, indent=indent) + "\n")
+
+
+#: the name of the temporary file :func:`write_file_atomic` writes before renaming it onto ``NAME``:
+#: ``.NAME.<8 characters mkstemp draws>.tmp``
+_TEMP_FILE = re.compile(r"\..+\.[a-z0-9_]{8}\.tmp")
+
+
+def is_temp_file(path: str | Path) -> bool:
+    """Whether ``path`` is a file that :func:`write_file_atomic` left when its writer was killed mid-way (SIGKILL
+    runs no clean-up): ``.NAME.<8 characters>.tmp``."""
+    path = Path(path)
+    return _TEMP_FILE.fullmatch(path.name) is not None and path.is_file() and not path.is_symlink()
+
+
+def holds_files(folder: str | Path) -> bool:
+    """Whether the folder ``folder`` holds anything but the temporary files of killed writers
+    (:func:`is_temp_file`): a resumable command refuses to write into a folder that holds files and no output of
+    its own, and a run killed while writing its first file left such a folder."""
+    folder = Path(folder)
+    return folder.is_dir() and any(not is_temp_file(p) for p in folder.iterdir())
+
+
+def remove_temp_files(folder: str | Path) -> list[Path]:
+    """Remove the temporary files killed writers left in ``folder`` and its subfolders (:func:`is_temp_file`).
+    Call it when a resumable command starts on its output: the command holds the output's lock
+    (:mod:`vid2sim.runtime.locks`), so no live writer owns them. Returns the files removed."""
+    gone = [p for p in Path(folder).rglob(".*.tmp") if is_temp_file(p)]
+    for p in gone:
+        p.unlink(missing_ok=True)
+    return gone
 
 
 #: the tags of the hidden folders a folder writer stages beside its target (``.NAME.<tag>-<12 hex digits>``)

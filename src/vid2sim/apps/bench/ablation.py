@@ -55,7 +55,7 @@ from vid2sim.reconstruct.runner import StageSnapshots, cache_keys
 from vid2sim.reconstruct.stages import all_stages
 from vid2sim.report import write_suite_report
 from vid2sim.runtime.errors import InputError
-from vid2sim.runtime.files import write_json_atomic
+from vid2sim.runtime.files import holds_files, write_json_atomic
 from vid2sim.runtime.ray_runner import check_ray
 
 if TYPE_CHECKING:
@@ -313,7 +313,7 @@ def run_ablation(suite_dir: str | Path, out_dir: str | Path, config: SuiteConfig
     read_index(suite)
     if out.exists() and not out.is_dir():
         raise FileExistsError(f"{out} exists and is not a folder")
-    if out.is_dir() and any(out.iterdir()) and not any((out / n).exists() for n in (*configs, ABLATION_JSON)):
+    if holds_files(out) and not any((out / n).exists() for n in (*configs, ABLATION_JSON)):
         raise FileExistsError(f"{out} is not empty and holds no ablation run ({', '.join(configs)}): refusing to "
                               "write one there")
     if ray_address is not None:

@@ -35,7 +35,7 @@ from vid2sim.reconstruct.pipeline import ReconstructConfig, reconstruct
 from vid2sim.reconstruct.runner import StageSnapshots
 from vid2sim.report import write_report, write_suite_report
 from vid2sim.runtime.errors import ConfigError, InputError
-from vid2sim.runtime.files import write_json_atomic
+from vid2sim.runtime.files import holds_files, remove_temp_files, write_json_atomic
 from vid2sim.runtime.ray_runner import check_ray, ray_map
 
 if TYPE_CHECKING:
@@ -423,7 +423,7 @@ def check_out(out: Path, settings: dict[str, Any]) -> None:
         if differ:
             raise InputError(f"{out} holds a suite run with other settings ({', '.join(differ)} differ; see "
                              f"{path}): resume it with the same settings, or write to another folder")
-    elif out.exists() and any(out.iterdir()):
+    elif holds_files(out):  # the temporary file of a run killed while writing its first file does not count
         raise FileExistsError(f"{out} is not empty and holds no {SUITE_CONFIG_JSON}: refusing to write a suite "
                               "there")
 
@@ -432,6 +432,7 @@ def _prepare_out(out: Path, settings: dict[str, Any]) -> None:
     """Create ``out`` and its suite_config.json, or check that an earlier run there used ``settings``."""
     check_out(out, settings)
     out.mkdir(parents=True, exist_ok=True)
+    remove_temp_files(out)  # what a run killed while writing a file left
     write_json_atomic(out / SUITE_CONFIG_JSON, settings)
 
 
