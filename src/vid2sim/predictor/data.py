@@ -680,8 +680,7 @@ def make_training_data(config: TrainingDataConfig, out_dir: str | Path, workers:
     out = Path(out_dir)
     index_path = out / INDEX
     _check_dataset_folder(out, index_path)
-    if out.is_dir():
-        remove_temp_files(out)  # what a run killed while writing a shard or index.json left
+    remove_temp_files(out)  # what a run killed while writing a shard or index.json left
     header = _dataset_header(config, ray_address)
     previous = _previous_index(index_path, config, header) if index_path.is_file() else {}
     out.mkdir(parents=True, exist_ok=True)

@@ -88,7 +88,8 @@ def holds_files(folder: str | Path) -> bool:
 def remove_temp_files(folder: str | Path) -> list[Path]:
     """Remove the temporary files killed writers left in ``folder`` and its subfolders (:func:`is_temp_file`).
     Call it when a resumable command starts on its output: the command holds the output's lock
-    (:mod:`vid2sim.runtime.locks`), so no live writer owns them. Returns the files removed."""
+    (:mod:`vid2sim.runtime.locks`), so no live writer owns them. A folder that does not exist holds none. Returns
+    the files removed."""
     gone = [p for p in Path(folder).rglob(".*.tmp") if is_temp_file(p)]
     for p in gone:
         p.unlink(missing_ok=True)

@@ -666,8 +666,7 @@ def make_benchmark(n: int, out_dir: str | Path, preset: str = "full", seed: int 
     root = Path(out_dir)
     index_path = root / "index.json"
     _check_suite_folder(root, index_path)
-    if root.is_dir():
-        remove_temp_files(root)  # what a run killed while writing index.json left
+    remove_temp_files(root)  # what a run killed while writing index.json left
     header = _suite_header(preset, seed, overrides, tets_from)
     if index_path.is_file():
         _check_previous_suite(index_path, header)
