@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 from vid2sim.runtime.files import (
+    check_output_folder,
     holds_files,
     is_temp_file,
     jsonable,
@@ -169,6 +170,21 @@ def test_the_temporary_file_of_a_writer_killed_mid_file_is_recognised_and_remove
     assert holds_files(out)
     assert sorted(remove_temp_files(out)) == sorted([left[0], nested])
     assert all(p.exists() for p in kept) and not left[0].exists() and not nested.exists()
+
+
+def test_an_output_folder_is_refused_when_it_is_a_file_or_holds_files_but_none_of_the_output(tmp_path) -> None:
+    out = tmp_path / "out"
+    check_output_folder(out, False, "index.json", "a benchmark")  # absent: fine
+    out.mkdir()
+    (out / ".index.json.abcd_123.tmp").write_text("{")  # a killed writer's leftover does not count
+    check_output_folder(out, False, "index.json", "a benchmark")
+    (out / "notes.txt").write_text("mine")
+    with pytest.raises(FileExistsError, match=r"out is not empty and holds no index.json: refusing to write a "
+                                              r"benchmark there"):
+        check_output_folder(out, False, "index.json", "a benchmark")
+    check_output_folder(out, True, "index.json", "a benchmark")  # the command's own output: a resume
+    with pytest.raises(FileExistsError, match="notes.txt exists and is not a folder"):
+        check_output_folder(out / "notes.txt", True, "index.json", "a benchmark")
 
 
 def test_a_json_number_is_not_a_bool_and_a_finite_one_not_nan_or_inf() -> None:

@@ -68,7 +68,7 @@ from vid2sim.predictor.front_view import FrontCamera
 from vid2sim.predictor.solid import sample_solid
 from vid2sim.predictor.template import TEMPLATE_PATH, field_from_last_layer, fit_last_layer, load_template
 from vid2sim.runtime.errors import ConfigError
-from vid2sim.runtime.files import holds_files, remove_temp_files, write_file_atomic, write_json_atomic
+from vid2sim.runtime.files import check_output_folder, remove_temp_files, write_file_atomic, write_json_atomic
 from vid2sim.runtime.ray_runner import import_ray, ray_map
 from vid2sim.runtime.workers import process_pool
 from vid2sim.synthetic.fem import FEMSolverError, InitialPose
@@ -679,7 +679,7 @@ def make_training_data(config: TrainingDataConfig, out_dir: str | Path, workers:
 
     out = Path(out_dir)
     index_path = out / INDEX
-    _check_dataset_folder(out, index_path)
+    check_output_folder(out, index_path.is_file(), INDEX, "a training dataset")
     remove_temp_files(out)  # what a run killed while writing a shard or index.json left
     header = _dataset_header(config, ray_address)
     previous = _previous_index(index_path, config, header) if index_path.is_file() else {}
@@ -706,15 +706,6 @@ def make_training_data(config: TrainingDataConfig, out_dir: str | Path, workers:
     if run.errors:
         raise run.errors[0]
     return index
-
-
-def _check_dataset_folder(out: Path, index_path: Path) -> None:
-    """Refuse an ``out`` that is a file, or a folder without ``index.json`` that holds files (FileExistsError; the
-    temporary file of a run killed while writing its first ``index.json`` does not count)."""
-    if out.exists() and not out.is_dir():
-        raise FileExistsError(f"{out} exists and is not a folder")
-    if holds_files(out) and not index_path.is_file():
-        raise FileExistsError(f"{out} is not empty and holds no {INDEX}: refusing to write a training dataset there")
 
 
 def _dataset_header(config: TrainingDataConfig, ray_address: str | None) -> dict[str, Any]:

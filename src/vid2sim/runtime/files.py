@@ -85,6 +85,18 @@ def holds_files(folder: str | Path) -> bool:
     return folder.is_dir() and any(not is_temp_file(p) for p in folder.iterdir())
 
 
+def check_output_folder(folder: str | Path, holds_output: bool, output: str, what: str) -> None:
+    """Refuse the output folder of a resumable command: FileExistsError when ``folder`` is a file, or a folder that
+    holds files (:func:`holds_files`: the temporary files of killed writers do not count) but none of the command's
+    own output (``holds_output`` False). ``output`` names that output and ``what`` what the command writes, for the
+    message ("… is not empty and holds no {output}: refusing to write {what} there")."""
+    folder = Path(folder)
+    if folder.exists() and not folder.is_dir():
+        raise FileExistsError(f"{folder} exists and is not a folder")
+    if not holds_output and holds_files(folder):
+        raise FileExistsError(f"{folder} is not empty and holds no {output}: refusing to write {what} there")
+
+
 def remove_temp_files(folder: str | Path) -> list[Path]:
     """Remove the temporary files killed writers left in ``folder`` and its subfolders (:func:`is_temp_file`).
     Call it when a resumable command starts on its output: the command holds the output's lock

@@ -49,7 +49,13 @@ from vid2sim.physics.damping import DEFAULT_DAMPING_RATIO
 from vid2sim.physics.external import AREA_CONTACT_STIFFNESS
 from vid2sim.physics.materials import ELASTIC_MODELS, lame_parameters
 from vid2sim.runtime.errors import ConfigError
-from vid2sim.runtime.files import holds_files, jsonable, remove_temp_files, write_folder_atomic, write_json_atomic
+from vid2sim.runtime.files import (
+    check_output_folder,
+    jsonable,
+    remove_temp_files,
+    write_folder_atomic,
+    write_json_atomic,
+)
 from vid2sim.runtime.ray_runner import check_ray, ray_map
 from vid2sim.scene.folder import Scene, SceneConfig
 from vid2sim.scene.writing import write_scene
@@ -665,7 +671,7 @@ def make_benchmark(n: int, out_dir: str | Path, preset: str = "full", seed: int 
     configs = _suite_configs(preset, params, overrides, tets_from, ray_address)
     root = Path(out_dir)
     index_path = root / "index.json"
-    _check_suite_folder(root, index_path)
+    check_output_folder(root, index_path.is_file(), "index.json", "a benchmark")
     remove_temp_files(root)  # what a run killed while writing index.json left
     header = _suite_header(preset, seed, overrides, tets_from)
     if index_path.is_file():
@@ -718,15 +724,6 @@ def _suite_configs(preset: str, params: list[dict[str, float | int]], overrides:
     if ray_address is not None:  # fail before any work
         check_ray(ray_address)
     return configs
-
-
-def _check_suite_folder(root: Path, index_path: Path) -> None:
-    """Refuse a ``root`` that is a file, or a folder without ``index.json`` that holds files (FileExistsError; the
-    temporary file of a run killed while writing its first ``index.json`` does not count)."""
-    if root.exists() and not root.is_dir():
-        raise FileExistsError(f"{root} exists and is not a folder")
-    if holds_files(root) and not index_path.is_file():
-        raise FileExistsError(f"{root} is not empty and holds no index.json: refusing to write a benchmark there")
 
 
 def _suite_header(preset: str, seed: int, overrides: dict[str, Any], tets_from: str | Path | None

@@ -55,7 +55,7 @@ from vid2sim.reconstruct.runner import StageSnapshots, cache_keys
 from vid2sim.reconstruct.stages import all_stages
 from vid2sim.report import write_suite_report
 from vid2sim.runtime.errors import InputError
-from vid2sim.runtime.files import holds_files, write_json_atomic
+from vid2sim.runtime.files import check_output_folder, write_json_atomic
 from vid2sim.runtime.ray_runner import check_ray
 
 if TYPE_CHECKING:
@@ -311,11 +311,8 @@ def run_ablation(suite_dir: str | Path, out_dir: str | Path, config: SuiteConfig
     suite = Path(suite_dir).resolve()
     out = Path(out_dir).resolve()
     read_index(suite)
-    if out.exists() and not out.is_dir():
-        raise FileExistsError(f"{out} exists and is not a folder")
-    if holds_files(out) and not any((out / n).exists() for n in (*configs, ABLATION_JSON)):
-        raise FileExistsError(f"{out} is not empty and holds no ablation run ({', '.join(configs)}): refusing to "
-                              "write one there")
+    check_output_folder(out, any((out / n).exists() for n in (*configs, ABLATION_JSON)),
+                        f"ablation run ({', '.join(configs)})", "one")
     if ray_address is not None:
 
         check_ray(ray_address)

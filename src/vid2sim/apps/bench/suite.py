@@ -35,7 +35,7 @@ from vid2sim.reconstruct.pipeline import ReconstructConfig, reconstruct
 from vid2sim.reconstruct.runner import StageSnapshots
 from vid2sim.report import write_report, write_suite_report
 from vid2sim.runtime.errors import ConfigError, InputError
-from vid2sim.runtime.files import holds_files, remove_temp_files, write_json_atomic
+from vid2sim.runtime.files import check_output_folder, remove_temp_files, write_json_atomic
 from vid2sim.runtime.ray_runner import check_ray, ray_map
 
 if TYPE_CHECKING:
@@ -407,8 +407,7 @@ def check_out(out: Path, settings: dict[str, Any]) -> None:
     """Raise unless ``out`` can take a run with ``settings`` (``{"suite": path, **SuiteConfig.to_dict()}``):
     absent, empty, or resumable (its suite_config.json has the same settings). Writes nothing."""
     path = out / SUITE_CONFIG_JSON
-    if out.exists() and not out.is_dir():
-        raise FileExistsError(f"{out} exists and is not a folder")
+    check_output_folder(out, path.is_file(), SUITE_CONFIG_JSON, "a suite")
     if path.is_file():
         previous = json.loads(path.read_text())
         # the resolved ReconstructConfig, not the preset's name: a run pinned with --config resumes after a release
@@ -423,9 +422,6 @@ def check_out(out: Path, settings: dict[str, Any]) -> None:
         if differ:
             raise InputError(f"{out} holds a suite run with other settings ({', '.join(differ)} differ; see "
                              f"{path}): resume it with the same settings, or write to another folder")
-    elif holds_files(out):  # the temporary file of a run killed while writing its first file does not count
-        raise FileExistsError(f"{out} is not empty and holds no {SUITE_CONFIG_JSON}: refusing to write a suite "
-                              "there")
 
 
 def _prepare_out(out: Path, settings: dict[str, Any]) -> None:
