@@ -30,6 +30,11 @@ def pytest_configure(config: pytest.Config) -> None:
     workers = os.environ.get("PYTEST_XDIST_WORKER_COUNT")
     if workers:
         torch.set_num_threads(max(1, (os.cpu_count() or 1) // int(workers)))
+    # Ray starts its worker processes at niceness 15 (its `worker_niceness`), so beside the other pytest workers
+    # (niceness 0) a Ray task got a few per cent of a core: in the run of 7b1528c, test_bench_suite's one-scene
+    # Ray test took 396 s against 28 s alone, the longest test of the suite. The tests' local instances (and
+    # those the CLI tests start in child processes, which inherit this) run their workers at the tests' niceness.
+    os.environ.setdefault("RAY_worker_niceness", "0")
 
 
 #: seconds the slowest test files took on two cores (summed over their tests, `--durations`, at `13e8a68`): a
