@@ -341,7 +341,9 @@ class JointConfig:
             seed-2 suite's 8 scenes the video kept the carved surface on 3 and |Δlog10 E| fell from 0.271 to 0.165;
             it is off until an out-of-sample suite confirms it. Four views from above leave the hull reaching
             below the object, and that keel meets the floor first: on a stiff scene of the seed-2 suite the hull
-            was fitted 0.86 decade soft, and 0.31 decade stiff with that surface (docs/results.md).
+            was fitted 0.86 decade soft, and 0.31 decade stiff with that surface (docs/results.md). On capture
+            twins (imported masks) it turned the first bounce right on the 4 of 6 that bounced wrong, but moved E
+            0.4 decade stiff on 2 of them (docs/capture.md, "sixth entry").
         coarse_scale: image scale of the coarse search, the Gauss–Newton fit and the first ``coarse_fraction`` of the
             iterations (targets and renders, made at full size, area-averaged to it).
         coarse_fraction: fraction of the iterations rendered at ``coarse_scale`` (then full resolution).
