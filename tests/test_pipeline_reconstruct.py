@@ -10,6 +10,7 @@ import shutil
 import numpy as np
 import pytest
 import torch
+from conftest import _tiny_reconstruct_config
 
 from vid2sim.asset.folder import load_asset
 from vid2sim.cli import main
@@ -80,20 +81,56 @@ def test_reconstruct_writes_a_complete_asset(tiny_asset, tiny_scene):
     assert torch.allclose(simulate_gaussians(asset, 1, progress=False)[0].sh, ply.sh, atol=1e-5)
 
 
-def test_a_calibrated_reconstruction_records_and_uses_its_stiffness_scale(tiny_scene, tmp_path, tiny_config):
+def _resume_config():
+    """The tiny config with the resume test's joint stage: a search over the centre of mass (one round: the start,
+    ± a step along each axis and their parabolas' vertex, 7 or 8 candidates) and a hull track; no Gauss–Newton
+    step (the track's record is checked here, the fit with it in tests/test_hull_track.py)."""
+    config = _tiny_reconstruct_config()
+    config.joint.centre_of_mass_step, config.joint.centre_of_mass_rounds = 0.05, 1
+    config.joint.track_sd = 0.02
+    config.joint.gauss_newton_iterations = 0
+    return config
+
+
+@pytest.fixture(scope="module")
+def interrupted(tiny_scene, tmp_path_factory):
+    """The resume test's reconstruction of the tiny scene, interrupted in its joint stage: (its output folder, which
+    only that test writes into, and the snapshots of its first stages). Those stages ran with the tiny config, so
+    the other reconstructions of the tiny scene here start from the snapshots (:class:`StageSnapshots`, each
+    naming the last stage it may skip) instead of fitting the same Gaussians and points again (about 7 CPU-s
+    each)."""
+    out = tmp_path_factory.mktemp("interrupted") / "asset"
+    snapshots = StageSnapshots(out.parent / "snapshots", ("points", "appearance", "networks"))
+
+    def interrupt(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr("vid2sim.reconstruct.stages.joint.joint_optimisation", interrupt)
+        with pytest.raises(KeyboardInterrupt):
+            reconstruct(tiny_scene, out, _resume_config(), progress=False, snapshots=snapshots)
+    return out, snapshots
+
+
+def test_a_calibrated_reconstruction_records_and_uses_its_stiffness_scale(tiny_scene, tmp_path, tiny_config,
+                                                                          interrupted):
     """--calibrate-stiffness: the factor is recorded in material.json and the log, used by the asset's simulator
     and kept under another material (its accuracy: tests/test_pipeline_stiffness.py; 10 skinning iterations
-    and 60 cubature points leave this subspace anywhere near the tets)."""
+    and 60 cubature points leave this subspace anywhere near the tets). The stages up to the networks are the
+    tiny config's: restored from the ``interrupted`` run's snapshot."""
     assert ReconstructConfig().calibration.enabled and ReconstructConfig().calibration.nu == "two_factor"  # defaults
     cfg = tiny_config()
     cfg.calibration.enabled, cfg.calibration.cells, cfg.calibration.points = True, 24, 20000
     cfg.calibration.nu, cfg.simulator.volumetric = "curve", "projected"  # the projected volumetric term end to end
     assert cfg.simulator.cubature_weights == "voronoi"  # the default: cell volumes for the energy and the mass
     cfg.joint.gauss_newton_iterations = 0  # the coarse search's material: the fit is not what this test checks
+    cfg.motion_appearance.iterations = 0  # nor the Gaussians refitted after it
     # the caller's thread count is restored (one per pytest-xdist worker on 2 cores: setting two here, beside the
     # other worker and the child, oversubscribed them, 78 s in the suite); giving the child one of two: next test
     threads = torch.get_num_threads()
-    asset = load_asset(reconstruct(tiny_scene, tmp_path / "asset", cfg, progress=False))
+    shared = StageSnapshots(interrupted[1].dir, ("networks",))
+    asset = load_asset(reconstruct(tiny_scene, tmp_path / "asset", cfg, progress=False, snapshots=shared))
+    assert json.loads((tmp_path / "asset" / "log.json").read_text())["restored"]["stage"] == "networks"
     assert torch.get_num_threads() == threads
     assert asset.material["volumetric"] == "projected" == asset.simulator().volumetric
     # the Voronoi cells: unequal, positive, summing to the solid's volume; the simulator integrates and lumps on them
@@ -391,7 +428,8 @@ def test_motion_appearance_fits_the_gaussians_through_the_motion(tiny_asset, tin
     assert record["geometry"] and full.num == asset.gaussians.num
     for name in ("means", "log_scales", "quats", "sh", "opacity_logits"):
         assert not torch.equal(getattr(full, name), getattr(asset.gaussians, name)), name
-    assert score(full) > score(asset.gaussians) and score(colours) > score(asset.gaussians)
+    before = score(asset.gaussians)  # the asset's own Gaussians on the motion, the baseline of each fit below
+    assert score(full) > before and score(colours) > before
     # with a world-fixed light: albedos, normals, the light and the ambient share are fitted together
     start = initial_shading(asset.gaussians, asset.points, asset.volume, asset.gravity)
     assert start.light.tolist() == pytest.approx([0.0, 0.0, 1.0]) and float(start.ambient) == pytest.approx(0.5)
@@ -403,7 +441,7 @@ def test_motion_appearance_fits_the_gaussians_through_the_motion(tiny_asset, tin
     assert record["loss_last"] < record["loss_first"]
     lit_psnr = image_metrics(render_frames([motion.carry(lit, t, shading) for t in observed], cameras,
                                            progress=False), images, layout="VT")["psnr"]
-    assert lit_psnr > score(asset.gaussians)
+    assert lit_psnr > before
     with pytest.raises(ValueError, match="normals"):
         refine_on_motion(albedo, motion, images, cameras, observed, FitConfig(), 1, shading=start.select(slice(0, 3)))
     # the Neural-Jacobian path: a 'network' that returns the exact dF/dz carries them the same way
@@ -474,17 +512,15 @@ def test_a_loss_power_below_one_favours_the_frames_the_motion_explains(tiny_asse
 
 
 def test_an_interrupted_reconstruction_resumes_after_its_last_finished_stage(
-    tiny_scene, tmp_path, monkeypatch, tiny_config
+    interrupted, tiny_scene, tmp_path, monkeypatch, tiny_config
 ):
-    """An interrupted run resumes after its last finished stage and leaves nothing that looks finished; with the
-    centre-of-mass search on, the offset the joint stage found moves the asset's lumped masses; with a hull track,
-    the joint stage carves one hull per observed frame and log.json records the fit's distance from it."""
+    """An interrupted run (the ``interrupted`` fixture's) resumes after its last finished stage and leaves nothing
+    that looks finished; with the centre-of-mass search on, the offset the joint stage found moves the asset's
+    lumped masses; with a hull track, the joint stage carves one hull per observed frame and log.json records the
+    fit's distance from it."""
     from vid2sim.reconstruct.stages import joint as joint_module
 
-    out = tmp_path / "asset"
-    config = tiny_config()
-    config.joint.centre_of_mass_step = 0.05
-    config.joint.track_sd = 0.02
+    out, _ = interrupted
     real, offset = joint_module.joint_optimisation, [0.004, 0.0, -0.003]
 
     def then_moved(*args, **kwargs):  # the real stage (its search runs), its offset replaced by a known one
@@ -493,13 +529,7 @@ def test_an_interrupted_reconstruction_resumes_after_its_last_finished_stage(
         assert len(result.centre_of_mass_search) >= 7
         return dataclasses.replace(result, centre_of_mass_offset=offset)
 
-    def interrupted(*args, **kwargs):
-        raise KeyboardInterrupt
-
-    monkeypatch.setattr("vid2sim.reconstruct.stages.joint.joint_optimisation", interrupted)
-    with pytest.raises(KeyboardInterrupt):
-        reconstruct(tiny_scene, out, config, progress=False)
-    work = tmp_path / ".asset.work"
+    work = out.parent / ".asset.work"
     assert not out.exists()  # nothing that looks like a finished asset
     assert {p.name for p in work.glob("*.done")} == {
         "gaussians.done",
@@ -510,7 +540,6 @@ def test_an_interrupted_reconstruction_resumes_after_its_last_finished_stage(
         "networks.done",
         "calibration.done",
     }
-    monkeypatch.undo()
 
     def must_not_run(*args, **kwargs):
         raise AssertionError("a finished stage ran again")
@@ -518,7 +547,7 @@ def test_an_interrupted_reconstruction_resumes_after_its_last_finished_stage(
     monkeypatch.setattr("vid2sim.reconstruct.stages.gaussians.fit_gaussians", must_not_run)
     monkeypatch.setattr("vid2sim.reconstruct.stages.networks.train_skinning", must_not_run)
     monkeypatch.setattr("vid2sim.reconstruct.stages.joint.joint_optimisation", then_moved)
-    reconstruct(tiny_scene, out, config, progress=False)
+    reconstruct(tiny_scene, out, _resume_config(), progress=False)  # the work folder alone: no snapshots
     assert (out / "material.json").is_file() and not work.exists()
     asset = load_asset(out)  # the masses carry the joint stage's offset: same total, centre moved
     w, m, x = asset.cubature_weights.double(), asset.mass_volumes.double(), asset.cubature_points.double()
@@ -622,9 +651,11 @@ def test_config_json_loads_back_and_bad_settings_name_their_path(tmp_path):
     assert configs.field_docs(ReconstructConfig)["seed"] == "seeds every stage."
 
 
-def test_a_drop_that_meets_the_floor_by_frame_1_still_reconstructs(tiny_scene, tmp_path, monkeypatch, tiny_config):
+def test_a_drop_that_meets_the_floor_by_frame_1_still_reconstructs(tiny_scene, tmp_path, monkeypatch, tiny_config,
+                                                                    interrupted):
     """... and (the same run) the coarse search over the contact surface (``joint.contact_trim``): every grid point
-    records its surface, the asset keeps the best one's, and its contact points are that surface."""
+    records its surface, the asset keeps the best one's, and its contact points are that surface. The Gaussians and
+    points are the tiny config's, restored from the ``interrupted`` run's snapshot; the velocity stage runs."""
     from vid2sim.reconstruct.stages import velocity as initial_state
 
     real = initial_state.estimate_initial_velocity
@@ -641,7 +672,9 @@ def test_a_drop_that_meets_the_floor_by_frame_1_still_reconstructs(tiny_scene, t
     config.motion_appearance.iterations = 0  # and the last stage switched off
     config.joint.contact_search = True
     config.joint.gauss_newton_iterations = 0  # the coarse search is what this test checks, not the fit after it
-    out = reconstruct(tiny_scene, tmp_path / "asset", config, progress=False)
+    shared = StageSnapshots(interrupted[1].dir, ("points",))
+    out = reconstruct(tiny_scene, tmp_path / "asset", config, progress=False, snapshots=shared)
+    assert json.loads((out / "log.json").read_text())["restored"]["stage"] == "points"
     assert calls == [pytest.approx(-0.7), None]  # then frames 0 and 1 without the floor test
     extra = json.loads((out / "asset.json").read_text())["extra"]
     log = json.loads((out / "log.json").read_text())
@@ -674,7 +707,10 @@ def _tiny_predictor(path):
     return save_predictor(m, path, data_config={"dt": 0.05}), m
 
 
-def test_stage1_sets_the_prior_the_coarse_grid_and_the_skinning_start(tiny_scene, tmp_path, monkeypatch, tiny_config):
+def test_stage1_sets_the_prior_the_coarse_grid_and_the_skinning_start(tiny_scene, tmp_path, monkeypatch, tiny_config,
+                                                                      interrupted):
+    """Stage I's prediction sets the prior, centres the coarse grid and starts the skinning field (the stages
+    before Stage I are the tiny config's: restored from the ``interrupted`` run's snapshot)."""
     importlib.import_module("transformers")  # a declared test dependency: a broken install fails
     from vid2sim.predictor.predict import front_video
     from vid2sim.predictor.template import load_template
@@ -695,7 +731,9 @@ def test_stage1_sets_the_prior_the_coarse_grid_and_the_skinning_start(tiny_scene
         True,
     )  # Stage I needs the template's 10 handles
     cfg.joint.gauss_newton_iterations = cfg.motion_appearance.iterations = 0  # what follows the coarse search
-    out = reconstruct(tiny_scene, tmp_path / "asset", cfg, progress=False)
+    shared = StageSnapshots(interrupted[1].dir, ("appearance",))
+    out = reconstruct(tiny_scene, tmp_path / "asset", cfg, progress=False, snapshots=shared)
+    assert json.loads((out / "log.json").read_text())["restored"]["stage"] == "appearance"
     s1 = json.loads((out / "log.json").read_text())["stage1"]
     assert s1["ran"] and s1["checkpoint"] == str(ckpt) and s1["seconds"] > 0
     scene = load_scene(tiny_scene)
