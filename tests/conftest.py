@@ -106,6 +106,14 @@ def _tiny_reconstruct_config():
     return configs.merge(ReconstructConfig(), TINY)
 
 
+def fewer_fit_iterations(config):
+    """``config`` (a ReconstructConfig, changed in place and returned) with the stages that tests of bookkeeping do
+    not judge fitted at fewer iterations: Gaussians 10, appearance 2, motion appearance 2, skinning 4."""
+    config.gaussians.iterations, config.appearance.iterations, config.motion_appearance.iterations = 10, 2, 2
+    config.networks.skinning_iterations = 4
+    return config
+
+
 @pytest.fixture
 def tiny_config():
     """A factory of the tiny ReconstructConfig (each call a fresh, mutable copy)."""

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from conftest import fewer_fit_iterations
 
 from vid2sim.apps.bench import ablation
 from vid2sim.apps.bench.ablation import (
@@ -276,11 +277,8 @@ def run(tiny_config, tmp_path_factory):
         t0 = time.perf_counter()
         make_benchmark(1, root / "suite", preset="small", seed=0, progress=False, workers=1, **TINY)
         TIMINGS["make_benchmark_s"] = time.perf_counter() - t0
-        cfg = tiny_config()
+        cfg = fewer_fit_iterations(tiny_config())  # the stages the variants share and the ablation does not compare
         cfg.networks.handles = 10
-        # the stages the ablation does not compare, cut further (they are fitted once and shared by the variants)
-        cfg.gaussians.iterations, cfg.appearance.iterations, cfg.motion_appearance.iterations = 10, 2, 2
-        cfg.networks.skinning_iterations = 4
         config = SuiteConfig(reconstruct=cfg, threads=1)
         ckpt = _tiny_predictor(root / "p.pt")
         t0 = time.perf_counter()

@@ -14,6 +14,7 @@ from dataclasses import asdict
 from pathlib import Path
 
 import pytest
+from conftest import fewer_fit_iterations
 
 from vid2sim.apps.bench.suite import (
     EVALUATION_JSON,
@@ -48,13 +49,7 @@ def tiny_config(tiny_config):
     """The shared tiny ReconstructConfig factory (tests/conftest.py) with the stages a suite's bookkeeping does not
     judge fitted at fewer iterations: the three reconstructions below take a third less time."""
 
-    def make():
-        config = tiny_config()
-        config.gaussians.iterations, config.appearance.iterations, config.motion_appearance.iterations = 10, 2, 2
-        config.networks.skinning_iterations = 4
-        return config
-
-    return make
+    return lambda: fewer_fit_iterations(tiny_config())
 
 
 @pytest.fixture(scope="module")

@@ -371,8 +371,8 @@ def _own_motion(frames: int, log10_E: float, nu: float, zeta: float, linear, ang
     automatic count), its Gaussians, cameras and images (2, frames, 32, 32, 3).
 
     The fits below recover the model's own motion, which is the same motion at any fixed step count: 6 steps per
-    frame at every trial (the automatic count takes 9 … 32 over the coarse grids) cut their time by more than
-    half; the automatic count's use by the fit is tested on models whose answer is known (above)."""
+    frame at every trial (the automatic count takes 9 … 32 over the coarse grids) cut their time by a quarter
+    to a third; the automatic count's use by the fit is tested on models whose answer is known (above)."""
     sim, gaussians, cams = _scene_setup()
     sim.config = dataclasses.replace(sim.config, substeps=substeps)
     if not floor:
