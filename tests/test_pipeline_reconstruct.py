@@ -401,6 +401,7 @@ def test_motion_appearance_fits_the_gaussians_through_the_motion(tiny_asset, tin
         initial_shading,
         refine_on_motion,
     )
+    from vid2sim.splats.deform import deform_gaussians
     from vid2sim.splats.fitting import FitConfig
 
     asset, scene = load_asset(tiny_asset), load_scene(tiny_scene)
@@ -409,6 +410,11 @@ def test_motion_appearance_fits_the_gaussians_through_the_motion(tiny_asset, tin
     for t, d in enumerate(simulate_gaussians(asset, 5, progress=False)):
         c = motion.carry(asset.gaussians, t)
         assert torch.allclose(c.means, d.means, atol=1e-6) and torch.allclose(c.covars, d.covars, atol=1e-9)
+    # the places and deformation gradients the colours-only refit computes once per frame are the carry's
+    x, F = motion.place(asset.gaussians.means, 3)
+    carried = motion.carry(asset.gaussians, 3)
+    assert torch.equal(x.to(carried.means.dtype), carried.means)
+    assert torch.equal(deform_gaussians(asset.gaussians, x.float(), F.float()).covars, carried.covars)
     views, observed = scene.config.observed_views, [0, 1, 2, 3, 4]
     images = scene.images[views][:, observed].float()
     cameras = [scene.cameras[v] for v in views]

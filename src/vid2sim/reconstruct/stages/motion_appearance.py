@@ -99,10 +99,20 @@ class SkinnedMotion:
         differentiation through the field's own gradient at every step).
         """
 
+        x, F = self.place(gaussians.means, t)
+        X = gaussians.means.to(x.dtype)
+        if X.requires_grad:  # value x, gradient Fᵀ ∂L/∂x to the rest-frame centre
+            x = x + (F @ (X - X.detach())[:, :, None])[..., 0]
+        dt = gaussians.means.dtype
+        return deform_gaussians(gaussians, x.to(dt), F.to(dt), shading)
+
+    def place(self, X: Tensor, t: int) -> tuple[Tensor, Tensor]:
+        """The rest-frame points ``X`` (N, 3) at frame t: their places x (N, 3) and deformation gradients
+        F = ∂x/∂X (N, 3, 3), in the states' dtype, without gradients (:meth:`carry` adds the centres')."""
         if not 0 <= t < self.num_frames:
             raise ValueError(f"SkinnedMotion.carry: frame {t} asked, the motion has {self.num_frames} frames")
         z = self.states[t]
-        X = gaussians.means.to(z.dtype)
+        X = X.detach().to(z.dtype)
         with torch.no_grad():
             if self.jacobian is None:
                 w, dw = self.field.weights_and_gradients(X)
@@ -110,11 +120,7 @@ class SkinnedMotion:
             else:
                 w = self.field(X)
                 F = torch.eye(3, dtype=z.dtype, device=z.device) + (self.jacobian(X) @ z).reshape(-1, 3, 3)
-            x = deform(X, w, z)
-        if X.requires_grad:  # value x, gradient Fᵀ ∂L/∂x to the rest-frame centre
-            x = x + (F @ (X - X.detach())[:, :, None])[..., 0]
-        dt = gaussians.means.dtype
-        return deform_gaussians(gaussians, x.to(dt), F.to(dt), shading)
+            return deform(X, w, z), F
 
 
 INITIAL_AMBIENT = 0.5
@@ -215,10 +221,17 @@ def refine_on_motion(gaussians: Any, motion: SkinnedMotion, images: Tensor, came
     per_step = V if fit.views_per_step is None else min(V, fit.views_per_step)
     g = torch.Generator().manual_seed(seed)
     losses = []
+    placed: dict[int, tuple[Tensor, Tensor]] = {}  # without geometry: frame column → (x (N, 3), F (N, 3, 3))
     for _ in tqdm(range(iterations), desc="appearance on the motion", disable=not progress, leave=False):
         t = int(torch.randint(T, (1,), generator=g))
         views = torch.randperm(V, generator=g)[:per_step].tolist() if per_step < V else list(range(V))
-        moved = motion.carry(current(), frame_ids[t], current_shading())
+        if geometry:
+            moved = motion.carry(current(), frame_ids[t], current_shading())
+        else:  # the centres stay: each frame's places and deformation gradients are computed once
+            if t not in placed:
+                x, F = motion.place(gaussians.means, frame_ids[t])
+                placed[t] = (x.to(gaussians.means.dtype), F.to(gaussians.means.dtype))
+            moved = deform_gaussians(current(), *placed[t], current_shading())
         out = render_gaussians(moved, [cameras[v] for v in views], background=1.0).rgb
         loss = photometric_loss(out, images[views, t], fit.lambda_dssim)
         opt.zero_grad(set_to_none=True)
