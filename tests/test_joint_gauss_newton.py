@@ -14,6 +14,7 @@ import torch
 from test_pipeline_joint import _scene_setup
 
 from vid2sim.asset.motion import GaussianRig
+from vid2sim.physics.solver import SimulationError
 from vid2sim.reconstruct.clip import Observations, frame_weights, render_states
 from vid2sim.reconstruct.config import JointConfig
 from vid2sim.reconstruct.gauss_newton import (
@@ -180,6 +181,45 @@ def test_levenberg_marquardt_stops_without_trials_when_the_model_predicts_too_li
     tight = levenberg_marquardt(clip, params, start, n=12.0, iterations=1, tolerance=1e-12)
     made = tight.log[0]["objective"] - tight.log[1]["objective"]
     assert tight.log[1]["accepted"] and made == pytest.approx(tight.log[1]["predicted_decrease"], rel=0.05)
+
+
+class WalledClip(CountingClip):
+    """:class:`CountingClip` whose simulation fails farther than ``reach`` from ``centre`` (the Jacobian's tiny
+    steps stay inside): every trial step the Gauss–Newton model proposes is rejected."""
+
+    def __init__(self, a: float, k: float, centre: list[float], reach: float) -> None:
+        super().__init__(a, k)
+        self.centre, self.reach = centre, reach
+
+    def simulate(self, theta, substeps=None):
+        self.rollouts += 1
+        if max(abs(x - c) for x, c in zip(theta, self.centre)) > self.reach:
+            raise SimulationError("outside the wall")
+        return list(theta)
+
+
+def test_levenberg_marquardt_stops_simulating_trials_once_they_promise_less_than_the_tolerance():
+    """Every trial step is rejected. After each, the Marquardt damping grows until the step is short enough that the
+    model promises at most half of what the rejected one promised; a trial promised less than the tolerance would end
+    the fit even if accepted, so it is not simulated: the fit stops after the trials that promised more, and says
+    why. With no tolerance all six are simulated."""
+    params = [Parameter("a", 0.0, 10.0, 1e-6), Parameter("k", 0.0, 2.0, 1e-6)]
+    start = [1.0, 0.8]
+    clip = WalledClip(2.0, 0.3, start, reach=1e-5)
+    every = levenberg_marquardt(clip, params, start, n=12.0, iterations=1, tolerance=0.0)
+    trials = every.log[1]["trials"]
+    assert len(trials) == 6 and all(t["decrease"] is None for t in trials)
+    promised = [t["predicted_decrease"] for t in trials]
+    # after each rejection the damping grows until the model promises at most half of what the last trial failed to give
+    assert all(0 < b <= 0.5 * a for a, b in zip(promised, promised[1:]))
+    assert all(b["damping"] > a["damping"] for a, b in zip(trials, trials[1:]))
+    tolerance = 0.5 * (promised[1] + promised[2])  # between the second trial's promise and the third's
+    clip.rollouts = 0
+    fit = levenberg_marquardt(clip, params, start, n=12.0, iterations=5, tolerance=tolerance)
+    assert [t["predicted_decrease"] for t in fit.log[1]["trials"]] == pytest.approx(promised[:2])
+    assert clip.rollouts == 1 + 2 + 2 and fit.log[1]["rollouts"] == 2 + 1 + 2  # start, Jacobian, two trials
+    assert fit.theta == start and not fit.log[1]["accepted"]
+    assert fit.stop.startswith("no step lowers the objective by the tolerance")
 
 
 def test_marquardt_step_holds_a_coordinate_at_its_bound_and_solves_for_the_rest():

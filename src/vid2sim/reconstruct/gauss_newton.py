@@ -257,6 +257,20 @@ def marquardt_step(hessian: Tensor, gradient: Tensor, theta: Sequence[float], pa
     return [min(max(float(theta[j] + delta[j]), lower[j]), upper[j]) for j in range(p)]
 
 
+def shortened_step(hessian: Tensor, gradient: Tensor, theta: Sequence[float], parameters: Sequence[Parameter],
+                   damping: float, ceiling: float = math.inf, growth: float = 4.0,
+                   max_damping: float = 1e12) -> tuple[list[float], float, float]:
+    """The Marquardt step (:func:`marquardt_step`) at the smallest damping of damping · growth^k, k ≥ 0, whose
+    predicted decrease (:func:`predicted_decrease`) is at most ``ceiling`` (the damping stops growing at
+    ``max_damping``). Returns (the trial θ, its predicted decrease, the damping used)."""
+    while True:
+        trial = marquardt_step(hessian, gradient, theta, parameters, damping)
+        promised = predicted_decrease(hessian, gradient, theta, trial)
+        if promised <= ceiling or damping * growth > max_damping:
+            return trial, promised, damping
+        damping *= growth
+
+
 def predicted_decrease(hessian: Tensor, gradient: Tensor, theta: Sequence[float], trial: Sequence[float]) -> float:
     """The decrease of Φ the Gauss–Newton model (Φ's ``hessian`` (p, p) and ``gradient`` (p,) at θ) predicts for the
     move from θ to ``trial``: −(gᵀΔ + ½ ΔᵀHΔ)."""
@@ -278,7 +292,9 @@ class FitResult:
         log: one dict per iteration: ``iteration``, ``loss`` (L), ``objective`` (Φ, both at the state's own automatic
             substep count: a step accepted on the comparison at a common count may show a higher Φ than the entry
             before), ``damping`` (Marquardt's λ),
-            ``accepted``, ``rollouts``, ``ms``, the parameters by name, ``validation_loss`` when validated and
+            ``accepted``, ``rollouts``, ``ms``, ``predicted_decrease`` (of the first trial step) and ``trials`` (each
+            simulated trial's ``damping``, ``predicted_decrease`` and ``decrease``, None where rejected), the
+            parameters by name, ``validation_loss`` when validated and
             ``track_loss`` (‖c‖²) with a track term.
         stop: why it stopped.
     """
@@ -305,8 +321,9 @@ def levenberg_marquardt(model: ClipModel, parameters: Sequence[Parameter], theta
         n: the effective number of measurements (:func:`effective_images`).
         iterations: at most this many Jacobians (each p + 1 rollouts, plus the trial steps).
         tolerance: stop when an accepted step lowers Φ by less than this, or when the Gauss–Newton model predicts
-            less for the first trial step (:func:`predicted_decrease`; then no trial is simulated). Φ is in units of
-            log-likelihood: 0.05 is a change of the loss of 0.1 / n of itself.
+            less for a trial step (:func:`predicted_decrease`; that trial is not simulated: the first one, or one
+            whose damping grew after rejected trials). Φ is in units of log-likelihood: 0.05 is a change of the loss
+            of 0.1 / n of itself.
         patience: stop when ``validate`` has not improved on its best for this many accepted steps.
         validate: θ, its trajectory → the validation loss (e.g. the clip at full resolution); the kept θ is
             the best by it (with a track term, by n/2 · log of it + ½ ‖c‖²), the start included. None: the last
@@ -337,32 +354,38 @@ def levenberg_marquardt(model: ClipModel, parameters: Sequence[Parameter], theta
         made[tuple(theta)] = lin
         hessian, gradient = posterior_curvature(lin, parameters, n)
         rollouts, accepted, predicted, settled = p + 1, False, None, False
+        trials: list[dict[str, float]] = []
         reference = {lin.substeps: phi}  # Φ at θ by substep count (the trial comparison's common discretisation)
         for _ in range(6):
-            trial = marquardt_step(hessian, gradient, theta, parameters, damping)
+            # after a rejected trial the step shortens until the model promises at most half of what that trial
+            # failed to deliver (near the first damping a fourfold one barely moves the step)
+            ceiling = 0.5 * trials[-1]["predicted_decrease"] if trials else math.inf
+            trial, promised, damping = shortened_step(hessian, gradient, theta, parameters, damping, ceiling)
             if trial == theta:
                 break
-            if predicted is None:
-                predicted = predicted_decrease(hessian, gradient, theta, trial)
-                settled = predicted < tolerance
-                if settled:
-                    break
+            # a trial the model predicts to gain less than the tolerance would end the fit even if accepted, and
+            # a larger damping only shortens the step: such a trial is not simulated, and the fit stops here
+            predicted = promised if predicted is None else predicted
+            settled = promised < tolerance
+            if settled:
+                break
             found, used = _compared(model, parameters, theta, trial, n, lin.substeps, reference)
             rollouts += used
+            trials.append({"damping": damping, "predicted_decrease": promised,
+                           "decrease": found[4] if found is not None else None})
             if found is not None:
                 trial_trajectory, trial_loss, trial_track, trial_phi, decrease = found
                 accepted = True
                 break
             damping *= 4.0
         entry: dict[str, Any] = {"iteration": it, "damping": damping, "accepted": accepted, "rollouts": rollouts,
-                                 "predicted_decrease": predicted}
+                                 "predicted_decrease": predicted, "trials": trials}
         if not accepted:
             entry.update(**_values(parameters, theta, loss, phi, track), ms=1000 * (time.perf_counter() - t0))
             log.append(entry)
             if on_iteration is not None:
                 on_iteration(entry)
-            stop = "converged: the Gauss–Newton model predicts a decrease below the tolerance" if settled \
-                else "no step lowers the objective"
+            stop = _unaccepted(settled, bool(trials))
             break
         theta, trajectory, loss, track, phi = trial, trial_trajectory, trial_loss, trial_track, trial_phi
         damping = max(damping / 3.0, 1e-6)
@@ -384,6 +407,16 @@ def levenberg_marquardt(model: ClipModel, parameters: Sequence[Parameter], theta
     final = made[kept] if kept in made else \
         linearise(model, parameters, keep.theta, trajectory if theta == keep.theta else None)
     return FitResult(keep.theta, final, keep.phi, keep.value, start_val, log, stop)
+
+
+def _unaccepted(settled: bool, simulated: bool) -> str:
+    """Why :func:`levenberg_marquardt` stopped at an iteration without an accepted step: ``settled``, the model
+    promised less than the tolerance (for the first trial, or after ``simulated`` trials were rejected)."""
+    if settled and not simulated:
+        return "converged: the Gauss–Newton model predicts a decrease below the tolerance"
+    if settled:
+        return "no step lowers the objective by the tolerance, as a shorter one would be predicted to"
+    return "no step lowers the objective"
 
 
 @dataclass
