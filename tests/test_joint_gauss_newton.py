@@ -466,6 +466,64 @@ def test_the_clip_jacobian_agrees_with_the_adjoint_gradient():
     assert torch.allclose(fd, adjoint, rtol=2e-3, atol=1e-4 * float(adjoint.abs().max()))
 
 
+def test_worker_processes_give_the_jacobian_of_one_process():
+    """The Jacobian's perturbed rollouts on two worker processes (each a pickled copy of the simulator, one torch
+    thread) and here give the Gauss–Newton blocks of one process, to rounding: the split of the θ is fixed, and only
+    the thread count differs."""
+    from vid2sim.reconstruct.rollouts import RolloutPool
+
+    sim, gaussians, cams, images = _own_motion(6, 4.6, 0.35, 0.08, [0.1, 0.0, -1.0], [0.0, 1.0, 0.0])
+    rig = GaussianRig(sim, gaussians)
+    cfg = JointConfig(method="gauss_newton", fit_damping=True, frame_decay=3.0)
+    prior = {"log10_E": 5.0, "nu": 0.3, "damping_ratio": 0.05, "floor_friction": 0.0}
+    params = physical_parameters(sim, cfg, prior, 0.05)
+    clip = ClipResiduals(sim, rig, Observations(images, cams), [0.0, 0.0, 0.0], cfg.frame_decay,
+                         [q.name for q in params])
+    theta = [4.5, 0.3, 0.05, 0.2, 0.12, 0.01, -0.95, 0.05, 0.9, -0.02]
+    assert len(theta) == len(params)
+    here = linearise(clip, params, theta)
+    with RolloutPool(2) as pool:
+        clip.pool = pool
+        there = linearise(clip, params, theta)
+    assert there.steps == here.steps and there.substeps == here.substeps
+    assert torch.allclose(there.frame_loss, here.frame_loss, rtol=1e-9, atol=0)
+    scale = float(here.hessian.abs().max())
+    assert torch.allclose(there.frame_hessian, here.frame_hessian, rtol=1e-6, atol=1e-9 * scale)
+    assert torch.allclose(there.frame_gradient, here.frame_gradient, rtol=1e-6,
+                          atol=1e-9 * float(here.gradient.abs().max()))
+
+
+class ManyClip(WalledClip):
+    """:class:`WalledClip` that simulates several θ in one call (as on worker processes), None where one fails."""
+
+    def __init__(self, *args) -> None:
+        super().__init__(*args)
+        self.calls = []
+
+    def simulate_many(self, thetas, substeps=None):
+        self.calls.append(len(thetas))
+        out = []
+        for theta in thetas:
+            try:
+                out.append(self.simulate(theta, substeps))
+            except SimulationError:
+                out.append(None)
+        return out
+
+
+def test_a_jacobian_simulated_at_once_falls_back_to_the_other_side_where_a_step_fails():
+    """The first steps of every parameter go to ``simulate_many`` in one call; a step that fails there (here: up, out
+    of the model's reach along a) is retried down, one by one, as the sequential Jacobian would."""
+    params = [Parameter("a", 0.0, 10.0, 1e-3), Parameter("k", 0.0, 2.0, 1e-6)]
+    start = [1.0, 0.8]
+    walled = ManyClip(2.0, 0.3, [start[0] - 1.0, start[1]], 1.0 + 5e-4)  # a + 1e-3 fails, a − 1e-3 does not
+    lin = linearise(walled, params, start)
+    assert walled.calls == [2] and lin.steps == [-1e-3, 1e-6]
+    sequential = WalledClip(2.0, 0.3, [start[0] - 1.0, start[1]], 1.0 + 5e-4)
+    assert linearise(sequential, params, start).steps == lin.steps
+    assert torch.equal(linearise(sequential, params, start).frame_hessian, lin.frame_hessian)
+
+
 def _own_motion_off_the_prior():
     """The model's own 8-frame drop at log10 E = 4.5, ν = 0.42, ζ = 0.1 with the simulator set to the prior (5, 0.3,
     0.05), and the Gauss–Newton settings that fit it (ζ too; no model error: the model's own motion)."""

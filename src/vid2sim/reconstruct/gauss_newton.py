@@ -139,11 +139,18 @@ class Linearisation:
         return self.frame_gradient.sum(0)
 
 
-def _perturbed(model: ClipModel, theta: list[float], j: int, parameter: Parameter,
-               substeps: int) -> tuple[Any, float]:
-    """The trajectory with θ_j moved by ± its step (down when up would leave the bounds or fail), and the step."""
-    up = theta[j] + parameter.step <= parameter.upper
-    for h in ((parameter.step, -parameter.step) if up else (-parameter.step,)):
+def _first_step(theta: list[float], j: int, parameter: Parameter) -> float:
+    """The difference step of θ_j tried first: up, unless that would leave the bounds."""
+    return parameter.step if theta[j] + parameter.step <= parameter.upper else -parameter.step
+
+
+def _perturbed(model: ClipModel, theta: list[float], j: int, parameter: Parameter, substeps: int,
+               tried: bool = False) -> tuple[Any, float]:
+    """The trajectory with θ_j moved by ± its step (down when up would leave the bounds or fail), and the step;
+    ``tried``: the first step (:func:`_first_step`) has failed already."""
+    first = _first_step(theta, j, parameter)
+    steps = (first, -first) if first > 0 else (first,)
+    for h in steps[1:] if tried else steps:
         moved = list(theta)
         moved[j] += h
         try:
@@ -151,6 +158,23 @@ def _perturbed(model: ClipModel, theta: list[float], j: int, parameter: Paramete
         except SimulationError:
             continue
     raise SimulationError(f"the simulation fails on both sides of {parameter.name} = {theta[j]:.6g}")
+
+
+def _perturbations(model: ClipModel, parameters: Sequence[Parameter], theta: list[float],
+                   substeps: int) -> tuple[list[Any], list[float]]:
+    """Each parameter's perturbed trajectory and step (:func:`_perturbed`). A model with ``simulate_many`` (θs,
+    substeps → trajectories, None where one fails) simulates the first steps of all of them in one call (on worker
+    processes, :class:`~vid2sim.reconstruct.stages.joint.ClipResiduals`); the rest are tried one by one."""
+    if not hasattr(model, "simulate_many"):
+        pairs = [_perturbed(model, theta, j, q, substeps) for j, q in enumerate(parameters)]
+        return [t for t, _ in pairs], [h for _, h in pairs]
+    steps = [_first_step(theta, j, q) for j, q in enumerate(parameters)]
+    moved = [[x + (h if k == j else 0.0) for k, x in enumerate(theta)] for j, h in enumerate(steps)]
+    variants = list(model.simulate_many(moved, substeps))
+    for j, q in enumerate(parameters):
+        if variants[j] is None:
+            variants[j], steps[j] = _perturbed(model, theta, j, q, substeps, tried=True)
+    return variants, steps
 
 
 def linearise(model: ClipModel, parameters: Sequence[Parameter], theta: Sequence[float],
@@ -163,11 +187,7 @@ def linearise(model: ClipModel, parameters: Sequence[Parameter], theta: Sequence
     theta = [float(x) for x in theta]
     n = model.substeps(theta)
     base = model.simulate(theta, n) if base is None else base
-    variants, steps = [], []
-    for j, parameter in enumerate(parameters):
-        trajectory, h = _perturbed(model, theta, j, parameter, n)
-        variants.append(trajectory)
-        steps.append(h)
+    variants, steps = _perturbations(model, parameters, theta, n)
     p, F = len(parameters), model.frames
     step_t = torch.tensor(steps, dtype=torch.float64)
     frame_loss = torch.zeros(F, dtype=torch.float64)

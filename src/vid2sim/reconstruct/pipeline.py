@@ -75,7 +75,8 @@ def observed(scene: Scene, device: torch.device) -> Observed:
 
 def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConfig | None = None,
                 progress: bool = True, restart: bool = False, device: str | torch.device | None = None,
-                snapshots: StageSnapshots | None = None, rerun_changed: bool = False) -> Path:
+                snapshots: StageSnapshots | None = None, rerun_changed: bool = False,
+                rollout_processes: int = 0) -> Path:
     """Reconstruct the scene folder ``scene_path`` into the asset folder ``out`` (see the module docstring).
 
     ``device`` (None: CUDA when available, else the CPU) runs the Gaussian fits, the networks' training and
@@ -94,6 +95,11 @@ def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConf
     and runs that one and the later ones again (``log.json`` ``"rerun"`` names them); otherwise a difference is
     refused (:class:`~vid2sim.reconstruct.runner.WorkFolder`).
 
+    ``rollout_processes`` worker processes (spawned, one thread each) simulate the Gauss–Newton fit's Jacobian
+    rollouts beside this process when the joint optimisation runs on the CPU
+    (:class:`~vid2sim.reconstruct.rollouts.RolloutPool`); ``vid2sim reconstruct`` gives it its threads less one.
+    0: every rollout in this process. The material differs by rounding only (the workers' thread count).
+
     Returns:
         the asset folder (readable with :func:`vid2sim.asset.load_asset`).
     Raises:
@@ -110,7 +116,7 @@ def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConf
     stages = all_stages()
     work = WorkFolder(out, cache_keys(stages, cfg, scene_fingerprint(scene.root)), restart, snapshots, rerun_changed)
     ctx = Context(config=cfg, scene=scene, observed=observed(scene, dev), device=dev, work=work, progress=progress,
-                  threads=threads)
+                  threads=threads, rollout_processes=rollout_processes)
     torch.manual_seed(cfg.seed)
     try:
         state = run_stages(stages, ctx, State())

@@ -138,6 +138,7 @@ class Context:
         work: the work folder (the stages' outputs).
         progress: print stage lines and progress bars.
         threads: the caller's torch thread count.
+        rollout_processes: worker processes for the joint optimisation's rollouts on the CPU (0: none).
         jobs: background jobs started by stages and not yet joined.
     """
 
@@ -148,6 +149,7 @@ class Context:
     work: "WorkFolder"
     progress: bool
     threads: int
+    rollout_processes: int = 0
     jobs: list[BackgroundJob] = field(default_factory=list)
 
     def say(self, text: str) -> None:

@@ -33,6 +33,7 @@ from __future__ import annotations
 import copy
 import math
 import time
+from contextlib import nullcontext
 from dataclasses import asdict, dataclass, field, replace
 from typing import Any, Callable, Sequence
 
@@ -61,6 +62,13 @@ from vid2sim.reconstruct.gauss_newton import (
     levenberg_marquardt,
 )
 from vid2sim.reconstruct.hull_track import HullTrack, hull_track
+from vid2sim.reconstruct.rollouts import (
+    ClipSimulation,
+    RolloutPool,
+    floor_friction,
+    set_floor_friction,
+    simulate_many,
+)
 from vid2sim.reconstruct.runner import Context, State
 from vid2sim.reconstruct.stages.networks import cpu_state
 from vid2sim.reconstruct.stages.points import floor_carved_contact, track_poses
@@ -222,21 +230,11 @@ DIFFERENCE_STEPS = {"log10_E": 0.01, "nu": 0.01, "damping_ratio": 0.005, "floor_
                     "angular": 0.002}
 
 
-def floor_friction(sim: Simulator) -> float:
-    """The Coulomb coefficient of the simulator's floor (0 without one)."""
-    return next((float(e.friction) for e in sim.externals if isinstance(e, Floor)), 0.0)
-
-
 def simulator_prior(sim: Simulator) -> dict[str, float]:
     """The values the simulator holds now, as the fit's prior means: ``log10_E``, ``nu``, ``damping_ratio`` and
     ``floor_friction``."""
     return {"log10_E": float(sim.log10_E), "nu": float(sim.nu), "damping_ratio": float(sim.damping_ratio),
             "floor_friction": floor_friction(sim)}
-
-
-def set_floor_friction(sim: Simulator, value: float) -> None:
-    """Give the simulator's floor(s) the Coulomb coefficient ``value``."""
-    sim.externals = [replace(e, friction=value) if isinstance(e, Floor) else e for e in sim.externals]
 
 
 def physical_parameters(sim: Simulator, cfg: JointConfig, prior: dict[str, float], dt: float) -> list[Parameter]:
@@ -278,10 +276,11 @@ class ClipResiduals:
 
     def __init__(self, sim: Simulator, rig: GaussianRig, obs: Observations, centre: Sequence[float],
                  decay: float | None, names: Sequence[str], track: Tensor | None = None,
-                 track_sd: float | Tensor | None = None) -> None:
+                 track_sd: float | Tensor | None = None, pool: RolloutPool | None = None) -> None:
         self.sim, self.rig, self.obs, self.centre, self.names = sim, rig, obs, [float(c) for c in centre], list(names)
         V, T = obs.images.shape[:2]
         self.frames = T - 1
+        self.simulation, self.pool = ClipSimulation(sim, self.names, self.centre, self.frames), pool
         if track is not None:
             sd = None if track_sd is None else torch.as_tensor(track_sd, dtype=torch.float64).cpu()
             if tuple(track.shape) != (T, 3) or sd is None or sd.numel() not in (1, T - 1) or not bool((sd > 0).all()):
@@ -297,33 +296,20 @@ class ClipResiduals:
 
     def apply(self, theta: Sequence[float]) -> SimState:
         """Set the simulator's material from θ; returns the initial state θ's velocity gives."""
-        values = dict(zip(self.names, (float(x) for x in theta)))
-        with torch.no_grad():
-            self.sim.log10_E.fill_(values["log10_E"])
-            self.sim.nu.fill_(values["nu"])
-            if "damping_ratio" in values:
-                self.sim.damping_ratio.fill_(values["damping_ratio"])
-        if "floor_friction" in values:
-            set_floor_friction(self.sim, values["floor_friction"])
-        v = [values[f"linear_velocity_{a}"] for a in "xyz"]
-        w = [values[f"angular_velocity_{a}"] for a in "xyz"]
-        return self.sim.rigid_velocity_state(v, w, self.centre)
+        return self.simulation.apply(theta)
 
     def substeps(self, theta: Sequence[float]) -> int:
-        self.apply(theta)
-        return self.sim.substeps()
+        return self.simulation.substeps(theta)
 
     def simulate(self, theta: Sequence[float], substeps: int | None = None) -> list[SimState]:
         """Frames 0 … T−1 at θ (frame 0 the initial state), ``substeps`` per frame (None: the automatic count)."""
-        start = self.apply(theta)
-        config = self.sim.config
-        if substeps is not None:
-            self.sim.config = replace(config, substeps=substeps)
-        try:
-            with torch.no_grad():
-                return [start] + self.sim.rollout(start, self.frames)
-        finally:
-            self.sim.config = config
+        return self.simulation.simulate(theta, substeps)
+
+    def simulate_many(self, thetas: Sequence[Sequence[float]], substeps: int | None = None
+                      ) -> list[list[SimState] | None]:
+        """Each θ's frames 0 … T−1 (None where the simulation fails), on the ``pool``'s workers and here
+        (:func:`~vid2sim.reconstruct.rollouts.simulate_many`)."""
+        return simulate_many(self.simulation, thetas, substeps, self.pool)
 
     def residuals(self, trajectories: Sequence[list[SimState]], frame: int) -> Tensor:
         with torch.no_grad():
@@ -355,6 +341,7 @@ def joint_optimisation(
     on_iteration: Callable[[dict[str, float]], None] | None = None,
     contacts: dict[str, tuple[Tensor, Tensor]] | None = None,
     track: HullTrack | None = None,
+    rollout_processes: int = 0,
 ) -> JointResult:
     """Fit the material, the initial velocity (and, with ``method`` "windows", the networks) of ``sim`` to the
     observed video; report how well the video determines the material.
@@ -380,6 +367,8 @@ def joint_optimisation(
             also matches, with standard deviation ``config.track_sd`` × the object's length scale, widened where the
             hull's volume changed by more than ``config.track_volume_tolerance`` (:class:`ClipResiduals`); None: the
             images alone.
+        rollout_processes: worker processes that simulate the Gauss–Newton Jacobians' rollouts beside this one
+            (:class:`~vid2sim.reconstruct.rollouts.RolloutPool`; a CPU simulator's); 0: none.
     Returns:
         :class:`JointResult`.
     """
@@ -397,26 +386,28 @@ def joint_optimisation(
     def start_state() -> SimState:
         return sim.rigid_velocity_state(linear_velocity, angular_velocity, c)
 
-    coarse = coarse_search(sim, rig, start_state, coarse_obs, cfg, progress, contacts)
-    surface = str(coarse_best(coarse).get("contact_surface", "hull")) if coarse else "hull"
-    com_offset, com_records = [0.0, 0.0, 0.0], []
-    if cfg.centre_of_mass_step > 0:
-        com_offset, com_records = centre_of_mass_search(sim, rig, start_state, coarse_obs,
-                                                        cfg.centre_of_mass_step * sim.length_scale,
-                                                        cfg.centre_of_mass_rounds, cfg.frame_decay, progress)
-    parameters = physical_parameters(sim, cfg, prior, float(sim.config.dt))
-    if track is not None and (cfg.track_sd is None or cfg.method != "gauss_newton"):
-        raise ValueError("a track needs JointConfig.track_sd, its standard deviation, and the gauss_newton method")
-    clip, frame_sd = _fitted_clip(sim, rig, coarse_obs, c, cfg, [q.name for q in parameters], track)
-    start = [float(sim.log10_E), float(sim.nu)] + ([float(sim.damping_ratio)] if cfg.fit_damping else []) \
-        + ([floor_friction(sim)] if "floor_friction" in clip.names else []) \
-        + [float(x) for x in linear_velocity] + [float(x) for x in angular_velocity]
-    n = effective_images(frame_weights(clip.frames + 1, cfg.frame_decay), len(observations.cameras))
-    if cfg.method == "gauss_newton":
-        fit = _gauss_newton(clip, parameters, start, n, rig, observations, cfg, progress, on_iteration)
-    else:
-        fit = windowed_adam(sim, rig, observations, coarse_obs, start, c, cfg, clip, parameters, progress,
-                             on_iteration)
+    processes = rollout_processes if cfg.method == "gauss_newton" else 0
+    with RolloutPool(processes) if processes > 0 else nullcontext() as pool:  # workers start during the search
+        coarse = coarse_search(sim, rig, start_state, coarse_obs, cfg, progress, contacts)
+        surface = str(coarse_best(coarse).get("contact_surface", "hull")) if coarse else "hull"
+        com_offset, com_records = [0.0, 0.0, 0.0], []
+        if cfg.centre_of_mass_step > 0:
+            com_offset, com_records = centre_of_mass_search(sim, rig, start_state, coarse_obs,
+                                                            cfg.centre_of_mass_step * sim.length_scale,
+                                                            cfg.centre_of_mass_rounds, cfg.frame_decay, progress)
+        parameters = physical_parameters(sim, cfg, prior, float(sim.config.dt))
+        if track is not None and (cfg.track_sd is None or cfg.method != "gauss_newton"):
+            raise ValueError("a track needs JointConfig.track_sd, its standard deviation, and the gauss_newton method")
+        clip, frame_sd = _fitted_clip(sim, rig, coarse_obs, c, cfg, [q.name for q in parameters], track, pool)
+        start = [float(sim.log10_E), float(sim.nu)] + ([float(sim.damping_ratio)] if cfg.fit_damping else []) \
+            + ([floor_friction(sim)] if "floor_friction" in clip.names else []) \
+            + [float(x) for x in linear_velocity] + [float(x) for x in angular_velocity]
+        n = effective_images(frame_weights(clip.frames + 1, cfg.frame_decay), len(observations.cameras))
+        if cfg.method == "gauss_newton":
+            fit = _gauss_newton(clip, parameters, start, n, rig, observations, cfg, progress, on_iteration)
+        else:
+            fit = windowed_adam(sim, rig, observations, coarse_obs, start, c, cfg, clip, parameters, progress,
+                                 on_iteration)
     theta = dict(zip(clip.names, fit.theta))
     clip.apply(fit.theta)  # the simulator holds the kept material
     uncertainty = laplace_intervals(fit.linearisation, parameters, n, cfg.interval_level,
@@ -441,7 +432,8 @@ def joint_optimisation(
 
 
 def _fitted_clip(sim: Simulator, rig: GaussianRig, obs: Observations, centre: Sequence[float], cfg: JointConfig,
-                 names: Sequence[str], track: HullTrack | None) -> tuple[ClipResiduals, Tensor | None]:
+                 names: Sequence[str], track: HullTrack | None,
+                 pool: RolloutPool | None = None) -> tuple[ClipResiduals, Tensor | None]:
     """The clip the Gauss–Newton fit sees: the observed frames 0 … T−1 of ``obs`` less the last
     ``cfg.held_out_frames`` (which judge the fit instead), with the track's positions of the same frames; and the
     track's (fitted frames − 1,) standard deviations (None without a track)."""
@@ -454,7 +446,7 @@ def _fitted_clip(sim: Simulator, rig: GaussianRig, obs: Observations, centre: Se
         track.frame_sd(cfg.track_sd * sim.length_scale, cfg.track_volume_tolerance)[:fitted - 1]
     fit_obs = Observations(obs.images[:, :fitted], obs.cameras, obs.background)
     clip = ClipResiduals(sim, rig, fit_obs, centre, cfg.frame_decay, names,
-                         None if track is None else track.centroids[:fitted], frame_sd)
+                         None if track is None else track.centroids[:fitted], frame_sd, pool)
     return clip, frame_sd
 
 
@@ -658,7 +650,8 @@ class JointStage:
             track = hull_track(o.masks_cpu, o.cameras_cpu, joint_cfg.track_resolution, progress=ctx.progress)
         result = joint_optimisation(sim, state.gaussians, Observations(o.images, o.cameras), v["linear"],
                                     v["angular"], v["centre"], joint_cfg, progress=ctx.progress, contacts=contacts,
-                                    track=track)
+                                    track=track,
+                                    rollout_processes=ctx.rollout_processes if ctx.device.type == "cpu" else 0)
         if result.contact_surface != "hull":
             points, areas = contacts[result.contact_surface]
             save_torch_atomic({"points": points.cpu(), "areas": areas.cpu()}, ctx.path("contact_joint.pt"))
