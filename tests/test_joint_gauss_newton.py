@@ -466,11 +466,12 @@ def test_the_clip_jacobian_agrees_with_the_adjoint_gradient():
     assert torch.allclose(fd, adjoint, rtol=2e-3, atol=1e-4 * float(adjoint.abs().max()))
 
 
-def test_worker_processes_give_the_jacobian_of_one_process():
+def test_worker_processes_give_the_jacobian_and_the_coarse_search_of_one_process():
     """The Jacobian's perturbed rollouts on two worker processes (each a pickled copy of the simulator, one torch
     thread) and here give the Gauss–Newton blocks of one process, to rounding: the split of the θ is fixed, and only
-    the thread count differs."""
+    the thread count differs. So does the coarse search's grid over E and the floor's friction, shared the same way."""
     from vid2sim.reconstruct.rollouts import RolloutPool
+    from vid2sim.reconstruct.stages.joint import coarse_search
 
     sim, gaussians, cams, images = _own_motion(6, 4.6, 0.35, 0.08, [0.1, 0.0, -1.0], [0.0, 1.0, 0.0])
     rig = GaussianRig(sim, gaussians)
@@ -482,9 +483,25 @@ def test_worker_processes_give_the_jacobian_of_one_process():
     theta = [4.5, 0.3, 0.05, 0.2, 0.12, 0.01, -0.95, 0.05, 0.9, -0.02]
     assert len(theta) == len(params)
     here = linearise(clip, params, theta)
+    slider, slider_gaussians, slider_cams, slider_images = _own_motion(6, 4.8, 0.3, 0.05, [1.2, 0.0, -1.0],
+                                                                      [0.0, 0.0, 0.0], friction=0.6)
+    slider_rig = GaussianRig(slider, slider_gaussians)
+    coarse_cfg = JointConfig(fit_friction=True, coarse_log10_E=(4.0, 4.4, 4.8, 5.2, 5.6), coarse_friction=(0.0, 0.5))
+
+    def search(pool):
+        set_floor_friction(slider, 0.0)
+        velocity = ([1.2, 0.0, -1.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0])
+        return coarse_search(slider, slider_rig, lambda: slider.rigid_velocity_state(*velocity),
+                             Observations(slider_images, slider_cams), coarse_cfg, pool=pool, velocity=velocity)
+
+    alone = search(None)
     with RolloutPool(2) as pool:
         clip.pool = pool
         there = linearise(clip, params, theta)
+        shared = search(pool)
+    assert [(r["floor_friction"], r["log10_E"]) for r in shared] == [(r["floor_friction"], r["log10_E"]) for r in alone]
+    assert len(alone) > 5  # the frictional pair walked the grid
+    assert [r["loss"] for r in shared] == pytest.approx([r["loss"] for r in alone], rel=1e-9)
     assert there.steps == here.steps and there.substeps == here.substeps
     assert torch.allclose(there.frame_loss, here.frame_loss, rtol=1e-9, atol=0)
     scale = float(here.hessian.abs().max())

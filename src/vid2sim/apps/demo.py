@@ -24,6 +24,8 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+import torch
+
 from vid2sim.apps.report import asset_report
 from vid2sim.asset.folder import load_asset
 from vid2sim.evaluate.scores import evaluate, write_evaluation
@@ -35,8 +37,6 @@ from vid2sim.simulate.scenario import ObstacleSpec, Scenario
 from vid2sim.synthetic.scenes import SyntheticSceneConfig, make_scene
 
 if TYPE_CHECKING:
-    import torch
-
     from vid2sim.reconstruct.pipeline import ReconstructConfig
     from vid2sim.simulate.scenario import Scenario
     from vid2sim.synthetic.scenes import SyntheticSceneConfig
@@ -187,7 +187,8 @@ def run_demo(out: str | Path, config: DemoConfig | None = None, progress: bool =
         done("scene", t0)
     if not (asset / "asset.json").is_file():
         t0 = step("asset", 2, f"reconstructing it from its observed views and frames into {asset}")
-        reconstruct(scene, asset, cfg.reconstruct_config(), progress=progress, device=device)
+        reconstruct(scene, asset, cfg.reconstruct_config(), progress=progress, device=device,
+                    rollout_processes=max(0, torch.get_num_threads() - 1))  # the threads beyond one
         done("asset", t0)
     evaluation_path = asset / "evaluation.json"
     renders = None

@@ -120,12 +120,19 @@ def clip_loss(sim: Simulator, rig: GaussianRig, start: SimState, obs: Observatio
     chaotically with small errors of the model; a whole-clip loss then favours the material whose rocking
     happens to match, often a softer one. Decaying weights favour the first contact, where E acts most
     directly."""
-    T = obs.images.shape[1]
-    weights = frame_weights(T, decay)
     with torch.no_grad():
-        states = [start] + sim.rollout(start, T - 1)
-        losses = frame_losses(rig, states[1:], obs, range(1, T), rig.basis())
-    return sum(w * v for w, v in zip(weights, losses)), states
+        states = [start] + sim.rollout(start, obs.images.shape[1] - 1)
+    return trajectory_clip_loss(rig, states, obs, decay), states
+
+
+def trajectory_clip_loss(rig: GaussianRig, states: Sequence[SimState], obs: Observations,
+                         decay: float | None = None) -> float:
+    """:func:`clip_loss` of simulated states: ``states[t]`` is frame t's, t = 0 … T−1 (T = the frames of ``obs``)."""
+    T = obs.images.shape[1]
+    if len(states) != T:
+        raise ValueError(f"trajectory_clip_loss: {len(states)} states for a clip of {T} frames")
+    losses = frame_losses(rig, states[1:], obs, range(1, T), rig.basis())
+    return sum(w * v for w, v in zip(frame_weights(T, decay), losses))
 
 
 def frame_losses(rig: GaussianRig, states: Sequence[SimState], obs: Observations, frames: Sequence[int],

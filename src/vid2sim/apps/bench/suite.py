@@ -178,7 +178,8 @@ def run_scene(task: SceneTask, progress: bool = False) -> dict[str, Any]:
         t0 = time.perf_counter()
         if not (asset / "asset.json").is_file():  # save_asset moves a complete folder into place
             reconstruct(task.scene, asset, task.config.reconstruct_config(), progress=progress,
-                        snapshots=task.snapshots, rerun_changed=task.rerun_changed)
+                        snapshots=task.snapshots, rerun_changed=task.rerun_changed,
+                        rollout_processes=max(0, torch.get_num_threads() - 1))  # the scene's threads beyond one
             earlier += _restored_seconds(asset)
         else:
             earlier = _finished_asset_seconds(asset)

@@ -53,6 +53,7 @@ from vid2sim.reconstruct.clip import (
     frame_losses,
     frame_weights,
     render_states,
+    trajectory_clip_loss,
 )
 from vid2sim.reconstruct.config import JointConfig
 from vid2sim.reconstruct.gauss_newton import (
@@ -388,7 +389,8 @@ def joint_optimisation(
 
     processes = rollout_processes if cfg.method == "gauss_newton" else 0
     with RolloutPool(processes) if processes > 0 else nullcontext() as pool:  # workers start during the search
-        coarse = coarse_search(sim, rig, start_state, coarse_obs, cfg, progress, contacts)
+        coarse = coarse_search(sim, rig, start_state, coarse_obs, cfg, progress, contacts, pool,
+                               (linear_velocity, angular_velocity, c))
         surface = str(coarse_best(coarse).get("contact_surface", "hull")) if coarse else "hull"
         com_offset, com_records = [0.0, 0.0, 0.0], []
         if cfg.centre_of_mass_step > 0:
@@ -452,7 +454,9 @@ def _fitted_clip(sim: Simulator, rig: GaussianRig, obs: Observations, centre: Se
 
 def coarse_search(sim: Simulator, rig: GaussianRig, start: Callable[[], SimState], obs: Observations,
                   cfg: JointConfig, progress: bool = False,
-                  contacts: dict[str, tuple[Tensor, Tensor]] | None = None) -> list[dict[str, Any]]:
+                  contacts: dict[str, tuple[Tensor, Tensor]] | None = None, pool: RolloutPool | None = None,
+                  velocity: tuple[Sequence[float], Sequence[float], Sequence[float]] | None = None
+                  ) -> list[dict[str, Any]]:
     """The coarse search over log10 E (``cfg.coarse_log10_E``; none when empty): the whole clip's
     :func:`clip_loss` at each grid value from ``start()``; the simulator is left at :func:`coarse_minimum`.
     With ``cfg.fit_friction`` and a floor, the same over E at each floor friction of ``cfg.coarse_friction``: friction
@@ -462,7 +466,11 @@ def coarse_search(sim: Simulator, rig: GaussianRig, start: Callable[[], SimState
     neighbours tried, or at an end of the grid: a frictional rollout costs 2–3 frictionless ones, and on 19 scenes a
     friction of 0.5 moved the grid's best E by at most 5 steps. The simulator is left with the friction and surface
     whose best grid loss is lowest, at that pair's E. Returns one ``{"log10_E", "loss"}`` (and ``"floor_friction"``,
-    ``"contact_surface"``) per log10 E tried, each pair's rows in ascending E."""
+    ``"contact_surface"``) per log10 E tried, each pair's rows in ascending E.
+
+    With a ``pool`` and the ``velocity`` ``start()`` gives (linear, angular, the centre it turns about), the first
+    pair's grid and each walk's first three points are simulated on the pool's workers and here at once
+    (:func:`~vid2sim.reconstruct.rollouts.simulate_many`)."""
     from tqdm.auto import tqdm
 
     coarse: list[dict[str, Any]] = []
@@ -484,10 +492,11 @@ def coarse_search(sim: Simulator, rig: GaussianRig, start: Callable[[], SimState
             set_floor_friction(sim, mu)
         rows: dict[int, dict[str, Any]] = {}
 
-        def loss_at(i: int) -> float:
-            with torch.no_grad():
-                sim.log10_E.fill_(values[i])
-            loss, _ = clip_loss(sim, rig, detached_state(start()), obs, cfg.frame_decay)
+        def loss_at(i: int, loss: float | None = None) -> float:
+            if loss is None:
+                with torch.no_grad():
+                    sim.log10_E.fill_(values[i])
+                loss, _ = clip_loss(sim, rig, detached_state(start()), obs, cfg.frame_decay)
             row: dict[str, Any] = {"log10_E": values[i], "loss": loss}
             if mu is not None:
                 row["floor_friction"] = mu
@@ -499,10 +508,20 @@ def coarse_search(sim: Simulator, rig: GaussianRig, start: Callable[[], SimState
             return loss
 
         if k == 0:
-            for i in range(len(values)):
-                loss_at(i)
+            at_once = list(range(len(values)))
         else:
-            grid_descent(len(values), values.index(coarse_best(coarse)["log10_E"]), loss_at)
+            first = values.index(coarse_best(coarse)["log10_E"])
+            at_once = [i for i in (first - 1, first, first + 1) if 0 <= i < len(values)]
+        if pool is not None and velocity is not None:
+            for i, loss in zip(at_once, _coarse_losses(sim, rig, obs, cfg, velocity, mu, [values[i] for i in at_once],
+                                                       pool)):
+                loss_at(i, loss)
+        if k == 0:
+            for i in range(len(values)):
+                if i not in rows:
+                    loss_at(i)
+        else:
+            grid_descent(len(values), first, lambda i: rows[i]["loss"] if i in rows else loss_at(i))
         coarse.extend(rows[i] for i in sorted(rows))
     bar.close()
     best = coarse_best(coarse)
@@ -515,6 +534,26 @@ def coarse_search(sim: Simulator, rig: GaussianRig, start: Callable[[], SimState
     if "contact_surface" in best:
         sim.set_contact(*contacts[best["contact_surface"]])
     return coarse
+
+
+def _coarse_losses(sim: Simulator, rig: GaussianRig, obs: Observations, cfg: JointConfig,
+                   velocity: tuple[Sequence[float], Sequence[float], Sequence[float]], friction: float | None,
+                   log10_Es: Sequence[float], pool: RolloutPool) -> list[float]:
+    """The coarse search's whole-clip losses at each log10 E (the simulator's other values held, the floor at
+    ``friction`` unless None), the rollouts shared with the ``pool``'s workers; a rollout that fails there is
+    simulated again here, to raise its error."""
+    linear, angular, centre = velocity
+    names = ["log10_E", "nu", "damping_ratio"] + (["floor_friction"] if friction is not None else []) \
+        + [f"{kind}_velocity_{a}" for kind in ("linear", "angular") for a in "xyz"]
+    held = [float(sim.nu), float(sim.damping_ratio)] + ([friction] if friction is not None else []) \
+        + [float(x) for x in linear] + [float(x) for x in angular]
+    simulation = ClipSimulation(sim, names, [float(c) for c in centre], obs.images.shape[1] - 1)
+    thetas = [[float(e)] + held for e in log10_Es]
+    out = []
+    for theta, states in zip(thetas, simulate_many(simulation, thetas, None, pool)):
+        states = simulation.simulate(theta) if states is None else states
+        out.append(trajectory_clip_loss(rig, states, obs, cfg.frame_decay))
+    return out
 
 
 def grid_descent(n: int, start: int, loss_at: Callable[[int], float]) -> int:
