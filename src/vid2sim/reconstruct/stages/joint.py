@@ -331,12 +331,8 @@ class ClipResiduals:
 
 
 def joint_optimisation(
-    sim: Simulator,
-    gaussians: Gaussians,
-    observations: Observations,
-    linear_velocity: Sequence[float],
-    angular_velocity: Sequence[float],
-    centre: Sequence[float],
+    sim: Simulator, gaussians: Gaussians, observations: Observations,
+    linear_velocity: Sequence[float], angular_velocity: Sequence[float], centre: Sequence[float],
     config: JointConfig | None = None,
     progress: bool = True,
     on_iteration: Callable[[dict[str, float]], None] | None = None,
