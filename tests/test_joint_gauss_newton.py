@@ -470,7 +470,7 @@ def test_worker_processes_give_the_jacobian_and_the_coarse_search_of_one_process
     """The Jacobian's perturbed rollouts on two worker processes (each a pickled copy of the simulator, one torch
     thread) and here give the Gauss–Newton blocks of one process, to rounding: the split of the θ is fixed, and only
     the thread count differs. So does the coarse search's grid over E and the floor's friction, shared the same way."""
-    from vid2sim.reconstruct.rollouts import RolloutPool
+    from vid2sim.reconstruct.rollouts import RolloutPool, simulate_many
     from vid2sim.reconstruct.stages.joint import coarse_search
 
     sim, gaussians, cams, images = _own_motion(6, 4.6, 0.35, 0.08, [0.1, 0.0, -1.0], [0.0, 1.0, 0.0])
@@ -502,6 +502,12 @@ def test_worker_processes_give_the_jacobian_and_the_coarse_search_of_one_process
     assert [(r["floor_friction"], r["log10_E"]) for r in shared] == [(r["floor_friction"], r["log10_E"]) for r in alone]
     assert len(alone) > 5  # the frictional pair walked the grid
     assert [r["loss"] for r in shared] == pytest.approx([r["loss"] for r in alone], rel=1e-9)
+    with RolloutPool(1) as broken:  # workers that die (as a spawned child of an unguarded script does) are named
+        broken.submit(b"", [], None).exception()  # started
+        for process in list(broken._executor._processes.values()):
+            process.kill()
+        with pytest.raises(RuntimeError, match="rollout worker processes ended before they answered"):
+            simulate_many(clip.simulation, [theta, theta], None, broken)
     assert there.steps == here.steps and there.substeps == here.substeps
     assert torch.allclose(there.frame_loss, here.frame_loss, rtol=1e-9, atol=0)
     scale = float(here.hessian.abs().max())

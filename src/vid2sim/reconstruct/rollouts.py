@@ -15,6 +15,7 @@ caller's by rounding only where the thread counts differ (1e-13 of the state aft
 from __future__ import annotations
 
 import pickle
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, replace
 from typing import Sequence
 
@@ -143,16 +144,22 @@ def simulate_many(simulation: ClipSimulation, thetas: Sequence[Sequence[float]],
         return [simulation.attempt(theta, substeps) for theta in thetas]
     cuts = shares(len(thetas), pool.processes + 1)
     blob = pickle.dumps(simulation)
-    futures = [pool.submit(blob, thetas[a:b], substeps) for a, b in cuts[1:]]
-    a, b = cuts[0]
-    threads = torch.get_num_threads()
-    torch.set_num_threads(max(1, threads - pool.processes))  # the workers' cores: a spinning thread here slows them
     try:
-        out = [simulation.attempt(theta, substeps) for theta in thetas[a:b]]
-    finally:
-        torch.set_num_threads(threads)
-    for future in futures:
-        out.extend(pickle.loads(future.result()))
+        futures = [pool.submit(blob, thetas[a:b], substeps) for a, b in cuts[1:]]
+        a, b = cuts[0]
+        threads = torch.get_num_threads()
+        torch.set_num_threads(max(1, threads - pool.processes))  # the workers' cores: a thread here would spin there
+        try:
+            out = [simulation.attempt(theta, substeps) for theta in thetas[a:b]]
+        finally:
+            torch.set_num_threads(threads)
+        for future in futures:
+            out.extend(pickle.loads(future.result()))
+    except BrokenProcessPool as exc:
+        raise RuntimeError(
+            "the rollout worker processes ended before they answered: a script that starts the reconstruction must "
+            "do so under `if __name__ == \"__main__\":` (worker processes are spawned, and import the script "
+            "again), or pass rollout_processes=0") from exc
     return out
 
 
