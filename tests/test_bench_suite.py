@@ -271,15 +271,15 @@ def test_cli_bench_suite_passes_rerun_changed_to_each_reconstruction(suite_dir, 
 
     seen = []
 
-    def fake(scene, out, config, progress=False, snapshots=None, rerun_changed=False):
-        seen.append(rerun_changed)
+    def fake(scene, out, config, progress=False, snapshots=None, rerun_changed=False, rollout_processes=0):
+        seen.append((rerun_changed, rollout_processes))
         raise ValueError("stop here")
 
     monkeypatch.setattr(reconstruct_module, "reconstruct", fake)
     assert main(["bench", "suite", str(suite_dir), str(tmp_path / "a"), "--threads", "1", "--quiet"]) == 1
     assert main(["bench", "suite", str(suite_dir), str(tmp_path / "b"), "--threads", "1", "--quiet",
                  "--rerun-changed"]) == 1
-    assert seen == [False, False, True, True]
+    assert seen == [(False, 0), (False, 0), (True, 0), (True, 0)]  # one thread a scene: no rollout workers
 
 
 def test_ray_suite_gives_the_local_numbers(ray_local, local_run, suite_dir, tiny_config, tmp_path, monkeypatch):

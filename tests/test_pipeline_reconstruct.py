@@ -795,15 +795,17 @@ def test_stage1_is_skipped_with_a_recorded_reason(tiny_asset, tiny_scene, tmp_pa
     assert few["log10_E"] == full["log10_E"] and few["nu"] == full["nu"]
 
 
-def test_cli_no_stage1_and_predictor_flags(tiny_scene, tmp_path, monkeypatch):
+def test_cli_no_stage1_and_predictor_flags(tiny_scene, tmp_path, monkeypatch, one_torch_thread):
     seen, shared = [], []
 
-    reruns = []
+    reruns, processes = [], []
 
-    def fake(scene, out, config, progress=True, restart=False, device=None, snapshots=None, rerun_changed=False):
+    def fake(scene, out, config, progress=True, restart=False, device=None, snapshots=None, rerun_changed=False,
+             rollout_processes=0):
         seen.append(config)
         shared.append(snapshots)
         reruns.append((restart, rerun_changed))
+        processes.append(rollout_processes)
         raise SystemExit(0)
 
     monkeypatch.setattr(cli_reconstruct, "reconstruct", fake)  # the name the command calls
@@ -861,6 +863,9 @@ def test_cli_no_stage1_and_predictor_flags(tiny_scene, tmp_path, monkeypatch):
     assert main(["reconstruct", str(tiny_scene), str(tmp_path / "a"), "--sh-degree", "4", "--quiet"]) == 2
     assert main(["reconstruct", str(tiny_scene), str(tmp_path / "a"), "--handles", "0", "--quiet"]) == 2
     assert main(["reconstruct", str(tiny_scene), str(tmp_path / "a"), "--predictor", str(tmp_path / "no.pt")]) == 2
+    with pytest.raises(SystemExit):  # the joint stage's rollouts get the threads beyond the first
+        main(["reconstruct", str(tiny_scene), str(tmp_path / "a"), "--threads", "3", "--quiet"])
+    assert processes[0] == 0 and processes[-1] == 2  # one thread (this test's), then three
 
 
 def test_cli_iterations_are_the_joint_methods(tiny_scene, tmp_path, monkeypatch, capsys):
@@ -868,7 +873,8 @@ def test_cli_iterations_are_the_joint_methods(tiny_scene, tmp_path, monkeypatch,
     given beside the field it stands for, or negative, it is refused before any work."""
     seen, shared = [], []
 
-    def fake(scene, out, config, progress=True, restart=False, device=None, snapshots=None, rerun_changed=False):
+    def fake(scene, out, config, progress=True, restart=False, device=None, snapshots=None, rerun_changed=False,
+             rollout_processes=0):
         seen.append(config)
         shared.append(snapshots)
         raise SystemExit(0)
