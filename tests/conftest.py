@@ -37,17 +37,19 @@ def pytest_configure(config: pytest.Config) -> None:
     os.environ.setdefault("RAY_worker_niceness", "0")
 
 
-#: seconds the slowest test files took on two cores (summed over their tests, `--durations`, at `13e8a68`): a
-#: scheduling hint only. They are handed to the pytest-xdist workers first, longest first, and the many short
-#: files after them fill the end evenly; xdist's own order (by test count) left a long file with few tests to run
-#: alone at the end. Out-of-date numbers cost minutes, not correctness.
+#: seconds the slowest test files took on two cores (summed over their tests, `--durations`, at `2adb4ca`, on a
+#: machine about 1.4× slower than the one of the README's suite time): a scheduling hint only. They are handed to
+#: the pytest-xdist workers first, longest first, and the many short files after them fill the end evenly; xdist's
+#: own order (by test count) left a long file with few tests to run alone at the end. Out-of-date numbers cost
+#: minutes, not correctness.
 SLOWEST_FILES = {
-    "test_pipeline_reconstruct.py": 219, "test_bench_identify.py": 218, "test_bench_suite.py": 176,
-    "test_joint_gauss_newton.py": 135, "test_synthetic.py": 134, "test_identification.py": 97,
-    "test_bench_ablation.py": 94, "test_simulator.py": 93, "test_simulate.py": 76, "test_pipeline_stiffness.py": 74,
-    "test_pipeline_joint.py": 71, "test_predictor_fem_data.py": 69, "test_fuzz.py": 66, "test_skinning_modal.py": 61,
-    "test_capture.py": 60, "test_initial_state.py": 52, "test_export.py": 52, "test_devices.py": 46,
-    "test_fused.py": 46, "test_cli_fit.py": 44, "test_capture_sfm.py": 60,
+    "test_pipeline_reconstruct.py": 268, "test_bench_identify.py": 210, "test_joint_gauss_newton.py": 202,
+    "test_bench_suite.py": 186, "test_simulator.py": 107, "test_synthetic.py": 100, "test_predictor_fem_data.py": 91,
+    "test_devices.py": 90, "test_identification.py": 86, "test_bench_ablation.py": 83, "test_fuzz.py": 82,
+    "test_bench_speed.py": 75, "test_pipeline_joint.py": 69, "test_initial_state.py": 66,
+    "test_pipeline_stiffness.py": 59, "test_modes.py": 57, "test_hull_track.py": 57, "test_capture_sfm.py": 55,
+    "test_predictor_data.py": 53, "test_fused.py": 52, "test_skinning_modal.py": 52, "test_capture.py": 51,
+    "test_demo.py": 50, "test_cli_fit.py": 38,
 }
 
 
