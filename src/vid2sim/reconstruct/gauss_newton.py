@@ -72,7 +72,9 @@ class ClipModel(Protocol):
     """The observed clip as a function of the parameters θ (p numbers, in the order of the parameter list).
 
     ``frames`` residual blocks, one per observed frame 1 … T−1: block t is the frame's image error over every
-    view, weighted so that Σ_t ‖r_t‖² is the clip's loss L."""
+    view, weighted so that Σ_t ‖r_t‖² is the clip's loss L. A model may also have ``simulate_many(thetas,
+    substeps)``: the trajectories of several θ (None where one fails), which :func:`linearise` then uses for the
+    Jacobian's independent rollouts (e.g. on worker processes, :mod:`vid2sim.reconstruct.rollouts`)."""
 
     frames: int
 
