@@ -364,8 +364,8 @@ def joint_optimisation(
             also matches, with standard deviation ``config.track_sd`` × the object's length scale, widened where the
             hull's volume changed by more than ``config.track_volume_tolerance`` (:class:`ClipResiduals`); None: the
             images alone.
-        rollout_processes: worker processes that simulate the Gauss–Newton Jacobians' rollouts beside this one
-            (:class:`~vid2sim.reconstruct.rollouts.RolloutPool`; a CPU simulator's); 0: none.
+        rollout_processes: worker processes that simulate the coarse search's and the Jacobians' rollouts beside
+            this one (:class:`~vid2sim.reconstruct.rollouts.RolloutPool`; a CPU simulator's); 0: none.
     Returns:
         :class:`JointResult`.
     """
