@@ -24,12 +24,11 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-import torch
-
 from vid2sim.apps.report import asset_report
 from vid2sim.asset.folder import load_asset
 from vid2sim.evaluate.scores import evaluate, write_evaluation
 from vid2sim.reconstruct.pipeline import ReconstructConfig, reconstruct
+from vid2sim.reconstruct.rollouts import spare_threads
 from vid2sim.runtime import config as configs
 from vid2sim.runtime.errors import ConfigError
 from vid2sim.simulate.run import simulate
@@ -37,6 +36,8 @@ from vid2sim.simulate.scenario import ObstacleSpec, Scenario
 from vid2sim.synthetic.scenes import SyntheticSceneConfig, make_scene
 
 if TYPE_CHECKING:
+    import torch
+
     from vid2sim.reconstruct.pipeline import ReconstructConfig
     from vid2sim.simulate.scenario import Scenario
     from vid2sim.synthetic.scenes import SyntheticSceneConfig
@@ -188,7 +189,7 @@ def run_demo(out: str | Path, config: DemoConfig | None = None, progress: bool =
     if not (asset / "asset.json").is_file():
         t0 = step("asset", 2, f"reconstructing it from its observed views and frames into {asset}")
         reconstruct(scene, asset, cfg.reconstruct_config(), progress=progress, device=device,
-                    rollout_processes=max(0, torch.get_num_threads() - 1))  # the threads beyond one
+                    rollout_processes=spare_threads())
         done("asset", t0)
     evaluation_path = asset / "evaluation.json"
     renders = None

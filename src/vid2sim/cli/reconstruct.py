@@ -6,12 +6,11 @@ import argparse
 import json
 from pathlib import Path
 
-import torch
-
 from vid2sim.cli.common import UserError, add_threads_option, set_threads
 from vid2sim.cli.reconstruct_options import add_reconstruct_options, reconstruct_config
 from vid2sim.cli.report import write_asset_report
 from vid2sim.reconstruct.pipeline import STAGES, reconstruct
+from vid2sim.reconstruct.rollouts import spare_threads
 from vid2sim.reconstruct.runner import StageSnapshots
 from vid2sim.runtime.device import resolve_device
 
@@ -31,10 +30,9 @@ def run(args: argparse.Namespace) -> int:
     if args.restart and args.rerun_changed:
         raise UserError("--restart discards every finished stage and --rerun-changed keeps those whose settings "
                         "agree: give one of them")
-    # the Gauss-Newton Jacobians' rollouts also run on the threads beyond the first, in worker processes
+    # the joint stage's rollouts also run on the threads beyond the first, in worker processes
     path = reconstruct(args.scene, out, config, progress=not args.quiet, restart=args.restart, device=device,
-                       snapshots=snapshots, rerun_changed=args.rerun_changed,
-                       rollout_processes=max(0, torch.get_num_threads() - 1))
+                       snapshots=snapshots, rerun_changed=args.rerun_changed, rollout_processes=spare_threads())
     material = json.loads((path / "material.json").read_text())
     lines = material_lines(material)
     print("\n".join([f"wrote {path}: {lines[0]}"] + lines[1:]))

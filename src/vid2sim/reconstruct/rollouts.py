@@ -104,7 +104,8 @@ class RolloutPool:
             raise ValueError(f"RolloutPool: processes must be >= 1, got {processes}")
         self.processes = processes
         self._executor = process_pool(processes)
-        self._warm = [self._executor.submit(_ready) for _ in range(processes)]  # import torch while the caller works
+        for _ in range(processes):  # the workers start now and import torch while the caller works
+            self._executor.submit(_ready)
 
     def submit(self, blob: bytes, thetas: list[list[float]], substeps: int | None):
         """A future of :func:`_simulate_share`'s result (pickled trajectories) for ``thetas``."""
@@ -118,6 +119,11 @@ class RolloutPool:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+def spare_threads() -> int:
+    """The rollout worker processes the commands start: torch's threads beyond the first (``--threads`` less one)."""
+    return max(0, torch.get_num_threads() - 1)
 
 
 def shares(n: int, parts: int) -> list[tuple[int, int]]:

@@ -32,6 +32,7 @@ from typing import TYPE_CHECKING, Any
 
 from vid2sim.evaluate.scores import evaluate, write_evaluation
 from vid2sim.reconstruct.pipeline import ReconstructConfig, reconstruct
+from vid2sim.reconstruct.rollouts import spare_threads
 from vid2sim.reconstruct.runner import StageSnapshots
 from vid2sim.report import write_report, write_suite_report
 from vid2sim.runtime.errors import ConfigError, InputError
@@ -179,7 +180,7 @@ def run_scene(task: SceneTask, progress: bool = False) -> dict[str, Any]:
         if not (asset / "asset.json").is_file():  # save_asset moves a complete folder into place
             reconstruct(task.scene, asset, task.config.reconstruct_config(), progress=progress,
                         snapshots=task.snapshots, rerun_changed=task.rerun_changed,
-                        rollout_processes=max(0, torch.get_num_threads() - 1))  # the scene's threads beyond one
+                        rollout_processes=spare_threads())  # the scene's threads beyond one
             earlier += _restored_seconds(asset)
         else:
             earlier = _finished_asset_seconds(asset)
