@@ -13,7 +13,9 @@
 #
 # The GPU image (docs/benchmarks.md) has torch, numpy, scipy, pyyaml, pillow, imageio, scikit-image, matplotlib,
 # safetensors, tqdm, transformers, packaging, jaxtyping, rich, ninja, pytest and pytest-xdist; the list below is the
-# rest of `pip install -e ".[test]"`, with the versions this project is tested with.
+# rest of `pip install -e ".[test]"`, with the versions this project is tested with, less numba: its llvmlite wheel
+# alone is 60 MB, more than a call carries beside the others, and on the GPU the renders are gsplat's (the few CPU
+# renders there composite with tensor operations and warn that numba is missing).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 

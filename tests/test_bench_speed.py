@@ -22,7 +22,8 @@ def test_bench_speed_physics_training_and_render_quick(capsys):
     assert result["device"] == "cpu" and result["threads"] == 1
     _finite_positive(result, ["sim_step_ms", "sim_frame_ms", "sim_window_ms", "render_ms",
                               "skinning_train_ms_per_iter", "skinning_train_it_per_s", "skinning_iter_ops",
-                              "jacobian_train_ms_per_iter", "render_forward_ms_448", "render_forward_tile4_ratio"])
+                              "jacobian_train_ms_per_iter", "render_forward_ms_448", "render_forward_tensor_ratio",
+                              "render_tensor_ratio"])
     assert abs(result["skinning_train_it_per_s"] * result["skinning_train_ms_per_iter"] - 1e3) < 1e-6
     assert result["sim_frame_substeps"] >= 4
     # the drop rests on the floor: penetration is a small fraction of the 1 m object

@@ -1,5 +1,7 @@
-"""The pure-PyTorch renderer against a brute-force per-pixel reference, finite differences and analytic cases."""
+"""The CPU renderer (compiled compositing kernels and the tensor path) against a brute-force per-pixel reference,
+finite differences and analytic cases."""
 
+import dataclasses
 import importlib
 import math
 import sys
@@ -8,9 +10,10 @@ import types
 import pytest
 import torch
 
+from vid2sim.runtime.errors import ConfigError
 from vid2sim.splats.cameras import Camera, camera_ring
 from vid2sim.splats.gaussians import Gaussians, covariances_from_scales_quats
-from vid2sim.splats.rasterize import RasterOptions, auto_tile_size
+from vid2sim.splats.rasterize import RasterOptions, auto_tile_size, composite, uses_compiled_kernels
 from vid2sim.splats.render import render, render_gaussians, resolve_backend
 from vid2sim.splats.sh import eval_sh
 
@@ -75,6 +78,7 @@ def _scene(n, seed, dtype=F64, opacity=(0.15, 0.95), spread=0.8, scale=(0.03, 0.
     return means, scales, quats, ops, cols
 
 
+@pytest.mark.parametrize("kernels", ["compiled", "tensor"])
 @pytest.mark.parametrize(
     "seed,opacity,opts",
     [
@@ -84,7 +88,8 @@ def _scene(n, seed, dtype=F64, opacity=(0.15, 0.95), spread=0.8, scale=(0.03, 0.
         (3, (0.5, 0.99), RasterOptions(tile_size=1, chunk=3, max_elements=3 * 200)),
     ],
 )
-def test_images_match_brute_force_reference(seed, opacity, opts):
+def test_images_match_brute_force_reference(seed, opacity, opts, kernels):
+    opts = dataclasses.replace(opts, kernels=kernels)
     means, scales, quats, ops, cols = _scene(40, seed, opacity=opacity)
     cov = covariances_from_scales_quats(scales, quats)
     n_views = 3 if seed < 2 else 1  # the odd tilings are slow: one view is enough for them
@@ -111,17 +116,20 @@ def test_auto_tile_size_follows_the_footprint():
 
 @pytest.mark.parametrize("grad", [False, True])
 def test_default_tiling_is_chosen_per_render_and_changes_no_pixel(monkeypatch, grad):
-    """Large splats take 8-pixel tiles in a forward-only render, small ones and differentiated renders 4; the image
-    is the reference's either way, and so are the gradients."""
+    """With the tensor path, large splats take 8-pixel tiles in a forward-only render, small ones and differentiated
+    renders 4; the compiled kernels take 16 always. The image is the reference's either way, and so are the
+    gradients."""
     render_module = importlib.import_module("vid2sim.splats.render")  # the package's `render` is the function
     used = []
     original = render_module.bin_gaussians
     monkeypatch.setattr(render_module, "bin_gaussians", lambda *a: used.append(a[-1]) or original(*a))
     cams = camera_ring(1, 2.5, 20.0, 48, 40, fov_x_deg=45.0)
     bg = torch.tensor([1.0, 0.5, 0.2], dtype=F64)
-    for scale, tile in (((0.01, 0.02), 4), ((0.1, 0.2), 4 if grad else 8)):
+    for scale, tile, kernels in (((0.01, 0.02), 4, "tensor"), ((0.1, 0.2), 4 if grad else 8, "tensor"),
+                                 ((0.01, 0.02), 16, "auto"), ((0.1, 0.2), 16, "auto")):
         means, scales, quats, ops, cols = (t.requires_grad_(grad) for t in _scene(30, 4, scale=scale))
-        out = render(means, ops, cols, cams, quats=quats, scales=scales, background=bg)
+        out = render(means, ops, cols, cams, quats=quats, scales=scales, background=bg,
+                     raster_options=RasterOptions(kernels=kernels))
         assert used[-1] == tile
         rgb, _, _ = reference_render(means, covariances_from_scales_quats(scales, quats), ops, cols, cams[0], bg)
         assert torch.allclose(out.rgb[0], rgb, atol=1e-12)
@@ -144,7 +152,8 @@ def test_sh_colours_and_offscreen_gaussians_match_reference():
         assert torch.allclose(out.alpha[v], alpha, atol=1e-12)
 
 
-def test_gradients_match_brute_force_reference():
+@pytest.mark.parametrize("kernels", ["compiled", "tensor"])
+def test_gradients_match_brute_force_reference(kernels):
     means, scales, quats, ops, cols = _scene(25, 11, opacity=(0.6, 0.99), scale=(0.05, 0.15))
     leaves = [t.clone().requires_grad_() for t in (means, scales, quats, ops, cols)]
     cams = camera_ring(2, 2.5, 25.0, 20, 16, fov_x_deg=45.0)
@@ -152,7 +161,7 @@ def test_gradients_match_brute_force_reference():
     g = torch.Generator().manual_seed(3)
     w_rgb, w_a, w_d = (torch.randn(2, 16, 20, c, generator=g, dtype=F64) for c in (3, 1, 1))
     out = render(leaves[0], leaves[3], leaves[4], cams, quats=leaves[2], scales=leaves[1], background=bg,
-                 raster_options=RasterOptions(tile_size=4, chunk=3))
+                 raster_options=RasterOptions(tile_size=4, chunk=3, kernels=kernels))
     loss = (out.rgb * w_rgb).sum() + (out.alpha * w_a).sum() + (out.depth * w_d).sum()
     grads = torch.autograd.grad(loss, leaves + [bg])
     ref_loss = 0.0
@@ -165,6 +174,59 @@ def test_gradients_match_brute_force_reference():
     for name, a, b in zip(["means", "scales", "quats", "opacities", "colors", "background"], grads, ref):
         assert float(b.abs().max()) > 0, name
         assert torch.allclose(a, b, rtol=1e-8, atol=1e-9 * float(b.abs().max())), name
+
+
+def test_compiled_and_tensor_kernels_agree_on_a_dense_float32_drop():
+    """The compiled CPU kernels and the tensor path on what the joint stage renders: 3 000 small, nearly opaque
+    float32 Gaussians on a shell (most pixels terminate), 4 views, both tilings; images and gradients agree to float32
+    rounding."""
+    g = torch.Generator().manual_seed(5)
+    d = torch.randn(3000, 3, generator=g)
+    means = (0.4 * d / d.norm(dim=1, keepdim=True)).requires_grad_()
+    scales = torch.full((3000, 3), 0.02).requires_grad_()
+    quats = torch.randn(3000, 4, generator=g)
+    ops = (0.6 + 0.39 * torch.rand(3000, generator=g)).requires_grad_()
+    cols = torch.rand(3000, 3, generator=g).requires_grad_()
+    cams = camera_ring(4, 2.0, 20.0, 64, 48, fov_x_deg=40.0)
+    w = torch.randn(4, 48, 64, 3, generator=g)
+    for tile in (4, 8):
+        outs = []
+        for kernels in ("compiled", "tensor"):
+            out = render(means, ops, cols, cams, quats=quats, scales=scales, background=0.5,
+                         raster_options=RasterOptions(tile_size=tile, kernels=kernels))
+            outs.append((out.rgb, out.alpha, *torch.autograd.grad((out.rgb * w).sum(), [means, scales, ops, cols])))
+        assert float(outs[0][1].detach().max()) > 0.9999  # pixels terminated
+        for a, b in zip(*outs):
+            assert torch.allclose(a, b, rtol=1e-4, atol=1e-5 * max(1.0, float(b.detach().abs().max())))
+
+
+def test_compiled_kernels_take_float32_and_float64_on_the_cpu_only():
+    with pytest.raises(ConfigError, match="float32 or float64 CPU"):  # checked before the tile lists are read
+        composite(torch.zeros(1, 6, device="meta"), torch.zeros(1, 3, device="meta"), None,
+                  RasterOptions(kernels="compiled"))
+    with pytest.raises(ConfigError, match="not torch.bfloat16"):
+        composite(torch.zeros(1, 6, dtype=torch.bfloat16), torch.zeros(1, 3, dtype=torch.bfloat16), None,
+                  RasterOptions(kernels="compiled"))
+    assert uses_compiled_kernels(RasterOptions(), torch.zeros(1, dtype=torch.float32))
+    assert not uses_compiled_kernels(RasterOptions(), torch.zeros(1, dtype=torch.bfloat16))  # the tensor path
+    with pytest.raises(ConfigError, match="kernels must be one of"):
+        RasterOptions(kernels="fast")
+
+
+def test_without_numba_the_cpu_composites_with_tensors_and_says_so(monkeypatch):
+    """numba is a dependency; where it does not import (a GPU check's bare machine), "auto" warns and takes the tensor
+    path (the same image), and "compiled" names what is missing."""
+    rasterize = importlib.import_module("vid2sim.splats.rasterize")
+    means, scales, quats, ops, cols = _scene(20, 1)
+    cams = camera_ring(1, 2.5, 20.0, 24, 20, fov_x_deg=45.0)
+    expected = render(means, ops, cols, cams, quats=quats, scales=scales).rgb
+    monkeypatch.setattr(rasterize, "raster_kernels", None)
+    monkeypatch.setattr(rasterize, "_NO_KERNELS", "No module named 'numba'")
+    with pytest.warns(RuntimeWarning, match="numba does not import"):
+        out = render(means, ops, cols, cams, quats=quats, scales=scales).rgb
+    assert torch.allclose(out, expected, atol=1e-12)
+    with pytest.raises(ConfigError, match="needs numba"):
+        render(means, ops, cols, cams, quats=quats, scales=scales, raster_options=RasterOptions(kernels="compiled"))
 
 
 def test_covariance_gradients_are_symmetric_and_match_reference():

@@ -4,7 +4,9 @@
 covariances) and a batch of :class:`~vid2sim.splats.cameras.Camera` objects, and returns RGB, alpha
 and expected depth for every view. Backends:
 
-- ``"torch"`` — pure PyTorch (:mod:`vid2sim.splats.rasterize`), CPU or GPU, any float dtype.
+- ``"torch"`` — our own rasteriser (:mod:`vid2sim.splats.rasterize`), CPU or GPU, any float dtype: PyTorch for the
+  projection and binning, and for compositing compiled kernels on the CPU (:mod:`vid2sim.splats.raster_kernels`,
+  numba) and tensor operations elsewhere.
 - ``"gsplat"`` — gsplat 1.5.3's CUDA rasteriser (:mod:`vid2sim.splats.gsplat_backend`); CUDA and
   float32 only; install with ``pip install "vid2sim[cuda]"``.
 
@@ -30,7 +32,7 @@ from vid2sim.splats.deform import DeformedGaussians
 from vid2sim.splats.gaussians import Gaussians, covariances_from_scales_quats
 from vid2sim.splats.gsplat_backend import render_gsplat
 from vid2sim.splats.projection import project_gaussians
-from vid2sim.splats.rasterize import RasterOptions, auto_tile_size, bin_gaussians, composite, untile
+from vid2sim.splats.rasterize import RasterOptions, bin_gaussians, composite, tile_size_for, untile
 from vid2sim.splats.sh import eval_sh, num_sh_bases, sh_basis
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -257,8 +259,8 @@ def render(
     depths = ent[:, 5]
     feat = torch.cat([col, depths[:, None]], dim=1)  # (M, D + 1)
     radii = proj.radii.reshape(-1, 2).index_select(0, flat)
-    tile = opts.tile_size if opts.tile_size is not None else auto_tile_size(radii, torch.is_grad_enabled() and any(
-        t is not None and t.requires_grad for t in (means, opacities, colors, quats, scales, covars)))
+    tile = tile_size_for(opts, radii, torch.is_grad_enabled() and any(
+        t is not None and t.requires_grad for t in (means, opacities, colors, quats, scales, covars)), means)
     bins = bin_gaussians(params, radii, depths, v_idx, n_views, width, height, tile)
     acc = composite(params, feat, bins, opts)  # (n_tiles, D + 2, P)
     img = untile(acc, bins, width, height)  # (V, H, W, D + 2)

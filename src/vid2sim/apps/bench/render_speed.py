@@ -2,12 +2,13 @@
 
 Figures (milliseconds, median of several runs):
 
-- ``render_ms`` — always measured on the CPU with the pure-PyTorch backend: 20 000 Gaussians (SH
-  degree 3), 4 views at 128 × 128, forward + backward of a loss on RGB, alpha and depth.
-- ``render_forward_ms_448`` — CPU, pure-PyTorch backend: 20 000 Gaussians, 12 views at 448 × 448, a forward
-  render only (what the Gauss–Newton fit, the validation, ``evaluate`` and ``simulate`` do at the full preset),
-  with the automatic tile (:func:`vid2sim.splats.rasterize.auto_tile_size`); ``render_forward_tile4_ratio`` its
-  time over the same render with 4-pixel tiles, timed alternately in the same run (below 1: the tile choice pays).
+- ``render_ms`` — always measured on the CPU with the torch backend (its defaults: the compiled compositing
+  kernels): 20 000 Gaussians (SH degree 3), 4 views at 128 × 128, forward + backward of a loss on RGB, alpha and
+  depth; ``render_tensor_ratio`` its time over the same step with the tensor-op compositing
+  (``RasterOptions(kernels="tensor")``, its automatic tile), timed alternately in the same run.
+- ``render_forward_ms_448`` — CPU, torch backend, defaults: 20 000 Gaussians, 12 views at 448 × 448, a forward
+  render only (what the Gauss–Newton fit, the validation, ``evaluate`` and ``simulate`` do at the full preset);
+  ``render_forward_tensor_ratio`` its time over the tensor-op compositing's, timed alternately in the same run.
   ``--quick``: 2 views.
 - ``render_ms_cuda_448`` — only when CUDA is available: 100 000 Gaussians, 12 views at 448 × 448,
   forward + backward, with ``backend="auto"`` (gsplat when it is installed, the torch backend on
@@ -62,63 +63,57 @@ def benchmark_cameras(n_views: int, size: int, device: torch.device | str = "cpu
     return [c.to(device) for c in camera_ring(n_views, 2.0, 20.0, size, size, fov_x_deg=40.0)]
 
 
-def time_render(
-    n_gaussians: int,
-    n_views: int,
-    size: int,
-    device: torch.device,
-    backend: str = "auto",
-    repeats: int = 5,
-    sh_degree: int = 3,
-) -> float:
-    """Median milliseconds of one forward + backward render of the benchmark scene."""
+def render_step(n_gaussians: int, n_views: int, size: int, device: torch.device, backend: str = "auto",
+                sh_degree: int = 3, backward: bool = True,
+                options: RasterOptions | None = None) -> Callable[[], None]:
+    """One render of the benchmark scene (``backward``: and the backward pass of a loss on RGB, alpha and depth;
+    else without gradients), as a function to time."""
     scene = benchmark_scene(n_gaussians, device, sh_degree=sh_degree)
+    if not backward:
+        scene = {k: v.detach() for k, v in scene.items()}
     cams = benchmark_cameras(n_views, size, device)
 
     def step() -> None:
-        out = render(
-            scene["means"],
-            scene["opacities"],
-            scene["sh"],
-            cams,
-            quats=scene["quats"],
-            scales=scene["scales"],
-            sh_degree=sh_degree,
-            backend=backend,
-        )
-        loss = out.rgb.mean() + out.alpha.mean() + 0.1 * out.depth.mean()
-        loss.backward()
+        with torch.set_grad_enabled(backward):
+            out = render(scene["means"], scene["opacities"], scene["sh"], cams, quats=scene["quats"],
+                         scales=scene["scales"], sh_degree=sh_degree, backend=backend, raster_options=options)
+            if backward:
+                (out.rgb.mean() + out.alpha.mean() + 0.1 * out.depth.mean()).backward()
 
-    return time_ms(step, device, repeats=repeats, warmup=1)
+    return step
 
 
-def time_forward_448(n_views: int, repeats: int) -> tuple[float, float]:
-    """(median ms of a forward render of 20 000 benchmark Gaussians in ``n_views`` 448² views with the automatic
-    tile, its median ratio to the same render with 4-pixel tiles), the two timed alternately on the CPU."""
-    scene = {k: v.detach() for k, v in benchmark_scene(20_000).items()}
-    cams = benchmark_cameras(n_views, 448)
+def time_render(n_gaussians: int, n_views: int, size: int, device: torch.device, backend: str = "auto",
+                repeats: int = 5, sh_degree: int = 3) -> float:
+    """Median milliseconds of one forward + backward render of the benchmark scene."""
+    return time_ms(render_step(n_gaussians, n_views, size, device, backend, sh_degree), device, repeats=repeats,
+                   warmup=1)
+
+
+def time_against_tensor_path(n_views: int, size: int, backward: bool, repeats: int) -> tuple[float, float]:
+    """(median ms of a CPU render of 20 000 benchmark Gaussians with the defaults, the median ratio of its time to
+    the tensor-op compositing's), the two timed alternately (one warm-up each)."""
     cpu = torch.device("cpu")
-
-    def step(options: RasterOptions | None) -> Callable[[], object]:
-        return lambda: render(scene["means"], scene["opacities"], scene["sh"], cams, quats=scene["quats"],
-                              scales=scene["scales"], sh_degree=3, backend="torch", raster_options=options)
-
-    auto, tile4 = [], []
-    with torch.no_grad():
-        for _ in range(repeats):
-            auto.append(time_ms(step(None), cpu, repeats=1, warmup=0))
-            tile4.append(time_ms(step(RasterOptions(tile_size=4)), cpu, repeats=1, warmup=0))
-    return statistics.median(auto), statistics.median(a / b for a, b in zip(auto, tile4))
+    default = render_step(20_000, n_views, size, cpu, "torch", backward=backward)
+    tensor = render_step(20_000, n_views, size, cpu, "torch", backward=backward,
+                         options=RasterOptions(kernels="tensor"))
+    default()
+    tensor()
+    times, ratios = [], []
+    for _ in range(repeats):
+        a, b = time_ms(default, cpu, repeats=1, warmup=0), time_ms(tensor, cpu, repeats=1, warmup=0)
+        times.append(a)
+        ratios.append(a / b)
+    return statistics.median(times), statistics.median(ratios)
 
 
 def run(device: torch.device, quick: bool = False) -> dict[str, float | str]:
     """Renderer timings (see module docstring). ``device`` is ignored for ``render_ms`` (always CPU)."""
     repeats = 1 if quick else 7
-    result: dict[str, float | str] = {
-        "render_ms": time_render(20_000, 4, 128, torch.device("cpu"), backend="torch", repeats=repeats)
-    }
-    result["render_forward_ms_448"], result["render_forward_tile4_ratio"] = time_forward_448(
-        2 if quick else 12, 1 if quick else 3)
+    result: dict[str, float | str] = {}
+    result["render_ms"], result["render_tensor_ratio"] = time_against_tensor_path(4, 128, True, repeats)
+    result["render_forward_ms_448"], result["render_forward_tensor_ratio"] = time_against_tensor_path(
+        2 if quick else 12, 448, False, 1 if quick else 3)
     if torch.cuda.is_available():
         cuda = device if device.type == "cuda" else torch.device("cuda")
         result["render_ms_cuda_448"] = time_render(100_000, 12, 448, cuda, backend="auto", repeats=repeats)
