@@ -117,7 +117,9 @@ def uses_compiled_kernels(opts: RasterOptions, like: Tensor) -> bool:
         ConfigError: ``opts.kernels`` "compiled" for tensors they do not take, or without numba. Without numba (a
             broken install: it is a dependency) "auto" warns and takes the tensor path.
     """
-    supported = like.device.type == "cpu" and like.dtype in (torch.float32, torch.float64)
+    # host memory: torch.device("cpu") itself (a CPU tensor's device never carries an index; the stand-in accelerator
+    # of vid2sim.runtime.device_check, "cpu:0", takes the tensor path, which is what an accelerator runs)
+    supported = like.device == torch.device("cpu") and like.dtype in (torch.float32, torch.float64)
     if opts.kernels == "compiled" and not supported:
         raise ConfigError(f"RasterOptions.kernels 'compiled' takes float32 or float64 CPU tensors, not {like.dtype} "
                           f"on {like.device}")
@@ -481,7 +483,7 @@ class _CompiledComposite(torch.autograd.Function):
     def forward(ctx, params: Tensor, feat: Tensor, bins: TileBins):  # type: ignore[override]
         params = params.detach().contiguous()
         feat1 = torch.cat([feat.detach(), torch.ones_like(feat[:, :1])], dim=1).contiguous()
-        acc = torch.zeros(bins.n_tiles, feat1.shape[1], bins.tile_size ** 2, dtype=params.dtype)
+        acc = params.new_zeros(bins.n_tiles, feat1.shape[1], bins.tile_size ** 2)
         raster_kernels.composite_forward(params.numpy(), feat1.numpy(), *_bins_arrays(bins),
                                          _alpha_threshold(params.dtype), acc.numpy(), torch.get_num_threads())
         ctx.save_for_backward(params, feat1, acc)
@@ -493,11 +495,11 @@ class _CompiledComposite(torch.autograd.Function):
         params, feat1, acc = ctx.saved_tensors
         bins: TileBins = ctx.bins
         C = feat1.shape[1] - 1
-        d_isect = torch.zeros(bins.n_intersections, 6 + C, dtype=params.dtype)
+        d_isect = params.new_zeros(bins.n_intersections, 6 + C)
         raster_kernels.composite_backward(params.numpy(), feat1.numpy(), *_bins_arrays(bins),
                                           _alpha_threshold(params.dtype), grad_acc.contiguous().numpy(), acc.numpy(),
                                           d_isect.numpy(), torch.get_num_threads())
-        out = torch.zeros(params.shape[0], 6 + C, dtype=params.dtype)
+        out = params.new_zeros(params.shape[0], 6 + C)
         raster_kernels.sum_rows(bins.isect_entry.numpy(), d_isect.numpy(), out.numpy())
         return out[:, :6], out[:, 6:], None
 
