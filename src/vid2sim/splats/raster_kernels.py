@@ -1,12 +1,14 @@
-"""Compiled CPU kernels of the rasteriser's compositing (numba), the CPU's default since they are 2–4× faster.
+"""Compiled CPU kernels of the rasteriser's compositing (numba), the CPU's default since they are faster.
 
 They composite the same depth-sorted tile lists (:class:`~vid2sim.splats.rasterize.TileBins`) with the same semantics
 as the tensor-op path of :mod:`vid2sim.splats.rasterize` (its module docstring): per pixel, Gaussians in depth order,
 α = min(0.999, o · exp(−σ')) skipped below 1/255, compositing stopped before the first Gaussian that would bring the
 transmittance to 1e-4 or below. What differs is how much is evaluated: the tensor path evaluates every pixel of a tile
 for every Gaussian listed in it (at the small preset's footprints a fifth of those pairs reach α ≥ 1/255), a kernel
-only the pixels inside the Gaussian's α ≥ 1/255 ellipse's bounding box, and a pixel stops at its own termination. Tiles
-run in parallel (``prange``) on ``threads`` threads.
+only the pixels inside the bounding box of the Gaussian's α ≥ 1/255 ellipse, and a pixel stops at its own
+termination. Tiles run in parallel (``prange``) on ``threads`` threads. The gain is largest for small splats (the
+small preset's 3 px: a render forward + backward 1.5–1.8× faster) and small for large ones, whose tiles the tensor
+path fills with useful work (the full preset's 8.5 px at 448²: 1.0–1.2×).
 
 The backward kernel replays a tile's compositing front to back with the same rule as the tensor path
 (``∂L/∂α_k = (g·f_k) T_k − (Σ_{j>k} (g·f_j) w_j) / (1 − α_k)``, the suffix sum being the pixel's total less the running
