@@ -16,7 +16,8 @@ prefix) and writes each intersection's gradients (``∂L/∂[μx, μy, a, b, c, 
 own, so tiles never write the same memory; the caller sums the rows per Gaussian entry.
 
 The arrays are numpy views of the caller's tensors (no copies). The kernels compile on first use and are cached on
-disk (numba's ``cache=True``: a few seconds once per machine and release).
+disk beside this module (numba's ``cache=True``): about 6 s for a float32 render and its backward pass on one thread,
+9 s on several, 28 s for all eight variants, once per machine and release.
 """
 
 from __future__ import annotations
@@ -40,7 +41,7 @@ def _window(mx: float, my: float, a: float, b: float, c: float, log_o: float, x0
     the bounding box of the ellipse ½ dᵀ[[a, b], [b, c]]d ≤ ln 255 + log o, widened a little (the per-pixel test
     decides). A Gaussian of opacity below 1/255 reaches no pixel; a degenerate conic gets the whole tile."""
     reach = 2.0 * (_LOG_255 + log_o)
-    if reach <= 0.0:
+    if reach < 0.0:  # opacity below 1/255 (at exactly 1/255 the centre itself may reach it)
         return 0, -1, 0, -1
     det = a * c - b * b
     if not det > 0.0:  # degenerate (or NaN): let the per-pixel test decide everywhere
