@@ -200,6 +200,26 @@ def test_compiled_and_tensor_kernels_agree_on_a_dense_float32_drop():
             assert torch.allclose(a, b, rtol=1e-4, atol=1e-5 * max(1.0, float(b.detach().abs().max())))
 
 
+def test_compiled_kernels_on_several_threads_give_the_serial_result():
+    """Tiles in parallel (numba's pool, when torch has several threads) and one after the other (one thread) give the
+    same image and gradients to the bit: each tile is composited alone, and the gradient rows are summed serially."""
+    means, scales, quats, ops, cols = (t.float().requires_grad_() for t in _scene(60, 2, opacity=(0.5, 0.99)))
+    cams = camera_ring(3, 2.5, 20.0, 40, 32, fov_x_deg=45.0)
+    results = []
+    old = torch.get_num_threads()
+    try:
+        for threads in (1, 2):
+            torch.set_num_threads(threads)
+            out = render(means, ops, cols, cams, quats=quats, scales=scales, background=0.5,
+                         raster_options=RasterOptions(kernels="compiled"))
+            results.append((out.rgb, *torch.autograd.grad(out.rgb.square().sum(), [means, scales, ops, cols])))
+    finally:
+        torch.set_num_threads(old)
+    assert float(results[0][0].detach().std()) > 0
+    for a, b in zip(*results):
+        assert torch.equal(a, b)
+
+
 def test_compiled_kernels_take_float32_and_float64_on_the_cpu_only():
     with pytest.raises(ConfigError, match="float32 or float64 CPU"):  # checked before the tile lists are read
         composite(torch.zeros(1, 6, device="meta"), torch.zeros(1, 3, device="meta"), None,
