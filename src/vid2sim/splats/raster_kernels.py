@@ -74,6 +74,27 @@ def _alpha(mx: float, my: float, a: float, b: float, c: float, log_o: float, px:
     return alpha, dx, dy, clamped
 
 
+@njit(cache=True, error_model="numpy", inline="always")
+def _weight(alpha: float, trans: np.ndarray, done: np.ndarray, p: int) -> float:
+    """The compositing weight α T of a Gaussian (α > 0) at pixel p, advancing the pixel's transmittance
+    ``trans[p]`` to T (1 − α); −1 where the Gaussian ends the pixel instead (T would fall to 1e-4 or below: the pixel
+    is marked ``done`` and takes nothing more). The rule both kernels composite by."""
+    t_next = trans[p] * (1.0 - alpha)
+    if t_next <= _T_EPS:
+        done[p] = True
+        return -1.0
+    w = alpha * trans[p]
+    trans[p] = t_next
+    return w
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _tile_origin(t: int, tiles_x: int, tiles_y: int, ts: int) -> tuple[int, int]:
+    """The pixel coordinates (x0, y0) of tile t's corner in its view."""
+    local = t % (tiles_x * tiles_y)
+    return (local % tiles_x) * ts, (local // tiles_x) * ts
+
+
 @njit(cache=True, error_model="numpy")
 def _forward_tile(t: int, params: np.ndarray, feat1: np.ndarray, entry: np.ndarray, tile_start: np.ndarray,
                   tile_count: np.ndarray, tiles_x: int, tiles_y: int, ts: int, alpha_th: float,
@@ -84,9 +105,7 @@ def _forward_tile(t: int, params: np.ndarray, feat1: np.ndarray, entry: np.ndarr
         return
     P = ts * ts
     C1 = feat1.shape[1]
-    local = t % (tiles_x * tiles_y)
-    x0 = (local % tiles_x) * ts
-    y0 = (local // tiles_x) * ts
+    x0, y0 = _tile_origin(t, tiles_x, tiles_y, ts)
     trans = np.ones(P, dtype=np.float64)
     done = np.zeros(P, dtype=np.bool_)
     n_done = 0
@@ -102,15 +121,12 @@ def _forward_tile(t: int, params: np.ndarray, feat1: np.ndarray, entry: np.ndarr
                 alpha, _, _, _ = _alpha(mx, my, a, b, c, lo, x0 + i + 0.5, y0 + j + 0.5, alpha_th)
                 if alpha == 0.0:
                     continue
-                t_next = trans[p] * (1.0 - alpha)
-                if t_next <= _T_EPS:
-                    done[p] = True
+                w = _weight(alpha, trans, done, p)
+                if w < 0.0:
                     n_done += 1
                     continue
-                w = alpha * trans[p]
                 for ch in range(C1):
                     out[t, ch, p] += feat1[e, ch] * w
-                trans[p] = t_next
         if n_done == P:
             return
 
@@ -125,9 +141,7 @@ def _backward_tile(t: int, params: np.ndarray, feat1: np.ndarray, entry: np.ndar
         return
     P = ts * ts
     C1 = feat1.shape[1]
-    local = t % (tiles_x * tiles_y)
-    x0 = (local % tiles_x) * ts
-    y0 = (local // tiles_x) * ts
+    x0, y0 = _tile_origin(t, tiles_x, tiles_y, ts)
     trans = np.ones(P, dtype=np.float64)
     done = np.zeros(P, dtype=np.bool_)
     rest = np.zeros(P, dtype=np.float64)  # Σ_{j>k} (g·f_j) w_j: the total, less the running prefix
@@ -148,12 +162,11 @@ def _backward_tile(t: int, params: np.ndarray, feat1: np.ndarray, entry: np.ndar
                 alpha, dx, dy, clamped = _alpha(mx, my, a, b, c, lo, x0 + i + 0.5, y0 + j + 0.5, alpha_th)
                 if alpha == 0.0:
                     continue
-                t_next = trans[p] * (1.0 - alpha)
-                if t_next <= _T_EPS:
-                    done[p] = True
+                t_before = trans[p]
+                w = _weight(alpha, trans, done, p)
+                if w < 0.0:
                     n_done += 1
                     continue
-                w = alpha * trans[p]
                 gf = 0.0
                 for ch in range(C1):
                     gf += grad[t, ch, p] * feat1[e, ch]
@@ -161,14 +174,13 @@ def _backward_tile(t: int, params: np.ndarray, feat1: np.ndarray, entry: np.ndar
                 for ch in range(C1 - 1):
                     d_isect[row, 6 + ch] += w * grad[t, ch, p]
                 if not clamped:
-                    n = alpha * (gf * trans[p] - rest[p] / (1.0 - alpha))  # ∂L/∂(−σ')
+                    n = alpha * (gf * t_before - rest[p] / (1.0 - alpha))  # ∂L/∂(−σ')
                     d_isect[row, 0] += n * (a * dx + b * dy)
                     d_isect[row, 1] += n * (b * dx + c * dy)
                     d_isect[row, 2] -= 0.5 * n * dx * dx
                     d_isect[row, 3] -= n * dx * dy
                     d_isect[row, 4] -= 0.5 * n * dy * dy
                     d_isect[row, 5] += n
-                trans[p] = t_next
         if n_done == P:
             return
 
