@@ -8,8 +8,14 @@ import numpy as np
 import pytest
 import torch
 
-from vid2sim.reconstruct.config import PointsConfig
-from vid2sim.reconstruct.stages.points import contact_surface, floor_carved_contact, points_from_occupancy
+from vid2sim.reconstruct.config import JointConfig, PointsConfig
+from vid2sim.reconstruct.stages.points import (
+    contact_surface,
+    floor_carved_contact,
+    points_from_occupancy,
+    rigid_frames,
+)
+from vid2sim.runtime.errors import ConfigError
 
 BIG = PointsConfig(num_points=500, max_contact_points=10_000)
 
@@ -69,9 +75,28 @@ def test_the_floor_carve_removes_what_any_pose_puts_below_the_floor():
 
 
 def test_joint_config_contact_search_is_off_by_default():
-    from vid2sim.reconstruct.config import JointConfig
-
     assert JointConfig().contact_search is False
+    assert JointConfig().contact_search_residual_ratio == 1.25
+    assert JointConfig(contact_search_residual_ratio=None).contact_search_residual_ratio is None
+    for bad in (0.9, float("inf"), float("nan"), True, "2"):
+        with pytest.raises(ConfigError, match="contact_search_residual_ratio"):
+            JointConfig(contact_search_residual_ratio=bad)
+
+
+def test_rigid_frames_take_the_flight_and_leave_out_the_squash():
+    """The residuals of a soft twin's track (docs/capture.md, seventh entry): in flight about 0.27 px, rising from
+    frame 4 as the body squashes. The limit is 1.25 × the median of frames 0–2 (0.2726 → 0.341): frames 0–3 and 13
+    fit as in flight; the squash (4–12, 14, 15) is left out. A track that stays rigid keeps every frame."""
+    soft = [0.2902, 0.2726, 0.2587, 0.2797, 0.3504, 0.3635, 0.413, 0.4259, 0.4471, 0.4379, 0.4026, 0.4335, 0.3963,
+            0.3042, 0.3622, 0.3935]
+    assert list(np.nonzero(rigid_frames(soft, 1.25))[0]) == [0, 1, 2, 3, 13]
+    assert rigid_frames(soft, 2.0).all()
+    stiff = [0.2294, 0.2084, 0.2016, 0.1979, 0.207, 0.2153, 0.2188, 0.2164, 0.2341, 0.2383]
+    assert rigid_frames(stiff, 1.25).all() and rigid_frames([0.3], 1.25).all()
+    with pytest.raises(ValueError, match="ratio must be >= 1"):
+        rigid_frames(soft, 0.5)
+    with pytest.raises(ValueError, match="non-empty"):
+        rigid_frames([], 1.25)
 
 
 def test_the_joint_stages_candidates_record_the_carve_and_skip_one_that_sinks_the_hull(monkeypatch):
@@ -87,14 +112,32 @@ def test_the_joint_stages_candidates_record_the_carve_and_skip_one_that_sinks_th
     monkeypatch.setattr(joint, "track_poses", lambda *args, **kwargs: poses)
     state = SimpleNamespace(obj_cpu=obj)
 
-    def candidates(floor: float):
+    def candidates(floor: float, ratio: float | None = 1.25):
+        config = SimpleNamespace(points=BIG, joint=JointConfig(contact_search_residual_ratio=ratio))
         ctx = SimpleNamespace(observed=SimpleNamespace(masks_cpu=None, cameras_cpu=None, floor_height=floor),
-                              config=SimpleNamespace(points=BIG))
+                              config=config)
         return joint.contact_candidates(ctx, state)
 
     contacts, record = candidates(0.0)
     assert list(contacts) == ["hull", "floor-carved"] and record["floor_carved_voxels"] == 48
     assert record["voxels"] == 192 and record["tracked_frames"] == 2 and record["residuals_px"] == [0.1, 0.2]
+    assert record["rigid_frames"] == [0] and record["floor_carved_rigid_voxels"] == 0  # frame 0 sinks nothing
+    # a squash: frames 2 and 3 fit twice as badly as in flight and sink 4 and 6 cm; frame 1 fits as in flight and
+    # sinks 3 cm (a keel). Every frame's carve takes four layers, the rigid frames' one layer: three surfaces
+    poses.rotations = np.stack([np.eye(3)] * 4)
+    poses.translations = np.array([[0, 0, 0], [0, 0, -0.03], [0, 0, -0.04], [0, 0, -0.06]])
+    poses.num_frames, poses.residuals_px = 4, np.array([0.1, 0.1, 0.2, 0.2])
+    contacts, record = candidates(0.0)
+    assert list(contacts) == ["hull", "floor-carved", "floor-carved-rigid"]
+    assert record["floor_carved_voxels"] == 96 and record["floor_carved_rigid_voxels"] == 24
+    assert record["rigid_frames"] == [0, 1]
+    assert float(contacts["floor-carved-rigid"][0][:, 2].min()) == pytest.approx(
+        float(obj.contact_points[:, 2].min()) + 0.01, abs=1e-6)
+    contacts, record = candidates(0.0, None)  # no third surface
+    assert list(contacts) == ["hull", "floor-carved"] and "rigid_frames" not in record
+    poses.rotations = np.stack([np.eye(3)] * 2)
+    poses.translations = np.array([[0, 0, 0], [0, 0, -0.04]])
+    poses.num_frames, poses.residuals_px = 2, np.array([0.1, 0.2])
     contacts, record = candidates(-1.0)
     assert list(contacts) == ["hull"] and record["floor_carved_voxels"] == 0
     contacts, record = candidates(1.0)

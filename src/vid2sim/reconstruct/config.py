@@ -344,6 +344,12 @@ class JointConfig:
             was fitted 0.86 decade soft, and 0.31 decade stiff with that surface (docs/results.md). On capture
             twins (imported masks) it turned the first bounce right on the 4 of 6 that bounced wrong, but moved E
             0.4 decade stiff on 2 of them (docs/capture.md, "sixth entry").
+        contact_search_residual_ratio: with ``contact_search``, a third surface is tried when it differs: the hull
+            carved with the poses of the frames whose rigid fit is about as good as in flight only
+            (:func:`~vid2sim.reconstruct.stages.points.rigid_frames`: silhouette residual at most this many times
+            the median of the first three frames). A soft object squashes at the contact, its rigid pose then sinks
+            below the floor, and every frame's carve takes the squash for keel (docs/capture.md, "seventh entry").
+            None: the two surfaces only.
         coarse_scale: image scale of the coarse search, the Gauss–Newton fit and the first ``coarse_fraction`` of the
             iterations (targets and renders, made at full size, area-averaged to it).
         coarse_fraction: fraction of the iterations rendered at ``coarse_scale`` (then full resolution).
@@ -397,6 +403,7 @@ class JointConfig:
     coarse_friction: tuple[float, ...] = (0.0, 0.5)
     coarse_log10_E: tuple[float, ...] = (4.0, 4.25, 4.5, 4.75, 5.0, 5.25, 5.5, 5.75, 6.0)
     contact_search: bool = False
+    contact_search_residual_ratio: float | None = 1.25
     coarse_scale: float = 0.5
     coarse_fraction: float = 0.5
     views_per_iteration: int | None = None
@@ -434,6 +441,11 @@ class JointConfig:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 <= float(value) < math.inf:
                 raise ConfigError(f"JointConfig.{name} must be a finite number >= 0, got {value!r}")
+        ratio = self.contact_search_residual_ratio
+        if ratio is not None and (isinstance(ratio, bool) or not isinstance(ratio, (int, float))
+                                  or not 1.0 <= float(ratio) < math.inf):
+            raise ConfigError(f"JointConfig.contact_search_residual_ratio must be a finite number >= 1 or None, got "
+                              f"{ratio!r}")
         lo, hi = self.log10_E_bounds
         if not lo < hi:
             raise ConfigError(f"JointConfig.log10_E_bounds must satisfy lo < hi, got {self.log10_E_bounds}")

@@ -72,7 +72,7 @@ from vid2sim.reconstruct.rollouts import (
 )
 from vid2sim.reconstruct.runner import Context, State
 from vid2sim.reconstruct.stages.networks import cpu_state
-from vid2sim.reconstruct.stages.points import floor_carved_contact, track_poses
+from vid2sim.reconstruct.stages.points import floor_carved_contact, rigid_frames, track_poses
 from vid2sim.reconstruct.stages.stage1 import prior_material
 from vid2sim.reconstruct.uncertainty import (
     coarse_best,
@@ -713,10 +713,12 @@ class JointStage:
 
 
 def contact_candidates(ctx: Context, state: State) -> tuple[dict[str, tuple[Tensor, Tensor]], dict[str, Any]]:
-    """The contact surfaces the coarse search tries (``JointConfig.contact_search``): the hull's own and, when the
-    rigid poses tracked from the masks put some of its voxels below the floor, the surface without them
-    (:func:`~vid2sim.reconstruct.stages.points.floor_carved_contact`); and a record of the carve for joint.json
-    (``skipped`` says why there is no carved surface when the poses would sink nearly all of the hull)."""
+    """The contact surfaces the coarse search tries (``JointConfig.contact_search``): the hull's own; when the rigid
+    poses tracked from the masks put some of its voxels below the floor, the surface without them ("floor-carved",
+    :func:`~vid2sim.reconstruct.stages.points.floor_carved_contact`); and when the poses of the frames whose rigid
+    fit is as good as in flight (:func:`~vid2sim.reconstruct.stages.points.rigid_frames`) carve less, that surface
+    too ("floor-carved-rigid": a soft object's squash is not carved as keel). Also a record of the carves for
+    joint.json (``skipped`` says why there is no carved surface when the poses would sink nearly all of the hull)."""
     o, obj, points_cfg = ctx.observed, state.obj_cpu, ctx.config.points
     poses = track_poses(obj.points, o.masks_cpu, o.cameras_cpu, max_points=points_cfg.track_points,
                         seed=points_cfg.seed)
@@ -729,9 +731,19 @@ def contact_candidates(ctx: Context, state: State) -> tuple[dict[str, tuple[Tens
     except ValueError as exc:  # the poses sink (nearly) all of it: no surface to offer; the record says why
         record.update(floor_carved_voxels=None, skipped=str(exc))
         return contacts, record
-    if removed:
-        contacts["floor-carved"] = (carved, areas)
-    return contacts, {"floor_carved_voxels": removed, **record}
+    record["floor_carved_voxels"] = removed
+    if not removed:
+        return contacts, record
+    contacts["floor-carved"] = (carved, areas)
+    ratio = ctx.config.joint.contact_search_residual_ratio
+    rigid = rigid_frames(poses.residuals_px, ratio) if ratio is not None else None
+    if rigid is not None and not rigid.all():
+        carved, areas, fewer = floor_carved_contact(obj, poses.rotations[rigid], poses.translations[rigid],
+                                                    o.floor_height, config=points_cfg)
+        record.update(rigid_frames=[int(t) for t in rigid.nonzero()[0]], floor_carved_rigid_voxels=fewer)
+        if 0 < fewer < removed:
+            contacts["floor-carved-rigid"] = (carved, areas)
+    return contacts, record
 
 
 def assemble_asset(ctx: Context, state: State) -> Asset:

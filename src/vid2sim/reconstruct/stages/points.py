@@ -190,6 +190,25 @@ def contact_surface(occ: Tensor, origin: Tensor, voxel: float, max_points: int, 
     return contact, areas
 
 
+def rigid_frames(residuals_px: Sequence[float], ratio: float, reference_frames: int = 3) -> np.ndarray:
+    """(T,) bool: the tracked frames whose rigid fit is about as good as in flight: silhouette residual at most
+    ``ratio`` × the median residual of the first ``reference_frames`` frames (a drop's video starts in flight, where
+    a rigid pose fits well). A soft object squashes at the contact: its rigid fit degrades there and its pose sinks
+    below the floor, so those frames' poses would carve the squash as keel (:func:`floor_carved_contact`).
+
+    Args:
+        residuals_px: (T,) :attr:`TrackedPoses.residuals_px`.
+    Raises:
+        ValueError: no residuals, or a ratio below 1.
+    """
+    r = np.asarray(residuals_px, dtype=np.float64)
+    if r.ndim != 1 or r.size == 0:
+        raise ValueError(f"rigid_frames: residuals must be a non-empty (T,) sequence, got shape {r.shape}")
+    if not ratio >= 1.0:
+        raise ValueError(f"rigid_frames: ratio must be >= 1, got {ratio!r}")
+    return r <= ratio * float(np.median(r[:reference_frames]))
+
+
 def floor_carved_contact(obj: ObjectPoints, rotations: np.ndarray, translations: np.ndarray, floor_height: float,
                          margin_voxels: float = 1.0, config: PointsConfig | None = None
                          ) -> tuple[Tensor, Tensor, int]:
