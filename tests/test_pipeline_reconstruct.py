@@ -686,9 +686,14 @@ def test_a_drop_that_meets_the_floor_by_frame_1_still_reconstructs(tiny_scene, t
     log = json.loads((out / "log.json").read_text())
     coarse, carve = log["coarse_search"], log["contact_candidates"]
     surfaces = {r.get("contact_surface") for r in coarse}
-    # the search tries the floor-carved surface where the tracked poses put some of the hull below the floor
+    # the search tries the floor-carved surface where the tracked poses put some of the hull below the floor, and
+    # the carve of the frames whose rigid fit is as good as in flight where that one differs
     assert 0 <= carve["floor_carved_voxels"] < carve["voxels"] and carve["tracked_frames"] == 5
-    assert surfaces == ({"hull", "floor-carved"} if carve["floor_carved_voxels"] else {None})
+    rigid = carve.get("floor_carved_rigid_voxels", 0)
+    assert surfaces == ({"hull", "floor-carved"} | ({"floor-carved-rigid"} if 0 < rigid < carve["floor_carved_voxels"]
+                                                    else set()) if carve["floor_carved_voxels"] else {None})
+    if "rigid_frames" in carve:  # a proper subset of the tracked frames (with all of them there is no third carve)
+        assert set(carve["rigid_frames"]) < set(range(5)) and carve["rigid_frames"] == sorted(carve["rigid_frames"])
     assert len(coarse) == 2 * 2 * len(surfaces)  # × friction × E
     assert extra["contact_surface"] == (min(coarse, key=lambda r: r["loss"]).get("contact_surface") or "hull")
     assert load_asset(out).contact_points.shape[1] == 3
