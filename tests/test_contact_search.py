@@ -135,6 +135,11 @@ def test_the_joint_stages_candidates_record_the_carve_and_skip_one_that_sinks_th
         float(obj.contact_points[:, 2].min()) + 0.01, abs=1e-6)
     contacts, record = candidates(0.0, None)  # no third surface
     assert list(contacts) == ["hull", "floor-carved"] and "rigid_frames" not in record
+    # a squash that sinks the whole box below the floor: no carve of every frame, but the rigid frames' remains
+    poses.translations = np.array([[0, 0, 0], [0, 0, -0.03], [0, 0, -0.04], [0, 0, -0.2]])
+    contacts, record = candidates(0.0)
+    assert list(contacts) == ["hull", "floor-carved-rigid"] and record["floor_carved_voxels"] is None
+    assert "only 0 of 192 voxels" in record["skipped"] and record["floor_carved_rigid_voxels"] == 24
     poses.rotations = np.stack([np.eye(3)] * 2)
     poses.translations = np.array([[0, 0, 0], [0, 0, -0.04]])
     poses.num_frames, poses.residuals_px = 2, np.array([0.1, 0.2])

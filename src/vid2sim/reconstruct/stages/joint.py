@@ -728,20 +728,24 @@ def contact_candidates(ctx: Context, state: State) -> tuple[dict[str, tuple[Tens
     try:
         carved, areas, removed = floor_carved_contact(obj, poses.rotations, poses.translations, o.floor_height,
                                                       config=points_cfg)
+        record["floor_carved_voxels"] = removed
+        if removed:
+            contacts["floor-carved"] = (carved, areas)
     except ValueError as exc:  # the poses sink (nearly) all of it: no surface to offer; the record says why
         record.update(floor_carved_voxels=None, skipped=str(exc))
-        return contacts, record
-    record["floor_carved_voxels"] = removed
-    if not removed:
-        return contacts, record
-    contacts["floor-carved"] = (carved, areas)
+        removed = None
     ratio = ctx.config.joint.contact_search_residual_ratio
-    rigid = rigid_frames(poses.residuals_px, ratio) if ratio is not None else None
-    if rigid is not None and not rigid.all():
-        carved, areas, fewer = floor_carved_contact(obj, poses.rotations[rigid], poses.translations[rigid],
-                                                    o.floor_height, config=points_cfg)
-        record.update(rigid_frames=[int(t) for t in rigid.nonzero()[0]], floor_carved_rigid_voxels=fewer)
-        if 0 < fewer < removed:
+    rigid = rigid_frames(poses.residuals_px, ratio) if ratio is not None and removed != 0 else None
+    if rigid is not None and not rigid.all():  # a squash's poses may sink all of it; the rigid frames' need not
+        record["rigid_frames"] = [int(t) for t in rigid.nonzero()[0]]
+        try:
+            carved, areas, fewer = floor_carved_contact(obj, poses.rotations[rigid], poses.translations[rigid],
+                                                        o.floor_height, config=points_cfg)
+        except ValueError as exc:
+            record.update(floor_carved_rigid_voxels=None, skipped_rigid=str(exc))
+            return contacts, record
+        record["floor_carved_rigid_voxels"] = fewer
+        if fewer and (removed is None or fewer < removed):
             contacts["floor-carved-rigid"] = (carved, areas)
     return contacts, record
 
