@@ -735,18 +735,22 @@ def contact_candidates(ctx: Context, state: State) -> tuple[dict[str, tuple[Tens
         record.update(floor_carved_voxels=None, skipped=str(exc))
         removed = None
     ratio = ctx.config.joint.contact_search_residual_ratio
-    rigid = rigid_frames(poses.residuals_px, ratio) if ratio is not None and removed != 0 else None
-    if rigid is not None and not rigid.all():  # a squash's poses may sink all of it; the rigid frames' need not
-        record["rigid_frames"] = [int(t) for t in rigid.nonzero()[0]]
-        try:
-            carved, areas, fewer = floor_carved_contact(obj, poses.rotations[rigid], poses.translations[rigid],
-                                                        o.floor_height, config=points_cfg)
-        except ValueError as exc:
-            record.update(floor_carved_rigid_voxels=None, skipped_rigid=str(exc))
-            return contacts, record
-        record["floor_carved_rigid_voxels"] = fewer
-        if fewer and (removed is None or fewer < removed):
-            contacts["floor-carved-rigid"] = (carved, areas)
+    if ratio is None or removed == 0:  # no third surface asked for, or no frame's pose sinks anything
+        return contacts, record
+    rigid = rigid_frames(poses.residuals_px, ratio)
+    if rigid.all():  # every frame fits as in flight: the same carve
+        return contacts, record
+    # a squash's poses may sink all of the hull; the rigid frames' need not
+    record["rigid_frames"] = [int(t) for t in rigid.nonzero()[0]]
+    try:
+        carved, areas, fewer = floor_carved_contact(obj, poses.rotations[rigid], poses.translations[rigid],
+                                                    o.floor_height, config=points_cfg)
+    except ValueError as exc:
+        record.update(floor_carved_rigid_voxels=None, skipped_rigid=str(exc))
+        return contacts, record
+    record["floor_carved_rigid_voxels"] = fewer
+    if fewer and (removed is None or fewer < removed):
+        contacts["floor-carved-rigid"] = (carved, areas)
     return contacts, record
 
 
