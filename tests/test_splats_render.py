@@ -122,7 +122,8 @@ def test_default_tiling_is_chosen_per_render_and_changes_no_pixel(monkeypatch, g
     render_module = importlib.import_module("vid2sim.splats.render")  # the package's `render` is the function
     used = []
     original = render_module.bin_gaussians
-    monkeypatch.setattr(render_module, "bin_gaussians", lambda *a: used.append(a[-1]) or original(*a))
+    monkeypatch.setattr(render_module, "bin_gaussians",
+                        lambda *a, **k: used.append((a[-1], k["compiled"])) or original(*a, **k))
     cams = camera_ring(1, 2.5, 20.0, 48, 40, fov_x_deg=45.0)
     bg = torch.tensor([1.0, 0.5, 0.2], dtype=F64)
     for scale, tile, kernels in (((0.01, 0.02), 4, "tensor"), ((0.1, 0.2), 4 if grad else 8, "tensor"),
@@ -130,7 +131,7 @@ def test_default_tiling_is_chosen_per_render_and_changes_no_pixel(monkeypatch, g
         means, scales, quats, ops, cols = (t.requires_grad_(grad) for t in _scene(30, 4, scale=scale))
         out = render(means, ops, cols, cams, quats=quats, scales=scales, background=bg,
                      raster_options=RasterOptions(kernels=kernels))
-        assert used[-1] == tile
+        assert used[-1] == (tile, kernels == "auto")  # the compiled kernels bin the tiles too
         rgb, _, _ = reference_render(means, covariances_from_scales_quats(scales, quats), ops, cols, cams[0], bg)
         assert torch.allclose(out.rgb[0], rgb, atol=1e-12)
         if grad:
@@ -218,6 +219,43 @@ def test_compiled_kernels_on_several_threads_give_the_serial_result():
     assert float(results[0][0].detach().std()) > 0
     for a, b in zip(*results):
         assert torch.equal(a, b)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, F64])
+def test_compiled_binning_lists_what_the_tensor_path_lists(dtype):
+    """The compiled binning gives the tensor path's tile lists to the element, on one thread and on several: the same
+    tiles (the circle test on the same numbers), and per tile the entries by depth with equal depths (many here, and
+    NaN, sorted last) in entry order. Also when nothing is visible."""
+    from vid2sim.splats.rasterize import bin_gaussians
+
+    g = torch.Generator().manual_seed(5)
+    M, W, H, V, ts = 4000, 70, 45, 3, 8
+    mux = torch.rand(M, generator=g, dtype=dtype) * (W + 20) - 10
+    muy = torch.rand(M, generator=g, dtype=dtype) * (H + 20) - 10
+    a, c = (torch.rand(M, generator=g, dtype=dtype) * 0.5 + 0.05 for _ in range(2))
+    b = (torch.rand(M, generator=g, dtype=dtype) - 0.5) * 0.1
+    log_o = torch.log(torch.rand(M, generator=g, dtype=dtype) * 0.99 + 0.001)  # some below 1/255
+    params = torch.stack([mux, muy, a, b, c, log_o], 1)
+    lam = 0.5 * (a + c) - torch.sqrt(0.25 * (a - c) ** 2 + b * b)
+    r = torch.sqrt(2 * (math.log(255) + log_o).clamp_min(0) / lam).ceil().to(torch.int32)
+    radii = torch.stack([r, r], 1)
+    depths = torch.round(torch.rand(M, generator=g, dtype=dtype) * 40) / 10  # 41 distinct depths
+    depths[::97] = float("nan")
+    views = torch.randint(0, V, (M,), generator=g)
+    tensor = bin_gaussians(params, radii, depths, views, V, W, H, ts)
+    assert tensor.n_intersections > 2 * M
+    old = torch.get_num_threads()
+    try:
+        for threads in (1, 2):
+            torch.set_num_threads(threads)
+            for n in (M, 0):
+                want = bin_gaussians(params[:n], radii[:n], depths[:n], views[:n], V, W, H, ts) if n < M else tensor
+                got = bin_gaussians(params[:n], radii[:n], depths[:n], views[:n], V, W, H, ts, compiled=True)
+                for name in ("isect_entry", "tile_start", "tile_count"):
+                    assert torch.equal(getattr(got, name), getattr(want, name)), (threads, n, name)
+                    assert getattr(got, name).dtype == torch.int64
+    finally:
+        torch.set_num_threads(old)
 
 
 def test_compiled_kernels_take_float32_and_float64_on_the_cpu_only():

@@ -257,3 +257,132 @@ def sum_rows(index: np.ndarray, rows: np.ndarray, out: np.ndarray) -> None:
         i = index[r]
         for col in range(rows.shape[1]):
             out[i, col] += rows[r, col]
+
+
+# ---- binning -------------------------------------------------------------------------------------
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _entry_tiles(i, mux, muy, reach2, tx0, ty0, nx, ny, col_lo, col_hi, row_lo, row_hi, tiles_x, tiles_y, view,
+                 out, start):
+    """Tile ids (global) of the tiles in entry i's bounding box that pass the circle test, written from ``out[start]``
+    when ``out`` is not empty; returns how many. The test is :func:`~vid2sim.splats.rasterize.bin_gaussians`'s:
+    the squared distance from the centre to the tile's nearest pixel centre, in the arrays' dtype, at most reach²."""
+    n = 0
+    mx, my = mux[i], muy[i]
+    for ty in range(ty0[i], ty0[i] + ny[i]):
+        dy = min(max(my, row_lo[ty]), row_hi[ty]) - my
+        for tx in range(tx0[i], tx0[i] + nx[i]):
+            dx = min(max(mx, col_lo[tx]), col_hi[tx]) - mx
+            if dx * dx + dy * dy <= reach2[i]:
+                if out.shape[0] > 0:
+                    out[start + n] = (view[i] * tiles_y + ty) * tiles_x + tx
+                n += 1
+    return n
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _bin_counts(i, args, kept):
+    mux, muy, reach2, tx0, ty0, nx, ny, col_lo, col_hi, row_lo, row_hi, tiles_x, tiles_y, view = args
+    kept[i] = _entry_tiles(i, mux, muy, reach2, tx0, ty0, nx, ny, col_lo, col_hi, row_lo, row_hi, tiles_x, tiles_y,
+                           view, kept[:0], 0)
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _bin_fill(i, args, first, tile_of):
+    mux, muy, reach2, tx0, ty0, nx, ny, col_lo, col_hi, row_lo, row_hi, tiles_x, tiles_y, view = args
+    _entry_tiles(i, mux, muy, reach2, tx0, ty0, nx, ny, col_lo, col_hi, row_lo, row_hi, tiles_x, tiles_y, view,
+                 tile_of, first[i])
+
+
+@njit(cache=True, error_model="numpy")
+def _group_by_tile(first, tile_of, n_tiles):
+    """(entry (I,), tile_start, tile_count (n_tiles,)): the intersections grouped by tile, entries ascending within
+    (a counting sort over the entries in order)."""
+    tile_count = np.zeros(n_tiles, np.int64)
+    for k in range(tile_of.shape[0]):
+        tile_count[tile_of[k]] += 1
+    tile_start = np.empty(n_tiles, np.int64)
+    total = 0
+    for t in range(n_tiles):
+        tile_start[t] = total
+        total += tile_count[t]
+    cursor = tile_start.copy()
+    entry = np.empty(tile_of.shape[0], np.int64)
+    for i in range(first.shape[0] - 1):
+        for k in range(first[i], first[i + 1]):
+            t = tile_of[k]
+            entry[cursor[t]] = i
+            cursor[t] += 1
+    return entry, tile_start, tile_count
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _sort_tile(t, entry, tile_start, tile_count, depth):
+    """Sort tile t's entries by depth, stably (entries ascending among equal depths, NaN last)."""
+    s, n = tile_start[t], tile_count[t]
+    if n > 1:
+        seg = entry[s:s + n].copy()
+        order = np.argsort(depth[seg], kind="mergesort")
+        for k in range(n):
+            entry[s + k] = seg[order[k]]
+
+
+@njit(parallel=True, cache=True, error_model="numpy")
+def _bin_parallel(args, depth, n_tiles):
+    M = depth.shape[0]
+    kept = np.empty(M, np.int64)
+    for i in prange(M):
+        _bin_counts(i, args, kept)
+    first = np.zeros(M + 1, np.int64)
+    first[1:] = np.cumsum(kept)
+    tile_of = np.empty(first[M], np.int64)
+    for i in prange(M):
+        _bin_fill(i, args, first, tile_of)
+    entry, tile_start, tile_count = _group_by_tile(first, tile_of, n_tiles)
+    for t in prange(n_tiles):
+        _sort_tile(t, entry, tile_start, tile_count, depth)
+    return entry, tile_start, tile_count
+
+
+@njit(cache=True, error_model="numpy")
+def _bin_serial(args, depth, n_tiles):
+    M = depth.shape[0]
+    kept = np.empty(M, np.int64)
+    for i in range(M):
+        _bin_counts(i, args, kept)
+    first = np.zeros(M + 1, np.int64)
+    first[1:] = np.cumsum(kept)
+    tile_of = np.empty(first[M], np.int64)
+    for i in range(M):
+        _bin_fill(i, args, first, tile_of)
+    entry, tile_start, tile_count = _group_by_tile(first, tile_of, n_tiles)
+    for t in range(n_tiles):
+        _sort_tile(t, entry, tile_start, tile_count, depth)
+    return entry, tile_start, tile_count
+
+
+def bin_tiles(mux: np.ndarray, muy: np.ndarray, reach2: np.ndarray, tx0: np.ndarray, ty0: np.ndarray, nx: np.ndarray,
+              ny: np.ndarray, view: np.ndarray, depth: np.ndarray, col_lo: np.ndarray, col_hi: np.ndarray,
+              row_lo: np.ndarray, row_hi: np.ndarray, tiles_x: int, tiles_y: int, n_views: int,
+              threads: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The depth-sorted tile lists of :func:`~vid2sim.splats.rasterize.bin_gaussians` in compiled passes: count each
+    entry's tiles, write them, group them by tile (a counting sort), sort each tile's list by depth.
+
+    Args:
+        mux, muy, reach2: (M,) the entries' pixel centres and squared reach (the circle test's bound).
+        tx0, ty0, nx, ny: (M,) int64 their tile bounding boxes (first column and row, widths; empty when ≤ 0).
+        view: (M,) int64 their views; depth: (M,) their sort keys.
+        col_lo, col_hi: (tiles_x,) the first and last pixel centres of each tile column (same dtype as mux);
+            row_lo, row_hi: (tiles_y,) the same for the rows.
+        threads: entries and tiles in parallel on this many threads; 1 runs serially (no numba thread pool).
+
+    Returns:
+        (entry (I,), tile_start (n_tiles,), tile_count (n_tiles,)), int64: per tile, its entries by depth, equal
+        depths in entry order.
+    """
+    args = (mux, muy, reach2, tx0, ty0, nx, ny, col_lo, col_hi, row_lo, row_hi, tiles_x, tiles_y, view)
+    n_tiles = n_views * tiles_y * tiles_x
+    if threads > 1:
+        numba.set_num_threads(min(int(threads), numba.config.NUMBA_NUM_THREADS))
+        return _bin_parallel(args, depth, n_tiles)
+    return _bin_serial(args, depth, n_tiles)

@@ -39,6 +39,7 @@ import math
 import warnings
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor
@@ -204,6 +205,7 @@ def bin_gaussians(
     width: int,
     height: int,
     tile_size: int,
+    compiled: bool = False,
 ) -> TileBins:
     """List each visible entry in the tiles its α ≥ 1/255 region can touch, depth-sorted per tile.
 
@@ -212,6 +214,9 @@ def bin_gaussians(
         radii: (M, 2) bounding-box half sizes in pixels.
         depths: (M,) camera depths (sort key).
         view_ids: (M,) view of each entry.
+        compiled: list them with the compiled CPU kernels (:func:`vid2sim.splats.raster_kernels.bin_tiles`: the
+            same lists in a few passes instead of a global sort and tensors the size of every candidate tile; CPU
+            tensors only, where :func:`uses_compiled_kernels` holds).
     """
     device = params.device
     ts = tile_size
@@ -229,6 +234,8 @@ def bin_gaussians(
     # conservative circle test: σ ≥ ½ λ_min |q − μ|², and α < 1/255 ⇔ σ > ln(255 o)
     lam_min = 0.5 * (a + c) - torch.sqrt((0.25 * (a - c) ** 2 + b * b).clamp_min(0))
     reach2 = (2.0 * (_LOG_255 + lo) / lam_min.clamp_min(1e-12)) * (1 + 1e-5) + 1e-6
+    if compiled:
+        return _compiled_bins(mux, muy, reach2, tx0, ty0, nx, ty1 - ty0, view_ids, depths, n_views, tx_n, ty_n, ts)
 
     # per-entry arrays in depth order, so that expanding them to candidates reads memory in order
     order = torch.argsort(depths.detach(), stable=True)
@@ -273,6 +280,28 @@ def bin_gaussians(
         n_views=n_views,
         tile_size=ts,
     )
+
+
+def _compiled_bins(mux: Tensor, muy: Tensor, reach2: Tensor, tx0: Tensor, ty0: Tensor, nx: Tensor, ny: Tensor,
+                   view_ids: Tensor, depths: Tensor, n_views: int, tx_n: int, ty_n: int, ts: int) -> TileBins:
+    """:func:`bin_gaussians`' lists from its per-entry boxes by the compiled kernels. The tiles' nearest-pixel bounds
+    are made here as the tensor path makes them (tile index × size, then ± the half pixel, in the entries' dtype), so
+    the circle test compares the same numbers."""
+    dtype = mux.dtype
+
+    def bounds(n: int) -> tuple[np.ndarray, np.ndarray]:
+        start = torch.arange(n).to(dtype) * ts
+        return (start + 0.5).numpy(), (start + (ts - 0.5)).numpy()
+
+    col_lo, col_hi = bounds(tx_n)
+    row_lo, row_hi = bounds(ty_n)
+    entry, tile_start, tile_count = raster_kernels.bin_tiles(
+        mux.contiguous().numpy(), muy.contiguous().numpy(), reach2.contiguous().numpy(), tx0.numpy(), ty0.numpy(),
+        nx.numpy(), ny.numpy(), view_ids.long().numpy(), depths.detach().contiguous().numpy(), col_lo, col_hi,
+        row_lo, row_hi, tx_n, ty_n, n_views, torch.get_num_threads())
+    return TileBins(isect_entry=torch.from_numpy(entry), tile_start=torch.from_numpy(tile_start),
+                    tile_count=torch.from_numpy(tile_count), tiles_x=tx_n, tiles_y=ty_n, n_views=n_views,
+                    tile_size=ts)
 
 
 def _pixel_basis(tile_size: int, dtype: torch.dtype, device: torch.device) -> Tensor:

@@ -32,7 +32,14 @@ from vid2sim.splats.deform import DeformedGaussians
 from vid2sim.splats.gaussians import Gaussians, covariances_from_scales_quats
 from vid2sim.splats.gsplat_backend import render_gsplat
 from vid2sim.splats.projection import project_gaussians
-from vid2sim.splats.rasterize import RasterOptions, bin_gaussians, composite, tile_size_for, untile
+from vid2sim.splats.rasterize import (
+    RasterOptions,
+    bin_gaussians,
+    composite,
+    tile_size_for,
+    untile,
+    uses_compiled_kernels,
+)
 from vid2sim.splats.sh import eval_sh, num_sh_bases, sh_basis
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -261,7 +268,8 @@ def render(
     radii = proj.radii.reshape(-1, 2).index_select(0, flat)
     tile = tile_size_for(opts, radii, torch.is_grad_enabled() and any(
         t is not None and t.requires_grad for t in (means, opacities, colors, quats, scales, covars)), means)
-    bins = bin_gaussians(params, radii, depths, v_idx, n_views, width, height, tile)
+    bins = bin_gaussians(params, radii, depths, v_idx, n_views, width, height, tile,
+                         compiled=uses_compiled_kernels(opts, params))
     acc = composite(params, feat, bins, opts)  # (n_tiles, D + 2, P)
     img = untile(acc, bins, width, height)  # (V, H, W, D + 2)
     alpha = img[..., channels + 1 :]
