@@ -551,7 +551,7 @@ class StepProblem:
         same for the whole step so far y_new − y_prev, the slope g·d) for g, d, y_new: (D,), with one
         synchronisation."""
         both = torch.stack([d, y_new - self.y_prev]).view(6, -1)
-        moves = torch.linalg.vector_norm(torch.mm(both, self._tracked_cols), ord=float("inf"), dim=1)
+        moves = torch.mm(both, self._tracked_cols).abs_().amax(1)
         values = torch.cat([moves, torch.dot(g, d).view(1)]).tolist()
         return max(values[:3]), max(values[3:6]), values[6]
 

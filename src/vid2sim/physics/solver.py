@@ -319,7 +319,7 @@ class NewtonCache:
         self.rotation = rotation
         D = self.neg_inverse.shape[0]
         left = torch.mm(rotation, self.neg_inverse.view(3, -1)).view(D, 3, D // 3)  # [(a, l), d, m]
-        self.step_matrix = torch.matmul(rotation, left).view(D, D)
+        self.step_matrix = torch.einsum("bd,xdm->xbm", rotation, left).reshape(D, D)
 
     def direction(self, problem: StepProblem, y: Tensor, g: Tensor, refit: bool = True) -> Tensor:
         """The chord step −(R ⊗ I) H₀⁻¹ (R ⊗ I)ᵀ g (D,) with the kept H₀ and the rotation R fitted now (``refit``)
