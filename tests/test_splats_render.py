@@ -224,8 +224,8 @@ def test_compiled_kernels_on_several_threads_give_the_serial_result():
 @pytest.mark.parametrize("dtype", [torch.float32, F64])
 def test_compiled_binning_lists_what_the_tensor_path_lists(dtype):
     """The compiled binning gives the tensor path's tile lists to the element, on one thread and on several: the same
-    tiles (the circle test on the same numbers), and per tile the entries by depth with equal depths (many here, and
-    NaN, sorted last) in entry order. Also when nothing is visible."""
+    tiles (the circle test on the same numbers), and per tile the entries by depth with equal depths (many here, −0
+    and +0 among them, and NaN, sorted last) in entry order. Also when nothing is visible."""
     from vid2sim.splats.rasterize import bin_gaussians
 
     g = torch.Generator().manual_seed(5)
@@ -241,6 +241,7 @@ def test_compiled_binning_lists_what_the_tensor_path_lists(dtype):
     radii = torch.stack([r, r], 1)
     depths = torch.round(torch.rand(M, generator=g, dtype=dtype) * 40) / 10  # 41 distinct depths
     depths[::97] = float("nan")
+    depths[1::89], depths[2::89], depths[3::101] = -0.0, 0.0, -1.5  # signed zeros sort as equals
     views = torch.randint(0, V, (M,), generator=g)
     tensor = bin_gaussians(params, radii, depths, views, V, W, H, ts)
     assert tensor.n_intersections > 2 * M

@@ -261,6 +261,71 @@ def sum_rows(index: np.ndarray, rows: np.ndarray, out: np.ndarray) -> None:
 
 # ---- binning -------------------------------------------------------------------------------------
 
+_SIGN32 = np.uint64(0x80000000)
+_MASK32 = np.uint64(0xFFFFFFFF)
+_SIGN64 = np.uint64(0x8000000000000000)
+_ALL64 = np.uint64(0xFFFFFFFFFFFFFFFF)
+
+
+@njit(cache=True, error_model="numpy")
+def _depth_keys32(depth):
+    """Unsigned keys (M,) that order float32 depths as torch's sort does: −0 equal to +0, NaN last (all equal)."""
+    bits = (depth + np.float32(0.0)).view(np.uint32)  # + 0 turns −0 into +0
+    keys = np.empty(depth.shape[0], np.uint64)
+    for i in range(depth.shape[0]):
+        u = np.uint64(bits[i])
+        if depth[i] != depth[i]:
+            keys[i] = _MASK32
+        elif u & _SIGN32:
+            keys[i] = ~u & _MASK32
+        else:
+            keys[i] = u | _SIGN32
+    return keys
+
+
+@njit(cache=True, error_model="numpy")
+def _depth_keys64(depth):
+    """:func:`_depth_keys32` for float64 depths."""
+    bits = (depth + 0.0).view(np.uint64)
+    keys = np.empty(depth.shape[0], np.uint64)
+    for i in range(depth.shape[0]):
+        u = bits[i]
+        if depth[i] != depth[i]:
+            keys[i] = _ALL64
+        elif u & _SIGN64:
+            keys[i] = ~u
+        else:
+            keys[i] = u | _SIGN64
+    return keys
+
+
+@njit(cache=True, error_model="numpy")
+def _stable_argsort(keys, passes):
+    """The permutation (M,) that sorts unsigned ``keys`` stably (equal keys in index order): a least-significant-digit
+    radix sort, ``passes`` passes of 16 bits."""
+    n = keys.shape[0]
+    idx, tmp = np.arange(n), np.empty(n, np.int64)
+    k_now, k_tmp = keys.copy(), np.empty(n, np.uint64)
+    counts = np.empty(65537, np.int64)
+    for p in range(passes):
+        shift = np.uint64(16 * p)
+        counts[:] = 0
+        for i in range(n):
+            counts[np.int64((k_now[i] >> shift) & np.uint64(0xFFFF)) + 1] += 1
+        if counts.max() == n:  # every key has the same digit here: the pass would not move anything
+            continue
+        for d in range(1, 65537):
+            counts[d] += counts[d - 1]
+        for i in range(n):
+            d = np.int64((k_now[i] >> shift) & np.uint64(0xFFFF))
+            tmp[counts[d]] = idx[i]
+            k_tmp[counts[d]] = k_now[i]
+            counts[d] += 1
+        idx, tmp = tmp, idx
+        k_now, k_tmp = k_tmp, k_now
+    return idx
+
+
 @njit(cache=True, error_model="numpy", inline="always")
 def _entry_tiles(i, mux, muy, reach2, tx0, ty0, nx, ny, col_lo, col_hi, row_lo, row_hi, tiles_x, tiles_y, view,
                  out, start):
@@ -275,13 +340,13 @@ def _entry_tiles(i, mux, muy, reach2, tx0, ty0, nx, ny, col_lo, col_hi, row_lo, 
             dx = min(max(mx, col_lo[tx]), col_hi[tx]) - mx
             if dx * dx + dy * dy <= reach2[i]:
                 if out.shape[0] > 0:
-                    out[start + n] = (view[i] * tiles_y + ty) * tiles_x + tx
+                    out[start + n] = (view[i] * tiles_y + ty) * tiles_x + tx  # < 2³¹: checked by the caller
                 n += 1
     return n
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _bin_counts(i, args, kept):
+def _bin_count(i, args, kept):
     mux, muy, reach2, tx0, ty0, nx, ny, col_lo, col_hi, row_lo, row_hi, tiles_x, tiles_y, view = args
     kept[i] = _entry_tiles(i, mux, muy, reach2, tx0, ty0, nx, ny, col_lo, col_hi, row_lo, row_hi, tiles_x, tiles_y,
                            view, kept[:0], 0)
@@ -295,12 +360,13 @@ def _bin_fill(i, args, first, tile_of):
 
 
 @njit(cache=True, error_model="numpy")
-def _group_by_tile(first, tile_of, n_tiles):
-    """(entry (I,), tile_start, tile_count (n_tiles,)): the intersections grouped by tile, entries ascending within
-    (a counting sort over the entries in order)."""
+def _group_by_tile(order, first, tile_of, n_tiles):
+    """(entry (I,), tile_start, tile_count (n_tiles,)): the intersections (``tile_of[first[i]:first[i + 1]]`` the
+    tiles of entry i) grouped by tile, within each tile in the order of the entries in ``order`` (a counting sort,
+    which keeps that order)."""
     tile_count = np.zeros(n_tiles, np.int64)
-    for k in range(tile_of.shape[0]):
-        tile_count[tile_of[k]] += 1
+    for j in range(tile_of.shape[0]):
+        tile_count[tile_of[j]] += 1
     tile_start = np.empty(n_tiles, np.int64)
     total = 0
     for t in range(n_tiles):
@@ -308,81 +374,69 @@ def _group_by_tile(first, tile_of, n_tiles):
         total += tile_count[t]
     cursor = tile_start.copy()
     entry = np.empty(tile_of.shape[0], np.int64)
-    for i in range(first.shape[0] - 1):
-        for k in range(first[i], first[i + 1]):
-            t = tile_of[k]
+    for k in range(order.shape[0]):
+        i = order[k]
+        for j in range(first[i], first[i + 1]):
+            t = tile_of[j]
             entry[cursor[t]] = i
             cursor[t] += 1
     return entry, tile_start, tile_count
 
 
-@njit(cache=True, error_model="numpy", inline="always")
-def _sort_tile(t, entry, tile_start, tile_count, depth):
-    """Sort tile t's entries by depth, stably (entries ascending among equal depths, NaN last)."""
-    s, n = tile_start[t], tile_count[t]
-    if n > 1:
-        seg = entry[s:s + n].copy()
-        order = np.argsort(depth[seg], kind="mergesort")
-        for k in range(n):
-            entry[s + k] = seg[order[k]]
-
-
 @njit(parallel=True, cache=True, error_model="numpy")
-def _bin_parallel(args, depth, n_tiles):
-    M = depth.shape[0]
+def _bin_parallel(args, order, n_tiles):
+    M = order.shape[0]
     kept = np.empty(M, np.int64)
     for i in prange(M):
-        _bin_counts(i, args, kept)
+        _bin_count(i, args, kept)
     first = np.zeros(M + 1, np.int64)
     first[1:] = np.cumsum(kept)
-    tile_of = np.empty(first[M], np.int64)
+    tile_of = np.empty(first[M], np.int32)
     for i in prange(M):
         _bin_fill(i, args, first, tile_of)
-    entry, tile_start, tile_count = _group_by_tile(first, tile_of, n_tiles)
-    for t in prange(n_tiles):
-        _sort_tile(t, entry, tile_start, tile_count, depth)
-    return entry, tile_start, tile_count
+    return _group_by_tile(order, first, tile_of, n_tiles)
 
 
 @njit(cache=True, error_model="numpy")
-def _bin_serial(args, depth, n_tiles):
-    M = depth.shape[0]
+def _bin_serial(args, order, n_tiles):
+    M = order.shape[0]
     kept = np.empty(M, np.int64)
     for i in range(M):
-        _bin_counts(i, args, kept)
+        _bin_count(i, args, kept)
     first = np.zeros(M + 1, np.int64)
     first[1:] = np.cumsum(kept)
-    tile_of = np.empty(first[M], np.int64)
+    tile_of = np.empty(first[M], np.int32)
     for i in range(M):
         _bin_fill(i, args, first, tile_of)
-    entry, tile_start, tile_count = _group_by_tile(first, tile_of, n_tiles)
-    for t in range(n_tiles):
-        _sort_tile(t, entry, tile_start, tile_count, depth)
-    return entry, tile_start, tile_count
+    return _group_by_tile(order, first, tile_of, n_tiles)
 
 
 def bin_tiles(mux: np.ndarray, muy: np.ndarray, reach2: np.ndarray, tx0: np.ndarray, ty0: np.ndarray, nx: np.ndarray,
               ny: np.ndarray, view: np.ndarray, depth: np.ndarray, col_lo: np.ndarray, col_hi: np.ndarray,
               row_lo: np.ndarray, row_hi: np.ndarray, tiles_x: int, tiles_y: int, n_views: int,
               threads: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The depth-sorted tile lists of :func:`~vid2sim.splats.rasterize.bin_gaussians` in compiled passes: count each
-    entry's tiles, write them, group them by tile (a counting sort), sort each tile's list by depth.
+    """The depth-sorted tile lists of :func:`~vid2sim.splats.rasterize.bin_gaussians` in compiled passes: each entry's
+    tiles counted and written (in entry order, which reads the arrays in order), the entries sorted by depth once (a
+    stable radix sort of the depths' bits, which orders them as torch's sort does), then the intersections grouped by
+    tile in that order (a counting sort, which keeps it).
 
     Args:
         mux, muy, reach2: (M,) the entries' pixel centres and squared reach (the circle test's bound).
-        tx0, ty0, nx, ny: (M,) int64 their tile bounding boxes (first column and row, widths; empty when ≤ 0).
-        view: (M,) int64 their views; depth: (M,) their sort keys.
+        tx0, ty0, nx, ny: (M,) int32 their tile bounding boxes (first column and row, widths; empty when ≤ 0).
+        view: (M,) int32 their views; depth: (M,) float32 or float64 their sort keys.
         col_lo, col_hi: (tiles_x,) the first and last pixel centres of each tile column (same dtype as mux);
             row_lo, row_hi: (tiles_y,) the same for the rows.
-        threads: entries and tiles in parallel on this many threads; 1 runs serially (no numba thread pool).
+        threads: entries in parallel on this many threads; 1 runs serially (no numba thread pool).
 
     Returns:
         (entry (I,), tile_start (n_tiles,), tile_count (n_tiles,)), int64: per tile, its entries by depth, equal
-        depths in entry order.
+        depths in entry order, NaN last.
     """
+    wide = depth.dtype == np.float64
+    order = _stable_argsort(_depth_keys64(depth) if wide else _depth_keys32(depth), 4 if wide else 2)
     args = (mux, muy, reach2, tx0, ty0, nx, ny, col_lo, col_hi, row_lo, row_hi, tiles_x, tiles_y, view)
     n_tiles = n_views * tiles_y * tiles_x
     if threads > 1:
         numba.set_num_threads(min(int(threads), numba.config.NUMBA_NUM_THREADS))
-        return _bin_parallel(args, depth, n_tiles)
-    return _bin_serial(args, depth, n_tiles)
+        return _bin_parallel(args, order, n_tiles)
+    return _bin_serial(args, order, n_tiles)

@@ -295,10 +295,13 @@ def _compiled_bins(mux: Tensor, muy: Tensor, reach2: Tensor, tx0: Tensor, ty0: T
 
     col_lo, col_hi = bounds(tx_n)
     row_lo, row_hi = bounds(ty_n)
+    if n_views * ty_n * tx_n >= 2**31:  # pragma: no cover - beyond 2³¹ tiles
+        raise ValueError(f"{n_views} views of {ty_n} × {tx_n} tiles: more tiles than 32-bit tile ids hold")
+    small = [t.to(torch.int32).numpy() for t in (tx0, ty0, nx, ny, view_ids)]  # a quarter of the memory to read
     entry, tile_start, tile_count = raster_kernels.bin_tiles(
-        mux.contiguous().numpy(), muy.contiguous().numpy(), reach2.contiguous().numpy(), tx0.numpy(), ty0.numpy(),
-        nx.numpy(), ny.numpy(), view_ids.long().numpy(), depths.detach().contiguous().numpy(), col_lo, col_hi,
-        row_lo, row_hi, tx_n, ty_n, n_views, torch.get_num_threads())
+        mux.contiguous().numpy(), muy.contiguous().numpy(), reach2.contiguous().numpy(), *small,
+        depths.detach().contiguous().numpy(), col_lo, col_hi, row_lo, row_hi, tx_n, ty_n, n_views,
+        torch.get_num_threads())
     return TileBins(isect_entry=torch.from_numpy(entry), tile_start=torch.from_numpy(tile_start),
                     tile_count=torch.from_numpy(tile_count), tiles_x=tx_n, tiles_y=ty_n, n_views=n_views,
                     tile_size=ts)
