@@ -74,8 +74,8 @@ def test_the_floor_carve_removes_what_any_pose_puts_below_the_floor():
         floor_carved_contact(obj, np.eye(3), np.zeros(3), floor_height=0.0)
 
 
-def test_joint_config_contact_search_is_off_by_default():
-    assert JointConfig().contact_search is False
+def test_joint_config_contact_search_is_on_by_default():
+    assert JointConfig().contact_search is True
     assert JointConfig().contact_search_residual_ratio == 1.25
     assert JointConfig(contact_search_residual_ratio=None).contact_search_residual_ratio is None
     for bad in (0.9, float("inf"), float("nan"), True, "2"):

@@ -40,9 +40,13 @@ def test_reconstruct_writes_a_complete_asset(tiny_asset, tiny_scene):
     assert config["joint"]["iterations"] == 2 and config["networks"]["handles"] == 3
     assert ReconstructConfig.from_dict(config).networks.handles == 3  # config.json loads back
     log = json.loads((tiny_asset / "log.json").read_text())
-    # the grid of E at each floor friction of the coarse search (the default fits the floor's friction)
-    assert [(r["floor_friction"], r["log10_E"]) for r in log["coarse_search"]] == [(0.0, 4.5), (0.0, 5.0), (0.5, 4.5),
-                                                                                   (0.5, 5.0)]
+    # the grid of E at each floor friction of the coarse search (the default fits the floor's friction), on the hull
+    # and on the carved contact surfaces the contact search (on by default) adds
+    coarse = log["coarse_search"]
+    assert [(r["floor_friction"], r["log10_E"]) for r in coarse if r.get("contact_surface", "hull") == "hull"] == [
+        (0.0, 4.5), (0.0, 5.0), (0.5, 4.5), (0.5, 5.0)]
+    assert {r.get("contact_surface", "hull") for r in coarse} <= {"hull", "floor-carved", "floor-carved-rigid"}
+    assert "contact_candidates" in log
     assert 0.0 <= asset.floor_friction <= 2.0 and "floor_friction" in asset.material["uncertainty"]
     assert set(log["timings_seconds"]) == {"gaussians", "points", "velocity", "appearance", "stage1", "networks",
                                            "joint", "motion_appearance"}  # the calibration is off: not timed
@@ -763,7 +767,8 @@ def test_stage1_sets_the_prior_the_coarse_grid_and_the_skinning_start(tiny_scene
     # the coarse search is centred on the prediction (grid (4.5, 5.0) shifted), the skinning starts from
     # the template's hidden layers and the predicted last layer
     log = json.loads((out / "log.json").read_text())
-    grid = [r["log10_E"] for r in log["coarse_search"] if r["floor_friction"] == 0.0]
+    grid = [r["log10_E"] for r in log["coarse_search"]
+            if r["floor_friction"] == 0.0 and r.get("contact_surface", "hull") == "hull"]
     assert grid == pytest.approx([s1["log10_E"] - 0.25, s1["log10_E"] + 0.25], abs=1e-5)
     torch.testing.assert_close(starts[0], pred["last_layer"].to(starts[0].dtype), atol=1e-5, rtol=0)
     template = load_template()
