@@ -297,7 +297,7 @@ def _compiled_bins(mux: Tensor, muy: Tensor, reach2: Tensor, tx0: Tensor, ty0: T
     row_lo, row_hi = bounds(ty_n)
     if n_views * ty_n * tx_n >= 2**31:  # pragma: no cover - beyond 2³¹ tiles
         raise ValueError(f"{n_views} views of {ty_n} × {tx_n} tiles: more tiles than 32-bit tile ids hold")
-    small = [t.to(torch.int32).numpy() for t in (tx0, ty0, nx, ny, view_ids)]  # a quarter of the memory to read
+    small = [t.to(torch.int32).numpy() for t in (tx0, ty0, nx, ny, view_ids)]  # half the memory to read
     entry, tile_start, tile_count = raster_kernels.bin_tiles(
         mux.contiguous().numpy(), muy.contiguous().numpy(), reach2.contiguous().numpy(), *small,
         depths.detach().contiguous().numpy(), col_lo, col_hi, row_lo, row_hi, tx_n, ty_n, n_views,
