@@ -103,13 +103,27 @@ class VelocityConfig:
 
     Attributes:
         frames: at most this many pre-contact frames estimate the initial velocity.
+        photometric_iterations: the silhouette poses of the pre-contact frames refined on the images, with the
+            frame-0 Gaussians moved rigidly (:mod:`vid2sim.reconstruct.photo_poses`): Adam steps per frame; 0 keeps
+            the silhouette poses. The velocity is refitted to the refined poses.
+        photometric_size: the refinement's loss images' longer side at most (pixels; the renders, made at the
+            cameras' size, and the images area-averaged to it; 0: the images' own size).
+        photometric_views: the refinement reads at most this many observed views, spread over them (0: all): its
+            renders are made at the cameras' size, so at 448² each view costs as much as twelve at 128².
     """
 
     frames: int = 8
+    photometric_iterations: int = 150
+    photometric_size: int = 128
+    photometric_views: int = 4
 
     def __post_init__(self) -> None:
         if self.frames < 2:
             raise ConfigError(f"VelocityConfig.frames must be >= 2, got {self.frames}")
+        if min(self.photometric_iterations, self.photometric_size, self.photometric_views) < 0:
+            raise ConfigError("VelocityConfig.photometric_iterations, photometric_size and photometric_views must be "
+                              f">= 0, got {self.photometric_iterations}, {self.photometric_size} and "
+                              f"{self.photometric_views}")
 
 
 @dataclass

@@ -61,7 +61,9 @@ will carry. Interior samples lie a few mm above the true surface, so a frame at 
 of contact may be kept; it has not had time to deform or decelerate much.
 
 Limitations: silhouettes alone constrain the pose, so an object whose silhouettes do not change under its
-rotation (a sphere, a spin about an axis of symmetry) has an unobservable ω. With only two usable frames
+rotation (a sphere, a spin about an axis of symmetry) has an unobservable ω here; the stage therefore refines the
+poses on the images (:mod:`vid2sim.reconstruct.photo_poses`) and refits the model to them
+(:func:`refit_to_poses`). With only two usable frames
 (contact between frames 1 and 2) the estimate is a finite difference, and a contact between frames 0 and
 1 cannot be told from the data. Each frame's fit is independent (the model only initialises it), so a
 poorly fitted frame is not rejected, only averaged by the least squares. The points must fill the object
@@ -70,6 +72,7 @@ uniformly for their centroid to be the centre of mass and their inertia the body
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from dataclasses import dataclass
@@ -79,6 +82,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from vid2sim.reconstruct.photo_poses import refine_poses
 from vid2sim.reconstruct.runner import Context, State
 from vid2sim.reconstruct.silhouettes import (
     PoseFit,
@@ -583,13 +587,52 @@ def _estimate(f: _Flight, frames: _Frames, centre: np.ndarray, dtype: torch.dtyp
     )
 
 
+def refit_to_poses(est: InitialVelocity, points: Tensor, rotations: np.ndarray, translations: np.ndarray, dt: float,
+                   gravity: Tensor, rotation_model: str = "torque_free") -> InitialVelocity:
+    """``est`` with its velocity refitted to other poses of its K frames (e.g. refined on the images,
+    :func:`vid2sim.reconstruct.photo_poses.refine_poses`): the same ballistic model (module docstring, step 2).
+
+    Args:
+        est: the silhouette estimate (its frames, centre and residuals are kept).
+        points: (N, 3) the frame-0 points ``est`` was estimated with (their inertia is the body's).
+        rotations, translations: (K, 3, 3) and (K, 3) poses relative to frame 0, as ``est.rotations`` holds them.
+        dt: seconds between frames; gravity: (3,) m/s².
+        rotation_model: as :func:`estimate_initial_velocity`'s.
+    """
+    K = est.frames_used
+    if rotations.shape != (K, 3, 3) or translations.shape != (K, 3):
+        raise ValueError(f"refit_to_poses: the estimate has {K} frames; got rotations {rotations.shape} and "
+                         f"translations {translations.shape}")
+    _check_options(rotation_model, 0.0, "points", 4, 1)
+    P = points.detach().to("cpu", torch.float64).numpy()
+    centre, inertia = _centre_and_inertia(P, rotation_model)
+    g = torch.as_tensor(gravity).detach().to("cpu", torch.float64).numpy()
+    times = np.arange(K) * dt
+    centroids = rotations @ centre + translations
+    model = _fit_ballistic(times, centroids, rotations, g, inertia if rotation_model == "torque_free" else None,
+                           dt / 4.0)
+    r = P - centre
+    posed = np.einsum("kij,nj->kni", rotations, r) + centroids[:, None]
+    posed_model = np.einsum("kij,nj->kni", model.rotations(times), r) + model.centroids(times)[:, None]
+    like = est.linear
+    return dataclasses.replace(
+        est, linear=torch.as_tensor(model.v, dtype=like.dtype, device=like.device),
+        angular=torch.as_tensor(model.omega, dtype=like.dtype, device=like.device),
+        rotations=torch.as_tensor(rotations, dtype=like.dtype, device=like.device),
+        translations=torch.as_tensor(translations, dtype=like.dtype, device=like.device),
+        model_residual_m=float(np.sqrt(((posed - posed_model) ** 2).sum(-1).mean())))
+
+
 # ---- the stage -------------------------------------------------------------------------------------------------
 
 
 class VelocityStage:
     """Estimates the initial rigid velocity from the ballistic frames (``config.velocity``); writes
     ``velocity.json``. A drop that meets the floor by frame 1 is estimated from frames 0 and 1 regardless of the
-    floor (to first order; the joint optimisation refines it), and the record says so."""
+    floor (to first order; the joint optimisation refines it), and the record says so. The frames' silhouette poses
+    are then refined on the images with the frame-0 Gaussians (:mod:`vid2sim.reconstruct.photo_poses`;
+    ``velocity.photometric_iterations`` 0 skips it) and the velocity refitted to them; the record keeps the
+    silhouettes' estimate beside it."""
 
     name = "velocity"
     sections = ("velocity",)
@@ -599,19 +642,30 @@ class VelocityStage:
         return "estimating the initial velocity from the pre-contact frames"
 
     def run(self, ctx: Context, state: State) -> None:
-        o = ctx.observed
+        o, cfg = ctx.observed, ctx.config.velocity
         gravity = torch.tensor(o.gravity, dtype=torch.float32)
         points = state.obj_cpu.points
         contact_before_frame_1 = False
         try:
             est = estimate_initial_velocity(points, o.masks_cpu, o.cameras_cpu, o.dt, gravity, o.floor_height,
-                                            max_frames=ctx.config.velocity.frames)
+                                            max_frames=cfg.frames)
         except TooFewBallisticFrames as exc:
             ctx.say(f"      {exc}; estimating from frames 0 and 1 regardless of the floor")
             est = estimate_initial_velocity(points, o.masks_cpu, o.cameras_cpu, o.dt, gravity, None, max_frames=2)
             contact_before_frame_1 = True
+        record = {"contact_before_frame_1": contact_before_frame_1}
+        if cfg.photometric_iterations > 0:
+            photo = refine_poses(state.gaussians, o.images[:, :est.frames_used], o.cameras, est.rotations,
+                                 est.translations, o.gravity, o.dt, iterations=cfg.photometric_iterations,
+                                 max_size=cfg.photometric_size, max_views=cfg.photometric_views,
+                                 progress=ctx.progress)
+            record["silhouettes"] = {"linear": est.linear.tolist(), "angular": est.angular.tolist(),
+                                     "rotations": est.rotations.tolist(), "translations": est.translations.tolist()}
+            record["photometric"] = {"loss_start": photo.loss_start.tolist(), "loss": photo.loss.tolist(),
+                                     "start": photo.start, "steps": photo.steps}
+            est = refit_to_poses(est, points, photo.rotations, photo.translations, o.dt, gravity)
         write_json_atomic(ctx.path("velocity.json"), {
-            "contact_before_frame_1": contact_before_frame_1, "linear": est.linear.tolist(),
+            **record, "linear": est.linear.tolist(),
             "angular": est.angular.tolist(), "centre": est.centre.tolist(), "frames_used": est.frames_used,
             "residual_px": est.residual_px, "rotations": est.rotations.tolist(),
             "translations": est.translations.tolist()})
