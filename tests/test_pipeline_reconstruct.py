@@ -51,6 +51,13 @@ def test_reconstruct_writes_a_complete_asset(tiny_asset, tiny_scene):
     assert set(log["timings_seconds"]) == {"gaussians", "points", "velocity", "appearance", "stage1", "networks",
                                            "joint", "motion_appearance"}  # the calibration is off: not timed
     assert log["device"] == "cpu" and log["device_name"] == "cpu"
+    # the ballistic poses were refined on the images (never to a worse match), the silhouettes' estimate kept beside
+    velocity = json.loads((tiny_asset / "asset.json").read_text())["extra"]["initial_velocity_estimate"]
+    photo, K = velocity["photometric"], velocity["frames_used"]
+    assert K >= 2 and len(photo["steps"]) == len(photo["loss"]) == len(velocity["rotations"]) == K
+    assert photo["steps"][0] == 0 and all(0 < n <= 150 for n in photo["steps"][1:])
+    assert all(after <= before for after, before in zip(photo["loss"], photo["loss_start"]))
+    assert len(velocity["silhouettes"]["rotations"]) == K and len(velocity["silhouettes"]["angular"]) == 3
     # the hull was carved with the later frames: the record says which, and the points are the last round's
     carving = log["carving"]
     assert len(carving["rounds"]) == config["points"]["frame_rounds"] == 2
