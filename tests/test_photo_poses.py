@@ -99,6 +99,17 @@ def test_the_texture_finds_the_turn_the_outline_cannot(ball: SpinningBall) -> No
     torch.testing.assert_close(refit.rotations, torch.as_tensor(photo.rotations))
 
 
+def test_the_gradient_loss_finds_the_turn_too(ball: SpinningBall) -> None:
+    no_turn = np.broadcast_to(np.eye(3), (FRAMES, 3, 3)).copy()
+    photo = refine_poses(ball.gaussians, ball.images, ball.cameras, torch.tensor(no_turn),
+                         torch.tensor(ball.translations), GRAVITY.tolist(), DT, loss="gradients")
+    for t in range(1, FRAMES):
+        assert _angle_deg(photo.rotations[t], ball.rotations[t]) < 0.25, t
+    with pytest.raises(ValueError, match="loss must be one of"):
+        refine_poses(ball.gaussians, ball.images, ball.cameras, torch.tensor(no_turn),
+                     torch.tensor(ball.translations), GRAVITY.tolist(), DT, loss="l2")
+
+
 def test_a_right_start_stays_put_and_renders_can_be_smaller(ball: SpinningBall) -> None:
     """From the true poses the refinement stops early and keeps them, also where the loss reads 32 px images (the
     renders and the images area-averaged to that size); two views suffice for the ball."""

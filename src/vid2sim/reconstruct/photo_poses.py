@@ -38,8 +38,8 @@ class PhotoPoses:
 
     Attributes:
         rotations: (K, 3, 3); translations: (K, 3).
-        loss_start: (K,) each frame's mean absolute image difference at the pose it started from (frame 0: its
-            own, at the identity); loss: (K,) the same at the refined pose.
+        loss_start: (K,) each frame's loss at the pose it started from (frame 0: its own, at the identity);
+            loss: (K,) the same at the refined pose.
         start: (K,) where each frame's refinement started: ``"silhouettes"`` or ``"extrapolated"`` (frame 0:
             ``"identity"``).
         steps: (K,) Adam steps taken per frame (frame 0: 0).
@@ -64,19 +64,35 @@ def _hat(w: Tensor) -> Tensor:
                         torch.stack([-w[1], w[0], z])])
 
 
-class _FrameMatch:
-    """One frame's image loss as a function of a rigid pose of the frame-0 Gaussians."""
+LOSSES = ("l1", "gradients")
 
-    def __init__(self, gaussians: Gaussians, images: Tensor, cameras: Sequence[Camera]) -> None:
-        self.gaussians, self.images, self.cameras = gaussians, images, list(cameras)
+
+def _gradients(images: Tensor) -> tuple[Tensor, Tensor]:
+    """The differences of neighbouring pixels of (V, H, W, 3) images, down and across."""
+    return images[:, 1:] - images[:, :-1], images[:, :, 1:] - images[:, :, :-1]
+
+
+class _FrameMatch:
+    """One frame's image loss as a function of a rigid pose of the frame-0 Gaussians: ``"l1"``, the mean absolute
+    difference of the colours, or ``"gradients"``, that of their differences between neighbouring pixels (the
+    texture's and the outline's edges; a smooth shading the Gaussians carry from frame 0 while the light stays put
+    weighs less in it)."""
+
+    def __init__(self, gaussians: Gaussians, images: Tensor, cameras: Sequence[Camera], kind: str = "l1") -> None:
+        self.gaussians, self.images, self.cameras, self.kind = gaussians, images, list(cameras), kind
         self.means = gaussians.means.detach()
         self.size = tuple(images.shape[1:3])
+        self.edges = _gradients(images) if kind == "gradients" else None
 
     def loss(self, R: Tensor, T: Tensor) -> Tensor:
-        """Mean |render − image| with the Gaussians at ``R (3, 3) @ X + T (3,)``."""
+        """The loss with the Gaussians at ``R (3, 3) @ X + T (3,)``."""
         n = self.means.shape[0]
         moved = deform_gaussians(self.gaussians, self.means @ R.T + T, R.expand(n, 3, 3))
-        return (downsample(render_gaussians(moved, self.cameras).rgb, self.size) - self.images).abs().mean()
+        rgb = downsample(render_gaussians(moved, self.cameras).rgb, self.size)
+        if self.edges is None:
+            return (rgb - self.images).abs().mean()
+        down, across = _gradients(rgb)
+        return (down - self.edges[0]).abs().mean() + (across - self.edges[1]).abs().mean()
 
 
 def _refine_frame(match: _FrameMatch, R0: Tensor, T0: Tensor, radius: float, iterations: int, lr: float
@@ -124,7 +140,8 @@ def _extrapolate(Rs: list[Tensor], Ts: list[Tensor], centre: Tensor, gravity_ste
 
 def refine_poses(gaussians: Gaussians, images: Tensor, cameras: Sequence[Camera], rotations: Tensor,
                  translations: Tensor, gravity: Sequence[float], dt: float, *, iterations: int = 150,
-                 lr: float = 3e-3, max_size: int = 128, max_views: int = 0, progress: bool = False) -> PhotoPoses:
+                 lr: float = 3e-3, max_size: int = 128, max_views: int = 0, loss: str = "l1",
+                 progress: bool = False) -> PhotoPoses:
     """Refine the rigid poses of frames 1 … K−1 on the images (module docstring).
 
     Args:
@@ -141,6 +158,8 @@ def refine_poses(gaussians: Gaussians, images: Tensor, cameras: Sequence[Camera]
             cameras scaled down instead is not the same filter (a splat does not shrink below a pixel) and turned
             the poses 0.4–0.8° on the test ball.
         max_views: the loss reads at most this many of the views, spread over their order (0: all).
+        loss: ``"l1"`` (colours) or ``"gradients"`` (their differences between neighbouring pixels), see
+            ``_FrameMatch``.
         progress: print one line per frame.
 
     Returns:
@@ -150,6 +169,8 @@ def refine_poses(gaussians: Gaussians, images: Tensor, cameras: Sequence[Camera]
     if rotations.shape != (K, 3, 3) or translations.shape != (K, 3) or len(cameras) != V:
         raise ValueError(f"refine_poses: {K} frames of {V} views need rotations (K, 3, 3), translations (K, 3) and "
                          f"{V} cameras, got {tuple(rotations.shape)}, {tuple(translations.shape)}, {len(cameras)}")
+    if loss not in LOSSES:
+        raise ValueError(f"refine_poses: loss must be one of {LOSSES}, got {loss!r}")
     if max_views > 0 and V > max_views:
         keep = np.unique(np.linspace(0, V - 1, max_views).round().astype(int)).tolist()
         images, cameras, V = images[keep], [cameras[v] for v in keep], len(keep)
@@ -167,10 +188,10 @@ def refine_poses(gaussians: Gaussians, images: Tensor, cameras: Sequence[Camera]
     Rs = [torch.eye(3, dtype=dtype, device=dev)]
     Ts = [torch.zeros(3, dtype=dtype, device=dev)]
     with torch.no_grad():
-        first = float(_FrameMatch(gaussians, frames[:, 0], cams).loss(Rs[0], Ts[0]))
-    loss_start, loss, start, steps = [first], [first], ["identity"], [0]
+        first = float(_FrameMatch(gaussians, frames[:, 0], cams, loss).loss(Rs[0], Ts[0]))
+    at_start, at_end, start, steps = [first], [first], ["identity"], [0]
     for t in range(1, K):
-        match = _FrameMatch(gaussians, frames[:, t], cams)
+        match = _FrameMatch(gaussians, frames[:, t], cams, loss)
         starts = {"silhouettes": (rotations[t].to(dev, dtype), translations[t].to(dev, dtype))}
         if t >= 2:
             starts["extrapolated"] = _extrapolate(Rs, Ts, centre, g_step)
@@ -180,8 +201,8 @@ def refine_poses(gaussians: Gaussians, images: Tensor, cameras: Sequence[Camera]
         R, T, final, taken = _refine_frame(match, *starts[best], radius, iterations, lr)
         Rs.append(R)
         Ts.append(T)
-        loss_start.append(scored[best])
-        loss.append(final)
+        at_start.append(scored[best])
+        at_end.append(final)
         start.append(best)
         steps.append(taken)
         if progress:
@@ -189,4 +210,4 @@ def refine_poses(gaussians: Gaussians, images: Tensor, cameras: Sequence[Camera]
             print(f"[photometric poses] frame {t}: loss {scored[best]:.5f} -> {final:.5f} from the {best} pose, "
                   f"turned {turn:.2f} deg from frame 0, {taken} steps", flush=True)
     return PhotoPoses(torch.stack(Rs).double().cpu().numpy(), torch.stack(Ts).double().cpu().numpy(),
-                      np.array(loss_start), np.array(loss), start, steps)
+                      np.array(at_start), np.array(at_end), start, steps)

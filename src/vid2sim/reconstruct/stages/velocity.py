@@ -658,7 +658,7 @@ class VelocityStage:
             photo = refine_poses(state.gaussians, o.images[:, :est.frames_used], o.cameras, est.rotations,
                                  est.translations, o.gravity, o.dt, iterations=cfg.photometric_iterations,
                                  max_size=cfg.photometric_size, max_views=cfg.photometric_views,
-                                 progress=ctx.progress)
+                                 loss=cfg.photometric_loss, progress=ctx.progress)
             record["silhouettes"] = {"linear": est.linear.tolist(), "angular": est.angular.tolist(),
                                      "rotations": est.rotations.tolist(), "translations": est.translations.tolist()}
             record["photometric"] = {"loss_start": photo.loss_start.tolist(), "loss": photo.loss.tolist(),
