@@ -376,7 +376,10 @@ def test_three_variants_stage_one_where_it_belongs_and_ablation_json(run):
         means = result["variants"][name]["means"]
         assert rows[name][-8] == f"{means['dynamic_psnr']:.2f}" and rows[name][-3] == f"{means['abs_error_nu']:.3f}"
         assert rows[name][-4] == f"{means['abs_error_log10_E']:.3f}"
-        assert rows[name][-2] == f"{means['iterations_to_converge']:.1f}"
+        # "-" where the kept material never settled within the tolerance (None): on this toy run that happened once in
+        # the parallel suite (2026-12-07) while the same test alone gave a count
+        conv = means["iterations_to_converge"]
+        assert rows[name][-2] == ("-" if conv is None else f"{conv:.1f}")
 
 
 def _copy(run, tmp_path) -> Path:
