@@ -79,7 +79,7 @@ class _FrameMatch:
     weighs less in it)."""
 
     def __init__(self, gaussians: Gaussians, images: Tensor, cameras: Sequence[Camera], kind: str = "l1") -> None:
-        self.gaussians, self.images, self.cameras, self.kind = gaussians, images, list(cameras), kind
+        self.gaussians, self.images, self.cameras = gaussians, images, list(cameras)
         self.means = gaussians.means.detach()
         self.size = tuple(images.shape[1:3])
         self.edges = _gradients(images) if kind == "gradients" else None

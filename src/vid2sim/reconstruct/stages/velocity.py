@@ -357,11 +357,16 @@ def estimate_initial_velocity(
     return _estimate(flight, frames, centre, out_dtype, points.device, start)
 
 
+def _check_rotation_model(rotation_model: str) -> None:
+    """Raise ValueError for an unknown rotation model (:data:`ROTATION_MODELS`)."""
+    if rotation_model not in ROTATION_MODELS:
+        raise ValueError(f"{_NAME}: rotation_model must be one of {ROTATION_MODELS}, got {rotation_model!r}")
+
+
 def _check_options(rotation_model: str, floor_margin: float, shape_model: str, max_points: int,
                    iterations: int) -> None:
     """Raise ValueError for an unknown model or an out-of-range option of :func:`estimate_initial_velocity`."""
-    if rotation_model not in ROTATION_MODELS:
-        raise ValueError(f"{_NAME}: rotation_model must be one of {ROTATION_MODELS}, got {rotation_model!r}")
+    _check_rotation_model(rotation_model)
     if not (math.isfinite(floor_margin) and floor_margin >= 0):
         raise ValueError(f"{_NAME}: floor_margin must be a finite number >= 0, got {floor_margin!r}")
     if shape_model not in SHAPE_MODELS:
@@ -552,6 +557,15 @@ def _ballistic_frames(f: _Flight, centre: np.ndarray, inertia: np.ndarray | None
     return _Frames(rotations, centroids, residuals, model, stop)
 
 
+def _model_rms(model: _Ballistic, times: np.ndarray, rotations: np.ndarray, centroids: np.ndarray,
+               offsets: np.ndarray) -> float:
+    """RMS distance (m) between the points at ``offsets`` (N, 3) from the centroid posed by the K poses
+    (``rotations`` (K, 3, 3), ``centroids`` (K, 3)) and by the ballistic ``model`` at ``times`` (K,)."""
+    posed = np.einsum("kij,nj->kni", rotations, offsets) + centroids[:, None]
+    posed_model = np.einsum("kij,nj->kni", model.rotations(times), offsets) + model.centroids(times)[:, None]
+    return float(np.sqrt(((posed - posed_model) ** 2).sum(-1).mean()))
+
+
 def _estimate(f: _Flight, frames: _Frames, centre: np.ndarray, dtype: torch.dtype, device: torch.device,
               start: float) -> InitialVelocity:
     """The :class:`InitialVelocity` of the ballistic ``frames`` (tensors of ``dtype`` on ``device``), with how far
@@ -559,9 +573,7 @@ def _estimate(f: _Flight, frames: _Frames, centre: np.ndarray, dtype: torch.dtyp
     model, K = frames.model, len(frames.rotations)
     Rs, ps = np.stack(frames.rotations), np.stack(frames.centroids)
     times = np.arange(K) * f.dt
-    posed_fit = np.einsum("kij,nj->kni", Rs, f.shape) + ps[:, None]
-    posed_model = np.einsum("kij,nj->kni", model.rotations(times), f.shape) + model.centroids(times)[:, None]
-    model_rms = float(np.sqrt(((posed_fit - posed_model) ** 2).sum(-1).mean()))
+    model_rms = _model_rms(model, times, Rs, ps, f.shape)
     f.say(f"{K} frames: v = {np.round(model.v, 4).tolist()} m/s, ω = {np.round(model.omega, 4).tolist()} rad/s "
           f"({frames.stop})")
 
@@ -603,7 +615,7 @@ def refit_to_poses(est: InitialVelocity, points: Tensor, rotations: np.ndarray, 
     if rotations.shape != (K, 3, 3) or translations.shape != (K, 3):
         raise ValueError(f"refit_to_poses: the estimate has {K} frames; got rotations {rotations.shape} and "
                          f"translations {translations.shape}")
-    _check_options(rotation_model, 0.0, "points", 4, 1)
+    _check_rotation_model(rotation_model)
     P = points.detach().to("cpu", torch.float64).numpy()
     centre, inertia = _centre_and_inertia(P, rotation_model)
     g = torch.as_tensor(gravity).detach().to("cpu", torch.float64).numpy()
@@ -611,16 +623,13 @@ def refit_to_poses(est: InitialVelocity, points: Tensor, rotations: np.ndarray, 
     centroids = rotations @ centre + translations
     model = _fit_ballistic(times, centroids, rotations, g, inertia if rotation_model == "torque_free" else None,
                            dt / 4.0)
-    r = P - centre
-    posed = np.einsum("kij,nj->kni", rotations, r) + centroids[:, None]
-    posed_model = np.einsum("kij,nj->kni", model.rotations(times), r) + model.centroids(times)[:, None]
     like = est.linear
     return dataclasses.replace(
         est, linear=torch.as_tensor(model.v, dtype=like.dtype, device=like.device),
         angular=torch.as_tensor(model.omega, dtype=like.dtype, device=like.device),
         rotations=torch.as_tensor(rotations, dtype=like.dtype, device=like.device),
         translations=torch.as_tensor(translations, dtype=like.dtype, device=like.device),
-        model_residual_m=float(np.sqrt(((posed - posed_model) ** 2).sum(-1).mean())))
+        model_residual_m=_model_rms(model, times, rotations, centroids, P - centre))
 
 
 # ---- the stage -------------------------------------------------------------------------------------------------
