@@ -495,6 +495,48 @@ def test_motion_appearance_fits_the_gaussians_through_the_motion(tiny_asset, tin
         motion.carry(asset.gaussians, 5)
 
 
+def test_the_field_sample_carries_nearby_centres_to_first_order(tiny_asset, tiny_scene):
+    """The refit samples the skinning field at the centres and expands it to first order while they move: exact at
+    the sample, a rigid motion exact anywhere, and off by O(d^2) in the places and O(d) in F at a move d."""
+    from vid2sim.physics.skinning import deform
+    from vid2sim.reconstruct.stages.motion_appearance import SkinnedMotion, refine_on_motion
+    from vid2sim.splats.fitting import FitConfig
+
+    asset, scene = load_asset(tiny_asset), load_scene(tiny_scene)
+    motion = SkinnedMotion.of_asset(asset, 5)
+    X = asset.gaussians.means
+    sample = motion.sample(X)
+    for t in (0, 4):
+        assert all(torch.equal(a, b) for a, b in zip(motion.place_near(sample, X, t), motion.place(X, t)))
+    direction = torch.randn(X.shape, generator=torch.Generator().manual_seed(1))
+    direction = direction / direction.norm(dim=1, keepdim=True)
+    errors = []
+    for d in (0.02, 0.01):  # 2 and 1 % of the tiny object's size
+        Y = X + d * direction
+        (xa, Fa), (xb, Fb) = motion.place_near(sample, Y, 4), motion.place(Y, 4)
+        errors.append((float((xa - xb).norm(dim=1).amax()), float((Fa - Fb).abs().amax())))
+    (x2, F2), (x1, F1) = errors
+    assert 0 < x1 < x2 / 3 and x2 < 0.02 * 0.1  # quadratic in the move, a tenth of it at most
+    assert 0 < F1 < F2 / 1.6 and F2 < 0.05  # linear in the move
+    # a rigid motion (the weights' constant column alone) is carried exactly anywhere
+    H = motion.states.shape[1] // 12
+    z = torch.zeros(12 * H, dtype=motion.states.dtype)
+    R = torch.tensor([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]], dtype=z.dtype)
+    z.view(H, 3, 4)[-1, :, :3], z.view(H, 3, 4)[-1, :, 3] = R - torch.eye(3, dtype=z.dtype), 0.1
+    rigid = SkinnedMotion(motion.field, None, z[None])
+    Y = (X + 0.05 * direction).to(z.dtype)
+    assert torch.allclose(rigid.place_near(rigid.sample(X), Y, 0)[0], Y @ R.T + 0.1, atol=1e-6)
+    assert torch.allclose(deform(Y, motion.field(Y), z), Y @ R.T + 0.1, atol=1e-6)
+    with pytest.raises(ValueError, match="points for a sample"):
+        motion.place_near(sample, X[:3], 0)
+    views, observed = scene.config.observed_views, [0, 1, 2, 3, 4]
+    images, cameras = scene.images[views][:, observed].float(), [scene.cameras[v] for v in views]
+    _, _, colours = refine_on_motion(asset.gaussians, motion, images, cameras, observed, FitConfig(), 12,
+                                     geometry=False)
+    _, _, full = refine_on_motion(asset.gaussians, motion, images, cameras, observed, FitConfig(), 12)
+    assert colours["field_samples"] == 1 and 1 <= full["field_samples"] <= 12
+
+
 def test_a_loss_power_below_one_favours_the_frames_the_motion_explains(tiny_asset, tiny_scene):
     """Frame 4's images shifted by 6 pixels: a frame the motion does not explain. Minimising the loss's square
     root per step (each frame's gradient scaled by loss^-0.5) keeps frames 0-3 closer to their images than

@@ -87,19 +87,23 @@ class SkinnedMotion:
     def num_frames(self) -> int:
         return int(self.states.shape[0])
 
-    def carry(self, gaussians: Any, t: int, shading: Any | None = None) -> Any:
+    def carry(self, gaussians: Any, t: int, shading: Any | None = None, near: "FieldSample | None" = None) -> Any:
         """The rest-frame ``gaussians`` (a :class:`~vid2sim.splats.gaussians.Gaussians`, N of them) at frame t:
         a :class:`~vid2sim.splats.deform.DeformedGaussians`, lit by ``shading`` (a
         :class:`~vid2sim.splats.shading.Shading`) when given.
 
         The centres are carried by the skinning weights at their current place, exactly as the simulator carries
-        them. It is differentiable with respect to the Gaussians' parameters, with one simplification in the
-        gradient only: a centre's move reaches its deformed centre through F = ∂x/∂X (exact), but not its
-        covariance through the change of F along the move (a second-order effect that would cost a
-        differentiation through the field's own gradient at every step).
+        them — or, given ``near`` (the field sampled at nearby centres, :meth:`sample`), by its first-order
+        expansion there (:meth:`place_near`). It is differentiable with respect to the Gaussians' parameters, with
+        one simplification in the gradient only: a centre's move reaches its deformed centre through F = ∂x/∂X
+        (exact), but not its covariance through the change of F along the move (a second-order effect that would
+        cost a differentiation through the field's own gradient at every step).
         """
 
-        x, F = self.place(gaussians.means, t)
+        if near is None:
+            x, F = self.place(gaussians.means, t)
+        else:
+            x, F = self.place_near(near, gaussians.means, t)
         X = gaussians.means.to(x.dtype)
         if X.requires_grad:  # value x, gradient Fᵀ ∂L/∂x to the rest-frame centre
             x = x + (F @ (X - X.detach())[:, :, None])[..., 0]
@@ -109,8 +113,7 @@ class SkinnedMotion:
     def place(self, X: Tensor, t: int) -> tuple[Tensor, Tensor]:
         """The rest-frame points ``X`` (N, 3) at frame t: their places x (N, 3) and deformation gradients
         F = ∂x/∂X (N, 3, 3), in the states' dtype, without gradients (:meth:`carry` adds the centres')."""
-        if not 0 <= t < self.num_frames:
-            raise ValueError(f"SkinnedMotion.carry: frame {t} asked, the motion has {self.num_frames} frames")
+        self._check_frame(t)
         z = self.states[t]
         X = X.detach().to(z.dtype)
         with torch.no_grad():
@@ -121,6 +124,63 @@ class SkinnedMotion:
                 w = self.field(X)
                 F = torch.eye(3, dtype=z.dtype, device=z.device) + (self.jacobian(X) @ z).reshape(-1, 3, 3)
             return deform(X, w, z), F
+
+    def sample(self, X: Tensor) -> "FieldSample":
+        """The skinning field (and Neural Jacobian) evaluated once at the rest-frame points ``X`` (N, 3), for
+        :meth:`place_near` at any frame while the points stay near."""
+        X = X.detach().to(self.states.dtype)
+        with torch.no_grad():
+            w, dw = self.field.weights_and_gradients(X)
+            return FieldSample(X, w, dw, None if self.jacobian is None else self.jacobian(X))
+
+    def place_near(self, sample: "FieldSample", X: Tensor, t: int) -> tuple[Tensor, Tensor]:
+        """:meth:`place` from a :class:`FieldSample` taken at nearby points instead of the field: the weights
+        expanded to first order, ``w(X) ≈ w(X_s) + ∇w(X_s)·(X − X_s)``, their gradients (and the Neural
+        Jacobian) held at X_s. Exact at X = X_s; off by O(|X − X_s|²) in x and O(|X − X_s|) in F, where the motion
+        is not rigid only (the weights' last column is constant, so a rigid motion is carried exactly anywhere).
+
+        Args:
+            sample: the field at N points X_s; X: (N, 3) the points now; t: the frame.
+        Returns:
+            x (N, 3), F (N, 3, 3) in the states' dtype, without gradients.
+        """
+        self._check_frame(t)
+        z = self.states[t]
+        X = X.detach().to(z.dtype)
+        if X.shape != sample.X.shape:
+            raise ValueError(f"SkinnedMotion.place_near: {tuple(X.shape)} points for a sample of "
+                             f"{tuple(sample.X.shape)}")
+        with torch.no_grad():
+            w = sample.w + (sample.dw @ (X - sample.X)[:, :, None])[..., 0]
+            if sample.jacobian is None:
+                F = deformation_gradient(gradient_basis(X, w, sample.dw), z)
+            else:
+                F = torch.eye(3, dtype=z.dtype, device=z.device) + (sample.jacobian @ z).reshape(-1, 3, 3)
+            return deform(X, w, z), F
+
+    def _check_frame(self, t: int) -> None:
+        if not 0 <= t < self.num_frames:
+            raise ValueError(f"SkinnedMotion.carry: frame {t} asked, the motion has {self.num_frames} frames")
+
+
+@dataclass
+class FieldSample:
+    """The skinning field evaluated at N rest-frame points (:meth:`SkinnedMotion.sample`).
+
+    Attributes:
+        X: (N, 3) the points; w: (N, H) their weights; dw: (N, H, 3) the weights' spatial gradients;
+        jacobian: (N, 9, 12H) the Neural Jacobian there, or None for the closed-form dF/dz.
+    """
+
+    X: Tensor
+    w: Tensor
+    dw: Tensor
+    jacobian: Tensor | None
+
+
+REFRESH_FRACTION = 0.01
+"""The Gaussians' refit samples the skinning field again once a centre has moved this share of the Gaussians'
+bounding-box diagonal since the last sample (:meth:`SkinnedMotion.place_near` in between)."""
 
 
 INITIAL_AMBIENT = 0.5
@@ -175,7 +235,8 @@ def refine_on_motion(gaussians: Any, motion: SkinnedMotion, images: Tensor, came
 
     Returns:
         (the refitted Gaussians, same count N; the fitted shading or None; {"iterations", "geometry",
-        "loss_first", "loss_last": means of the first and last 10 % of the steps' losses, and "shading": the
+        "loss_first", "loss_last": means of the first and last 10 % of the steps' losses, "field_samples": how
+        often the skinning field was evaluated at the centres (:data:`REFRESH_FRACTION`), and "shading": the
         fitted light, when shaded}).
     """
     from tqdm.auto import tqdm
@@ -221,17 +282,18 @@ def refine_on_motion(gaussians: Any, motion: SkinnedMotion, images: Tensor, came
     per_step = V if fit.views_per_step is None else min(V, fit.views_per_step)
     g = torch.Generator().manual_seed(seed)
     losses = []
-    placed: dict[int, tuple[Tensor, Tensor]] = {}  # without geometry: frame column → (x (N, 3), F (N, 3, 3))
+    # the field is sampled at the centres and again only once one has moved REFRESH_FRACTION of the object's size
+    # (without geometry never): the field's evaluation, not the rendering, was 60 % of a step
+    means = gaussians.means.detach()
+    refresh = REFRESH_FRACTION * float((means.amax(0) - means.amin(0)).norm()) if means.shape[0] else 0.0
+    sample, samples = None, 0
     for _ in tqdm(range(iterations), desc="appearance on the motion", disable=not progress, leave=False):
         t = int(torch.randint(T, (1,), generator=g))
         views = torch.randperm(V, generator=g)[:per_step].tolist() if per_step < V else list(range(V))
-        if geometry:
-            moved = motion.carry(current(), frame_ids[t], current_shading())
-        else:  # the centres stay: each frame's places and deformation gradients are computed once
-            if t not in placed:
-                x, F = motion.place(gaussians.means, frame_ids[t])
-                placed[t] = (x.to(gaussians.means.dtype), F.to(gaussians.means.dtype))
-            moved = deform_gaussians(current(), *placed[t], current_shading())
+        X = params["means"].detach()
+        if sample is None or (geometry and float((X.to(sample.X.dtype) - sample.X).norm(dim=1).amax()) > refresh):
+            sample, samples = motion.sample(X), samples + 1
+        moved = motion.carry(current(), frame_ids[t], current_shading(), near=sample)
         out = render_gaussians(moved, [cameras[v] for v in views], background=1.0).rgb
         loss = photometric_loss(out, images[views, t], fit.lambda_dssim)
         opt.zero_grad(set_to_none=True)
@@ -242,7 +304,7 @@ def refine_on_motion(gaussians: Any, motion: SkinnedMotion, images: Tensor, came
     refined = current().detach()
     lit = None if shading is None else current_shading().detach()
     record = {"iterations": iterations, "geometry": geometry, "loss_power": loss_power,
-              "loss_first": sum(losses[:k]) / k, "loss_last": sum(losses[-k:]) / k}
+              "loss_first": sum(losses[:k]) / k, "loss_last": sum(losses[-k:]) / k, "field_samples": samples}
     if lit is not None:
         record["shading"] = lit.to_record()
     return refined, lit, record
