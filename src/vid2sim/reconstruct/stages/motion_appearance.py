@@ -282,18 +282,26 @@ def refine_on_motion(gaussians: Any, motion: SkinnedMotion, images: Tensor, came
     per_step = V if fit.views_per_step is None else min(V, fit.views_per_step)
     g = torch.Generator().manual_seed(seed)
     losses = []
-    # the field is sampled at the centres and again only once one has moved REFRESH_FRACTION of the object's size
-    # (without geometry never): the field's evaluation, not the rendering, was 60 % of a step
+    # the field is sampled at the centres and again only once one has moved REFRESH_FRACTION of the object's size:
+    # its evaluation, not the rendering, was 60 % of a step. Without geometry the centres stay: one sample, and each
+    # frame's places and deformation gradients computed once
     means = gaussians.means.detach()
     refresh = REFRESH_FRACTION * float((means.amax(0) - means.amin(0)).norm()) if means.shape[0] else 0.0
-    sample, samples = None, 0
+    sample, samples = motion.sample(means), 1
+    placed: dict[int, tuple[Tensor, Tensor]] = {}  # without geometry: frame column → (x (N, 3), F (N, 3, 3))
     for _ in tqdm(range(iterations), desc="appearance on the motion", disable=not progress, leave=False):
         t = int(torch.randint(T, (1,), generator=g))
         views = torch.randperm(V, generator=g)[:per_step].tolist() if per_step < V else list(range(V))
-        X = params["means"].detach()
-        if sample is None or (geometry and float((X.to(sample.X.dtype) - sample.X).norm(dim=1).amax()) > refresh):
-            sample, samples = motion.sample(X), samples + 1
-        moved = motion.carry(current(), frame_ids[t], current_shading(), near=sample)
+        if geometry:
+            X = params["means"].detach()
+            if float((X.to(sample.X.dtype) - sample.X).norm(dim=1).amax()) > refresh:
+                sample, samples = motion.sample(X), samples + 1
+            moved = motion.carry(current(), frame_ids[t], current_shading(), near=sample)
+        else:
+            if t not in placed:
+                x, F = motion.place_near(sample, means, frame_ids[t])
+                placed[t] = (x.to(means.dtype), F.to(means.dtype))
+            moved = deform_gaussians(current(), *placed[t], current_shading())
         out = render_gaussians(moved, [cameras[v] for v in views], background=1.0).rgb
         loss = photometric_loss(out, images[views, t], fit.lambda_dssim)
         opt.zero_grad(set_to_none=True)
