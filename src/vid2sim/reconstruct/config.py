@@ -16,6 +16,7 @@ from typing import Any, Literal
 from vid2sim.physics.cubature import CUBATURE_WEIGHTS
 from vid2sim.physics.solver import SimConfig
 from vid2sim.physics.tet_modes import LOCAL_MODE_PARTICIPATION
+from vid2sim.reconstruct.photo_poses import LOSSES as PHOTOMETRIC_LOSSES
 from vid2sim.runtime import config as configs
 from vid2sim.runtime.errors import ConfigError
 from vid2sim.splats.fitting import FitConfig
@@ -126,8 +127,8 @@ class VelocityConfig:
     def __post_init__(self) -> None:
         if self.frames < 2:
             raise ConfigError(f"VelocityConfig.frames must be >= 2, got {self.frames}")
-        if self.photometric_loss not in ("l1", "gradients"):
-            raise ConfigError("VelocityConfig.photometric_loss must be 'l1' or 'gradients', got "
+        if self.photometric_loss not in PHOTOMETRIC_LOSSES:
+            raise ConfigError(f"VelocityConfig.photometric_loss must be one of {PHOTOMETRIC_LOSSES}, got "
                               f"{self.photometric_loss!r}")
         if min(self.photometric_iterations, self.photometric_size, self.photometric_views) < 0:
             raise ConfigError("VelocityConfig.photometric_iterations, photometric_size and photometric_views must be "

@@ -112,18 +112,10 @@ class SkinnedMotion:
 
     def place(self, X: Tensor, t: int) -> tuple[Tensor, Tensor]:
         """The rest-frame points ``X`` (N, 3) at frame t: their places x (N, 3) and deformation gradients
-        F = ∂x/∂X (N, 3, 3), in the states' dtype, without gradients (:meth:`carry` adds the centres')."""
+        F = ∂x/∂X (N, 3, 3), in the states' dtype, without gradients (:meth:`carry` adds the centres'): the field
+        sampled at ``X`` itself, where :meth:`place_near` is exact."""
         self._check_frame(t)
-        z = self.states[t]
-        X = X.detach().to(z.dtype)
-        with torch.no_grad():
-            if self.jacobian is None:
-                w, dw = self.field.weights_and_gradients(X)
-                F = deformation_gradient(gradient_basis(X, w, dw), z)
-            else:
-                w = self.field(X)
-                F = torch.eye(3, dtype=z.dtype, device=z.device) + (self.jacobian(X) @ z).reshape(-1, 3, 3)
-            return deform(X, w, z), F
+        return self.place_near(self.sample(X), X, t)
 
     def sample(self, X: Tensor) -> "FieldSample":
         """The skinning field (and Neural Jacobian) evaluated once at the rest-frame points ``X`` (N, 3), for
