@@ -104,7 +104,8 @@ def test_suite_json_schema_means_and_table(local_run, suite_dir, tiny_config):
     assert set(result) == {"suite", "preset", "scenes", "means", "failed"}
     assert result["suite"] == str(suite_dir.resolve()) and result["preset"] == "custom" and result["failed"] == 0
     assert set(result["means"]) == set(METRICS) == {
-        "dynamic_psnr", "dynamic_ssim", "future_psnr", "future_ssim", "novel_psnr", "novel_ssim", "rest_psnr",
+        "dynamic_psnr", "dynamic_ssim", "future_psnr", "future_ssim", "future_from_start_psnr", "novel_psnr",
+        "novel_ssim", "rest_psnr",
         "abs_error_log10_E", "abs_error_nu", "start_abs_error_log10_E", "start_abs_error_nu", "chamfer_observed",
         "chamfer_future", "centre_of_mass_frame_0", "centre_of_mass_observed", "centre_of_mass_future",
         "rotation_observed", "rotation_future", "first_contact_added_centre_of_mass", "first_contact_added_rotation",

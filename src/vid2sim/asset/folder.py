@@ -78,6 +78,10 @@ class Asset:
             floor_friction: the floor's Coulomb coefficient μ (0: frictionless; assets written before it had none).
         length_scale: the damping's and automatic substeps' length (m).
         initial_velocity: {"linear": [3], "angular": [3], "centre": [3]} at frame 0.
+        continuation: the state fitted to the last observed frames, from which the captured drop goes on after
+            them, or None (the drop is one rollout from frame 0): {"frame": a, "from_frame": T (the first frame
+            after the observed ones), "z": [12H], "zdot": [12H], "t": s, "fit": its record}
+            (:mod:`vid2sim.reconstruct.stages.continuation`).
         dt: the video frame time (s).
         extra: free-form records (canonical frame, source scene, timings).
         shading: a :class:`~vid2sim.splats.shading.Shading` (normals of the N Gaussians, a world-fixed light), or
@@ -107,6 +111,7 @@ class Asset:
     shading: Shading | None = None
     mass_volumes: Tensor | None = None
     floor_friction: float = 0.0
+    continuation: dict[str, Any] | None = None
 
     def __post_init__(self) -> None:
         if self.shading is not None and self.shading.num != self.gaussians.num:
@@ -147,6 +152,14 @@ class Asset:
         """The captured initial state: rest shape moving with the recovered rigid velocity."""
         v = self.initial_velocity
         return sim.rigid_velocity_state(v["linear"], v["angular"], v["centre"])
+
+    def continuation_state(self, sim: Simulator) -> SimState | None:
+        """The state at frame ``continuation["frame"]`` fitted to the last observed frames, or None."""
+        c = self.continuation
+        if c is None:
+            return None
+        as_state = (lambda k: torch.tensor(c[k], dtype=sim.X.dtype, device=sim.X.device))
+        return SimState(as_state("z"), as_state("zdot"), float(c["t"]))
 
 
 def _tensor_list(x: Tensor) -> list:
@@ -189,6 +202,7 @@ def save_asset(asset: Asset, folder: str | Path, config: dict[str, Any] | None =
                 "floor_stiffness": asset.floor_stiffness, "floor_friction": asset.floor_friction,
                 "length_scale": asset.length_scale,
                 "sim_config": asdict(asset.sim_config), "initial_velocity": asset.initial_velocity,
+                **({} if asset.continuation is None else {"continuation": asset.continuation}),
                 "networks": networks, "files": {k: v for k, v in FILES.items() if (tmp / v).exists() or k in
                                                 ("config", "log")},
                 "extra": asset.extra}
@@ -354,4 +368,28 @@ def load_asset(folder: str | Path, device: torch.device | str = "cpu") -> Asset:
                  floor_stiffness=float(meta["floor_stiffness"]), floor_friction=float(meta.get("floor_friction", 0.0)),
                  length_scale=float(meta["length_scale"]),
                  initial_velocity=meta["initial_velocity"], dt=float(meta["dt"]), extra=meta.get("extra", {}),
-                 mass_volumes=arrays.get("mass_volumes"))
+                 mass_volumes=arrays.get("mass_volumes"),
+                 continuation=_checked_continuation(meta.get("continuation"), 12 * field_.num_handles_total,
+                                                    folder / FILES["asset"]))
+
+
+def _checked_continuation(c: Any, dofs: int, path: Path) -> dict[str, Any] | None:
+    """``asset.json``'s ``continuation`` (:class:`Asset`), checked: None, or frames 0 ≤ frame < from_frame, z and
+    zdot of ``dofs`` finite numbers each and a finite time; raises :class:`AssetFormatError` naming the field."""
+    if c is None:
+        return None
+    if not isinstance(c, dict):
+        raise AssetFormatError(f"{path}: continuation must be an object, got {type(c).__name__}")
+    frame, first = c.get("frame"), c.get("from_frame")
+    if not all(isinstance(x, int) and not isinstance(x, bool) for x in (frame, first)) or not 0 <= frame < first:
+        raise AssetFormatError(f"{path}: continuation needs integers 0 <= frame < from_frame, got {frame!r}, "
+                               f"{first!r}")
+    for key in ("z", "zdot"):
+        v = c.get(key)
+        if not isinstance(v, list) or len(v) != dofs or not all(
+                isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in v):
+            raise AssetFormatError(f"{path}: continuation.{key} must be {dofs} finite numbers (12 per handle)")
+    t = c.get("t")
+    if isinstance(t, bool) or not isinstance(t, (int, float)) or not math.isfinite(t):
+        raise AssetFormatError(f"{path}: continuation.t must be a finite number (s), got {t!r}")
+    return c

@@ -103,8 +103,13 @@ def deform_states(asset: Any, sim: Any, states: list[Any], progress: bool = True
         return [rig.deformed(s.z, basis) for s in tqdm(states, desc="deform", disable=not progress, leave=False)]
 
 
-def simulate_states(asset: Any, num_frames: int, progress: bool = True) -> tuple[Any, list[Any]]:
+def simulate_states(asset: Any, num_frames: int, progress: bool = True,
+                    continued: bool = True) -> tuple[Any, list[Any]]:
     """The asset's captured drop as simulator states: ``(simulator, T states)``, frame 0 the initial state.
+
+    With ``continued`` and an asset that has a continuation (:attr:`~vid2sim.asset.folder.Asset.continuation`, the
+    state fitted to its last observed frames), frames from its ``from_frame`` on are simulated from that state (the
+    frames before it are the rollout from frame 0); otherwise every frame is the one rollout from frame 0.
 
     Raises:
         ValueError: ``num_frames`` < 1.
@@ -113,8 +118,14 @@ def simulate_states(asset: Any, num_frames: int, progress: bool = True) -> tuple
         raise ValueError(f"simulate_states: num_frames must be >= 1, got {num_frames}")
     sim = asset.simulator()
     start = asset.initial_state(sim)
+    c = asset.continuation if continued else None
     with torch.no_grad():
-        return sim, [start] + sim.rollout(start, num_frames - 1, progress=progress)
+        if c is None or num_frames <= c["from_frame"]:
+            return sim, [start] + sim.rollout(start, num_frames - 1, progress=progress)
+        first, anchor = int(c["from_frame"]), int(c["frame"])
+        head = [start] + sim.rollout(start, first - 1, progress=progress)
+        tail = sim.rollout(asset.continuation_state(sim), num_frames - 1 - anchor, progress=progress)
+        return sim, head + tail[first - anchor - 1:]  # tail[k] is frame anchor + 1 + k
 
 
 def simulated_centre_of_mass(sim: Any, states: list[Any]) -> torch.Tensor:

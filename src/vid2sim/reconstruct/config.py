@@ -556,6 +556,32 @@ class MotionAppearanceConfig:
 
 
 @dataclass
+class ContinuationConfig:
+    """Stage ``continuation``: the state at the end of the observed clip fitted to its last frames, from which the
+    captured drop goes on after them (the future frames' prediction; beyond the paper, whose prediction is the one
+    rollout from frame 0).
+
+    Attributes:
+        window: the last observed frames the state is fitted to (≥ 2: a pose and a velocity); the state is that of
+            their first frame. 0 skips the stage (the drop is one rollout from frame 0).
+        iterations: Levenberg–Marquardt iterations of the fit (each 13 rollouts of the window).
+        scale: image scale of the fit's images (the observed size 1; the full preset's 448² views take 0.5).
+    """
+
+    window: int = 2
+    iterations: int = 8
+    scale: float = 1.0
+
+    def __post_init__(self) -> None:
+        if isinstance(self.window, bool) or not isinstance(self.window, int) or self.window == 1 or self.window < 0:
+            raise ConfigError(f"ContinuationConfig.window must be 0 (off) or an integer >= 2, got {self.window!r}")
+        if self.iterations < 1:
+            raise ConfigError(f"ContinuationConfig.iterations must be >= 1, got {self.iterations}")
+        if not 0 < self.scale <= 1:
+            raise ConfigError(f"ContinuationConfig.scale must be in (0, 1], got {self.scale}")
+
+
+@dataclass
 class ReconstructConfig:
     """Settings of :func:`vid2sim.reconstruct.reconstruct`, one section per stage (saved as ``config.json``).
 
@@ -571,6 +597,7 @@ class ReconstructConfig:
         calibration: stage ``calibration``.
         joint: stage ``joint``, the joint optimisation.
         motion_appearance: stage ``motion_appearance``.
+        continuation: stage ``continuation``.
         seed: seeds every stage.
     """
 
@@ -585,6 +612,7 @@ class ReconstructConfig:
     calibration: CalibrationConfig = field(default_factory=CalibrationConfig)
     joint: JointConfig = field(default_factory=JointConfig)
     motion_appearance: MotionAppearanceConfig = field(default_factory=MotionAppearanceConfig)
+    continuation: ContinuationConfig = field(default_factory=ContinuationConfig)
     seed: int = 0
 
     def __post_init__(self) -> None:

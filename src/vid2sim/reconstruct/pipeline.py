@@ -80,9 +80,9 @@ def reconstruct(scene_path: str | Path, out: str | Path, config: ReconstructConf
     """Reconstruct the scene folder ``scene_path`` into the asset folder ``out`` (see the module docstring).
 
     ``device`` (None: CUDA when available, else the CPU) runs the Gaussian fits, the networks' training and
-    the joint optimisation; the geometric stages (points, initial velocity) and Stage I run on the CPU. The
-    device is not part of the configuration: a run interrupted on one device resumes on another, and the asset
-    is written with CPU tensors. While the stiffness calibration's tet reference runs in its child process (one
+    the joint optimisation; the geometric stages (points, initial velocity), Stage I and the continuation run on the
+    CPU. The device is not part of the configuration: a run interrupted on one device resumes on another, and the
+    asset is written with CPU tensors. While the stiffness calibration's tet reference runs in its child process (one
     thread), the stages run on one torch thread fewer than the caller's; the count is restored on return.
 
     ``snapshots`` shares stages with other reconstructions of this scene

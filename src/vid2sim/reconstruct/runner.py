@@ -96,7 +96,7 @@ class State:
         skinning, jacobian: ``networks``: the skinning field and the Neural Jacobian (or None); ``joint`` updates them.
         calibration: ``calibration``: the stiffness calibration (a JSON dict).
         joint: ``joint``: the joint optimisation's result (a JSON dict).
-        asset: ``joint`` (the Gaussians replaced by ``motion_appearance``'s).
+        asset: ``joint`` (the Gaussians replaced by ``motion_appearance``'s, the continuation set by ``continuation``).
         log: every stage's record for ``log.json``.
     """
 

@@ -10,6 +10,7 @@
 ``calibration``        the subspace's stiffness matched to quadratic tets
 ``joint``              the joint optimisation of material, initial velocity and networks (paper Eq. 6)
 ``motion_appearance``  the Gaussians refitted along the simulated motion
+``continuation``       the state at the end of the observed clip, fitted to its last frames (the prediction's start)
 =====================  =======================================================================================
 """
 
@@ -18,6 +19,7 @@ from __future__ import annotations
 from vid2sim.reconstruct.runner import Stage
 from vid2sim.reconstruct.stages.appearance import AppearanceStage
 from vid2sim.reconstruct.stages.calibration import CalibrationStage
+from vid2sim.reconstruct.stages.continuation import ContinuationStage
 from vid2sim.reconstruct.stages.gaussians import GaussiansStage
 from vid2sim.reconstruct.stages.joint import JointStage
 from vid2sim.reconstruct.stages.motion_appearance import MotionAppearanceStage
@@ -30,7 +32,8 @@ from vid2sim.reconstruct.stages.velocity import VelocityStage
 def all_stages() -> list[Stage]:
     """A fresh instance of every stage, in order (a stage may hold a background job of its run)."""
     return [GaussiansStage(), PointsStage(), VelocityStage(), AppearanceStage(), Stage1Stage(), NetworksStage(),
-            CalibrationStage(), JointStage(), MotionAppearanceStage()]
+            CalibrationStage(), JointStage(), MotionAppearanceStage(),
+            ContinuationStage()]
 
 
 #: the stages' names, in order
