@@ -49,7 +49,7 @@ def test_reconstruct_writes_a_complete_asset(tiny_asset, tiny_scene):
     assert "contact_candidates" in log
     assert 0.0 <= asset.floor_friction <= 2.0 and "floor_friction" in asset.material["uncertainty"]
     assert set(log["timings_seconds"]) == {"gaussians", "points", "velocity", "appearance", "stage1", "networks",
-                                           "joint", "motion_appearance"}  # the calibration is off: not timed
+                                           "joint", "motion_appearance", "continuation"}  # the calibration is off
     assert log["device"] == "cpu" and log["device_name"] == "cpu"
     # the ballistic poses were refined on the images (never to a worse match), the silhouettes' estimate kept beside
     velocity = json.loads((tiny_asset / "asset.json").read_text())["extra"]["initial_velocity_estimate"]
@@ -653,6 +653,7 @@ def test_bad_scenes_get_clear_errors_and_leave_nothing(tiny_scene, tmp_path, tin
 def test_presets_and_config_errors():
     from vid2sim.reconstruct.config import (
         CalibrationConfig,
+        ContinuationConfig,
         JointConfig,
         MotionAppearanceConfig,
         NetworksConfig,
@@ -692,7 +693,13 @@ def test_presets_and_config_errors():
     with pytest.raises(ValueError, match="centre_of_mass_rounds must be >= 1"):
         JointConfig(centre_of_mass_rounds=0)
     assert reconstruct_module.STAGES == ("gaussians", "points", "velocity", "appearance", "stage1", "networks",
-                                         "calibration", "joint", "motion_appearance")
+                                         "calibration", "joint", "motion_appearance", "continuation")
+    # the continuation: the last 2 observed frames (a pose and a velocity), its residuals at half size at 448²
+    assert small.continuation.window == full.continuation.window == 2
+    assert small.continuation.scale == 1.0 and full.continuation.scale == 0.5
+    for bad in (1, -1, True):
+        with pytest.raises(ValueError, match="window must be 0 \\(off\\) or an integer >= 2"):
+            ContinuationConfig(window=bad)
 
 
 def test_config_json_loads_back_and_bad_settings_name_their_path(tmp_path):

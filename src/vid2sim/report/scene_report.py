@@ -462,7 +462,12 @@ class _Builder:
         for group, label in groups:
             g = ev.get(group) or {}
             if _isnum(g.get("psnr")):
-                cards.append(H.card(label, H.fmt(g["psnr"], 2), f"SSIM {H.fmt(g.get('ssim'), 4)}", unit="dB"))
+                note = f"SSIM {H.fmt(g.get('ssim'), 4)}"
+                single = ev.get("future_from_start") or {}
+                if group == "future" and _isnum(single.get("psnr")):  # the future went on from the continuation
+                    note += f"; from the last observed frames' state (one rollout from frame 0: " \
+                            f"{H.fmt(single['psnr'], 2)} dB)"
+                cards.append(H.card(label, H.fmt(g["psnr"], 2), note, unit="dB"))
         cards.append(
             H.card(
                 "Young's modulus E",
