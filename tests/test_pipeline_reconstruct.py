@@ -244,12 +244,15 @@ def test_evaluate_reports_views_frames_material_and_chamfer(tiny_asset, tiny_sce
     for key in ("dynamic", "future", "novel_views", "rest"):
         assert 5 < report[key]["psnr"] < 60 and 0 < report[key]["ssim"] <= 1
     assert "rest: PSNR" in printed
-    # the future frame goes on from the state fitted to the last observed frames; the one rollout beside it
-    assert report["future"]["starts_from"] == "continuation"
+    # the future frame goes on from the state fitted to the last observed frames where the reconstruction's check
+    # chose it; the one rollout from frame 0 beside it (the same group where it did not)
+    used = json.loads((asset / "asset.json").read_text())["extra"]["continuation"]["used"]
+    assert report["continuation"]["used"] == used
+    assert report["future"]["starts_from"] == ("continuation" if used else "frame 0")
     single = report["future_from_start"]
-    assert single["starts_from"] == "frame 0" and single["frames"] == [5] and 5 < single["psnr"] < 60
-    assert single["psnr"] != report["future"]["psnr"]
-    assert "future, one rollout from frame 0: PSNR" in printed
+    assert single["frames"] == [5] and 5 < single["psnr"] < 60
+    assert (single["psnr"] != report["future"]["psnr"]) == used
+    assert ("future, one rollout from frame 0: PSNR" in printed) == used
     material = report["material"]
     assert material["truth"] == {"E": 1e5, "nu": 0.3}
     assert material["abs_error_log10_E"] == pytest.approx(abs(material["fitted"]["log10_E"] - 5.0), abs=1e-6)

@@ -25,7 +25,7 @@ def run(args: argparse.Namespace) -> int:
     for key in GROUPS:
         if report[key]:
             lines.append(f"{key}: PSNR {report[key]['psnr']:.2f} dB, SSIM {report[key]['ssim']:.4f}")
-        if key == "future" and "future_from_start" in report:
+        if key == "future" and report["future"].get("starts_from") == "continuation":
             single = report["future_from_start"]
             lines[-1] += " (from the state fitted to the last observed frames)"
             lines.append(f"future, one rollout from frame 0: PSNR {single['psnr']:.2f} dB, SSIM {single['ssim']:.4f}")

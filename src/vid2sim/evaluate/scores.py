@@ -6,9 +6,10 @@ and its Gaussians are rendered in every camera. Reported (means, and per frame):
 
 * ``dynamic`` — observed views, observed frames 1 … T_obs−1 (dynamic reconstruction);
 * ``future`` — observed views, held-out frames (future state prediction); ``starts_from`` says where their
-  simulation starts: ``"frame 0"``, or ``"continuation"`` (the state fitted to the last observed frames). With a
-  continuation, ``future_from_start`` scores the same frames simulated in the one rollout from frame 0 (the
-  paper's prediction) beside it;
+  simulation starts: ``"frame 0"``, or ``"continuation"`` (the state fitted to the last observed frames).
+  ``future_from_start`` scores the same frames simulated in the one rollout from frame 0 (the paper's prediction;
+  ``future`` itself where the asset has no continuation), and ``continuation`` is the reconstruction's record of
+  its check (whether it was used, and why);
 * ``novel_views`` — held-out views, all frames 1 … T−1;
 * ``rest`` — observed views, frame 0: the asset at rest, the look every new simulation starts from. The frame-0
   Gaussian fit renders these views at 40–45 dB on the full preset's scenes; the last stage, which refits the
@@ -232,8 +233,10 @@ def evaluate(asset_path: str | Path, scene_path: str | Path, fovvdp: bool = Fals
     continued = asset.continuation is not None and T > asset.continuation["from_frame"]
     if report["future"]:
         report["future"]["starts_from"] = "continuation" if continued else "frame 0"
-    if continued and report["future"]:
-        report["future_from_start"] = _future_from_start(asset, cameras, targets, scene.config, progress)
+        report["future_from_start"] = _future_from_start(asset, cameras, targets, scene.config, progress) \
+            if continued else report["future"]
+    if "continuation" in asset.extra:
+        report["continuation"] = asset.extra["continuation"]
     if fovvdp:
         _add_fovvdp(report, renders, targets, scene.config, display)
     report["material"] = _material_record(asset, asset_path, scene.config.metadata)

@@ -566,11 +566,15 @@ class ContinuationConfig:
             their first frame. 0 skips the stage (the drop is one rollout from frame 0).
         iterations: Levenberg–Marquardt iterations of the fit (each 13 rollouts of the window).
         scale: image scale of the fit's images (the observed size 1; the full preset's 448² views take 0.5).
+        check: first fit the window ending ``window`` frames earlier and use a continuation only if it predicts the
+            last ``window`` frames better than the one rollout from frame 0 (needs 2·window + 1 observed frames;
+            with fewer, or off, the continuation is always used).
     """
 
     window: int = 2
     iterations: int = 8
     scale: float = 1.0
+    check: bool = True
 
     def __post_init__(self) -> None:
         if isinstance(self.window, bool) or not isinstance(self.window, int) or self.window == 1 or self.window < 0:

@@ -17,7 +17,7 @@ from __future__ import annotations
 import pickle
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, replace
-from typing import Sequence
+from typing import Any, Protocol, Sequence
 
 import torch
 
@@ -139,9 +139,18 @@ def shares(n: int, parts: int) -> list[tuple[int, int]]:
     return out
 
 
-def simulate_many(simulation: ClipSimulation, thetas: Sequence[Sequence[float]], substeps: int | None = None,
-                  pool: RolloutPool | None = None) -> list[list[SimState] | None]:
-    """Each θ's trajectory (:meth:`ClipSimulation.attempt`: None where the simulation fails), in order.
+class Attempts(Protocol):
+    """What :func:`simulate_many` simulates: a picklable clip as a function of θ (:class:`ClipSimulation`, or the
+    continuation's window, :class:`vid2sim.reconstruct.stages.continuation.WindowSimulation`)."""
+
+    def attempt(self, theta: Sequence[float], substeps: int | None = None) -> Any:
+        """θ's trajectory, or None where the simulation fails."""
+
+
+def simulate_many(simulation: Attempts, thetas: Sequence[Sequence[float]], substeps: int | None = None,
+                  pool: RolloutPool | None = None) -> list[Any]:
+    """Each θ's trajectory (``simulation.attempt``, e.g. :meth:`ClipSimulation.attempt`: None where the simulation
+    fails), in order.
 
     With a ``pool`` of k processes the θ are cut into k + 1 contiguous shares (:func:`shares`): this process
     simulates the first, each worker one of the others, all at once. The simulator is left at an arbitrary θ."""
@@ -174,8 +183,8 @@ def _ready() -> bool:
 
 
 def _simulate_share(blob: bytes, thetas: list[list[float]], substeps: int | None) -> bytes:
-    """In a worker: the pickled :class:`ClipSimulation` ``blob`` simulated at each θ with one torch thread; the
-    trajectories (or None) pickled (tensors inline, not through shared memory)."""
+    """In a worker: the pickled simulation ``blob`` (:class:`Attempts`) simulated at each θ with one torch thread;
+    the trajectories (or None) pickled (tensors inline, not through shared memory)."""
     torch.set_num_threads(1)
-    simulation: ClipSimulation = pickle.loads(blob)
+    simulation: Attempts = pickle.loads(blob)
     return pickle.dumps([simulation.attempt(theta, substeps) for theta in thetas])

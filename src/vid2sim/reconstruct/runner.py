@@ -138,7 +138,8 @@ class Context:
         work: the work folder (the stages' outputs).
         progress: print stage lines and progress bars.
         threads: the caller's torch thread count.
-        rollout_processes: worker processes for the joint optimisation's rollouts on the CPU (0: none).
+        rollout_processes: worker processes for the joint optimisation's and the continuation's rollouts on the CPU
+            (0: none).
         jobs: background jobs started by stages and not yet joined.
     """
 

@@ -464,7 +464,7 @@ class _Builder:
             if _isnum(g.get("psnr")):
                 note = f"SSIM {H.fmt(g.get('ssim'), 4)}"
                 single = ev.get("future_from_start") or {}
-                if group == "future" and _isnum(single.get("psnr")):  # the future went on from the continuation
+                if group == "future" and g.get("starts_from") == "continuation" and _isnum(single.get("psnr")):
                     note += f"; from the last observed frames' state (one rollout from frame 0: " \
                             f"{H.fmt(single['psnr'], 2)} dB)"
                 cards.append(H.card(label, H.fmt(g["psnr"], 2), note, unit="dB"))

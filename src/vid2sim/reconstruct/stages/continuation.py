@@ -13,15 +13,23 @@ rigidly_moved`): a rotation about the simulated centre of mass, a translation, a
 velocity (12 numbers); its shape and strain are the simulation's. Levenberg–Marquardt with forward-difference
 Jacobians (:func:`~vid2sim.reconstruct.gauss_newton.levenberg_marquardt`) minimises the mean squared image error of
 the window's frames in every observed view, from no correction; each iteration is 13 rollouts of ``window`` − 1
-frames. The material, the networks and the Gaussians are those of the stages before. It runs on the CPU, where
-the asset is assembled (a few small rollouts).
+frames, the Jacobian's 12 shared with the reconstruction's rollout worker processes where it has them (``vid2sim
+reconstruct --threads N`` starts N − 1). The material, the networks and the Gaussians are those of the stages
+before. It runs on the CPU, where the asset is assembled (a few small rollouts).
+
+Where the simulation already follows the video, a state fitted to two frames of 4 small views can predict worse
+than the rollout it corrects (its velocity is the difference of two poses; a soft body's squash is read as a shift).
+So the stage first checks (``check``, :func:`check_continuation`): it fits the same window ending ``window`` frames
+earlier, simulates on through the last ``window`` frames, and uses a continuation only when that predicts them
+better than the one rollout from frame 0; otherwise the asset has none and the drop stays that one rollout.
 """
 
 from __future__ import annotations
 
 import math
 import time
-from dataclasses import replace
+from contextlib import nullcontext
+from dataclasses import dataclass, replace
 from typing import Any, Sequence
 
 import torch
@@ -29,9 +37,10 @@ from torch import Tensor
 
 from vid2sim.asset.motion import GaussianRig, simulated_centre_of_mass
 from vid2sim.physics.rigid_motion import rigidly_moved
-from vid2sim.physics.solver import SimState, Simulator
-from vid2sim.reconstruct.clip import Observations, render_states
+from vid2sim.physics.solver import SimState, SimulationError, Simulator
+from vid2sim.reconstruct.clip import Observations, frame_losses, render_states
 from vid2sim.reconstruct.gauss_newton import Parameter, effective_images, levenberg_marquardt
+from vid2sim.reconstruct.rollouts import RolloutPool, simulate_many
 from vid2sim.reconstruct.runner import Context, State
 from vid2sim.runtime.files import read_json, write_json_atomic
 
@@ -42,34 +51,26 @@ velocities)."""
 NAMES = ("rotation", "translation", "linear", "angular")
 
 
-class WindowResiduals:
-    """The last ``frames`` observed frames as a function of the 12 correction numbers θ (a
-    :class:`~vid2sim.reconstruct.gauss_newton.ClipModel`): block k is frame ``anchor + k`` rendered in every view
-    of ``obs``, minus the video, scaled so that the blocks' squared norms sum to the window's mean squared error.
+@dataclass
+class WindowSimulation:
+    """The window's frames as a function of the 12 correction numbers θ (picklable, so that worker processes can
+    simulate it: :func:`~vid2sim.reconstruct.rollouts.simulate_many`).
 
-    Args:
+    Attributes:
         sim: the simulator (the fitted material).
-        rig: the Gaussians' rig on ``sim``.
-        obs: the observed views, frames 0 … T−1.
-        start: the simulated state of frame ``anchor``.
-        anchor: the window's first frame (T − frames).
+        start: the simulated state of the window's first frame.
+        centre: (3,) the point the correction's rotation turns about (m): the simulated centre of mass there.
+        frames: the frames simulated after the first.
     """
 
-    def __init__(self, sim: Simulator, rig: GaussianRig, obs: Observations, start: SimState, anchor: int) -> None:
-        self.sim, self.rig, self.obs, self.start, self.anchor = sim, rig, obs, start, anchor
-        V, T = obs.images.shape[:2]
-        self.frames = T - anchor
-        self.centre = [float(x) for x in simulated_centre_of_mass(sim, [start])[0]]
-        self.scale = math.sqrt(1.0 / (self.frames * V * obs.images[0, 0].numel()))
-        with torch.no_grad():
-            self.basis = rig.basis()
+    sim: Simulator
+    start: SimState
+    centre: list[float]
+    frames: int
 
     def moved(self, theta: Sequence[float]) -> SimState:
-        """The frame-``anchor`` state corrected by θ = (rotation vector, translation, Δv, Δω), 3 numbers each."""
+        """The first frame's state corrected by θ = (rotation vector, translation, Δv, Δω), 3 numbers each."""
         return rigidly_moved(self.start, theta[0:3], theta[3:6], theta[6:9], theta[9:12], self.centre)
-
-    def substeps(self, theta: Sequence[float]) -> int:
-        return self.sim.substeps()
 
     def simulate(self, theta: Sequence[float], substeps: int | None = None, frames: int | None = None
                  ) -> list[SimState]:
@@ -80,9 +81,54 @@ class WindowResiduals:
             self.sim.config = replace(config, substeps=substeps)
         try:
             with torch.no_grad():
-                return [start] + self.sim.rollout(start, self.frames - 1 if frames is None else frames)
+                return [start] + self.sim.rollout(start, self.frames if frames is None else frames)
         finally:
             self.sim.config = config
+
+    def attempt(self, theta: Sequence[float], substeps: int | None = None) -> list[SimState] | None:
+        """:meth:`simulate`, or None where the simulation fails."""
+        try:
+            return self.simulate(theta, substeps)
+        except SimulationError:
+            return None
+
+
+class WindowResiduals:
+    """The last observed frames from ``anchor`` on as a function of θ (a
+    :class:`~vid2sim.reconstruct.gauss_newton.ClipModel`): block k is frame ``anchor + k`` rendered in every view
+    of ``obs``, minus the video, scaled so that the blocks' squared norms sum to the window's mean squared error.
+
+    Args:
+        sim: the simulator (the fitted material).
+        rig: the Gaussians' rig on ``sim``.
+        obs: the observed views, frames 0 … T−1.
+        start: the simulated state of frame ``anchor``.
+        anchor: the window's first frame (T − its length).
+        pool: worker processes for the Jacobian's rollouts (:class:`~vid2sim.reconstruct.rollouts.RolloutPool`), or
+            None.
+    """
+
+    def __init__(self, sim: Simulator, rig: GaussianRig, obs: Observations, start: SimState, anchor: int,
+                 pool: RolloutPool | None = None) -> None:
+        self.rig, self.obs, self.anchor, self.pool = rig, obs, anchor, pool
+        V, T = obs.images.shape[:2]
+        self.frames = T - anchor
+        centre = [float(x) for x in simulated_centre_of_mass(sim, [start])[0]]
+        self.simulation = WindowSimulation(sim, start, centre, self.frames - 1)
+        self.scale = math.sqrt(1.0 / (self.frames * V * obs.images[0, 0].numel()))
+        with torch.no_grad():
+            self.basis = rig.basis()
+
+    def substeps(self, theta: Sequence[float]) -> int:
+        return self.simulation.sim.substeps()
+
+    def simulate(self, theta: Sequence[float], substeps: int | None = None) -> list[SimState]:
+        return self.simulation.simulate(theta, substeps)
+
+    def simulate_many(self, thetas: Sequence[Sequence[float]], substeps: int | None = None
+                      ) -> list[list[SimState] | None]:
+        """Each θ's window (None where the simulation fails), on the ``pool``'s workers and here."""
+        return simulate_many(self.simulation, thetas, substeps, self.pool)
 
     def residuals(self, trajectories: Sequence[list[SimState]], frame: int) -> Tensor:
         with torch.no_grad():
@@ -106,32 +152,60 @@ def correction_parameters(length: float, dt: float) -> list[Parameter]:
 
 
 def fit_continuation(sim: Simulator, rig: GaussianRig, obs: Observations, start: SimState, anchor: int,
-                     iterations: int = 8) -> dict[str, Any]:
+                     iterations: int = 8, pool: RolloutPool | None = None) -> dict[str, Any]:
     """The state at frame ``anchor`` fitted to observed frames ``anchor`` … T−1 (module docstring), from the
     simulated ``start``; returns the asset's ``continuation`` record (:attr:`~vid2sim.asset.folder.Asset.
     continuation`, ``from_frame`` = T) with the fit's: the correction by name, the window's loss before and after,
-    the iterations, why it stopped and its seconds."""
+    the iterations, why it stopped and its seconds. ``pool``: worker processes for the Jacobian's rollouts."""
     t0 = time.perf_counter()
-    model = WindowResiduals(sim, rig, obs, start, anchor)
+    model = WindowResiduals(sim, rig, obs, start, anchor, pool)
     parameters = correction_parameters(sim.length_scale, sim.config.dt)
     n = effective_images([1.0 / model.frames] * model.frames, len(obs.cameras))
     fit = levenberg_marquardt(model, parameters, [0.0] * 12, n, iterations=iterations)
-    state = model.moved(fit.theta)
+    state = model.simulation.moved(fit.theta)
     correction = {k: fit.theta[3 * i:3 * i + 3] for i, k in enumerate(NAMES)}
     return {"frame": anchor, "from_frame": int(obs.images.shape[1]), "z": state.z.detach().cpu().tolist(),
             "zdot": state.zdot.detach().cpu().tolist(), "t": float(state.t),
-            "fit": {"correction": correction, "centre": model.centre, "loss_before": fit.log[0]["loss"],
-                    "loss": fit.log[-1]["loss"] if fit.log[-1]["accepted"] else _last_accepted(fit.log),
+            "fit": {"correction": correction, "centre": model.simulation.centre, "loss_before": fit.log[0]["loss"],
+                    "loss": fit.log[-1]["loss"],  # the last entry's θ is the kept one (no validation)
                     "iterations": len(fit.log) - 1, "stop": fit.stop, "seconds": time.perf_counter() - t0}}
 
 
-def _last_accepted(log: list[dict[str, Any]]) -> float:
-    return [e for e in log if e["accepted"]][-1]["loss"]
+def check_continuation(sim: Simulator, rig: GaussianRig, obs: Observations, states: Sequence[SimState], window: int,
+                       iterations: int = 8, pool: RolloutPool | None = None) -> dict[str, Any]:
+    """Whether a continuation would have predicted the clip's last ``window`` frames better than the one rollout:
+    fitted (:func:`fit_continuation`) to the ``window`` frames before them, from the state of frame T − 2·window, it is
+    simulated on through the held-out frames, and its image loss there (every view, summed over the frames) is set
+    beside that of the rollout from frame 0 (``states``: its frames 0 … T−1).
+
+    Returns:
+        ``{"frame": the check's anchor, "predicted_frames": [first, last], "loss_continued", "loss_single",
+        "fit": its fit's record}``.
+    Raises:
+        ValueError: fewer than 2·window + 1 frames, or ``states`` not one per frame.
+    """
+    T = obs.images.shape[1]
+    if T < 2 * window + 1 or len(states) != T:
+        raise ValueError(f"check_continuation: needs 2·window + 1 = {2 * window + 1} frames and one state each, "
+                         f"got {T} frames and {len(states)} states")
+    cut = T - window
+    head = Observations(obs.images[:, :cut], obs.cameras, obs.background)
+    record = fit_continuation(sim, rig, head, states[cut - window], cut - window, iterations, pool)
+    start = SimState(*(torch.tensor(record[k], dtype=sim.X.dtype, device=sim.X.device) for k in ("z", "zdot")),
+                     record["t"])
+    with torch.no_grad():
+        predicted = sim.rollout(start, 2 * window - 1)[window - 1:]  # frames cut … T−1
+    frames = list(range(cut, T))
+    continued = sum(frame_losses(rig, predicted, obs, frames))
+    single = sum(frame_losses(rig, list(states[cut:]), obs, frames))
+    return {"frame": cut - window, "predicted_frames": [cut, T - 1], "loss_continued": continued,
+            "loss_single": single, "fit": record["fit"]}
 
 
 class ContinuationStage:
-    """The continuation (``config.continuation``, module docstring); writes ``continuation.json``. Loading it
-    puts the state into ``state.asset.continuation``."""
+    """The continuation (``config.continuation``, module docstring); writes ``continuation.json``: whether it is
+    used, the check's record and the continuation. Loading it puts the state into ``state.asset.continuation``
+    (None when the check kept the one rollout) and ``used`` and ``check`` into ``state.asset.extra["continuation"]``."""
 
     name = "continuation"
     sections = ("continuation",)
@@ -146,17 +220,24 @@ class ContinuationStage:
     def run(self, ctx: Context, state: State) -> None:
         cfg, o, asset = ctx.config.continuation, ctx.observed, state.asset
         sim = asset.simulator()
-        anchor = o.frames - cfg.window
         with torch.no_grad():
             start = asset.initial_state(sim)
-            at_anchor = ([start] + sim.rollout(start, anchor))[anchor]
+            states = [start] + sim.rollout(start, o.frames - 1)
         rig = GaussianRig(sim, asset.gaussians, asset.shading)
         obs = Observations(o.images_cpu, o.cameras_cpu).at_scale(cfg.scale)  # the asset is on the CPU
-        record = fit_continuation(sim, rig, obs, at_anchor, anchor, cfg.iterations)
-        write_json_atomic(ctx.path(RECORD), record)
+        anchor = o.frames - cfg.window
+        processes = ctx.rollout_processes
+        with RolloutPool(processes) if processes > 0 else nullcontext() as pool:
+            check = None
+            if cfg.check and o.frames >= 2 * cfg.window + 1:
+                check = check_continuation(sim, rig, obs, states, cfg.window, cfg.iterations, pool)
+            used = check is None or check["loss_continued"] < check["loss_single"]
+            record = fit_continuation(sim, rig, obs, states[anchor], anchor, cfg.iterations, pool) if used else None
+        write_json_atomic(ctx.path(RECORD), {"used": used, "check": check, "continuation": record})
 
     def load(self, ctx: Context, state: State) -> None:
         if self.title(ctx, state) is None:
             return
         record = read_json(ctx.path(RECORD), "the continuation's record")
-        state.asset = replace(state.asset, continuation=record)
+        state.asset = replace(state.asset, continuation=record["continuation"])
+        state.asset.extra["continuation"] = {"used": record["used"], "check": record["check"]}
