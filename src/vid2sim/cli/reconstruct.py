@@ -30,7 +30,7 @@ def run(args: argparse.Namespace) -> int:
     if args.restart and args.rerun_changed:
         raise UserError("--restart discards every finished stage and --rerun-changed keeps those whose settings "
                         "agree: give one of them")
-    # the joint stage's rollouts also run on the threads beyond the first, in worker processes
+    # the joint and continuation stages' rollouts also run on the threads beyond the first, in worker processes
     path = reconstruct(args.scene, out, config, progress=not args.quiet, restart=args.restart, device=device,
                        snapshots=snapshots, rerun_changed=args.rerun_changed, rollout_processes=spare_threads())
     material = json.loads((path / "material.json").read_text())
