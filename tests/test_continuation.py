@@ -46,6 +46,8 @@ def test_the_fit_finds_a_moved_end_state_from_its_images(tiny_asset, tiny_scene,
     record = fit_continuation(sim, rig, obs, states[anchor], anchor, iterations=8)
     assert record["frame"] == anchor and record["from_frame"] == 5
     assert record["fit"]["loss"] < 0.05 * record["fit"]["loss_before"]
+    half = fit_continuation(sim, rig, obs.at_scale(0.5), states[anchor], anchor, iterations=8)  # the full preset's
+    assert half["fit"]["loss"] < 0.05 * half["fit"]["loss_before"]
     with RolloutPool(1) as pool:  # the Jacobian's rollouts shared with a worker process: the same fit, to rounding
         shared = fit_continuation(sim, rig, obs, states[anchor], anchor, iterations=8, pool=pool)
     assert shared["fit"]["iterations"] == record["fit"]["iterations"]
