@@ -4,10 +4,9 @@ The fitted simulation is one rollout from frame 0. After the bounces its errors 
 scenes end the observed clip with the centre of mass 0.7–4 cm and the rotation 9–52° off the truth's), and a
 prediction that goes on from there starts that far off. The observed frames say where the body is at their end:
 this stage fits the state at frame a = T − ``window`` (T the observed frames) to frames a … T − 1 and stores it in
-the asset
-(:attr:`~vid2sim.asset.folder.Asset.continuation`), and the captured drop goes on from it after the observed
-frames (:func:`~vid2sim.asset.motion.simulate_states`). The observed frames themselves stay the rollout from frame
-0, so the dynamic reconstruction's score is still the physics' own.
+the asset (:attr:`~vid2sim.asset.folder.Asset.continuation`), and the captured drop goes on from it after the
+observed frames (:func:`~vid2sim.asset.motion.simulate_states`). The observed frames themselves stay the rollout
+from frame 0, so the dynamic reconstruction's score is still the physics' own.
 
 The fitted unknowns are a rigid correction of the simulated state at frame a (:func:`~vid2sim.physics.rigid_motion.
 rigidly_moved`): a rotation about the simulated centre of mass, a translation, and a change of the linear and angular
