@@ -235,8 +235,11 @@ def evaluate(asset_path: str | Path, scene_path: str | Path, fovvdp: bool = Fals
         report["future"]["starts_from"] = "continuation" if continued else "frame 0"
         report["future_from_start"] = _future_from_start(asset, cameras, targets, scene.config, progress) \
             if continued else report["future"]
-    if "continuation" in asset.extra:
-        report["continuation"] = asset.extra["continuation"]
+    record = asset.extra.get("continuation")
+    if record is not None:  # the check's decision and losses (its fit's wall time left out: not a score)
+        check = record.get("check")
+        report["continuation"] = {"used": record.get("used"), "check": None if check is None else {
+            k: check.get(k) for k in ("frame", "predicted_frames", "loss_continued", "loss_single")}}
     if fovvdp:
         _add_fovvdp(report, renders, targets, scene.config, display)
     report["material"] = _material_record(asset, asset_path, scene.config.metadata)
