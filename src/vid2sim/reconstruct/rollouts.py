@@ -17,7 +17,7 @@ from __future__ import annotations
 import pickle
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, replace
-from typing import Any, Protocol, Sequence
+from typing import Any, Sequence
 
 import torch
 
@@ -36,8 +36,38 @@ def set_floor_friction(sim: Simulator, value: float) -> None:
     sim.externals = [replace(e, friction=value) if isinstance(e, Floor) else e for e in sim.externals]
 
 
+def rollout_from(sim: Simulator, start: SimState, frames: int, substeps: int | None = None) -> list[SimState]:
+    """``start`` and the ``frames`` frames after it, without gradients, at ``substeps`` per frame (None: the
+    simulator's automatic count; its configuration is restored). Raises
+    :class:`~vid2sim.physics.solver.SimulationError` where the simulation fails."""
+    config = sim.config
+    if substeps is not None:
+        sim.config = replace(config, substeps=substeps)
+    try:
+        with torch.no_grad():
+            return [start] + sim.rollout(start, frames)
+    finally:
+        sim.config = config
+
+
+class Attempting:
+    """A clip as a function of θ whose ``simulate(θ, substeps)`` may fail: :meth:`attempt` gives None instead. What
+    :func:`simulate_many` simulates, pickled for the workers (:class:`ClipSimulation`, or the continuation's window,
+    :class:`vid2sim.reconstruct.stages.continuation.WindowSimulation`)."""
+
+    def simulate(self, theta: Sequence[float], substeps: int | None = None) -> Any:
+        raise NotImplementedError
+
+    def attempt(self, theta: Sequence[float], substeps: int | None = None) -> Any:
+        """:meth:`simulate`, or None where the simulation fails."""
+        try:
+            return self.simulate(theta, substeps)
+        except SimulationError:
+            return None
+
+
 @dataclass
-class ClipSimulation:
+class ClipSimulation(Attempting):
     """Frames 0 … ``frames`` of the clip as a function of θ.
 
     Attributes:
@@ -76,22 +106,7 @@ class ClipSimulation:
     def simulate(self, theta: Sequence[float], substeps: int | None = None) -> list[SimState]:
         """Frames 0 … ``frames`` at θ (frame 0 the initial state), ``substeps`` per frame (None: the automatic
         count). Raises :class:`~vid2sim.physics.solver.SimulationError` where the simulation fails."""
-        start = self.apply(theta)
-        config = self.sim.config
-        if substeps is not None:
-            self.sim.config = replace(config, substeps=substeps)
-        try:
-            with torch.no_grad():
-                return [start] + self.sim.rollout(start, self.frames)
-        finally:
-            self.sim.config = config
-
-    def attempt(self, theta: Sequence[float], substeps: int | None = None) -> list[SimState] | None:
-        """:meth:`simulate`, or None where the simulation fails."""
-        try:
-            return self.simulate(theta, substeps)
-        except SimulationError:
-            return None
+        return rollout_from(self.sim, self.apply(theta), self.frames, substeps)
 
 
 class RolloutPool:
@@ -139,15 +154,7 @@ def shares(n: int, parts: int) -> list[tuple[int, int]]:
     return out
 
 
-class Attempts(Protocol):
-    """What :func:`simulate_many` simulates: a picklable clip as a function of θ (:class:`ClipSimulation`, or the
-    continuation's window, :class:`vid2sim.reconstruct.stages.continuation.WindowSimulation`)."""
-
-    def attempt(self, theta: Sequence[float], substeps: int | None = None) -> Any:
-        """θ's trajectory, or None where the simulation fails."""
-
-
-def simulate_many(simulation: Attempts, thetas: Sequence[Sequence[float]], substeps: int | None = None,
+def simulate_many(simulation: Attempting, thetas: Sequence[Sequence[float]], substeps: int | None = None,
                   pool: RolloutPool | None = None) -> list[Any]:
     """Each θ's trajectory (``simulation.attempt``, e.g. :meth:`ClipSimulation.attempt`: None where the simulation
     fails), in order.
@@ -183,8 +190,8 @@ def _ready() -> bool:
 
 
 def _simulate_share(blob: bytes, thetas: list[list[float]], substeps: int | None) -> bytes:
-    """In a worker: the pickled simulation ``blob`` (:class:`Attempts`) simulated at each θ with one torch thread;
+    """In a worker: the pickled simulation ``blob`` (:class:`Attempting`) simulated at each θ with one torch thread;
     the trajectories (or None) pickled (tensors inline, not through shared memory)."""
     torch.set_num_threads(1)
-    simulation: Attempts = pickle.loads(blob)
+    simulation: Attempting = pickle.loads(blob)
     return pickle.dumps([simulation.attempt(theta, substeps) for theta in thetas])

@@ -37,10 +37,10 @@ from torch import Tensor
 
 from vid2sim.asset.motion import GaussianRig, simulated_centre_of_mass
 from vid2sim.physics.rigid_motion import rigidly_moved
-from vid2sim.physics.solver import SimState, SimulationError, Simulator
+from vid2sim.physics.solver import SimState, Simulator
 from vid2sim.reconstruct.clip import Observations, frame_losses, render_states
 from vid2sim.reconstruct.gauss_newton import Parameter, effective_images, levenberg_marquardt
-from vid2sim.reconstruct.rollouts import RolloutPool, simulate_many
+from vid2sim.reconstruct.rollouts import Attempting, RolloutPool, rollout_from, simulate_many
 from vid2sim.reconstruct.runner import Context, State
 from vid2sim.runtime.files import read_json, write_json_atomic
 
@@ -52,7 +52,7 @@ NAMES = ("rotation", "translation", "linear", "angular")
 
 
 @dataclass
-class WindowSimulation:
+class WindowSimulation(Attempting):
     """The window's frames as a function of the 12 correction numbers θ (picklable, so that worker processes can
     simulate it: :func:`~vid2sim.reconstruct.rollouts.simulate_many`).
 
@@ -75,22 +75,7 @@ class WindowSimulation:
     def simulate(self, theta: Sequence[float], substeps: int | None = None, frames: int | None = None
                  ) -> list[SimState]:
         """The corrected state and the ``frames`` (default: the window's rest) frames after it."""
-        start = self.moved(theta)
-        config = self.sim.config
-        if substeps is not None:
-            self.sim.config = replace(config, substeps=substeps)
-        try:
-            with torch.no_grad():
-                return [start] + self.sim.rollout(start, self.frames if frames is None else frames)
-        finally:
-            self.sim.config = config
-
-    def attempt(self, theta: Sequence[float], substeps: int | None = None) -> list[SimState] | None:
-        """:meth:`simulate`, or None where the simulation fails."""
-        try:
-            return self.simulate(theta, substeps)
-        except SimulationError:
-            return None
+        return rollout_from(self.sim, self.moved(theta), self.frames if frames is None else frames, substeps)
 
 
 class WindowResiduals:
