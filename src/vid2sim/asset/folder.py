@@ -155,11 +155,14 @@ class Asset:
 
     def continuation_state(self, sim: Simulator) -> SimState | None:
         """The state at frame ``continuation["frame"]`` fitted to the last observed frames, or None."""
-        c = self.continuation
-        if c is None:
-            return None
-        as_state = (lambda k: torch.tensor(c[k], dtype=sim.X.dtype, device=sim.X.device))
-        return SimState(as_state("z"), as_state("zdot"), float(c["t"]))
+        return None if self.continuation is None else recorded_state(self.continuation, sim)
+
+
+def recorded_state(record: dict[str, Any], sim: Simulator) -> SimState:
+    """The :class:`SimState` of a continuation record (``z``, ``zdot``: 12H numbers each, ``t``: s) in ``sim``'s
+    dtype and device."""
+    as_state = (lambda k: torch.tensor(record[k], dtype=sim.X.dtype, device=sim.X.device))
+    return SimState(as_state("z"), as_state("zdot"), float(record["t"]))
 
 
 def _tensor_list(x: Tensor) -> list:

@@ -35,6 +35,7 @@ from typing import Any, Sequence
 import torch
 from torch import Tensor
 
+from vid2sim.asset.folder import recorded_state
 from vid2sim.asset.motion import GaussianRig, simulated_centre_of_mass
 from vid2sim.physics.rigid_motion import rigidly_moved
 from vid2sim.physics.solver import SimState, Simulator
@@ -176,13 +177,12 @@ def check_continuation(sim: Simulator, rig: GaussianRig, obs: Observations, stat
     cut = T - window
     head = Observations(obs.images[:, :cut], obs.cameras, obs.background)
     record = fit_continuation(sim, rig, head, states[cut - window], cut - window, iterations, pool)
-    start = SimState(*(torch.tensor(record[k], dtype=sim.X.dtype, device=sim.X.device) for k in ("z", "zdot")),
-                     record["t"])
     with torch.no_grad():
-        predicted = sim.rollout(start, 2 * window - 1)[window - 1:]  # frames cut … T−1
+        predicted = sim.rollout(recorded_state(record, sim), 2 * window - 1)[window - 1:]  # frames cut … T−1
+        basis = rig.basis()
     frames = list(range(cut, T))
-    continued = sum(frame_losses(rig, predicted, obs, frames))
-    single = sum(frame_losses(rig, list(states[cut:]), obs, frames))
+    continued = sum(frame_losses(rig, predicted, obs, frames, basis))
+    single = sum(frame_losses(rig, list(states[cut:]), obs, frames, basis))
     return {"frame": cut - window, "predicted_frames": [cut, T - 1], "loss_continued": continued,
             "loss_single": single, "fit": record["fit"]}
 
